@@ -1,0 +1,88 @@
+"""The conventions every module shares, in one place.
+
+Sidereal angle
+    ``phi`` is the local (apparent) sidereal time in radians. The sky frame is the
+    celestial frame *of date* (astropy ``TETE`` at the observation epoch). At ``phi = 0``
+    the array's zenith points at RA = 0, Dec = latitude of that frame.
+
+m-mode transform
+    ``V_m = (1/N) sum_n V(phi_n) exp(-i m phi_n)`` over N equal sidereal bins, so that
+    ``V(phi) = sum_m V_m exp(i m phi)``.
+
+Sky
+    Real brightness, ``a_lm`` for ``m >= 0`` with healpy's orthonormal ``Y_lm``;
+    ``a_{l,-m} = (-1)^m conj(a_lm)``.
+
+Transfer coefficients
+    ``B_lm(b) = int A(r) exp(2 pi i b.r / lambda) Y_lm(r) dOmega`` with ``A`` and ``b``
+    expressed in the sky frame at ``phi = 0``. Then ``V_m = sum_l B_lm a_lm`` for
+    ``m >= 0``, and ``conj(V_{-m}) = sum_l B_lm(-b) a_lm``: the -m row of baseline (i, j) is
+    the +m row of baseline (j, i).
+
+Row layout of an m block
+    rows ``0..Nb-1`` are ``V_m`` of baselines ``0..Nb-1``; for ``m > 0`` rows ``Nb..2Nb-1``
+    are ``conj(V_{-m})`` of the same baselines. Columns are ``l = m..lmax``.
+
+Units
+    Visibilities in Jy; beams are power responses, 1 at zenith; transfer matrices map
+    brightness in Jy/sr to Jy (units of sr). Maps are converted to K (default) only by
+    :mod:`mmflow.sky.units`.
+"""
+import numpy as np
+
+
+def enu_to_equatorial_matrix(lat_rad, phi=0.0):
+    """Rotation taking ENU components to celestial-of-date (x to RA=0, z to the pole).
+
+    Columns are the east, north and zenith unit vectors expressed in the celestial frame
+    when the local sidereal time is ``phi``:
+
+    ``E = (-sin phi, cos phi, 0)``,
+    ``N = (-sin lat cos phi, -sin lat sin phi, cos lat)``,
+    ``Z = (cos lat cos phi, cos lat sin phi, sin lat)``.
+
+    Returns
+    -------
+    ndarray, shape (3, 3)
+        ``r_eq = M @ r_enu``; its transpose takes celestial vectors to ENU.
+    """
+    sl, cl = np.sin(lat_rad), np.cos(lat_rad)
+    sp, cp = np.sin(phi), np.cos(phi)
+    return np.array([[-sp, -sl * cp, cl * cp],
+                     [cp, -sl * sp, cl * sp],
+                     [0.0, cl, sl]])
+
+
+def unit_vectors(theta, phi):
+    """Cartesian unit vectors of colatitude ``theta`` and longitude ``phi`` (last axis xyz)."""
+    st = np.sin(theta)
+    return np.stack(np.broadcast_arrays(st * np.cos(phi), st * np.sin(phi), np.cos(theta)), axis=-1)
+
+
+def radec_to_vec(ra_rad, dec_rad):
+    """Unit vectors for right ascension and declination (radians)."""
+    return unit_vectors(np.pi / 2 - np.asarray(dec_rad), np.asarray(ra_rad))
+
+
+def enu_to_azza(enu):
+    """Azimuth (from north through east) and zenith angle of ENU unit vectors."""
+    enu = np.asarray(enu)
+    az = np.arctan2(enu[..., 0], enu[..., 1]) % (2 * np.pi)
+    za = np.arccos(np.clip(enu[..., 2], -1.0, 1.0))
+    return az, za
+
+
+def alm_index(lmax, l, m):
+    """healpy's index of ``a_lm`` (m-major) for ``mmax = lmax``."""
+    return m * (2 * lmax + 1 - m) // 2 + l
+
+
+def n_alm(lmax):
+    """Number of ``a_lm`` with ``0 <= m <= l <= lmax``."""
+    return (lmax + 1) * (lmax + 2) // 2
+
+
+def m_slice(lmax, m):
+    """Slice of the healpy alm vector holding ``a_lm`` for ``l = m..lmax``."""
+    start = alm_index(lmax, m, m)
+    return slice(start, start + lmax - m + 1)

@@ -1,0 +1,1 @@
+"""m-mode analysis: sidereal regridding, the m-mode transform, transfer matrices, normal equations."""

@@ -1,0 +1,1 @@
+"""Independent time-domain simulation of drift scans (no transfer matrices inside)."""

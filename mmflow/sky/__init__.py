@@ -1,0 +1,1 @@
+"""Sky models: point and Gaussian sources with published spectra, diffuse maps, alm helpers."""

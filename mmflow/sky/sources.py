@@ -1,0 +1,148 @@
+"""Point and Gaussian-component sources with published spectra.
+
+Spectra
+-------
+* Baars et al. (1977, A&A 61, 99): ``log10 S[Jy] = a + b log10 nu + c log10(nu)^2`` (nu in MHz)
+  for Cyg A, Cas A (epoch 1965.0) and Vir A, Tau A.
+* Cas A secular decrease 0.77 %/yr (Helmboldt & Kassim 2009), applied from 1965.0.
+* Scaife & Heald (2012, MNRAS 423, L30): ``S = A0 prod_i 10^(A_i log10(nu/150 MHz)^i)``.
+* Perley & Butler (2017, ApJS 230, 7): ``log10 S = sum_i a_i log10(nu/GHz)^i``; valid above
+  ~50 MHz (the reference paper finds them unreliable below), used for Her A, Hya A, 3C 123,
+  3C 353.
+
+Positions are J2000 (ICRS) from NED; they are rotated into the frame of date by
+:func:`mmflow.sky.frames.rotation_matrix`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mmflow.conventions import radec_to_vec
+from mmflow.errors import InputError
+
+
+def _hms(h, m, s):
+    return 15.0 * (h + m / 60 + s / 3600)
+
+
+def _dms(sign, d, m, s):
+    return sign * (d + m / 60 + s / 3600)
+
+
+@dataclass
+class Spectrum:
+    """A published spectrum ``S(nu)`` in Jy.
+
+    kind: ``baars`` (coefficients a, b, c in log10 MHz), ``sh12`` (A0, A1..), ``pb17``
+    (a0, a1, .. in log10 GHz) or ``power_law`` (S0 at nu0 with index alpha).
+    """
+
+    kind: str
+    coeffs: tuple
+    reference: str = ""
+    secular_percent_per_year: float = 0.0
+    secular_epoch_year: float = 1965.0
+
+    def flux(self, freq_hz, epoch_year=None):
+        nu = np.asarray(freq_hz, float)
+        c = self.coeffs
+        if self.kind == "baars":
+            x = np.log10(nu / 1e6)
+            s = 10 ** (c[0] + c[1] * x + (c[2] if len(c) > 2 else 0.0) * x**2)
+        elif self.kind == "sh12":
+            x = np.log10(nu / 150e6)
+            s = c[0] * 10 ** sum(ci * x ** (i + 1) for i, ci in enumerate(c[1:]))
+        elif self.kind == "pb17":
+            x = np.log10(nu / 1e9)
+            s = 10 ** sum(ci * x**i for i, ci in enumerate(c))
+        elif self.kind == "power_law":
+            s = c[0] * (nu / c[1]) ** c[2]
+        else:
+            raise InputError("spectrum", "kind", f"unknown spectrum kind '{self.kind}'",
+                             "use baars, sh12, pb17 or power_law")
+        if self.secular_percent_per_year and epoch_year is not None:
+            s = s * (1 - self.secular_percent_per_year / 100) ** (epoch_year - self.secular_epoch_year)
+        return s
+
+
+@dataclass
+class Source:
+    """A compact source: a point, or a sum of elliptical Gaussian components.
+
+    Attributes
+    ----------
+    name : str
+    ra_deg, dec_deg : float
+        ICRS (J2000) position of the flux-weighted centre.
+    spectrum : Spectrum
+    components : list of dict
+        Gaussian components ``{"dra_arcmin", "ddec_arcmin", "fraction", "fwhm_major_arcmin",
+        "fwhm_minor_arcmin", "pa_deg"}``; empty for a point source.
+    """
+
+    name: str
+    ra_deg: float
+    dec_deg: float
+    spectrum: Spectrum
+    components: list = field(default_factory=list)
+
+    def flux(self, freq_hz, epoch_year=None):
+        return self.spectrum.flux(freq_hz, epoch_year)
+
+    def vector_icrs(self):
+        return radec_to_vec(np.deg2rad(self.ra_deg), np.deg2rad(self.dec_deg))
+
+
+CATALOG = {
+    "Cyg A": Source("Cyg A", _hms(19, 59, 28.357), _dms(1, 40, 44, 2.10),
+                    Spectrum("baars", (4.695, 0.085, -0.178), "Baars et al. 1977")),
+    "Cas A": Source("Cas A", _hms(23, 23, 24.0), _dms(1, 58, 48, 54.0),
+                    Spectrum("baars", (5.625, -0.634, -0.023), "Baars et al. 1977 (1965.0), "
+                             "0.77%/yr secular decrease (Helmboldt & Kassim 2009)", 0.77, 1965.0)),
+    "Vir A": Source("Vir A", _hms(12, 30, 49.423), _dms(1, 12, 23, 28.04),
+                    Spectrum("baars", (5.023, -0.856, 0.0), "Baars et al. 1977")),
+    "Tau A": Source("Tau A", _hms(5, 34, 31.94), _dms(1, 22, 0, 52.2),
+                    Spectrum("baars", (3.915, -0.299, 0.0), "Baars et al. 1977")),
+    "Her A": Source("Her A", _hms(16, 51, 8.15), _dms(1, 4, 59, 33.3),
+                    Spectrum("pb17", (1.8298, -1.0247, -0.0951), "Perley & Butler 2017")),
+    "Hya A": Source("Hya A", _hms(9, 18, 5.651), _dms(-1, 12, 5, 43.99),
+                    Spectrum("pb17", (1.7795, -0.9176, -0.0843, -0.0139, 0.0295), "Perley & Butler 2017")),
+    "3C 123": Source("3C 123", _hms(4, 37, 4.375), _dms(1, 29, 40, 13.82),
+                     Spectrum("pb17", (1.8017, -0.7884, -0.1035, -0.0248, 0.0090), "Perley & Butler 2017")),
+    "3C 353": Source("3C 353", _hms(17, 20, 28.147), _dms(-1, 0, 58, 46.8),
+                     Spectrum("pb17", (1.8627, -0.6938, -0.0998, -0.0732), "Perley & Butler 2017")),
+    "3C 48": Source("3C 48", _hms(1, 37, 41.30), _dms(1, 33, 9, 35.1),
+                    Spectrum("sh12", (64.768, -0.387, -0.420, 0.181), "Scaife & Heald 2012")),
+    "3C 147": Source("3C 147", _hms(5, 42, 36.14), _dms(1, 49, 51, 7.2),
+                     Spectrum("sh12", (66.738, -0.022, -1.012, 0.549), "Scaife & Heald 2012")),
+    "3C 196": Source("3C 196", _hms(8, 13, 36.03), _dms(1, 48, 13, 2.6),
+                     Spectrum("sh12", (83.084, -0.699, -0.110), "Scaife & Heald 2012")),
+    "3C 286": Source("3C 286", _hms(13, 31, 8.29), _dms(1, 30, 30, 33.0),
+                     Spectrum("sh12", (27.477, -0.158, 0.032, -0.180), "Scaife & Heald 2012")),
+    "3C 295": Source("3C 295", _hms(14, 11, 20.52), _dms(1, 52, 12, 9.9),
+                     Spectrum("sh12", (97.763, -0.582, -0.298, 0.583, -0.363), "Scaife & Heald 2012")),
+    "3C 380": Source("3C 380", _hms(18, 29, 31.78), _dms(1, 48, 44, 46.2),
+                     Spectrum("sh12", (77.352, -0.767), "Scaife & Heald 2012")),
+}
+
+#: The eight bright sources the reference paper removes before imaging (section 3.5).
+PAPER_REMOVED = ("Cyg A", "Cas A", "Vir A", "Tau A", "Her A", "Hya A", "3C 123", "3C 353")
+#: The Scaife & Heald (2012) flux calibrators.
+SH12_CALIBRATORS = ("3C 48", "3C 147", "3C 196", "3C 286", "3C 295", "3C 380")
+
+
+def get_sources(names):
+    """Look up catalogue sources by name (``"Cyg A"``, ``"3C 286"``, ...)."""
+    out = []
+    for n in names:
+        if n not in CATALOG:
+            raise InputError("sky.sources", "name", f"unknown source '{n}'", f"use one of {sorted(CATALOG)}")
+        out.append(CATALOG[n])
+    return out
+
+
+def point_source(name, ra_deg, dec_deg, flux_jy, ref_freq_hz=74e6, alpha=-0.7):
+    """A power-law point source ``S = flux_jy (nu / ref)^alpha``."""
+    return Source(name, ra_deg, dec_deg, Spectrum("power_law", (flux_jy, ref_freq_hz, alpha)))
