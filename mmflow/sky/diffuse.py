@@ -7,7 +7,7 @@ from __future__ import annotations
 import healpy
 import numpy as np
 
-from mmflow.conventions import unit_vectors
+from mmflow.conventions import m_slice, unit_vectors
 from mmflow.sky.frames import rotate_alm, rotation_matrix
 
 
@@ -59,9 +59,8 @@ def band_limited_random_alm(lmax, seed=0, power_index=-2.0, lmin=0):
     for m in range(lmax + 1):
         ls = np.arange(m, lmax + 1)
         sig = np.where(ls >= lmin, (ls + 1.0) ** (power_index / 2), 0.0)
-        start = m * (2 * lmax + 1 - m) // 2
         re, im = rng.normal(size=(2, len(ls)))
-        alm[start:start + len(ls)] = sig * (re + (1j * im if m > 0 else 0)) / (np.sqrt(2) if m > 0 else 1)
+        alm[m_slice(lmax, m)] = sig * (re + (1j * im if m > 0 else 0)) / (np.sqrt(2) if m > 0 else 1)
     return alm
 
 
@@ -78,6 +77,5 @@ def point_source_alm(vec, flux, lmax):
     alm = np.zeros((lmax + 1) * (lmax + 2) // 2, np.complex128)
     for m in range(lmax + 1):
         ls = np.arange(m, lmax + 1)
-        start = m * (2 * lmax + 1 - m) // 2
-        alm[start:start + len(ls)] = flux * np.conj(sph_harm_y(ls, m, theta, phi))
+        alm[m_slice(lmax, m)] = flux * np.conj(sph_harm_y(ls, m, theta, phi))
     return alm

@@ -1,0 +1,1 @@
+"""Science products and measurements on maps: peaks, FWHM, noise, flux scale."""

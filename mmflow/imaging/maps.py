@@ -1,0 +1,23 @@
+"""From a_lm in the frame of date to HEALPix maps in ICRS or Galactic, in K or Jy/sr."""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.sky import units
+from mmflow.sky.diffuse import alm_to_map
+from mmflow.sky.frames import rotate_alm, rotation_matrix
+
+
+def default_nside(lmax):
+    """Smallest power-of-two nside with ``3 nside > lmax`` (pixels resolve the band limit)."""
+    nside = 1
+    while 3 * nside <= lmax:
+        nside *= 2
+    return nside
+
+
+def alm_to_output_map(alm_jy_sr, lmax, freq_hz, epoch_jd, frame="icrs", unit="K", nside=None):
+    """Rotate from the frame of date to ``frame`` and synthesise a map in ``unit``."""
+    alm = rotate_alm(alm_jy_sr, rotation_matrix("date", frame, epoch_jd), lmax) if frame != "date" else alm_jy_sr
+    m = alm_to_map(alm, nside or default_nside(lmax), lmax)
+    return units.convert(m, "Jy/sr", unit, freq_hz)

@@ -1,0 +1,60 @@
+"""Streaming normal equations: ``G_m = B_m^H N^-1 B_m`` and ``r_m = B_m^H N^-1 v_m``.
+
+Accumulated over baseline chunks with BLAS ``?herk`` (upper triangle) and never storing B.
+``N`` is diagonal: one variance per row (from the radiometer equation or from the data).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg import blas
+
+
+def herk_upper(a, c=None, alpha=1.0):
+    """``C += alpha A^H A`` (upper triangle valid) with ``cherk``/``zherk``; returns C."""
+    a = np.asarray(a)
+    f = blas.cherk if a.dtype == np.complex64 else blas.zherk
+    # BLAS is column-major: A (rows x cols) C-ordered is A^T in Fortran order, so
+    # "trans=0" on it computes A^T conj(A^T)^H = conj(A^H A); we conjugate the input instead.
+    at = np.conj(a).T  # Fortran-contiguous view of conj(A)^T... ensure layout
+    at = np.asfortranarray(at)
+    if c is None:
+        return f(alpha, at, trans=0, lower=0)
+    return f(alpha, at, beta=1.0, c=c, trans=0, lower=0, overwrite_c=1)
+
+
+def hermitian_full(c_upper):
+    """Fill the lower triangle of an upper-triangle Hermitian matrix."""
+    out = np.triu(c_upper) + np.triu(c_upper, 1).conj().T
+    return out
+
+
+class NormalAccumulator:
+    """Per-m accumulator of ``G_m`` and ``r_m`` for one frequency.
+
+    Parameters
+    ----------
+    lmax, mmax : int
+    dtype : complex64 or complex128 (complex128 recommended for accumulation)
+    """
+
+    def __init__(self, lmax, mmax, dtype=np.complex128, ms=None):
+        self.lmax, self.mmax = lmax, mmax
+        self.ms = list(range(mmax + 1)) if ms is None else list(ms)
+        self.gram = {m: np.zeros((lmax - m + 1, lmax - m + 1), dtype, order="F") for m in self.ms}
+        self.rhs = {m: np.zeros(lmax - m + 1, dtype) for m in self.ms}
+        self.dtype = np.dtype(dtype)
+
+    def add(self, m, block, v=None, inv_var=None):
+        """Add one chunk: ``G_m += B^H W B``, ``r_m += B^H W v`` with ``W = diag(inv_var)``."""
+        b = np.asarray(block, self.dtype)
+        if inv_var is not None:
+            b = b * np.sqrt(np.asarray(inv_var, float))[:, None].astype(b.real.dtype)
+        self.gram[m] = herk_upper(b, self.gram[m])
+        if v is not None:
+            vv = np.asarray(v, self.dtype)
+            if inv_var is not None:
+                vv = vv * np.sqrt(np.asarray(inv_var, float)).astype(vv.real.dtype)
+            self.rhs[m] += b.conj().T @ vv
+
+    def full_gram(self, m):
+        return hermitian_full(self.gram[m])

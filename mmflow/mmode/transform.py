@@ -1,0 +1,106 @@
+"""Sidereal regridding and the m-mode transform.
+
+``V_m = (1/N) sum_n V(phi_n) exp(-i m phi_n)``, ``phi_n = 2 pi n / N`` (see conventions).
+Stored as ``mmodes[m, 0, b] = V_m`` and ``mmodes[m, 1, b] = conj(V_{-m})`` (slot unused at m=0).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.errors import CoverageError, InputError
+
+TWO_PI = 2 * np.pi
+
+
+def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source="visibilities"):
+    """Average time-ordered data onto ``n_bins`` equal sidereal bins centred on ``2 pi n / N``.
+
+    Several days fold onto the same bins (weighted mean). Samples with zero weight or
+    non-finite values are ignored: zero is a value, never a flag.
+
+    Parameters
+    ----------
+    lsts : ndarray (n_time,)
+        Sidereal angle of each sample in radians (any start, any number of days).
+    vis : ndarray (n_time, ...)
+    weights : ndarray broadcastable to ``vis``, optional
+        Non-negative weights (e.g. 1/sigma^2 or 1 for good, 0 for flagged).
+    n_bins : int
+        Number of sidereal bins; must be ``>= 2 mmax + 1`` for the transform.
+    min_coverage : float
+        Fraction of bins (per baseline, median over baselines) that must hold data.
+
+    Returns
+    -------
+    binned : ndarray (n_bins, ...) complex
+    bin_weight : ndarray (n_bins, ...) float, the summed weights
+
+    Raises
+    ------
+    CoverageError
+        When less than ``min_coverage`` of the sidereal day holds data.
+    InputError
+        For NaN/inf in visibilities that are not flagged (weight > 0).
+    """
+    lsts = np.asarray(lsts, float)
+    vis = np.asarray(vis)
+    if len(lsts) != len(vis):
+        raise InputError(source, "lst", f"{len(lsts)} LSTs for {len(vis)} integrations",
+                         "give one LST per integration")
+    w = np.ones(vis.shape) if weights is None else np.broadcast_to(np.asarray(weights, float), vis.shape)
+    if np.any(w < 0):
+        raise InputError(source, "weights", "negative weights", "weights must be >= 0 (0 = flagged)")
+    bad = ~np.isfinite(vis) & (w > 0)
+    if np.any(bad):
+        t_bad = np.unique(np.nonzero(bad)[0])[:5]
+        raise InputError(source, "visibilities", f"{int(bad.sum())} NaN/inf values that are not flagged "
+                         f"(first integrations {t_bad.tolist()})", "flag them (weight 0) or fix the data")
+    idx = np.round(np.mod(lsts, TWO_PI) / TWO_PI * n_bins).astype(int) % n_bins
+    flat_v = np.where(w > 0, vis, 0).reshape(len(vis), -1)
+    flat_w = w.reshape(len(vis), -1)
+    acc = np.zeros((n_bins, flat_v.shape[1]), np.complex128)
+    wsum = np.zeros((n_bins, flat_v.shape[1]))
+    np.add.at(acc, idx, flat_v * flat_w)
+    np.add.at(wsum, idx, flat_w)
+    coverage = float(np.median(np.mean(wsum > 0, axis=0)))
+    if coverage < min_coverage:
+        raise CoverageError(source, "lst", f"only {coverage:.1%} of {n_bins} sidereal bins hold data "
+                            f"(need {min_coverage:.0%})",
+                            "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        binned = np.where(wsum > 0, acc / np.where(wsum > 0, wsum, 1), 0)
+    shape = (n_bins,) + vis.shape[1:]
+    return binned.reshape(shape), wsum.reshape(shape)
+
+
+def mmode_transform(binned, mmax):
+    """m-modes of sidereally binned data, shape ``(mmax + 1, 2) + binned.shape[1:]``.
+
+    ``out[m, 0] = V_m``, ``out[m, 1] = conj(V_{-m})`` with ``V_m = (1/N) sum_n V_n e^{-i m phi_n}``.
+    """
+    n = binned.shape[0]
+    if n < 2 * mmax + 1:
+        raise InputError("m-mode transform", "n_bins", f"{n} sidereal bins cannot resolve mmax={mmax}",
+                         f"use at least {2 * mmax + 1} bins (or lower mmax)")
+    spec = np.fft.fft(binned, axis=0) / n  # sum V e^{-2 pi i k n / N} / N
+    out = np.empty((mmax + 1, 2) + binned.shape[1:], np.complex128)
+    out[:, 0] = spec[:mmax + 1]
+    out[:, 1] = np.conj(spec[(-np.arange(mmax + 1)) % n])
+    out[0, 1] = 0
+    return out
+
+
+def mmode_noise_variance(bin_weight, sigma2_per_unit_weight=1.0):
+    """Variance of each m-mode from bin weights (inverse-variance weights -> 1/sum w per bin).
+
+    ``Var(V_m) = (1/N^2) sum_n Var(V_n)``; identical for every m (white in sidereal time).
+    """
+    n = bin_weight.shape[0]
+    with np.errstate(divide="ignore"):
+        var_n = np.where(bin_weight > 0, sigma2_per_unit_weight / np.where(bin_weight > 0, bin_weight, 1), 0)
+    return var_n.sum(axis=0) / n**2
+
+
+def block_vector(mmodes, m):
+    """The data vector of one m block: ``V_m`` rows, then ``conj(V_{-m})`` rows for m > 0."""
+    return mmodes[m, 0] if m == 0 else np.concatenate([mmodes[m, 0], mmodes[m, 1]])
