@@ -16,6 +16,7 @@ Kernels here are plain numpy/ducc0 on in-memory arrays; dask maps them over chun
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import ducc0
@@ -62,18 +63,36 @@ class TransferGrid:
     beam: np.ndarray
     active: np.ndarray
     _tables: dict = field(default_factory=dict, repr=False)
+    _work: dict = field(default_factory=dict, repr=False)
+
+    def workspace(self, shape, dtype):
+        """Two reusable buffers (first-touch page faults of fresh GB arrays are not free)."""
+        key = (shape, np.dtype(dtype).str)
+        if key not in self._work:
+            self._work.clear()
+            self._work[key] = (np.zeros(shape, dtype), np.zeros(shape, dtype))
+        return self._work[key]
 
     @property
     def n_theta(self):
         return len(self.theta)
 
     def tables(self, m, dtype):
-        """Weighted Legendre tables ``(w_k lambda_lm(theta_k))`` split by parity of ``l - m``."""
+        """Weighted Legendre tables ``w_k lambda_lm(theta_k)`` split by parity of ``l - m``.
+
+        Returns ``(k0, even, odd)``: rings before ``k0`` (near the pole, where
+        ``lambda_lm ~ sin^m theta`` is below the working precision -- 1e-15 (float64) or
+        1e-9 (float32) of its peak -- for every l) are dropped.
+        """
         key = (m, np.dtype(dtype).str)
         if key not in self._tables:
             north = self.active
             t = legendre_table(m, self.lmax, self.theta[north]) * self.weights[north]
-            self._tables[key] = (np.ascontiguousarray(t[0::2], dtype), np.ascontiguousarray(t[1::2], dtype))
+            col = np.abs(t).max(axis=0)
+            tol = 1e-9 if np.dtype(dtype) == np.float32 else 1e-15
+            k0 = int(np.argmax(col > tol * col.max())) if col.max() > 0 else 0
+            t = t[:, k0:]
+            self._tables[key] = (k0, np.ascontiguousarray(t[0::2], dtype), np.ascontiguousarray(t[1::2], dtype))
         return self._tables[key]
 
 
@@ -94,31 +113,54 @@ def make_grid(lat_rad, beam, freq_hz, lmax, fringe_lmax):
     return TransferGrid(lmax, quad, theta, weights, n_phi, vec, a, np.flatnonzero(seen))
 
 
-def _ring_fourier(grid, b, rings, cdtype):
-    """``F_{k,m}`` for ``m = -n_phi/2..`` on ``rings`` for baselines ``b`` (n_b, 3), in wavelengths.
+def _phasor_block(vec, beam_n, beam_s, b2pi, rdtype, cdtype):
+    """Beam-weighted fringes on a block of north rings and their mirrors (baseline-minor layout).
 
-    Returns complex array ``(n_b, len(rings), n_phi)`` (FFT order in the last axis).
+    ``vec``: (nr, nphi, 3) north-ring directions; mirrored directions are ``(x, y, -z)`` so
+    ``b.r' = b.r - 2 b_z z``: the south fringe is the north one times ``exp(-2 i b_z z)``, one
+    complex multiply instead of a sincos. Phases are reduced modulo 2 pi in float64 before
+    the (float32 or float64) sincos. Returns two arrays (nr, nphi, nb).
+    """
+    ph = vec @ b2pi.T  # (nr, nphi, nb) float64
+    ph -= (2 * np.pi) * np.round(ph * (1 / (2 * np.pi)))
+    ph = ph.astype(rdtype, copy=False)
+    north = np.empty(ph.shape, cdtype)
+    north.real = np.cos(ph)
+    north.imag = np.sin(ph)
+    zphase = -2.0 * vec[:, :1, 2:3] * b2pi[None, None, :, 2]  # (nr, 1, nb)
+    south = north * np.exp(1j * zphase).astype(cdtype)
+    north *= beam_n[:, :, None].astype(rdtype)
+    south *= beam_s[:, :, None].astype(rdtype)
+    return north, south
+
+
+def _ring_fourier(grid, b, start, stop, mmax, cdtype, fsum, fdiff):
+    """Fill ``fsum/fdiff[m, k, :]`` for north-ring slots ``start..stop``.
+
+    By linearity the FFT of (north +/- south) gives ``F_k +/- F_k'`` directly, the two
+    inputs of the parity-split Legendre GEMMs.
     """
     rdtype = np.float32 if cdtype == np.complex64 else np.float64
-    vec = grid.vectors[rings]  # (nr, nphi, 3)
-    a = grid.beam[rings]
-    out = np.zeros((len(b), len(rings), grid.n_phi), cdtype)
-    up = a > 0
-    vu = vec[up]  # (n_up, 3)
-    au = a[up].astype(rdtype)
-    for i, bi in enumerate(b):
-        ph = vu @ (2 * np.pi * bi)
-        ph -= 2 * np.pi * np.round(ph / (2 * np.pi))  # reduce in float64, then evaluate
-        ph = ph.astype(rdtype, copy=False)
-        vals = np.empty(len(ph), cdtype)
-        vals.real = np.cos(ph) * au
-        vals.imag = np.sin(ph) * au
-        out[i][up] = vals
-    ducc0.fft.c2c(out, axes=(2,), forward=False, inorm=0, out=out, nthreads=n_threads())
-    return out
+    nb = len(b)
+    ks = grid.active[start:stop]
+    north, south = _phasor_block(grid.vectors[ks], grid.beam[ks], grid.beam[grid.n_theta - 1 - ks],
+                                 2 * np.pi * b, rdtype, cdtype)
+    north += south
+    south *= -2
+    south += north  # north - south
+    n = grid.n_phi
+    for f, target in ((north, fsum), (south, fdiff)):
+        ducc0.fft.c2c(f, axes=(1,), forward=False, inorm=0, out=f, nthreads=1)
+        target[:, start:stop, :nb] = f[:, :mmax + 1, :].transpose(1, 0, 2)
+        # conj(F_{-m}) for m = 0..mmax: index 0, then n-1, n-2, ... (a reversed slice, no gather)
+        neg = target[:, start:stop, nb:]
+        neg[0] = f[:, 0, :]
+        if mmax > 0:
+            neg[1:] = f[:, n - 1:n - 1 - mmax:-1, :].transpose(1, 0, 2)
+        np.conjugate(neg, out=neg)
 
 
-def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=64):
+def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=4):
     """Yield ``(m, B_m)`` for ``m = 0..mmax`` for a chunk of baselines.
 
     Parameters
@@ -144,32 +186,25 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
     lmax_b = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b), lmax)
     rdtype = np.dtype(dtype)
     cdtype = np.complex64 if rdtype == np.float32 else np.complex128
-    half = grid.n_theta // 2
-    north = grid.active
-    nn = len(north)
-    # P[m, k, c]: columns c < nb are +m of b, c >= nb are +m of -b (i.e. the -m rows)
-    plus = np.zeros((mmax + 1, nn, 2 * nb), cdtype)
-    minus = np.zeros((mmax + 1, nn, 2 * nb), cdtype)  # same for the mirrored (south) rings
-    for start in range(0, nn, ring_block):
-        ks = north[start:start + ring_block]
-        for target, rings in ((plus, ks), (minus, grid.n_theta - 1 - ks)):
-            f = _ring_fourier(grid, b, rings, cdtype)  # (nb, nr, nphi)
-            sl = slice(start, start + len(ks))
-            target[:, sl, :nb] = f[:, :, :mmax + 1].transpose(2, 1, 0)
-            neg = np.conj(f[:, :, (-np.arange(mmax + 1)) % grid.n_phi])  # conj(F_{-m})
-            target[:, sl, nb:] = neg.transpose(2, 1, 0)
-    del half
+    nn = len(grid.active)
+    # fsum[m, k, c] = F_{k,m} + F_{k',m} for north ring k and its mirror k'; fdiff the difference.
+    # Columns c < nb are the baselines, c >= nb the reversed baselines (the -m rows).
+    fsum, fdiff = grid.workspace((mmax + 1, nn, 2 * nb), cdtype)
+    bounds = [(s0, min(s0 + ring_block, nn)) for s0 in range(0, nn, ring_block)]
+    with ThreadPoolExecutor(max_workers=n_threads()) as pool:
+        list(pool.map(lambda se: _ring_fourier(grid, b, se[0], se[1], mmax, cdtype, fsum, fdiff), bounds))
     ell_all = np.arange(lmax + 1)
     for m in range(mmax + 1):
-        even, odd = grid.tables(m, rdtype)
-        s = (plus[m] + minus[m]).view(rdtype)  # (nn, 4 nb) real view
-        d = (plus[m] - minus[m]).view(rdtype)
+        k0, even, odd = grid.tables(m, rdtype)
+        s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
+        d = fdiff[m, k0:].view(rdtype)
         out = np.empty((lmax - m + 1, 2 * nb), cdtype)
         out[0::2] = (even @ s).view(cdtype)
         out[1::2] = (odd @ d).view(cdtype)
         block = out.T if m > 0 else out[:, :nb].T
-        mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
-        block = np.where(mask, 0, block)
+        if np.any(lmax_b < lmax):
+            mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
+            block = np.where(mask, 0, block)
         yield m, block
 
 
