@@ -60,8 +60,7 @@ def gauss_legendre_points(alm_jy_sr, lmax, quad_lmax):
     return SkyPoints(vec, (sky * w[:, None]).ravel())
 
 
-def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.complex128,
-                        time_chunk=16):
+def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.complex128):
     """Noise-free visibilities for every sidereal angle in ``lsts`` (radians).
 
     Parameters
@@ -72,7 +71,8 @@ def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.comp
     sky : SkyPoints
     pairs : ndarray (n_bl, 2), optional
         Antenna pairs; defaults to ``telescope.antenna_pairs()``.
-    dtype : complex dtype of the per-antenna factors (complex64 for speed)
+    dtype : complex dtype of the per-antenna factors (complex64: float32 sincos after a
+        float64 reduction of the phase, ~10x faster, ~1e-7 relative error)
 
     Returns
     -------
@@ -87,8 +87,14 @@ def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.comp
         up = enu[:, 2] > 0
         r = enu[up]
         weight = telescope.beam.power_enu(r, freq_hz) * sky.flux_jy[up]
-        phase = 2 * np.pi * (x @ r.T)  # (n_ant, n_up)
-        z = np.exp(1j * phase).astype(dtype, copy=False)
+        phase = x @ r.T  # (n_ant, n_up), in turns
+        phase -= np.round(phase)
+        phase *= 2 * np.pi
+        if np.dtype(dtype) == np.complex64:
+            phase = phase.astype(np.float32)
+        z = np.empty(phase.shape, dtype)
+        z.real = np.cos(phase)
+        z.imag = np.sin(phase)
         vis = (np.conj(z) * weight.astype(z.real.dtype)) @ z.T  # V_ij = sum conj(z_i) z_j w
         out[t] = vis[pairs[:, 0], pairs[:, 1]]
     return out

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -33,6 +34,7 @@ class Telescope:
     integration_s: float = 13.0
     include_autos: bool = True
     channel_width_hz: float = 24e3
+    pairs: Optional[np.ndarray] = None
 
     def __post_init__(self):
         self.freqs_hz = np.atleast_1d(np.asarray(self.freqs_hz, float))
@@ -50,7 +52,9 @@ class Telescope:
         return self.layout.n_ant
 
     def antenna_pairs(self):
-        """Antenna index pairs ``(i, j)`` with ``i <= j`` (``i < j`` without autos), i-major."""
+        """Antenna index pairs ``(i, j)``: as given (ingested data), else ``i <= j`` i-major."""
+        if self.pairs is not None:
+            return np.asarray(self.pairs)
         i, j = np.triu_indices(self.n_ant, k=0 if self.include_autos else 1)
         return np.stack([i, j], axis=1)
 

@@ -1,0 +1,1 @@
+"""Input/output: ingest with pyuvdata, zarr stores, FITS/PNG export."""

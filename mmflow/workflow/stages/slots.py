@@ -1,0 +1,20 @@
+"""Stages built by other issues (calibration, peeling, terrestrial removal, CLEAN).
+
+They have their place in the graph; disabled, they are skipped and the runner says so.
+Enabled before they exist, the run stops with a clear error: a stage is never faked.
+"""
+from mmflow.errors import InputError
+from mmflow.workflow.stages.base import Stage, register
+
+
+def _unavailable(name):
+    def prepare(ctx):
+        raise InputError("workflow", f"{name}.enabled", f"the '{name}' stage is not available in this "
+                         "version of mmflow", f"set {name}.enabled=false (data are used as they are)")
+    return prepare
+
+
+for _name, _desc in (("calibrate", "Stefcal per integration"), ("peel", "direction-dependent peeling"),
+                     ("terrestrial", "terrestrial component removal"), ("clean", "m-mode CLEAN")):
+    register(Stage(_name, (_name,), (), (), _unavailable(_name), None,
+                   enabled=lambda cfg, n=_name: getattr(cfg, n).enabled, description=_desc))
