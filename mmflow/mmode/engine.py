@@ -55,15 +55,18 @@ class GridCache:
         return self._grids[key]
 
 
-def chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype=np.float64, cache=None, mmax=None):
-    """Yield ``(m, B_m)`` for one baseline chunk, with columns for ``l = m..lmax`` (zero-padded)."""
+def chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype=np.float64, cache=None, mmax=None, pad=True):
+    """Yield ``(m, B_m)`` for one baseline chunk, columns ``l = m..lmax`` (``pad``) or ``m..chunk.lmax``.
+
+    Blocks stop at ``m = chunk.lmax``: a chunk's coefficients vanish for larger m.
+    """
     pairs = telescope.antenna_pairs()[chunk.index]
     b = baselines_in_wavelengths(telescope, pairs, freq_hz)
     cache = cache or GridCache(telescope, freq_hz)
     grid = cache.get(chunk.lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), telescope.beam.lmax_hint))
     mmax = lmax if mmax is None else mmax
     for m, blk in iter_transfer_blocks(grid, b, lmax_b[chunk.index], min(mmax, chunk.lmax), dtype):
-        if chunk.lmax < lmax:
+        if pad and chunk.lmax < lmax:
             full = np.zeros((blk.shape[0], lmax - m + 1), blk.dtype)
             full[:, :blk.shape[1]] = blk
             blk = full
@@ -88,7 +91,7 @@ def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, 
     nbl = mmodes.shape[2]
     w = np.ones(nbl) if inv_var is None else np.asarray(inv_var, float)
     for chunk in chunks:
-        for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, cache, mmax):
+        for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, cache, mmax, pad=False):
             idx = chunk.index
             v = mmodes[m, 0, idx] if m == 0 else np.concatenate([mmodes[m, 0, idx], mmodes[m, 1, idx]])
             wv = w[idx] if m == 0 else np.concatenate([w[idx], w[idx]])

@@ -45,16 +45,26 @@ class NormalAccumulator:
         self.dtype = np.dtype(dtype)
 
     def add(self, m, block, v=None, inv_var=None):
-        """Add one chunk: ``G_m += B^H W B``, ``r_m += B^H W v`` with ``W = diag(inv_var)``."""
+        """Add one chunk: ``G_m += B^H W B``, ``r_m += B^H W v`` with ``W = diag(inv_var)``.
+
+        ``block`` may have fewer columns than ``lmax - m + 1`` (a chunk of short baselines
+        whose coefficients vanish beyond its lmax): only the leading sub-block is updated,
+        which is where per-baseline lmax saves most of the Gram work.
+        """
         b = np.asarray(block, self.dtype)
+        n = b.shape[1]
         if inv_var is not None:
             b = b * np.sqrt(np.asarray(inv_var, float))[:, None].astype(b.real.dtype)
-        self.gram[m] = herk_upper(b, self.gram[m])
+        if n == self.gram[m].shape[0]:
+            self.gram[m] = herk_upper(b, self.gram[m])
+        else:
+            sub = np.asfortranarray(self.gram[m][:n, :n])
+            self.gram[m][:n, :n] = herk_upper(b, sub)
         if v is not None:
             vv = np.asarray(v, self.dtype)
             if inv_var is not None:
                 vv = vv * np.sqrt(np.asarray(inv_var, float)).astype(vv.real.dtype)
-            self.rhs[m] += b.conj().T @ vv
+            self.rhs[m][:n] += b.conj().T @ vv
 
     def full_gram(self, m):
         return hermitian_full(self.gram[m])

@@ -16,6 +16,7 @@ Kernels here are plain numpy/ducc0 on in-memory arrays; dask maps them over chun
 """
 from __future__ import annotations
 
+import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
@@ -160,7 +161,8 @@ def _ring_fourier(grid, b, start, stop, mmax, cdtype, fsum, fdiff):
         np.conjugate(neg, out=neg)
 
 
-def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=4):
+def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=4,
+                         timings=None):
     """Yield ``(m, B_m)`` for ``m = 0..mmax`` for a chunk of baselines.
 
     Parameters
@@ -172,6 +174,8 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
         Per-baseline lmax; coefficients with ``l > lmax_b`` are set to zero.
     dtype : float32 or float64
         Precision of the GEMM and of the blocks (complex64 / complex128 out).
+    timings : dict, optional
+        Accumulates ``fourier_s``, ``legendre_s`` and ``legendre_flops`` (for benchmarks).
 
     Yields
     ------
@@ -191,16 +195,23 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
     # Columns c < nb are the baselines, c >= nb the reversed baselines (the -m rows).
     fsum, fdiff = grid.workspace((mmax + 1, nn, 2 * nb), cdtype)
     bounds = [(s0, min(s0 + ring_block, nn)) for s0 in range(0, nn, ring_block)]
+    t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=n_threads()) as pool:
         list(pool.map(lambda se: _ring_fourier(grid, b, se[0], se[1], mmax, cdtype, fsum, fdiff), bounds))
+    if timings is not None:
+        timings["fourier_s"] = timings.get("fourier_s", 0.0) + time.perf_counter() - t0
     ell_all = np.arange(lmax + 1)
     for m in range(mmax + 1):
         k0, even, odd = grid.tables(m, rdtype)
         s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
         d = fdiff[m, k0:].view(rdtype)
         out = np.empty((lmax - m + 1, 2 * nb), cdtype)
+        t0 = time.perf_counter()
         out[0::2] = (even @ s).view(cdtype)
         out[1::2] = (odd @ d).view(cdtype)
+        if timings is not None:
+            timings["legendre_s"] = timings.get("legendre_s", 0.0) + time.perf_counter() - t0
+            timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + 2.0 * (even.size + odd.size) * s.shape[1]
         block = out.T if m > 0 else out[:, :nb].T
         if np.any(lmax_b < lmax):
             mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]

@@ -133,9 +133,12 @@ def ovro_lwa_layout(preset="core", radius_m=None, stands=None, max_antennas=None
 
     Parameters
     ----------
-    preset : {"core", "full", "leda512-2013"}
+    preset : {"core", "full", "paper-2017", "leda512-2013"}
         ``full``: the 352 stands used in the LWA-352 (from ``ovro-lwa-352-antennas.txt``);
         ``core``: stands LWA-001..LWA-251 (the ~200 m core);
+        ``paper-2017``: an approximation of the reference paper's 256-antenna array: stands
+        LWA-001..219 of the core, the five LEDA outriggers LWA-252..256 and the 32 fibre
+        stands spread evenly in radius out to 800 m (longest baselines ~1.5 km);
         ``leda512-2013``: 256 stands of the 2013 as-built LEDA-512 survey (closest to the
         array of the reference paper, without its 32 expansion antennas).
     radius_m : float, optional
@@ -152,7 +155,7 @@ def ovro_lwa_layout(preset="core", radius_m=None, stands=None, max_antennas=None
     and 0 where missing (recorded in ``Layout.notes``).
     """
     notes = []
-    if preset in ("core", "full"):
+    if preset in ("core", "full", "paper-2017"):
         rows = _read_ovro_352()
         elev = np.array([float(r[2]) if r[2] != "N/A" else np.nan for r in rows])
         ref = float(np.nanmedian(elev[:251]))
@@ -160,8 +163,17 @@ def ovro_lwa_layout(preset="core", radius_m=None, stands=None, max_antennas=None
         if missing:
             notes.append(f"{len(missing)} stands without elevation: up=0 assumed")
         up = np.where(np.isfinite(elev), elev - ref, 0.0)
-        keep = [i for i, r in enumerate(rows)
-                if (preset == "full" and r[5] == "YES") or (preset == "core" and int(r[0][4:]) <= 251)]
+        num = np.array([int(r[0][4:]) for r in rows])
+        if preset == "full":
+            keep = [i for i, r in enumerate(rows) if r[5] == "YES"]
+        elif preset == "core":
+            keep = list(np.flatnonzero(num <= 251))
+        else:
+            fibre = [i for i, r in enumerate(rows) if r[1] == "Fiber" and r[5] == "YES"]
+            fibre = sorted((i for i in fibre if np.hypot(rows[i][3], rows[i][4]) <= 800.0),
+                           key=lambda i: np.hypot(rows[i][3], rows[i][4]))
+            fibre = [fibre[k] for k in np.unique(np.linspace(0, len(fibre) - 1, 32).round().astype(int))]
+            keep = sorted(list(np.flatnonzero(num <= 219)) + list(np.flatnonzero((num >= 252) & (num <= 256))) + fibre)
         lay = Layout([rows[i][0] for i in keep],
                      np.array([(rows[i][3], rows[i][4], up[i]) for i in keep]),
                      OVRO_LWA_CENTER["lat_deg"], OVRO_LWA_CENTER["lon_deg"], ref,
@@ -173,7 +185,7 @@ def ovro_lwa_layout(preset="core", radius_m=None, stands=None, max_antennas=None
         lay.provenance = "telegraphic/interfits antenna_locations.tpl @ 0ee46e94b84d (LEDA-512, 2013)"
     else:
         raise InputError("telescope", "preset", f"unknown OVRO-LWA preset '{preset}'",
-                         "use one of 'core', 'full', 'leda512-2013'")
+                         "use one of 'core', 'full', 'paper-2017', 'leda512-2013'")
     lay = lay.select(stands, radius_m)
     if max_antennas is not None:
         lay = lay.select(np.arange(min(max_antennas, lay.n_ant)))

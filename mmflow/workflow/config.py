@@ -29,7 +29,7 @@ class RunConfig(_Section):
 class TelescopeConfig(_Section):
     """The array. Either an OVRO-LWA preset or a layout file plus a site."""
 
-    preset: Optional[Literal["core", "full", "leda512-2013"]] = Field(
+    preset: Optional[Literal["core", "full", "paper-2017", "leda512-2013"]] = Field(
         "core", description="OVRO-LWA preset from the real stand positions; null to use layout_file.")
     layout_file: Optional[str] = Field(None, description="Text layout 'name east north [up]' (metres).")
     lat_deg: Optional[float] = Field(None, description="Site latitude for layout_file.")

@@ -102,7 +102,7 @@ def _transfer_task(ctx, key):
         mm = np.empty((mmax + 1, 2, len(idx)), np.complex128)
         mm[..., order] = mm_all.get_orthogonal_selection((fi, slice(None), slice(None), idx[order]))
         w = inv_var[idx]
-        for m, blk in chunk_blocks(tel, f, chunk, lmax, lmax_b, dtype, cache, mmax):
+        for m, blk in chunk_blocks(tel, f, chunk, lmax, lmax_b, dtype, cache, mmax, pad=store is not None):
             v = mm[m, 0] if m == 0 else np.concatenate([mm[m, 0], mm[m, 1]])
             wv = w if m == 0 else np.concatenate([w, w])
             acc.add(m, blk, v, wv)

@@ -1,0 +1,196 @@
+"""``mmflow bench transfer`` / ``mmflow bench solve``: measured figures, printed as JSON.
+
+Nothing here asserts a time; it measures, in one run, this machine's GEMM peak, the
+transfer-matrix throughput (and the fraction of GEMM peak its Legendre step reaches), the
+per-baseline healpy ``map2alm`` approach for comparison, Gram/Cholesky/solve rates, memory
+scaling, and a projection for the reference paper's channel from the measured rates.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.mmode.transfer import fringe_bandlimit, iter_transfer_blocks, make_grid
+from mmflow.telescope.beams import SinElevationBeam
+from mmflow.threads import n_threads
+
+LAT = np.deg2rad(37.24)
+BEAM = SinElevationBeam(1.5)
+
+
+def _best(fn, reps=3):
+    best = np.inf
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def gemm_gflops(dtype, n=1536):
+    a = np.random.default_rng(0).random((n, n)).astype(dtype)
+    b = np.random.default_rng(1).random((n, n)).astype(dtype)
+    a @ b
+    return 2.0 * n**3 / _best(lambda: a @ b) / 1e9
+
+
+def _full_lmax_baselines(lmax, nb, seed=0):
+    """Baselines (wavelengths, sky frame) long enough that their per-baseline lmax is ``lmax``."""
+    rng = np.random.default_rng(seed)
+    kb = max(lmax - BEAM.lmax_hint, 1) / 1.1
+    b = rng.normal(size=(nb, 3))
+    b[:, 2] *= 0.02
+    return b / np.linalg.norm(b, axis=1)[:, None] * kb / (2 * np.pi)
+
+
+def transfer_rate(lmax, dtype, nb=32, chunks=2):
+    """Baselines/s for baselines that need the full lmax (the worst case), steady state."""
+    b = _full_lmax_baselines(lmax, nb)
+    grid = make_grid(LAT, BEAM, 50e6, lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), BEAM.lmax_hint))
+    for _ in iter_transfer_blocks(grid, b[:2], dtype=dtype):  # warm: tables, workspace, FFT plans
+        pass
+    tim = {}
+    t0 = time.perf_counter()
+    for c in range(chunks):
+        for _ in iter_transfer_blocks(grid, _full_lmax_baselines(lmax, nb, seed=c + 1), dtype=dtype, timings=tim):
+            pass
+    el = time.perf_counter() - t0
+    return {"lmax": lmax, "dtype": np.dtype(dtype).name, "baselines_per_s": nb * chunks / el,
+            "grid": [grid.n_theta, grid.n_phi], "fourier_s_per_baseline": tim["fourier_s"] / (nb * chunks),
+            "legendre_s_per_baseline": tim["legendre_s"] / (nb * chunks),
+            "legendre_gflops": tim["legendre_flops"] / tim["legendre_s"] / 1e9}
+
+
+def healpy_rate(lmax, nside, n=2):
+    """The driftscan-style approach: per baseline, evaluate A e^{2 pi i b.r} on HEALPix, two map2alm."""
+    import healpy
+
+    vec = np.array(healpy.pix2vec(nside, np.arange(healpy.nside2npix(nside)))).T
+    a = BEAM.power_enu(vec @ enu_to_equatorial_matrix(LAT), 50e6)
+    bs = _full_lmax_baselines(lmax, n)
+
+    def one(b):
+        f = a * np.exp(2j * np.pi * (vec @ b))
+        healpy.map2alm(f.real, lmax=lmax, iter=0)
+        healpy.map2alm(f.imag, lmax=lmax, iter=0)
+
+    one(bs[0])
+    t0 = time.perf_counter()
+    for b in bs:
+        one(b)
+    return {"lmax": lmax, "nside": nside, "baselines_per_s": n / (time.perf_counter() - t0)}
+
+
+def herk_rate(lmax, nb=64, dtype=np.complex64):
+    from mmflow.mmode.normal import herk_upper
+
+    rng = np.random.default_rng(0)
+    blk = (rng.normal(size=(2 * nb, lmax + 1)) + 1j * rng.normal(size=(2 * nb, lmax + 1))).astype(dtype)
+    c = herk_upper(blk)
+    t = _best(lambda: herk_upper(blk, c))
+    t_gemm = _best(lambda: blk.conj().T @ blk)
+    flops = 4.0 * 2 * nb * (lmax + 1) ** 2  # complex herk: ~4 n k^2
+    return {"lmax": lmax, "rows": 2 * nb, "dtype": np.dtype(dtype).name, "herk_gflops": flops / t / 1e9,
+            "speedup_over_BhB": t_gemm / t}
+
+
+def solve_rate(lmax, eps=0.01):
+    """Cholesky factor + solve per m block; the total over all m from the L^3 model."""
+    from mmflow.imaging.solvers import tikhonov
+
+    rng = np.random.default_rng(0)
+    out = {}
+    for n in sorted({min(lmax + 1, 128), min(lmax + 1, 512), lmax + 1}):
+        x = rng.normal(size=(n + 16, n)) + 1j * rng.normal(size=(n + 16, n))
+        g = x.conj().T @ x
+        r = rng.normal(size=n) + 0j
+        out[n] = _best(lambda: tikhonov(g, r, eps), reps=2)
+    n_max = lmax + 1
+    per_l3 = out[n_max] / n_max**3
+    total = sum(per_l3 * (lmax - m + 1) ** 3 for m in range(lmax + 1))
+    return {"lmax": lmax, "seconds_per_block": {str(k): v for k, v in out.items()}, "all_m_seconds": total}
+
+
+def _paper_projection(rates, herk, solve):
+    """The paper's channel (256 antennas, 32,896 baselines with autos, lmax 1000, 73.152 MHz)."""
+    from mmflow.telescope import Telescope, ovro_lwa_layout
+
+    tel = Telescope(ovro_lwa_layout("paper-2017"), BEAM, [73.152e6])
+    lmax_b = tel.baseline_lmax(73.152e6, 1000)
+    # measured transfer cost per baseline at several lmax, interpolated in log-log
+    ls = np.array([r["lmax"] for r in rates], float)
+    ts = np.array([1.0 / r["baselines_per_s"] for r in rates])
+    slope = np.polyfit(np.log(ls), np.log(ts), 1)
+    t_bl = np.exp(np.polyval(slope, np.log(np.maximum(lmax_b, ls.min()))))
+    transfer_s = float(t_bl.sum())
+    # Gram: each baseline adds 2 rows to blocks m <= lmax_b with lmax_b - m + 1 columns
+    herk_flops = float(sum(4.0 * 2 * ((lb - np.arange(lb + 1) + 1) ** 2).sum() for lb in lmax_b))
+    gram_s = herk_flops / (herk["herk_gflops"] * 1e9)
+    return {"baselines": int(len(lmax_b)), "lmax": 1000, "freq_mhz": 73.152,
+            "median_baseline_lmax": float(np.median(lmax_b)), "baselines_at_lmax_1000": int(np.sum(lmax_b >= 1000)),
+            "transfer_s": transfer_s, "gram_s": gram_s, "solve_s": solve["all_m_seconds"],
+            "total_minutes": (transfer_s + gram_s + solve["all_m_seconds"]) / 60.0,
+            "model": f"t_baseline ~ lmax_b^{slope[0]:.2f} fitted to the measured float32 rates"}
+
+
+def memory_scaling(lmax=160, sizes=(64, 128, 256)):
+    """Peak RSS of the streaming normal equations for growing numbers of baselines (subprocesses)."""
+    code = ("import numpy as np, resource, sys\n"
+            "from mmflow.telescope import Telescope, ovro_lwa_layout\n"
+            "from mmflow.telescope.beams import SinElevationBeam\n"
+            "from mmflow.mmode.engine import accumulate_normal_equations\n"
+            "n=int(sys.argv[1]); L=int(sys.argv[2])\n"
+            "tel=Telescope(ovro_lwa_layout('core'), SinElevationBeam(1.5), [60e6])\n"
+            "tel.pairs=tel.antenna_pairs()[np.linspace(0, 31625, n).astype(int)]\n"
+            "mm=np.zeros((L+1,2,n),complex)\n"
+            "accumulate_normal_equations(tel, 60e6, mm, L, chunk_size=32, dtype=np.float32)\n"
+            "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n")
+    out = {}
+    for n in sizes:
+        res = subprocess.run([sys.executable, "-c", code, str(n), str(lmax)], capture_output=True, text=True,
+                             check=True)
+        out[str(n)] = int(res.stdout.strip().splitlines()[-1]) / 1024.0
+    return {"lmax": lmax, "peak_rss_mb_by_n_baselines": out}
+
+
+def machine():
+    return {"python": platform.python_version(), "cpus": os.cpu_count(), "threads": n_threads(),
+            "numpy": np.__version__}
+
+
+def run(what, quick=False):
+    res = {"machine": machine()}
+    if what == "transfer":
+        res["sgemm_gflops"] = gemm_gflops(np.float32)
+        res["dgemm_gflops"] = gemm_gflops(np.float64)
+        lmaxes = (128, 256) if quick else (256, 512, 1000)
+        res["transfer"] = [transfer_rate(L, dt) for L in lmaxes for dt in (np.float32, np.float64)]
+        for r in res["transfer"]:
+            peak = res["sgemm_gflops"] if r["dtype"] == "float32" else res["dgemm_gflops"]
+            r["legendre_fraction_of_gemm_peak"] = r["legendre_gflops"] / peak
+        hl, hn = (256, 256) if quick else (1000, 1024)
+        res["healpy_map2alm"] = healpy_rate(hl, hn, n=1 if quick else 2)
+        ours = max(r["baselines_per_s"] for r in res["transfer"] if r["lmax"] == hl and r["dtype"] == "float32")
+        res["speedup_over_healpy"] = ours / res["healpy_map2alm"]["baselines_per_s"]
+    elif what == "solve":
+        lmax = 256 if quick else 1000
+        res["herk"] = herk_rate(lmax)
+        res["solve"] = solve_rate(lmax)
+        rates = [transfer_rate(L, np.float32) for L in ((64, 128, 256) if quick else (128, 256, 512, 1000))]
+        res["transfer_float32"] = rates
+        res["paper_channel_projection"] = _paper_projection(rates, res["herk"], res["solve"])
+        res["memory"] = memory_scaling(96 if quick else 160, (32, 64, 128) if quick else (64, 128, 256))
+    res["peak_rss_mb_this_process"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return res
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(sys.argv[1], quick="--quick" in sys.argv), indent=2))
