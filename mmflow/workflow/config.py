@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -184,6 +185,10 @@ def load_config(path=None, overrides=()):
             raise InputError("command line", item, "override without '='", "write section.key=value")
         k, v = item.split("=", 1)
         _set_dotted(data, k.strip(), yaml.safe_load(v))
+    for sec, key in (("run", "directory"), ("input", "path")):
+        val = data.get(sec, {}).get(key) if isinstance(data.get(sec), dict) else None
+        if isinstance(val, str):
+            data[sec][key] = os.path.expanduser(os.path.expandvars(val))
     try:
         return WorkflowConfig.model_validate(data)
     except ValidationError as exc:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import time
 from importlib.metadata import PackageNotFoundError, version
 
@@ -30,6 +31,9 @@ def run_task(ctx, stage_name, key):
     run = ctx.run
     if run.is_done(stage_name, key):
         return {"key": key, "skipped": True}
+    delay = float(os.environ.get("MMFLOW_TASK_DELAY_S", "0") or 0)
+    if delay:  # a knob to slow tasks down: watch the dashboard, or test kills mid-stage
+        time.sleep(delay)
     t0 = time.time()
     info = get_stage(stage_name).task(ctx, key) or {}
     info = dict(info, seconds=round(time.time() - t0, 3))

@@ -33,6 +33,17 @@ def _groups(ctx, fi):
     return groups, lmax_b
 
 
+def relative_weights(inv_var):
+    """Noise weights scaled to unit mean over measured baselines.
+
+    Minimum-variance weighting changes the relative weights of baselines, not the scale of
+    ``B^H B``: eps keeps the meaning it has for unweighted data (the paper's eps = 0.01).
+    """
+    inv_var = np.asarray(inv_var, float)
+    good = inv_var > 0
+    return inv_var / inv_var[good].mean() if good.any() else inv_var
+
+
 def n_groups_of(ctx):
     """Reduction groups: enough to keep every worker busy, few enough to keep partials small."""
     c = ctx.cfg.cluster
@@ -88,7 +99,7 @@ def _transfer_task(ctx, key):
     groups, lmax_b = _groups(ctx, fi)
     mg = zarr.open_group(str(ctx.run.store("mmodes.zarr")), mode="r")
     mm_all = mg["mmodes"]
-    inv_var = mg["inv_var"][fi] if cfg.imaging.noise_weighting else np.ones(mg["inv_var"].shape[1])
+    inv_var = relative_weights(mg["inv_var"][fi]) if cfg.imaging.noise_weighting else np.ones(mg["inv_var"].shape[1])
     acc = NormalAccumulator(lmax, mmax, np.complex128)
     vhv = np.zeros(mmax + 1)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64

@@ -1,0 +1,161 @@
+"""The workflow: demo chain, resumability, staleness, CLI and configuration."""
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+from mmflow.cli import main
+from mmflow.errors import InputError, StaleOutputError
+from mmflow.workflow.config import load_config, schema_yaml
+from mmflow.workflow.runner import run_workflow, status
+from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def reference_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("ref") / "run"
+    summaries = run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)
+    return run_dir, summaries
+
+
+def test_demo_chain_produces_maps_and_summaries(reference_run):
+    run_dir, summaries = reference_run
+    for st in ("simulate", "mmodes", "transfer", "normal", "solve", "products"):
+        assert summaries[st]["tasks"] >= 1 and summaries[st]["bytes_written"] > 0
+    info = json.loads((run_dir / "maps" / "summary.json").read_text())["maps"][0]
+    assert info["unit"] == "K" and info["frame"] == "galactic"
+    assert (run_dir / info["fits"]).exists() and (run_dir / info["png"]).exists()
+    assert 0 < info["fraction_singular_values_above_sqrt_eps"] <= 1
+    cfg_saved = yaml.safe_load((run_dir / "config.yaml").read_text())
+    assert cfg_saved["mmode"]["lmax"] == 24
+    assert "zarr" in json.loads((run_dir / "run.json").read_text())["versions"]
+    st = status(run_dir)
+    assert st["products"]["complete"] and st["calibrate"] is None
+
+
+def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
+    run_dir, _ = reference_run
+    before = read_outputs(run_dir)
+    summaries = run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)
+    assert all(s["tasks_run"] == 0 for s in summaries.values())
+    assert_identical(before, read_outputs(run_dir))
+
+
+def test_changed_settings_refuse_stale_outputs_then_force_recomputes(tmp_path):
+    run_dir = tmp_path / "run"
+    run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)
+    changed = small_config(run_dir, "imaging.eps=0.1")
+    with pytest.raises(StaleOutputError, match="--force"):
+        run_workflow(changed, progress=False, log=lambda *a: None)
+    summaries = run_workflow(changed, force=True, progress=False, log=lambda *a: None)
+    assert "simulate" not in summaries or summaries["simulate"]["tasks_run"] == 0
+    assert summaries["solve"]["tasks_run"] > 0 and summaries["products"]["tasks_run"] > 0
+
+
+def test_enabled_stage_that_does_not_exist_is_an_error_not_a_fake(tmp_path):
+    cfg = small_config(tmp_path / "run", "calibrate.enabled=true")
+    with pytest.raises(InputError, match="calibrate.enabled.*not available"):
+        run_workflow(cfg, progress=False, log=lambda *a: None)
+
+
+def test_killed_run_resumes_to_bit_identical_outputs(reference_run, tmp_path):
+    ref_dir, _ = reference_run
+    run_dir = tmp_path / "killed"
+    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
+            f"run.directory={run_dir}", "--no-progress"]
+    env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    marker_dir = run_dir / "_status" / "transfer"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("*.done"))):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    assert not (run_dir / "_status" / "products" / "complete.json").exists()
+    rc = main(["run", "workflows/demo.yaml", *SMALL, f"run.directory={run_dir}", "--no-progress"])
+    assert rc == 0
+    assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
+
+
+def test_sigint_run_resumes_to_bit_identical_outputs(reference_run, tmp_path):
+    ref_dir, _ = reference_run
+    run_dir = tmp_path / "interrupted"
+    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
+            f"run.directory={run_dir}", "--no-progress"]
+    env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    marker_dir = run_dir / "_status" / "mmodes"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("*.done"))):
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=60)
+    rc = main(["run", "workflows/demo.yaml", *SMALL, f"run.directory={run_dir}", "--no-progress"])
+    assert rc == 0
+    assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
+
+
+def test_single_stage_subcommand_needs_its_inputs(tmp_path, capsys):
+    rc = main(["solve", "workflows/demo.yaml", *SMALL, f"run.directory={tmp_path / 'r'}"])
+    assert rc == 2
+    assert "needs stage 'normal' complete" in capsys.readouterr().err
+
+
+def test_config_schema_overrides_and_errors(tmp_path, capsys):
+    text = schema_yaml()
+    assert "eps: 0.01" in text and "lmax: 64" in text
+    assert main(["config", "init", str(tmp_path / "w.yaml")]) == 0
+    cfg = load_config(tmp_path / "w.yaml", ["mmode.lmax=99", "observation.freqs_mhz=[50, 60]"])
+    assert cfg.mmode.lmax == 99 and cfg.observation.freqs_mhz == [50, 60]
+    with pytest.raises(InputError, match=r"mmode.lmaxx.*Extra inputs"):
+        load_config("workflows/demo.yaml", ["mmode.lmaxx=3"])
+    with pytest.raises(InputError, match="freqs_mhz"):
+        load_config("workflows/demo.yaml", ["observation.freqs_mhz=[-1]"])
+    with pytest.raises(InputError, match="without '='"):
+        load_config("workflows/demo.yaml", ["mmode.lmax"])
+    with pytest.raises(InputError, match="file not found"):
+        load_config(tmp_path / "missing.yaml")
+    assert main(["status", str(tmp_path)]) == 0
+    assert "not started" in capsys.readouterr().out
+
+
+def test_shipped_workflows_validate():
+    for name in ("demo", "uvh5-image", "ovro-lwa-2017", "hpc-slurm"):
+        cfg = load_config(os.path.join(ROOT, "workflows", f"{name}.yaml"))
+        assert cfg.run.name
+    paper = load_config(os.path.join(ROOT, "workflows", "ovro-lwa-2017.yaml"))
+    assert paper.mmode.lmax == 1000 and paper.imaging.eps == 0.01 and len(paper.observation.freqs_mhz) == 8
+    assert paper.imaging.filter_m1_lmin == 100
+
+
+def test_docs_configuration_page_matches_schema():
+    with open(os.path.join(ROOT, "docs", "configuration.md")) as fh:
+        doc = fh.read()
+    assert schema_yaml().strip() in doc, "regenerate docs/configuration.md with `mmflow config show`"
+
+
+def test_docker_files_are_consistent():
+    with open(os.path.join(ROOT, "docker", "compose.yaml")) as fh:
+        compose = yaml.safe_load(fh)
+    svc = compose["services"]
+    assert {"scheduler", "worker", "client"} <= set(svc)
+    assert "8787:8787" in svc["scheduler"]["ports"]
+    assert "tcp://scheduler:8786" in " ".join(svc["worker"]["command"])
+    assert svc["client"]["environment"]["DASK_SCHEDULER_ADDRESS"] == "tcp://scheduler:8786"
+    assert any(v.endswith(":/runs") for v in svc["worker"]["volumes"])
+    with open(os.path.join(ROOT, "docker", "Dockerfile")) as fh:
+        df = fh.read()
+    assert df.startswith("#") and "FROM python:3.11" in df and "pip install ." in df
+    for path in ("pyproject.toml", "mmflow", "workflows"):
+        assert f"COPY {path}" in df and os.path.exists(os.path.join(ROOT, path))
+    cmd = svc["client"]["command"]
+    assert cmd[:2] == ["mmflow", "run"] and cmd[2].startswith("/opt/mmflow/workflows/")
+    assert os.path.exists(os.path.join(ROOT, "workflows", os.path.basename(cmd[2])))

@@ -1,0 +1,39 @@
+"""Small workflow configurations shared by the workflow tests."""
+import numpy as np
+import zarr
+
+from mmflow.workflow.config import load_config
+
+SMALL = [
+    "telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.integration_s=344.6563620",
+    "sky.diffuse=true", "sky.diffuse_lmax=16", "sky.quad_oversample=16", "mmode.lmax=24",
+    "mmode.baseline_chunk=64", "transfer.baseline_chunk=32", "transfer.m_block=8", "products.nside=32",
+    "cluster.kind=synchronous",
+]
+
+
+def small_config(run_dir, *extra):
+    return load_config("workflows/demo.yaml", SMALL + [f"run.directory={run_dir}", *extra])
+
+
+def read_outputs(run_dir):
+    """Every array a finished run produced (for bit-identical comparisons)."""
+    out = {}
+    for store in ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"):
+        g = zarr.open_group(str(run_dir / store), mode="r")
+        for name, arr in g.arrays():
+            out[f"{store}/{name}"] = arr[:]
+        for gname, sub in g.groups():
+            for name, arr in sub.arrays():
+                out[f"{store}/{gname}/{name}"] = arr[:]
+    import healpy
+
+    for fits in sorted((run_dir / "maps").glob("*.fits")):
+        out[fits.name] = healpy.read_map(str(fits))
+    return out
+
+
+def assert_identical(a, b):
+    assert a.keys() == b.keys()
+    for k in a:
+        assert np.array_equal(a[k], b[k], equal_nan=True), k
