@@ -1,0 +1,91 @@
+"""A real multi-process dask cluster on loopback: a scheduler and two worker processes."""
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+
+from mmflow.workflow.config import load_config
+from mmflow.workflow.runner import run_workflow
+from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
+
+BIN = os.path.dirname(sys.executable)
+
+
+def _free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def loopback_cluster(tmp_path):
+    port = _free_port()
+    addr = f"tcp://127.0.0.1:{port}"
+    env = dict(os.environ, MMFLOW_THREADS="1")
+    dask = shutil.which("dask", path=BIN) or "dask"
+    procs = [subprocess.Popen([dask, "scheduler", "--host", "127.0.0.1", "--port", str(port),
+                               "--dashboard-address", ":0"], env=env, stdout=subprocess.DEVNULL,
+                              stderr=subprocess.DEVNULL)]
+    workers = []
+    for i in range(2):
+        w = subprocess.Popen([dask, "worker", addr, "--nthreads", "1", "--nworkers", "1", "--no-nanny",
+                              "--memory-limit", "2GiB", "--name", f"w{i}", "--local-directory", str(tmp_path / f"w{i}")],
+                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        workers.append(w)
+    from distributed import Client
+
+    client = Client(addr, timeout=60)
+    client.wait_for_workers(2, timeout=60)
+    try:
+        yield client, workers
+    finally:
+        client.close()
+        for p in workers + procs:
+            p.kill()
+            p.wait()
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("cref") / "run"
+    run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)
+    return read_outputs(run_dir)
+
+
+def test_workflow_on_two_worker_processes_matches_synchronous_run(loopback_cluster, reference, tmp_path):
+    client, _ = loopback_cluster
+    run_dir = tmp_path / "dist"
+    summaries = run_workflow(small_config(run_dir), client=client, progress=False, log=lambda *a: None)
+    assert summaries["transfer"]["tasks_run"] >= 2
+    workers_used = {info["name"] for info in client.scheduler_info()["workers"].values()}
+    assert len(workers_used) == 2
+    assert_identical(reference, read_outputs(run_dir))
+
+
+def test_killing_a_worker_mid_stage_still_gives_identical_outputs(loopback_cluster, reference, tmp_path):
+    client, workers = loopback_cluster
+    run_dir = tmp_path / "killw"
+    os.environ["MMFLOW_TASK_DELAY_S"] = "0.3"
+    client.run(lambda: os.environ.__setitem__("MMFLOW_TASK_DELAY_S", "0.3"))
+    import threading
+
+    def killer():
+        marker_dir = run_dir / "_status" / "transfer"
+        deadline = time.time() + 120
+        while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("*.done"))):
+            time.sleep(0.02)
+        workers[0].kill()
+
+    t = threading.Thread(target=killer)
+    t.start()
+    try:
+        run_workflow(small_config(run_dir), client=client, progress=False, log=lambda *a: None)
+    finally:
+        t.join()
+        os.environ.pop("MMFLOW_TASK_DELAY_S", None)
+    assert workers[0].poll() is not None  # the worker really died mid-run
+    assert_identical(reference, read_outputs(run_dir))
