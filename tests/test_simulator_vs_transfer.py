@@ -52,3 +52,18 @@ def test_healpix_and_point_inputs_agree_for_a_single_pixel(small_telescope):
     a = simulate_drift_scan(tel, 40e6, lst, healpix_points(hmap))
     b = simulate_drift_scan(tel, 40e6, lst, SkyPoints(vec[None], np.array([3.0 * 4 * np.pi / len(hmap)])))
     np.testing.assert_allclose(a, b, atol=1e-12)
+
+
+def test_lsts_off_the_bin_grid_keep_their_exact_phase(small_telescope):
+    """A drift scan starting at an arbitrary LST: the transform uses the true sample LSTs."""
+    tel, f = small_telescope, 40e6
+    sky = SkyPoints(np.array([[0.5, 0.5, np.sqrt(0.5)]]), np.array([50.0]))
+    n = 48
+    base = 2 * np.pi * np.arange(n) / n
+    ref = mmode_transform(sidereal_bins(base, simulate_drift_scan(tel, f, base, sky), n_bins=n)[0], 20)
+    off = base + 0.37 * 2 * np.pi / n  # a third of a bin off the grid
+    binned, _, offset = sidereal_bins(off, simulate_drift_scan(tel, f, off, sky), n_bins=n)
+    assert np.allclose(offset, 0.37 * 2 * np.pi / n)
+    np.testing.assert_allclose(mmode_transform(binned, 20, offset), ref, atol=1e-12)
+    naive = mmode_transform(binned, 20)
+    assert np.abs(naive - ref).max() > 1e-3 * np.abs(ref).max()  # snapping to bin centres is wrong

@@ -109,5 +109,5 @@ def test_coverage_and_nan_errors():
         sidereal_bins(lst, vis, n_bins=64)
     w = np.ones((64, 3))
     w[5, 1] = 0
-    binned, wsum = sidereal_bins(lst, vis, weights=w, n_bins=64)  # flagged NaN is fine
+    binned, wsum, _ = sidereal_bins(lst, vis, weights=w, n_bins=64)  # flagged NaN is fine
     assert wsum[5, 1] == 0 and binned[5, 1] == 0

@@ -4,8 +4,10 @@ The plan (metadata of every file, read without data) checks that files agree on
 frequencies and antennas, orders integrations by time, rejects duplicate times, and maps
 each integration to a row of ``vis.zarr``. Tasks then read the files covering one time
 chunk. Stokes I = (XX + YY) / 2 (paper section 2); a single polarisation is used as is.
-pyuvdata stores ``V = <E_1 E_2*>`` with ``exp(-2 pi i b.s)``, ``b = x_2 - x_1``; mmflow uses
-``exp(+2 pi i b.r)``, so data are conjugated on the way in (``input.conjugate``).
+pyuvdata's data (``V_12 = <E_1 E_2*>``, ``b = x_2 - x_1``, as simulated by matvis and hera_sim)
+follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/test_ingest.py`` checks by
+imaging a matvis drift scan: sources land at their ICRS positions. ``input.conjugate``
+flips the sign for data written in the opposite convention.
 """
 from __future__ import annotations
 
@@ -74,12 +76,12 @@ def _plan(pattern, fmt, on_bad):
                              "remove or replace the file, or set input.on_bad_file=skip") from exc
     ref = metas[0]
     freqs = np.asarray(ref.freq_array).ravel()
-    ants = np.asarray(ref.antenna_numbers)
+    ants = np.asarray(ref.telescope.antenna_numbers)
     for f, uv in zip(good[1:], metas[1:]):
         if not np.allclose(np.asarray(uv.freq_array).ravel(), freqs):
             raise InputError(f, "freq_array", f"frequencies differ from {good[0]}",
                              "ingest one spectral setup per run (select channels first)")
-        if not np.array_equal(np.asarray(uv.antenna_numbers), ants):
+        if not np.array_equal(np.asarray(uv.telescope.antenna_numbers), ants):
             raise InputError(f, "antenna_numbers", f"antenna set differs from {good[0]}",
                              "ingest files from one array configuration per run")
     # baselines: union as (ant1, ant2) index pairs with i <= j in antenna-index order
@@ -103,7 +105,7 @@ def _plan(pattern, fmt, on_bad):
         row_of[(fi, round(t * 86400.0, 3))] = row
     enu = _antenna_enu(ref)
     lat, lon, alt = ref.telescope.location_lat_lon_alt_degrees
-    layout = Layout([str(n) for n in ref.antenna_names], enu, float(lat), float(lon), float(alt),
+    layout = Layout([str(n) for n in ref.telescope.antenna_names], enu, float(lat), float(lon), float(alt),
                     provenance=f"ingested from {good[0]}")
     tint = float(np.median(np.asarray(ref.integration_time)))
     times = np.array([t for t, _ in all_t])
@@ -165,8 +167,7 @@ def ingest_time_chunk(cfg, plan, row0, row1, store_path):
                 continue
             i, j = int(a1[k]), int(a2[k])
             v = data[k]
-            # stored V_pyuvdata(i, j); mmflow's V(i, j) is its conjugate (sign of the exponent)
-            if i > j:
+            if i > j:  # V(j, i) = conj(V(i, j))
                 i, j, v = j, i, np.conj(v)
             if cfg.input.conjugate:
                 v = np.conj(v)

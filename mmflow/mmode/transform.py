@@ -34,6 +34,10 @@ def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source
     -------
     binned : ndarray (n_bins, ...) complex
     bin_weight : ndarray (n_bins, ...) float, the summed weights
+    offset : ndarray (n_bins,) float
+        Weighted mean of ``phi - 2 pi n / N`` of the samples in each bin (radians). Pass it
+        to :func:`mmode_transform` so that samples keep their exact LSTs: a drift scan whose
+        LSTs are not on the bin grid is otherwise shifted by up to half a bin in RA.
 
     Raises
     ------
@@ -55,7 +59,9 @@ def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source
         t_bad = np.unique(np.nonzero(bad)[0])[:5]
         raise InputError(source, "visibilities", f"{int(bad.sum())} NaN/inf values that are not flagged "
                          f"(first integrations {t_bad.tolist()})", "flag them (weight 0) or fix the data")
-    idx = np.round(np.mod(lsts, TWO_PI) / TWO_PI * n_bins).astype(int) % n_bins
+    pos = np.mod(lsts, TWO_PI) / TWO_PI * n_bins
+    idx = np.round(pos).astype(int) % n_bins
+    delta = (pos - np.round(pos)) * TWO_PI / n_bins
     flat_v = np.where(w > 0, vis, 0).reshape(len(vis), -1)
     flat_w = w.reshape(len(vis), -1)
     acc = np.zeros((n_bins, flat_v.shape[1]), np.complex128)
@@ -70,22 +76,37 @@ def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source
     with np.errstate(invalid="ignore", divide="ignore"):
         binned = np.where(wsum > 0, acc / np.where(wsum > 0, wsum, 1), 0)
     shape = (n_bins,) + vis.shape[1:]
-    return binned.reshape(shape), wsum.reshape(shape)
+    w_t = flat_w.sum(axis=1)
+    off_acc = np.zeros(n_bins)
+    off_w = np.zeros(n_bins)
+    np.add.at(off_acc, idx, w_t * delta)
+    np.add.at(off_w, idx, w_t)
+    offset = np.where(off_w > 0, off_acc / np.where(off_w > 0, off_w, 1), 0.0)
+    return binned.reshape(shape), wsum.reshape(shape), offset
 
 
-def mmode_transform(binned, mmax):
+def mmode_transform(binned, mmax, offset=None):
     """m-modes of sidereally binned data, shape ``(mmax + 1, 2) + binned.shape[1:]``.
 
-    ``out[m, 0] = V_m``, ``out[m, 1] = conj(V_{-m})`` with ``V_m = (1/N) sum_n V_n e^{-i m phi_n}``.
+    ``out[m, 0] = V_m``, ``out[m, 1] = conj(V_{-m})`` with ``V_m = (1/N) sum_n V_n e^{-i m phi_n}``,
+    ``phi_n = 2 pi n / N + offset_n``: an FFT when the offsets vanish, else a direct DFT (one GEMM).
     """
     n = binned.shape[0]
     if n < 2 * mmax + 1:
         raise InputError("m-mode transform", "n_bins", f"{n} sidereal bins cannot resolve mmax={mmax}",
                          f"use at least {2 * mmax + 1} bins (or lower mmax)")
-    spec = np.fft.fft(binned, axis=0) / n  # sum V e^{-2 pi i k n / N} / N
     out = np.empty((mmax + 1, 2) + binned.shape[1:], np.complex128)
-    out[:, 0] = spec[:mmax + 1]
-    out[:, 1] = np.conj(spec[(-np.arange(mmax + 1)) % n])
+    if offset is None or not np.any(offset):
+        spec = np.fft.fft(binned, axis=0) / n  # sum V e^{-2 pi i k n / N} / N
+        out[:, 0] = spec[:mmax + 1]
+        out[:, 1] = np.conj(spec[(-np.arange(mmax + 1)) % n])
+    else:
+        phi = TWO_PI * np.arange(n) / n + np.asarray(offset, float)
+        ms = np.arange(-mmax, mmax + 1)
+        dft = np.exp(-1j * np.outer(ms, phi)) / n  # (2 mmax + 1, n)
+        spec = (dft @ binned.reshape(n, -1)).reshape((2 * mmax + 1,) + binned.shape[1:])
+        out[:, 0] = spec[mmax:]
+        out[:, 1] = np.conj(spec[mmax::-1])
     out[0, 1] = 0
     return out
 

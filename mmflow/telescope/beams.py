@@ -180,7 +180,9 @@ class PyUVDataBeam(Beam):
     """Any pyuvdata beam (``AnalyticBeam`` objects or ``UVBeam`` files) through ``BeamInterface``.
 
     The Stokes-I power response is ``(XX + YY) / 2`` (or the single polarisation present),
-    normalised to 1 at zenith unless ``normalize=False``.
+    with the beam's own normalisation (a beam file says what zenith is: pyuvdata's
+    unpolarised power beams have XX = YY = 0.5 there, matching visibilities simulated with
+    them); ``normalize=True`` rescales to 1 at zenith.
 
     Parameters
     ----------
@@ -190,7 +192,7 @@ class PyUVDataBeam(Beam):
 
     name = "pyuvdata"
 
-    def __init__(self, beam, normalize=True, lmax_hint=48):
+    def __init__(self, beam, normalize=False, lmax_hint=48):
         from pyuvdata import BeamInterface, UVBeam
 
         self.source = beam if isinstance(beam, str) else type(beam).__name__
@@ -234,7 +236,14 @@ class PyUVDataBeam(Beam):
 
 def make_beam(spec):
     """Build a beam from a config mapping (``{"type": "sin_elevation", "alpha": 1.5}`` etc.)."""
-    spec = dict(spec)
+    try:
+        return _make_beam(dict(spec))
+    except TypeError as exc:
+        raise InputError("workflow", "beam", f"options {sorted(spec)} do not fit beam type "
+                         f"'{spec.get('type')}' ({exc})", "replace the whole section: beam={type: ..., ...}") from None
+
+
+def _make_beam(spec):
     kind = spec.pop("type", "sin_elevation")
     if kind == "sin_elevation":
         return SinElevationBeam(**spec)

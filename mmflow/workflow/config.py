@@ -83,8 +83,9 @@ class InputConfig(_Section):
     path: Optional[str] = Field(None, description="File or glob of UVH5 / uvfits / MS files.")
     format: Optional[Literal["uvh5", "uvfits", "ms"]] = Field(None, description="Force a format.")
     on_bad_file: Literal["error", "skip"] = Field("error", description="Stop, or log and count a skip.")
-    conjugate: bool = Field(True, description="pyuvdata stores V = <E_1 E_2*> with exp(-2 pi i b.s): "
-                            "conjugate into mmflow's exp(+2 pi i b.r) convention.")
+    conjugate: bool = Field(False, description="Conjugate the data on ingest. pyuvdata data (as written by "
+                            "matvis / hera_sim) already follow mmflow's exp(+2 pi i b.r), b = x_2 - x_1; set true "
+                            "only for data in the opposite sign convention.")
 
 
 class StageSwitch(_Section):

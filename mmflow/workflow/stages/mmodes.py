@@ -68,9 +68,9 @@ def _task(ctx, key):
     out = np.zeros((vis.shape[2], mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((vis.shape[2], vis.shape[1]))
     for fi in range(vis.shape[2]):
-        binned, wsum = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
-                                     cfg.mmode.min_coverage, source=str(ctx.run.store("vis.zarr")))
-        out[fi] = mmode_transform(binned, mmax)
+        binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
+                                             cfg.mmode.min_coverage, source=str(ctx.run.store("vis.zarr")))
+        out[fi] = mmode_transform(binned, mmax, offset)
         sigma2 = noise_variance_from_differences(vis[:, :, fi], w[:, :, fi])
         var_m = mmode_noise_variance(wsum, 1.0) * np.where(np.isfinite(sigma2), sigma2, 0)
         inv_var[fi] = np.where((var_m > 0) & np.isfinite(sigma2), 1.0 / np.where(var_m > 0, var_m, 1), 0.0)

@@ -1,0 +1,114 @@
+"""Ingest UVH5 drift scans (matvis-simulated) and image them; bad inputs give clear errors."""
+import shutil
+
+import numpy as np
+import pytest
+
+from mmflow.analysis.peaks import measure_peak
+from mmflow.conventions import radec_to_vec
+from mmflow.errors import CoverageError, InputError
+from mmflow.workflow.config import load_config
+from mmflow.workflow.runner import run_workflow
+from tests.uvh5_helpers import gaussian_power_beamfits, matvis_drift_scan
+
+SOURCES = ((60.0, 45.0, 500.0), (200.0, 30.0, 400.0), (300.0, 60.0, 450.0))
+
+
+BEAM = {}
+
+
+def _cfg(run_dir, pattern, *extra):
+    beam_file = BEAM["file"]
+    return load_config("workflows/uvh5-image.yaml", [
+        f"run.directory={run_dir}", f"input.path={pattern}", "mmode.lmax=64", "transfer.dtype=float64",
+        "transfer.m_block=8", "imaging.eps=0.0001", "imaging.noise_weighting=false", "imaging.filter_m0=false",
+        "products.nside=256", "products.unit=Jy/sr", "cluster.kind=synchronous",
+        f"beam={{type: pyuvdata, file: {beam_file}}}", *extra])
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    root = tmp_path_factory.mktemp("scan")
+    (root / "beam").mkdir()
+    BEAM["file"] = str(root / "beam" / "gauss_power.fits")
+    beam = gaussian_power_beamfits(BEAM["file"])
+    d = root / "uvh5"
+    d.mkdir()
+    paths, lay = matvis_drift_scan(d, beam, n_times=140, radius_m=20.0, sources=SOURCES)
+    return d, paths
+
+
+def test_matvis_uvh5_drift_scan_images_sources_at_their_icrs_positions(scan, tmp_path):
+    """matvis (an independent simulator) -> UVH5 -> ingest -> image: positions and sign convention."""
+    import healpy
+
+    d, _ = scan
+    run_workflow(_cfg(tmp_path / "run", str(d / "*.uvh5")), progress=False, log=lambda *a: None)
+    hmap = healpy.read_map(str(tmp_path / "run" / "maps" / "map_40.000MHz.fits"))
+    for ra, dec, _ in SOURCES:
+        v = radec_to_vec(np.deg2rad(ra), np.deg2rad(dec))
+        pk = measure_peak(hmap, v, np.deg2rad(12))
+        assert pk["offset_rad"] < 0.1 * pk["fwhm_rad"], (ra, dec, np.rad2deg(pk["offset_rad"]))
+    # the opposite sign convention mirrors the sky: the sources are then far from where they belong
+    run_workflow(_cfg(tmp_path / "conj", str(d / "*.uvh5"), "input.conjugate=true"), progress=False,
+                 log=lambda *a: None)
+    wrong = healpy.read_map(str(tmp_path / "conj" / "maps" / "map_40.000MHz.fits"))
+    v = radec_to_vec(np.deg2rad(SOURCES[0][0]), np.deg2rad(SOURCES[0][1]))
+    assert measure_peak(wrong, v, np.deg2rad(12))["offset_rad"] > measure_peak(hmap, v, np.deg2rad(12))["fwhm_rad"] * 0.3
+
+
+def test_corrupt_file_is_named_or_skipped_and_counted(scan, tmp_path):
+    d, paths = scan
+    bad = tmp_path / "uvh5"
+    shutil.copytree(d, bad)
+    (bad / "scan_002.uvh5").write_bytes(b"not an hdf5 file")
+    with pytest.raises(InputError, match=r"scan_002.uvh5.*cannot read.*on_bad_file=skip"):
+        run_workflow(_cfg(tmp_path / "r1", str(bad / "*.uvh5")), progress=False, log=lambda *a: None)
+    # skipping loses 1/6 of the day: allowed only with a lower coverage threshold
+    with pytest.raises(CoverageError):
+        run_workflow(_cfg(tmp_path / "r2", str(bad / "*.uvh5"), "input.on_bad_file=skip"),
+                     progress=False, log=lambda *a: None)
+    run_workflow(_cfg(tmp_path / "r3", str(bad / "*.uvh5"), "input.on_bad_file=skip", "mmode.min_coverage=0.8"),
+                 progress=False, log=lambda *a: None)
+    import zarr
+
+    attrs = zarr.open_group(str(tmp_path / "r3" / "vis.zarr"), mode="r").attrs
+    assert len(attrs["skipped_files"]) == 1 and "scan_002" in attrs["skipped_files"][0]
+
+
+def test_mixed_frequencies_and_duplicate_times_are_rejected(scan, tmp_path):
+    from pyuvdata import UVData
+
+    d, paths = scan
+    mixed = tmp_path / "uvh5"
+    shutil.copytree(d, mixed)
+    uv = UVData.from_file(str(mixed / "scan_004.uvh5"))
+    uv.freq_array = uv.freq_array + 1e5
+    uv.write_uvh5(str(mixed / "scan_004.uvh5"), clobber=True)
+    with pytest.raises(InputError, match=r"scan_004.uvh5.*freq_array"):
+        run_workflow(_cfg(tmp_path / "r1", str(mixed / "*.uvh5")), progress=False, log=lambda *a: None)
+    dup = tmp_path / "dup" / "uvh5"
+    shutil.copytree(d, dup)
+    shutil.copy(dup / "scan_001.uvh5", dup / "scan_001_copy.uvh5")
+    with pytest.raises(InputError, match=r"time_array.*also in"):
+        run_workflow(_cfg(tmp_path / "r2", str(dup / "*.uvh5")), progress=False, log=lambda *a: None)
+
+
+def test_missing_input_and_flagged_integrations(scan, tmp_path):
+    from pyuvdata import UVData
+
+    d, _ = scan
+    with pytest.raises(InputError, match="no files match"):
+        run_workflow(_cfg(tmp_path / "r0", str(tmp_path / "nothing*.uvh5")), progress=False, log=lambda *a: None)
+    flagged = tmp_path / "uvh5"
+    shutil.copytree(d, flagged)
+    uv = UVData.from_file(str(flagged / "scan_000.uvh5"))
+    uv.flag_array[:] = True
+    uv.write_uvh5(str(flagged / "scan_000.uvh5"), clobber=True)
+    summaries = run_workflow(_cfg(tmp_path / "r1", str(flagged / "*.uvh5"), "mmode.min_coverage=0.8"),
+                             progress=False, log=lambda *a: None)
+    import json
+
+    done = [json.loads(p.read_text()) for p in (tmp_path / "r1" / "_status" / "ingest").glob("*.done")]
+    assert sum(x["fully_flagged_integrations"] for x in done) == 24  # 140 integrations / 6 files
+    assert summaries["products"]["tasks_run"] == 1
