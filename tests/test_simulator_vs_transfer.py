@@ -64,6 +64,6 @@ def test_lsts_off_the_bin_grid_keep_their_exact_phase(small_telescope):
     off = base + 0.37 * 2 * np.pi / n  # a third of a bin off the grid
     binned, _, offset = sidereal_bins(off, simulate_drift_scan(tel, f, off, sky), n_bins=n)
     assert np.allclose(offset, 0.37 * 2 * np.pi / n)
-    np.testing.assert_allclose(mmode_transform(binned, 20, offset), ref, atol=1e-12)
+    np.testing.assert_allclose(mmode_transform(binned, 20, offset), ref, atol=1e-10)  # |V| ~ 5
     naive = mmode_transform(binned, 20)
     assert np.abs(naive - ref).max() > 1e-3 * np.abs(ref).max()  # snapping to bin centres is wrong
