@@ -66,38 +66,26 @@ def test_enabled_stage_that_does_not_exist_is_an_error_not_a_fake(tmp_path):
         run_workflow(cfg, progress=False, log=lambda *a: None)
 
 
-def test_killed_run_resumes_to_bit_identical_outputs(reference_run, tmp_path):
-    ref_dir, _ = reference_run
-    run_dir = tmp_path / "killed"
+def _interrupt_run(run_dir, stage, sig):
+    """Start a CLI run in a subprocess and send ``sig`` once ``stage`` has finished its first chunk."""
     args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
             f"run.directory={run_dir}", "--no-progress"]
     env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
     proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    marker_dir = run_dir / "_status" / "transfer"
+    marker_dir = run_dir / "_status" / stage
     deadline = time.time() + 120
     while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("*.done"))):
         time.sleep(0.05)
-    proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.send_signal(sig)
+    proc.wait(timeout=60)
     assert not (run_dir / "_status" / "products" / "complete.json").exists()
-    rc = main(["run", "workflows/demo.yaml", *SMALL, f"run.directory={run_dir}", "--no-progress"])
-    assert rc == 0
-    assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
-def test_sigint_run_resumes_to_bit_identical_outputs(reference_run, tmp_path):
+@pytest.mark.parametrize("stage, sig", [("transfer", signal.SIGKILL), ("mmodes", signal.SIGINT)])
+def test_interrupted_run_resumes_to_bit_identical_outputs(reference_run, tmp_path, stage, sig):
     ref_dir, _ = reference_run
     run_dir = tmp_path / "interrupted"
-    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
-            f"run.directory={run_dir}", "--no-progress"]
-    env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
-    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    marker_dir = run_dir / "_status" / "mmodes"
-    deadline = time.time() + 120
-    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("*.done"))):
-        time.sleep(0.05)
-    proc.send_signal(signal.SIGINT)
-    proc.wait(timeout=60)
+    _interrupt_run(run_dir, stage, sig)
     rc = main(["run", "workflows/demo.yaml", *SMALL, f"run.directory={run_dir}", "--no-progress"])
     assert rc == 0
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
