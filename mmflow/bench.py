@@ -51,11 +51,11 @@ def _full_lmax_baselines(lmax, nb, seed=0):
     return b / np.linalg.norm(b, axis=1)[:, None] * kb / (2 * np.pi)
 
 
-def transfer_rate(lmax, dtype, nb=32, chunks=2):
+def transfer_rate(lmax, dtype, nb=64, chunks=3):
     """Baselines/s for baselines that need the full lmax (the worst case), steady state."""
     b = _full_lmax_baselines(lmax, nb)
     grid = make_grid(LAT, BEAM, 50e6, lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), BEAM.lmax_hint))
-    for _ in iter_transfer_blocks(grid, b[:2], dtype=dtype):  # warm: tables, workspace, FFT plans
+    for _ in iter_transfer_blocks(grid, b, dtype=dtype):  # warm: tables, workspace, FFT plans
         pass
     tim = {}
     t0 = time.perf_counter()

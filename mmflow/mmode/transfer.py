@@ -78,22 +78,27 @@ class TransferGrid:
     def n_theta(self):
         return len(self.theta)
 
-    def tables(self, m, dtype):
-        """Weighted Legendre tables ``w_k lambda_lm(theta_k)`` split by parity of ``l - m``.
+    def tables(self, m, dtype, l_block=256):
+        """Weighted Legendre tables ``w_k lambda_lm(theta_k)`` in l-blocks, split by parity of ``l - m``.
 
-        Returns ``(k0, even, odd)``: rings before ``k0`` (near the pole, where
-        ``lambda_lm ~ sin^m theta`` is below the working precision -- 1e-15 (float64) or
-        1e-9 (float32) of its peak -- for every l) are dropped.
+        Returns a list of ``(i0, k0, even, odd)`` for l-blocks starting at ``l = m + i0``: rings
+        before ``k0`` (poleward of the block's turning point, where ``lambda_lm ~ sin^m theta``
+        is below the working precision -- 1e-15 (float64) or 1e-9 (float32) of the table's
+        peak -- for every l in the block) are dropped from that block's GEMM.
         """
         key = (m, np.dtype(dtype).str)
         if key not in self._tables:
             north = self.active
             t = legendre_table(m, self.lmax, self.theta[north]) * self.weights[north]
-            col = np.abs(t).max(axis=0)
-            tol = 1e-9 if np.dtype(dtype) == np.float32 else 1e-15
-            k0 = int(np.argmax(col > tol * col.max())) if col.max() > 0 else 0
-            t = t[:, k0:]
-            self._tables[key] = (k0, np.ascontiguousarray(t[0::2], dtype), np.ascontiguousarray(t[1::2], dtype))
+            tol = (1e-9 if np.dtype(dtype) == np.float32 else 1e-15) * max(np.abs(t).max(), 1e-300)
+            blocks = []
+            for i0 in range(0, t.shape[0], l_block):
+                sub = t[i0:i0 + l_block]
+                col = np.abs(sub).max(axis=0)
+                k0 = int(np.argmax(col > tol)) if np.any(col > tol) else len(col)
+                sub = sub[:, k0:]
+                blocks.append((i0, k0, np.ascontiguousarray(sub[0::2], dtype), np.ascontiguousarray(sub[1::2], dtype)))
+            self._tables[key] = blocks
         return self._tables[key]
 
 
@@ -122,9 +127,10 @@ def _phasor_block(vec, beam_n, beam_s, b2pi, rdtype, cdtype):
     complex multiply instead of a sincos. Phases are reduced modulo 2 pi in float64 before
     the (float32 or float64) sincos. Returns two arrays (nr, nphi, nb).
     """
-    ph = vec @ b2pi.T  # (nr, nphi, nb) float64
-    ph -= (2 * np.pi) * np.round(ph * (1 / (2 * np.pi)))
+    ph = vec @ (b2pi.T / (2 * np.pi))  # (nr, nphi, nb) float64, in turns
+    ph -= np.rint(ph)  # reduce in float64 ...
     ph = ph.astype(rdtype, copy=False)
+    ph *= rdtype(2 * np.pi)  # ... then radians in the working precision
     north = np.empty(ph.shape, cdtype)
     north.real = np.cos(ph)
     north.imag = np.sin(ph)
@@ -202,16 +208,20 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
         timings["fourier_s"] = timings.get("fourier_s", 0.0) + time.perf_counter() - t0
     ell_all = np.arange(lmax + 1)
     for m in range(mmax + 1):
-        k0, even, odd = grid.tables(m, rdtype)
-        s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
-        d = fdiff[m, k0:].view(rdtype)
-        out = np.empty((lmax - m + 1, 2 * nb), cdtype)
+        out = np.zeros((lmax - m + 1, 2 * nb), cdtype)
         t0 = time.perf_counter()
-        out[0::2] = (even @ s).view(cdtype)
-        out[1::2] = (odd @ d).view(cdtype)
+        for i0, k0, even, odd in grid.tables(m, rdtype):
+            if k0 >= nn:
+                continue
+            s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
+            d = fdiff[m, k0:].view(rdtype)
+            # l - m even rows use F + F', odd rows F - F' (i0 is even: blocks keep parity)
+            out[i0:i0 + 2 * len(even):2] = (even @ s).view(cdtype)
+            out[i0 + 1:i0 + 1 + 2 * len(odd):2] = (odd @ d).view(cdtype)
+            if timings is not None:
+                timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + 2.0 * (even.size + odd.size) * s.shape[1]
         if timings is not None:
             timings["legendre_s"] = timings.get("legendre_s", 0.0) + time.perf_counter() - t0
-            timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + 2.0 * (even.size + odd.size) * s.shape[1]
         block = out.T if m > 0 else out[:, :nb].T
         if np.any(lmax_b < lmax):
             mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
