@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench docs install clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -26,6 +26,12 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(VENV)/bin/mmflow bench transfer
 	$(VENV)/bin/mmflow bench solve
+
+## Regenerate docs/configuration.md from the schema
+docs: $(STAMP)
+	{ echo '# Configuration reference'; echo; \
+	  echo 'Every workflow YAML is validated against one schema. This page is `mmflow config show` (regenerate with `make docs`; a test keeps it in sync). Override any key on the command line with `section.key=value` (YAML syntax for the value; `beam={type: pyuvdata, file: beam.fits}` replaces a whole section).'; \
+	  echo; echo '```yaml'; $(VENV)/bin/mmflow config show; echo '```'; } > docs/configuration.md
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

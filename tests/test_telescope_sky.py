@@ -111,3 +111,28 @@ def test_coverage_and_nan_errors():
     w[5, 1] = 0
     binned, wsum, _ = sidereal_bins(lst, vis, weights=w, n_bins=64)  # flagged NaN is fine
     assert wsum[5, 1] == 0 and binned[5, 1] == 0
+
+
+def test_gaussian_components_conserve_flux_and_centroid_and_match_analytic_visibility():
+    from mmflow.sky.sources import Source, Spectrum
+
+    src = Source("double", 120.0, 40.0, Spectrum("power_law", (100.0, 74e6, 0.0)),
+                 components=[{"fraction": 0.6, "fwhm_major_arcmin": 30.0, "fwhm_minor_arcmin": 20.0, "pa_deg": 30.0},
+                             {"fraction": 0.4, "dra_arcmin": 0.0, "ddec_arcmin": 0.0, "fwhm_major_arcmin": 30.0}])
+    vec, flux = src.points(74e6)
+    assert flux.sum() == pytest.approx(100.0)
+    c = (vec * flux[:, None]).sum(0)
+    assert np.rad2deg(np.arccos(c @ src.vector_icrs() / np.linalg.norm(c))) < 1e-3
+    # a circular Gaussian of FWHM theta seen by a baseline b (wavelengths) perpendicular to the
+    # line of sight: |V| = S exp(-2 pi^2 sigma^2 |b|^2)
+    circ = Source("g", 0.0, 0.0, Spectrum("power_law", (1.0, 74e6, 0.0)), components=[{"fwhm_major_arcmin": 60.0}])
+    vec, flux = circ.points(74e6, n_grid=21, n_sigma=5)
+    sigma = np.deg2rad(1.0) / np.sqrt(8 * np.log(2))
+    b = np.array([0.0, 40.0, 0.0])  # along +y, perpendicular to the source direction (+x)
+    vis = np.sum(flux * np.exp(2j * np.pi * vec @ b))
+    assert abs(vis) == pytest.approx(np.exp(-2 * np.pi**2 * sigma**2 * 40.0**2), rel=1e-3)
+
+
+def test_telescope_location_is_an_earth_location():
+    tel = Telescope(ovro_lwa_layout("core", radius_m=10), SinElevationBeam(), [50e6])
+    assert tel.location.lat.deg == pytest.approx(37.23977727)

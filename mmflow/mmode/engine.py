@@ -74,7 +74,7 @@ def chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype=np.float64, cach
 
 
 def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, chunk_size=64,
-                                dtype=np.float64, acc_dtype=np.complex128, per_baseline_lmax=True):
+                                dtype=np.float64, acc_dtype=None, per_baseline_lmax=True):
     """Stream over baseline chunks: ``G_m += B^H N^-1 B``, ``r_m += B^H N^-1 v``, ``v^H N^-1 v``.
 
     Parameters
@@ -85,6 +85,7 @@ def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, 
     """
     mmax = mmodes.shape[0] - 1
     chunks, lmax_b = plan_chunks(telescope, freq_hz, lmax, chunk_size, per_baseline_lmax)
+    acc_dtype = acc_dtype or (np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
     acc = NormalAccumulator(lmax, mmax, acc_dtype)
     acc.vhv = np.zeros(mmax + 1)
     cache = GridCache(telescope, freq_hz)

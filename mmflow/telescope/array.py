@@ -51,6 +51,15 @@ class Telescope:
     def n_ant(self):
         return self.layout.n_ant
 
+    @property
+    def location(self):
+        """The array centre as an astropy ``EarthLocation``."""
+        from astropy import units as u
+        from astropy.coordinates import EarthLocation
+
+        return EarthLocation.from_geodetic(self.layout.lon_deg * u.deg, self.layout.lat_deg * u.deg,
+                                           self.layout.height_m * u.m)
+
     def antenna_pairs(self):
         """Antenna index pairs ``(i, j)``: as given (ingested data), else ``i <= j`` i-major."""
         if self.pairs is not None:

@@ -100,6 +100,9 @@ class MmodeConfig(_Section):
     n_bins: Optional[int] = Field(None, description="Sidereal bins (default: integrations per sidereal day).")
     min_coverage: float = Field(0.95, description="Fraction of the sidereal day that must hold data.")
     baseline_chunk: int = Field(256, description="Baselines per task in the corner turn.")
+    noise: Literal["data", "radiometer"] = Field(
+        "data", description="Noise per baseline from successive-integration differences, or from the "
+        "radiometer equation sigma^2 = V_ii V_jj / (dnu tau) with the autocorrelations.")
 
 
 class TransferConfig(_Section):

@@ -111,7 +111,10 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         summaries[st.name] = summary
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
             f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
-    (run.path / "summary.json").write_text(json.dumps(summaries, indent=2))
+    summary_path = run.path / "summary.json"
+    merged = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+    merged.update(summaries)
+    summary_path.write_text(json.dumps(merged, indent=2))
     return summaries
 
 

@@ -81,8 +81,9 @@ def _sky_points(config_json, freq_hz):
         srcs = get_sources(cfg.sky.sources)
         rot = rotation_matrix("icrs", "date", epoch)
         year = 2000.0 + (epoch - 2451545.0) / 365.25
-        vec = np.array([rot @ s.vector_icrs() for s in srcs])
-        pts = pts + SkyPoints(vec, np.array([s.flux(freq_hz, year) for s in srcs]))
+        for src in srcs:
+            vec, flux = src.points(freq_hz, year)
+            pts = pts + SkyPoints(vec @ rot.T, flux)
     return pts
 
 

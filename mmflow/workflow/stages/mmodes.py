@@ -52,6 +52,23 @@ def noise_variance_from_differences(vis, weights):
     return np.where(np.isfinite(med), med / (2 * np.log(2)), np.inf)
 
 
+def noise_variance_radiometer(ctx, sl, fi, bandwidth_hz, integration_s):
+    """``sigma^2 = <V_ii> <V_jj> / (dnu tau)`` per baseline from time-averaged autocorrelations."""
+    from mmflow.errors import InputError
+
+    vg = zarr.open_group(str(ctx.run.store("vis.zarr")), mode="r")
+    pairs = vg["pairs"][:]
+    autos = np.flatnonzero(pairs[:, 0] == pairs[:, 1])
+    if len(autos) == 0:
+        raise InputError(str(ctx.run.store("vis.zarr")), "pairs", "no autocorrelations for the radiometer "
+                         "equation", "set mmode.noise=data, or ingest autocorrelations")
+    power = np.full(int(pairs.max()) + 1, np.nan)
+    mean_auto = np.nanmean(np.abs(vg["vis"].get_orthogonal_selection((slice(None), autos, fi))), axis=0)
+    power[pairs[autos, 0]] = mean_auto
+    p = pairs[sl]
+    return power[p[:, 0]] * power[p[:, 1]] / (bandwidth_hz * integration_s)
+
+
 def _task(ctx, key):
     cfg = ctx.cfg
     vg = zarr.open_group(str(ctx.run.store("vis.zarr")), mode="r")
@@ -71,7 +88,12 @@ def _task(ctx, key):
         binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
                                              cfg.mmode.min_coverage, source=str(ctx.run.store("vis.zarr")))
         out[fi] = mmode_transform(binned, mmax, offset)
-        sigma2 = noise_variance_from_differences(vis[:, :, fi], w[:, :, fi])
+        if cfg.mmode.noise == "radiometer":
+            sigma2 = noise_variance_radiometer(ctx, sl, fi, cfg.observation.channel_width_khz * 1e3,
+                                               vg.attrs["integration_s"])
+            sigma2 = np.where(np.isfinite(sigma2), sigma2, np.inf)
+        else:
+            sigma2 = noise_variance_from_differences(vis[:, :, fi], w[:, :, fi])
         var_m = mmode_noise_variance(wsum, 1.0) * np.where(np.isfinite(sigma2), sigma2, 0)
         inv_var[fi] = np.where((var_m > 0) & np.isfinite(sigma2), 1.0 / np.where(var_m > 0, var_m, 1), 0.0)
     g["mmodes"][:, :, :, sl] = out

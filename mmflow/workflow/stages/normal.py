@@ -100,9 +100,10 @@ def _transfer_task(ctx, key):
     mg = zarr.open_group(str(ctx.run.store("mmodes.zarr")), mode="r")
     mm_all = mg["mmodes"]
     inv_var = relative_weights(mg["inv_var"][fi]) if cfg.imaging.noise_weighting else np.ones(mg["inv_var"].shape[1])
-    acc = NormalAccumulator(lmax, mmax, np.complex128)
-    vhv = np.zeros(mmax + 1)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
+    # accumulators follow the transfer precision: complex64 halves the ~lmax^3/3 Gram memory
+    acc = NormalAccumulator(lmax, mmax, np.complex64 if dtype == np.float32 else np.complex128)
+    vhv = np.zeros(mmax + 1)
     cache = GridCache(tel, f)
     store = zarr.open_group(str(ctx.run.store("transfer.zarr")), mode="r+") if cfg.transfer.mode == "store" else None
     chunk_pos = sum(len(gr) for gr in groups[:gk])
