@@ -39,7 +39,7 @@ def plan_chunks(telescope, freq_hz, lmax, chunk_size=64, per_baseline_lmax=True)
 class GridCache:
     """Quadrature grids (and their Legendre tables) reused across chunks of one process."""
 
-    def __init__(self, telescope, freq_hz, max_items=4):
+    def __init__(self, telescope, freq_hz, max_items=2):
         self.telescope, self.freq_hz, self.max_items = telescope, freq_hz, max_items
         self._grids = {}
 
