@@ -166,6 +166,26 @@ def memory_scaling(lmax=160, sizes=(64, 128, 256)):
     return {"lmax": lmax, "dtype": "float32", "peak_rss_mb_by_n_baselines": out}
 
 
+def simulate_rate(n_ant=64, nside=64, n_time=6628, freq_hz=50e6):
+    """The independent simulator: ``n_ant`` OVRO-LWA core stands, a HEALPix diffuse sky, one day."""
+    import healpy
+
+    from mmflow.simulate.visibilities import healpix_points, simulate_drift_scan
+    from mmflow.sky.diffuse import synthetic_sky_kelvin
+    from mmflow.sky.units import kelvin_to_jy_per_sr
+    from mmflow.telescope import Telescope, ovro_lwa_layout
+
+    tel = Telescope(ovro_lwa_layout("core", max_antennas=n_ant), BEAM, [freq_hz])
+    alm = synthetic_sky_kelvin(freq_hz, 3 * nside - 1, 2457802.0)
+    sky = healpix_points(kelvin_to_jy_per_sr(healpy.alm2map(alm, nside), freq_hz))
+    lst = 2 * np.pi * np.arange(n_time) / 6628
+    t0 = time.perf_counter()
+    vis = simulate_drift_scan(tel, freq_hz, lst, sky, dtype=np.complex64)
+    el = time.perf_counter() - t0
+    return {"n_ant": n_ant, "n_baselines": int(vis.shape[1]), "nside": nside, "integrations": n_time,
+            "seconds": el, "seconds_per_sidereal_day": el * 6628 / n_time}
+
+
 def machine():
     return {"python": platform.python_version(), "cpus": os.cpu_count(), "threads": n_threads(),
             "numpy": np.__version__}
@@ -185,6 +205,8 @@ def run(what, quick=False):
         res["healpy_map2alm"] = healpy_rate(hl, hn, n=1 if quick else 2)
         ours = max(r["baselines_per_s"] for r in res["transfer"] if r["lmax"] == hl and r["dtype"] == "float32")
         res["speedup_over_healpy"] = ours / res["healpy_map2alm"]["baselines_per_s"]
+    elif what == "simulate":
+        res["simulate"] = simulate_rate(n_time=256 if quick else 6628)
     elif what == "solve":
         lmax = 256 if quick else 1000
         res["herk"] = herk_rate(lmax)

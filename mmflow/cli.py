@@ -30,7 +30,7 @@ def build_parser():
     cf.add_argument("action", choices=("show", "init"))
     cf.add_argument("path", nargs="?", help="for init: where to write the YAML")
     b = sub.add_parser("bench", help="benchmarks that print JSON figures")
-    b.add_argument("what", choices=("transfer", "solve"))
+    b.add_argument("what", choices=("transfer", "solve", "simulate"))
     b.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
     b.add_argument("--output", help="also write the JSON here")
     return ap

@@ -37,15 +37,21 @@ def plan_chunks(telescope, freq_hz, lmax, chunk_size=64, per_baseline_lmax=True)
 
 
 class GridCache:
-    """Quadrature grids (and their Legendre tables) reused across chunks of one process."""
+    """Quadrature grids (and their Legendre tables) reused across chunks of one process.
 
-    def __init__(self, telescope, freq_hz, max_items=2):
+    One grid at a time by default: at lmax 1000 a grid's float32 tables and workspace are
+    ~2 GB. Chunks arrive sorted by per-baseline lmax, so grids are not rebuilt back and forth;
+    the fringe band limit is rounded up to buckets of ``max(16, lmax / 8)`` so that
+    neighbouring chunks share a grid (a grid at most ~12% larger than needed).
+    """
+
+    def __init__(self, telescope, freq_hz, max_items=1):
         self.telescope, self.freq_hz, self.max_items = telescope, freq_hz, max_items
         self._grids = {}
 
     def get(self, lmax, fringe_lmax):
-        # round the fringe band limit up so neighbouring chunks share a grid
-        fringe_lmax = int(16 * np.ceil(fringe_lmax / 16))
+        step = max(16, lmax // 8)
+        fringe_lmax = int(step * np.ceil(fringe_lmax / step))
         key = (lmax, fringe_lmax)
         if key not in self._grids:
             if len(self._grids) >= self.max_items:
