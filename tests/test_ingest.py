@@ -112,3 +112,32 @@ def test_missing_input_and_flagged_integrations(scan, tmp_path):
     done = [json.loads(p.read_text()) for p in (tmp_path / "r1" / "_status" / "ingest").glob("*.done")]
     assert sum(x["fully_flagged_integrations"] for x in done) == 24  # 140 integrations / 6 files
     assert summaries["products"]["tasks_run"] == 1
+
+
+def test_antenna_sets_must_agree_but_missing_baselines_are_unmeasured(scan, tmp_path):
+    from pyuvdata import UVData
+
+    d, _ = scan
+    other = tmp_path / "other" / "uvh5"
+    shutil.copytree(d, other)
+    uv = UVData.from_file(str(other / "scan_003.uvh5"))
+    uv.select(antenna_nums=uv.telescope.antenna_numbers[:-2], keep_all_metadata=False)
+    uv.write_uvh5(str(other / "scan_003.uvh5"), clobber=True)
+    with pytest.raises(InputError, match=r"scan_003.uvh5.*antenna_numbers.*antenna set differs"):
+        run_workflow(_cfg(tmp_path / "r1", str(other / "*.uvh5")), progress=False, log=lambda *a: None)
+    fewer = tmp_path / "fewer" / "uvh5"
+    shutil.copytree(d, fewer)
+    uv = UVData.from_file(str(fewer / "scan_003.uvh5"))
+    keep = [(i, j) for i, j in uv.get_antpairs() if j != uv.telescope.antenna_numbers[-1]]
+    uv.select(bls=keep)  # same antenna table, fewer baselines
+    uv.write_uvh5(str(fewer / "scan_003.uvh5"), clobber=True)
+    run_workflow(_cfg(tmp_path / "r2", str(fewer / "*.uvh5"), "mmode.min_coverage=0.8"), progress=False,
+                 log=lambda *a: None)
+    import zarr
+
+    g = zarr.open_group(str(tmp_path / "r2" / "vis.zarr"), mode="r")
+    w = g["weights"][:, :, 0]
+    last = int(g["pairs"][:].max())
+    lacking = np.flatnonzero(g["pairs"][:, 1] == last)
+    assert np.all(w[:, lacking].sum(axis=0) < w.shape[0])  # unmeasured in scan_003's integrations
+    assert np.all(w[:, lacking].sum(axis=0) > 0.8 * w.shape[0])

@@ -84,10 +84,15 @@ def _plan(pattern, fmt, on_bad):
         if not np.array_equal(np.asarray(uv.telescope.antenna_numbers), ants):
             raise InputError(f, "antenna_numbers", f"antenna set differs from {good[0]}",
                              "ingest files from one array configuration per run")
-    # baselines: union as (ant1, ant2) index pairs with i <= j in antenna-index order
+    # baselines: the union over files as (i, j) antenna-index pairs with i <= j; a baseline a
+    # file lacks is simply unmeasured (weight 0) in that file's integrations
     index = {int(a): k for k, a in enumerate(ants)}
-    a1, a2 = np.asarray(ref.ant_1_array), np.asarray(ref.ant_2_array)
-    pairs = np.unique(np.sort(np.stack([[index[int(x)] for x in a1], [index[int(x)] for x in a2]], 1), 1), axis=0)
+    found = []
+    for uv in metas:
+        a1 = [index[int(x)] for x in np.asarray(uv.ant_1_array)]
+        a2 = [index[int(x)] for x in np.asarray(uv.ant_2_array)]
+        found.append(np.sort(np.stack([a1, a2], 1), 1))
+    pairs = np.unique(np.concatenate(found), axis=0)
     row_of, file_times, seen = {}, [], {}
     all_t = []
     for fi, uv in enumerate(metas):
