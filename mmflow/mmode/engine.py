@@ -93,17 +93,12 @@ def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, 
     chunks, lmax_b = plan_chunks(telescope, freq_hz, lmax, chunk_size, per_baseline_lmax)
     acc_dtype = acc_dtype or (np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
     acc = NormalAccumulator(lmax, mmax, acc_dtype)
-    acc.vhv = np.zeros(mmax + 1)
     cache = GridCache(telescope, freq_hz)
-    nbl = mmodes.shape[2]
-    w = np.ones(nbl) if inv_var is None else np.asarray(inv_var, float)
+    w = np.ones(mmodes.shape[2]) if inv_var is None else np.asarray(inv_var, float)
     for chunk in chunks:
+        mm, wc = mmodes[..., chunk.index], w[chunk.index]
         for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, cache, mmax, pad=False):
-            idx = chunk.index
-            v = mmodes[m, 0, idx] if m == 0 else np.concatenate([mmodes[m, 0, idx], mmodes[m, 1, idx]])
-            wv = w[idx] if m == 0 else np.concatenate([w[idx], w[idx]])
-            acc.add(m, blk, v, wv)
-            acc.vhv[m] += float(np.sum(wv * np.abs(v) ** 2))
+            acc.add_mmodes(m, blk, mm, wc)
     return acc
 
 

@@ -42,7 +42,19 @@ class NormalAccumulator:
         self.ms = list(range(mmax + 1)) if ms is None else list(ms)
         self.gram = {m: np.zeros((lmax - m + 1, lmax - m + 1), dtype, order="F") for m in self.ms}
         self.rhs = {m: np.zeros(lmax - m + 1, dtype) for m in self.ms}
+        self.vhv = np.zeros(mmax + 1)
         self.dtype = np.dtype(dtype)
+
+    def add_mmodes(self, m, block, mmodes, inv_var):
+        """Add one chunk from its m-modes ``(mmax + 1, 2, n_b)`` and per-baseline weights ``(n_b,)``.
+
+        The data vector and weights follow the block's rows: ``V_m`` then ``conj(V_{-m})`` for m > 0.
+        Also accumulates ``v^H N^-1 v`` (for L-curves).
+        """
+        v = mmodes[m, 0] if m == 0 else np.concatenate([mmodes[m, 0], mmodes[m, 1]])
+        w = inv_var if m == 0 else np.concatenate([inv_var, inv_var])
+        self.add(m, block, v, w)
+        self.vhv[m] += float(np.sum(w * np.abs(v) ** 2))
 
     def add(self, m, block, v=None, inv_var=None):
         """Add one chunk: ``G_m += B^H W B``, ``r_m += B^H W v`` with ``W = diag(inv_var)``.

@@ -103,7 +103,6 @@ def _transfer_task(ctx, key):
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
     # accumulators follow the transfer precision: complex64 halves the ~lmax^3/3 Gram memory
     acc = NormalAccumulator(lmax, mmax, np.complex64 if dtype == np.float32 else np.complex128)
-    vhv = np.zeros(mmax + 1)
     cache = GridCache(tel, f)
     store = zarr.open_group(str(ctx.run.store("transfer.zarr")), mode="r+") if cfg.transfer.mode == "store" else None
     chunk_pos = sum(len(gr) for gr in groups[:gk])
@@ -113,12 +112,8 @@ def _transfer_task(ctx, key):
         order = np.argsort(idx)
         mm = np.empty((mmax + 1, 2, len(idx)), np.complex128)
         mm[..., order] = mm_all.get_orthogonal_selection((fi, slice(None), slice(None), idx[order]))
-        w = inv_var[idx]
         for m, blk in chunk_blocks(tel, f, chunk, lmax, lmax_b, dtype, cache, mmax, pad=store is not None):
-            v = mm[m, 0] if m == 0 else np.concatenate([mm[m, 0], mm[m, 1]])
-            wv = w if m == 0 else np.concatenate([w, w])
-            acc.add(m, blk, v, wv)
-            vhv[m] += float(np.sum(wv * np.abs(v) ** 2))
+            acc.add_mmodes(m, blk, mm, inv_var[idx])
             if store is not None:
                 rows = slice((chunk_pos + ci) * cfg.transfer.baseline_chunk,
                              (chunk_pos + ci) * cfg.transfer.baseline_chunk + len(idx))
@@ -134,7 +129,7 @@ def _transfer_task(ctx, key):
         pg[f"gram_m{m:05d}"][gk] = acc.gram[m]
         rhs[m, m:] = acc.rhs[m]
     pg["rhs"][gk] = rhs
-    pg["vhv"][gk] = vhv
+    pg["vhv"][gk] = acc.vhv
     return {"baselines": n_bl}
 
 
@@ -174,21 +169,18 @@ def _normal_task(ctx, key):
     ng = pg["rhs"].shape[0]
     for m in range(m0, m1):
         arr = pg[f"gram_m{m:05d}"]
-        total = arr[0]
-        for k in range(1, ng):  # fixed order: bit-identical sums
-            total = total + arr[k]
-        g[f"f{fi}/gram_m{m:05d}"][:] = total
-    rhs = pg["rhs"][:, m0:m1, :]
-    vhv = pg["vhv"][:, m0:m1]
-    g["rhs"][fi, m0:m1] = _ordered_sum(rhs)
-    g["vhv"][fi, m0:m1] = _ordered_sum(vhv)
+        g[f"f{fi}/gram_m{m:05d}"][:] = _ordered_sum(arr[k] for k in range(ng))
+    g["rhs"][fi, m0:m1] = _ordered_sum(pg["rhs"][:, m0:m1, :])
+    g["vhv"][fi, m0:m1] = _ordered_sum(pg["vhv"][:, m0:m1])
     return {"m": [m0, m1]}
 
 
-def _ordered_sum(a):
-    total = a[0].copy()
-    for k in range(1, len(a)):
-        total = total + a[k]
+def _ordered_sum(parts):
+    """Sum over groups in a fixed order (floating-point sums are then bit-identical on re-runs)."""
+    it = iter(parts)
+    total = np.array(next(it), copy=True)
+    for p in it:
+        total = total + p
     return total
 
 
