@@ -89,3 +89,31 @@ def test_killing_a_worker_mid_stage_still_gives_identical_outputs(loopback_clust
         os.environ.pop("MMFLOW_TASK_DELAY_S", None)
     assert workers[0].poll() is not None  # the worker really died mid-run
     assert_identical(reference, read_outputs(run_dir))
+
+
+def test_cli_joins_an_existing_scheduler(loopback_cluster, reference, tmp_path, capsys):
+    from mmflow.cli import main
+
+    client, _ = loopback_cluster
+    run_dir = tmp_path / "cli"
+    rc = main(["run", "workflows/demo.yaml", *[o for o in SMALL if not o.startswith("cluster.")],
+               f"run.directory={run_dir}", "--scheduler", client.scheduler.address, "--no-progress"])
+    assert rc == 0
+    assert "dask dashboard:" in capsys.readouterr().out
+    assert_identical(reference, read_outputs(run_dir))
+
+
+@pytest.mark.parametrize("kind, marker", [("slurm", "#SBATCH"), ("pbs", "#PBS")])
+def test_jobqueue_cluster_from_workflow_options(kind, marker):
+    from mmflow.workflow.cluster import jobqueue_cluster
+
+    cfg = load_config("workflows/hpc-slurm.yaml", [f"cluster.kind={kind}",
+                                                   "cluster.jobqueue={cores: 8, memory: 32GB, queue: normal, "
+                                                   "walltime: '01:00:00', processes: 2}"])
+    cluster = jobqueue_cluster(cfg, kind)
+    try:
+        script = cluster.job_script()
+    finally:
+        cluster.close()
+    assert marker in script and "normal" in script
+    assert "--nworkers 2" in script or "--nprocs 2" in script

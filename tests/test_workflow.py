@@ -184,3 +184,13 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
         np.testing.assert_array_equal(stored[0], blocks[m][:n])
         if m > 0:
             np.testing.assert_array_equal(stored[1], blocks[m][n:])
+
+
+def test_every_store_records_config_versions_and_fingerprint(reference_run):
+    import zarr
+
+    run_dir, _ = reference_run
+    for store in ("vis.zarr", "mmodes.zarr", "partials.zarr", "normal.zarr", "alm.zarr"):
+        meta = zarr.open_group(str(run_dir / store), mode="r").attrs["mmflow"]
+        assert meta["config"]["mmode"]["lmax"] == 24 and meta["versions"]["numpy"]
+        assert meta["fingerprint"] == status(run_dir)[meta["stage"]]["fingerprint"]

@@ -7,6 +7,17 @@ from contextlib import contextmanager
 from mmflow.errors import InputError
 
 
+def jobqueue_cluster(cfg, kind):
+    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
+
+    Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
+    """
+    import dask_jobqueue
+
+    cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
+    return cls(**cfg.cluster.jobqueue)
+
+
 @contextmanager
 def open_cluster(cfg, scheduler=None, kind=None, log=print):
     """Yield a ``distributed.Client`` (or None for the synchronous scheduler).
@@ -36,10 +47,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
                                memory_limit=c.memory_limit, dashboard_address=c.dashboard_address)
         client = Client(cluster)
     elif kind in ("slurm", "pbs"):
-        import dask_jobqueue
-
-        cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
-        cluster = cls(**c.jobqueue)  # unspecified options come from dask's jobqueue.yaml
+        cluster = jobqueue_cluster(cfg, kind)
         cluster.scale(jobs=c.n_workers)
         client = Client(cluster)
     else:

@@ -101,6 +101,7 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
             run.reset_stage(st.name, st.outputs)
         keys = st.prepare(ctx)
         todo = run.begin_stage(st.name, fps[st.name], keys, st.outputs, force)
+        _stamp_stores(run, st, cfg, fps[st.name])
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
         results = _execute(client, ctx, st.name, todo, progress)
         fin = st.finalize(ctx) if st.finalize else None
@@ -116,6 +117,18 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
     merged.update(summaries)
     summary_path.write_text(json.dumps(merged, indent=2))
     return summaries
+
+
+def _stamp_stores(run, stage, cfg, fingerprint):
+    """Record the resolved configuration, versions and fingerprint in every zarr store a stage writes."""
+    import zarr
+
+    for out in stage.outputs:
+        path = run.store(out)
+        if out.endswith(".zarr") and path.exists():
+            zarr.open_group(str(path), mode="r+").attrs.update(
+                {"mmflow": {"stage": stage.name, "fingerprint": fingerprint, "versions": versions(),
+                            "config": json.loads(cfg.model_dump_json())}})
 
 
 def status(run_path):
