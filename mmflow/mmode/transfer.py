@@ -157,6 +157,7 @@ def _ring_fourier(grid, b, start, stop, mmax, cdtype, fsum, fdiff):
     south += north  # north - south
     n = grid.n_phi
     for f, target in ((north, fsum), (south, fdiff)):
+        # one FFT thread: the ring blocks themselves run in parallel (iter_transfer_blocks' pool)
         ducc0.fft.c2c(f, axes=(1,), forward=False, inorm=0, out=f, nthreads=1)
         target[:, start:stop, :nb] = f[:, :mmax + 1, :].transpose(1, 0, 2)
         # conj(F_{-m}) for m = 0..mmax: index 0, then n-1, n-2, ... (a reversed slice, no gather)
