@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.mmode.transfer import fringe_bandlimit, iter_transfer_blocks, make_grid
 from mmflow.telescope.beams import SinElevationBeam
 from mmflow.threads import n_threads
@@ -112,7 +112,7 @@ def solve_rate(lmax, eps=0.01):
         x = rng.normal(size=(n + 16, n)) + 1j * rng.normal(size=(n + 16, n))
         g = x.conj().T @ x
         r = rng.normal(size=n) + 0j
-        out[n] = _best(lambda: tikhonov(g, r, eps), reps=2)
+        out[n] = _best(lambda g=g, r=r: tikhonov(g, r, eps), reps=2)
     n_max = lmax + 1
     per_l3 = out[n_max] / n_max**3
     total = sum(per_l3 * (lmax - m + 1) ** 3 for m in range(lmax + 1))

@@ -51,7 +51,6 @@ def test_zernike_beam_unity_at_zenith_symmetric_and_fits_an_analytic_beam():
 
 
 def test_pyuvdata_gaussian_beam_matches_ours():
-    from pyuvdata.analytic_beam import GaussianBeam as UVGauss
 
     sigma = np.deg2rad(20.0)
     ours = GaussianBeam(fwhm_deg=np.rad2deg(sigma) * np.sqrt(8 * np.log(2)))

@@ -1,12 +1,10 @@
 """Transfer coefficients against brute-force quadrature, symmetries, per-baseline lmax."""
 import ducc0
 import numpy as np
-import pytest
 from scipy.special import sph_harm_y
 
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
-from mmflow.mmode.transfer import (baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks,
-                                   make_grid, transfer_blocks)
+from mmflow.mmode.transfer import (baselines_in_wavelengths, fringe_bandlimit, make_grid, transfer_blocks)
 from mmflow.telescope.beams import GaussianBeam, SinElevationBeam
 
 LAT = np.deg2rad(37.24)

@@ -1,7 +1,6 @@
 """From a_lm in the frame of date to HEALPix maps in ICRS or Galactic, in K or Jy/sr."""
 from __future__ import annotations
 
-import numpy as np
 
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map

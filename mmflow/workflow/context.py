@@ -20,7 +20,6 @@ class Context:
 
     config_json: str
     run_path: str
-    force: bool = False
 
     @property
     def cfg(self) -> WorkflowConfig:

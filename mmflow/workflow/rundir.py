@@ -58,23 +58,21 @@ class RunDir:
         p = self.status_dir(stage) / "manifest.json"
         return json.loads(p.read_text()) if p.exists() else None
 
-    def begin_stage(self, stage, fingerprint, keys, outputs, force=False):
-        """Check or write the manifest; clear stale outputs when ``force``.
-
-        Returns the keys still to do.
-        """
+    def is_stale(self, stage, fingerprint):
+        """True when the stage has stored outputs made from another fingerprint."""
         old = self.manifest(stage)
-        if old is not None and old["fingerprint"] != fingerprint:
-            if not force:
-                raise StaleOutputError(
-                    f"stage '{stage}' in {self.path} was made from other inputs or settings "
-                    f"(stored {old['fingerprint']}, now {fingerprint}): rerun with --force to recompute it "
-                    f"(and the stages after it), or use a new run directory")
-            self.reset_stage(stage, outputs)
-            old = None
+        return old is not None and old["fingerprint"] != fingerprint
+
+    def begin_stage(self, stage, fingerprint, keys, outputs):
+        """Write the manifest (or refuse stale outputs); return the keys still to do."""
+        if self.is_stale(stage, fingerprint):
+            raise StaleOutputError(
+                f"stage '{stage}' in {self.path} was made from other inputs or settings "
+                f"(stored {self.manifest(stage)['fingerprint']}, now {fingerprint}): rerun with --force to "
+                f"recompute it (and the stages after it), or use a new run directory")
         sdir = self.status_dir(stage)
         sdir.mkdir(parents=True, exist_ok=True)
-        if old is None:
+        if self.manifest(stage) is None:
             _atomic_write(sdir / "manifest.json", json.dumps(
                 {"fingerprint": fingerprint, "keys": list(keys), "outputs": list(outputs),
                  "created": time.strftime("%Y-%m-%dT%H:%M:%S")}))

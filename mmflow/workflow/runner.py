@@ -76,7 +76,7 @@ def _execute(client, ctx, name, todo, progress):
 
 def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print):
     """Run every enabled stage (or just ``only``) of a workflow; return the per-stage summaries."""
-    ctx = Context(cfg.model_dump_json(), cfg.run.directory, force)
+    ctx = Context(cfg.model_dump_json(), cfg.run.directory)
     run = ctx.run
     run.path.mkdir(parents=True, exist_ok=True)
     (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
@@ -96,11 +96,10 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
                 raise MmflowError(f"stage '{st.name}' needs stage '{up}' complete in {run.path}: "
                                   f"run `mmflow run` (or `mmflow {up}`) first")
         t0 = time.time()
-        old = run.manifest(st.name)
-        if old is not None and old["fingerprint"] != fps[st.name] and force:
+        if force and run.is_stale(st.name, fps[st.name]):
             run.reset_stage(st.name, st.outputs)
         keys = st.prepare(ctx)
-        todo = run.begin_stage(st.name, fps[st.name], keys, st.outputs, force)
+        todo = run.begin_stage(st.name, fps[st.name], keys, st.outputs)
         _stamp_stores(run, st, cfg, fps[st.name])
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
         results = _execute(client, ctx, st.name, todo, progress)
