@@ -113,12 +113,12 @@ class TransferConfig(_Section):
     baseline_chunk: int = Field(32, description="Baselines per transfer task (memory ~ chunk * lmax^2 * 16 B).")
     per_baseline_lmax: bool = True
     m_block: int = Field(16, description="m values per reduction / solve task.")
+    noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
 
 
 class ImagingConfig(_Section):
     method: Literal["tikhonov", "min_variance", "moore_penrose", "prior", "smoothness"] = "tikhonov"
     eps: float = Field(0.01, description="Regularisation parameter (paper: 0.01).")
-    noise_weighting: bool = Field(True, description="Weight baselines by 1/variance (minimum variance).")
     zero_monopole: bool = True
     filter_m0: bool = True
     filter_m1_lmin: Optional[int] = 100

@@ -99,7 +99,7 @@ def _transfer_task(ctx, key):
     groups, lmax_b = _groups(ctx, fi)
     mg = zarr.open_group(str(ctx.run.store("mmodes.zarr")), mode="r")
     mm_all = mg["mmodes"]
-    inv_var = relative_weights(mg["inv_var"][fi]) if cfg.imaging.noise_weighting else np.ones(mg["inv_var"].shape[1])
+    inv_var = relative_weights(mg["inv_var"][fi]) if cfg.transfer.noise_weighting else np.ones(mg["inv_var"].shape[1])
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
     # accumulators follow the transfer precision: complex64 halves the ~lmax^3/3 Gram memory
     acc = NormalAccumulator(lmax, mmax, np.complex64 if dtype == np.float32 else np.complex128)
@@ -133,7 +133,7 @@ def _transfer_task(ctx, key):
     return {"baselines": n_bl}
 
 
-register(Stage("transfer", ("mmode", "transfer", "beam", "imaging"), ("mmodes",), ("partials.zarr", "transfer.zarr"),
+register(Stage("transfer", ("mmode", "transfer", "beam"), ("mmodes",), ("partials.zarr", "transfer.zarr"),
                _transfer_prepare, _transfer_task,
                description="transfer blocks + herk into partial normal equations per baseline group"))
 
