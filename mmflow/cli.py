@@ -57,7 +57,9 @@ def _dispatch(args):
                 print(f"{name:12s} not started")
             else:
                 extra = f"  {s['summary']['wall_s']} s" if s["summary"] else ""
-                print(f"{name:12s} {s['done']}/{s['total']} chunks {'complete' if s['complete'] else 'incomplete'}{extra}")
+                stale = "  STALE: made from other settings (rerun with --force)" if s["stale"] else ""
+                print(f"{name:12s} {s['done']}/{s['total']} chunks "
+                      f"{'complete' if s['complete'] else 'incomplete'}{extra}{stale}")
         return 0
     if args.cmd == "config":
         from mmflow.workflow.config import schema_yaml

@@ -55,10 +55,14 @@ def test_changed_settings_refuse_stale_outputs_then_force_recomputes(tmp_path):
     changed = small_config(run_dir, "imaging.eps=0.1")
     with pytest.raises(StaleOutputError, match="--force"):
         run_workflow(changed, progress=False, log=lambda *a: None)
+    run_workflow(changed, only=["solve"], force=True, progress=False, log=lambda *a: None)
+    st = status(run_dir)
+    assert not st["solve"]["stale"] and st["products"]["stale"] and not st["normal"]["stale"]
     summaries = run_workflow(changed, force=True, progress=False, log=lambda *a: None)
-    for upstream in ("simulate", "mmodes", "transfer", "normal"):  # eps does not touch the Gram
-        assert summaries[upstream]["tasks_run"] == 0
-    assert summaries["solve"]["tasks_run"] > 0 and summaries["products"]["tasks_run"] > 0
+    for upstream in ("simulate", "mmodes", "transfer", "normal", "solve"):  # eps does not touch the Gram
+        assert summaries[upstream]["tasks_run"] == 0  # (solve was already recomputed above)
+    assert summaries["products"]["tasks_run"] > 0
+    assert not any(s["stale"] for s in status(run_dir).values() if s)
 
 
 def test_enabled_stage_that_does_not_exist_is_an_error_not_a_fake(tmp_path):
