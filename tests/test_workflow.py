@@ -118,6 +118,8 @@ def test_config_schema_overrides_and_errors(tmp_path, capsys):
         load_config(tmp_path / "missing.yaml")
     assert main(["status", str(tmp_path)]) == 0
     assert "not started" in capsys.readouterr().out
+    (tmp_path / "config.yaml").write_text("imaging: {noise_weighting: true}\n")  # an older mmflow's key
+    assert main(["status", str(tmp_path)]) == 0
 
 
 def test_shipped_workflows_validate():

@@ -132,17 +132,19 @@ def _stamp_stores(run, stage, cfg, fingerprint):
 
 def status(run_path):
     """Per stage: chunks done, complete, and stale (made from other settings than ``config.yaml``)."""
-    from mmflow.workflow.config import WorkflowConfig
+    from mmflow.errors import InputError
+    from mmflow.workflow.config import load_config
     from mmflow.workflow.rundir import RunDir
 
     run = RunDir(run_path)
-    cfg_path = run.path / "config.yaml"
-    fps = stage_fingerprints(WorkflowConfig.model_validate(yaml.safe_load(cfg_path.read_text()))) \
-        if cfg_path.exists() else {}
+    try:
+        fps = stage_fingerprints(load_config(run.path / "config.yaml"))
+    except InputError:  # no config.yaml, or one from another mmflow version: staleness unknown
+        fps = None
     out = {}
     for st in all_stages():
         s = run.stage_status(st.name)
         if s is not None:
-            s["stale"] = bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name]
+            s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name]
         out[st.name] = s
     return out
