@@ -1,9 +1,9 @@
 """Ingest drift-scan data from any format pyuvdata reads (UVH5, uvfits, MeasurementSet).
 
-The plan (metadata of every file, read without data) checks that files agree on
-frequencies and antennas, orders integrations by time, rejects duplicate times, and maps
-each integration to a row of ``vis.zarr``. Tasks then read the files covering one time
-chunk. Stokes I = (XX + YY) / 2 (paper section 2); a single polarisation is used as is.
+The plan (metadata of every file, read once by the driver without data) checks that files
+agree on frequencies and antennas, orders integrations by time, rejects duplicate times, and
+stores each row's time and file in ``vis.zarr``. Each task then reads only the files covering
+its time chunk; no worker rescans the glob. Stokes I = (XX + YY) / 2 (paper section 2); a single polarisation is used as is.
 pyuvdata's data (``V_12 = <E_1 E_2*>``, ``b = x_2 - x_1``, as simulated by matvis and hera_sim)
 follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/test_ingest.py`` checks by
 imaging a matvis drift scan: sources land at their ICRS positions. ``input.conjugate``
@@ -27,8 +27,8 @@ log = logging.getLogger("mmflow.ingest")
 @dataclass
 class IngestPlan:
     files: list
-    file_times: list  # unique JD per file, sorted
-    row_of: dict  # (file index, jd) -> row
+    row_time: np.ndarray  # (n_time,) UTC JD of each row, ascending
+    row_file: np.ndarray  # (n_time,) index into ``files`` of the file holding each row
     n_time: int
     freqs_hz: np.ndarray
     pairs: np.ndarray
@@ -93,12 +93,10 @@ def _plan(pattern, fmt, on_bad):
         a2 = [index[int(x)] for x in np.asarray(uv.ant_2_array)]
         found.append(np.sort(np.stack([a1, a2], 1), 1))
     pairs = np.unique(np.concatenate(found), axis=0)
-    row_of, file_times, seen = {}, [], {}
+    seen = {}
     all_t = []
     for fi, uv in enumerate(metas):
-        ts = np.unique(np.asarray(uv.time_array))
-        file_times.append(ts)
-        for t in ts:
+        for t in np.unique(np.asarray(uv.time_array)):
             key = round(float(t) * 86400.0, 3)
             if key in seen:
                 raise InputError(good[fi], "time_array", f"integration at JD {t:.6f} also in {good[seen[key]]}",
@@ -106,16 +104,22 @@ def _plan(pattern, fmt, on_bad):
             seen[key] = fi
             all_t.append((float(t), fi))
     all_t.sort()
-    for row, (t, fi) in enumerate(all_t):
-        row_of[(fi, round(t * 86400.0, 3))] = row
     enu = _antenna_enu(ref)
     lat, lon, alt = ref.telescope.location_lat_lon_alt_degrees
     layout = Layout([str(n) for n in ref.telescope.antenna_names], enu, float(lat), float(lon), float(alt),
                     provenance=f"ingested from {good[0]}")
     tint = float(np.median(np.asarray(ref.integration_time)))
     times = np.array([t for t, _ in all_t])
-    return IngestPlan(good, file_times, row_of, len(all_t), freqs, pairs, ants, layout,
+    return IngestPlan(good, times, np.array([fi for _, fi in all_t]), len(all_t), freqs, pairs, ants, layout,
                       float(np.median(times)), tint, skipped)
+
+
+def write_plan(group, plan):
+    """Store what tasks need (row times, each row's file, antenna numbers) so no worker rescans files."""
+    if "plan_time_jd" not in group:
+        group.create_array("plan_time_jd", data=plan.row_time)
+        group.create_array("plan_file", data=plan.row_file.astype("int32"))
+        group.create_array("antenna_numbers", data=np.asarray(plan.ant_numbers, "int64"))
 
 
 def _antenna_enu(uv):
@@ -142,33 +146,36 @@ def stokes_i(uv):
                      "provide xx and yy (or a single polarisation)")
 
 
-def ingest_time_chunk(cfg, plan, row0, row1, store_path):
-    """Read every file with integrations in rows ``row0..row1`` and write those rows."""
+def _time_key(jd):
+    return np.round(np.asarray(jd, float) * 86400.0, 3)
+
+
+def ingest_time_chunk(cfg, store_path, row0, row1):
+    """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows."""
     import zarr
 
-    row1 = min(row1, plan.n_time)
-    n = row1 - row0
-    nbl, nf = len(plan.pairs), len(plan.freqs_hz)
+    g = zarr.open_group(str(store_path), mode="r+")
+    files = g.attrs["files"]
+    row_time = g["plan_time_jd"][row0:row1]
+    row_file = g["plan_file"][row0:row1]
+    pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
+    n, nbl, nf = len(row_time), len(pairs), g["freqs_hz"].shape[0]
+    row_of = {k: r for r, k in enumerate(_time_key(row_time))}
     vis = np.zeros((n, nbl, nf), np.complex64)
     wts = np.zeros((n, nbl, nf), np.float32)
     lst = np.full(n, np.nan)
-    tjd = np.full(n, np.nan)
-    pair_index = {(int(i), int(j)): k for k, (i, j) in enumerate(plan.pairs)}
-    index = {int(a): k for k, a in enumerate(plan.ant_numbers)}
-    for fi, f in enumerate(plan.files):
-        rows = {t: plan.row_of[(fi, round(float(t) * 86400.0, 3))] for t in plan.file_times[fi]}
-        wanted = [t for t, r in rows.items() if row0 <= r < row1]
-        if not wanted:
-            continue
-        uv = _read(f, cfg.input.format)
+    pair_index = {(int(i), int(j)): k for k, (i, j) in enumerate(pairs)}
+    index = {int(a): k for k, a in enumerate(ant_numbers)}
+    for fi in np.unique(row_file):
+        uv = _read(files[fi], cfg.input.format)
         data, flags = stokes_i(uv)
         nsamp = np.asarray(uv.nsample_array)[..., 0]
-        t_arr, l_arr = np.asarray(uv.time_array), np.asarray(uv.lst_array)
+        keys, l_arr = _time_key(uv.time_array), np.asarray(uv.lst_array)
         a1 = np.array([index[int(x)] for x in uv.ant_1_array])
         a2 = np.array([index[int(x)] for x in uv.ant_2_array])
-        for k in range(len(t_arr)):
-            r = rows.get(t_arr[k])
-            if r is None or not (row0 <= r < row1):
+        for k in range(len(keys)):
+            r = row_of.get(keys[k])
+            if r is None:  # an integration of this file that belongs to another chunk
                 continue
             i, j = int(a1[k]), int(a2[k])
             v = data[k]
@@ -177,13 +184,12 @@ def ingest_time_chunk(cfg, plan, row0, row1, store_path):
             if cfg.input.conjugate:
                 v = np.conj(v)
             b = pair_index[(i, j)]
-            vis[r - row0, b] = v
-            wts[r - row0, b] = np.where(flags[k], 0.0, nsamp[k])
-            lst[r - row0], tjd[r - row0] = l_arr[k], t_arr[k]
-    g = zarr.open_group(str(store_path), mode="r+")
-    g["vis"][row0:row1] = vis
-    g["weights"][row0:row1] = wts
-    g["lst"][row0:row1] = lst
-    g["time_jd"][row0:row1] = tjd
+            vis[r, b] = v
+            wts[r, b] = np.where(flags[k], 0.0, nsamp[k])
+            lst[r] = l_arr[k]
+    g["vis"][row0:row0 + n] = vis
+    g["weights"][row0:row0 + n] = wts
+    g["lst"][row0:row0 + n] = lst
+    g["time_jd"][row0:row0 + n] = row_time
     flagged = int(np.sum(np.all(wts == 0, axis=(1, 2))))
-    return {"integrations": int(n), "fully_flagged_integrations": flagged}
+    return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": int(len(np.unique(row_file)))}

@@ -127,25 +127,25 @@ register(Stage("simulate", ("telescope", "beam", "observation", "sky"), (), ("vi
 # ----------------------------------------------------------------------------- ingest
 
 def _ingest_prepare(ctx):
-    from mmflow.io.ingest import plan_ingest
+    from mmflow.io.ingest import plan_ingest, write_plan
 
     plan = plan_ingest(ctx.cfg)
     tel = build_telescope(ctx.cfg, plan.layout)
-    _create_vis_store(ctx.run.store("vis.zarr"), plan.n_time, plan.pairs, plan.freqs_hz, tel.layout,
-                      {"source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
-                       "skipped_files": plan.skipped, "integration_s": plan.integration_s},
-                      ctx.cfg.mmode.baseline_chunk)
+    g = _create_vis_store(ctx.run.store("vis.zarr"), plan.n_time, plan.pairs, plan.freqs_hz, tel.layout,
+                          {"source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
+                           "skipped_files": plan.skipped, "integration_s": plan.integration_s},
+                          ctx.cfg.mmode.baseline_chunk)
+    write_plan(g, plan)
     return [f"t{i:05d}" for i in range(-(-plan.n_time // TIME_CHUNK))]
 
 
 def _ingest_task(ctx, key):
-    from mmflow.io.ingest import ingest_time_chunk, plan_ingest
+    from mmflow.io.ingest import ingest_time_chunk
 
     i = int(key[1:])
-    return ingest_time_chunk(ctx.cfg, plan_ingest(ctx.cfg), i * TIME_CHUNK, (i + 1) * TIME_CHUNK,
-                             ctx.run.store("vis.zarr"))
+    return ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), i * TIME_CHUNK, (i + 1) * TIME_CHUNK)
 
 
 register(Stage("ingest", ("input", "telescope", "observation"), (), ("vis.zarr",),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest",
-               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over files"))
+               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files"))
