@@ -18,9 +18,12 @@ def default_eps_grid(n=200, lo=1e-6, hi=1e4):
     return np.logspace(np.log10(lo), np.log10(hi), n)
 
 
-def lcurve_block(gram, rhs, vhv, eps_values):
-    """``(solution_norm2, residual_norm2)`` arrays for one block and all ``eps_values``."""
-    s, v = np.linalg.eigh(gram)
+def lcurve_block(gram, rhs, vhv, eps_values, eig=None):
+    """``(solution_norm2, residual_norm2)`` arrays for one block and all ``eps_values``.
+
+    ``eig``: ``np.linalg.eigh(gram)`` when the caller already has it.
+    """
+    s, v = np.linalg.eigh(gram) if eig is None else eig
     s = np.clip(s, 0, None)
     c2 = np.abs(v.conj().T @ rhs) ** 2
     e = np.asarray(eps_values, float)[:, None]

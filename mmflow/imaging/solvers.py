@@ -57,9 +57,9 @@ def generalized(gram, rhs, eps, penalty_diag):
     return sla.solve(a, rhs, assume_a="her", check_finite=False)
 
 
-def singular_fraction_above(gram, eps):
+def singular_fraction_above(gram, eps, eigenvalues=None):
     """Fraction of singular values of B above ``sqrt(eps)`` (eigenvalues of G above eps)."""
-    s = np.linalg.eigvalsh(gram)
+    s = np.linalg.eigvalsh(gram) if eigenvalues is None else eigenvalues
     return float(np.mean(s > eps)) if len(s) else 0.0
 
 

@@ -69,7 +69,9 @@ def _solve_task(ctx, key):
         gram = hermitian_full(ng[f"f{fi}/gram_m{m:05d}"][:])
         rhs = rhs_all[m - m0, m:]
         keep = filter_mask(m, lmax, **filt)
-        frac[m - m0] = singular_fraction_above(gram, im.eps)
+        # one eigendecomposition serves the fraction and the L-curve when nothing is filtered
+        eig = np.linalg.eigh(gram) if im.lcurve and keep.all() else None
+        frac[m - m0] = singular_fraction_above(gram, im.eps, None if eig is None else eig[0])
         if not keep.any():
             continue
         g, r = gram[np.ix_(keep, keep)], rhs[keep]
@@ -77,7 +79,7 @@ def _solve_task(ctx, key):
         sol = solve_block(im.method, g, r, im.eps, ell=np.arange(m, lmax + 1)[keep], a_prior=p)
         alm[m - m0, m:][keep] = sol
         if im.lcurve:
-            lc[m - m0, :, 0], lc[m - m0, :, 1] = lcurve_block(g, r, vhv_all[m - m0], eps_grid)
+            lc[m - m0, :, 0], lc[m - m0, :, 1] = lcurve_block(g, r, vhv_all[m - m0], eps_grid, eig)
     out = zarr.open_group(str(ctx.run.store("alm.zarr")), mode="r+")
     out["alm"][fi, m0:m1] = alm
     out["lcurve"][fi, m0:m1] = lc

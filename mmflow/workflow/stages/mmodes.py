@@ -52,8 +52,9 @@ def noise_variance_from_differences(vis, weights):
     return np.where(np.isfinite(med), med / (2 * np.log(2)), np.inf)
 
 
-def noise_variance_radiometer(ctx, sl, fi, bandwidth_hz, integration_s):
-    """``sigma^2 = <V_ii> <V_jj> / (dnu tau)`` per baseline from time-averaged autocorrelations."""
+def noise_variance_radiometer(ctx, sl, bandwidth_hz, integration_s):
+    """``sigma^2 = <V_ii> <V_jj> / (dnu tau)``, shape (frequency, baseline in ``sl``), from
+    time-averaged autocorrelations (read once for every frequency)."""
     from mmflow.errors import InputError
 
     vg = zarr.open_group(str(ctx.run.store("vis.zarr")), mode="r")
@@ -62,11 +63,11 @@ def noise_variance_radiometer(ctx, sl, fi, bandwidth_hz, integration_s):
     if len(autos) == 0:
         raise InputError(str(ctx.run.store("vis.zarr")), "pairs", "no autocorrelations for the radiometer "
                          "equation", "set mmode.noise=data, or ingest autocorrelations")
-    power = np.full(int(pairs.max()) + 1, np.nan)
-    mean_auto = np.nanmean(np.abs(vg["vis"].get_orthogonal_selection((slice(None), autos, fi))), axis=0)
+    mean_auto = np.nanmean(np.abs(vg["vis"].get_orthogonal_selection((slice(None), autos, slice(None)))), axis=0)
+    power = np.full((int(pairs.max()) + 1, mean_auto.shape[1]), np.nan)
     power[pairs[autos, 0]] = mean_auto
     p = pairs[sl]
-    return power[p[:, 0]] * power[p[:, 1]] / (bandwidth_hz * integration_s)
+    return (power[p[:, 0]] * power[p[:, 1]]).T / (bandwidth_hz * integration_s)
 
 
 def _task(ctx, key):
@@ -84,14 +85,16 @@ def _task(ctx, key):
     mmax, n_bins = g.attrs["mmax"], g.attrs["n_bins"]
     out = np.zeros((vis.shape[2], mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((vis.shape[2], vis.shape[1]))
+    radiometer = None
+    if cfg.mmode.noise == "radiometer":
+        radiometer = noise_variance_radiometer(ctx, sl, cfg.observation.channel_width_khz * 1e3,
+                                               vg.attrs["integration_s"])
     for fi in range(vis.shape[2]):
         binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
                                              cfg.mmode.min_coverage, source=str(ctx.run.store("vis.zarr")))
         out[fi] = mmode_transform(binned, mmax, offset)
-        if cfg.mmode.noise == "radiometer":
-            sigma2 = noise_variance_radiometer(ctx, sl, fi, cfg.observation.channel_width_khz * 1e3,
-                                               vg.attrs["integration_s"])
-            sigma2 = np.where(np.isfinite(sigma2), sigma2, np.inf)
+        if radiometer is not None:
+            sigma2 = np.where(np.isfinite(radiometer[fi]), radiometer[fi], np.inf)
         else:
             sigma2 = noise_variance_from_differences(vis[:, :, fi], w[:, :, fi])
         var_m = mmode_noise_variance(wsum, 1.0) * np.where(np.isfinite(sigma2), sigma2, 0)
