@@ -101,14 +101,21 @@ def _sim_task(ctx, key):
     pairs = tel.antenna_pairs()
     vis = np.zeros((len(k), len(pairs), len(tel.freqs_hz)), np.complex64)
     rng = np.random.default_rng([cfg.sky.seed, i])  # deterministic per chunk
+    if cfg.sky.noise:  # radiometer noise needs each baseline's two autocorrelations
+        is_auto = pairs[:, 0] == pairs[:, 1]
+        if not is_auto.any():
+            from mmflow.errors import InputError
+
+            raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
+                             "set telescope.include_autos=true or sky.noise=false")
+        ant_index = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
+        col_i = [ant_index[int(p)] for p in pairs[:, 0]]
+        col_j = [ant_index[int(p)] for p in pairs[:, 1]]
     for fi, f in enumerate(tel.freqs_hz):
         v = simulate_drift_scan(tel, f, lst, _sky_points(ctx.config_json, float(f)), pairs, np.complex64)
         if cfg.sky.noise:
-            autos = np.real(v[:, pairs[:, 0] == pairs[:, 1]])
-            ant_index = {int(p[0]): c for c, p in enumerate(pairs[pairs[:, 0] == pairs[:, 1]])}
-            ai = autos[:, [ant_index[int(p)] for p in pairs[:, 0]]]
-            aj = autos[:, [ant_index[int(p)] for p in pairs[:, 1]]]
-            noise, _ = thermal_noise(v, ai, aj, tel.channel_width_hz, o.integration_s, rng)
+            autos = np.real(v[:, is_auto])
+            noise, _ = thermal_noise(v, autos[:, col_i], autos[:, col_j], tel.channel_width_hz, o.integration_s, rng)
             v = v + noise
         vis[:, :, fi] = v
     g = zarr.open_group(str(ctx.run.store("vis.zarr")), mode="r+")
