@@ -4,6 +4,7 @@ Order: ``MMFLOW_THREADS`` environment variable, then the dask worker's thread co
 running inside a worker (so tasks do not oversubscribe), then ``os.cpu_count()``.
 """
 import os
+from contextlib import contextmanager
 
 
 def n_threads():
@@ -17,3 +18,21 @@ def n_threads():
         return max(1, int(os.cpu_count() or 1) // max(1, w.state.nthreads))
     except (ImportError, ValueError, AttributeError):
         return max(1, int(os.cpu_count() or 1))
+
+
+@contextmanager
+def single_threaded_blas(active=True):
+    """Limit BLAS to one thread while a kernel runs its own ``n_threads()`` workers.
+
+    A kernel that splits its work over a thread pool would otherwise have each pool thread
+    start its own BLAS threads (``n_threads()**2`` on ``n_threads()`` cores). The limit is
+    process-wide for its duration (threadpoolctl); dask workers already run BLAS
+    single-threaded, so inside a worker this changes nothing.
+    """
+    if not active:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
