@@ -105,3 +105,28 @@ def test_uniform_sky_autocorrelation_is_temperature_times_beam_solid_angle(small
     omega = 2 * np.pi * np.trapezoid(tel.beam.power(np.zeros_like(za), za, freq) * np.sin(za), za)
     expected = temp * jy_per_sr_per_kelvin(freq) * omega
     assert abs(b00 * a00 - expected) < 1e-6 * expected
+
+
+def test_compiled_fringe_kernel_matches_numpy():
+    """The polynomial sincos and the folded north/south fringes against numpy's sin/cos/exp."""
+    from mmflow.mmode.fringe_kernels import fringe_folds, sincos_turns
+
+    t = np.random.default_rng(0).uniform(-400, 400, 20000)  # turns: baselines of hundreds of wavelengths
+    for dtype, tol in ((np.float32, 3e-7), (np.float64, 1e-12)):
+        s, c = sincos_turns(t, dtype)
+        assert np.abs(s - np.sin(2 * np.pi * t)).max() < tol
+        assert np.abs(c - np.cos(2 * np.pi * t)).max() < tol
+    rng = np.random.default_rng(1)
+    vec = unit_vectors(rng.uniform(0, np.pi / 2, 3)[:, None], rng.uniform(0, 2 * np.pi, (3, 50)))  # 3 rings
+    b = rng.normal(size=(7, 3)) * 60
+    beam_n, beam_s = rng.uniform(size=(2, 3, 50))
+    beam_n[0, :10] = beam_s[0, :10] = 0  # both rings below the horizon
+    rot = np.exp(-4j * np.pi * vec[:, :1, 2] * b[None, :, 2])
+    north = beam_n[..., None] * np.exp(2j * np.pi * vec @ b.T)
+    mirror = vec * [1, 1, -1]
+    south = beam_s[..., None] * np.exp(2j * np.pi * mirror @ b.T)
+    for cdtype, tol in ((np.complex64, 3e-6), (np.complex128, 1e-11)):
+        out_s, out_d = np.full((2, 3, 50, 7), np.nan, cdtype)
+        fringe_folds(vec, b, beam_n, beam_s, rot, out_s, out_d)
+        np.testing.assert_allclose(out_s, north + south, atol=tol)
+        np.testing.assert_allclose(out_d, north - south, atol=tol)

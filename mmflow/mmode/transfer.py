@@ -24,6 +24,7 @@ import ducc0
 import numpy as np
 
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.mmode.fringe_kernels import fringe_folds
 from mmflow.mmode.legendre import legendre_table
 from mmflow.threads import n_threads
 
@@ -119,56 +120,33 @@ def make_grid(lat_rad, beam, freq_hz, lmax, fringe_lmax):
     return TransferGrid(lmax, quad, theta, weights, n_phi, vec, a, np.flatnonzero(seen))
 
 
-def _phasor_block(vec, beam_n, beam_s, b2pi, rdtype, cdtype):
-    """Beam-weighted fringes on a block of north rings and their mirrors (baseline-minor layout).
-
-    ``vec``: (nr, nphi, 3) north-ring directions; mirrored directions are ``(x, y, -z)`` so
-    ``b.r' = b.r - 2 b_z z``: the south fringe is the north one times ``exp(-2 i b_z z)``, one
-    complex multiply instead of a sincos. Phases are reduced modulo 2 pi in float64 before
-    the (float32 or float64) sincos. Returns two arrays (nr, nphi, nb).
-    """
-    ph = vec @ (b2pi.T / (2 * np.pi))  # (nr, nphi, nb) float64, in turns
-    ph -= np.rint(ph)  # reduce in float64 ...
-    ph = ph.astype(rdtype, copy=False)
-    ph *= rdtype(2 * np.pi)  # ... then radians in the working precision
-    north = np.empty(ph.shape, cdtype)
-    north.real = np.cos(ph)
-    north.imag = np.sin(ph)
-    zphase = -2.0 * vec[:, :1, 2:3] * b2pi[None, None, :, 2]  # (nr, 1, nb)
-    south = north * np.exp(1j * zphase).astype(cdtype)
-    north *= beam_n[:, :, None].astype(rdtype)
-    south *= beam_s[:, :, None].astype(rdtype)
-    return north, south
-
-
 def _ring_fourier(grid, b, start, stop, mmax, cdtype, fsum, fdiff):
     """Fill ``fsum/fdiff[m, k, :]`` for north-ring slots ``start..stop``.
 
     By linearity the FFT of (north +/- south) gives ``F_k +/- F_k'`` directly, the two
-    inputs of the parity-split Legendre GEMMs.
+    inputs of the parity-split Legendre GEMMs. Columns ``nb..2nb-1`` receive ``F_{-m}``
+    (conjugated after the GEMM, where the data are small).
     """
-    rdtype = np.float32 if cdtype == np.complex64 else np.float64
     nb = len(b)
     ks = grid.active[start:stop]
-    north, south = _phasor_block(grid.vectors[ks], grid.beam[ks], grid.beam[grid.n_theta - 1 - ks],
-                                 2 * np.pi * b, rdtype, cdtype)
-    north += south
-    south *= -2
-    south += north  # north - south
+    vec = grid.vectors[ks]
+    zrot = np.exp(-4j * np.pi * vec[:, :1, 2] * b[None, :, 2])  # (nr, nb): mirror ring b.r' = b.r - 2 b_z z
+    north = np.empty((len(ks), grid.n_phi, nb), cdtype)
+    south = np.empty_like(north)
+    fringe_folds(vec, b, grid.beam[ks], grid.beam[grid.n_theta - 1 - ks], zrot, north, south)
     n = grid.n_phi
     for f, target in ((north, fsum), (south, fdiff)):
         # one FFT thread: the ring blocks themselves run in parallel (iter_transfer_blocks' pool)
         ducc0.fft.c2c(f, axes=(1,), forward=False, inorm=0, out=f, nthreads=1)
         target[:, start:stop, :nb] = f[:, :mmax + 1, :].transpose(1, 0, 2)
-        # conj(F_{-m}) for m = 0..mmax: index 0, then n-1, n-2, ... (a reversed slice, no gather)
+        # F_{-m} for m = 0..mmax: index 0, then n-1, n-2, ... (a reversed slice, no gather)
         neg = target[:, start:stop, nb:]
         neg[0] = f[:, 0, :]
         if mmax > 0:
             neg[1:] = f[:, n - 1:n - 1 - mmax:-1, :].transpose(1, 0, 2)
-        np.conjugate(neg, out=neg)
 
 
-def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=4,
+def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=1,
                          timings=None):
     """Yield ``(m, B_m)`` for ``m = 0..mmax`` for a chunk of baselines.
 
@@ -217,12 +195,13 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
             s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
             d = fdiff[m, k0:].view(rdtype)
             # l - m even rows use F + F', odd rows F - F' (i0 is even: blocks keep parity)
-            out[i0:i0 + 2 * len(even):2] = (even @ s).view(cdtype)
-            out[i0 + 1:i0 + 1 + 2 * len(odd):2] = (odd @ d).view(cdtype)
+            np.matmul(even, s, out=out[i0:i0 + 2 * len(even):2].view(rdtype))
+            np.matmul(odd, d, out=out[i0 + 1:i0 + 1 + 2 * len(odd):2].view(rdtype))
             if timings is not None:
                 timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + 2.0 * (even.size + odd.size) * s.shape[1]
         if timings is not None:
             timings["legendre_s"] = timings.get("legendre_s", 0.0) + time.perf_counter() - t0
+        np.conjugate(out[:, nb:], out=out[:, nb:])  # B_{-m}(b) = conj(T F_{-m}(b)): T is real
         block = out.T if m > 0 else out[:, :nb].T
         if np.any(lmax_b < lmax):
             mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
