@@ -5,6 +5,7 @@ running inside a worker (so tasks do not oversubscribe), then ``os.cpu_count()``
 """
 import os
 from contextlib import contextmanager
+from functools import lru_cache
 
 
 def n_threads():
@@ -32,7 +33,14 @@ def single_threaded_blas(active=True):
     if not active:
         yield
         return
-    from threadpoolctl import threadpool_limits
-
-    with threadpool_limits(limits=1, user_api="blas"):
+    with _controller().limit(limits=1, user_api="blas"):
         yield
+
+
+@lru_cache(maxsize=1)
+def _controller():
+    """One threadpoolctl controller per process: scanning the loaded libraries costs ~0.3 ms,
+    a limit on a known controller ~15 us (transfer matrices enter one per few m)."""
+    from threadpoolctl import ThreadpoolController
+
+    return ThreadpoolController()

@@ -26,7 +26,7 @@ import numpy as np
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
 from mmflow.mmode.fringe_kernels import fringe_folds
 from mmflow.mmode.legendre import legendre_table
-from mmflow.threads import n_threads
+from mmflow.threads import n_threads, single_threaded_blas
 
 
 def fringe_bandlimit(b_wavelengths, beam_lmax):
@@ -186,27 +186,45 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
     if timings is not None:
         timings["fourier_s"] = timings.get("fourier_s", 0.0) + time.perf_counter() - t0
     ell_all = np.arange(lmax + 1)
-    for m in range(mmax + 1):
-        out = np.zeros((lmax - m + 1, 2 * nb), cdtype)
-        t0 = time.perf_counter()
-        for i0, k0, even, odd in grid.tables(m, rdtype):
-            if k0 >= nn:
-                continue
-            s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
-            d = fdiff[m, k0:].view(rdtype)
-            # l - m even rows use F + F', odd rows F - F' (i0 is even: blocks keep parity)
-            np.matmul(even, s, out=out[i0:i0 + 2 * len(even):2].view(rdtype))
-            np.matmul(odd, d, out=out[i0 + 1:i0 + 1 + 2 * len(odd):2].view(rdtype))
+    threads = n_threads()
+    window = 2 * threads  # m blocks computed concurrently, each GEMM on one BLAS thread
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for m0 in range(0, mmax + 1, window):
+            ms = range(m0, min(m0 + window, mmax + 1))
+            t0 = time.perf_counter()
+            with single_threaded_blas(threads > 1):
+                done = list(pool.map(lambda m: _legendre_block(grid, fsum, fdiff, m, nb, rdtype), ms))
             if timings is not None:
-                timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + 2.0 * (even.size + odd.size) * s.shape[1]
-        if timings is not None:
-            timings["legendre_s"] = timings.get("legendre_s", 0.0) + time.perf_counter() - t0
-        np.conjugate(out[:, nb:], out=out[:, nb:])  # B_{-m}(b) = conj(T F_{-m}(b)): T is real
-        block = out.T if m > 0 else out[:, :nb].T
-        if np.any(lmax_b < lmax):
-            mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
-            block = np.where(mask, 0, block)
-        yield m, block
+                timings["legendre_s"] = timings.get("legendre_s", 0.0) + time.perf_counter() - t0
+                timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + sum(f for _, f in done)
+            for m, (out, _) in zip(ms, done):
+                block = out.T if m > 0 else out[:, :nb].T
+                if np.any(lmax_b < lmax):
+                    mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
+                    block = np.where(mask, 0, block)
+                yield m, block
+
+
+def _legendre_block(grid, fsum, fdiff, m, nb, rdtype):
+    """``B_m`` as ``(L, 2 nb)``: parity-split GEMMs of the weighted tables with ``F +/- F'``.
+
+    Returns the block and its GEMM flop count.
+    """
+    cdtype = fsum.dtype
+    nn = fsum.shape[1]
+    out = np.zeros((grid.lmax - m + 1, 2 * nb), cdtype)
+    flops = 0.0
+    for i0, k0, even, odd in grid.tables(m, rdtype):
+        if k0 >= nn:
+            continue
+        s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
+        d = fdiff[m, k0:].view(rdtype)
+        # l - m even rows use F + F', odd rows F - F' (i0 is even: blocks keep parity)
+        np.matmul(even, s, out=out[i0:i0 + 2 * len(even):2].view(rdtype))
+        np.matmul(odd, d, out=out[i0 + 1:i0 + 1 + 2 * len(odd):2].view(rdtype))
+        flops += 2.0 * (even.size + odd.size) * s.shape[1]
+    np.conjugate(out[:, nb:], out=out[:, nb:])  # B_{-m}(b) = conj(T F_{-m}(b)): T is real
+    return out, flops
 
 
 def transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64):
