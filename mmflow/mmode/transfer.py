@@ -12,7 +12,10 @@ b is the +m row of -b: ``F_{k,m}(-b) = conj(F_{k,-m}(b))``, so one FFT gives bot
 Folding rings ``k`` and ``pi - theta_k`` with ``lambda_lm(pi-theta) = (-1)^{l+m} lambda_lm(theta)``
 halves the GEMM: even ``l+m`` use ``F_k + F_k'``, odd use ``F_k - F_k'``.
 
-Kernels here are plain numpy/ducc0 on in-memory arrays; dask maps them over chunks.
+Kernels here are numpy/ducc0 (and one numba loop, :mod:`mmflow.mmode.fringe_kernels`) on
+in-memory arrays; dask maps them over chunks. Within a call, rings (Fourier stage) and windows
+of m (Legendre stage) run on :func:`mmflow.threads.n_threads` threads, one ring per task so that
+its FFT buffers stay in cache.
 """
 from __future__ import annotations
 
@@ -159,6 +162,8 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
         Per-baseline lmax; coefficients with ``l > lmax_b`` are set to zero.
     dtype : float32 or float64
         Precision of the GEMM and of the blocks (complex64 / complex128 out).
+    ring_block : int
+        North rings per Fourier task (1 keeps a task's FFT buffers in a core's cache).
     timings : dict, optional
         Accumulates ``fourier_s``, ``legendre_s`` and ``legendre_flops`` (for benchmarks).
 
@@ -187,7 +192,9 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
         timings["fourier_s"] = timings.get("fourier_s", 0.0) + time.perf_counter() - t0
     ell_all = np.arange(lmax + 1)
     threads = n_threads()
-    window = 2 * threads  # m blocks computed concurrently, each GEMM on one BLAS thread
+    # m blocks computed concurrently, each GEMM on one BLAS thread; small blocks in larger windows
+    # so that the hand-over to the pool stays small next to the GEMMs
+    window = threads * max(2, 4096 // (lmax + 1))
     with ThreadPoolExecutor(max_workers=threads) as pool:
         for m0 in range(0, mmax + 1, window):
             ms = range(m0, min(m0 + window, mmax + 1))
