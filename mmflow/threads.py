@@ -41,6 +41,7 @@ def single_threaded_blas(active=True):
 def _controller():
     """One threadpoolctl controller per process: scanning the loaded libraries costs ~0.3 ms,
     a limit on a known controller ~15 us (transfer matrices enter one per few m)."""
+    import scipy.linalg  # noqa: F401  -- load scipy's own BLAS first, so the controller sees it
     from threadpoolctl import ThreadpoolController
 
     return ThreadpoolController()
