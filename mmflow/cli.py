@@ -1,12 +1,11 @@
-"""``mmflow`` command line: run workflows, single stages, status, config and benchmarks."""
+"""``mmflow`` command line: run workflows, single stages, status, verify, config and benchmarks."""
 from __future__ import annotations
 
 import argparse
 import json
 import sys
 
-STAGE_COMMANDS = ("simulate", "ingest", "mmodes", "transfer", "normal", "solve", "products",
-                  "calibrate", "peel", "terrestrial", "clean")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow")
 
 
 def _common(p):
@@ -14,30 +13,42 @@ def _common(p):
     p.add_argument("overrides", nargs="*", help="section.key=value overrides")
     p.add_argument("--scheduler", help="join an existing dask scheduler (or set DASK_SCHEDULER_ADDRESS)")
     p.add_argument("--cluster", choices=("local", "slurm", "pbs", "synchronous"), help="override cluster.kind")
-    p.add_argument("--force", action="store_true", help="recompute stages whose inputs or settings changed")
-    p.add_argument("--no-progress", action="store_true", help="no progress bars")
+    p.add_argument("--force", action="store_true",
+                   help="recompute stages whose inputs or settings changed (up-to-date stages are kept)")
+    p.add_argument("--no-progress", action="store_true", help="no progress lines")
 
 
 def build_parser():
+    from mmflow import __version__
+    from mmflow.workflow.stages.base import all_stages
+
     ap = argparse.ArgumentParser(prog="mmflow", description=__doc__)
-    sub = ap.add_subparsers(dest="cmd", required=True)
+    ap.add_argument("--version", action="version", version=f"mmflow {__version__}")
+    sub = ap.add_subparsers(dest="cmd")
     _common(sub.add_parser("run", help="run every enabled stage of a workflow"))
-    for name in STAGE_COMMANDS:
-        _common(sub.add_parser(name, help=f"run only the '{name}' stage"))
-    st = sub.add_parser("status", help="stages and chunks done in a run directory")
+    for st in all_stages():  # the one stage registry drives the subcommands
+        _common(sub.add_parser(st.name, help=f"run only the '{st.name}' stage: {st.description}"))
+    st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
+    vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and CRC-32)")
+    vf.add_argument("run_dir")
+    vf.add_argument("--quick", action="store_true", help="sizes only, no checksums")
     cf = sub.add_parser("config", help="show the schema or write a starting workflow")
     cf.add_argument("action", choices=("show", "init"))
     cf.add_argument("path", nargs="?", help="for init: where to write the YAML")
     b = sub.add_parser("bench", help="benchmarks that print JSON figures")
-    b.add_argument("what", choices=("transfer", "solve", "simulate"))
+    b.add_argument("what", choices=BENCHMARKS)
     b.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
     b.add_argument("--output", help="also write the JSON here")
     return ap
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.cmd is None:
+        parser.print_help()
+        return 0
     from mmflow.errors import MmflowError
 
     try:
@@ -47,41 +58,63 @@ def main(argv=None):
         return 2
 
 
+def _status(args):
+    from mmflow.workflow.runner import status
+
+    for name, s in status(args.run_dir).items():
+        if s is None:
+            print(f"{name:12s} not started")
+            continue
+        extra = f"  {s['summary']['wall_s']} s" if s["summary"] else ""
+        stale = "  STALE: made from other settings (rerun with --force)" if s["stale"] else ""
+        print(f"{name:12s} {s['done']}/{s['total']} chunks {'complete' if s['complete'] else 'incomplete'}"
+              f"{extra}{stale}")
+    return 0
+
+
+def _verify(args):
+    from mmflow.workflow.runner import verify
+
+    bad = 0
+    for name, problems in verify(args.run_dir, full=not args.quick).items():
+        print(f"{name:12s} {'ok' if not problems else f'{len(problems)} problems'}")
+        for p in problems[:20]:
+            print(f"    {p}")
+        bad += len(problems)
+    if bad:
+        print(f"{bad} problems: rerun the workflow with --force to recompute the damaged stages", file=sys.stderr)
+    return 1 if bad else 0
+
+
+def _config(args):
+    from mmflow.workflow.config import schema_yaml
+
+    text = schema_yaml()
+    if args.action == "init" and args.path:
+        with open(args.path, "w") as fh:
+            fh.write(text)
+        print(f"wrote {args.path}")
+    else:
+        print(text, end="")
+    return 0
+
+
+def _bench(args):
+    from mmflow import bench
+
+    res = bench.run(args.what, quick=args.quick)
+    text = json.dumps(res, indent=2)
+    print(text)
+    if args.output:
+        with open(args.output, "w") as fh:
+            fh.write(text)
+    return 0
+
+
 def _dispatch(args):
-    if args.cmd == "status":
-        from mmflow.workflow.runner import status
-
-        st = status(args.run_dir)
-        for name, s in st.items():
-            if s is None:
-                print(f"{name:12s} not started")
-            else:
-                extra = f"  {s['summary']['wall_s']} s" if s["summary"] else ""
-                stale = "  STALE: made from other settings (rerun with --force)" if s["stale"] else ""
-                print(f"{name:12s} {s['done']}/{s['total']} chunks "
-                      f"{'complete' if s['complete'] else 'incomplete'}{extra}{stale}")
-        return 0
-    if args.cmd == "config":
-        from mmflow.workflow.config import schema_yaml
-
-        text = schema_yaml()
-        if args.action == "init" and args.path:
-            with open(args.path, "w") as fh:
-                fh.write(text)
-            print(f"wrote {args.path}")
-        else:
-            print(text, end="")
-        return 0
-    if args.cmd == "bench":
-        from mmflow import bench
-
-        res = bench.run(args.what, quick=args.quick)
-        text = json.dumps(res, indent=2)
-        print(text)
-        if args.output:
-            with open(args.output, "w") as fh:
-                fh.write(text)
-        return 0
+    handlers = {"status": _status, "verify": _verify, "config": _config, "bench": _bench}
+    if args.cmd in handlers:
+        return handlers[args.cmd](args)
     from mmflow.workflow.cluster import open_cluster
     from mmflow.workflow.config import load_config
     from mmflow.workflow.runner import run_workflow

@@ -24,6 +24,9 @@ class InputError(MmflowError, ValueError):
         self.what, self.field, self.problem, self.fix = what, field, problem, fix
         super().__init__(f"{what}: field '{field}': {problem}. Fix: {fix}")
 
+    def __reduce__(self):  # survive pickling between dask workers and the driver
+        return type(self), (self.what, self.field, self.problem, self.fix)
+
 
 class CoverageError(InputError):
     """Time-ordered data do not cover enough of the sidereal day."""

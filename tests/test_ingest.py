@@ -107,10 +107,10 @@ def test_missing_input_and_flagged_integrations(scan, tmp_path):
     uv.write_uvh5(str(flagged / "scan_000.uvh5"), clobber=True)
     summaries = run_workflow(_cfg(tmp_path / "r1", str(flagged / "*.uvh5"), "mmode.min_coverage=0.8"),
                              progress=False, log=lambda *a: None)
-    import json
+    from mmflow.workflow.rundir import RunDir
 
-    done = [json.loads(p.read_text()) for p in (tmp_path / "r1" / "_status" / "ingest").glob("*.done")]
-    assert sum(x["fully_flagged_integrations"] for x in done) == 24  # 140 integrations / 6 files
+    done = RunDir(tmp_path / "r1").task_infos("ingest")
+    assert sum(x["fully_flagged_integrations"] for x in done.values()) == 24  # 140 integrations / 6 files
     assert summaries["products"]["tasks_run"] == 1
 
 

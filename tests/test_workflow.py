@@ -71,15 +71,15 @@ def test_enabled_stage_that_does_not_exist_is_an_error_not_a_fake(tmp_path):
         run_workflow(cfg, progress=False, log=lambda *a: None)
 
 
-def _interrupt_run(run_dir, stage, sig):
+def _interrupt_run(run_dir, stage, sig, extra=()):
     """Start a CLI run in a subprocess and send ``sig`` once ``stage`` has finished its first chunk."""
-    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
+    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, *extra,
             f"run.directory={run_dir}", "--no-progress"]
     env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
     proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     marker_dir = run_dir / "_status" / stage
     deadline = time.time() + 120
-    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("*.done"))):
+    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("[!_]*.done"))):
         time.sleep(0.05)
     proc.send_signal(sig)
     proc.wait(timeout=60)
@@ -99,7 +99,7 @@ def test_interrupted_run_resumes_to_bit_identical_outputs(reference_run, tmp_pat
 def test_single_stage_subcommand_needs_its_inputs(tmp_path, capsys):
     rc = main(["solve", "workflows/demo.yaml", *SMALL, f"run.directory={tmp_path / 'r'}"])
     assert rc == 2
-    assert "needs stage 'normal' complete" in capsys.readouterr().err
+    assert "stage 'solve' needs stage 'simulate' complete" in capsys.readouterr().err
 
 
 def test_config_schema_overrides_and_errors(tmp_path, capsys):
@@ -176,8 +176,9 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
                            != zarr.open_group(str(run_dir / "vis.zarr"), mode="r")["pairs"][:, 1])
     ratio = np.median(data_iv[cross] / radio_iv[cross])
     assert 0.8 < ratio < 1.25  # the difference estimator recovers the injected radiometer noise
-    ctx = Context(cfg.model_dump_json(), str(run_dir))
-    tel = ctx.telescope()
+    from mmflow.workflow.stages.base import get_stage
+
+    tel = Context(cfg.model_dump_json(), str(run_dir)).for_stage(get_stage("transfer")).telescope()
     chunks, lmax_b = plan_chunks(tel, 40e6, 24, 32)
     assert len(chunks) >= 1
     tg = zarr.open_group(str(run_dir / "transfer.zarr" / "f0"), mode="r")

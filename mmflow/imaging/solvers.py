@@ -12,10 +12,15 @@ All solvers take the (full, Hermitian) Gram ``G = B^H N^-1 B`` and ``r = B^H N^-
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Optional
+
 import numpy as np
 import scipy.linalg as sla
 
 from mmflow.errors import InputError
+from mmflow.imaging.filters import filter_mask
+from mmflow.imaging.lcurve import lcurve_block
 
 
 def tikhonov(gram, rhs, eps):
@@ -34,13 +39,13 @@ def moore_penrose(gram, rhs, sigma_threshold):
     keep = s > sigma_threshold**2
     coef = np.zeros_like(s)
     coef[keep] = 1.0 / s[keep]
-    return v @ (coef * (v.conj().T @ rhs))
+    return v @ (_as_column(coef, rhs) * (v.conj().T @ rhs))
 
 
 def with_prior(gram, rhs, eps, a_prior):
     """Tikhonov towards a prior: minimises ``||v - B a||^2 + eps ||a - a_prior||^2``."""
-    a, _ = tikhonov(gram, rhs - gram @ a_prior, eps)
-    return a + a_prior
+    a, _ = tikhonov(gram, rhs - _as_column(gram @ a_prior, rhs), eps)
+    return a + _as_column(a_prior, rhs)
 
 
 def smoothness_weights(ell):
@@ -63,8 +68,15 @@ def singular_fraction_above(gram, eps, eigenvalues=None):
     return float(np.mean(s > eps)) if len(s) else 0.0
 
 
+def _as_column(x, rhs):
+    """``x`` (n,) broadcast against ``rhs`` of shape (n,) or (n, k)."""
+    x = np.asarray(x)
+    return x if np.ndim(rhs) == 1 else x[:, None]
+
+
 def solve_block(method, gram, rhs, eps, ell=None, a_prior=None, sigma_threshold=None):
-    """Dispatch on the configured method name; ``ell`` are the unknowns' l (for smoothness)."""
+    """Dispatch on the configured method name; ``rhs`` (n,) or (n, k) columns solved at once;
+    ``ell`` are the unknowns' l (for smoothness)."""
     if method in ("tikhonov", "min_variance"):
         return tikhonov(gram, rhs, eps)[0]
     if method == "moore_penrose":
@@ -78,3 +90,44 @@ def solve_block(method, gram, rhs, eps, ell=None, a_prior=None, sigma_threshold=
         return generalized(gram, rhs, eps, smoothness_weights(ell))
     raise InputError("imaging", "method", f"unknown method '{method}'",
                      "use tikhonov, min_variance, moore_penrose, prior or smoothness")
+
+
+@dataclass
+class MSolution:
+    """One m block solved: ``alm`` (n_split, lmax - m + 1), the fraction of singular values of
+    B above sqrt(eps), and the L-curve ``(n_eps, 2)`` of the first split (or None)."""
+
+    alm: np.ndarray
+    fraction_above: float
+    lcurve: Optional[np.ndarray]
+
+
+def solve_m(gram, rhs, m, lmax, method="tikhonov", eps=0.01, filters=None, a_prior=None, vhv=None,
+            lcurve_eps=None):
+    """Solve one m block for every data split: the one per-m loop of the engine and the workflow.
+
+    The m-filters (:func:`mmflow.imaging.filters.filter_mask`, paper section 4) remove their
+    coefficients from the unknowns before solving; the solution is zero there.
+
+    Parameters
+    ----------
+    gram : (n, n) full Hermitian ``G_m = B^H N^-1 B``, ``n = lmax - m + 1``
+    rhs : (n_split, n) ``r_m = B^H N^-1 v`` per data split
+    a_prior : (n,) prior coefficients of block m (method ``prior``)
+    vhv : ``v^H N^-1 v`` of the first split, and ``lcurve_eps`` trial values: the L-curve
+    """
+    filters = {} if filters is None else filters
+    rhs = np.atleast_2d(rhs)
+    keep = filter_mask(m, lmax, **filters)
+    want_lc = lcurve_eps is not None
+    eig = np.linalg.eigh(gram) if want_lc and keep.all() else None  # one decomposition serves both
+    frac = singular_fraction_above(gram, eps, None if eig is None else eig[0])
+    alm = np.zeros(rhs.shape, np.complex128)
+    lc = np.zeros((len(lcurve_eps), 2)) if want_lc else None
+    if keep.any():
+        g, r = gram[np.ix_(keep, keep)], rhs[:, keep]
+        prior = None if a_prior is None else np.asarray(a_prior)[keep]
+        alm[:, keep] = solve_block(method, g, r.T, eps, ell=np.arange(m, lmax + 1)[keep], a_prior=prior).T
+        if want_lc:
+            lc[:, 0], lc[:, 1] = lcurve_block(g, r[0], vhv, lcurve_eps, eig)
+    return MSolution(alm, frac, lc)

@@ -10,8 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmflow.conventions import m_slice, n_alm
-from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.solvers import solve_block
+from mmflow.imaging.solvers import solve_m
 from mmflow.mmode.normal import NormalAccumulator
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks, make_grid
 
@@ -79,47 +78,67 @@ def chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype=np.float64, cach
         yield m, blk
 
 
+def plan_groups(chunks, n_groups):
+    """Cut the (lmax-sorted) chunks into ``n_groups`` contiguous runs of balanced cost ``~ n lmax_b^3``.
+
+    The grouping depends only on the chunks and ``n_groups`` (a setting), never on the
+    cluster, so partial sums and their fixed-order reduction are the same on any cluster.
+    """
+    n_groups = max(1, min(len(chunks), n_groups))
+    cost = np.cumsum([len(c.index) * float(c.lmax) ** 3 for c in chunks])
+    cut = np.searchsorted(cost, cost[-1] * np.arange(1, n_groups) / n_groups)
+    bounds = np.concatenate([[0], cut, [len(chunks)]])
+    return [chunks[bounds[k]:bounds[k + 1]] for k in range(n_groups) if bounds[k + 1] > bounds[k]]
+
+
+def accumulate_chunks(acc, telescope, freq_hz, chunks, lmax_b, mmodes_of, inv_var, dtype, cache=None,
+                      on_block=None):
+    """Add baseline chunks to ``acc``: the one streaming loop of the engine and the ``transfer`` stage.
+
+    ``mmodes_of(chunk)`` returns the chunk's m-modes ``([n_split,] mmax + 1, 2, n)``;
+    ``on_block(chunk, m, block)`` sees each (padded) transfer block (``transfer.mode=store``).
+    """
+    cache = cache or GridCache(telescope, freq_hz)
+    for chunk in chunks:
+        mm = mmodes_of(chunk)
+        pad = on_block is not None
+        for m, blk in chunk_blocks(telescope, freq_hz, chunk, acc.lmax, lmax_b, dtype, cache, acc.mmax, pad=pad):
+            acc.add_mmodes(m, blk, mm, inv_var[chunk.index])
+            if on_block is not None:
+                on_block(chunk, m, blk)
+    return acc
+
+
 def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, chunk_size=64,
                                 dtype=np.float64, acc_dtype=None, per_baseline_lmax=True):
     """Stream over baseline chunks: ``G_m += B^H N^-1 B``, ``r_m += B^H N^-1 v``, ``v^H N^-1 v``.
 
     Parameters
     ----------
-    mmodes : ndarray (mmax + 1, 2, n_bl)
+    mmodes : ndarray ([n_split,] mmax + 1, 2, n_bl)
     inv_var : ndarray (n_bl,), optional
         Inverse noise variance of each baseline's m-modes (same for all m).
     """
-    mmax = mmodes.shape[0] - 1
+    mmodes = np.asarray(mmodes)
+    mm4 = mmodes if mmodes.ndim == 4 else mmodes[None]
     chunks, lmax_b = plan_chunks(telescope, freq_hz, lmax, chunk_size, per_baseline_lmax)
     acc_dtype = acc_dtype or (np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
-    acc = NormalAccumulator(lmax, mmax, acc_dtype)
-    cache = GridCache(telescope, freq_hz)
-    w = np.ones(mmodes.shape[2]) if inv_var is None else np.asarray(inv_var, float)
-    for chunk in chunks:
-        mm, wc = mmodes[..., chunk.index], w[chunk.index]
-        for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, cache, mmax, pad=False):
-            acc.add_mmodes(m, blk, mm, wc)
-    return acc
+    acc = NormalAccumulator(lmax, mm4.shape[1] - 1, acc_dtype, n_split=mm4.shape[0])
+    w = np.ones(mm4.shape[3]) if inv_var is None else np.asarray(inv_var, float)
+    return accumulate_chunks(acc, telescope, freq_hz, chunks, lmax_b, lambda c: mm4[..., c.index], w, dtype)
 
 
-def solve_alm(acc, eps, method="tikhonov", filters=None, lmax=None, a_prior=None):
+def solve_alm(acc, eps, method="tikhonov", filters=None, lmax=None, a_prior=None, split=0):
     """Solve every m block and assemble a healpy-layout alm vector (Jy/sr, frame of date).
 
     ``filters``: keyword arguments of :func:`mmflow.imaging.filters.filter_mask`; None applies
-    the paper's defaults. Filtered coefficients are removed from the unknowns before solving.
+    the paper's defaults. Each m goes through :func:`mmflow.imaging.solvers.solve_m`, the same
+    code as the workflow's ``solve`` stage. ``split`` picks the data split (0: full).
     """
     lmax = acc.lmax if lmax is None else lmax
-    filters = {} if filters is None else filters
     alm = np.zeros(n_alm(lmax), np.complex128)
     for m in acc.ms:
-        keep = filter_mask(m, lmax, **filters)
-        if not keep.any():
-            continue
-        g = acc.full_gram(m)[np.ix_(keep, keep)]
-        r = acc.rhs[m][keep]
-        prior = None if a_prior is None else a_prior[m_slice(lmax, m)][keep]
-        sol = solve_block(method, g, r, eps, ell=np.arange(m, lmax + 1)[keep], a_prior=prior)
-        block = np.zeros(lmax - m + 1, np.complex128)
-        block[keep] = sol
-        alm[m_slice(lmax, m)] = block
+        prior = None if a_prior is None else a_prior[m_slice(lmax, m)]
+        sol = solve_m(acc.full_gram(m), acc.rhs[m], m, lmax, method, eps, filters, prior)
+        alm[m_slice(lmax, m)] = sol.alm[split]
     return alm

@@ -31,37 +31,44 @@ def hermitian_full(c_upper):
 class NormalAccumulator:
     """Per-m accumulator of ``G_m`` and ``r_m`` for one frequency.
 
+    ``G_m = sum_b B_b^H w_b B_b`` (one for every data split) and, for each data split ``s``
+    (full, even, odd, ...), ``r_m[s] = sum_b B_b^H w_b v_b[s]`` and ``v^H W v[s]``: the
+    splits share one transfer pass; each costs one extra column of the right-hand side GEMM.
+
     Parameters
     ----------
     lmax, mmax : int
-    dtype : complex64 or complex128 (complex128 recommended for accumulation)
+    dtype : complex64 or complex128 (the Gram's precision)
+    n_split : int, number of data vectors per m
     """
 
-    def __init__(self, lmax, mmax, dtype=np.complex128, ms=None):
-        self.lmax, self.mmax = lmax, mmax
+    def __init__(self, lmax, mmax, dtype=np.complex128, ms=None, n_split=1):
+        self.lmax, self.mmax, self.n_split = lmax, mmax, n_split
         self.ms = list(range(mmax + 1)) if ms is None else list(ms)
         self.gram = {m: np.zeros((lmax - m + 1, lmax - m + 1), dtype, order="F") for m in self.ms}
-        self.rhs = {m: np.zeros(lmax - m + 1, dtype) for m in self.ms}
-        self.vhv = np.zeros(mmax + 1)
+        self.rhs = {m: np.zeros((n_split, lmax - m + 1), dtype) for m in self.ms}
+        self.vhv = np.zeros((n_split, mmax + 1))
         self.dtype = np.dtype(dtype)
 
     def add_mmodes(self, m, block, mmodes, inv_var):
-        """Add one chunk from its m-modes ``(mmax + 1, 2, n_b)`` and per-baseline weights ``(n_b,)``.
+        """Add one chunk from its m-modes ``([n_split,] mmax + 1, 2, n_b)`` and weights ``(n_b,)``.
 
         The data vector and weights follow the block's rows: ``V_m`` then ``conj(V_{-m})`` for m > 0.
         Also accumulates ``v^H N^-1 v`` (for L-curves).
         """
-        v = mmodes[m, 0] if m == 0 else np.concatenate([mmodes[m, 0], mmodes[m, 1]])
+        mm = mmodes if mmodes.ndim == 4 else mmodes[None]
+        v = mm[:, m, 0] if m == 0 else np.concatenate([mm[:, m, 0], mm[:, m, 1]], axis=1)
         w = inv_var if m == 0 else np.concatenate([inv_var, inv_var])
         self.add(m, block, v, w)
-        self.vhv[m] += float(np.sum(w * np.abs(v) ** 2))
+        self.vhv[:, m] += np.sum(w * np.abs(v) ** 2, axis=1)
 
     def add(self, m, block, v=None, inv_var=None):
         """Add one chunk: ``G_m += B^H W B``, ``r_m += B^H W v`` with ``W = diag(inv_var)``.
 
-        ``block`` may have fewer columns than ``lmax - m + 1`` (a chunk of short baselines
-        whose coefficients vanish beyond its lmax): only the leading sub-block is updated,
-        which is where per-baseline lmax saves most of the Gram work.
+        ``v``: ``(rows,)`` or ``(n_split, rows)``. ``block`` may have fewer columns than
+        ``lmax - m + 1`` (a chunk of short baselines whose coefficients vanish beyond its
+        lmax): only the leading sub-block is updated, which is where per-baseline lmax saves
+        most of the Gram work.
         """
         b = np.asarray(block, self.dtype)
         n = b.shape[1]
@@ -73,10 +80,10 @@ class NormalAccumulator:
             sub = np.asfortranarray(self.gram[m][:n, :n])
             self.gram[m][:n, :n] = herk_upper(b, sub)
         if v is not None:
-            vv = np.asarray(v, self.dtype)
+            vv = np.atleast_2d(np.asarray(v, self.dtype))
             if inv_var is not None:
                 vv = vv * np.sqrt(np.asarray(inv_var, float)).astype(vv.real.dtype)
-            self.rhs[m][:n] += b.conj().T @ vv
+            self.rhs[m][:, :n] += (b.conj().T @ vv.T).T
 
     def full_gram(self, m):
         return hermitian_full(self.gram[m])

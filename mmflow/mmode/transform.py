@@ -125,3 +125,32 @@ def mmode_noise_variance(bin_weight, sigma2_per_unit_weight=1.0):
 def block_vector(mmodes, m):
     """The data vector of one m block: ``V_m`` rows, then ``conj(V_{-m})`` rows for m > 0."""
     return mmodes[m, 0] if m == 0 else np.concatenate([mmodes[m, 0], mmodes[m, 1]])
+
+
+SPLITS = ("full", "even", "odd")
+
+
+def split_mmode_transform(binned, mmax, offset, splits=("full",)):
+    """m-modes of several splits of the sidereal bins, shape ``(n_split, mmax + 1, 2, ...)``.
+
+    ``full`` uses every bin; ``even`` / ``odd`` use bins ``2k`` / ``2k + 1`` only (jackknife
+    halves), each as a transform over ``N/2`` bins at its own phases
+    ``phi = 2 pi (2k) / N`` and ``2 pi (2k + 1) / N``: the odd half carries the
+    m-dependent phase of its one-bin offset, ``exp(-i m 2 pi / N)``. Every split estimates the
+    same ``V_m`` (for ``mmax < N/4``) with its own noise, so one transfer pass projects them all.
+    """
+    n = binned.shape[0]
+    offset = np.zeros(n) if offset is None else np.asarray(offset, float)
+    out = []
+    for s in splits:
+        if s == "full":
+            out.append(mmode_transform(binned, mmax, offset))
+        elif s in ("even", "odd"):
+            start = 0 if s == "even" else 1
+            if n % 2:
+                raise InputError("m-mode transform", "mmode.splits", f"even/odd splits need an even number of "
+                                 f"sidereal bins, not {n}", "set mmode.n_bins to an even number")
+            out.append(mmode_transform(binned[start::2], mmax, offset[start::2] + start * TWO_PI / n))
+        else:
+            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'", f"use {SPLITS}")
+    return np.stack(out)

@@ -100,9 +100,20 @@ class MmodeConfig(_Section):
     n_bins: Optional[int] = Field(None, description="Sidereal bins (default: integrations per sidereal day).")
     min_coverage: float = Field(0.95, description="Fraction of the sidereal day that must hold data.")
     baseline_chunk: int = Field(256, description="Baselines per task in the corner turn.")
+    splits: list[Literal["full", "even", "odd"]] = Field(
+        ["full"], description="Data splits carried through m-modes, right-hand sides and alm: 'full' first, "
+        "then e.g. 'even' and 'odd' sidereal bins for jackknife noise maps (one transfer pass for all).")
     noise: Literal["data", "radiometer"] = Field(
         "data", description="Noise per baseline from successive-integration differences, or from the "
         "radiometer equation sigma^2 = V_ii V_jj / (dnu tau) with the autocorrelations.")
+
+
+    @field_validator("splits")
+    @classmethod
+    def _full_first(cls, v):
+        if not v or v[0] != "full" or len(set(v)) != len(v):
+            raise ValueError("list 'full' first, then other splits once each, e.g. [full, even, odd]")
+        return v
 
 
 class TransferConfig(_Section):
@@ -113,6 +124,9 @@ class TransferConfig(_Section):
     baseline_chunk: int = Field(32, description="Baselines per transfer task (memory ~ chunk * lmax^2 * 16 B).")
     per_baseline_lmax: bool = True
     m_block: int = Field(16, description="m values per reduction / solve task.")
+    groups: int = Field(8, description="Baseline groups of the transfer stage: tasks per frequency, and partial "
+                        "normal equations kept on disk (each ~ the Gram's size). Set >= the cluster's worker "
+                        "threads for parallelism. Results never depend on the cluster.")
     noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
 
 
@@ -142,6 +156,8 @@ class ClusterConfig(_Section):
     threads_per_worker: int = 1
     memory_limit: str = Field("auto", description="Per-worker memory limit (dask spills/pauses above it).")
     dashboard_address: str = ":8787"
+    worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long "
+                                 "(workers died: memory, walltime); finished chunks are kept for a rerun.")
     jobqueue: dict = Field(default_factory=dict, description="dask-jobqueue cluster options (cores, memory, queue, ...).")
 
 

@@ -1,25 +1,41 @@
-"""What every task needs, rebuilt cheaply in each worker process from the configuration."""
+"""What every task needs, rebuilt cheaply in each worker process from the configuration.
+
+A :class:`Context` is picklable (configuration as JSON, the absolute run directory and the
+driver's lock token). ``ctx.for_stage(stage)`` gives a :class:`TaskContext`: the
+configuration through the stage's :class:`~mmflow.workflow.fingerprint.ConfigView`, verified
+reads of input stores, and writes recorded (size and CRC-32 per chunk) for the completion
+marker, with a non-finite guard on everything written.
+"""
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 
+from mmflow.errors import MmflowError
+from mmflow.io.stores import ChunkLedger, check_region
 from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
 from mmflow.telescope.beams import make_beam
 from mmflow.workflow.config import WorkflowConfig
+from mmflow.workflow.fingerprint import ConfigView
 from mmflow.workflow.rundir import RunDir
 
 SIDEREAL_DAY_S = 86164.0905
 
 
+class NonFiniteOutputError(MmflowError):
+    """A stage was about to write NaN or inf."""
+
+
 @dataclass(frozen=True)
 class Context:
-    """Picklable handle: the configuration (as JSON) and the run directory."""
+    """Picklable handle: the configuration (as JSON), the run directory and the lock token."""
 
     config_json: str
     run_path: str
+    token: str = None
 
     @property
     def cfg(self) -> WorkflowConfig:
@@ -29,9 +45,80 @@ class Context:
     def run(self) -> RunDir:
         return RunDir(self.run_path)
 
+    def for_stage(self, stage):
+        return TaskContext(self.config_json, self.run_path, self.token, stage)
+
+
+@dataclass(frozen=True)
+class TaskContext(Context):
+    """A context bound to one stage (and, inside a task, to that task's chunk records)."""
+
+    stage: object = None
+    ledger: ChunkLedger = field(default=None, compare=False)
+
+    @property
+    def cfg(self):
+        return ConfigView(_parse(self.config_json), self.stage.config, self.stage.name)
+
+    def for_task(self):
+        return TaskContext(self.config_json, self.run_path, self.token, self.stage, ChunkLedger(self.run_path))
+
+    # ------------------------------------------------------------------ stores
+    def create(self, spec):
+        """Create (or validate) one of this stage's declared stores; constant arrays are recorded."""
+        g = spec.create(self.run_path)
+        if self.ledger is not None:
+            for a in spec.arrays:
+                if a.data is not None:
+                    self.ledger.record(g[a.name], ())
+        return g
+
+    def open(self, store, mode="r"):
+        import zarr
+
+        if mode == "r" and store not in self.stage.inputs and store not in self.stage.outputs:
+            raise MmflowError(f"stage '{self.stage.name}' reads {store}, which it does not declare as an input")
+        return zarr.open_group(str(self.run.store(store)), mode=mode)
+
+    def read(self, store, name, region=()):
+        """Read ``store/name[region]`` after checking its chunks against the producer's records."""
+        from mmflow.workflow.stages.base import producer_of
+
+        g = self.open(store)
+        arr = g[name]
+        producer = producer_of(store, _parse(self.config_json))
+        if producer is not None and store in self.stage.inputs:
+            t0 = time.perf_counter()
+            check_region(self.run_path, self.run.chunk_index(producer.name), arr, region, producer.name)
+            if self.ledger is not None:
+                self.ledger.seconds += time.perf_counter() - t0
+        return arr[tuple(region) if region else ...]
+
+    def write(self, group, name, region, data, allow_nan=False):
+        """Write a chunk-aligned region, refusing NaN/inf, and record its chunks."""
+        data = np.asarray(data)
+        if not allow_nan and data.dtype.kind in "fc" and not np.isfinite(data).all():
+            bad = int(np.size(data) - np.count_nonzero(np.isfinite(data)))
+            raise NonFiniteOutputError(
+                f"stage '{self.stage.name}' was about to write {bad} NaN/inf values to "
+                f"{group.store.root}/{name} region {_fmt(region)}. Nothing was written; this is a bug or "
+                "bad input upstream: check the inputs this stage read (mmflow verify RUN_DIR)")
+        self.ledger.write(group, name, region, data)
+
+    # ------------------------------------------------------------------ the array
     def telescope(self) -> Telescope:
-        """The telescope as stored with the visibilities (layout, baselines, frequencies)."""
-        return _telescope(self.config_json, self.run_path)
+        """The telescope as stored with the visibilities (layout, baselines, frequencies), beam
+        from ``beam`` (stages that call this declare ``beam``)."""
+        return _telescope(self.cfg.beam.model_dump_json(), self.run_path)
+
+    def vis_attrs(self):
+        import zarr
+
+        return zarr.open_group(str(self.run.store("vis.zarr")), mode="r").attrs.asdict()
+
+
+def _fmt(region):
+    return "[" + ", ".join(f"{s.start}:{s.stop}" if isinstance(s, slice) else str(s) for s in region) + "]"
 
 
 @lru_cache(maxsize=8)
@@ -40,7 +127,9 @@ def _parse(js):
 
 
 @lru_cache(maxsize=8)
-def _telescope(js, run_path):
+def _telescope(beam_json, run_path):
+    import json
+
     import zarr
 
     from mmflow.telescope.layout import Layout
@@ -49,14 +138,14 @@ def _telescope(js, run_path):
     a = g.attrs.asdict()
     layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],
                     a["height_m"], a.get("layout_provenance", ""))
-    tel = build_telescope(_parse(js), layout)
+    tel = Telescope(layout, make_beam(json.loads(beam_json)), np.asarray(g["freqs_hz"][:]),
+                    a["integration_s"], True, a.get("channel_width_hz", 0.0))
     tel.pairs = np.asarray(g["pairs"][:])
-    tel.freqs_hz = np.asarray(g["freqs_hz"][:])
     return tel
 
 
 def build_telescope(cfg, layout=None):
-    """Telescope from the config (or from an ingested layout)."""
+    """Telescope from the config (``telescope``, ``beam``, ``observation``), or from an ingested layout."""
     t = cfg.telescope
     if layout is None:
         if t.preset is not None and t.layout_file is None:
@@ -68,6 +157,5 @@ def build_telescope(cfg, layout=None):
                 raise InputError("workflow", "telescope.layout_file", "no layout given",
                                  "set telescope.preset, or layout_file with lat_deg and lon_deg")
             layout = load_layout(t.layout_file, t.lat_deg, t.lon_deg).select(t.stands, t.radius_m)
-    beam_spec = cfg.beam.model_dump()
-    return Telescope(layout, make_beam(beam_spec), np.asarray(cfg.observation.freqs_mhz) * 1e6,
+    return Telescope(layout, make_beam(cfg.beam.model_dump()), np.asarray(cfg.observation.freqs_mhz) * 1e6,
                      cfg.observation.integration_s, t.include_autos, cfg.observation.channel_width_khz * 1e3)

@@ -1,17 +1,32 @@
-"""Run stages in order on a dask client, resumably, with a progress bar and a summary per stage."""
+"""Run stages in order on a dask client, resumably, under the run directory's lock.
+
+What a run guarantees (each covered by ``tests/test_faults.py``):
+
+* one driver per run directory (an exclusive lock naming its holder; a killed holder's lock
+  is released by the kernel);
+* every stage's fingerprint comes from what it declares it reads (settings, input stores,
+  input files); stale outputs are refused before any work starts, with the settings that
+  changed, unless ``--force`` recomputes them;
+* work keys come from the data and the settings, never from the cluster, and a stage is
+  complete only when every key has its marker;
+* inputs are checked against their producers' chunk records before they are read;
+* a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage.
+"""
 from __future__ import annotations
 
 import json
-import os
+import sys
 import time
 from importlib.metadata import PackageNotFoundError, version
 
 import yaml
 
-from mmflow.errors import MmflowError
-from mmflow.workflow.config import config_fingerprint
+from mmflow.errors import MmflowError, StaleOutputError
+from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.context import Context
-from mmflow.workflow.stages.base import all_stages, get_stage
+from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
+from mmflow.workflow.rundir import RunDir
+from mmflow.workflow.stages.base import all_stages, get_stage, producer_of
 
 PACKAGES = ("mmflow", "numpy", "scipy", "dask", "distributed", "zarr", "healpy", "astropy", "ducc0", "pyuvdata")
 
@@ -28,94 +43,228 @@ def versions():
 
 def run_task(ctx, stage_name, key):
     """Worker side: skip if marked done, else compute, write, then mark (atomically)."""
+    import os
+
     run = ctx.run
+    run.check_holder(ctx.token)
     if run.is_done(stage_name, key):
         return {"key": key, "skipped": True}
     delay = float(os.environ.get("MMFLOW_TASK_DELAY_S", "0") or 0)
     if delay:  # a knob to slow tasks down: watch the dashboard, or test kills mid-stage
         time.sleep(delay)
     t0 = time.time()
-    info = get_stage(stage_name).task(ctx, key) or {}
-    info = dict(info, seconds=round(time.time() - t0, 3))
-    run.mark_done(stage_name, key, info)
+    tctx = ctx.for_stage(get_stage(stage_name)).for_task()
+    info = get_stage(stage_name).task(tctx, key) or {}
+    info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4))
+    run.check_holder(ctx.token)
+    run.mark_done(stage_name, key, info, tctx.ledger.entries)
     return {"key": key, "skipped": False, **info}
 
 
-def stage_fingerprints(cfg):
-    """Fingerprint of every stage: its config sections plus its enabled upstream stages."""
+def stage_fingerprints(cfg, run=None):
+    """``{stage: StageFingerprint}`` of every enabled stage (None for disabled ones)."""
     fps = {}
     for st in all_stages():
         if not st.enabled(cfg):
             fps[st.name] = None
             continue
-        up = [fps.get(u) for u in st.upstream if fps.get(u)]
-        fps[st.name] = config_fingerprint(cfg, st.sections) + ("" if not up else "-" + config_fingerprint_of(up))
+        upstream = {}
+        for store in st.inputs:
+            prod = producer_of(store, cfg)
+            if prod is not None and prod.name != st.name:
+                upstream[prod.name] = fps[prod.name].digest
+        files = st.files(cfg)
+        old = run.manifest(st.name) if run is not None else None
+        fps[st.name] = StageFingerprint(config_values(cfg, st.config), upstream,
+                                        stage_file_digests(files, old) if files else {})
     return fps
 
 
-def config_fingerprint_of(items):
-    import hashlib
+class _Progress:
+    """A one-line progress count: updated in place on a terminal, a line per ~10 % otherwise."""
 
-    return hashlib.sha256("|".join(items).encode()).hexdigest()[:16]
+    def __init__(self, name, total, enabled, stream=sys.stdout):
+        self.name, self.total, self.stream = name, total, stream
+        self.enabled = enabled and total > 0
+        self.tty = enabled and stream.isatty()
+        self.last = -1
+
+    def update(self, done):
+        if not self.enabled:
+            return
+        if self.tty:
+            self.stream.write(f"\r[{self.name}] {done}/{self.total} tasks")
+            self.stream.flush()
+        elif done * 10 // self.total > self.last * 10 // max(self.total, 1) or done == self.total:
+            self.stream.write(f"[{self.name}] {done}/{self.total} tasks\n")
+        self.last = done
+
+    def close(self):
+        if self.enabled and self.tty:
+            self.stream.write("\n")
 
 
-def _execute(client, ctx, name, todo, progress):
+def _execute(client, ctx, name, todo, progress, worker_wait_s):
     if not todo:
         return []
+    bar = _Progress(name, len(todo), progress)
     if client is None:
-        return [run_task(ctx, name, k) for k in todo]
-    futures = client.map(run_task, [ctx] * len(todo), [name] * len(todo), todo, pure=False,
-                         key=[f"{name}-{k}-{ctx.run_path}" for k in todo], retries=2)
-    if progress:
-        from distributed import progress as dprogress
+        out = []
+        for k in todo:
+            out.append(run_task(ctx, name, k))
+            bar.update(len(out))
+        bar.close()
+        return out
+    from distributed import wait
 
-        dprogress(futures)
-        print()
+    futures = client.map(run_task, [ctx] * len(todo), [name] * len(todo), todo, pure=False,
+                         key=[f"{name}-{k}-{ctx.token}" for k in todo], retries=2)
+    no_worker_since = None
+    try:
+        while True:
+            try:
+                wait(futures, timeout=1.0)
+            except TimeoutError:
+                pass
+            done = sum(f.done() for f in futures)
+            bar.update(done)
+            if done == len(futures):
+                break
+            if client.scheduler_info().get("workers"):
+                no_worker_since = None
+            elif no_worker_since is None:
+                no_worker_since = time.time()
+            elif time.time() - no_worker_since > worker_wait_s:
+                raise MmflowError(
+                    f"stage '{name}': no dask worker for {worker_wait_s:g} s with {len(futures) - done} of "
+                    f"{len(futures)} tasks unfinished (workers died: memory, walltime, a crash?). Fix: start "
+                    "workers (check the cluster's logs), then rerun the same command: finished chunks are kept "
+                    "(cluster.worker_wait_s sets the wait)")
+    except BaseException:
+        client.cancel(futures)
+        raise
+    finally:
+        bar.close()
     return client.gather(futures)
+
+
+def _check_inputs(run, st, cfg):
+    """Every input store's producer is complete and its recorded chunks exist with their sizes."""
+    for store in st.inputs:
+        prod = producer_of(store, cfg)
+        if prod is None or prod.name == st.name:
+            continue
+        s = run.stage_status(prod.name)
+        if s is None or not s["complete"]:
+            raise MmflowError(f"stage '{st.name}' needs stage '{prod.name}' complete in {run.path}: "
+                              f"run `mmflow run` (or `mmflow {prod.name}`) first")
+        problems = verify_chunks(run.path, run.chunk_index(prod.name), full=False)
+        if problems:
+            raise DamagedStoreError(f"stage '{st.name}' cannot start: the output of stage '{prod.name}' is "
+                                    f"damaged: {problems[0]}" + (f" (and {len(problems) - 1} more)"
+                                                                  if len(problems) > 1 else "")
+                                    + f". Fix: `mmflow run ... --force` recomputes stage '{prod.name}' "
+                                    f"(`mmflow verify {run.path}` lists every damaged chunk)")
+
+
+def _repair_or_refuse(run, stage, force, log):
+    """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop."""
+    damaged = run.damaged_keys(stage)
+    if not damaged:
+        return
+    first = next(iter(damaged.values()))[0]
+    n = sum(len(p) for p in damaged.values())
+    if not force:
+        raise DamagedStoreError(f"stage '{stage}' in {run.path} has {n} damaged chunk files (first: {first}). "
+                                f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
+                                f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
+    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
+    if "_prepare" in damaged:
+        run.reset_stage(stage)
+    else:
+        run.forget_keys(stage, list(damaged))
+
+
+def _stale_stages(run, fps, names):
+    return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
 
 def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print):
     """Run every enabled stage (or just ``only``) of a workflow; return the per-stage summaries."""
-    ctx = Context(cfg.model_dump_json(), cfg.run.directory)
-    run = ctx.run
+    run = RunDir(cfg.run.directory)
     run.path.mkdir(parents=True, exist_ok=True)
+    lock, token = run.acquire_lock()
+    try:
+        return _run_locked(cfg, run, token, client, only, force, progress, log)
+    finally:
+        lock.close()
+
+
+def _run_locked(cfg, run, token, client, only, force, progress, log):
+    stages = [st for st in all_stages() if not only or st.name in only]
+    fps = stage_fingerprints(cfg, run)
+    stale = _stale_stages(run, fps, [st.name for st in stages if st.task is not None])
+    if stale and not force:  # refuse before any work, naming what changed
+        st = stale[0]
+        raise _stale_error(run, st, fps[st], stale)
     (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
     (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions()}, indent=2))
-    fps = stage_fingerprints(cfg)
+    ctx = Context(cfg.model_dump_json(), str(run.path), token)
+    worker_wait_s = float(getattr(cfg.cluster, "worker_wait_s", 300))
     summaries = {}
-    for st in all_stages():
-        if only and st.name not in only:
-            continue
+    for st in stages:
         if not st.enabled(cfg):
             if st.task is None or only:
                 log(f"[{st.name}] skipped: disabled ({st.description})")
             continue
-        for up in st.upstream:
-            ups = run.stage_status(up)
-            if fps.get(up) and (ups is None or not ups["complete"]):
-                raise MmflowError(f"stage '{st.name}' needs stage '{up}' complete in {run.path}: "
-                                  f"run `mmflow run` (or `mmflow {up}`) first")
         t0 = time.time()
-        if force and run.is_stale(st.name, fps[st.name]):
-            run.reset_stage(st.name, st.outputs)
-        keys = st.prepare(ctx)
-        todo = run.begin_stage(st.name, fps[st.name], keys, st.outputs)
-        _stamp_stores(run, st, cfg, fps[st.name])
+        fp = fps[st.name]
+        if force and run.is_stale(st.name, fp.digest):
+            log(f"[{st.name}] recomputing (--force): {fp.explain(run.manifest(st.name))}")
+            run.reset_stage(st.name)
+        _repair_or_refuse(run, st.name, force, log)
+        _check_inputs(run, st, cfg)
+        sctx = ctx.for_stage(st)
+        pctx = sctx.for_task()
+        keys = st.prepare(pctx)
+        todo = run.begin_stage(st.name, fp, keys, st.outputs)
+        run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
+        _stamp_stores(run, st, cfg, fp.digest)
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
-        results = _execute(client, ctx, st.name, todo, progress)
-        fin = st.finalize(ctx) if st.finalize else None
+        results = _execute(client, ctx, st.name, todo, progress, worker_wait_s)
+        fin = None
+        if st.finalize:
+            fctx = sctx.for_task()
+            fin = st.finalize(fctx)
+            run.mark_done(st.name, "_finalize", fin, fctx.ledger.entries)
         summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": len(keys),
                    "tasks_run": sum(1 for r in results if not r.get("skipped")),
+                   "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
+                   "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),
                    "bytes_written": run.bytes_of(st.outputs), "finalize": fin}
         run.finish_stage(st.name, summary)
         summaries[st.name] = summary
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
             f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
+    if only:
+        later = _stale_stages(run, stage_fingerprints(cfg, run), [s.name for s in all_stages()])
+        if later:
+            log(f"stages now made from older inputs (STALE): {', '.join(later)}. Refresh them with "
+                f"`mmflow run WORKFLOW ... --force` (the same settings; up-to-date stages are kept)")
     summary_path = run.path / "summary.json"
     merged = json.loads(summary_path.read_text()) if summary_path.exists() else {}
     merged.update(summaries)
     summary_path.write_text(json.dumps(merged, indent=2))
     return summaries
+
+
+def _stale_error(run, stage, fp, stale):
+    others = [s for s in stale if s != stage]
+    return StaleOutputError(
+        f"stage '{stage}' in {run.path} was made from other settings or inputs: {fp.explain(run.manifest(stage))}"
+        + (f" (stale too: {', '.join(others)})" if others else "")
+        + ". Fix: add --force to recompute it and the stages after it (up-to-date stages are kept), "
+        "or use a new directory with run.directory=...")
 
 
 def _stamp_stores(run, stage, cfg, fingerprint):
@@ -134,17 +283,29 @@ def status(run_path):
     """Per stage: chunks done, complete, and stale (made from other settings than ``config.yaml``)."""
     from mmflow.errors import InputError
     from mmflow.workflow.config import load_config
-    from mmflow.workflow.rundir import RunDir
 
     run = RunDir(run_path)
+    if not run.path.is_dir():
+        raise InputError(str(run.path), "run directory", "does not exist",
+                         "give the run.directory of a workflow that has run")
     try:
-        fps = stage_fingerprints(load_config(run.path / "config.yaml"))
+        fps = stage_fingerprints(load_config(run.path / "config.yaml"), run)
     except InputError:  # no config.yaml, or one from another mmflow version: staleness unknown
         fps = None
     out = {}
     for st in all_stages():
         s = run.stage_status(st.name)
         if s is not None:
-            s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name]
+            s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
         out[st.name] = s
     return out
+
+
+def verify(run_path, full=True):
+    """``{stage: [problems]}``: missing markers, missing, truncated or changed chunk files."""
+    from mmflow.errors import InputError
+
+    run = RunDir(run_path)
+    if not run.path.is_dir():
+        raise InputError(str(run.path), "run directory", "does not exist", "give an existing run directory")
+    return run.verify([st.name for st in all_stages()], full)

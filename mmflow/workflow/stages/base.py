@@ -1,9 +1,25 @@
-"""The stage abstraction and the ordered registry of stages.
+"""The stage abstraction and the one ordered registry of stages (it also drives the CLI).
 
-A stage names the config sections and upstream stages its output depends on (its
-fingerprint), the stores it writes, a ``prepare`` step run once by the driver (create
-zarr arrays, list chunk keys), a ``task`` run per chunk key on the workers, and an
-optional ``finalize`` run by the driver after all tasks.
+A stage declares what it reads and writes; the runner derives everything else from that:
+
+* ``config``: dotted configuration paths it reads (enforced by
+  :class:`mmflow.workflow.fingerprint.ConfigView`); ``inputs``: stores it reads;
+  ``files``: a function giving the user files it reads. Together with its inputs'
+  fingerprints these make its fingerprint.
+* ``outputs``: stores (``*.zarr``, removed whole by ``--force``) or folders whose files the
+  tasks list in their markers (only those are ever removed).
+* ``prepare(ctx) -> keys`` runs once on the driver (create-or-validate its stores, list its
+  work keys; the keys may depend on the data and the configuration, never on the cluster);
+  ``task(ctx, key)`` runs per key on the workers; ``finalize(ctx)`` runs on the driver at the end.
+
+Kinds (``kind``): ``map`` (independent tasks over keys: time chunks, baseline groups,
+m blocks); ``reduce`` (each task sums its inputs in a fixed order with
+:func:`mmflow.workflow.reduce.ordered_tree_sum`, so results are bit-identical on any cluster);
+``solve`` (solve-then-apply: tasks solve over intervals independent of storage chunks and
+write small solution stores; ``apply(ctx, block)`` corrects data where they are next read,
+so a correction can never be applied twice and ``vis.zarr`` is never rewritten);
+``iterative`` (``next_cycle(ctx, cycle) -> keys or None``: a loop of maps with a checkpoint
+per cycle, resumable after a kill).
 """
 from __future__ import annotations
 
@@ -14,14 +30,18 @@ from typing import Callable, Optional
 @dataclass
 class Stage:
     name: str
-    sections: tuple
-    upstream: tuple
+    config: tuple
+    inputs: tuple
     outputs: tuple
     prepare: Callable
-    task: Callable
+    task: Optional[Callable]
     finalize: Optional[Callable] = None
     enabled: Callable = field(default=lambda cfg: True)
     description: str = ""
+    kind: str = "map"
+    files: Callable = field(default=lambda cfg: [])
+    apply: Optional[Callable] = None
+    next_cycle: Optional[Callable] = None
 
 
 STAGES: list = []
@@ -30,6 +50,8 @@ ORDER = ("simulate", "ingest", "calibrate", "peel", "terrestrial", "mmodes", "tr
 
 
 def register(stage):
+    if stage.kind not in ("map", "reduce", "solve", "iterative"):
+        raise ValueError(f"stage {stage.name}: unknown kind {stage.kind}")
     STAGES.append(stage)
     STAGES.sort(key=lambda s: ORDER.index(s.name))
     return stage
@@ -46,6 +68,14 @@ def get_stage(name):
         if s.name == name:
             return s
     raise KeyError(name)
+
+
+def producer_of(store, cfg):
+    """The enabled stage that writes ``store`` (None if none is enabled)."""
+    for s in all_stages():
+        if store in s.outputs and s.enabled(cfg):
+            return s
+    return None
 
 
 def _load():

@@ -1,94 +1,91 @@
 """``solve`` (per frequency and m block) and ``products`` (per frequency) stages.
 
-``alm.zarr``: ``alm`` (frequency, m, l) complex128 in Jy/sr, frame of date, zero for l < m;
-``lcurve`` (frequency, m, 200, 2) with ``||a||^2`` and ``||v - Ba||^2`` per trial eps;
-``fraction_above`` (frequency, m): fraction of singular values above sqrt(eps).
-Products: ``maps/map_<MHz>MHz.fits`` (HEALPix, RING, in ``products.frame``/``products.unit``),
-a Mollweide PNG, ``maps/lcurve_<MHz>MHz.png`` and ``maps/summary.json``.
+``solve`` calls :func:`mmflow.imaging.solvers.solve_m` (the engine's own per-m loop) on the
+reduced normal equations and writes ``alm.zarr``: ``alm`` per data split in Jy/sr in the frame
+of date, ``lcurve`` (first split) and ``fraction_above``. ``products`` rotates to
+``products.frame`` at the *data's* epoch (stored with the visibilities) and writes
+``maps/map_<MHz>MHz.fits``, PNGs and summaries; only the files it lists are ever removed.
 """
 from __future__ import annotations
 
 import json
 
 import numpy as np
-import zarr
 
 from mmflow.conventions import m_slice, n_alm
-from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.lcurve import default_eps_grid, lcurve_block, lcurve_corner
-from mmflow.imaging.solvers import singular_fraction_above, solve_block
+from mmflow.imaging.lcurve import default_eps_grid, lcurve_corner
+from mmflow.imaging.solvers import solve_m
+from mmflow.io.run_stores import alm_store, gram_name, m_blocks
 from mmflow.mmode.normal import hermitian_full
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.mmodes import mmax_of
-from mmflow.workflow.stages.normal import _m_blocks
 
 N_EPS = 200
+SOLVE_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer.m_block", "imaging", "products.frame")
 
 
 def _solve_prepare(ctx):
     cfg = ctx.cfg
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    nf = len(ctx.telescope().freqs_hz)
-    g = zarr.open_group(str(ctx.run.store("alm.zarr")), mode="a")
-    mb = cfg.transfer.m_block
-    if "alm" not in g:
-        g.create_array("alm", shape=(nf, mmax + 1, lmax + 1), chunks=(1, mb, lmax + 1), dtype="complex128", fill_value=0)
-        g.create_array("lcurve", shape=(nf, mmax + 1, N_EPS, 2), chunks=(1, mb, N_EPS, 2), dtype="float64", fill_value=0)
-        g.create_array("fraction_above", shape=(nf, mmax + 1), chunks=(1, mb), dtype="float64", fill_value=0)
-        g.create_array("eps_grid", data=default_eps_grid(N_EPS))
-    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in _m_blocks(cfg)]
+    ng = ctx.open("normal.zarr")
+    n_split, nf = ng["rhs"].shape[:2]
+    ctx.create(alm_store(nf, lmax, mmax, cfg.transfer.m_block, n_split, default_eps_grid(N_EPS)))
+    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
 
 
-def _prior_alm(cfg, fi, lmax):
-    if cfg.imaging.method != "prior":
-        return None
+def _prior_alm(ctx, lmax):
+    """The prior map (``imaging.prior_map``, in ``products.frame``) as alm in the frame of date."""
     import healpy
 
     from mmflow.sky.diffuse import map_to_alm
     from mmflow.sky.frames import rotate_alm, rotation_matrix
 
+    cfg = ctx.cfg
     hmap = healpy.read_map(cfg.imaging.prior_map)
-    return rotate_alm(map_to_alm(hmap, lmax), rotation_matrix(cfg.products.frame, "date", cfg.observation.epoch_jd), lmax)
+    epoch = ctx.vis_attrs()["epoch_jd"]
+    return rotate_alm(map_to_alm(hmap, lmax), rotation_matrix(cfg.products.frame, "date", epoch), lmax)
+
+
+def _filters(im):
+    return dict(zero_monopole=im.zero_monopole, filter_m0=im.filter_m0, filter_m1_lmin=im.filter_m1_lmin)
 
 
 def _solve_task(ctx, key):
     cfg = ctx.cfg
     im = cfg.imaging
     fi, m0 = (int(x[1:]) for x in key.split("-"))
-    m1 = dict(_m_blocks(cfg))[m0]
+    m1 = dict(m_blocks(mmax_of(cfg), cfg.transfer.m_block))[m0]
     lmax = cfg.mmode.lmax
-    ng = zarr.open_group(str(ctx.run.store("normal.zarr")), mode="r")
-    rhs_all, vhv_all = ng["rhs"][fi, m0:m1], ng["vhv"][fi, m0:m1]
-    prior = _prior_alm(cfg, fi, lmax)
-    eps_grid = default_eps_grid(N_EPS)
-    alm = np.zeros((m1 - m0, lmax + 1), np.complex128)
-    lc = np.zeros((m1 - m0, N_EPS, 2))
-    frac = np.zeros(m1 - m0)
-    filt = dict(zero_monopole=im.zero_monopole, filter_m0=im.filter_m0, filter_m1_lmin=im.filter_m1_lmin)
+    rhs_all = ctx.read("normal.zarr", "rhs", (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]
+    vhv_all = ctx.read("normal.zarr", "vhv", (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]
+    grams = ctx.read("normal.zarr", gram_name(fi, m0))
+    prior = _prior_alm(ctx, lmax) if im.method == "prior" else None
+    eps_grid = default_eps_grid(N_EPS) if im.lcurve else None
+    n_split = rhs_all.shape[0]
+    alm = np.zeros((n_split, 1, m1 - m0, lmax + 1), np.complex128)
+    lc = np.zeros((1, m1 - m0, N_EPS, 2))
+    frac = np.zeros((1, m1 - m0))
     for m in range(m0, m1):
-        gram = hermitian_full(ng[f"f{fi}/gram_m{m:05d}"][:])
-        rhs = rhs_all[m - m0, m:]
-        keep = filter_mask(m, lmax, **filt)
-        # one eigendecomposition serves the fraction and the L-curve when nothing is filtered
-        eig = np.linalg.eigh(gram) if im.lcurve and keep.all() else None
-        frac[m - m0] = singular_fraction_above(gram, im.eps, None if eig is None else eig[0])
-        if not keep.any():
-            continue
-        g, r = gram[np.ix_(keep, keep)], rhs[keep]
-        p = None if prior is None else prior[m_slice(lmax, m)][keep]
-        sol = solve_block(im.method, g, r, im.eps, ell=np.arange(m, lmax + 1)[keep], a_prior=p)
-        alm[m - m0, m:][keep] = sol
-        if im.lcurve:
-            lc[m - m0, :, 0], lc[m - m0, :, 1] = lcurve_block(g, r, vhv_all[m - m0], eps_grid, eig)
-    out = zarr.open_group(str(ctx.run.store("alm.zarr")), mode="r+")
-    out["alm"][fi, m0:m1] = alm
-    out["lcurve"][fi, m0:m1] = lc
-    out["fraction_above"][fi, m0:m1] = frac
+        n = lmax - m + 1
+        sol = solve_m(hermitian_full(grams[m - m0, :n, :n]), rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps,
+                      _filters(im), None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
+        alm[:, 0, m - m0, m:] = sol.alm
+        frac[0, m - m0] = sol.fraction_above
+        if sol.lcurve is not None:
+            lc[0, m - m0] = sol.lcurve
+    out = ctx.open("alm.zarr", mode="r+")
+    ctx.write(out, "alm", (slice(None), slice(fi, fi + 1), slice(m0, m1)), alm)
+    ctx.write(out, "lcurve", (slice(fi, fi + 1), slice(m0, m1)), lc)
+    ctx.write(out, "fraction_above", (slice(fi, fi + 1), slice(m0, m1)), frac)
     return {"m": [m0, m1]}
 
 
-register(Stage("solve", ("imaging",), ("normal",), ("alm.zarr",), _solve_prepare, _solve_task,
-               description="Tikhonov (or alternative) solve + L-curve per m block"))
+def _prior_files(cfg):
+    return [cfg.imaging.prior_map] if cfg.imaging.method == "prior" and cfg.imaging.prior_map else []
+
+
+register(Stage("solve", SOLVE_CONFIG, ("vis.zarr", "normal.zarr"), ("alm.zarr",), _solve_prepare, _solve_task,
+               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block"))
 
 
 def healpy_alm(alm_ml, lmax, mmax):
@@ -99,9 +96,19 @@ def healpy_alm(alm_ml, lmax, mmax):
     return out
 
 
+def frequency_tags(freqs_hz):
+    """``'40.000MHz'``-style names, with as many decimals (>= 3) as make every channel's unique."""
+    mhz = np.asarray(freqs_hz, float) / 1e6
+    for decimals in range(3, 10):
+        tags = [f"{f:.{decimals}f}MHz" for f in mhz]
+        if len(set(tags)) == len(tags):
+            return tags
+    raise ValueError(f"duplicate frequencies {mhz.tolist()} MHz")
+
+
 def _products_prepare(ctx):
     (ctx.run.path / "maps").mkdir(parents=True, exist_ok=True)
-    return [f"f{fi}" for fi in range(len(ctx.telescope().freqs_hz))]
+    return [f"f{fi}" for fi in range(ctx.open("alm.zarr")["alm"].shape[1])]
 
 
 def _products_task(ctx, key):
@@ -110,40 +117,48 @@ def _products_task(ctx, key):
 
     cfg = ctx.cfg
     fi = int(key[1:])
-    tel = ctx.telescope()
-    f = float(tel.freqs_hz[fi])
+    vis = ctx.open("vis.zarr")
+    freqs = vis["freqs_hz"][:]
+    f, epoch = float(freqs[fi]), float(vis.attrs["epoch_jd"])
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    ag = zarr.open_group(str(ctx.run.store("alm.zarr")), mode="r")
-    alm = healpy_alm(ag["alm"][fi], lmax, mmax)
+    alm = healpy_alm(ctx.read("alm.zarr", "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
+    lc = ctx.read("alm.zarr", "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
+    frac = ctx.read("alm.zarr", "fraction_above", (slice(fi, fi + 1),))[0]
+    eps = ctx.read("alm.zarr", "eps_grid")
     p = cfg.products
     nside = p.nside or 2 * default_nside(lmax)
-    hmap = alm_to_output_map(alm, lmax, f, cfg.observation.epoch_jd, p.frame, p.unit, nside)
-    tag = f"{f / 1e6:.3f}MHz"
+    hmap = alm_to_output_map(alm, lmax, f, epoch, p.frame, p.unit, nside)
+    tag = frequency_tags(freqs)[fi]
     maps = ctx.run.path / "maps"
     meta = {"FREQ": f, "LMAX": lmax, "EPS": cfg.imaging.eps, "METHOD": cfg.imaging.method, "BUNIT": p.unit,
-            "COORDSYS": {"icrs": "C", "galactic": "G", "date": "C"}[p.frame], "EPOCHJD": cfg.observation.epoch_jd}
+            "COORDSYS": {"icrs": "C", "galactic": "G", "date": "C"}[p.frame], "EPOCHJD": epoch}
     write_healpix_fits(maps / f"map_{tag}.fits", hmap, meta)
-    lc = ag["lcurve"][fi].sum(axis=0)
-    eps = ag["eps_grid"][:]
+    ctx.ledger.record_file(maps / f"map_{tag}.fits")
     info = {"freq_hz": f, "fits": f"maps/map_{tag}.fits", "nside": nside, "unit": p.unit, "frame": p.frame,
-            "map_min": float(np.min(hmap)), "map_max": float(np.max(hmap)), "map_rms": float(np.std(hmap)),
-            "fraction_singular_values_above_sqrt_eps": float(np.mean(ag["fraction_above"][fi])),
+            "epoch_jd": epoch, "map_min": float(np.min(hmap)), "map_max": float(np.max(hmap)),
+            "map_rms": float(np.std(hmap)), "fraction_singular_values_above_sqrt_eps": float(np.mean(frac)),
             "lcurve_corner_eps": lcurve_corner(lc[:, 0], lc[:, 1], eps) if lc.any() else None}
     if p.png:
         write_mollweide_png(maps / f"map_{tag}.png", hmap, f"mmflow {tag} ({p.frame}, {p.unit})", p.unit)
+        ctx.ledger.record_file(maps / f"map_{tag}.png")
         if lc.any():
             write_lcurve_png(maps / f"lcurve_{tag}.png", lc, eps, cfg.imaging.eps)
+            ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
         info["png"] = f"maps/map_{tag}.png"
     (maps / f"summary_{tag}.json").write_text(json.dumps(info, indent=2))
+    ctx.ledger.record_file(maps / f"summary_{tag}.json")
     return info
 
 
 def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
-    parts = [json.loads(p.read_text()) for p in sorted(maps.glob("summary_*MHz.json"))]
+    tags = frequency_tags(ctx.open("vis.zarr")["freqs_hz"][:])
+    parts = [json.loads((maps / f"summary_{t}.json").read_text()) for t in tags]
     (maps / "summary.json").write_text(json.dumps({"maps": parts}, indent=2))
+    ctx.ledger.record_file(maps / "summary.json")
     return {"maps": len(parts)}
 
 
-register(Stage("products", ("products",), ("solve",), ("maps",), _products_prepare, _products_task,
-               _products_finalize, description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary"))
+register(Stage("products", ("mmode.lmax", "mmode.mmax", "imaging.eps", "imaging.method", "products"),
+               ("vis.zarr", "alm.zarr"), ("maps",), _products_prepare, _products_task, _products_finalize,
+               description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary"))

@@ -1,36 +1,34 @@
 """``transfer`` and ``normal`` stages: streaming normal equations, reduced per m block.
 
-``transfer``: one task per (frequency, baseline group). A group is a run of baseline chunks
-(sorted by per-baseline lmax); the task streams over its chunks computing ``B_m`` for every
-m and accumulating ``G_m = B^H N^-1 B``, ``r_m = B^H N^-1 v`` and ``v^H N^-1 v`` in memory
-(B is never stored unless ``transfer.mode=store``); it writes its partial sums to
-``partials.zarr`` at its own group index.
-``normal``: one task per (frequency, m block) sums the partials over groups in a fixed
-order (bit-identical on re-runs) into ``normal.zarr``.
+``transfer`` (map): one task per (frequency, baseline group). Groups are a fixed number
+(``transfer.groups``) of contiguous runs of baseline chunks sorted by per-baseline lmax
+(:func:`mmflow.mmode.engine.plan_groups`): the decomposition depends on the settings,
+never on the cluster. A task streams over its chunks with
+:func:`mmflow.mmode.engine.accumulate_chunks` (the engine's own loop) and writes its partial
+``G_m``, ``r_m`` and ``v^H N^-1 v`` to ``partials.zarr`` at its group index.
+``normal`` (reduce): one task per (frequency, m block) sums the partials over groups with
+:func:`mmflow.workflow.reduce.ordered_tree_sum`: bit-identical on any cluster.
 """
 from __future__ import annotations
 
 import numpy as np
-import zarr
 
-from mmflow.mmode.engine import GridCache, chunk_blocks, plan_chunks
+from mmflow.io.run_stores import gram_name, m_blocks, normal_store, partials_store, transfer_store
+from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.normal import NormalAccumulator
+from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.mmodes import mmax_of
 
+TRANSFER_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer", "beam")
 
-def _groups(ctx, fi):
+
+def _plan(ctx, fi):
     cfg = ctx.cfg
     tel = ctx.telescope()
     chunks, lmax_b = plan_chunks(tel, tel.freqs_hz[fi], cfg.mmode.lmax, cfg.transfer.baseline_chunk,
                                  cfg.transfer.per_baseline_lmax)
-    n_groups = max(1, min(len(chunks), n_groups_of(ctx)))
-    # contiguous runs of chunks with balanced cost (~ lmax_b^3 each)
-    cost = np.cumsum([len(c.index) * float(c.lmax) ** 3 for c in chunks])
-    cut = np.searchsorted(cost, cost[-1] * np.arange(1, n_groups) / n_groups)
-    bounds = np.concatenate([[0], cut, [len(chunks)]])
-    groups = [chunks[bounds[k]:bounds[k + 1]] for k in range(n_groups) if bounds[k + 1] > bounds[k]]
-    return groups, lmax_b
+    return tel, chunks, lmax_b, plan_groups(chunks, cfg.transfer.groups)
 
 
 def relative_weights(inv_var):
@@ -44,10 +42,8 @@ def relative_weights(inv_var):
     return inv_var / inv_var[good].mean() if good.any() else inv_var
 
 
-def n_groups_of(ctx):
-    """Reduction groups: enough to keep every worker busy, few enough to keep partials small."""
-    c = ctx.cfg.cluster
-    return max(2, 2 * c.n_workers * c.threads_per_worker)
+def _acc_dtype(cfg):
+    return "complex64" if cfg.transfer.dtype == "float32" else "complex128"
 
 
 def _transfer_prepare(ctx):
@@ -55,134 +51,102 @@ def _transfer_prepare(ctx):
     tel = ctx.telescope()
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
     tel.check_lmax(lmax)
-    g = zarr.open_group(str(ctx.run.store("partials.zarr")), mode="a")
-    keys = []
-    for fi in range(len(tel.freqs_hz)):
-        groups, _ = _groups(ctx, fi)
-        fg = g.require_group(f"f{fi}")
-        ng = len(groups)
-        if "rhs" not in fg:
-            for m in range(mmax + 1):
-                n = lmax - m + 1
-                fg.create_array(f"gram_m{m:05d}", shape=(ng, n, n), chunks=(1, n, n), dtype="complex128", fill_value=0)
-            fg.create_array("rhs", shape=(ng, mmax + 1, lmax + 1), chunks=(1, mmax + 1, lmax + 1),
-                            dtype="complex128", fill_value=0)
-            fg.create_array("vhv", shape=(ng, mmax + 1), chunks=(1, mmax + 1), dtype="float64", fill_value=0)
-        keys += [f"f{fi}-g{k:04d}" for k in range(ng)]
+    mg = ctx.open("mmodes.zarr")
+    n_split, nf = mg["mmodes"].shape[:2]
+    plans = [_plan(ctx, fi) for fi in range(nf)]
+    n_groups = max(len(p[3]) for p in plans)
+    ctx.create(partials_store(nf, n_groups, lmax, mmax, cfg.transfer.m_block, n_split, _acc_dtype(cfg)))
     if cfg.transfer.mode == "store":
-        _create_transfer_store(ctx, tel, lmax, mmax)
-    return keys
-
-
-def _create_transfer_store(ctx, tel, lmax, mmax):
-    g = zarr.open_group(str(ctx.run.store("transfer.zarr")), mode="a")
-    nbl = len(tel.antenna_pairs())
-    dt = "complex64" if ctx.cfg.transfer.dtype == "float32" else "complex128"
-    for fi in range(len(tel.freqs_hz)):
-        fg = g.require_group(f"f{fi}")
-        if "order" in fg:
-            continue
-        chunks, _ = plan_chunks(tel, tel.freqs_hz[fi], lmax, ctx.cfg.transfer.baseline_chunk,
-                                ctx.cfg.transfer.per_baseline_lmax)
-        fg.create_array("order", data=np.concatenate([c.index for c in chunks]).astype("int64"))
-        for m in range(mmax + 1):
-            fg.create_array(f"B_m{m:05d}", shape=(2, nbl, lmax - m + 1),
-                            chunks=(2, ctx.cfg.transfer.baseline_chunk, lmax - m + 1), dtype=dt, fill_value=0)
+        orders = [np.concatenate([c.index for c in p[1]]).astype("int64") for p in plans]
+        ctx.create(transfer_store(nf, len(tel.antenna_pairs()), lmax, mmax, cfg.transfer.baseline_chunk,
+                                  "complex64" if cfg.transfer.dtype == "float32" else "complex128", orders))
+    return [f"f{fi}-g{k:04d}" for fi, p in enumerate(plans) for k in range(n_groups)]
 
 
 def _transfer_task(ctx, key):
     cfg = ctx.cfg
     fi, gk = (int(x[1:]) for x in key.split("-"))
-    tel = ctx.telescope()
+    tel, chunks, lmax_b, groups = _plan(ctx, fi)
     f = tel.freqs_hz[fi]
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    groups, lmax_b = _groups(ctx, fi)
-    mg = zarr.open_group(str(ctx.run.store("mmodes.zarr")), mode="r")
-    mm_all = mg["mmodes"]
-    inv_var = relative_weights(mg["inv_var"][fi]) if cfg.transfer.noise_weighting else np.ones(mg["inv_var"].shape[1])
+    mm_all = ctx.read("mmodes.zarr", "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0]
+    inv_var = ctx.read("mmodes.zarr", "inv_var", (slice(fi, fi + 1),))[0]
+    inv_var = relative_weights(inv_var) if cfg.transfer.noise_weighting else np.ones_like(inv_var)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
     # accumulators follow the transfer precision: complex64 halves the ~lmax^3/3 Gram memory
-    acc = NormalAccumulator(lmax, mmax, np.complex64 if dtype == np.float32 else np.complex128)
-    cache = GridCache(tel, f)
-    store = zarr.open_group(str(ctx.run.store("transfer.zarr")), mode="r+") if cfg.transfer.mode == "store" else None
-    chunk_pos = sum(len(gr) for gr in groups[:gk])
-    n_bl = 0
-    for ci, chunk in enumerate(groups[gk]):
-        idx = chunk.index
-        order = np.argsort(idx)
-        mm = np.empty((mmax + 1, 2, len(idx)), np.complex128)
-        mm[..., order] = mm_all.get_orthogonal_selection((fi, slice(None), slice(None), idx[order]))
-        for m, blk in chunk_blocks(tel, f, chunk, lmax, lmax_b, dtype, cache, mmax, pad=store is not None):
-            acc.add_mmodes(m, blk, mm, inv_var[idx])
-            if store is not None:
-                rows = slice((chunk_pos + ci) * cfg.transfer.baseline_chunk,
-                             (chunk_pos + ci) * cfg.transfer.baseline_chunk + len(idx))
-                b2 = np.zeros((2, len(idx), lmax - m + 1), blk.dtype)
-                b2[0] = blk[:len(idx)]
-                if m > 0:
-                    b2[1] = blk[len(idx):]
-                store[f"f{fi}/B_m{m:05d}"][:, rows, :] = b2
-        n_bl += len(idx)
-    pg = zarr.open_group(str(ctx.run.store(f"partials.zarr/f{fi}")), mode="r+")
-    rhs = np.zeros((mmax + 1, lmax + 1), np.complex128)
+    acc = NormalAccumulator(lmax, mmax, np.dtype(_acc_dtype(cfg)), n_split=mm_all.shape[0])
+    group = groups[gk] if gk < len(groups) else []
+    on_block = None
+    if cfg.transfer.mode == "store":
+        on_block = _block_writer(ctx, fi, chunks, cfg.transfer.baseline_chunk)
+    accumulate_chunks(acc, tel, f, group, lmax_b, lambda c: mm_all[..., c.index], inv_var, dtype,
+                      GridCache(tel, f), on_block)
+    pg = ctx.open("partials.zarr", mode="r+")
+    for m0, m1 in m_blocks(mmax, cfg.transfer.m_block):
+        n0 = lmax - m0 + 1
+        blk = np.zeros((1, m1 - m0, n0, n0), acc.dtype)
+        for m in range(m0, m1):
+            blk[0, m - m0, :lmax - m + 1, :lmax - m + 1] = acc.gram[m]
+        ctx.write(pg, gram_name(fi, m0), (slice(gk, gk + 1),), blk)
+    rhs = np.zeros((1, acc.n_split, mmax + 1, lmax + 1), acc.dtype)
     for m in range(mmax + 1):
-        pg[f"gram_m{m:05d}"][gk] = acc.gram[m]
-        rhs[m, m:] = acc.rhs[m]
-    pg["rhs"][gk] = rhs
-    pg["vhv"][gk] = acc.vhv
-    return {"baselines": n_bl}
+        rhs[0, :, m, m:] = acc.rhs[m]
+    ctx.write(pg, f"f{fi}/rhs", (slice(gk, gk + 1),), rhs)
+    ctx.write(pg, f"f{fi}/vhv", (slice(gk, gk + 1),), acc.vhv[None])
+    return {"baselines": int(sum(len(c.index) for c in group))}
 
 
-register(Stage("transfer", ("mmode", "transfer", "beam"), ("mmodes",), ("partials.zarr", "transfer.zarr"),
+def _block_writer(ctx, fi, chunks, bc):
+    """Write each transfer block of a chunk at its rows of ``transfer.zarr`` (chunks in lmax order)."""
+    store = ctx.open("transfer.zarr", mode="r+")
+    position = {id(c): k for k, c in enumerate(chunks)}
+
+    def write(chunk, m, blk):
+        n = len(chunk.index)
+        b2 = np.zeros((2, n, blk.shape[1]), blk.dtype)
+        b2[0] = blk[:n]
+        if m > 0:
+            b2[1] = blk[n:]
+        row0 = position[id(chunk)] * bc
+        ctx.write(store, f"f{fi}/B_m{m:05d}", (slice(None), slice(row0, row0 + n)), b2)
+    return write
+
+
+register(Stage("transfer", TRANSFER_CONFIG, ("vis.zarr", "mmodes.zarr"), ("partials.zarr", "transfer.zarr"),
                _transfer_prepare, _transfer_task,
-               description="transfer blocks + herk into partial normal equations per baseline group"))
-
-
-def _m_blocks(cfg):
-    mb = cfg.transfer.m_block
-    mmax = mmax_of(cfg)
-    return [(m0, min(mmax + 1, m0 + mb)) for m0 in range(0, mmax + 1, mb)]
+               description="transfer blocks + herk into partial normal equations per fixed baseline group"))
 
 
 def _normal_prepare(ctx):
     cfg = ctx.cfg
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    nf = len(ctx.telescope().freqs_hz)
-    g = zarr.open_group(str(ctx.run.store("normal.zarr")), mode="a")
-    if "rhs" not in g:
-        mb = cfg.transfer.m_block
-        g.create_array("rhs", shape=(nf, mmax + 1, lmax + 1), chunks=(1, mb, lmax + 1), dtype="complex128", fill_value=0)
-        g.create_array("vhv", shape=(nf, mmax + 1), chunks=(1, mb), dtype="float64", fill_value=0)
-        for fi in range(nf):
-            for m in range(mmax + 1):
-                n = lmax - m + 1
-                g.create_array(f"f{fi}/gram_m{m:05d}", shape=(n, n), chunks=(n, n), dtype="complex128", fill_value=0)
-    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in _m_blocks(cfg)]
+    pg = ctx.open("partials.zarr")
+    nf = len(list(pg.group_keys()))
+    n_split = pg["f0/rhs"].shape[1]
+    ctx.create(normal_store(nf, lmax, mmax, cfg.transfer.m_block, n_split))
+    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
 
 
 def _normal_task(ctx, key):
     fi, m0 = (int(x[1:]) for x in key.split("-"))
     cfg = ctx.cfg
-    m1 = dict(_m_blocks(cfg))[m0]
-    pg = zarr.open_group(str(ctx.run.store(f"partials.zarr/f{fi}")), mode="r")
-    g = zarr.open_group(str(ctx.run.store("normal.zarr")), mode="r+")
-    ng = pg["rhs"].shape[0]
-    for m in range(m0, m1):
-        arr = pg[f"gram_m{m:05d}"]
-        g[f"f{fi}/gram_m{m:05d}"][:] = _ordered_sum(arr[k] for k in range(ng))
-    g["rhs"][fi, m0:m1] = _ordered_sum(pg["rhs"][:, m0:m1, :])
-    g["vhv"][fi, m0:m1] = _ordered_sum(pg["vhv"][:, m0:m1])
+    m1 = dict(m_blocks(mmax_of(cfg), cfg.transfer.m_block))[m0]
+    pg = ctx.open("partials.zarr")
+    ng = pg[f"f{fi}/rhs"].shape[0]
+    g = ctx.open("normal.zarr", mode="r+")
+    name = gram_name(fi, m0)
+    gram = ordered_tree_sum(ctx.read("partials.zarr", name, (slice(k, k + 1),))[0].astype(np.complex128)
+                            for k in range(ng))
+    ctx.write(g, name, (), gram)
+    rhs = ordered_tree_sum(ctx.read("partials.zarr", f"f{fi}/rhs", (slice(k, k + 1),))[0, :, m0:m1]
+                           .astype(np.complex128) for k in range(ng))
+    vhv = ordered_tree_sum(ctx.read("partials.zarr", f"f{fi}/vhv", (slice(k, k + 1),))[0, :, m0:m1]
+                           for k in range(ng))
+    ctx.write(g, "rhs", (slice(None), slice(fi, fi + 1), slice(m0, m1)), rhs[:, None])
+    ctx.write(g, "vhv", (slice(None), slice(fi, fi + 1), slice(m0, m1)), vhv[:, None])
     return {"m": [m0, m1]}
 
 
-def _ordered_sum(parts):
-    """Sum over groups in a fixed order (floating-point sums are then bit-identical on re-runs)."""
-    it = iter(parts)
-    total = np.array(next(it), copy=True)
-    for p in it:
-        total = total + p
-    return total
-
-
-register(Stage("normal", ("transfer",), ("transfer",), ("normal.zarr",), _normal_prepare, _normal_task,
-               description="sum partial normal equations over baseline groups, per m block"))
+register(Stage("normal", ("mmode.lmax", "mmode.mmax", "transfer.m_block"), ("partials.zarr",), ("normal.zarr",),
+               _normal_prepare, _normal_task, kind="reduce",
+               description="sum partial normal equations over baseline groups (fixed-order tree), per m block"))

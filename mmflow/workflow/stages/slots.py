@@ -14,7 +14,9 @@ def _unavailable(name):
     return prepare
 
 
-for _name, _desc in (("calibrate", "Stefcal per integration"), ("peel", "direction-dependent peeling"),
-                     ("terrestrial", "terrestrial component removal"), ("clean", "m-mode CLEAN")):
-    register(Stage(_name, (_name,), (), (), _unavailable(_name), None,
+for _name, _desc, _kind in (("calibrate", "Stefcal per integration", "solve"),
+                            ("peel", "direction-dependent peeling", "solve"),
+                            ("terrestrial", "terrestrial component removal", "solve"),
+                            ("clean", "m-mode CLEAN", "iterative")):
+    register(Stage(_name, (_name,), (), (), _unavailable(_name), None, kind=_kind,
                    enabled=lambda cfg, n=_name: getattr(cfg, n).enabled, description=_desc))

@@ -1,0 +1,112 @@
+"""The stores of a run directory, each declared once (see :mod:`mmflow.io.stores`).
+
+==============  ======================================================================
+store           arrays (dimensions)
+==============  ======================================================================
+vis.zarr        vis, weights (time, baseline, freq); lst, time_jd (time); autos |V_ii|
+                (time, antenna, freq; NaN where absent or flagged); freqs_hz, pairs,
+                antenna_enu. Never rewritten by corrections.
+mmodes.zarr     mmodes (split, freq, m, 2, baseline); inv_var (freq, baseline)
+partials.zarr   f{F}/gram_b{M0} (group, m, l, l'); f{F}/rhs (group, split, m, l);
+                f{F}/vhv (group, split, m): one partial sum per fixed baseline group
+normal.zarr     f{F}/gram_b{M0} (m, l, l'); rhs (split, freq, m, l); vhv (split, freq, m)
+alm.zarr        alm (split, freq, m, l); lcurve (freq, m, eps, 2); fraction_above (freq, m);
+                eps_grid (eps)
+transfer.zarr   f{F}/order (baseline); f{F}/B_m{M} (2, baseline, l)   [transfer.mode=store]
+==============  ======================================================================
+
+Gram blocks are stored per m block (``m0 <= m < m1``) padded to the block's largest size
+``lmax - m0 + 1``: a few hundred arrays at lmax 1000 instead of one per m.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.io.stores import ArraySpec, StoreSpec
+
+
+def m_blocks(mmax, m_block):
+    """``[(m0, m1), ...]`` covering ``0..mmax`` in blocks of ``m_block``."""
+    return [(m0, min(mmax + 1, m0 + m_block)) for m0 in range(0, mmax + 1, m_block)]
+
+
+def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk):
+    nbl, nf, n_ant = len(pairs), len(freqs_hz), len(antenna_enu)
+    ch = (time_chunk, min(baseline_chunk, nbl), nf)
+    dims = ("time", "baseline", "freq")
+    return StoreSpec("vis.zarr", (
+        ArraySpec("vis", dims, (n_time, nbl, nf), ch, "complex64"),
+        ArraySpec("weights", dims, (n_time, nbl, nf), ch, "float32"),
+        ArraySpec("lst", ("time",), (n_time,), (time_chunk,), "float64", np.nan),
+        ArraySpec("time_jd", ("time",), (n_time,), (time_chunk,), "float64", np.nan),
+        ArraySpec("autos", ("time", "antenna", "freq"), (n_time, n_ant, nf), (time_chunk, n_ant, nf), "float32",
+                  np.nan),
+        ArraySpec("freqs_hz", ("freq",), (nf,), (nf,), "float64", data=freqs_hz),
+        ArraySpec("pairs", ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs),
+        ArraySpec("antenna_enu", ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
+                  data=antenna_enu),
+    ), attrs)
+
+
+def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs):
+    ch = min(baseline_chunk, nbl)
+    return StoreSpec("mmodes.zarr", (
+        ArraySpec("mmodes", ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
+                  (n_split, nf, mmax + 1, 2, ch), "complex128"),
+        ArraySpec("inv_var", ("freq", "baseline"), (nf, nbl), (nf, ch), "float64"),
+    ), attrs)
+
+
+def gram_name(fi, m0):
+    return f"f{fi}/gram_b{m0:05d}"
+
+
+def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
+    arrays = []
+    for fi in range(nf):
+        for m0, m1 in m_blocks(mmax, m_block):
+            n = lmax - m0 + 1
+            arrays.append(ArraySpec(gram_name(fi, m0), ("group", "m", "l", "l2"), (n_groups, m1 - m0, n, n),
+                                    (1, m1 - m0, n, n), dtype))
+        arrays.append(ArraySpec(f"f{fi}/rhs", ("group", "split", "m", "l"), (n_groups, n_split, mmax + 1, lmax + 1),
+                                (1, n_split, mmax + 1, lmax + 1), dtype))
+        arrays.append(ArraySpec(f"f{fi}/vhv", ("group", "split", "m"), (n_groups, n_split, mmax + 1),
+                                (1, n_split, mmax + 1), "float64"))
+    return StoreSpec("partials.zarr", tuple(arrays))
+
+
+def normal_store(nf, lmax, mmax, m_block, n_split):
+    arrays = []
+    for fi in range(nf):
+        for m0, m1 in m_blocks(mmax, m_block):
+            n = lmax - m0 + 1
+            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
+                                    "complex128"))
+    arrays += [
+        ArraySpec("rhs", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
+                  (n_split, 1, m_block, lmax + 1), "complex128"),
+        ArraySpec("vhv", ("split", "freq", "m"), (n_split, nf, mmax + 1), (n_split, 1, m_block), "float64"),
+    ]
+    return StoreSpec("normal.zarr", tuple(arrays))
+
+
+def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
+    n_eps = len(eps_grid)
+    return StoreSpec("alm.zarr", (
+        ArraySpec("alm", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
+                  (n_split, 1, m_block, lmax + 1), "complex128"),
+        ArraySpec("lcurve", ("freq", "m", "eps", "norm"), (nf, mmax + 1, n_eps, 2), (1, m_block, n_eps, 2),
+                  "float64"),
+        ArraySpec("fraction_above", ("freq", "m"), (nf, mmax + 1), (1, m_block), "float64"),
+        ArraySpec("eps_grid", ("eps",), (n_eps,), (n_eps,), "float64", data=eps_grid),
+    ))
+
+
+def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
+    arrays = []
+    for fi in range(nf):
+        arrays.append(ArraySpec(f"f{fi}/order", ("baseline",), (nbl,), (nbl,), "int64", data=orders[fi]))
+        for m in range(mmax + 1):
+            arrays.append(ArraySpec(f"f{fi}/B_m{m:05d}", ("pm", "baseline", "l"), (2, nbl, lmax - m + 1),
+                                    (2, min(baseline_chunk, nbl), lmax - m + 1), dtype))
+    return StoreSpec("transfer.zarr", tuple(arrays))

@@ -1,0 +1,79 @@
+"""A whole simulated drift scan, as plain functions: its LSTs, its sky, one time chunk of it.
+
+The ``simulate`` stage is a thin adapter over these; the tests and notebooks call them too.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.errors import InputError
+from mmflow.simulate.visibilities import SkyPoints, gauss_legendre_points, simulate_drift_scan, thermal_noise
+
+SIDEREAL_DAY_S = 86164.0905
+
+
+def drift_scan_lsts(start_lst_rad, integration_s, index):
+    """``phi_k = phi_0 + 2 pi k tau / T_sid (mod 2 pi)`` for integration indices ``k``."""
+    k = np.asarray(index, float)
+    return (start_lst_rad + 2 * np.pi * k * integration_s / SIDEREAL_DAY_S) % (2 * np.pi)
+
+
+def drift_scan_times(epoch_jd, integration_s, index, n_total):
+    """UTC JD of each integration, centred on ``epoch_jd``: ``t_k = t_0 + (k - n/2) tau``."""
+    return epoch_jd + (np.asarray(index, float) - n_total / 2) * integration_s / 86400.0
+
+
+def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=(), quad_oversample=48):
+    """The simulated sky at one frequency as weighted directions in the frame of date.
+
+    The diffuse part (:func:`mmflow.sky.diffuse.synthetic_sky_kelvin`, band-limited to
+    ``diffuse_lmax``) is sampled on a Gauss-Legendre grid exact for the sky times the
+    longest fringe (``diffuse_lmax + fringe band limit + quad_oversample``); catalogue
+    sources (their spectra at ``freq_hz``, Cas A's secular decrease at the epoch's year) are
+    rotated from ICRS to the frame of date.
+    """
+    from mmflow.mmode.transfer import fringe_bandlimit
+    from mmflow.sky.diffuse import synthetic_sky_kelvin
+    from mmflow.sky.frames import rotation_matrix
+    from mmflow.sky.sources import get_sources
+    from mmflow.sky.units import kelvin_to_jy_per_sr
+
+    pts = SkyPoints(np.zeros((0, 3)), np.zeros(0))
+    if diffuse_lmax:
+        alm = kelvin_to_jy_per_sr(synthetic_sky_kelvin(freq_hz, diffuse_lmax, epoch_jd, seed=seed), freq_hz)
+        b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / 299792458.0
+        quad = diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
+        pts = pts + gauss_legendre_points(alm, diffuse_lmax, quad)
+    if sources:
+        rot = rotation_matrix("icrs", "date", epoch_jd)
+        year = 2000.0 + (epoch_jd - 2451545.0) / 365.25
+        for src in get_sources(list(sources)):
+            vec, flux = src.points(freq_hz, year)
+            pts = pts + SkyPoints(vec @ rot.T, flux)
+    return pts
+
+
+def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None):
+    """Visibilities ``(time, baseline, freq)`` complex64 of one time chunk, one sky per frequency.
+
+    With ``noise_rng``, radiometer noise ``sigma^2 = V_ii V_jj / (dnu tau)`` is added from the
+    simulated autocorrelations (which therefore must be among the baselines).
+    """
+    pairs = telescope.antenna_pairs()
+    out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz)), np.complex64)
+    if noise_rng is not None:
+        is_auto = pairs[:, 0] == pairs[:, 1]
+        if not is_auto.any():
+            raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
+                             "set telescope.include_autos=true or sky.noise=false")
+        col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
+        ci, cj = [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
+    for fi, f in enumerate(telescope.freqs_hz):
+        v = simulate_drift_scan(telescope, f, lsts, skies[fi], pairs, np.complex64)
+        if noise_rng is not None:
+            autos = np.real(v[:, is_auto])
+            noise, _ = thermal_noise(v, autos[:, ci], autos[:, cj], telescope.channel_width_hz, integration_s,
+                                     noise_rng)
+            v = v + noise
+        out[:, :, fi] = v
+    return out
