@@ -203,3 +203,50 @@ def test_psf_at_lmax_700_from_a_synthetic_gram_is_finite_and_peaks_at_the_source
     peak_vec = np.array(healpy.pix2vec(nside, int(np.argmax(hmap))))
     assert np.arccos(np.clip(peak_vec @ src, -1, 1)) < healpy.max_pixrad(nside)
     assert abs(hmap.max() / expected_peak - 1) < 0.05
+
+
+def test_transfer_coefficients_at_lmax_1000_match_an_independent_harmonic_analysis():
+    """``B_lm(b) = int A exp(2 pi i b.r) Y_lm dOmega`` from the package's transfer matrices (its
+    Legendre tables, pole rings included) against ducc0's adjoint synthesis of ``f_b`` on a
+    finer Gauss-Legendre grid: with ``f = f_r + i f_i``, ``B_lm = conj(alm(f_r) - i alm(f_i))``."""
+    import ducc0
+
+    from mmflow.conventions import enu_to_equatorial_matrix
+    from mmflow.mmode.transfer import fringe_bandlimit, make_grid, transfer_blocks
+    from mmflow.telescope.beams import GaussianBeam
+
+    lmax, lat, freq = 1000, np.deg2rad(37.24), 50e6
+    beam = GaussianBeam(30)
+    b = np.array([[120.0, -60.0, 5.0]])  # 2 pi |b| ~ 840: coefficients up to l ~ 900
+    grid = make_grid(lat, beam, freq, lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), beam.lmax_hint))
+    blocks = transfer_blocks(grid, b)
+    nt, nph = 1100, 2400
+    th = ducc0.misc.GL_thetas(nt)
+    w = ducc0.misc.GL_weights(nt, nph)
+    vec = unit_vectors(th[:, None], (2 * np.pi * np.arange(nph) / nph)[None, :])
+    f = beam.power_enu(vec @ enu_to_equatorial_matrix(lat), freq) * np.exp(2j * np.pi * (vec @ b[0]))
+    # adjoint_synthesis_2d sums map * conj(Y_lm) over the grid: the quadrature weights go in the map
+    alm = [ducc0.sht.adjoint_synthesis_2d(map=(w[:, None] * part)[None], spin=0, lmax=lmax,
+                                          geometry="GL", nthreads=1)[0] for part in (f.real, f.imag)]
+    ref = np.conj(alm[0] - 1j * alm[1])
+    ours = np.concatenate([blk[0] for blk in blocks])  # m-major, l = m..lmax: healpy's layout
+    assert np.all(np.isfinite(ours))
+    peak = np.abs(ref).max()
+    assert np.abs(ref[healpy.Alm.getidx(lmax, np.arange(800, 900), 0)]).max() > 1e-3 * peak  # high l populated
+    np.testing.assert_allclose(ours, ref, rtol=0, atol=1e-9 * peak)
+
+
+def test_alm_rotation_moves_point_sources():
+    """``frames.rotate_alm`` (healpy's Wigner rotation): the rotated a_lm of point sources are the
+    a_lm of the rotated points. lmax 400 here (healpy's rotation costs ~30 s at lmax 1000, where
+    it was checked once the same way; docs/numerics.md)."""
+    from mmflow.sky.frames import rotate_alm
+    from scipy.spatial.transform import Rotation
+
+    lmax = 400
+    vecs = _vecs((0.0, np.pi / 2, 0.4, 2.9))
+    flux = np.array([1.0, -2.0, 0.5, 3.0])
+    rot = Rotation.from_euler("zyz", [0.3, 1.1, -0.7]).as_matrix()
+    got = rotate_alm(point_sources_alm(vecs, flux, lmax), rot, lmax)
+    want = point_sources_alm(vecs @ rot.T, flux, lmax)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * np.abs(want).max())
