@@ -250,3 +250,24 @@ def test_alm_rotation_moves_point_sources():
     got = rotate_alm(point_sources_alm(vecs, flux, lmax), rot, lmax)
     want = point_sources_alm(vecs @ rot.T, flux, lmax)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-10 * np.abs(want).max())
+
+
+def test_beams_are_finite_at_zenith_poles_and_horizon():
+    """Every beam model at the exact zenith (az = atan2(0, 0)), just above and below the horizon,
+    and on the transfer grid of lmax 2000 (rings within 3e-3 rad of both celestial poles):
+    finite, non-negative, 1 at zenith (analytic and Zernike), 0 below the horizon."""
+    from mmflow.mmode.transfer import make_grid
+    from mmflow.telescope.beams import GaussianBeam, SinElevationBeam, ZernikeBeam
+
+    gauss = GaussianBeam(40)
+    beams = [SinElevationBeam(1.5), gauss, ZernikeBeam.fit(gauss, [50e6, 60e6])]
+    enu = np.array([[0, 0, 1.0], [0, 1, 1e-12], [1, 0, -1e-12], [0, 0, -1.0]])
+    for beam in beams:
+        a = beam.power_enu(enu, 55e6)
+        assert np.all(np.isfinite(a)) and np.all(a >= 0)
+        np.testing.assert_allclose(a[0], 1.0, rtol=1e-12)
+        assert a[2] == 0 and a[3] == 0
+        grid = make_grid(np.deg2rad(37.24), beam, 55e6, 2000, beam.lmax_hint)
+        assert grid.theta[0] < 3e-3 and np.pi - grid.theta[-1] < 3e-3
+        assert np.all(np.isfinite(grid.beam)) and np.all(grid.beam >= 0)
+        assert grid.beam.max() <= 1.0 + 1e-9
