@@ -238,12 +238,12 @@ def test_transfer_coefficients_at_lmax_1000_match_an_independent_harmonic_analys
 
 def test_alm_rotation_moves_point_sources():
     """``frames.rotate_alm`` (healpy's Wigner rotation): the rotated a_lm of point sources are the
-    a_lm of the rotated points. lmax 400 here (healpy's rotation costs ~30 s at lmax 1000, where
+    a_lm of the rotated points. lmax 300 here (healpy's rotation costs ~30 s at lmax 1000, where
     it was checked once the same way; docs/numerics.md)."""
     from mmflow.sky.frames import rotate_alm
     from scipy.spatial.transform import Rotation
 
-    lmax = 400
+    lmax = 300
     vecs = _vecs((0.0, np.pi / 2, 0.4, 2.9))
     flux = np.array([1.0, -2.0, 0.5, 3.0])
     rot = Rotation.from_euler("zyz", [0.3, 1.1, -0.7]).as_matrix()
