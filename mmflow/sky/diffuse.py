@@ -9,6 +9,7 @@ import numpy as np
 
 from mmflow.conventions import m_slice, unit_vectors
 from mmflow.sky.frames import rotate_alm, rotation_matrix
+from mmflow.sky.harmonics import point_sources_alm
 
 
 def map_to_alm(hpx_map, lmax, iterations=3):
@@ -67,15 +68,7 @@ def band_limited_random_alm(lmax, seed=0, power_index=-2.0, lmin=0):
 def point_source_alm(vec, flux, lmax):
     """a_lm of ``flux * delta(r - vec)``: ``a_lm = flux * conj(Y_lm(vec))``.
 
-    Computed with scipy's ``sph_harm_y`` (independent of healpy).
+    Stable at any lmax (:func:`mmflow.sky.harmonics.point_sources_alm`, ducc0's normalised
+    Legendre recursion; scipy's ``sph_harm_y`` is NaN from l ~ 646 on).
     """
-    from scipy.special import sph_harm_y
-
-    vec = np.asarray(vec, float)
-    theta = np.arccos(np.clip(vec[2], -1, 1))
-    phi = np.arctan2(vec[1], vec[0])
-    alm = np.zeros((lmax + 1) * (lmax + 2) // 2, np.complex128)
-    for m in range(lmax + 1):
-        ls = np.arange(m, lmax + 1)
-        alm[m_slice(lmax, m)] = flux * np.conj(sph_harm_y(ls, m, theta, phi))
-    return alm
+    return point_sources_alm(np.reshape(np.asarray(vec, float), (1, 3)), np.array([flux], float), lmax)
