@@ -46,10 +46,18 @@ def rotate_alm(alm, matrix, lmax):
     """Rotate real-sky ``a_lm`` (healpy layout) so the map ``f(r)`` becomes ``f(R^T r)``.
 
     Equivalently: coefficients given in frame S become coefficients in frame D for
-    ``matrix = rotation_matrix(S, D)``. Verified by a point-source test.
+    ``matrix = rotation_matrix(S, D)``. With ZYZ Euler angles ``R = R_z(phi) R_y(theta) R_z(psi)``
+    this is ducc0's Wigner-d rotation (56x faster than healpy's at lmax 1000 and equal to it
+    to ~1e-15: ``tests/test_numerics.py``). Verified by a point-source test.
     """
-    import healpy
+    import warnings
 
-    out = np.array(alm, dtype=np.complex128, copy=True)
-    healpy.rotate_alm(out, matrix=np.asarray(matrix, float), lmax=lmax)
-    return out
+    import ducc0
+    from scipy.spatial.transform import Rotation
+
+    from mmflow.threads import n_threads
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # gimbal lock (theta = 0 or pi) is handled
+        phi, theta, psi = Rotation.from_matrix(np.asarray(matrix, float)).as_euler("ZYZ")
+    return ducc0.sht.rotate_alm(np.asarray(alm, np.complex128), lmax, psi, theta, phi, nthreads=n_threads())
