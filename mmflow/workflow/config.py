@@ -47,7 +47,7 @@ class TelescopeConfig(_Section):
     """The array. Either an OVRO-LWA preset or a layout file plus a site."""
 
     preset: Optional[Literal["core", "full", "paper-2017", "leda512-2013"]] = Field(
-        "core", description="OVRO-LWA preset from the real stand positions; null (or a layout_file) to use layout_file.")
+        "core", description="OVRO-LWA preset from the real stand positions (give null, or just a layout_file, to use the file).")
     layout_file: Optional[str] = Field(None, description="Text layout 'name east north [up]' (metres).")
     lat_deg: Optional[float] = Field(None, ge=-90, le=90, description="Site latitude for layout_file (degrees north).")
     lon_deg: Optional[float] = Field(None, ge=-180, le=360, description="Site longitude for layout_file (degrees east).")
@@ -409,22 +409,58 @@ def config_fingerprint(cfg, sections):
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def _option_line(indent, name, field, value):
+    """``name: value  # description [allowed values]`` (value as YAML flow)."""
+    if field.is_required():
+        dumped = "(required)"
+    else:
+        dumped = yaml.safe_dump(value, default_flow_style=True).strip()
+        dumped = dumped.removesuffix("\n...").removesuffix("...").strip()
+    desc = (field.description or "").rstrip(".")
+    note = f"{desc}. [{allowed_text(field)}]" if desc else f"[{allowed_text(field)}]"
+    return " " * indent + f"{field.alias or name}: {dumped}  # {note}"
+
+
+def _beam_lines(indent):
+    """The parameters of every beam type: the default type's as options, the others commented."""
+    default = BeamConfig().type
+    lines = []
+    for kind, model in BEAM_PARAMS.items():
+        doc = (model.__doc__ or "").strip().splitlines()[0]
+        if kind == default:
+            lines.append(" " * indent + f"# parameters of type {doc}")
+            lines.extend(_option_line(indent, n, f, f.get_default(call_default_factory=True))
+                         for n, f in model.model_fields.items())
+    lines.append(" " * indent + "# parameters of the other types (give the whole section, e.g. "
+                 "beam={type: gaussian, fwhm_deg: 30}):")
+    for kind, model in BEAM_PARAMS.items():
+        if kind != default:
+            lines.append(" " * indent + f"# type {(model.__doc__ or '').strip().splitlines()[0]}")
+            lines.extend(" " * indent + "#   " + _option_line(0, n, f, None if f.is_required() else
+                                                            f.get_default(call_default_factory=True))
+                         for n, f in model.model_fields.items())
+    return lines
+
+
 def schema_yaml():
-    """A commented YAML of every option with its default and description."""
-    lines = ["# mmflow workflow: every option with its default", ""]
+    """A commented YAML of every option: default, description and allowed values.
+
+    It drives ``mmflow config show`` / ``config init`` and docs/configuration.md; the beam
+    section lists the parameters of every beam type.
+    """
+    lines = ["# mmflow workflow: every option with its default and [allowed values]", ""]
 
     def walk(model, indent):
         for name, field in type(model).model_fields.items():
             val = getattr(model, name)
-            desc = field.description
             if isinstance(val, BaseModel):
                 doc = (type(val).__doc__ or "").strip().splitlines()
                 lines.append(" " * indent + f"{name}:" + (f"  # {doc[0]}" if doc else ""))
                 walk(val, indent + 2)
             else:
-                dumped = yaml.safe_dump(val, default_flow_style=True).strip()
-                dumped = dumped.removesuffix("\n...").removesuffix("...").strip()
-                lines.append(" " * indent + f"{name}: {dumped}" + (f"  # {desc}" if desc else ""))
+                lines.append(_option_line(indent, name, field, val))
+        if isinstance(model, BeamConfig):
+            lines.extend(_beam_lines(indent))
 
     walk(WorkflowConfig(), 0)
     return "\n".join(lines) + "\n"

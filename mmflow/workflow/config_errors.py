@@ -146,7 +146,11 @@ def _typename(ann):
         text = " or ".join(_typename(a) for a in inner)
         return text + (", or null" if len(inner) < len(args) else "")
     if origin is list:
-        return "a list of " + (_typename(args[0]).removeprefix("a ").removeprefix("an ") + "s" if args else "values")
+        inner = _typename(args[0]) if args else "values"
+        plural = {"a number": "numbers", "an integer": "integers", "text": "strings"}
+        if inner.startswith("a list of "):
+            return "a list of lists of " + inner.removeprefix("a list of ")
+        return "a list of " + plural.get(inner, inner)
     if origin is dict or ann is dict:
         return "a mapping"
     return {int: "an integer", float: "a number", bool: "true | false", str: "text"}.get(ann, getattr(ann, "__name__", str(ann)))
@@ -160,9 +164,11 @@ def allowed_text(field):
     text = _typename(field.annotation)
     bounds = []
     for m in field.metadata:
-        for attr, sym in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<="), ("min_length", "length >=")):
+        for attr, sym in (("gt", ">"), ("ge", ">="), ("lt", "<"), ("le", "<=")):
             if getattr(m, attr, None) is not None:
                 bounds.append(f"{sym} {getattr(m, attr)}")
+        if getattr(m, "min_length", None) is not None:
+            bounds.append(f"(at least {m.min_length})")
     if bounds:
         head, sep, tail = text.partition(", or null")
         text = f"{head} {', '.join(bounds)}{sep}{tail}"
