@@ -62,7 +62,7 @@ class Layout:
         names, counts = np.unique(np.asarray(self.names, dtype=str), return_counts=True)
         words = []
         if np.any(counts > 1):
-            words.append(f"duplicate names {list(names[counts > 1][:5])}")
+            words.append(f"duplicate names {[str(n) for n in names[counts > 1][:5]]}")
         if self.n_ant > 1:
             key = np.round(self.enu / tol_m).astype(np.int64)
             _, first, inverse, n = np.unique(key, axis=0, return_index=True, return_inverse=True,

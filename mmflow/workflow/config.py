@@ -89,7 +89,8 @@ class ZernikeBeamParams(_Section):
         if any(x <= 0 for x in f) or any(b <= a for a, b in zip(f, f[1:])):
             raise BadValue("freqs_hz must be positive and ascending", "list the fit frequencies in Hz, lowest first")
         if len(self.coeffs) != len(f) or any(len(row) != 9 for row in self.coeffs):
-            raise BadValue(f"coeffs has {[len(r) for r in self.coeffs]} coefficients per row for {len(f)} frequencies",
+            raise BadValue(f"coeffs has rows of {[len(r) for r in self.coeffs]} coefficients for {len(f)} "
+                           "frequencies, not 9 per frequency",
                            "give one row of 9 coefficients per frequency in freqs_hz")
         return self
 
@@ -262,9 +263,13 @@ class ClusterConfig(_Section):
     def _memory(cls, v):
         return check_memory_limit(v)
 
-    @field_validator("dashboard_address")
+    @field_validator("dashboard_address", mode="before")
     @classmethod
     def _dashboard(cls, v):
+        if isinstance(v, int) and not isinstance(v, bool):
+            v = f":{v}"  # a bare port
+        if not isinstance(v, str):
+            raise BadValue("not '[host]:port'", "write e.g. ':8787' (any free port: ':0')")
         host, sep, port = v.rpartition(":")
         if not sep or not port.isdigit() or int(port) > 65535:
             raise BadValue("not '[host]:port'", "write e.g. ':8787' (any free port: ':0')")
@@ -396,7 +401,7 @@ def load_config(path=None, overrides=()):
     problems += beam_problems(data.get("beam", {}))
     report(problems, origins)
     t = cfg.telescope
-    if t.layout_file is not None and not origins.is_explicit(("telescope", "preset")):
+    if t.layout_file is not None and "preset" not in data.get("telescope", {}):
         cfg.telescope = t.model_copy(update={"preset": None})  # the default preset gives way to a layout file
     report(check_config(cfg, origins), origins)
     return cfg

@@ -66,7 +66,6 @@ class Origins:
     def __init__(self, default="<defaults>"):
         self.default = default
         self._by_loc = {}
-        self.explicit = set()
 
     def add_yaml(self, path, text):
         """Record the line of every key of a YAML document (``yaml.compose`` keeps marks)."""
@@ -77,7 +76,6 @@ class Origins:
                 for k, v in n.value:
                     loc = prefix + (str(k.value),)
                     self._by_loc[loc] = f"{path}, line {k.start_mark.line + 1}"
-                    self.explicit.add(loc)
                     walk(v, loc)
 
         if node is not None:
@@ -87,13 +85,7 @@ class Origins:
         """An override replaces everything under ``loc`` (``beam={...}`` replaces the section)."""
         for k in [k for k in self._by_loc if k[: len(loc)] == loc]:
             del self._by_loc[k]
-        self.explicit = {k for k in self.explicit if k[: len(loc)] != loc}
         self._by_loc[loc] = f"command-line override '{text}'"
-        self.explicit.add(loc)
-
-    def is_explicit(self, loc):
-        """True when the user set ``loc`` (or a section containing it) in a file or an override."""
-        return any(tuple(loc[:i]) in self.explicit for i in range(len(loc), 0, -1))
 
     def of(self, loc):
         loc = tuple(loc)
@@ -219,14 +211,14 @@ def all_dotted_keys(model_cls, prefix=()):
     return out
 
 
-def unknown_key_fix(model_cls, loc, extra_keys=()):
+def unknown_key_fix(model_cls, loc, extra_keys=(), prefix=()):
     """Fix for an unknown key: the nearest valid key in its section, or the same key elsewhere."""
     section, key = tuple(loc[:-1]), str(loc[-1])
     keys = list(section_keys(model_cls, section)) + list(extra_keys)
     where = ".".join(section)
     hit = nearest(key, keys)
     if hit is not None:
-        return f"did you mean '{'.'.join(section + (hit,))}'?"
+        return f"did you mean '{'.'.join(tuple(prefix) + section + (hit,))}'?"
     dotted = all_dotted_keys(model_cls)
     elsewhere = [k for k in dotted if k.split(".")[-1] == key]
     if elsewhere:
@@ -253,7 +245,7 @@ def from_pydantic(errors, model_cls, extra_keys=None, prefix=()):
         if kind == "extra_forbidden":
             sec = ".".join(map(str, loc[:-1])) or "the top level"
             out.append(Problem(loc, value, f"'{loc[-1]}' is not an option of {sec} (Extra inputs are not permitted)",
-                               unknown_key_fix(model_cls, loc[len(prefix):], (extra_keys or {}).get(loc[:-1], ()))))
+                               unknown_key_fix(model_cls, loc[len(prefix):], (extra_keys or {}).get(loc[:-1], ()), prefix)))
             continue
         if isinstance(ctx.get("error"), BadValue):
             err = ctx["error"]
