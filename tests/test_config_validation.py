@@ -245,3 +245,9 @@ def test_config_show_lists_allowed_values_and_every_beam_type_and_round_trips(tm
     assert cfg.model_dump(exclude={"beam"}) == default.model_dump(exclude={"beam"})
     assert cfg.beam.model_dump() == {"type": "sin_elevation", "alpha": 1.5}
     assert yaml.safe_load(text)["mmode"]["lmax"] == 64
+
+
+def test_changing_the_beam_type_alone_names_the_leftover_parameter():
+    err = pytest.raises(InputError, load_config, DEMO, ["beam.type=gaussian"]).value
+    assert err.field == "beam.alpha" and err.what.endswith("demo.yaml, line 12")
+    assert "belongs to beam type 'sin_elevation'" in err.fix and "beam={type: gaussian, ...}" in err.fix

@@ -37,6 +37,11 @@ def beam_problems(beam):
         for p in out:
             p.problem = p.problem.replace("not an option of beam ", f"not a parameter of beam type '{kind}' ")
             p.fix = p.fix.replace("options of the top level", f"parameters of beam type '{kind}'")
+            other = [k for k, m in BEAM_PARAMS.items() if k != kind and str(p.loc[-1]) in m.model_fields]
+            if "not a parameter" in p.problem and other:
+                names = ", ".join(f.alias or n for n, f in model.model_fields.items())
+                p.fix = (f"'{p.loc[-1]}' belongs to beam type '{other[0]}': to change the type, replace the "
+                         f"whole section, e.g. beam={{type: {kind}, ...}} (parameters: {names})")
         return out
     return []
 
