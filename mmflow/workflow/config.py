@@ -47,10 +47,12 @@ class TelescopeConfig(_Section):
     """The array. Either an OVRO-LWA preset or a layout file plus a site."""
 
     preset: Optional[Literal["core", "full", "paper-2017", "leda512-2013"]] = Field(
-        "core", description="OVRO-LWA preset from the real stand positions (give null, or just a layout_file, to use the file).")
+        "core", description="OVRO-LWA preset from the real stand positions (give null, or just a "
+        "layout_file, to use the file).")
     layout_file: Optional[str] = Field(None, description="Text layout 'name east north [up]' (metres).")
     lat_deg: Optional[float] = Field(None, ge=-90, le=90, description="Site latitude for layout_file (degrees north).")
-    lon_deg: Optional[float] = Field(None, ge=-180, le=360, description="Site longitude for layout_file (degrees east).")
+    lon_deg: Optional[float] = Field(None, ge=-180, le=360,
+                                     description="Site longitude for layout_file (degrees east).")
     radius_m: Optional[float] = Field(None, gt=0, description="Keep stands within this radius of the centre.")
     stands: Optional[list[str]] = Field(None, min_length=2, description="Keep only these stand names.")
     max_antennas: Optional[int] = Field(None, ge=2, description="Keep the first N stands after the other cuts.")
@@ -144,7 +146,8 @@ class ObservationConfig(_Section):
                                    json_schema_extra={"allowed": "a non-empty list of numbers > 0"})
     channel_width_khz: float = Field(24.0, gt=0, description="Channel width (radiometer noise).")
     integration_s: float = Field(13.0, gt=0, description="Integration time in seconds.")
-    n_integrations: Optional[int] = Field(None, ge=1, description="Integrations to simulate (default: one sidereal day).")
+    n_integrations: Optional[int] = Field(None, ge=1,
+                                          description="Integrations to simulate (default: one sidereal day).")
     start_lst_deg: float = Field(0.0, description="LST of the first simulated integration.")
     epoch_jd: float = Field(2457802.0, gt=0, description="Epoch (UTC JD) of the frame of date (default 2017-02-18).")
 
@@ -237,7 +240,10 @@ class ProductsConfig(_Section):
     unit: Literal["K", "Jy/sr"] = Field("K", description="Brightness temperature or intensity.")
     png: bool = Field(True, description="Also write Mollweide and L-curve PNGs.")
 
-    _nside = field_validator("nside")(classmethod(lambda cls, v: _power_of_two(v)))
+    @field_validator("nside")
+    @classmethod
+    def _nside(cls, v):
+        return _power_of_two(v)
 
 
 class ClusterConfig(_Section):
@@ -256,7 +262,8 @@ class ClusterConfig(_Section):
     expose: bool = Field(False, description="Listen on all network interfaces (scheduler and dashboard); "
                          "default: 127.0.0.1 only. See docs/clusters.md for TLS.")
     worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long.")
-    jobqueue: dict = Field(default_factory=dict, description="dask-jobqueue cluster options (cores, memory, queue, ...).")
+    jobqueue: dict = Field(default_factory=dict,
+                           description="dask-jobqueue cluster options (cores, memory, queue, ...).")
 
     @field_validator("memory_limit", mode="before")
     @classmethod

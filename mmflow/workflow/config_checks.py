@@ -119,7 +119,8 @@ def _beam_build_problems(cfg):
 
     spec = cfg.beam.model_dump()
     if spec.get("type") == "pyuvdata" and spec.get("file") and not _exists(spec["file"]):
-        return [Problem(("beam", "file"), spec["file"], "file not found", "give the path of a beam file pyuvdata reads")]
+        return [Problem(("beam", "file"), spec["file"], "file not found",
+                        "give the path of a beam file pyuvdata reads")]
     try:
         beam = make_beam(spec)
         for f in cfg.observation.freqs_mhz:

@@ -145,7 +145,8 @@ def _typename(ann):
         return "a list of " + plural.get(inner, inner)
     if origin is dict or ann is dict:
         return "a mapping"
-    return {int: "an integer", float: "a number", bool: "true | false", str: "text"}.get(ann, getattr(ann, "__name__", str(ann)))
+    words = {int: "an integer", float: "a number", bool: "true | false", str: "text"}
+    return words.get(ann, getattr(ann, "__name__", str(ann)))
 
 
 def allowed_text(field):
@@ -244,8 +245,9 @@ def from_pydantic(errors, model_cls, extra_keys=None, prefix=()):
         ctx = e.get("ctx") or {}
         if kind == "extra_forbidden":
             sec = ".".join(map(str, loc[:-1])) or "the top level"
+            fix = unknown_key_fix(model_cls, loc[len(prefix):], (extra_keys or {}).get(loc[:-1], ()), prefix)
             out.append(Problem(loc, value, f"'{loc[-1]}' is not an option of {sec} (Extra inputs are not permitted)",
-                               unknown_key_fix(model_cls, loc[len(prefix):], (extra_keys or {}).get(loc[:-1], ()), prefix)))
+                               fix))
             continue
         if isinstance(ctx.get("error"), BadValue):
             err = ctx["error"]
