@@ -251,3 +251,11 @@ def test_changing_the_beam_type_alone_names_the_leftover_parameter():
     err = pytest.raises(InputError, load_config, DEMO, ["beam.type=gaussian"]).value
     assert err.field == "beam.alpha" and err.what.endswith("demo.yaml, line 12")
     assert "belongs to beam type 'sin_elevation'" in err.fix and "beam={type: gaussian, ...}" in err.fix
+
+
+@pytest.mark.parametrize("override, fix", [("mmode.splits=[even, full]", "[full, even, odd]"),
+                                           ("mmode.splits=[full, odd, odd]", "[full, even, odd]"),
+                                           ("transfer.groups=0", "integer >= 1")])
+def test_splits_and_groups(override, fix):
+    err = pytest.raises(InputError, load_config, DEMO, [override]).value
+    assert err.field == override.split("=")[0] and fix in err.fix

@@ -202,9 +202,20 @@ class MmodeConfig(_Section):
                                   "at least 2 mmax + 1).")
     min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day that must hold data.")
     baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
+    splits: list[Literal["full", "even", "odd"]] = Field(
+        ["full"], description="Data splits carried through m-modes, right-hand sides and alm: 'full' first, "
+        "then e.g. 'even' and 'odd' sidereal bins for jackknife noise maps (one transfer pass for all).",
+        json_schema_extra={"allowed": "'full' first, then each of even | odd at most once"})
     noise: Literal["data", "radiometer"] = Field(
         "data", description="Noise per baseline from successive-integration differences, or from the "
         "radiometer equation sigma^2 = V_ii V_jj / (dnu tau) with the autocorrelations.")
+
+    @field_validator("splits")
+    @classmethod
+    def _full_first(cls, v):
+        if not v or v[0] != "full" or len(set(v)) != len(v):
+            raise BadValue("'full' must come first and each split once", "write e.g. mmode.splits=[full, even, odd]")
+        return v
 
 
 class TransferConfig(_Section):
@@ -215,6 +226,9 @@ class TransferConfig(_Section):
     baseline_chunk: int = Field(32, ge=1, description="Baselines per transfer task (memory ~ chunk * lmax^2 * 16 B).")
     per_baseline_lmax: bool = Field(True, description="Cut each baseline's rows at its own band limit.")
     m_block: int = Field(16, ge=1, description="m values per reduction / solve task.")
+    groups: int = Field(8, ge=1, description="Baseline groups of the transfer stage: tasks per frequency, and "
+                        "partial normal equations kept on disk (each ~ the Gram's size). Set >= the cluster's worker "
+                        "threads for parallelism. Results never depend on the cluster.")
     noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
 
 
@@ -261,7 +275,8 @@ class ClusterConfig(_Section):
                                    json_schema_extra={"allowed": "'[host]:port', port 0-65535 (0: any free port)"})
     expose: bool = Field(False, description="Listen on all network interfaces (scheduler and dashboard); "
                          "default: 127.0.0.1 only. See docs/clusters.md for TLS.")
-    worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long.")
+    worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long "
+                                 "(workers died: memory, walltime); finished chunks are kept for a rerun.")
     jobqueue: dict = Field(default_factory=dict,
                            description="dask-jobqueue cluster options (cores, memory, queue, ...).")
 
