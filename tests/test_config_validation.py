@@ -197,6 +197,12 @@ def test_empty_selection_is_named_before_the_simulate_stage(tmp_path):
     assert "keeps no antennas" in err.problem and "autocorrelations" not in str(err)
 
 
+def test_run_directory_that_is_a_file(tmp_path):
+    f = _write(tmp_path, "x", "afile")
+    err = pytest.raises(InputError, load_config, DEMO, [f"run.directory={f}"]).value
+    assert err.field == "run.directory" and "is a file" in err.problem
+
+
 def test_a_failed_validation_writes_nothing(tmp_path):
     from mmflow.cli import main
 

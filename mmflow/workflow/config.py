@@ -425,7 +425,7 @@ def load_config(path=None, overrides=()):
     t = cfg.telescope
     if t.layout_file is not None and "preset" not in data.get("telescope", {}):
         cfg.telescope = t.model_copy(update={"preset": None})  # the default preset gives way to a layout file
-    report(check_config(cfg, origins), origins)
+    report(check_config(cfg), origins)
     return cfg
 
 

@@ -50,7 +50,7 @@ def _exists(path):
     return Path(os.path.expanduser(os.path.expandvars(path))).exists()
 
 
-def _telescope_problems(cfg, origins):
+def _telescope_problems(cfg):
     t = cfg.telescope
     out = []
     if t.layout_file is not None:
@@ -173,6 +173,10 @@ def _value_problems(cfg):
     if im.prior_map is not None and not _exists(im.prior_map):
         out.append(Problem(("imaging", "prior_map"), im.prior_map, "file not found",
                            "give the path of a HEALPix FITS map"))
+    run_dir = Path(os.path.expanduser(cfg.run.directory))
+    if run_dir.exists() and not run_dir.is_dir():
+        out.append(Problem(("run", "directory"), cfg.run.directory, "is a file, not a directory",
+                           "give a new or existing directory for the run"))
     out.extend(_cluster_problems(cfg.cluster))
     return out
 
@@ -212,9 +216,9 @@ def _is_loopback(host):
         return False
 
 
-def check_config(cfg, origins=None):
+def check_config(cfg):
     """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
-    out = _telescope_problems(cfg, origins) + _value_problems(cfg)
+    out = _telescope_problems(cfg) + _value_problems(cfg)
     if not any(p.loc[:1] == ("beam",) for p in out):
         out.extend(_beam_build_problems(cfg))
     return out
