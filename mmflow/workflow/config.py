@@ -22,7 +22,7 @@ class _Section(BaseModel):
 
 
 def _power_of_two(v):
-    if v is not None and (v < 1 or v & (v - 1)):
+    if v is not None and (v < 1 or v > 2**29 or v & (v - 1)):
         lo = 1 << max(0, int(v).bit_length() - 1)
         raise BadValue("HEALPix nside must be a power of two", f"use {lo} or {2 * lo} (or null for the default)")
     return v
@@ -249,7 +249,7 @@ class ProductsConfig(_Section):
     """Maps and plots."""
 
     nside: Optional[int] = Field(None, description="Output HEALPix nside (default from lmax).",
-                                 json_schema_extra={"allowed": "a power of two (1, 2, 4, ..., 8192), or null"})
+                                 json_schema_extra={"allowed": "a power of two (1, 2, 4, ..., 2^29), or null"})
     frame: Literal["icrs", "galactic", "date"] = Field("icrs", description="Coordinate frame of the maps.")
     unit: Literal["K", "Jy/sr"] = Field("K", description="Brightness temperature or intensity.")
     png: bool = Field(True, description="Also write Mollweide and L-curve PNGs.")
