@@ -1,6 +1,7 @@
 """The workflow: demo chain, resumability, staleness, CLI and configuration."""
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -142,7 +143,10 @@ def test_docker_files_are_consistent():
         compose = yaml.safe_load(fh)
     svc = compose["services"]
     assert {"scheduler", "worker", "client"} <= set(svc)
-    assert "8787:8787" in svc["scheduler"]["ports"]
+    published = [re.sub(r"\$\{(\w+):-([^}]*)\}", lambda m: m.group(2), p)
+                 for p in svc["scheduler"]["ports"]]  # compose's ${VAR:-default}, VAR unset
+    assert sorted(published) == ["127.0.0.1:8786:8786", "127.0.0.1:8787:8787"]  # loopback unless opted in
+    assert all(p.startswith("${MMFLOW_BIND_ADDRESS:-127.0.0.1}:") for p in svc["scheduler"]["ports"])
     assert "tcp://scheduler:8786" in " ".join(svc["worker"]["command"])
     assert svc["client"]["environment"]["DASK_SCHEDULER_ADDRESS"] == "tcp://scheduler:8786"
     assert any(v.endswith(":/runs") for v in svc["worker"]["volumes"])

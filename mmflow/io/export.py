@@ -1,7 +1,15 @@
-"""FITS and PNG output (written under a temporary name, then renamed)."""
+"""FITS and PNG output (written under a temporary name, then renamed).
+
+Maps mark the sky the array never sees (see :mod:`mmflow.imaging.sky_mask`): HEALPix
+``UNSEEN`` in FITS, grey in PNGs. PNGs use a symmetric-logarithmic colour scale (linear
+within +-linthresh, logarithmic beyond; stated on the colour bar), so that the Galactic
+plane and the faint high-latitude sky both show, and carry lmax, eps, frequency and
+resolution in a caption.
+"""
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -12,48 +20,197 @@ def _tmp(path):
     return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
 
 
-def write_healpix_fits(path, hmap, meta):
-    """HEALPix map (RING) with header keywords from ``meta``."""
+def _masked(hmap, mask):
+    import healpy
+
+    out = np.array(hmap, np.float64, copy=True)
+    if mask is not None:
+        out[~np.asarray(mask, bool)] = healpy.UNSEEN
+    return out
+
+
+def write_healpix_fits(path, hmap, meta, mask=None):
+    """HEALPix map (RING) with header keywords from ``meta``; pixels outside ``mask`` are UNSEEN.
+
+    Parameters
+    ----------
+    mask : ndarray of bool, optional
+        True where the sky was observed (:func:`mmflow.imaging.sky_mask.observed_sky_mask`).
+    """
     import healpy
 
     tmp = _tmp(path)
-    healpy.write_map(str(tmp), np.asarray(hmap, np.float64), overwrite=True, coord=meta.get("COORDSYS", "C"),
+    healpy.write_map(str(tmp), _masked(hmap, mask), overwrite=True, coord=meta.get("COORDSYS", "C"),
                      column_units=meta.get("BUNIT", ""), extra_header=[(k[:8], v) for k, v in meta.items()
                                                                       if k not in ("COORDSYS",)], dtype=np.float64)
     os.replace(tmp, path)
 
 
-def write_mollweide_png(path, hmap, title, unit):
-    import healpy
+def symlog_scale(values, lo_pct=0.5, hi_pct=99.9):
+    """``(vmin, vmax, linthresh)`` of a symmetric-log colour scale for the observed pixels.
+
+    ``vmin, vmax`` are percentiles (outliers saturate); ``linthresh``, the half-width of the
+    linear part, is the median absolute deviation about the median: the faint sky's
+    fluctuations fill the linear part and the Galactic plane the logarithmic decades.
+    """
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return -1.0, 1.0, 1.0
+    lo, hi = np.percentile(v, [lo_pct, hi_pct])
+    mad = float(np.median(np.abs(v - np.median(v))))
+    span = max(abs(lo), abs(hi), 1e-30)
+    linthresh = mad if mad > 1e-6 * span else 1e-3 * span
+    linthresh = float(f"{linthresh:.1g}")  # one significant figure: round tick values
+    if hi <= lo:
+        lo, hi = lo - linthresh, hi + linthresh
+    return float(lo), float(hi), float(linthresh)
+
+
+def symlog_ticks(vmin, vmax, linthresh):
+    """Colour-bar ticks: 0, +-linthresh and each decade of linthresh inside ``[vmin, vmax]``."""
+    ticks = [0.0] if vmin <= 0 <= vmax else []
+    k = 0
+    while linthresh * 10 ** k <= max(abs(vmin), abs(vmax)):
+        ticks += [t for t in (linthresh * 10 ** k, -linthresh * 10 ** k) if vmin <= t <= vmax]
+        k += 1
+    return sorted(ticks)
+
+
+AXIS_NAMES = {"galactic": ("Galactic longitude l", "Galactic latitude b"),
+              "icrs": ("right ascension (ICRS)", "declination (ICRS)"),
+              "date": ("right ascension (of date)", "declination (of date)")}
+
+
+def caption_text(lmax=None, eps=None, freq_hz=None, resolution_deg=None, frame=None, masked=False):
+    """``'40.000 MHz | lmax 64 | eps 0.01 | resolution 2.8 deg | ...'`` from what is known."""
+    parts = []
+    if freq_hz is not None:
+        parts.append(f"{freq_hz / 1e6:.3f} MHz")
+    if lmax is not None:
+        parts.append(f"lmax {lmax}")
+    if eps is not None:
+        parts.append(f"eps {eps:g}")
+    if resolution_deg is None and lmax:
+        resolution_deg = 180.0 / lmax
+    if resolution_deg is not None:
+        parts.append(f"resolution {resolution_deg:.2g} deg")
+    if frame is not None:
+        parts.append(f"{frame} frame")
+    text = " | ".join(parts)
+    if masked:
+        text += "\ngrey: sky never above the horizon. Monopole and m = 0 removed: the mean is not measured, " \
+                "maps go negative."
+    return text
+
+
+def write_mollweide_png(path, hmap, title, unit, mask=None, lmax=None, eps=None, freq_hz=None,
+                        resolution_deg=None, frame=None, xsize=1000):
+    """Mollweide view: never-seen sky grey, labelled graticule, symmetric-log colour bar, caption.
+
+    Parameters
+    ----------
+    hmap : ndarray
+        HEALPix map (RING).
+    title, unit : str
+        Plot title; unit of the map (the colour bar states it and the scaling).
+    mask : ndarray of bool, optional
+        True where observed; other pixels are drawn grey and ignored by the colour scale.
+    lmax, eps, freq_hz, resolution_deg, frame : optional
+        Written in the caption (resolution defaults to 180 deg / lmax).
+    xsize : int
+        Longitude samples of the projected image (drawing time grows as xsize^2).
+
+    Returns
+    -------
+    dict
+        ``vmin, vmax, linthresh`` of the colour scale, ``colorbar_label``, ``caption`` and
+        ``masked_fraction``.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from healpy.newvisufunc import projview
 
-    lo, hi = np.percentile(hmap, [1, 99.5])
-    healpy.mollview(hmap, title=title, unit=unit, min=lo, max=hi, cmap="inferno")
-    healpy.graticule(dpar=30, dmer=30, alpha=0.3)
+    shown = _masked(hmap, mask)
+    seen = shown[shown != -1.6375e30]
+    vmin, vmax, lin = symlog_scale(seen)
+    label = f"{unit}; symmetric log scale, linear within +-{lin:.3g}"
+    caption = caption_text(lmax, eps, freq_hz, resolution_deg, frame, masked=mask is not None and not np.all(mask))
+    xlab, ylab = AXIS_NAMES.get(frame, ("longitude", "latitude"))
+    fig = plt.figure(figsize=(10, 6.4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        projview(shown, fig=fig, xsize=xsize, title=title, unit=label, min=vmin, max=vmax, norm="symlog",
+                 norm_dict={"linthresh": lin, "linscale": 1.0}, cmap="inferno", badcolor="0.6", bgcolor="white",
+                 graticule=True, graticule_labels=True, longitude_grid_spacing=60, latitude_grid_spacing=30,
+                 xlabel=f"{xlab} (deg)", ylabel=f"{ylab} (deg)", cb_orientation="horizontal",
+                 cbar_ticks=symlog_ticks(vmin, vmax, lin), format="%.2g", hold=True)
+    fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=9)
+    drawn = [t for ax in fig.axes for t in (ax.get_xlabel(), ax.get_ylabel()) if "scale" in t]
     tmp = _tmp(path)
-    plt.savefig(tmp, dpi=110)
-    plt.close("all")
+    fig.savefig(tmp, dpi=100, bbox_inches="tight")
+    plt.close(fig)
     os.replace(tmp, path)
+    frac = 0.0 if mask is None else float(1 - np.mean(np.asarray(mask, bool)))
+    return {"vmin": vmin, "vmax": vmax, "linthresh": lin, "colorbar_label": drawn[0] if drawn else None,
+            "caption": caption, "masked_fraction": frac}
 
 
-def write_lcurve_png(path, lc, eps, chosen):
+def write_lcurve_png(path, lc, eps, chosen, corner=None, freq_hz=None, weighted=False, unit="Jy/sr"):
+    """The L-curve ``(||v - B a||, ||a||)`` over the trial eps, with the chosen eps and the corner.
+
+    Parameters
+    ----------
+    lc : ndarray (n_eps, 2)
+        ``||a||^2`` and ``||v - B a||^2`` summed over m (:func:`mmflow.imaging.lcurve.lcurve_block`).
+    eps : ndarray (n_eps,)
+        The trial regularisation parameters.
+    chosen : float
+        The eps used for the map.
+    corner : float, optional
+        The eps of maximum curvature (default: :func:`mmflow.imaging.lcurve.lcurve_corner`).
+    freq_hz : float, optional
+        Written in the title.
+    weighted : bool
+        True when the normal equations were noise weighted (``transfer.noise_weighting``):
+        the residual is then in units of the noise (dimensionless), otherwise in Jy.
+    unit : str
+        Unit of the a_lm (Jy/sr).
+
+    Returns
+    -------
+    float
+        ``chosen / corner``: how far (as a factor) the chosen eps is from the corner.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(5, 4))
-    ax.loglog(np.sqrt(lc[:, 0]), np.sqrt(np.maximum(lc[:, 1], 1e-300)), "-")
-    k = int(np.argmin(np.abs(np.log(eps / chosen))))
-    ax.loglog([np.sqrt(lc[k, 0])], [np.sqrt(lc[k, 1])], "o", label=f"eps = {chosen:g}")
-    ax.set_xlabel("||a||")
-    ax.set_ylabel("||v - B a||")
-    ax.legend()
+    from mmflow.imaging.lcurve import lcurve_corner
+
+    lc = np.asarray(lc, float)
+    eps = np.asarray(eps, float)
+    if corner is None:
+        corner = lcurve_corner(lc[:, 0], lc[:, 1], eps)
+    sol, res = np.sqrt(np.maximum(lc[:, 0], 1e-300)), np.sqrt(np.maximum(lc[:, 1], 1e-300))
+    fig, ax = plt.subplots(figsize=(6, 4.6))
+    ax.loglog(res, sol, "-", color="0.3", lw=1.2, label=f"{len(eps)} trial eps ({eps.min():.0e} to {eps.max():.0e})")
+    for value, style, name in ((chosen, "o", "chosen"), (corner, "x", "corner (max curvature)")):
+        k = int(np.argmin(np.abs(np.log(eps / value))))
+        ax.loglog([res[k]], [sol[k]], style, ms=9, mew=2, label=f"{name}: eps = {value:.3g}")
+    ax.set_xlabel("residual norm ||N^-1/2 (v - B a)|| (noise units)" if weighted else "residual norm ||v - B a|| (Jy)")
+    ax.set_ylabel(f"solution norm ||a|| ({unit})")
+    ratio = float(chosen / corner)
+    title = "L-curve" + (f" at {freq_hz / 1e6:.3f} MHz" if freq_hz is not None else "")
+    ax.set_title(f"{title}\nchosen eps / corner eps = {ratio:.3g}", fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(True, which="both", alpha=0.2)
     fig.tight_layout()
     tmp = _tmp(path)
     fig.savefig(tmp, dpi=100)
     plt.close(fig)
     os.replace(tmp, path)
+    return ratio

@@ -53,6 +53,25 @@ class Layout:
     def n_ant(self):
         return len(self.names)
 
+    def duplicates(self, tol_m=1e-3):
+        """Duplicate antenna names and positions (closer than ``tol_m``) in words; '' when none.
+
+        Two antennas at one position make a zero-length cross baseline that is really an
+        autocorrelation; two with one name cannot be told apart in the data.
+        """
+        names, counts = np.unique(np.asarray(self.names, dtype=str), return_counts=True)
+        words = []
+        if np.any(counts > 1):
+            words.append(f"duplicate names {[str(n) for n in names[counts > 1][:5]]}")
+        if self.n_ant > 1:
+            key = np.round(self.enu / tol_m).astype(np.int64)
+            _, first, inverse, n = np.unique(key, axis=0, return_index=True, return_inverse=True,
+                                             return_counts=True)
+            same = [[self.names[i] for i in np.flatnonzero(inverse.ravel() == g)] for g in np.flatnonzero(n > 1)]
+            if same:
+                words.append(f"antennas at the same position {same[:5]}")
+        return " and ".join(words)
+
     def select(self, mask_or_names=None, radius_m=None):
         """Return a sub-layout by boolean mask / index list / names and/or horizontal radius."""
         keep = np.ones(self.n_ant, bool)
@@ -112,7 +131,11 @@ def load_layout(path, lat_deg, lon_deg, height_m=0.0):
         enu.append((e, n, u))
     if not names:
         raise InputError(str(path), "antennas", "no antenna lines found", "add 'name east north [up]' lines")
-    return Layout(names, np.array(enu), lat_deg, lon_deg, height_m, provenance=str(path))
+    layout = Layout(names, np.array(enu), lat_deg, lon_deg, height_m, provenance=str(path))
+    dup = layout.duplicates()
+    if dup:
+        raise InputError(str(path), "antennas", dup, "give every antenna line a unique name and position")
+    return layout
 
 
 def _read_ovro_352():

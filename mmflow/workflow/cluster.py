@@ -1,4 +1,9 @@
-"""Where the graph runs: a local cluster, an existing scheduler, or SLURM/PBS via dask-jobqueue."""
+"""Where the graph runs: a local cluster, an existing scheduler, or SLURM/PBS via dask-jobqueue.
+
+A dask scheduler runs whatever code a client sends it, so a local cluster listens on the
+loopback interface only (scheduler, workers and dashboard on 127.0.0.1); ``cluster.expose:
+true`` opens them to the network (see docs/clusters.md for dask's TLS settings).
+"""
 from __future__ import annotations
 
 import os
@@ -6,16 +11,44 @@ from contextlib import contextmanager
 
 from mmflow.errors import InputError
 
+LOOPBACK = "127.0.0.1"
+ALL_INTERFACES = "0.0.0.0"
+
+
+def bind_host(c):
+    """The interface a local scheduler and dashboard listen on: loopback unless ``expose``."""
+    return ALL_INTERFACES if c.expose else LOOPBACK
+
+
+def dashboard_bind(c):
+    """``cluster.dashboard_address`` with its host filled in (``':8787'`` -> ``'127.0.0.1:8787'``)."""
+    host, _, port = c.dashboard_address.rpartition(":")
+    return f"{host or bind_host(c)}:{port}"
+
+
+def memory_limit(text):
+    """``cluster.memory_limit`` as dask takes it: ``'auto'``, a fraction (float) or a byte string."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
 
 def jobqueue_cluster(cfg, kind):
     """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
 
+    The scheduler has to listen on the cluster network (the workers run on other nodes);
+    its dashboard stays on loopback (reach it with an SSH tunnel) unless ``cluster.expose``.
     Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
     """
     import dask_jobqueue
 
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
-    return cls(**cfg.cluster.jobqueue)
+    opts = dict(cfg.cluster.jobqueue)
+    sched = dict(opts.get("scheduler_options") or {})
+    sched.setdefault("dashboard_address", dashboard_bind(cfg.cluster))
+    opts["scheduler_options"] = sched
+    return cls(**opts)
 
 
 @contextmanager
@@ -44,8 +77,12 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
         from distributed import LocalCluster
 
         cluster = LocalCluster(n_workers=c.n_workers, threads_per_worker=c.threads_per_worker,
-                               memory_limit=c.memory_limit, dashboard_address=c.dashboard_address)
+                               memory_limit=memory_limit(c.memory_limit), host=bind_host(c),
+                               dashboard_address=dashboard_bind(c))
         client = Client(cluster)
+        if c.expose:
+            log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
+                "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
     elif kind in ("slurm", "pbs"):
         cluster = jobqueue_cluster(cfg, kind)
         cluster.scale(jobs=c.n_workers)

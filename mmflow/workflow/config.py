@@ -11,58 +11,152 @@ from pathlib import Path
 from typing import Literal, Optional
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mmflow.errors import InputError
+from mmflow.workflow.config_errors import BadValue, Origins, allowed_text, from_pydantic, report, yaml_error
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _power_of_two(v):
+    if v is not None and (v < 1 or v > 2**29 or v & (v - 1)):
+        lo = 1 << max(0, int(v).bit_length() - 1)
+        raise BadValue("HEALPix nside must be a power of two", f"use {lo} or {2 * lo} (or null for the default)")
+    return v
 
 
 class RunConfig(_Section):
     """Where outputs go."""
 
-    directory: str = Field("runs/demo", description="Run directory (zarr stores, maps, status markers).")
+    directory: str = Field("runs/demo", description="Run directory (zarr stores, maps, status markers).",
+                           json_schema_extra={"allowed": "a non-empty path"})
     name: str = Field("mmflow-run", description="A label stored with every output.")
+
+    @field_validator("directory")
+    @classmethod
+    def _nonempty(cls, v):
+        if not v.strip():
+            raise BadValue("the run directory is empty", "give a path, e.g. run.directory=runs/my-run")
+        return v
 
 
 class TelescopeConfig(_Section):
     """The array. Either an OVRO-LWA preset or a layout file plus a site."""
 
     preset: Optional[Literal["core", "full", "paper-2017", "leda512-2013"]] = Field(
-        "core", description="OVRO-LWA preset from the real stand positions; null to use layout_file.")
+        "core", description="OVRO-LWA preset from the real stand positions (give null, or just a "
+        "layout_file, to use the file).")
     layout_file: Optional[str] = Field(None, description="Text layout 'name east north [up]' (metres).")
-    lat_deg: Optional[float] = Field(None, description="Site latitude for layout_file.")
-    lon_deg: Optional[float] = Field(None, description="Site longitude for layout_file.")
-    radius_m: Optional[float] = Field(None, description="Keep stands within this radius of the centre.")
-    stands: Optional[list[str]] = Field(None, description="Keep only these stand names.")
-    max_antennas: Optional[int] = Field(None, description="Keep the first N stands after the other cuts.")
+    lat_deg: Optional[float] = Field(None, ge=-90, le=90, description="Site latitude for layout_file (degrees north).")
+    lon_deg: Optional[float] = Field(None, ge=-180, le=360,
+                                     description="Site longitude for layout_file (degrees east).")
+    radius_m: Optional[float] = Field(None, gt=0, description="Keep stands within this radius of the centre.")
+    stands: Optional[list[str]] = Field(None, min_length=2, description="Keep only these stand names.")
+    max_antennas: Optional[int] = Field(None, ge=2, description="Keep the first N stands after the other cuts.")
     include_autos: bool = Field(True, description="Use autocorrelations as baselines of length 0.")
 
 
-class BeamConfig(_Section):
-    """Primary beam (Stokes-I power, 1 at zenith)."""
+# --------------------------------------------------------------------------- beam parameters
+# One model per beam type of mmflow.telescope.beams.make_beam; defaults match the beam classes
+# (a test checks). BeamConfig keeps the user's keys as given and validates them with these.
 
-    model_config = ConfigDict(extra="allow")
-    type: Literal["sin_elevation", "gaussian", "zernike", "pyuvdata"] = "sin_elevation"
+class SinElevationBeamParams(_Section):
+    """sin_elevation: A = sin(elevation)^alpha, frequency independent."""
+
+    alpha: float = Field(1.5, gt=0, description="Exponent; 1.5 mimics a dipole over a ground screen.")
+
+
+class GaussianBeamParams(_Section):
+    """gaussian: A = exp(-za^2 / (2 sigma^2)), sigma = fwhm / sqrt(8 ln 2) scaled by ref_freq_hz / freq."""
+
+    fwhm_deg: float = Field(60.0, gt=0, le=360, description="Full width at half maximum in zenith angle (degrees).")
+    ref_freq_hz: Optional[float] = Field(None, gt=0, description="Frequency at which fwhm_deg holds; "
+                                         "null: the same width at every frequency.")
+
+
+class ZernikeBeamParams(_Section):
+    """zernike: the paper's nine Zernike terms (section 3.3), 1 at zenith, linear in frequency between fits."""
+
+    freqs_hz: list[float] = Field(..., min_length=1, description="Ascending frequencies (Hz) of the fits; "
+                                  "they must cover every observed channel.")
+    coeffs: list[list[float]] = Field(..., description="One row of 9 coefficients per frequency, for the terms "
+                                      "(n, m) = (0,0) (2,0) (4,0) (4,4) (6,0) (6,4) (8,0) (8,4) (8,8).")
+
+    @model_validator(mode="after")
+    def _shape(self):
+        f = self.freqs_hz
+        if any(x <= 0 for x in f) or any(b <= a for a, b in zip(f, f[1:])):
+            raise BadValue("freqs_hz must be positive and ascending", "list the fit frequencies in Hz, lowest first")
+        if len(self.coeffs) != len(f) or any(len(row) != 9 for row in self.coeffs):
+            raise BadValue(f"coeffs has rows of {[len(r) for r in self.coeffs]} coefficients for {len(f)} "
+                           "frequencies, not 9 per frequency",
+                           "give one row of 9 coefficients per frequency in freqs_hz")
+        return self
+
+
+PYUVDATA_ANALYTIC = ("AiryBeam", "GaussianBeam", "ShortDipoleBeam", "UniformBeam")
+
+
+class PyUVDataBeamParams(_Section):
+    """pyuvdata: a beam file pyuvdata reads, or one of pyuvdata's analytic beams (give file or class)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
+    file: Optional[str] = Field(None, description="beamfits / MWA / CST file (power or E-field beam).")
+    class_: Optional[Literal[PYUVDATA_ANALYTIC]] = Field(None, alias="class",
+                                                         description="pyuvdata.analytic_beam class, instead of file.")
+    params: dict = Field(default_factory=dict, description="Arguments of that class (e.g. {diameter: 14.0}).")
+    normalize: bool = Field(False, description="Rescale to 1 at zenith (default: the beam's own normalisation).")
+    lmax_hint: int = Field(48, ge=1, description="Angular band limit of the beam pattern.")
+
+    @model_validator(mode="after")
+    def _one_source(self):
+        if (self.file is None) == (self.class_ is None):
+            raise BadValue("give exactly one of 'file' and 'class'",
+                           "beam={type: pyuvdata, file: beam.fits} or beam={type: pyuvdata, class: AiryBeam, "
+                           "params: {diameter: 14.0}}")
+        if self.file is None and self.params == {} and self.class_ != "UniformBeam":
+            raise BadValue(f"pyuvdata's {self.class_} needs its size in 'params'",
+                           "e.g. params: {diameter: 14.0} (AiryBeam, GaussianBeam) or params: {sigma: 0.5}")
+        return self
+
+
+BEAM_PARAMS = {"sin_elevation": SinElevationBeamParams, "gaussian": GaussianBeamParams,
+               "zernike": ZernikeBeamParams, "pyuvdata": PyUVDataBeamParams}
+
+
+class BeamConfig(_Section):
+    """Primary beam (Stokes-I power, 1 at zenith). The other keys are the parameters of the chosen type."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+    type: Literal["sin_elevation", "gaussian", "zernike", "pyuvdata"] = Field(
+        "sin_elevation", description="Beam model; its parameters are listed below.")
+
+    def params(self):
+        """The beam parameters (the keys other than ``type``) as given."""
+        return dict(self.model_extra or {})
 
 
 class ObservationConfig(_Section):
     """Frequencies and the drift scan that is simulated or expected."""
 
-    freqs_mhz: list[float] = Field([40.0], description="Channel centre frequencies in MHz.")
-    channel_width_khz: float = Field(24.0, description="Channel width (radiometer noise).")
-    integration_s: float = Field(13.0, description="Integration time in seconds.")
-    n_integrations: Optional[int] = Field(None, description="Integrations to simulate (default: one sidereal day).")
+    freqs_mhz: list[float] = Field([40.0], min_length=1, description="Channel centre frequencies in MHz.",
+                                   json_schema_extra={"allowed": "a non-empty list of numbers > 0"})
+    channel_width_khz: float = Field(24.0, gt=0, description="Channel width (radiometer noise).")
+    integration_s: float = Field(13.0, gt=0, description="Integration time in seconds.")
+    n_integrations: Optional[int] = Field(None, ge=1,
+                                          description="Integrations to simulate (default: one sidereal day).")
     start_lst_deg: float = Field(0.0, description="LST of the first simulated integration.")
-    epoch_jd: float = Field(2457802.0, description="Epoch (UTC JD) of the frame of date (default 2017-02-18).")
+    epoch_jd: float = Field(2457802.0, gt=0, description="Epoch (UTC JD) of the frame of date (default 2017-02-18).")
 
     @field_validator("freqs_mhz")
     @classmethod
     def _positive(cls, v):
-        if not v or any(f <= 0 for f in v):
-            raise ValueError("give at least one positive frequency in MHz")
+        bad = [f for f in v if f <= 0]
+        if bad:
+            raise BadValue(f"non-positive frequencies {bad}", "give channel centre frequencies in MHz, all > 0")
         return v
 
 
@@ -70,11 +164,13 @@ class SkyConfig(_Section):
     """Simulated sky for the simulate stage."""
 
     diffuse: bool = Field(True, description="Include the synthetic Galaxy-like diffuse sky.")
-    diffuse_lmax: int = Field(64, description="Band limit of the synthetic diffuse sky.")
-    sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], description="Catalogue sources.")
-    noise: bool = Field(True, description="Add radiometer-equation thermal noise.")
-    seed: int = Field(1, description="Random seed (diffuse sky and noise).")
-    quad_oversample: int = Field(48, description="Extra band limit of the simulator's sky quadrature grid.")
+    diffuse_lmax: int = Field(64, ge=1, description="Band limit of the synthetic diffuse sky.")
+    sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], description="Catalogue sources.",
+                               json_schema_extra={"allowed": "names from mmflow.sky.sources.CATALOG "
+                                                  "(Cyg A, Cas A, Vir A, Tau A, Her A, Hya A, 3C 123, 3C 353, ...)"})
+    noise: bool = Field(True, description="Add radiometer-equation thermal noise (needs telescope.include_autos).")
+    seed: int = Field(1, ge=0, description="Random seed (diffuse sky and noise).")
+    quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")
 
 
 class InputConfig(_Section):
@@ -83,36 +179,42 @@ class InputConfig(_Section):
     path: Optional[str] = Field(None, description="File or glob of UVH5 / uvfits / MS files.")
     format: Optional[Literal["uvh5", "uvfits", "ms"]] = Field(None, description="Force a format.")
     on_bad_file: Literal["error", "skip"] = Field("error", description="Stop, or log and count a skip.")
+    nonfinite: Literal["error", "flag"] = Field(
+        "error", description="Unflagged NaN/inf samples in input files: refuse the file, or flag them "
+        "(counted and logged).")
     conjugate: bool = Field(False, description="Conjugate the data on ingest. pyuvdata data (as written by "
                             "matvis / hera_sim) already follow mmflow's exp(+2 pi i b.r), b = x_2 - x_1; set true "
                             "only for data in the opposite sign convention.")
 
 
 class StageSwitch(_Section):
-    enabled: bool = False
+    """A stage that is not available yet (enabling it is an error)."""
+
+    enabled: bool = Field(False, description="Run this stage.")
 
 
 class MmodeConfig(_Section):
     """Sidereal binning and the m-mode transform."""
 
-    lmax: int = Field(64, description="Largest spherical-harmonic degree.")
-    mmax: Optional[int] = Field(None, description="Largest m (default lmax).")
-    n_bins: Optional[int] = Field(None, description="Sidereal bins (default: integrations per sidereal day).")
-    min_coverage: float = Field(0.95, description="Fraction of the sidereal day that must hold data.")
-    baseline_chunk: int = Field(256, description="Baselines per task in the corner turn.")
+    lmax: int = Field(64, ge=1, description="Largest spherical-harmonic degree.")
+    mmax: Optional[int] = Field(None, ge=0, description="Largest m (default lmax; at most lmax).")
+    n_bins: Optional[int] = Field(None, ge=1, description="Sidereal bins (default: integrations per sidereal day; "
+                                  "at least 2 mmax + 1).")
+    min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day that must hold data.")
+    baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
     splits: list[Literal["full", "even", "odd"]] = Field(
         ["full"], description="Data splits carried through m-modes, right-hand sides and alm: 'full' first, "
-        "then e.g. 'even' and 'odd' sidereal bins for jackknife noise maps (one transfer pass for all).")
+        "then e.g. 'even' and 'odd' sidereal bins for jackknife noise maps (one transfer pass for all).",
+        json_schema_extra={"allowed": "'full' first, then each of even | odd at most once"})
     noise: Literal["data", "radiometer"] = Field(
         "data", description="Noise per baseline from successive-integration differences, or from the "
         "radiometer equation sigma^2 = V_ii V_jj / (dnu tau) with the autocorrelations.")
-
 
     @field_validator("splits")
     @classmethod
     def _full_first(cls, v):
         if not v or v[0] != "full" or len(set(v)) != len(v):
-            raise ValueError("list 'full' first, then other splits once each, e.g. [full, even, odd]")
+            raise BadValue("'full' must come first and each split once", "write e.g. mmode.splits=[full, even, odd]")
         return v
 
 
@@ -120,45 +222,107 @@ class TransferConfig(_Section):
     """Transfer matrices and normal equations."""
 
     mode: Literal["normal", "store"] = Field("normal", description="'normal': stream G_m; 'store': also write B_m.")
-    dtype: Literal["float32", "float64"] = "float64"
-    baseline_chunk: int = Field(32, description="Baselines per transfer task (memory ~ chunk * lmax^2 * 16 B).")
-    per_baseline_lmax: bool = True
-    m_block: int = Field(16, description="m values per reduction / solve task.")
-    groups: int = Field(8, description="Baseline groups of the transfer stage: tasks per frequency, and partial "
-                        "normal equations kept on disk (each ~ the Gram's size). Set >= the cluster's worker "
+    dtype: Literal["float32", "float64"] = Field("float64", description="Precision of the transfer matrices.")
+    baseline_chunk: int = Field(32, ge=1, description="Baselines per transfer task (memory ~ chunk * lmax^2 * 16 B).")
+    per_baseline_lmax: bool = Field(True, description="Cut each baseline's rows at its own band limit.")
+    m_block: int = Field(16, ge=1, description="m values per reduction / solve task.")
+    groups: int = Field(8, ge=1, description="Baseline groups of the transfer stage: tasks per frequency, and "
+                        "partial normal equations kept on disk (each ~ the Gram's size). Set >= the cluster's worker "
                         "threads for parallelism. Results never depend on the cluster.")
     noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
 
 
 class ImagingConfig(_Section):
-    method: Literal["tikhonov", "min_variance", "moore_penrose", "prior", "smoothness"] = "tikhonov"
-    eps: float = Field(0.01, description="Regularisation parameter (paper: 0.01).")
-    zero_monopole: bool = True
-    filter_m0: bool = True
-    filter_m1_lmin: Optional[int] = 100
+    """The regularised solve for a_lm."""
+
+    method: Literal["tikhonov", "min_variance", "moore_penrose", "prior", "smoothness"] = Field(
+        "tikhonov", description="Solver (prior needs prior_map).")
+    eps: float = Field(0.01, gt=0, description="Regularisation parameter (paper: 0.01).")
+    zero_monopole: bool = Field(True, description="Set a_00 to zero (the array does not measure it).")
+    filter_m0: bool = Field(True, description="Drop m = 0 (confused with ground pick-up and cross-talk).")
+    filter_m1_lmin: Optional[int] = Field(100, ge=0, description="Drop m = 1 above this l (null: keep).")
     lcurve: bool = Field(True, description="Compute an L-curve over 200 eps values.")
-    prior_map: Optional[str] = None
+    prior_map: Optional[str] = Field(None, description="HEALPix FITS map for method: prior.")
 
 
 class ProductsConfig(_Section):
-    nside: Optional[int] = Field(None, description="Output HEALPix nside (default from lmax).")
-    frame: Literal["icrs", "galactic", "date"] = "icrs"
-    unit: Literal["K", "Jy/sr"] = "K"
-    png: bool = True
+    """Maps and plots."""
+
+    nside: Optional[int] = Field(None, description="Output HEALPix nside (default from lmax).",
+                                 json_schema_extra={"allowed": "a power of two (1, 2, 4, ..., 2^29), or null"})
+    frame: Literal["icrs", "galactic", "date"] = Field("icrs", description="Coordinate frame of the maps.")
+    unit: Literal["K", "Jy/sr"] = Field("K", description="Brightness temperature or intensity.")
+    png: bool = Field(True, description="Also write Mollweide and L-curve PNGs.")
+
+    @field_validator("nside")
+    @classmethod
+    def _nside(cls, v):
+        return _power_of_two(v)
 
 
 class ClusterConfig(_Section):
     """Where the dask graph runs."""
 
-    kind: Literal["local", "address", "slurm", "pbs", "synchronous"] = "local"
+    kind: Literal["local", "address", "slurm", "pbs", "synchronous"] = Field(
+        "local", description="Local processes, an existing scheduler, a batch system, or in-process.")
     address: Optional[str] = Field(None, description="Scheduler address for kind=address (or DASK_SCHEDULER_ADDRESS).")
-    n_workers: int = Field(2, description="Local worker processes, or jobqueue jobs to scale to.")
-    threads_per_worker: int = 1
-    memory_limit: str = Field("auto", description="Per-worker memory limit (dask spills/pauses above it).")
-    dashboard_address: str = ":8787"
+    n_workers: int = Field(2, ge=1, description="Local worker processes, or jobqueue jobs to scale to.")
+    threads_per_worker: int = Field(1, ge=1, description="Threads per worker process.")
+    memory_limit: str = Field("auto", description="Per-worker memory limit (dask spills/pauses above it).",
+                              json_schema_extra={"allowed": "'auto', a fraction of the machine (0 < f <= 1), "
+                                                 "or bytes ('4GiB', '500MB')"})
+    dashboard_address: str = Field(":8787", description="Dashboard '[host]:port' (host: loopback unless expose).",
+                                   json_schema_extra={"allowed": "'[host]:port', port 0-65535 (0: any free port)"})
+    expose: bool = Field(False, description="Listen on all network interfaces (scheduler and dashboard); "
+                         "default: 127.0.0.1 only. See docs/clusters.md for TLS.")
     worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long "
                                  "(workers died: memory, walltime); finished chunks are kept for a rerun.")
-    jobqueue: dict = Field(default_factory=dict, description="dask-jobqueue cluster options (cores, memory, queue, ...).")
+    jobqueue: dict = Field(default_factory=dict,
+                           description="dask-jobqueue cluster options (cores, memory, queue, ...).")
+
+    @field_validator("memory_limit", mode="before")
+    @classmethod
+    def _memory(cls, v):
+        return check_memory_limit(v)
+
+    @field_validator("dashboard_address", mode="before")
+    @classmethod
+    def _dashboard(cls, v):
+        if isinstance(v, int) and not isinstance(v, bool):
+            v = f":{v}"  # a bare port
+        if not isinstance(v, str):
+            raise BadValue("not '[host]:port'", "write e.g. ':8787' (any free port: ':0')")
+        host, sep, port = v.rpartition(":")
+        if not sep or not port.isdigit() or int(port) > 65535:
+            raise BadValue("not '[host]:port'", "write e.g. ':8787' (any free port: ':0')")
+        return v
+
+
+def check_memory_limit(v):
+    """``'auto'``, a fraction in (0, 1], or a byte count dask parses; returned as text."""
+    from dask.utils import parse_bytes
+
+    fix = "use 'auto', a fraction of the machine's memory such as 0.5, or bytes such as '4GiB'"
+    if isinstance(v, bool):
+        raise BadValue("not a memory size", fix)
+    if isinstance(v, (int, float)):
+        if v <= 0:
+            raise BadValue("must be positive", fix)
+        return str(v)
+    if not isinstance(v, str):
+        raise BadValue("not a memory size", fix)
+    if v.strip().lower() == "auto":
+        return "auto"
+    try:
+        x = float(v)
+    except ValueError:
+        try:
+            x = parse_bytes(v)
+        except (ValueError, TypeError):
+            raise BadValue("not a memory size", fix) from None
+    if x <= 0:
+        raise BadValue("must be positive", fix)
+    return v.strip()
 
 
 class WorkflowConfig(_Section):
@@ -182,38 +346,87 @@ class WorkflowConfig(_Section):
     cluster: ClusterConfig = ClusterConfig()
 
 
-def _set_dotted(d, key, value):
+def _read_file(path, origins):
+    src = str(path)
+    p = Path(path)
+    if not p.exists():
+        raise InputError(src, "workflow", "file not found", "give the path of a workflow YAML (see workflows/)")
+    text = p.read_text()
+    try:
+        data = yaml.safe_load(text)
+        origins.add_yaml(src, text)
+    except yaml.YAMLError as exc:
+        raise yaml_error(src, exc) from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(src, "(top level)", f"the file holds a {type(data).__name__}, not a mapping of sections",
+                         "write sections at the top level, e.g. 'mmode:' then indented 'lmax: 64' "
+                         "(see `mmflow config show`)")
+    return data
+
+
+def _apply_override(data, item, origins):
+    where = f"command-line override '{item}'"
+    if "=" not in item:
+        raise InputError(where, item, "override without '='", "write section.key=value")
+    key, text = item.split("=", 1)
+    key = key.strip()
     parts = key.split(".")
-    for p in parts[:-1]:
+    if not key or not all(parts):
+        raise InputError(where, key, "empty key", "write section.key=value, e.g. imaging.eps=0.001")
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise yaml_error(where, exc) from None
+    d = data
+    for i, p in enumerate(parts[:-1]):
         d = d.setdefault(p, {})
         if not isinstance(d, dict):
-            raise InputError("override", key, f"'{p}' is not a section", "use section.key=value")
+            raise InputError(where, ".".join(parts[: i + 1]), f"'{p}' is not a section",
+                             "use section.key=value")
     d[parts[-1]] = value
+    origins.add_override(tuple(parts), item)
 
 
 def load_config(path=None, overrides=()):
-    """Read a workflow YAML, apply ``key=value`` overrides, validate; errors name file and field."""
-    data = {}
-    src = str(path) if path else "<defaults>"
-    if path:
-        p = Path(path)
-        if not p.exists():
-            raise InputError(src, "workflow", "file not found", "give the path of a workflow YAML (see workflows/)")
-        data = yaml.safe_load(p.read_text()) or {}
+    """Read a workflow YAML, apply ``key=value`` overrides and validate everything.
+
+    The schema (each field's type and range), the cross-field rules and the files the
+    configuration names (layout, beam, prior map) are all checked here, before any cluster
+    starts or stage runs; nothing is written. Errors name the file and line, or the
+    command-line override, that set each bad value, the field, the value and the fix.
+
+    Raises
+    ------
+    InputError
+        A missing file or a YAML syntax error.
+    ConfigError
+        (an ``InputError``) every bad value, one line each.
+    """
+    from mmflow.workflow.config_checks import beam_problems, check_config
+
+    origins = Origins(str(path) if path else "<defaults>")
+    data = _read_file(path, origins) if path else {}
     for item in overrides:
-        if "=" not in item:
-            raise InputError("command line", item, "override without '='", "write section.key=value")
-        k, v = item.split("=", 1)
-        _set_dotted(data, k.strip(), yaml.safe_load(v))
+        _apply_override(data, item, origins)
     for sec, key in (("run", "directory"), ("input", "path")):
         val = data.get(sec, {}).get(key) if isinstance(data.get(sec), dict) else None
         if isinstance(val, str):
             data[sec][key] = os.path.expanduser(os.path.expandvars(val))
+    problems, cfg = [], None
     try:
-        return WorkflowConfig.model_validate(data)
+        cfg = WorkflowConfig.model_validate(data)
     except ValidationError as exc:
-        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise InputError(src, "config", msgs, "see `mmflow config show` for the schema and defaults") from None
+        problems = from_pydantic(exc.errors(), WorkflowConfig,
+                                 {("beam",): [k for m in BEAM_PARAMS.values() for k in m.model_fields]})
+    problems += beam_problems(data.get("beam", {}))
+    report(problems, origins)
+    t = cfg.telescope
+    if t.layout_file is not None and "preset" not in data.get("telescope", {}):
+        cfg.telescope = t.model_copy(update={"preset": None})  # the default preset gives way to a layout file
+    report(check_config(cfg), origins)
+    return cfg
 
 
 def config_fingerprint(cfg, sections):
@@ -223,22 +436,58 @@ def config_fingerprint(cfg, sections):
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def _option_line(indent, name, field, value):
+    """``name: value  # description [allowed values]`` (value as YAML flow)."""
+    if field.is_required():
+        dumped = "(required)"
+    else:
+        dumped = yaml.safe_dump(value, default_flow_style=True).strip()
+        dumped = dumped.removesuffix("\n...").removesuffix("...").strip()
+    desc = (field.description or "").rstrip(".")
+    note = f"{desc}. [{allowed_text(field)}]" if desc else f"[{allowed_text(field)}]"
+    return " " * indent + f"{field.alias or name}: {dumped}  # {note}"
+
+
+def _beam_lines(indent):
+    """The parameters of every beam type: the default type's as options, the others commented."""
+    default = BeamConfig().type
+    lines = []
+    for kind, model in BEAM_PARAMS.items():
+        doc = (model.__doc__ or "").strip().splitlines()[0]
+        if kind == default:
+            lines.append(" " * indent + f"# parameters of type {doc}")
+            lines.extend(_option_line(indent, n, f, f.get_default(call_default_factory=True))
+                         for n, f in model.model_fields.items())
+    lines.append(" " * indent + "# parameters of the other types (give the whole section, e.g. "
+                 "beam={type: gaussian, fwhm_deg: 30}):")
+    for kind, model in BEAM_PARAMS.items():
+        if kind != default:
+            lines.append(" " * indent + f"# type {(model.__doc__ or '').strip().splitlines()[0]}")
+            lines.extend(" " * indent + "#   " + _option_line(0, n, f, None if f.is_required() else
+                                                            f.get_default(call_default_factory=True))
+                         for n, f in model.model_fields.items())
+    return lines
+
+
 def schema_yaml():
-    """A commented YAML of every option with its default and description."""
-    lines = ["# mmflow workflow: every option with its default", ""]
+    """A commented YAML of every option: default, description and allowed values.
+
+    It drives ``mmflow config show`` / ``config init`` and docs/configuration.md; the beam
+    section lists the parameters of every beam type.
+    """
+    lines = ["# mmflow workflow: every option with its default and [allowed values]", ""]
 
     def walk(model, indent):
         for name, field in type(model).model_fields.items():
             val = getattr(model, name)
-            desc = field.description
             if isinstance(val, BaseModel):
                 doc = (type(val).__doc__ or "").strip().splitlines()
                 lines.append(" " * indent + f"{name}:" + (f"  # {doc[0]}" if doc else ""))
                 walk(val, indent + 2)
             else:
-                dumped = yaml.safe_dump(val, default_flow_style=True).strip()
-                dumped = dumped.removesuffix("\n...").removesuffix("...").strip()
-                lines.append(" " * indent + f"{name}: {dumped}" + (f"  # {desc}" if desc else ""))
+                lines.append(_option_line(indent, name, field, val))
+        if isinstance(model, BeamConfig):
+            lines.extend(_beam_lines(indent))
 
     walk(WorkflowConfig(), 0)
     return "\n".join(lines) + "\n"

@@ -1,0 +1,224 @@
+"""Checks that need more than one field, or a file, before any cluster starts or stage runs.
+
+Each check returns :class:`~mmflow.workflow.config_errors.Problem` records (location, value,
+what is wrong, the fix); :func:`check_config` runs them all so that one error lists every
+problem. The antenna selection and the beam are built here exactly as the stages build them,
+so a selection that keeps no antennas or a beam that does not cover a channel is refused
+before any work.
+"""
+from __future__ import annotations
+
+import ipaddress
+import os
+from pathlib import Path
+
+import numpy as np
+from pydantic import ValidationError
+
+from mmflow.errors import InputError
+from mmflow.workflow.config_errors import Problem, from_pydantic, show
+
+SIDEREAL_DAY_S = 86164.0905
+
+
+def beam_problems(beam):
+    """Validate the raw ``beam`` mapping's parameters against the model of its type."""
+    from mmflow.workflow.config import BEAM_PARAMS
+
+    if not isinstance(beam, dict) or beam.get("type", "sin_elevation") not in BEAM_PARAMS:
+        return []  # the schema reports a wrong section or type
+    model = BEAM_PARAMS[beam.get("type", "sin_elevation")]
+    params = {k: v for k, v in beam.items() if k != "type"}
+    try:
+        model.model_validate(params)
+    except ValidationError as exc:
+        out = from_pydantic(exc.errors(), model, prefix=("beam",))
+        kind = beam.get("type", "sin_elevation")
+        for p in out:
+            p.problem = p.problem.replace("not an option of beam ", f"not a parameter of beam type '{kind}' ")
+            p.fix = p.fix.replace("options of the top level", f"parameters of beam type '{kind}'")
+            other = [k for k, m in BEAM_PARAMS.items() if k != kind and str(p.loc[-1]) in m.model_fields]
+            if "not a parameter" in p.problem and other:
+                names = ", ".join(f.alias or n for n, f in model.model_fields.items())
+                p.fix = (f"'{p.loc[-1]}' belongs to beam type '{other[0]}': to change the type, replace the "
+                         f"whole section, e.g. beam={{type: {kind}, ...}} (parameters: {names})")
+        return out
+    return []
+
+
+def _exists(path):
+    return Path(os.path.expanduser(os.path.expandvars(path))).exists()
+
+
+def _telescope_problems(cfg):
+    t = cfg.telescope
+    out = []
+    if t.layout_file is not None:
+        if t.preset is not None:
+            out.append(Problem(("telescope", "preset"), t.preset, f"preset {show(t.preset)} and layout_file "
+                               f"{show(t.layout_file)} both given", "keep one: set telescope.preset: null to use "
+                               "the layout file, or remove telescope.layout_file"))
+        for key in ("lat_deg", "lon_deg"):
+            if getattr(t, key) is None:
+                out.append(Problem(("telescope", key), None, "a layout file needs the site",
+                                   f"set telescope.{key} (degrees) of the array centre"))
+        if not _exists(t.layout_file):
+            out.append(Problem(("telescope", "layout_file"), t.layout_file, "file not found",
+                               "give the path of a text layout 'name east north [up]'"))
+    else:
+        if t.preset is None:
+            out.append(Problem(("telescope", "preset"), None, "no array: neither a preset nor a layout_file",
+                               "set telescope.preset (core, full, paper-2017, leda512-2013) or telescope.layout_file"))
+        for key in ("lat_deg", "lon_deg"):
+            if getattr(t, key) is not None:
+                out.append(Problem(("telescope", key), getattr(t, key), "only used with layout_file "
+                                   f"(preset {show(t.preset)} has its own site)", f"remove telescope.{key}"))
+    if out or cfg.source != "simulate":  # ingested data carry their own layout
+        return out
+    return _selection_problems(cfg)
+
+
+def _selection_problems(cfg):
+    """Build the antenna selection as the simulate stage will, and check it."""
+    from mmflow.telescope import load_layout, ovro_lwa_layout
+
+    t = cfg.telescope
+    try:
+        if t.layout_file is None:
+            full = ovro_lwa_layout(t.preset)
+            lay = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
+        else:
+            full = load_layout(os.path.expanduser(t.layout_file), t.lat_deg, t.lon_deg)
+            lay = full.select(t.stands, t.radius_m)
+    except InputError as exc:
+        loc = ("telescope", "stands") if exc.field == "stands" else ("telescope", "layout_file")
+        return [Problem(loc, None, f"{exc.what}: {exc.problem}", exc.fix)]
+    out = []
+    what = f"preset {show(t.preset)}" if t.layout_file is None else f"layout {show(t.layout_file)}"
+    if lay.n_ant < 2:
+        r = np.sort(np.hypot(full.enu[:, 0], full.enu[:, 1]))
+        if t.radius_m is not None and len(r) >= 2 and t.radius_m < r[1]:
+            loc, val, fix = ("telescope", "radius_m"), t.radius_m, (
+                f"use telescope.radius_m >= {np.ceil(r[1] * 10) / 10:g} (the second-closest stand of {what})")
+        elif t.stands is not None:
+            loc, val, fix = ("telescope", "stands"), t.stands, "list at least two stand names of the layout"
+        else:
+            loc, val, fix = ("telescope", "max_antennas"), t.max_antennas, "keep at least two antennas"
+        n = "no antennas" if lay.n_ant == 0 else "one antenna (no baselines to image with)"
+        out.append(Problem(loc, val, f"the selection from {what} keeps {n}", fix))
+    dup = lay.duplicates()
+    if dup:
+        out.append(Problem(("telescope", "layout_file" if t.layout_file else "preset"), None,
+                           f"{what} has {dup}", "give every antenna a unique name and position"))
+    return out
+
+
+def _beam_build_problems(cfg):
+    """Build the beam as the stages do and check it covers every channel."""
+    from mmflow.telescope.beams import make_beam
+
+    spec = cfg.beam.model_dump()
+    if spec.get("type") == "pyuvdata" and spec.get("file") and not _exists(spec["file"]):
+        return [Problem(("beam", "file"), spec["file"], "file not found",
+                        "give the path of a beam file pyuvdata reads")]
+    try:
+        beam = make_beam(spec)
+        for f in cfg.observation.freqs_mhz:
+            beam.check_frequency(f * 1e6)
+    except InputError as exc:
+        loc = ("observation", "freqs_mhz") if exc.field in ("frequency", "freq_array") else ("beam",)
+        return [Problem(loc, None, f"beam type {show(spec.get('type'))}: {exc.problem}", exc.fix)]
+    except Exception as exc:  # pyuvdata's analytic beams raise their own errors for bad params
+        return [Problem(("beam", "params"), spec.get("params"), f"pyuvdata cannot build the beam ({exc})",
+                        "give the arguments of that pyuvdata.analytic_beam class")]
+    return []
+
+
+def _value_problems(cfg):
+    out = []
+    mm, ob = cfg.mmode, cfg.observation
+    mmax = mm.lmax if mm.mmax is None else mm.mmax
+    if mm.mmax is not None and mm.mmax > mm.lmax:
+        out.append(Problem(("mmode", "mmax"), mm.mmax, f"larger than mmode.lmax = {mm.lmax}",
+                           f"set mmode.mmax <= {mm.lmax}, or null for mmax = lmax"))
+    if mm.n_bins is not None and mm.n_bins < 2 * mmax + 1:
+        out.append(Problem(("mmode", "n_bins"), mm.n_bins, f"too few sidereal bins to resolve m up to {mmax}",
+                           f"use mmode.n_bins >= {2 * mmax + 1} (2 mmax + 1), or null"))
+    if cfg.source == "simulate":
+        per_day = SIDEREAL_DAY_S / ob.integration_s
+        if mm.n_bins is None and round(per_day) < 2 * mmax + 1:
+            out.append(Problem(("observation", "integration_s"), ob.integration_s,
+                               f"{round(per_day)} integrations per sidereal day cannot resolve m up to {mmax}",
+                               f"use observation.integration_s <= {SIDEREAL_DAY_S / (2 * mmax + 1):.4g} s, "
+                               f"or a smaller mmode.lmax"))
+        if ob.n_integrations is not None and ob.n_integrations / per_day < mm.min_coverage:
+            out.append(Problem(("observation", "n_integrations"), ob.n_integrations,
+                               f"covers {ob.n_integrations / per_day:.1%} of the sidereal day, less than "
+                               f"mmode.min_coverage = {mm.min_coverage:g}",
+                               f"simulate at least {int(np.ceil(mm.min_coverage * per_day))} integrations, "
+                               f"or null for a whole day"))
+        if cfg.sky.noise and not cfg.telescope.include_autos:
+            out.append(Problem(("sky", "noise"), True, "thermal noise is drawn from the autocorrelations, "
+                               "but telescope.include_autos is false",
+                               "set telescope.include_autos: true, or sky.noise: false"))
+        if cfg.sky.sources:
+            out.extend(_source_problems(cfg.sky.sources))
+    if mm.noise == "radiometer" and not cfg.telescope.include_autos:
+        out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
+                           "set telescope.include_autos: true, or mmode.noise: data"))
+    im = cfg.imaging
+    if im.method == "prior" and im.prior_map is None:
+        out.append(Problem(("imaging", "prior_map"), None, "method 'prior' needs a prior map",
+                           "set imaging.prior_map to a HEALPix FITS file, or choose another imaging.method"))
+    if im.prior_map is not None and not _exists(im.prior_map):
+        out.append(Problem(("imaging", "prior_map"), im.prior_map, "file not found",
+                           "give the path of a HEALPix FITS map"))
+    run_dir = Path(os.path.expanduser(cfg.run.directory))
+    if run_dir.exists() and not run_dir.is_dir():
+        out.append(Problem(("run", "directory"), cfg.run.directory, "is a file, not a directory",
+                           "give a new or existing directory for the run"))
+    out.extend(_cluster_problems(cfg.cluster))
+    return out
+
+
+def _source_problems(names):
+    from mmflow.workflow.config_errors import nearest
+    from mmflow.sky.sources import CATALOG
+
+    out = []
+    for n in names:
+        if n not in CATALOG:
+            hit = nearest(n, CATALOG)
+            out.append(Problem(("sky", "sources"), n, "not in the source catalogue",
+                               f"did you mean '{hit}'?" if hit else f"use names from {sorted(CATALOG)}"))
+    return out
+
+
+def _cluster_problems(c):
+    out = []
+    host = c.dashboard_address.rpartition(":")[0].strip("[]")
+    if host and not c.expose and not _is_loopback(host):
+        out.append(Problem(("cluster", "dashboard_address"), c.dashboard_address,
+                           "listens beyond this machine while cluster.expose is false",
+                           "write ':8787' (loopback), or set cluster.expose: true to listen on the network"))
+    if c.kind == "address" and c.address is not None and "://" not in c.address and ":" not in c.address:
+        out.append(Problem(("cluster", "address"), c.address, "not a scheduler address",
+                           "write e.g. tcp://host:8786"))
+    return out
+
+
+def _is_loopback(host):
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_config(cfg):
+    """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
+    out = _telescope_problems(cfg) + _value_problems(cfg)
+    if not any(p.loc[:1] == ("beam",) for p in out):
+        out.extend(_beam_build_problems(cfg))
+    return out
