@@ -123,9 +123,29 @@ def _dispatch(args):
     only = None if args.cmd == "run" else [args.cmd]
     with open_cluster(cfg, args.scheduler, args.cluster) as client:
         summaries = run_workflow(cfg, client, only=only, force=args.force, progress=not args.no_progress)
-    print(json.dumps({k: {kk: v[kk] for kk in ("wall_s", "tasks", "tasks_run", "bytes_written")}
-                      for k, v in summaries.items()}, indent=2))
+    _report(cfg, summaries)
     return 0
+
+
+def _report(cfg, summaries):
+    """What a user checks first: where the maps are, their resolution, rms and fraction of modes, stage times."""
+    from pathlib import Path
+
+    run = Path(cfg.run.directory).expanduser().absolute()
+    print("stage times: " + ", ".join(f"{k} {v['wall_s']} s ({v['tasks_run']}/{v['tasks']} tasks run)"
+                                      for k, v in summaries.items()))
+    summary = run / "maps" / "summary.json"
+    if not summary.exists():
+        return
+    for m in json.loads(summary.read_text())["maps"]:
+        ratio = m.get("chosen_over_corner_eps")
+        print(f"{m['freq_hz'] / 1e6:.3f} MHz: {run / m['fits']}"
+              + (f" (+ {run / m['png']})" if m.get("png") else "")
+              + f"\n    resolution ~{m['resolution_deg'] * 60:.0f}' | rms {m['map_rms']:.4g} {m['unit']} over the "
+              f"{m['sky_fraction_seen']:.0%} of the sky seen | singular values above sqrt(eps): "
+              f"{m['fraction_singular_values_above_sqrt_eps']:.1%}"
+              + (f" | eps is {ratio:.3g}x the L-curve corner" if ratio else ""))
+    print(f"log: {run / 'mmflow.log'}")
 
 
 if __name__ == "__main__":

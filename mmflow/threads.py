@@ -1,11 +1,36 @@
-"""How many threads a kernel may use: one knob, never hard-coded.
+"""How many threads a kernel may use: one budget per task, never hard-coded.
 
-Order: ``MMFLOW_THREADS`` environment variable, then the dask worker's thread count when
-running inside a worker (so tasks do not oversubscribe), then ``os.cpu_count()``.
+Order: the ``MMFLOW_THREADS`` environment variable; inside a dask worker, the cores this
+process may use (CPU affinity, capped by a cgroup CPU quota) divided among the worker's
+threads and the workers sharing the host (``MMFLOW_WORKERS_PER_HOST``, set by mmflow's own
+clusters); otherwise the usable cores.
 """
 import os
 from contextlib import contextmanager
 from functools import lru_cache
+
+
+def usable_cores():
+    """Cores this process may run on: its CPU affinity, capped by a cgroup CPU quota."""
+    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    quota = _cgroup_cpus()
+    return max(1, min(n, int(quota))) if quota else max(1, n)
+
+
+def _cgroup_cpus():
+    """CPUs granted by a cgroup quota (v2 ``cpu.max`` or v1 ``cfs_quota/period``), or None."""
+    try:
+        text = open("/sys/fs/cgroup/cpu.max").read().split()
+        if text[0] != "max":
+            return int(text[0]) / int(text[1])
+    except (OSError, IndexError, ValueError):
+        pass
+    try:
+        quota = int(open("/sys/fs/cgroup/cpu/cpu.cfs_quota_us").read())
+        period = int(open("/sys/fs/cgroup/cpu/cpu.cfs_period_us").read())
+        return quota / period if quota > 0 else None
+    except (OSError, ValueError):
+        return None
 
 
 def n_threads():
@@ -16,9 +41,10 @@ def n_threads():
         from distributed import get_worker
 
         w = get_worker()
-        return max(1, int(os.cpu_count() or 1) // max(1, w.state.nthreads))
+        share = max(1, w.state.nthreads) * max(1, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
+        return max(1, usable_cores() // share)
     except (ImportError, ValueError, AttributeError):
-        return max(1, int(os.cpu_count() or 1))
+        return usable_cores()
 
 
 @contextmanager
@@ -26,15 +52,22 @@ def single_threaded_blas(active=True):
     """Limit BLAS to one thread while a kernel runs its own ``n_threads()`` workers.
 
     A kernel that splits its work over a thread pool would otherwise have each pool thread
-    start its own BLAS threads (``n_threads()**2`` on ``n_threads()`` cores). The limit is
-    process-wide for its duration (threadpoolctl); dask workers already run BLAS
-    single-threaded, so inside a worker this changes nothing.
+    start its own BLAS threads (``n_threads()**2`` on ``n_threads()`` cores). Where BLAS
+    already runs one thread (dask worker processes start that way) nothing is switched, so
+    concurrent tasks of one worker never change each other's BLAS settings; elsewhere the
+    limit is process-wide for its duration (threadpoolctl).
     """
-    if not active:
+    if not active or _blas_threads() <= 1:
         yield
         return
     with _controller().limit(limits=1, user_api="blas"):
         yield
+
+
+@lru_cache(maxsize=1)
+def _blas_threads():
+    """BLAS threads at the process's first use (querying costs ~4 ms: once per process)."""
+    return min((lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers), default=1)
 
 
 @lru_cache(maxsize=1)

@@ -117,3 +117,4 @@ def test_jobqueue_cluster_from_workflow_options(kind, marker):
         cluster.close()
     assert marker in script and "normal" in script
     assert "--nworkers 2" in script or "--nprocs 2" in script
+    assert "export MMFLOW_WORKERS_PER_HOST=2" in script  # the two processes of a job share its cores

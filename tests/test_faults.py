@@ -71,7 +71,6 @@ def test_kill_at_each_stage_boundary_and_inside_prepare_resumes_bit_identical(re
         run_workflow(small_config(run_dir), **QUIET)
     monkeypatch.undo()
     # now die half-way through the next stage's prepare (after some arrays were created)
-    real_create = stores.StoreSpec.create
     calls = {"n": 0}
 
     def create_then_die(self, root):
@@ -298,3 +297,32 @@ def test_changed_input_file_is_found_and_named(tmp_path):
     assert d2[2] == d1[2] and d2[1] != d1[1]
     f.write_bytes(b"0123456780")
     assert file_digest(f, {str(f): d2})[2] != d1[2]
+
+
+# ----------------------------------------------------------------------------- thread budget
+
+def test_thread_budget_divides_usable_cores_among_workers_of_a_host(monkeypatch):
+    from mmflow import threads
+
+    monkeypatch.delenv("MMFLOW_THREADS", raising=False)
+    monkeypatch.setattr(threads, "usable_cores", lambda: 16)
+
+    class FakeWorker:
+        class state:
+            nthreads = 2
+
+    import distributed
+
+    monkeypatch.setattr(distributed, "get_worker", lambda: FakeWorker)
+    monkeypatch.setenv("MMFLOW_WORKERS_PER_HOST", "4")
+    assert threads.n_threads() == 2  # 16 cores / (4 workers x 2 threads)
+    monkeypatch.setenv("MMFLOW_WORKERS_PER_HOST", "16")
+    assert threads.n_threads() == 1
+    monkeypatch.setenv("MMFLOW_THREADS", "3")
+    assert threads.n_threads() == 3
+
+
+def test_usable_cores_follow_affinity():
+    from mmflow.threads import usable_cores
+
+    assert 1 <= usable_cores() <= len(os.sched_getaffinity(0))

@@ -116,12 +116,13 @@ def _validate(arr, spec, location):
 
 # ----------------------------------------------------------------------------- checksums
 
-def chunk_keys(arr, region):
-    """Chunk keys (``c/i/j/...``) covered by ``region`` (a tuple of slices, chunk-aligned)."""
+def chunk_keys(arr, region, aligned=True):
+    """Chunk keys (``c/i/j/...``) covered by ``region`` (a tuple of slices; chunk-aligned for writes,
+    any region for reads: then every chunk it touches)."""
     ranges = []
     for sl, n, c in zip(_full_region(arr, region), arr.shape, arr.chunks):
         start, stop = sl.start, sl.stop
-        if start % c or (stop % c and stop != n):
+        if aligned and (start % c or (stop % c and stop != n)):
             raise ValueError(f"region {region} of {arr.path} is not aligned to chunks {arr.chunks}")
         ranges.append(range(start // c, -(-stop // c)))
     if not ranges:
@@ -153,6 +154,7 @@ class ChunkLedger:
         self.root = Path(root)
         self.entries = {}
         self.seconds = 0.0  # spent on checksums (reported per task: the bookkeeping's cost)
+        self.guard_seconds = 0.0  # spent checking outputs for NaN/inf
 
     def write(self, group, name, region, data):
         arr = group[name]
@@ -198,7 +200,7 @@ def check_region(root, index, arr, region, producer):
     base = Path(arr.store.root) / arr.path
     rel_base = base.relative_to(Path(root))
     want = {}
-    for key in chunk_keys(arr, region):
+    for key in chunk_keys(arr, region, aligned=False):
         rel = str(rel_base / key)
         if rel not in index:
             raise DamagedStoreError(f"{base / key}: no completion record from stage '{producer}' for this "

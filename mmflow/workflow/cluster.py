@@ -48,6 +48,9 @@ def jobqueue_cluster(cfg, kind):
     sched = dict(opts.get("scheduler_options") or {})
     sched.setdefault("dashboard_address", dashboard_bind(cfg.cluster))
     opts["scheduler_options"] = sched
+    # thread budget: the worker processes of one job share its cores (mmflow.threads.n_threads)
+    opts["job_script_prologue"] = list(opts.get("job_script_prologue") or []) + [
+        f"export MMFLOW_WORKERS_PER_HOST={int(opts.get('processes') or 1)}"]
     return cls(**opts)
 
 
@@ -78,7 +81,8 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
 
         cluster = LocalCluster(n_workers=c.n_workers, threads_per_worker=c.threads_per_worker,
                                memory_limit=memory_limit(c.memory_limit), host=bind_host(c),
-                               dashboard_address=dashboard_bind(c))
+                               dashboard_address=dashboard_bind(c),
+                               env={"MMFLOW_WORKERS_PER_HOST": str(c.n_workers)})  # thread budget per task
         client = Client(cluster)
         if c.expose:
             log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "

@@ -4,8 +4,6 @@ Override any key from the command line with ``section.key=value`` (values parsed
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 from pathlib import Path
 from typing import Literal, Optional
@@ -427,13 +425,6 @@ def load_config(path=None, overrides=()):
         cfg.telescope = t.model_copy(update={"preset": None})  # the default preset gives way to a layout file
     report(check_config(cfg), origins)
     return cfg
-
-
-def config_fingerprint(cfg, sections):
-    """Hash of the named config sections (decides whether stored outputs are stale)."""
-    blob = json.dumps({s: getattr(cfg, s).model_dump() if hasattr(getattr(cfg, s), "model_dump")
-                       else getattr(cfg, s) for s in sections}, sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
 def _option_line(indent, name, field, value):

@@ -97,7 +97,10 @@ class TaskContext(Context):
     def write(self, group, name, region, data, allow_nan=False):
         """Write a chunk-aligned region, refusing NaN/inf, and record its chunks."""
         data = np.asarray(data)
-        if not allow_nan and data.dtype.kind in "fc" and not np.isfinite(data).all():
+        t0 = time.perf_counter()
+        finite = allow_nan or data.dtype.kind not in "fc" or bool(np.isfinite(data).all())
+        self.ledger.guard_seconds += time.perf_counter() - t0
+        if not finite:
             bad = int(np.size(data) - np.count_nonzero(np.isfinite(data)))
             raise NonFiniteOutputError(
                 f"stage '{self.stage.name}' was about to write {bad} NaN/inf values to "

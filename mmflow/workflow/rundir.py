@@ -150,7 +150,8 @@ class RunDir:
                 f"use a new directory with run.directory=...")
         sdir = self.status_dir(stage)
         sdir.mkdir(parents=True, exist_ok=True)
-        if old is not None and list(old["keys"]) != list(keys):
+        planned = [k for k in old["keys"] if k not in set(old.get("added_keys", []))] if old else None
+        if old is not None and planned != list(keys):
             raise StaleOutputError(f"stage '{stage}' in {self.path}: its chunk keys changed with the same "
                                    f"settings (an older mmflow?). Fix: add --force, or use a new run directory")
         if old is None:
@@ -158,6 +159,15 @@ class RunDir:
                 dict(fp.record(), keys=list(keys), outputs=list(outputs),
                      created=time.strftime("%Y-%m-%dT%H:%M:%S")), default=str))
         return [k for k in keys if not self.is_done(stage, k)]
+
+    def add_keys(self, stage, keys):
+        """Append work keys discovered while a stage runs (the cycles of an iterative stage)."""
+        man = self.manifest(stage)
+        new = [k for k in keys if k not in set(man["keys"])]
+        if new:
+            man["keys"] = list(man["keys"]) + new
+            man["added_keys"] = list(man.get("added_keys", [])) + new
+            _atomic_write(self.status_dir(stage) / "manifest.json", json.dumps(man, default=str))
 
     def reset_stage(self, stage):
         """Forget a stage and remove what it wrote: its stores and the files its markers list.

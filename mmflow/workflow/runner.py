@@ -55,7 +55,8 @@ def run_task(ctx, stage_name, key):
     t0 = time.time()
     tctx = ctx.for_stage(get_stage(stage_name)).for_task()
     info = get_stage(stage_name).task(tctx, key) or {}
-    info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4))
+    info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
+                guard_s=round(tctx.ledger.guard_seconds, 4))
     run.check_holder(ctx.token)
     run.mark_done(stage_name, key, info, tctx.ledger.entries)
     return {"key": key, "skipped": False, **info}
@@ -167,8 +168,12 @@ def _check_inputs(run, st, cfg):
                                     f"(`mmflow verify {run.path}` lists every damaged chunk)")
 
 
-def _repair_or_refuse(run, stage, force, log):
-    """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop."""
+def _repair_or_refuse(run, st, force, log):
+    """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop.
+
+    An iterative stage restarts from scratch: every later cycle depends on a damaged one.
+    """
+    stage = st.name
     damaged = run.damaged_keys(stage)
     if not damaged:
         return
@@ -179,10 +184,38 @@ def _repair_or_refuse(run, stage, force, log):
                                 f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
                                 f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
     log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
-    if "_prepare" in damaged:
+    if "_prepare" in damaged or st.kind == "iterative":
         run.reset_stage(stage)
     else:
         run.forget_keys(stage, list(damaged))
+
+
+def _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log):
+    """Cycles of an iterative stage, each a map over the keys ``next_cycle`` returns, then a checkpoint.
+
+    ``next_cycle(ctx, cycle)`` runs on the driver, reads the state the previous cycles left in
+    the stage's stores, may write this cycle's plan (recorded in the cycle's checkpoint marker)
+    and returns the cycle's keys, or None when the loop has converged. A cycle whose checkpoint
+    exists is not run again, so a killed loop resumes at the first unfinished cycle; because
+    ``next_cycle`` is deterministic, a cycle interrupted half-way is planned identically again.
+    """
+    results, cycle = [], 0
+    while True:
+        mark = f"cycle{cycle:04d}"
+        if run.is_done(st.name, mark):
+            cycle += 1
+            continue
+        cctx = sctx.for_task()
+        keys = st.next_cycle(cctx, cycle)
+        if keys is None:
+            log(f"[{st.name}] converged after {cycle} cycles")
+            return results
+        ckeys = [f"c{cycle:04d}-{k}" for k in keys]
+        run.add_keys(st.name, ckeys + [mark])
+        results += _execute(client, ctx, st.name, [k for k in ckeys if not run.is_done(st.name, k)], progress,
+                            worker_wait_s)
+        run.mark_done(st.name, mark, {"cycle": cycle, "tasks": len(keys)}, cctx.ledger.entries)
+        cycle += 1
 
 
 def _stale_stages(run, fps, names):
@@ -194,9 +227,20 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
     run = RunDir(cfg.run.directory)
     run.path.mkdir(parents=True, exist_ok=True)
     lock, token = run.acquire_lock()
+    logfile = open(run.path / "mmflow.log", "a")
+
+    def log_both(msg):
+        logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {msg}\n")
+        logfile.flush()
+        log(msg)
+
     try:
-        return _run_locked(cfg, run, token, client, only, force, progress, log)
+        return _run_locked(cfg, run, token, client, only, force, progress, log_both)
+    except BaseException as exc:
+        logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} stopped: {type(exc).__name__}: {exc}\n")
+        raise
     finally:
+        logfile.close()
         lock.close()
 
 
@@ -222,7 +266,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
         if force and run.is_stale(st.name, fp.digest):
             log(f"[{st.name}] recomputing (--force): {fp.explain(run.manifest(st.name))}")
             run.reset_stage(st.name)
-        _repair_or_refuse(run, st.name, force, log)
+        _repair_or_refuse(run, st, force, log)
         _check_inputs(run, st, cfg)
         sctx = ctx.for_stage(st)
         pctx = sctx.for_task()
@@ -232,6 +276,8 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
         _stamp_stores(run, st, cfg, fp.digest)
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
         results = _execute(client, ctx, st.name, todo, progress, worker_wait_s)
+        if st.kind == "iterative":
+            results += _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log)
         fin = None
         if st.finalize:
             fctx = sctx.for_task()
@@ -241,6 +287,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
                    "tasks_run": sum(1 for r in results if not r.get("skipped")),
                    "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
                    "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),
+                   "guard_s": round(sum(r.get("guard_s", 0) for r in results), 3),
                    "bytes_written": run.bytes_of(st.outputs), "finalize": fin}
         run.finish_stage(st.name, summary)
         summaries[st.name] = summary

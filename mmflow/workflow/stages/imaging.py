@@ -113,13 +113,15 @@ def _products_prepare(ctx):
 
 def _products_task(ctx, key):
     from mmflow.imaging.maps import alm_to_output_map, default_nside
+    from mmflow.imaging.sky_mask import observed_sky_mask
     from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollweide_png
+    from mmflow.sky.frames import rotation_matrix
 
     cfg = ctx.cfg
     fi = int(key[1:])
     vis = ctx.open("vis.zarr")
     freqs = vis["freqs_hz"][:]
-    f, epoch = float(freqs[fi]), float(vis.attrs["epoch_jd"])
+    f, epoch, lat = float(freqs[fi]), float(vis.attrs["epoch_jd"]), float(vis.attrs["lat_deg"])
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
     alm = healpy_alm(ctx.read("alm.zarr", "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
     lc = ctx.read("alm.zarr", "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
@@ -128,26 +130,40 @@ def _products_task(ctx, key):
     p = cfg.products
     nside = p.nside or 2 * default_nside(lmax)
     hmap = alm_to_output_map(alm, lmax, f, epoch, p.frame, p.unit, nside)
+    mask = observed_sky_mask(nside, lat, None if p.frame == "date" else rotation_matrix(p.frame, "date", epoch))
     tag = frequency_tags(freqs)[fi]
     maps = ctx.run.path / "maps"
     meta = {"FREQ": f, "LMAX": lmax, "EPS": cfg.imaging.eps, "METHOD": cfg.imaging.method, "BUNIT": p.unit,
             "COORDSYS": {"icrs": "C", "galactic": "G", "date": "C"}[p.frame], "EPOCHJD": epoch}
-    write_healpix_fits(maps / f"map_{tag}.fits", hmap, meta)
+    write_healpix_fits(maps / f"map_{tag}.fits", hmap, meta, mask=mask)
     ctx.ledger.record_file(maps / f"map_{tag}.fits")
+    seen = hmap[mask]
     info = {"freq_hz": f, "fits": f"maps/map_{tag}.fits", "nside": nside, "unit": p.unit, "frame": p.frame,
-            "epoch_jd": epoch, "map_min": float(np.min(hmap)), "map_max": float(np.max(hmap)),
-            "map_rms": float(np.std(hmap)), "fraction_singular_values_above_sqrt_eps": float(np.mean(frac)),
+            "epoch_jd": epoch, "resolution_deg": _resolution_deg(vis, f, lmax), "sky_fraction_seen": float(mask.mean()),
+            "map_min": float(seen.min()), "map_max": float(seen.max()), "map_rms": float(seen.std()),
+            "fraction_singular_values_above_sqrt_eps": float(np.mean(frac)),
             "lcurve_corner_eps": lcurve_corner(lc[:, 0], lc[:, 1], eps) if lc.any() else None}
     if p.png:
-        write_mollweide_png(maps / f"map_{tag}.png", hmap, f"mmflow {tag} ({p.frame}, {p.unit})", p.unit)
+        write_mollweide_png(maps / f"map_{tag}.png", hmap, f"mmflow {tag} ({p.frame}, {p.unit})", p.unit,
+                            mask=mask, lmax=lmax, eps=cfg.imaging.eps, freq_hz=f,
+                            resolution_deg=info["resolution_deg"], frame=p.frame)
         ctx.ledger.record_file(maps / f"map_{tag}.png")
-        if lc.any():
-            write_lcurve_png(maps / f"lcurve_{tag}.png", lc, eps, cfg.imaging.eps)
-            ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
         info["png"] = f"maps/map_{tag}.png"
+        if lc.any():
+            info["chosen_over_corner_eps"] = write_lcurve_png(
+                maps / f"lcurve_{tag}.png", lc, eps, cfg.imaging.eps, corner=info["lcurve_corner_eps"], freq_hz=f,
+                weighted=cfg.transfer.noise_weighting)
+            ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
     (maps / f"summary_{tag}.json").write_text(json.dumps(info, indent=2))
     ctx.ledger.record_file(maps / f"summary_{tag}.json")
     return info
+
+
+def _resolution_deg(vis, freq_hz, lmax):
+    """The finer of the lmax limit (180 / lmax degrees) and the longest baseline's lambda / b."""
+    enu, pairs = vis["antenna_enu"][:], vis["pairs"][:]
+    b_max = float(np.linalg.norm(enu[pairs[:, 1]] - enu[pairs[:, 0]], axis=1).max())
+    return float(max(180.0 / lmax, np.degrees(299792458.0 / freq_hz / b_max) if b_max > 0 else 0.0))
 
 
 def _products_finalize(ctx):
@@ -159,6 +175,7 @@ def _products_finalize(ctx):
     return {"maps": len(parts)}
 
 
-register(Stage("products", ("mmode.lmax", "mmode.mmax", "imaging.eps", "imaging.method", "products"),
+register(Stage("products", ("mmode.lmax", "mmode.mmax", "imaging.eps", "imaging.method", "products",
+                            "transfer.noise_weighting"),
                ("vis.zarr", "alm.zarr"), ("maps",), _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary"))

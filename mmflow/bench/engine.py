@@ -1,4 +1,4 @@
-"""``mmflow bench transfer`` / ``mmflow bench solve``: measured figures, printed as JSON.
+"""``mmflow bench transfer``, ``solve`` and ``simulate``: measured engine figures, printed as JSON.
 
 Nothing here asserts a time; it measures, in one run, this machine's GEMM peak, the
 transfer-matrix throughput (and the fraction of GEMM peak its Legendre step reaches), the
