@@ -87,13 +87,23 @@ def _interrupt_run(run_dir, stage, sig, extra=()):
     assert not (run_dir / "_status" / "products" / "complete.json").exists()
 
 
+@pytest.fixture(scope="module")
+def cli_reference(tmp_path_factory):
+    """An uninterrupted run by the CLI in a subprocess: the same executor as the interrupted runs
+    (a process's BLAS thread count, e.g. OPENBLAS_NUM_THREADS, changes floating-point rounding)."""
+    run_dir = tmp_path_factory.mktemp("cliref") / "run"
+    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
+                    f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    return run_dir
+
+
 @pytest.mark.parametrize("stage, sig", [("transfer", signal.SIGKILL), ("mmodes", signal.SIGINT)])
-def test_interrupted_run_resumes_to_bit_identical_outputs(reference_run, tmp_path, stage, sig):
-    ref_dir, _ = reference_run
+def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_path, stage, sig):
+    ref_dir = cli_reference
     run_dir = tmp_path / "interrupted"
     _interrupt_run(run_dir, stage, sig)
-    rc = main(["run", "workflows/demo.yaml", *SMALL, f"run.directory={run_dir}", "--no-progress"])
-    assert rc == 0
+    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
+                    f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
