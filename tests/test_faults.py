@@ -256,7 +256,7 @@ def test_force_removes_only_files_mmflow_listed(ref, tmp_path):
 
 
 def test_product_names_are_unique_for_close_frequencies():
-    from mmflow.workflow.stages.imaging import frequency_tags
+    from mmflow.workflow.stages.products import frequency_tags
 
     assert frequency_tags([40.0001e6, 40.0002e6]) == ["40.0001MHz", "40.0002MHz"]
     assert frequency_tags([40e6, 50e6]) == ["40.000MHz", "50.000MHz"]

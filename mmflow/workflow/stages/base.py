@@ -80,4 +80,5 @@ def producer_of(store, cfg):
 
 def _load():
     # import order is stage order
-    from mmflow.workflow.stages import data, imaging, mmodes, normal, slots  # noqa: F401
+    from mmflow.workflow.stages import (ingest, mmodes, normal, products, simulate, slots,  # noqa: F401
+                                        solve, transfer)

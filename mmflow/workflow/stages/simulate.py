@@ -1,12 +1,11 @@
-"""Data stages: ``simulate`` (the demo's drift scan) and ``ingest`` (pyuvdata formats).
+"""The ``simulate`` stage (the demo's drift scan) and the time-chunk helpers it shares with ``ingest``.
 
-Both write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): Stokes-I visibilities in
+Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): Stokes-I visibilities in
 Jy in mmflow's sign convention, weights (0 = flagged), LSTs and times per integration, and
 attributes with the site, the data's epoch, integration time and channel width.
 """
 from __future__ import annotations
 
-import glob
 from functools import lru_cache
 
 import numpy as np
@@ -20,28 +19,26 @@ TIME_CHUNK = 256
 VIS_ARRAYS = ("vis", "weights", "lst", "time_jd")
 
 
-def _write_autos(ctx, g, rows, vis, weights):
+def write_autos(ctx, g, rows, vis, weights):
     from mmflow.mmode.noise import autocorrelation_rows
 
     n_ant = g["autos"].shape[1]
     ctx.write(g, "autos", rows, autocorrelation_rows(vis, weights, g["pairs"][:], n_ant), allow_nan=True)
 
 
-def _time_keys(n):
+def time_keys(n):
     return [f"t{i:05d}" for i in range(-(-n // TIME_CHUNK))]
 
 
-def _rows(key, n):
+def chunk_rows(key, n):
     i = int(key[1:])
     return i * TIME_CHUNK, min(n, (i + 1) * TIME_CHUNK)
 
 
-def _layout_attrs(layout):
+def layout_attrs(layout):
     return dict(antenna_names=list(layout.names), lat_deg=layout.lat_deg, lon_deg=layout.lon_deg,
                 height_m=layout.height_m, layout_provenance=layout.provenance)
 
-
-# ----------------------------------------------------------------------------- simulate
 
 def _n_integrations(cfg):
     o = cfg.observation
@@ -53,11 +50,11 @@ def _sim_prepare(ctx):
     tel = build_telescope(cfg)
     n = _n_integrations(cfg)
     o = cfg.observation
-    attrs = dict(_layout_attrs(tel.layout), source="simulate", epoch_jd=o.epoch_jd, sky=cfg.sky.model_dump(),
+    attrs = dict(layout_attrs(tel.layout), source="simulate", epoch_jd=o.epoch_jd, sky=cfg.sky.model_dump(),
                  integration_s=o.integration_s, channel_width_hz=o.channel_width_khz * 1e3)
     ctx.create(vis_store(n, tel.antenna_pairs(), tel.freqs_hz, tel.layout.enu, attrs, TIME_CHUNK,
                          cfg.mmode.baseline_chunk))
-    return _time_keys(n)
+    return time_keys(n)
 
 
 @lru_cache(maxsize=2)
@@ -73,7 +70,7 @@ def _sim_task(ctx, key):
     cfg = ctx.cfg
     o = cfg.observation
     n = _n_integrations(cfg)
-    t0, t1 = _rows(key, n)
+    t0, t1 = chunk_rows(key, n)
     k = np.arange(t0, t1)
     tel, skies = _skies(ctx.config_json)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
@@ -84,7 +81,7 @@ def _sim_task(ctx, key):
     weights = np.ones(vis.shape, np.float32)
     ctx.write(g, "vis", rows, vis)
     ctx.write(g, "weights", rows, weights)
-    _write_autos(ctx, g, rows, vis, weights)
+    write_autos(ctx, g, rows, vis, weights)
     ctx.write(g, "lst", rows, lst)
     ctx.write(g, "time_jd", rows, drift_scan_times(o.epoch_jd, o.integration_s, k, n))
     return {"integrations": int(len(k))}
@@ -95,43 +92,3 @@ register(Stage("simulate", ("telescope", "beam", "observation", "sky", "mmode.ba
                description="time-domain drift-scan simulation (independent of transfer matrices)"))
 
 
-# ----------------------------------------------------------------------------- ingest
-
-def input_files(cfg):
-    """The files ``input.path`` names (a glob or one path), as the ingest plan sees them."""
-    pattern = cfg.input.path
-    if not pattern:
-        return []
-    return sorted(glob.glob(pattern)) or ([pattern] if "*" not in pattern else [])
-
-
-def _ingest_prepare(ctx):
-    from mmflow.io.ingest import plan_ingest, write_plan
-
-    plan = plan_ingest(ctx.cfg)
-    width = getattr(plan, "channel_width_hz", None)
-    attrs = dict(_layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files),
-                 skipped_files=list(plan.skipped), integration_s=plan.integration_s,
-                 channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3)
-    g = ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,
-                             ctx.cfg.mmode.baseline_chunk))
-    write_plan(g, plan)
-    return _time_keys(plan.n_time)
-
-
-def _ingest_task(ctx, key):
-    from mmflow.io.ingest import ingest_time_chunk
-
-    g = ctx.open("vis.zarr", mode="r+")
-    t0, t1 = _rows(key, g["lst"].shape[0])
-    info = ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), t0, t1)
-    rows = (slice(t0, t1),)
-    for name in VIS_ARRAYS:  # ingest writes the rows itself; record what it wrote
-        ctx.ledger.record(g[name], rows)
-    _write_autos(ctx, g, rows, g["vis"][t0:t1], g["weights"][t0:t1])
-    return info
-
-
-register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz"), (), ("vis.zarr",),
-               _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files,
-               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files"))

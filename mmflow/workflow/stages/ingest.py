@@ -1,0 +1,47 @@
+"""The ``ingest`` stage: UVH5 / uvfits / MeasurementSet files read with pyuvdata into ``vis.zarr``."""
+from __future__ import annotations
+
+import glob
+
+from mmflow.io.run_stores import vis_store
+from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.simulate import TIME_CHUNK, VIS_ARRAYS, layout_attrs, chunk_rows, time_keys, write_autos
+
+def input_files(cfg):
+    """The files ``input.path`` names (a glob or one path), as the ingest plan sees them."""
+    pattern = cfg.input.path
+    if not pattern:
+        return []
+    return sorted(glob.glob(pattern)) or ([pattern] if "*" not in pattern else [])
+
+
+def _ingest_prepare(ctx):
+    from mmflow.io.ingest import plan_ingest, write_plan
+
+    plan = plan_ingest(ctx.cfg)
+    width = getattr(plan, "channel_width_hz", None)
+    attrs = dict(layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files),
+                 skipped_files=list(plan.skipped), integration_s=plan.integration_s,
+                 channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3)
+    g = ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,
+                             ctx.cfg.mmode.baseline_chunk))
+    write_plan(g, plan)
+    return time_keys(plan.n_time)
+
+
+def _ingest_task(ctx, key):
+    from mmflow.io.ingest import ingest_time_chunk
+
+    g = ctx.open("vis.zarr", mode="r+")
+    t0, t1 = chunk_rows(key, g["lst"].shape[0])
+    info = ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), t0, t1)
+    rows = (slice(t0, t1),)
+    for name in VIS_ARRAYS:  # ingest writes the rows itself; record what it wrote
+        ctx.ledger.record(g[name], rows)
+    write_autos(ctx, g, rows, g["vis"][t0:t1], g["weights"][t0:t1])
+    return info
+
+
+register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz"), (), ("vis.zarr",),
+               _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files,
+               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files"))
