@@ -26,6 +26,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numba
 import numpy as np
@@ -38,13 +39,13 @@ DAMPING = ("half", "rk4", "none")
 
 
 @numba.njit(nogil=True, cache=True)
-def _sweep(V, M, W, g, active, out):
-    """``out[s, j] = N_j / D_j`` for every active solution ``s`` (0 where ``D_j = 0``)."""
+def _sweep(V, M, W, g, active, out, j0, j1):
+    """``out[s, j] = N_j / D_j`` for rows ``j0 <= j < j1`` of every active solution ``s``."""
     S, K, N = V.shape[0], V.shape[1], V.shape[2]
     for s in range(S):
         if not active[s]:
             continue
-        for j in range(N):
+        for j in range(j0, j1):
             nr = 0.0
             ni = 0.0
             d = 0.0
@@ -66,11 +67,11 @@ def _sweep(V, M, W, g, active, out):
 
 
 @numba.njit(nogil=True, cache=True)
-def _residual_power(V, M, W, g, chi, cnt):
+def _residual_power(V, M, W, g, chi, cnt, j0, j1):
     """``chi[s, j] = sum_k sum_i w_ji |V_ji - g_j M_ji conj(g_i)|^2``; ``cnt``: terms with w > 0."""
     S, K, N = V.shape[0], V.shape[1], V.shape[2]
     for s in range(S):
-        for j in range(N):
+        for j in range(j0, j1):
             c = 0.0
             n = 0.0
             gj = g[s, j]
@@ -86,33 +87,50 @@ def _residual_power(V, M, W, g, chi, cnt):
             cnt[s, j] = n
 
 
-def _split(S, threads):
-    threads = max(1, min(threads, S))
-    b = np.linspace(0, S, threads + 1).astype(int)
-    return [slice(x, y) for x, y in zip(b[:-1], b[1:]) if y > x]
+@lru_cache(maxsize=4)
+def _pool(threads):
+    return ThreadPoolExecutor(threads, thread_name_prefix="mmflow-stefcal")
+
+
+def run_rows(kernel, n_rows, args, threads=None):
+    """Run ``kernel(*args, j0, j1)`` over antenna-row blocks on a persistent thread pool.
+
+    The numba kernels release the GIL; rows (not solutions) are split so that a single
+    integration also uses every thread.
+    """
+    threads = max(1, min(n_threads() if threads is None else threads, n_rows))
+    if threads == 1:
+        kernel(*args, 0, n_rows)
+        return
+    b = np.linspace(0, n_rows, threads + 1).astype(int)
+    list(_pool(threads).map(lambda k: kernel(*args, b[k], b[k + 1]), range(threads)))
 
 
 def sweep(V, M, W, g, active=None, threads=None):
     """One undamped Stefcal step for every solution: returns ``N_j / D_j`` (S, N) complex128."""
-    S = V.shape[0]
+    S, N = g.shape
     active = np.ones(S, bool) if active is None else active
-    out = np.array(g, np.complex128, copy=True)
-    blocks = _split(S, n_threads() if threads is None else threads)
-    if len(blocks) == 1:
-        _sweep(V, M, W, g, active, out)
-    else:
-        with ThreadPoolExecutor(len(blocks)) as pool:
-            list(pool.map(lambda b: _sweep(V[b], M[b], W[b], g[b], active[b], out[b]), blocks))
+    g = np.ascontiguousarray(g, np.complex128)
+    out = g.copy()
+    run_rows(_sweep, N, (V, M, W, g, active, out), threads)
     return out
+
+
+def sweep_numpy(V, M, W, g):
+    """The same step as :func:`sweep` in plain numpy (reference for tests and the benchmark)."""
+    N = g.shape[1]
+    Wd = W * (1 - np.eye(N))
+    Z = M * np.conj(g)[:, None, None, :]
+    num = np.einsum("skji,skji->sj", Wd * V, np.conj(Z))
+    den = np.einsum("skji,skji->sj", Wd, (Z * np.conj(Z)).real)
+    return np.where(den > 0, num / np.where(den > 0, den, 1), 0)
 
 
 def residual_power(V, M, W, g, threads=None):
     """Per-antenna weighted residual power and number of terms, each (S, N)."""
     S, N = g.shape
     chi, cnt = np.zeros((S, N)), np.zeros((S, N))
-    blocks = _split(S, n_threads() if threads is None else threads)
-    with ThreadPoolExecutor(len(blocks)) as pool:
-        list(pool.map(lambda b: _residual_power(V[b], M[b], W[b], g[b], chi[b], cnt[b]), blocks))
+    run_rows(_residual_power, N, (V, M, W, np.ascontiguousarray(g, np.complex128), chi, cnt), threads)
     return chi, cnt
 
 
@@ -138,7 +156,8 @@ class StefcalResult:
     ref_ant: np.ndarray
 
 
-def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant=None, threads=None):
+def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant=None, threads=None,
+            diagnostics=True):
     """Solve ``V ~ diag(g) M diag(g)^H`` for S independent solutions.
 
     Parameters
@@ -154,6 +173,9 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
     ref_ant : int or None
         Phase reference antenna; ``None`` picks the antenna with most unflagged weight
         per solution. Pass ``-1`` to leave the phase as the iteration left it (peeling).
+    diagnostics : bool
+        False skips flags, chi2 and the phase reference (they are None): the lean call
+        peeling makes many times per integration.
 
     Returns
     -------
@@ -196,6 +218,8 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
         if not active.any():
             break
     converged = change < tol
+    if not diagnostics:
+        return StefcalResult(g, None, iters, converged, change, ant_change, ant_iter, None, None)
     wsum = np.abs(W).sum(axis=(1, 3)) - np.abs(np.diagonal(W, axis1=2, axis2=3)).sum(axis=1)
     flags = (wsum <= 0) | ~np.isfinite(g) | (g == 0)
     flags |= ~converged[:, None] & (ant_change >= tol * np.sqrt(N))
