@@ -34,7 +34,7 @@ from mmflow.calibrate.stefcal import run_rows, stefcal
 SKIP, PEEL, SUBTRACT = 0, 1, 2
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, fastmath=True)
 def _add_component(R, M, g, scale, j0, j1):
     """``R[s, j, i] += scale[s] g[s, j] M[s, j, i] conj(g[s, i])`` for rows j0..j1 (scale 0: skip)."""
     S, N = R.shape[0], R.shape[1]
@@ -43,9 +43,17 @@ def _add_component(R, M, g, scale, j0, j1):
         if a == 0.0:
             continue
         for j in range(j0, j1):
-            gj = g[s, j] * a
+            gjr = g[s, j].real * a
+            gji = g[s, j].imag * a
             for i in range(N):
-                R[s, j, i] += gj * M[s, j, i] * np.conj(g[s, i])
+                mr = M[s, j, i].real
+                mi = M[s, j, i].imag
+                # (gj m) conj(gi)
+                pr = gjr * mr - gji * mi
+                pi = gjr * mi + gji * mr
+                gr = g[s, i].real
+                gim = g[s, i].imag
+                R[s, j, i] += complex(pr * gr + pi * gim, pi * gr - pr * gim)
 
 
 @numba.njit(nogil=True, cache=True)
@@ -148,13 +156,11 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
             sub = modes[s] == SUBTRACT
             if peel.any():
                 add_component(R, coherencies[s], g[s], 1.0 * peel, threads)
-                idx = np.flatnonzero(peel)
-                res = stefcal(R[idx, None], coherencies[s][idx, None], W[idx, None], g[s, idx], tol=tol,
-                              max_iter=max_iter, damping=damping, ref_ant=-1, threads=threads,
-                              diagnostics=False)
-                g[s, idx] = res.gains
-                iters[s, idx] += res.iterations
-                conv[s, idx] = res.converged
+                res = stefcal(R[:, None], coherencies[s][:, None], W[:, None], g[s], tol=tol, max_iter=max_iter,
+                              damping=damping, ref_ant=-1, threads=threads, diagnostics=False, active=peel)
+                g[s, peel] = res.gains[peel]
+                iters[s, peel] += res.iterations[peel]
+                conv[s, peel] = res.converged[peel]
                 add_component(R, coherencies[s], g[s], -1.0 * peel, threads)
             if sub.any():
                 _refit_scale(R, coherencies[s], W, scale[s], sub, threads)

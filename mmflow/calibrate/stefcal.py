@@ -38,9 +38,13 @@ from mmflow.threads import n_threads
 DAMPING = ("half", "rk4", "none")
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, fastmath=True)
 def _sweep(V, M, W, g, active, out, j0, j1):
-    """``out[s, j] = N_j / D_j`` for rows ``j0 <= j < j1`` of every active solution ``s``."""
+    """``out[s, j] = N_j / D_j`` for rows ``j0 <= j < j1`` of every active solution ``s``.
+
+    The diagonal (i == j) is skipped by splitting the loop, not by a branch, and zero weights
+    are multiplied rather than tested, so the inner loop vectorises (V must be finite).
+    """
     S, K, N = V.shape[0], V.shape[1], V.shape[2]
     for s in range(S):
         if not active[s]:
@@ -50,19 +54,23 @@ def _sweep(V, M, W, g, active, out, j0, j1):
             ni = 0.0
             d = 0.0
             for k in range(K):
-                for i in range(N):
-                    w = W[s, k, j, i]
-                    if w == 0.0 or i == j:
-                        continue
-                    gi = g[s, i]
-                    m = M[s, k, j, i]
-                    # z = m * conj(gi); accumulate w * v * conj(z) = w * v * conj(m) * gi
-                    zr = m.real * gi.real + m.imag * gi.imag
-                    zi = m.imag * gi.real - m.real * gi.imag
-                    v = V[s, k, j, i]
-                    nr += w * (v.real * zr + v.imag * zi)
-                    ni += w * (v.imag * zr - v.real * zi)
-                    d += w * (zr * zr + zi * zi)
+                for part in range(2):
+                    lo = 0 if part == 0 else j + 1
+                    hi = j if part == 0 else N
+                    for i in range(lo, hi):
+                        w = W[s, k, j, i]
+                        gr = g[s, i].real
+                        gim = g[s, i].imag
+                        mr = M[s, k, j, i].real
+                        mi = M[s, k, j, i].imag
+                        # z = m * conj(g_i); accumulate w * v * conj(z) = w * v * conj(m) * g_i
+                        zr = mr * gr + mi * gim
+                        zi = mi * gr - mr * gim
+                        vr = V[s, k, j, i].real
+                        vi = V[s, k, j, i].imag
+                        nr += w * (vr * zr + vi * zi)
+                        ni += w * (vi * zr - vr * zi)
+                        d += w * (zr * zr + zi * zi)
             out[s, j] = complex(nr / d, ni / d) if d > 0.0 else 0.0j
 
 
@@ -157,7 +165,7 @@ class StefcalResult:
 
 
 def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant=None, threads=None,
-            diagnostics=True):
+            diagnostics=True, active=None):
     """Solve ``V ~ diag(g) M diag(g)^H`` for S independent solutions.
 
     Parameters
@@ -176,6 +184,9 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
     diagnostics : bool
         False skips flags, chi2 and the phase reference (they are None): the lean call
         peeling makes many times per integration.
+    active : bool array (S,), optional
+        Solve only these solutions; the others keep ``g0`` and report 0 iterations (lets
+        callers pass views instead of copying subsets).
 
     Returns
     -------
@@ -185,7 +196,7 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
         raise InputError("calibration", "damping", f"unknown damping '{damping}'", f"use one of {DAMPING}")
     S, K, N, _ = V.shape
     g = np.ones((S, N), np.complex128) if g0 is None else np.array(g0, np.complex128, copy=True)
-    active = np.ones(S, bool)
+    active = np.ones(S, bool) if active is None else np.array(active, bool)
     iters = np.zeros(S, int)
     change = np.full(S, np.inf)
     ant_change = np.full((S, N), np.inf)
