@@ -41,7 +41,8 @@ def test_ionospheric_offsets_reach_20_arcmin_at_36_MHz_and_scale_as_nu_minus_2(r
     assert step < 0.15 * ten
     s = scintillation(2, 2000, 36.5e6, rng)
     jump = np.abs(np.diff(s, axis=1)) / s[:, :-1]
-    assert 0.3 < np.percentile(jump, 99) < 0.8 and s.mean() == pytest.approx(1, abs=0.03)
+    # "not unusual for Cyg A to have flux variations of 50 % between adjacent integrations"
+    assert 0.03 < np.mean(jump > 0.5) < 0.2 and s.mean() == pytest.approx(1, abs=0.03)
 
 
 def test_dd_gains_move_a_source_by_its_refractive_offset(small_telescope):
