@@ -59,7 +59,8 @@ def _problem(n_ant, n_int, n_src, rng):
     z = np.exp(2j * np.pi * enu @ d.T / lam)  # (N, n_src)
     M = (flux[:, None, None] * np.conj(z.T)[:, :, None] * z.T[:, None, :]).astype(np.complex64)
     M = np.broadcast_to(M[:, None], (n_src, n_int, n_ant, n_ant))
-    shift = np.deg2rad(10 / 60) * rng.normal(size=(n_src, n_int, 3))
+    # refraction: 20' at 36.5 MHz scaling nu^-2 is 7.4' at 60 MHz; 3' rms per axis
+    shift = np.deg2rad(3 / 60) * rng.normal(size=(n_src, n_int, 3))
     g = np.exp(-2j * np.pi * np.einsum("stk,ik->sti", shift, enu) / lam)
     g *= np.sqrt(1 + 0.1 * rng.normal(size=(n_src, n_int)))[..., None]
     V = np.einsum("sti,stij,stj->tij", g, M, np.conj(g))
@@ -106,14 +107,13 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None):
     modes = np.full((n_src, n_int), PEEL)
     kw = dict(passes=passes, tol=1e-4, max_iter=30)
     peel_dense(V[:2], M[:, :2], W[:2], modes[:, :2], **kw)  # compile
-    t0 = time.perf_counter()
-    cold = peel_dense(V, M, W, modes, **kw)
-    t_cold = time.perf_counter() - t0
+    out = {}
+    t_cold = _best(lambda: out.update(cold=peel_dense(V, M, W, modes, **kw)), 2)
+    cold = out["cold"]
     # warm start: the previous integration's solution (here the cold one, perturbed as by 13 s)
     warm0 = cold.dd_gains * np.exp(0.05j * rng.normal(size=cold.dd_gains.shape))
-    t0 = time.perf_counter()
-    warm = peel_dense(V, M, W, modes, warm0, **kw)
-    t_warm = time.perf_counter() - t0
+    t_warm = _best(lambda: out.update(warm=peel_dense(V, M, W, modes, warm0, **kw)), 3)
+    warm = out["warm"]
     # numpy put-back/subtract of one source beside the numba kernel
     R = V.copy()
     ones = np.ones(n_int)
@@ -122,7 +122,7 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None):
     resid = float(np.linalg.norm(cold.residual * W) / np.linalg.norm(V * W))
     per_cold, per_warm = t_cold / n_int, t_warm / n_int
     return {"n_ant": n_ant, "layout": name, "sources": n_src, "passes": passes, "integrations_per_call": n_int,
-            "stefcal_tol": 1e-4, "stefcal_max_iter": 30,
+            "stefcal_tol": 1e-4, "stefcal_max_iter": 30, "timing": "best of 2 (cold) and 3 (warm) runs",
             "ms_per_integration_cold_start": 1e3 * per_cold, "ms_per_integration_warm_start": 1e3 * per_warm,
             "mean_stefcal_iterations_per_source_cold": float(cold.iterations.mean()),
             "mean_stefcal_iterations_per_source_warm": float(warm.iterations.mean()),

@@ -81,6 +81,39 @@ def _inner(X, M, W, num, den, fnum, j0, j1):
             fnum[s, j] = f
 
 
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _guard_sums(R, M, W, g, fr, fc, j0, j1):
+    """Per row: ``fr = sum w Re(R conj(M)/|M|)``, ``fc = sum w |M| Re(g_j conj(g_i))`` (= S(C) sum w)."""
+    S, N = R.shape[0], R.shape[1]
+    for s in range(S):
+        for j in range(j0, j1):
+            a = 0.0
+            c = 0.0
+            gjr = g[s, j].real
+            gji = g[s, j].imag
+            for i in range(N):
+                w = W[s, j, i]
+                if w == 0.0 or i == j:
+                    continue
+                m = M[s, j, i]
+                am = abs(m)
+                if am == 0.0:
+                    continue
+                x = R[s, j, i]
+                a += w * (x.real * m.real + x.imag * m.imag) / am
+                c += w * am * (gjr * g[s, i].real + gji * g[s, i].imag)
+            fr[s, j] = a
+            fc[s, j] = c
+
+
+def guard_fluxes(R, M, W, g, threads=None):
+    """``(S(R) sum w, S(G M G^H) sum w)`` per solution without forming the component."""
+    S, N = R.shape[0], R.shape[1]
+    fr, fc = np.zeros((S, N)), np.zeros((S, N))
+    run_rows(_guard_sums, N, (R, M, W, np.ascontiguousarray(g, np.complex128), fr, fc), threads)
+    return fr.sum(1), fc.sum(1)
+
+
 def add_component(R, M, g, scale, threads=None):
     """In place: ``R += scale G M G^H`` (S, N, N); ``scale`` (S,) real, 0 skips a solution."""
     run_rows(_add_component, R.shape[1], (R, M, g, np.asarray(scale, float)), threads)
@@ -173,11 +206,8 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
         peel = modes[s] == PEEL
         if not peel.any():
             continue
-        comp = np.zeros_like(R)
-        add_component(comp, coherencies[s], g[s], 1.0 * peel, threads)
-        _, _, f_removed = projections(comp, coherencies[s], W, threads)
-        comp += R
-        _, _, f_measured = projections(comp, coherencies[s], W, threads)
+        f_resid, f_removed = guard_fluxes(R, coherencies[s], W, g[s], threads)
+        f_measured = f_resid + f_removed
         measured[s] = np.where(peel, f_measured / np.maximum(wsum, 1e-300), 0)
         removed[s] = np.where(peel, f_removed / np.maximum(wsum, 1e-300), 0)
         if guard is not None:

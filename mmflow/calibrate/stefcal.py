@@ -114,14 +114,77 @@ def run_rows(kernel, n_rows, args, threads=None):
     list(_pool(threads).map(lambda k: kernel(*args, b[k], b[k + 1]), range(threads)))
 
 
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _sweep_upper(V, M, W, g, active, num, den, j0, j1):
+    """Accumulate ``N`` and ``D`` of every antenna from the upper triangle rows ``j0..j1``.
+
+    Uses the Hermitian symmetry (``V_ij = conj(V_ji)``, same for M, ``w_ij = w_ji``): element
+    (j, i > j) adds ``w V_ji conj(M_ji) g_i`` to ``N_j`` and ``w conj(V_ji) M_ji g_j`` to ``N_i``
+    (and ``w |M_ji|^2 |g|^2`` to D), reading half the matrix. ``num`` and ``den`` (S, N) belong
+    to this row block (summed by the caller).
+    """
+    S, K, N = V.shape[0], V.shape[1], V.shape[2]
+    for s in range(S):
+        if not active[s]:
+            continue
+        for j in range(j0, j1):
+            gjr = g[s, j].real
+            gji = g[s, j].imag
+            gj2 = gjr * gjr + gji * gji
+            nr = 0.0
+            ni = 0.0
+            d = 0.0
+            for k in range(K):
+                for i in range(j + 1, N):
+                    w = W[s, k, j, i]
+                    mr = M[s, k, j, i].real
+                    mi = M[s, k, j, i].imag
+                    vr = V[s, k, j, i].real
+                    vi = V[s, k, j, i].imag
+                    gir = g[s, i].real
+                    gii = g[s, i].imag
+                    # a = V_ji conj(M_ji)
+                    ar = vr * mr + vi * mi
+                    ai = vi * mr - vr * mi
+                    m2 = w * (mr * mr + mi * mi)
+                    nr += w * (ar * gir - ai * gii)
+                    ni += w * (ar * gii + ai * gir)
+                    d += m2 * (gir * gir + gii * gii)
+                    # conj(a) g_j into N_i
+                    num[s, i] += w * complex(ar * gjr + ai * gji, ar * gji - ai * gjr)
+                    den[s, i] += m2 * gj2
+            num[s, j] += complex(nr, ni)
+            den[s, j] += d
+
+
+def _upper_bounds(n_rows, parts):
+    """Row blocks of the upper triangle with about equal numbers of elements."""
+    work = np.cumsum(np.arange(n_rows, 0, -1) - 1.0)
+    cuts = np.searchsorted(work, work[-1] * np.arange(1, parts) / parts)
+    return np.concatenate([[0], cuts, [n_rows]]).astype(int)
+
+
 def sweep(V, M, W, g, active=None, threads=None):
-    """One undamped Stefcal step for every solution: returns ``N_j / D_j`` (S, N) complex128."""
+    """One undamped Stefcal step for every solution: returns ``N_j / D_j`` (S, N) complex128.
+
+    V, M must be Hermitian and W symmetric in the antenna axes (as :func:`to_matrix` makes
+    them); only the upper triangles are read.
+    """
     S, N = g.shape
-    active = np.ones(S, bool) if active is None else active
+    active = np.ones(S, bool) if active is None else np.asarray(active, bool)
     g = np.ascontiguousarray(g, np.complex128)
-    out = g.copy()
-    run_rows(_sweep, N, (V, M, W, g, active, out), threads)
-    return out
+    threads = max(1, min(n_threads() if threads is None else threads, N))
+    b = _upper_bounds(N, threads)
+    num = np.zeros((threads, S, N), np.complex128)
+    den = np.zeros((threads, S, N))
+    if threads == 1:
+        _sweep_upper(V, M, W, g, active, num[0], den[0], 0, N)
+    else:
+        list(_pool(threads).map(lambda k: _sweep_upper(V, M, W, g, active, num[k], den[k], b[k], b[k + 1]),
+                                range(threads)))
+    num, den = num.sum(0), den.sum(0)
+    out = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    return np.where(active[:, None], out, g)
 
 
 def sweep_numpy(V, M, W, g):
