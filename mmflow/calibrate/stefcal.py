@@ -234,10 +234,12 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
     Parameters
     ----------
     V, M : ndarray (S, K, N, N) complex
-        Hermitian antenna matrices of data and model; the K samples (integrations x channels)
-        of a solution are summed in the normal equations. Broadcast views are fine.
-    W : ndarray (S, K, N, N) real
-        Weights, 0 = flagged; the diagonal (autocorrelations) is ignored.
+        Hermitian antenna matrices of data and model (only the upper triangles are read; build
+        them with :func:`mmflow.calibrate.baselines.to_matrix`); the K samples (integrations x
+        channels) of a solution are summed in the normal equations. Broadcast views are fine.
+    W : ndarray (S, K, N, N) real, symmetric
+        Weights, 0 = flagged; the diagonal (autocorrelations) is ignored. V must be finite
+        (flagged samples may hold any finite value).
     g0 : ndarray (S, N) complex, optional
         Starting gains (default 1).
     tol, max_iter, damping : see the module docstring.
