@@ -75,3 +75,46 @@ def test_point_position_and_flux_per_integration(tel):
     s = fit_fluxes(vis, np.ones(vis.shape), models)[:, 0]
     np.testing.assert_allclose(s, flux, rtol=0.01)
     np.testing.assert_allclose(peak / beam, flux, rtol=0.05)
+
+
+def test_shapelet_visibilities_match_a_direct_fourier_sum():
+    from mmflow.calibrate.source_models import shapelet_image, shapelet_orders, shapelet_visibilities
+
+    beta, nmax = 10 * ARCMIN, 4
+    g = np.linspace(-8 * beta, 8 * beta, 321)
+    x, y = np.meshgrid(g, g)
+    dA = (g[1] - g[0]) ** 2
+    rng = np.random.default_rng(0)
+    uvw = np.zeros((1, 6, 3))
+    uvw[0, :, :2] = rng.uniform(-100, 100, (6, 2))
+    vis = shapelet_visibilities(uvw, np.ones(1), beta, nmax)[:, 0]
+    for k, _ in enumerate(shapelet_orders(nmax)):
+        c = np.zeros(len(shapelet_orders(nmax)))
+        c[k] = 1.0
+        img = shapelet_image(c, x, y, beta, nmax)
+        direct = np.array([np.sum(img * np.exp(2j * np.pi * (u * x + v * y))) * dA for u, v in uvw[0, :, :2]])
+        np.testing.assert_allclose(vis[k], direct, atol=1e-6 * np.abs(direct).max() + 1e-12)
+
+
+def test_sun_disc_fitted_by_shapelets(tel):
+    from mmflow.calibrate.source_models import fit_shapelets
+    from mmflow.simulate.corrupt import _sun_vector_date, sun_points
+
+    jd = 2457700.5 + 20.5 / 24  # the Sun near transit at OVRO
+    sun = sun_points(jd, FREQ)
+    pairs = tel.antenna_pairs()
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    vsun = _sun_vector_date(jd)
+    ra = np.rad2deg(np.arctan2(vsun[1], vsun[0]))
+    lsts = _transit_lsts(ra, 4, 3.0)
+    vis = simulate_drift_scan(tel, FREQ, lsts, sun, pairs)
+    uvw, beam = source_uvw(tel, FREQ, lsts, pairs, vsun)
+    coeffs, model = fit_shapelets(vis, np.ones(vis.shape), uvw, beam, beta=12 * ARCMIN, nmax=10)
+    assert np.linalg.norm(vis - model) < 0.02 * np.linalg.norm(vis)
+    # flux: the model's zero-spacing visibility over the beam
+    zero = np.zeros((1, 1, 3))
+    from mmflow.calibrate.source_models import shapelet_visibilities
+
+    total = (coeffs @ shapelet_visibilities(zero, np.ones(1), 12 * ARCMIN, 10)[:, 0, 0]).real
+    assert total == pytest.approx(sun.flux_jy.sum(), rel=0.02)
+    assert total > sun_points(jd, FREQ / 2).flux_jy.sum()  # positive spectral index

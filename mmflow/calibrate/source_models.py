@@ -218,3 +218,51 @@ def fit_fluxes(vis, weights, models):
     s = np.zeros(h.shape)
     s[ok] = np.linalg.solve(G[ok], h[ok][..., None])[..., 0]
     return s
+
+
+def _hermite_functions(x, nmax):
+    """Orthonormal Hermite functions ``phi_n(x) = (2^n sqrt(pi) n!)^-1/2 H_n(x) exp(-x^2/2)``, n <= nmax."""
+    out = np.empty((nmax + 1,) + np.shape(x))
+    out[0] = np.pi ** -0.25 * np.exp(-0.5 * np.asarray(x) ** 2)
+    if nmax > 0:
+        out[1] = np.sqrt(2.0) * x * out[0]
+    for n in range(1, nmax):
+        out[n + 1] = np.sqrt(2.0 / (n + 1)) * x * out[n] - np.sqrt(n / (n + 1)) * out[n - 1]
+    return out
+
+
+def shapelet_orders(nmax):
+    """(n1, n2) pairs with ``n1 + n2 <= nmax``."""
+    return [(a, b) for a in range(nmax + 1) for b in range(nmax + 1 - a)]
+
+
+def shapelet_image(coeffs, x, y, beta, nmax):
+    """Brightness ``I(x, y) = sum c_n1n2 beta^-1 phi_n1(x/beta) phi_n2(y/beta)`` (Jy/sr, offsets in rad)."""
+    hx, hy = _hermite_functions(np.asarray(x) / beta, nmax), _hermite_functions(np.asarray(y) / beta, nmax)
+    return sum(c * hx[a] * hy[b] for c, (a, b) in zip(coeffs, shapelet_orders(nmax))) / beta
+
+
+def shapelet_visibilities(uvw, beam, beta, nmax):
+    """Visibilities of each shapelet basis image: (n_coef, n_time, n_bl).
+
+    With ``int phi_n(t) exp(i k t) dt = sqrt(2 pi) i^n phi_n(k)``, the basis image
+    ``beta^-1 phi_n1(x/beta) phi_n2(y/beta)`` has visibility
+    ``2 pi beta i^(n1+n2) phi_n1(2 pi u beta) phi_n2(2 pi v beta) A exp(2 pi i w)``.
+    """
+    hu = _hermite_functions(2 * np.pi * beta * uvw[..., 0], nmax)
+    hv = _hermite_functions(2 * np.pi * beta * uvw[..., 1], nmax)
+    fringe = np.exp(2j * np.pi * uvw[..., 2]) * beam[:, None] * 2 * np.pi * beta
+    return np.stack([(1j ** (a + b)) * hu[a] * hv[b] * fringe for a, b in shapelet_orders(nmax)])
+
+
+def fit_shapelets(vis, weights, uvw, beam, beta, nmax):
+    """Real shapelet coefficients by weighted linear least squares in visibility space (the Sun).
+
+    Returns (coeffs (n_coef,), model visibilities (n_time, n_bl)).
+    """
+    basis = shapelet_visibilities(uvw, beam, beta, nmax)
+    w = np.sqrt(np.broadcast_to(np.asarray(weights, float), np.shape(vis))).ravel()
+    A = basis.reshape(len(basis), -1).T * w[:, None]
+    b = np.asarray(vis).ravel() * w
+    coeffs = np.linalg.lstsq(np.concatenate([A.real, A.imag]), np.concatenate([b.real, b.imag]), rcond=None)[0]
+    return coeffs, np.einsum("k,ktb->tb", coeffs, basis)

@@ -154,6 +154,44 @@ def near_field_rfi(enu, freq_hz, n_time, rng, distance_m=10e3, azimuth_deg=270.0
     return e, amplitude_jy * np.abs(1 + fluctuation * z)
 
 
+def sun_points(jd, freq_hz, flux_jy=2e4, ref_freq_hz=74e6, alpha=1.8, radius_arcmin=20.0, n_ring=8):
+    """The quiet Sun as a uniform disc (``SkyPoints`` in the frame of date at ``jd``).
+
+    Flux ``flux_jy (nu / ref)^alpha`` with a positive index (thermal corona); radius 20'
+    (the corona is larger than the optical disc at these frequencies); the disc is sampled on
+    ``n_ring`` rings of points with equal area. The position is the apparent Sun at ``jd``
+    (astropy, offline); it moves ~1 deg/day, so call once per chunk of integrations.
+    """
+    from mmflow.calibrate.coherency import tangent_basis
+    from mmflow.simulate.visibilities import SkyPoints
+
+    c = _sun_vector_date(float(jd))
+    e, n = tangent_basis(c)
+    rad = radius_arcmin * ARCMIN
+    pts, w = [], []
+    for k in range(1, n_ring + 1):  # ring k stands for the k-th of n_ring equal-area annuli
+        r = rad * np.sqrt((k - 0.5) / n_ring)
+        m = 6 * k
+        a = 2 * np.pi * (np.arange(m) + 0.5 * (k % 2)) / m
+        pts.extend(c + r * (np.cos(a)[:, None] * n + np.sin(a)[:, None] * e))
+        w.extend([1.0 / (n_ring * m)] * m)
+    pts = np.array(pts)
+    pts /= np.linalg.norm(pts, axis=1)[:, None]
+    w = np.array(w)
+    return SkyPoints(pts, w * flux_jy * (freq_hz / ref_freq_hz) ** alpha)
+
+
+def _sun_vector_date(jd):
+    import mmflow  # noqa: F401  (astropy offline)
+    from astropy.coordinates import TETE, get_sun
+    from astropy.time import Time
+
+    t = Time(jd, format="jd", scale="utc")
+    s = get_sun(t).transform_to(TETE(obstime=t))
+    v = s.cartesian.xyz.value
+    return v / np.linalg.norm(v)
+
+
 def rank1_visibilities(vec, amplitude, pairs):
     """``a(t) v_i conj(v_j)``: (n_time, n_bl)."""
     pairs = np.asarray(pairs)
