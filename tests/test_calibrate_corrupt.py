@@ -101,3 +101,37 @@ def test_corrupt_applies_gains_terrestrial_flags_and_radiometer_noise(small_tele
     sigma = truth.noise_sigma[w > 0]
     # radiometer equation: sigma = sqrt(V_ii V_jj / (dnu tau)) per complex visibility
     assert np.mean(np.abs(resid) ** 2 / sigma**2) == pytest.approx(1.0, rel=0.05)
+
+
+@pytest.mark.parametrize("fmt", ["uvh5", "ms"])
+def test_corrupted_data_written_through_pyuvdata_read_back(small_telescope, rng, tmp_path, fmt):
+    from pyuvdata import UVData
+
+    from mmflow.simulate.corrupt import to_uvdata
+
+    tel = small_telescope
+    pairs = tel.antenna_pairs()
+    T = 3
+    vis = rng.normal(size=(T, len(pairs), 2)) + 1j * rng.normal(size=(T, len(pairs), 2))
+    vis[:, pairs[:, 0] == pairs[:, 1]] = np.abs(vis[:, pairs[:, 0] == pairs[:, 1]])
+    w = np.ones(vis.shape)
+    w[1, 3] = 0
+    jd = 2457700.5 + np.arange(T) * 13.0 / 86400
+    uv = to_uvdata(vis, w, pairs, tel, jd, tel.freqs_hz[0])
+    path = tmp_path / f"c.{fmt}"
+    if fmt == "uvh5":
+        uv.write_uvh5(str(path))
+    else:
+        uv.write_ms(str(path), force_phase=True)  # an MS must carry a phase centre
+    back = UVData.from_file(str(path), **({"ignore_single_chan": False} if fmt == "ms" else {}))
+    if fmt == "ms":
+        back.unproject_phase()  # back to the drift scan
+    for b, (i, j) in enumerate(pairs[:10]):
+        d = back.get_data(int(i), int(j), "xx")
+        np.testing.assert_allclose(d[:, 0], vis[:, b, 0], rtol=1e-6)
+    assert back.get_flags(int(pairs[3, 0]), int(pairs[3, 1]), "yy")[1, 0]
+    # baselines point from ant_1 to ant_2 (x_j - x_i), as mmflow's convention
+    uvw = back.uvw_array[back.antpair2ind(int(pairs[5, 0]), int(pairs[5, 1]))][0]
+    b_enu = tel.baselines_enu(pairs[5:6])[0]
+    assert np.linalg.norm(uvw) == pytest.approx(np.linalg.norm(b_enu), rel=1e-3)
+    assert np.abs(uvw[2] - b_enu[2]) < 0.01 * np.linalg.norm(b_enu)  # zenith w = up component

@@ -265,3 +265,38 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
     if weights is not None:
         out[np.broadcast_to(weights, out.shape) == 0] = 0.0
     return out, truth
+
+
+def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy"), channel_width_hz=None,
+              integration_s=None):
+    """A pyuvdata ``UVData`` of (time, bl, pol) visibilities, to write as UVH5 or MS.
+
+    ``ant_1 = i``, ``ant_2 = j`` for ``pairs[b] = (i, j)`` and the data as they are: pyuvdata's
+    ``uvw = x_2 - x_1`` and mmflow's ``V_ij ~ exp(+2 pi i (x_j - x_i).r / lambda)`` agree (ingest
+    with ``conjugate: false``). Weights of 0 become flags. Antenna positions are the layout's
+    ENU positions about its centre.
+    """
+    from astropy import units as u
+    from astropy.coordinates import EarthLocation
+    from pyuvdata import Telescope as UVTelescope
+    from pyuvdata import UVData
+    from pyuvdata.utils import ECEF_from_ENU
+
+    lay = telescope.layout
+    loc = EarthLocation.from_geodetic(lay.lon_deg * u.deg, lay.lat_deg * u.deg, lay.height_m * u.m)
+    centre = np.array([loc.x.to_value("m"), loc.y.to_value("m"), loc.z.to_value("m")])
+    ecef = ECEF_from_ENU(lay.enu, center_loc=loc) - centre
+    n_ant = lay.n_ant
+    tel = UVTelescope.new("mmflow-sim", loc, antenna_positions=ecef, antenna_names=list(lay.names),
+                          antenna_numbers=list(range(n_ant)), instrument="mmflow-corrupt", mount_type="fixed",
+                          feeds=["x", "y"] if len(pols) > 1 else ["x"])
+    vis = np.asarray(vis)
+    T, B, P = vis.shape
+    data = vis.reshape(T * B, 1, P).astype(np.complex128)
+    flags = (np.broadcast_to(weights, vis.shape) == 0).reshape(T * B, 1, P)
+    uv = UVData.new(freq_array=np.array([float(freq_hz)]), polarization_array=list(pols), times=np.asarray(times_jd),
+                    telescope=tel, antpairs=[tuple(map(int, p)) for p in pairs], do_blt_outer=True, data_array=data,
+                    flag_array=flags, integration_time=integration_s or telescope.integration_s,
+                    channel_width=channel_width_hz or telescope.channel_width_hz, vis_units="Jy",
+                    time_axis_faster_than_bls=False)
+    return uv
