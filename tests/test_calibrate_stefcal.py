@@ -134,3 +134,21 @@ def test_solution_intervals_follow_time_varying_gains(rng):
     assert sol.gains.shape == (3, n, 1)
     corrected, _ = apply_gains(vis, np.ones(vis.shape), pairs, sol.gains[np.arange(T) // 2])
     np.testing.assert_allclose(corrected, model, rtol=0, atol=1e-10 * np.abs(model).max())
+
+
+def test_a_solution_spans_channels_and_integrations(rng):
+    """(time, chan, bl, pol) data: one gain per antenna and pol fits every channel and time."""
+    n, T, C = 10, 3, 4
+    pairs = _pairs(n)
+    model = rng.normal(size=(T, C, len(pairs), 2)) + 1j * rng.normal(size=(T, C, len(pairs), 2))
+    g = np.exp(2j * np.pi * rng.uniform(size=(n, 2))) * (1 + 0.2 * rng.uniform(-1, 1, (n, 2)))
+    vis = model * gain_products(g, pairs)
+    sol = solve_gains(vis, model, np.ones(vis.shape), pairs, n, tol=1e-13, max_iter=1000)
+    assert sol.gains.shape == (1, n, 2)
+    for p in range(2):
+        assert np.abs(sol.gains[0, :, p] - _referenced(g[:, p], sol.ref_ant[0, p])).max() < 1e-10
+    # zero weight on all but one channel gives the same answer from that channel alone
+    w = np.zeros(vis.shape)
+    w[:, 2] = 1
+    one = solve_gains(vis, model, w, pairs, n, tol=1e-13, max_iter=1000)
+    np.testing.assert_allclose(one.gains, sol.gains, atol=1e-10)

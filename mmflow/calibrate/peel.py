@@ -316,7 +316,7 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, 
             return to_matrix(np.moveaxis(x, -1, 1).reshape(nb * P, B), pairs, n_ant)
 
         V = dense(vis[t0:t1])
-        W = dense(w[t0:t1])
+        W = dense(w[t0:t1].astype(np.float32))
         M = np.stack([dense(np.broadcast_to(coh[s, t0:t1], (nb, B, P))) for s in range(n_src)])
         md = np.repeat(np.asarray(modes)[:, t0:t1], P, axis=1)
         start = None
