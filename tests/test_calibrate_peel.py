@@ -1,6 +1,5 @@
 """Peeling with direction-dependent gains: exact fit, gain recovery, the guard, selection."""
 import numpy as np
-import pytest
 
 from mmflow.calibrate.baselines import from_matrix
 from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, peel_dense, select_modes

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from mmflow.calibrate.coherency import source_points_date, source_vector_date
+from mmflow.calibrate.coherency import coherencies_at_offsets, source_points_date, source_vector_date
 from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
                                             fit_point_position, gaussian_visibilities, source_uvw)
 from mmflow.simulate.visibilities import simulate_drift_scan
@@ -66,12 +66,12 @@ def test_point_position_and_flux_per_integration(tel):
     vis = np.stack([simulate_drift_scan(tel, FREQ, lsts[t:t + 1],
                                         source_points_date(src, FREQ, EPOCH, offs[t], flux[t] / 200), pairs)[0]
                     for t in range(len(lsts))])
+    np.testing.assert_allclose(coherencies_at_offsets(tel, FREQ, lsts, src, EPOCH, offs, pairs, flux / 200), vis)
     uvw, beam = source_uvw(tel, FREQ, lsts, pairs, source_vector_date(src, EPOCH))
     off, peak = fit_point_position(vis, np.ones(vis.shape), uvw)
     assert np.abs(off - offs).max() < 0.5 * ARCMIN
     # fluxes by least squares against unit-flux models at the fitted positions
-    models = np.stack([simulate_drift_scan(tel, FREQ, lsts[t:t + 1], source_points_date(src, FREQ, EPOCH, off[t], 1 / 200), pairs)[0]
-                       for t in range(len(lsts))])[None]
+    models = coherencies_at_offsets(tel, FREQ, lsts, src, EPOCH, off, pairs, np.full(len(lsts), 1 / 200))[None]
     s = fit_fluxes(vis, np.ones(vis.shape), models)[:, 0]
     np.testing.assert_allclose(s, flux, rtol=0.01)
     np.testing.assert_allclose(peak / beam, flux, rtol=0.05)

@@ -77,10 +77,3 @@ def baseline_mask(pairs, enu, freq_hz, min_lambda=15.0, autos=False):
         keep |= pairs[:, 0] == pairs[:, 1]
     return keep
 
-
-def pol_first(x):
-    """``(time, ..., bl, pol)`` -> ``(pol, time, ..., bl)`` (a view); 2-D input gets one pol."""
-    x = np.asarray(x)
-    if x.ndim == 2:
-        return x[None]
-    return np.moveaxis(x, -1, 0)

@@ -86,3 +86,18 @@ def apparent_flux(telescope, freq_hz, lsts, sources, epoch_jd):
         flux.append(float(src.flux(freq_hz, epoch_year(epoch_jd))) * telescope.beam.power_enu(enu, freq_hz))
         elev.append(np.arcsin(np.clip(enu[..., 2], -1, 1)))
     return np.array(flux), np.array(elev)
+
+
+def coherencies_at_offsets(telescope, freq_hz, lsts, source, epoch_jd, offsets_rad, pairs=None,
+                           flux_scale=None, dtype=np.complex128):
+    """One source's coherency per integration at fitted positions (n_time, n_bl).
+
+    ``offsets_rad`` (n_time, 2): (east, north) tangent-plane offsets per integration (e.g.
+    from :func:`mmflow.calibrate.source_models.fit_point_position`); ``flux_scale`` (n_time,)
+    multiplies the published flux. Used for the sources that are subtracted, not peeled.
+    """
+    lsts = np.atleast_1d(lsts)
+    scale = np.ones(len(lsts)) if flux_scale is None else np.asarray(flux_scale, float)
+    return np.stack([simulate_drift_scan(telescope, freq_hz, lsts[t:t + 1],
+                                         source_points_date(source, freq_hz, epoch_jd, offsets_rad[t], scale[t]),
+                                         pairs=pairs, dtype=dtype)[0] for t in range(len(lsts))])

@@ -31,7 +31,7 @@ from functools import lru_cache
 import numba
 import numpy as np
 
-from mmflow.calibrate.baselines import check_pairs, pol_first, to_matrix
+from mmflow.calibrate.baselines import check_pairs, to_matrix
 from mmflow.errors import InputError
 from mmflow.threads import n_threads
 
@@ -479,4 +479,4 @@ def apply_gains(vis, weights, pairs, gains, flags=None):
 
 
 __all__ = ["stefcal", "sweep", "solve_gains", "apply_gains", "gains_per_integration",
-           "flag_outlier_antennas", "dense_problem", "StefcalResult", "GainSolution", "pol_first"]
+           "flag_outlier_antennas", "dense_problem", "StefcalResult", "GainSolution"]
