@@ -38,42 +38,6 @@ from mmflow.threads import n_threads
 DAMPING = ("half", "rk4", "none")
 
 
-@numba.njit(nogil=True, cache=True, fastmath=True)
-def _sweep(V, M, W, g, active, out, j0, j1):
-    """``out[s, j] = N_j / D_j`` for rows ``j0 <= j < j1`` of every active solution ``s``.
-
-    The diagonal (i == j) is skipped by splitting the loop, not by a branch, and zero weights
-    are multiplied rather than tested, so the inner loop vectorises (V must be finite).
-    """
-    S, K, N = V.shape[0], V.shape[1], V.shape[2]
-    for s in range(S):
-        if not active[s]:
-            continue
-        for j in range(j0, j1):
-            nr = 0.0
-            ni = 0.0
-            d = 0.0
-            for k in range(K):
-                for part in range(2):
-                    lo = 0 if part == 0 else j + 1
-                    hi = j if part == 0 else N
-                    for i in range(lo, hi):
-                        w = W[s, k, j, i]
-                        gr = g[s, i].real
-                        gim = g[s, i].imag
-                        mr = M[s, k, j, i].real
-                        mi = M[s, k, j, i].imag
-                        # z = m * conj(g_i); accumulate w * v * conj(z) = w * v * conj(m) * g_i
-                        zr = mr * gr + mi * gim
-                        zi = mi * gr - mr * gim
-                        vr = V[s, k, j, i].real
-                        vi = V[s, k, j, i].imag
-                        nr += w * (vr * zr + vi * zi)
-                        ni += w * (vi * zr - vr * zi)
-                        d += w * (zr * zr + zi * zi)
-            out[s, j] = complex(nr / d, ni / d) if d > 0.0 else 0.0j
-
-
 @numba.njit(nogil=True, cache=True)
 def _residual_power(V, M, W, g, chi, cnt, j0, j1):
     """``chi[s, j] = sum_k sum_i w_ji |V_ji - g_j M_ji conj(g_i)|^2``; ``cnt``: terms with w > 0."""
