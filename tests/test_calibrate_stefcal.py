@@ -171,3 +171,17 @@ def test_compiled_sweep_equals_the_plain_numpy_update(rng):
         ref = sweep_numpy(V, M, W, g)
         np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-12)
         assert (ours[:, 3] == 0).all()
+
+
+def test_calibration_track_is_where_both_calibrators_are_high():
+    from mmflow.calibrate.stefcal import best_track
+
+    t = np.arange(200)
+    cyg = np.exp(-0.5 * ((t - 80) / 30) ** 2)
+    cas = np.exp(-0.5 * ((t - 120) / 30) ** 2)
+    tr = best_track(np.stack([cyg, cas]), 20)
+    assert tr == slice(90, 110)  # centred between the two transits
+    w = np.ones(200)
+    w[95] = 0
+    tr = best_track(np.stack([cyg, cas]), 20, w)
+    assert not (tr.start <= 95 < tr.stop)
