@@ -43,10 +43,13 @@ def autocorrelations(vis, weights, pairs, n_ant):
     return a, w
 
 
-def running_median_outliers(a, w, window=11, n_mad=5.0, block=64):
+def running_median_outliers(a, w, window=11, n_mad=5.0, rel_floor=1e-3, block=64):
     """Flags (same shape as ``a``, time first) of samples ``> n_mad`` robust sigmas from a running median.
 
-    Flagged samples (w = 0) are ignored by the median (NaN-aware) and never flagged again.
+    Flagged samples (w = 0) are ignored by the median (NaN-aware) and never flagged again. The
+    robust sigma is floored at ``rel_floor`` x the series' median level (an autocorrelation's
+    radiometer noise is >= 1 / sqrt(24 kHz x 13 s) ~ 2e-3 of it), so noiseless data are not
+    flagged for following the sawtooth.
     """
     T = a.shape[0]
     flat_a = a.reshape(T, -1)
@@ -61,6 +64,8 @@ def running_median_outliers(a, w, window=11, n_mad=5.0, block=64):
             med = np.nanmedian(sliding_window_view(xp, window, axis=0), axis=-1)
             dev = x - med
             mad = 1.4826 * np.nanmedian(np.abs(dev), axis=0)
+            level = np.nanmedian(np.abs(x), axis=0)
+        mad = np.maximum(np.nan_to_num(mad), rel_floor * np.nan_to_num(level))
         out[:, c0:c0 + block] = np.abs(dev) > n_mad * np.maximum(mad, 1e-300)
     return out.reshape(a.shape)
 
