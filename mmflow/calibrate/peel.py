@@ -30,6 +30,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, from_matrix, to_matrix
 from mmflow.calibrate.stefcal import run_rows, stefcal
+from mmflow.errors import InputError
 
 SKIP, PEEL, SUBTRACT = 0, 1, 2
 
@@ -157,7 +158,7 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
 
     Parameters
     ----------
-    V : ndarray (S, N, N) complex; not modified
+    V : ndarray (S, N, N) complex, Hermitian and finite; not modified
     coherencies : ndarray (n_src, S, N, N) complex: model coherencies M_s (Jy)
     W : ndarray (S, N, N) real: solve weights (0 = unused; autos and short baselines should be 0).
         Subtraction acts on every baseline whatever its weight.
@@ -300,6 +301,12 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, 
     n_src = coherencies.shape[0]
     coh = coherencies if coherencies.ndim == 4 else coherencies[..., None]
     w = np.array(np.broadcast_to(weights, vis.shape), float)
+    bad = ~np.isfinite(vis)
+    if np.any(bad & (w > 0)):
+        raise InputError("visibilities", "data", "NaN or inf in unflagged data",
+                         "flag those samples (weight 0) before peeling")
+    if bad.any():
+        vis = np.where(bad, 0, vis)  # flagged samples may hold anything; the kernels need finite numbers
     w[:, pairs[:, 0] == pairs[:, 1]] = 0.0
     if baseline_keep is not None:
         w[:, ~np.asarray(baseline_keep, bool)] = 0.0
