@@ -109,6 +109,9 @@ def test_corrupted_data_written_through_pyuvdata_read_back(small_telescope, rng,
 
     from mmflow.simulate.corrupt import to_uvdata
 
+    if fmt == "ms":
+        pytest.importorskip("casacore")  # the optional 'ms' extra
+
     tel = small_telescope
     pairs = tel.antenna_pairs()
     T = 3
