@@ -1,0 +1,346 @@
+"""Peeling: per-integration direction-dependent (DD) gains of bright sources, and subtraction.
+
+Model of one integration (one pol), Hermitian antenna matrices::
+
+    V = sum_{s peeled} G_s M_s G_s^H + sum_{s subtracted} a_s M_s + R
+
+``M_s`` is the source's model coherency (:mod:`mmflow.calibrate.coherency`), ``G_s =
+diag(g_s)`` its DD gains (refraction = a phase gradient, scintillation = amplitude) and
+``a_s`` a real fitted flux scale. The algorithm (after TTCal's ``peel``; paper section 3.5):
+
+1. start ``g_s`` at 1 (or warm-start from the previous integration) and ``a_s`` at 1;
+   subtract every source: ``R = V - sum_s C_s``;
+2. for ``passes`` passes, for each source in decreasing flux order: put it back
+   (``R += C_s``), re-solve it against ``R`` -- Stefcal for ``g_s`` (:func:`stefcal`, ``K = 1``)
+   or the least-squares scale ``a_s = Re <M_s, R>_w / <M_s, M_s>_w`` -- and subtract it again;
+3. guard: with the point-source estimator ``S(X) = Re sum w X conj(F) / sum w``,
+   ``F = M / |M|`` (the source's fringe), a peeled source whose removed component has
+   ``S(C_s) < guard * S(R + C_s)`` (default guard 0.9: peeling removed less than 90 % of
+   the measured flux, e.g. a wrong model) is put back and subtracted with a fitted scale.
+
+All integrations of a batch are solved together (independent solutions, vectorised); the
+kernels are numba, split over antenna rows on :func:`mmflow.threads.n_threads` threads.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from mmflow.calibrate.baselines import check_pairs, from_matrix, to_matrix
+from mmflow.calibrate.stefcal import run_rows, stefcal
+from mmflow.errors import InputError
+
+SKIP, PEEL, SUBTRACT = 0, 1, 2
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _add_component(R, M, g, scale, j0, j1):
+    """``R[s, j, i] += scale[s] g[s, j] M[s, j, i] conj(g[s, i])`` for rows j0..j1 (scale 0: skip)."""
+    S, N = R.shape[0], R.shape[1]
+    for s in range(S):
+        a = scale[s]
+        if a == 0.0:
+            continue
+        for j in range(j0, j1):
+            gjr = g[s, j].real * a
+            gji = g[s, j].imag * a
+            for i in range(N):
+                mr = M[s, j, i].real
+                mi = M[s, j, i].imag
+                # (gj m) conj(gi)
+                pr = gjr * mr - gji * mi
+                pi = gjr * mi + gji * mr
+                gr = g[s, i].real
+                gim = g[s, i].imag
+                R[s, j, i] += complex(pr * gr + pi * gim, pi * gr - pr * gim)
+
+
+@numba.njit(nogil=True, cache=True)
+def _inner(X, M, W, num, den, fnum, j0, j1):
+    """Per row: ``num = sum w conj(M) X``, ``den = sum w |M|^2``, ``fnum = sum w X conj(M)/|M|``."""
+    S, N = X.shape[0], X.shape[1]
+    for s in range(S):
+        for j in range(j0, j1):
+            a = 0.0j
+            d = 0.0
+            f = 0.0j
+            for i in range(N):
+                w = W[s, j, i]
+                if w == 0.0 or i == j:
+                    continue
+                m = M[s, j, i]
+                am = abs(m)
+                x = X[s, j, i]
+                a += w * np.conj(m) * x
+                d += w * am * am
+                if am > 0.0:
+                    f += w * x * np.conj(m) / am
+            num[s, j] = a
+            den[s, j] = d
+            fnum[s, j] = f
+
+
+@numba.njit(nogil=True, cache=True, fastmath=True)
+def _guard_sums(R, M, W, g, fr, fc, j0, j1):
+    """Per row: ``fr = sum w Re(R conj(M)/|M|)``, ``fc = sum w |M| Re(g_j conj(g_i))`` (= S(C) sum w)."""
+    S, N = R.shape[0], R.shape[1]
+    for s in range(S):
+        for j in range(j0, j1):
+            a = 0.0
+            c = 0.0
+            gjr = g[s, j].real
+            gji = g[s, j].imag
+            for i in range(N):
+                w = W[s, j, i]
+                if w == 0.0 or i == j:
+                    continue
+                m = M[s, j, i]
+                am = abs(m)
+                if am == 0.0:
+                    continue
+                x = R[s, j, i]
+                a += w * (x.real * m.real + x.imag * m.imag) / am
+                c += w * am * (gjr * g[s, i].real + gji * g[s, i].imag)
+            fr[s, j] = a
+            fc[s, j] = c
+
+
+def guard_fluxes(R, M, W, g, threads=None):
+    """``(S(R) sum w, S(G M G^H) sum w)`` per solution without forming the component."""
+    S, N = R.shape[0], R.shape[1]
+    fr, fc = np.zeros((S, N)), np.zeros((S, N))
+    run_rows(_guard_sums, N, (R, M, W, np.ascontiguousarray(g, np.complex128), fr, fc), threads)
+    return fr.sum(1), fc.sum(1)
+
+
+def add_component(R, M, g, scale, threads=None):
+    """In place: ``R += scale G M G^H`` (S, N, N); ``scale`` (S,) real, 0 skips a solution."""
+    run_rows(_add_component, R.shape[1], (R, M, g, np.asarray(scale, float)), threads)
+
+
+def projections(X, M, W, threads=None):
+    """``(Re<M, X>_w, <M, M>_w, S(X) * sum w)`` per solution (S,), summed over all baselines."""
+    S, N = X.shape[0], X.shape[1]
+    num = np.zeros((S, N), complex)
+    den = np.zeros((S, N))
+    fnum = np.zeros((S, N), complex)
+    run_rows(_inner, N, (X, M, W, num, den, fnum), threads)
+    return num.sum(1).real, den.sum(1), fnum.sum(1).real
+
+
+@dataclass
+class PeelResult:
+    """One batch of independent solutions (S = integrations x pols), n_src sources.
+
+    dd_gains (n_src, S, N); scale (n_src, S) fitted flux scale (1 for peeled); mode (n_src, S)
+    as used at the end (SKIP/PEEL/SUBTRACT); guard (n_src, S) True where the guard turned a
+    peel into a subtraction; measured, removed (n_src, S) the guard's estimator S(.) of the
+    source in the data and of what peeling removed; iterations (n_src, S) Stefcal iterations
+    summed over passes; converged (n_src, S) in the last pass; residual (S, N, N).
+    """
+
+    dd_gains: np.ndarray
+    scale: np.ndarray
+    mode: np.ndarray
+    guard: np.ndarray
+    measured: np.ndarray
+    removed: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    residual: np.ndarray
+
+
+def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_iter=30, guard=0.9,
+               damping="half", threads=None):
+    """Peel and subtract sources from S independent antenna-matrix visibilities.
+
+    Parameters
+    ----------
+    V : ndarray (S, N, N) complex, Hermitian and finite; not modified
+    coherencies : ndarray (n_src, S, N, N) complex: model coherencies M_s (Jy)
+    W : ndarray (S, N, N) real: solve weights (0 = unused; autos and short baselines should be 0).
+        Subtraction acts on every baseline whatever its weight.
+    modes : int array (n_src, S): SKIP, PEEL or SUBTRACT per source and solution
+    g0 : ndarray (n_src, S, N), optional warm start for the DD gains
+    passes, tol, max_iter, damping : outer passes; Stefcal tolerance, iterations, damping
+    guard : float or None: the fraction of the measured flux peeling must remove
+
+    Returns
+    -------
+    PeelResult
+    """
+    n_src, S, N = coherencies.shape[:3]
+    modes = np.array(np.broadcast_to(modes, (n_src, S)), np.int8)
+    g = np.ones((n_src, S, N), np.complex128) if g0 is None else np.array(g0, np.complex128, copy=True)
+    scale = np.ones((n_src, S))
+    iters = np.zeros((n_src, S), int)
+    conv = np.ones((n_src, S), bool)
+    R = np.array(V, np.result_type(V.dtype, np.complex64), copy=True)
+    power = np.array([np.abs(coherencies[s]).sum() for s in range(n_src)])
+    order = np.argsort(-power, kind="stable")
+    # 1. subtract everything with the starting gains
+    for s in order:
+        add_component(R, coherencies[s], g[s], -scale[s] * (modes[s] != SKIP), threads)
+    # 2. passes
+    for _ in range(passes):
+        for s in order:
+            peel = modes[s] == PEEL
+            sub = modes[s] == SUBTRACT
+            if peel.any():
+                add_component(R, coherencies[s], g[s], 1.0 * peel, threads)
+                res = stefcal(R[:, None], coherencies[s][:, None], W[:, None], g[s], tol=tol, max_iter=max_iter,
+                              damping=damping, ref_ant=-1, threads=threads, diagnostics=False, active=peel)
+                g[s, peel] = res.gains[peel]
+                iters[s, peel] += res.iterations[peel]
+                conv[s, peel] = res.converged[peel]
+                add_component(R, coherencies[s], g[s], -1.0 * peel, threads)
+            if sub.any():
+                _refit_scale(R, coherencies[s], W, scale[s], sub, threads)
+    # 3. guard
+    measured = np.zeros((n_src, S))
+    removed = np.zeros((n_src, S))
+    fired = np.zeros((n_src, S), bool)
+    wsum = W.reshape(S, -1).sum(1) - np.einsum("sii->s", W)
+    for s in order:
+        peel = modes[s] == PEEL
+        if not peel.any():
+            continue
+        f_resid, f_removed = guard_fluxes(R, coherencies[s], W, g[s], threads)
+        f_measured = f_resid + f_removed
+        measured[s] = np.where(peel, f_measured / np.maximum(wsum, 1e-300), 0)
+        removed[s] = np.where(peel, f_removed / np.maximum(wsum, 1e-300), 0)
+        if guard is not None:
+            fired[s] = peel & ((removed[s] < guard * measured[s]) | (measured[s] <= 0))
+        if fired[s].any():
+            add_component(R, coherencies[s], g[s], 1.0 * fired[s], threads)
+            modes[s][fired[s]] = SUBTRACT
+            scale[s][fired[s]] = 0.0
+            _refit_scale(R, coherencies[s], W, scale[s], fired[s], threads, put_back=False)
+    scale[modes == PEEL] = 1.0
+    scale[modes == SKIP] = 0.0
+    return PeelResult(g, scale, modes, fired, measured, removed, iters, conv, R)
+
+
+def _refit_scale(R, M, W, scale, sel, threads, put_back=True):
+    """For solutions ``sel``: put ``scale M`` back, refit ``scale`` by least squares, subtract."""
+    if put_back:
+        add_component(R, M, np.ones(R.shape[:2], complex), scale * sel, threads)
+    num, den, _ = projections(R, M, W, threads)
+    new = np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
+    scale[sel] = new[sel]
+    add_component(R, M, np.ones(R.shape[:2], complex), -scale * sel, threads)
+
+
+def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=10.0, peel_min_flux_jy=0.0,
+                 subtract_min_flux_jy=0.0):
+    """Per source and integration: PEEL, SUBTRACT or SKIP.
+
+    Parameters
+    ----------
+    apparent_flux, elevation : ndarray (n_src, n_time): published flux x beam (Jy), elevation (rad)
+    peelable : bool array (n_src,): sources that may be peeled (e.g. Cyg A, Cas A, Vir A, Tau A)
+    peel_min_elevation_deg, peel_min_flux_jy : scalars or (n_src,) arrays: peel only above both
+        (e.g. 10 deg for Cyg A/Cas A, higher for Vir A/Tau A: "peeled when high")
+    subtract_min_flux_jy : below this apparent flux a source is skipped
+
+    A source below the horizon is skipped; a peelable source outside its peel limits, or a
+    source that is not peelable, is subtracted (fitted flux).
+    """
+    el_min = np.deg2rad(np.asarray(peel_min_elevation_deg, float))
+    el_min = el_min[:, None] if el_min.ndim else el_min
+    f_min = np.asarray(peel_min_flux_jy, float)
+    f_min = f_min[:, None] if f_min.ndim else f_min
+    up = (elevation > 0) & (apparent_flux > subtract_min_flux_jy)
+    peel = up & np.asarray(peelable, bool)[:, None] & (elevation >= el_min) & (apparent_flux >= f_min)
+    return np.where(peel, PEEL, np.where(up, SUBTRACT, SKIP)).astype(np.int8)
+
+
+@dataclass
+class PeelSolution:
+    """Per-integration peeling products in baseline layout.
+
+    dd_gains (n_src, time, n_ant, pol); scale, mode, guard, measured, removed, iterations,
+    converged (n_src, time, pol); residual (time, bl, pol) (the peeled visibilities).
+    """
+
+    dd_gains: np.ndarray
+    scale: np.ndarray
+    mode: np.ndarray
+    guard: np.ndarray
+    measured: np.ndarray
+    removed: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    residual: np.ndarray
+
+
+def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, batch=16, warm_start=True,
+         g0=None, threads=None, **kwargs):
+    """Peel a time chunk in batches of ``batch`` integrations (memory bounded by the batch).
+
+    Parameters
+    ----------
+    vis : ndarray (time, bl, pol); weights broadcastable to it (0 = flagged)
+    coherencies : ndarray (n_src, time, bl) or (n_src, time, bl, pol)
+    modes : int array (n_src, time) from :func:`select_modes`
+    baseline_keep : bool (n_bl,), baselines used to solve (min length); autos never are
+    warm_start : start each batch from the last integration of the previous batch
+        (``batch=1``: every integration starts from the previous one)
+    g0 : ndarray (n_src, n_ant, pol), optional: start of the first batch
+    kwargs : passed to :func:`peel_dense` (passes, tol, max_iter, guard, damping)
+
+    Returns
+    -------
+    PeelSolution
+    """
+    vis = np.asarray(vis)
+    T, B, P = vis.shape
+    pairs = check_pairs(pairs, n_ant)
+    n_src = coherencies.shape[0]
+    coh = coherencies if coherencies.ndim == 4 else coherencies[..., None]
+    w = np.array(np.broadcast_to(weights, vis.shape), float)
+    bad = ~np.isfinite(vis)
+    if np.any(bad & (w > 0)):
+        raise InputError("visibilities", "data", "NaN or inf in unflagged data",
+                         "flag those samples (weight 0) before peeling")
+    if bad.any():
+        vis = np.where(bad, 0, vis)  # flagged samples may hold anything; the kernels need finite numbers
+    w[:, pairs[:, 0] == pairs[:, 1]] = 0.0
+    if baseline_keep is not None:
+        w[:, ~np.asarray(baseline_keep, bool)] = 0.0
+    out = PeelSolution(np.ones((n_src, T, n_ant, P), complex), np.zeros((n_src, T, P)),
+                       np.zeros((n_src, T, P), np.int8), np.zeros((n_src, T, P), bool),
+                       np.zeros((n_src, T, P)), np.zeros((n_src, T, P)), np.zeros((n_src, T, P), int),
+                       np.zeros((n_src, T, P), bool), np.zeros(vis.shape, vis.dtype))
+    last = None if g0 is None else np.moveaxis(np.asarray(g0, complex), -1, 1)  # (n_src, P, N)
+    for t0 in range(0, T, batch):
+        t1 = min(T, t0 + batch)
+        nb = t1 - t0
+
+        def dense(x):  # (nb, bl, P) -> (nb * P, N, N), solution index = t * P + p
+            return to_matrix(np.moveaxis(x, -1, 1).reshape(nb * P, B), pairs, n_ant)
+
+        V = dense(vis[t0:t1])
+        W = dense(w[t0:t1].astype(np.float32))
+        M = np.stack([dense(np.broadcast_to(coh[s, t0:t1], (nb, B, P))) for s in range(n_src)])
+        md = np.repeat(np.asarray(modes)[:, t0:t1], P, axis=1)
+        start = None
+        if last is not None:
+            start = np.broadcast_to(last[:, None], (n_src, nb, P, n_ant)).reshape(n_src, nb * P, n_ant)
+        r = peel_dense(V, M, W, md, start, threads=threads, **kwargs)
+        if warm_start:
+            gl = r.dd_gains.reshape(n_src, nb, P, n_ant)[:, -1]
+            ok = np.isfinite(gl).all(-1) & (np.abs(gl).min(-1) > 0)
+            last = np.where(ok[..., None], gl, 1.0 if last is None else last)
+
+        def back(x):  # (n_src, nb * P, ...) -> (n_src, nb, ..., P)
+            x = x.reshape((n_src, nb, P) + x.shape[2:])
+            return np.moveaxis(x, 2, -1)
+
+        out.dd_gains[:, t0:t1] = back(r.dd_gains)
+        for name in ("scale", "mode", "guard", "measured", "removed", "iterations", "converged"):
+            getattr(out, name)[:, t0:t1] = back(getattr(r, name))
+        out.residual[t0:t1] = np.moveaxis(from_matrix(r.residual, pairs).reshape(nb, P, B), 1, -1)
+    return out

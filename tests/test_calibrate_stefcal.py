@@ -1,0 +1,187 @@
+"""Stefcal: fixed point, exact recovery, autocorrelation immunity, flags, noise scaling."""
+import numpy as np
+import pytest
+
+from mmflow.calibrate.baselines import baseline_mask, gain_products, to_matrix
+from mmflow.calibrate.stefcal import apply_gains, solve_gains, stefcal, sweep
+
+
+def _pairs(n):
+    i, j = np.triu_indices(n)
+    return np.stack([i, j], axis=1)
+
+
+def _problem(rng, n_ant, n_time, n_pol=2, unity=False):
+    pairs = _pairs(n_ant)
+    model = rng.normal(size=(n_time, len(pairs), n_pol)) + 1j * rng.normal(size=(n_time, len(pairs), n_pol))
+    auto = pairs[:, 0] == pairs[:, 1]
+    model[:, auto] = np.abs(model[:, auto]) + 5
+    if unity:
+        g = np.ones((n_ant, n_pol), complex)
+    else:
+        g = (1 + 0.3 * rng.uniform(-1, 1, (n_ant, n_pol))) * np.exp(2j * np.pi * rng.uniform(size=(n_ant, n_pol)))
+    vis = model * gain_products(g, pairs)
+    return pairs, model, g, vis
+
+
+def _referenced(g, ref):
+    """True gains with the phase of antenna ``ref`` removed (Stefcal's gauge)."""
+    return g * np.conj(g[ref]) / np.abs(g[ref])
+
+
+def test_step_at_the_optimum_is_below_n_ant_machine_epsilon(rng):
+    n = 256  # the paper's array size
+    pairs, model, g, vis = _problem(rng, n, 1, n_pol=1)
+    V = to_matrix(vis[..., 0], pairs, n)[None]
+    M = to_matrix(model[..., 0], pairs, n)[None]
+    W = np.ones(V.shape)
+    g0 = g[:, 0][None]
+    step = sweep(V, M, W, g0) - g0
+    assert np.linalg.norm(step) / np.linalg.norm(g0) < n * np.finfo(float).eps
+
+
+@pytest.mark.parametrize("unity", [True, False])
+@pytest.mark.parametrize("damping", ["half", "rk4"])  # undamped Stefcal oscillates
+def test_gains_recovered_to_float_precision_up_to_the_phase_reference(rng, unity, damping):
+    n = 24
+    pairs, model, g, vis = _problem(rng, n, 3, unity=unity)
+    sol = solve_gains(vis, model, np.ones(vis.shape), pairs, n, tol=1e-14, max_iter=2000, damping=damping)
+    assert sol.converged.all()
+    for p in range(2):
+        ref = sol.ref_ant[0, p]
+        err = np.abs(sol.gains[0, :, p] - _referenced(g[:, p], ref)).max()
+        assert err < 1e-12, (damping, p, err)
+        assert np.angle(sol.gains[0, ref, p]) == pytest.approx(0, abs=1e-15)
+    assert not sol.flags.any()
+
+
+def test_garbage_autocorrelations_leave_the_solution_unchanged(rng):
+    n = 16
+    pairs, model, g, vis = _problem(rng, n, 2)
+    auto = pairs[:, 0] == pairs[:, 1]
+    a = solve_gains(vis, model, np.ones(vis.shape), pairs, n, tol=1e-10)
+    garbage = vis.copy()
+    garbage[:, auto] = 1e9 * (rng.normal(size=garbage[:, auto].shape) + 1j)
+    b = solve_gains(garbage, model, np.ones(vis.shape), pairs, n, tol=1e-10)
+    np.testing.assert_array_equal(a.gains, b.gains)
+    np.testing.assert_array_equal(a.chi2, b.chi2)
+
+
+def test_a_flagged_antenna_gets_a_flagged_solution_and_the_rest_are_exact(rng):
+    n = 16
+    pairs, model, g, vis = _problem(rng, n, 2)
+    w = np.ones(vis.shape)
+    bad = 5
+    w[:, (pairs[:, 0] == bad) | (pairs[:, 1] == bad)] = 0
+    vis[:, (pairs[:, 0] == bad) | (pairs[:, 1] == bad)] = np.nan  # flagged data may be anything
+    sol = solve_gains(vis, model, w, pairs, n, tol=1e-12, max_iter=500)
+    assert sol.flags[0, bad].all() and (sol.gains[0, bad] == 0).all()
+    assert sol.flags[0].sum() == 2  # only antenna 5, both pols
+    assert (sol.ref_ant != bad).all()
+    for p in range(2):
+        good = np.arange(n) != bad
+        assert np.abs(sol.gains[0, good, p] - _referenced(g[:, p], sol.ref_ant[0, p])[good]).max() < 1e-10
+    corrected, w_out = apply_gains(vis, w, pairs, sol.gains[0], sol.flags[0])
+    assert (w_out[:, (pairs[:, 0] == bad)] == 0).all()
+
+
+def test_outlier_antenna_is_flagged_one_at_a_time(rng):
+    n = 20
+    pairs, model, g, vis = _problem(rng, n, 2)
+    vis = vis + 0.01 * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
+    sel = (pairs[:, 0] == 7) | (pairs[:, 1] == 7)
+    vis[:, sel] *= np.exp(1j * rng.uniform(0, 2 * np.pi, vis[:, sel].shape))  # decorrelated antenna
+    sol = solve_gains(vis, model, np.ones(vis.shape), pairs, n, outlier_sigma=5.0)
+    assert sol.flags[0, 7].all()
+    assert sol.flags[0].sum() == 2
+    off = solve_gains(vis, model, np.ones(vis.shape), pairs, n, outlier_sigma=None)
+    assert not off.flags.any()
+
+
+def test_gain_error_scales_as_sigma_over_flux_sqrt_nant_nint(rng):
+    """Point source of flux S on every baseline, unit gains; independent trials as solutions."""
+    S, sigma, trials = 10.0, 2.0, 300
+    ratios = []
+    for n, k in [(8, 1), (32, 1), (8, 8)]:
+        M = np.full((trials, k, n, n), S, complex)
+        noise = sigma / np.sqrt(2) * (rng.normal(size=M.shape) + 1j * rng.normal(size=M.shape))
+        noise = np.triu(noise, 1)
+        noise = noise + np.conj(np.swapaxes(noise, -1, -2))
+        res = stefcal(M + noise, M, np.ones(M.shape), tol=1e-10, max_iter=500)
+        rms = np.sqrt(np.mean((np.abs(res.gains) - 1) ** 2))  # amplitude: free of the phase gauge
+        ratios.append(rms * S * np.sqrt(n * k) / sigma)
+    ratios = np.array(ratios)
+    # sigma_|g| = sigma / (S sqrt(2 (N - 1) K)): ~0.76 and ~0.72 for N = 8, 32
+    assert np.all((ratios > 0.6) & (ratios < 0.85)), ratios
+    assert ratios.max() / ratios.min() < 1.15, ratios
+
+
+def test_baseline_mask_excludes_short_baselines_and_autos():
+    enu = np.array([[0, 0, 0], [10, 0, 0], [200, 0, 0.0]])
+    pairs = _pairs(3)
+    keep = baseline_mask(pairs, enu, 74e6, min_lambda=15.0)
+    # 10 m = 2.5 lambda (dropped), 200 m = 49 lambda, 190 m = 47 lambda (kept), autos dropped
+    assert keep.tolist() == [False, False, True, False, True, False]
+
+
+def test_solution_intervals_follow_time_varying_gains(rng):
+    n, T = 12, 6
+    pairs, model, _, _ = _problem(rng, n, T, n_pol=1)
+    g = np.exp(1j * rng.uniform(0, 2 * np.pi, (T, n, 1))) * (1 + 0.1 * rng.normal(size=(T, n, 1)))
+    g[1::2] = g[0::2]  # constant within intervals of 2
+    vis = model * gain_products(g, pairs)
+    sol = solve_gains(vis, model, np.ones(vis.shape), pairs, n, solint=2, tol=1e-13, max_iter=1000)
+    assert sol.gains.shape == (3, n, 1)
+    corrected, _ = apply_gains(vis, np.ones(vis.shape), pairs, sol.gains[np.arange(T) // 2])
+    np.testing.assert_allclose(corrected, model, rtol=0, atol=1e-10 * np.abs(model).max())
+
+
+def test_a_solution_spans_channels_and_integrations(rng):
+    """(time, chan, bl, pol) data: one gain per antenna and pol fits every channel and time."""
+    n, T, C = 10, 3, 4
+    pairs = _pairs(n)
+    model = rng.normal(size=(T, C, len(pairs), 2)) + 1j * rng.normal(size=(T, C, len(pairs), 2))
+    g = np.exp(2j * np.pi * rng.uniform(size=(n, 2))) * (1 + 0.2 * rng.uniform(-1, 1, (n, 2)))
+    vis = model * gain_products(g, pairs)
+    sol = solve_gains(vis, model, np.ones(vis.shape), pairs, n, tol=1e-13, max_iter=1000)
+    assert sol.gains.shape == (1, n, 2)
+    for p in range(2):
+        assert np.abs(sol.gains[0, :, p] - _referenced(g[:, p], sol.ref_ant[0, p])).max() < 1e-10
+    # zero weight on all but one channel gives the same answer from that channel alone
+    w = np.zeros(vis.shape)
+    w[:, 2] = 1
+    one = solve_gains(vis, model, w, pairs, n, tol=1e-13, max_iter=1000)
+    np.testing.assert_allclose(one.gains, sol.gains, atol=1e-10)
+
+
+def test_compiled_sweep_equals_the_plain_numpy_update(rng):
+    """Upper-triangle numba sweep vs the full-matrix numpy formula, with weights and flags."""
+    from mmflow.calibrate.stefcal import sweep_numpy
+
+    n, S, K = 40, 3, 2
+    pairs = _pairs(n)
+    shape = (S, K, len(pairs))
+    V = to_matrix(rng.normal(size=shape) + 1j * rng.normal(size=shape), pairs, n)
+    M = to_matrix(rng.normal(size=shape) + 1j * rng.normal(size=shape), pairs, n)
+    W = to_matrix(rng.uniform(0.5, 2, shape) * (rng.uniform(size=shape) > 0.2), pairs, n)
+    W[:, :, 3, :] = W[:, :, :, 3] = 0  # a flagged antenna
+    g = np.exp(1j * rng.uniform(0, 6, (S, n))) * rng.uniform(0.5, 1.5, (S, n))
+    for threads in (1, 3):
+        ours = sweep(V, M, W, g, threads=threads)
+        ref = sweep_numpy(V, M, W, g)
+        np.testing.assert_allclose(ours, ref, rtol=1e-12, atol=1e-12)
+        assert (ours[:, 3] == 0).all()
+
+
+def test_calibration_track_is_where_both_calibrators_are_high():
+    from mmflow.calibrate.stefcal import best_track
+
+    t = np.arange(200)
+    cyg = np.exp(-0.5 * ((t - 80) / 30) ** 2)
+    cas = np.exp(-0.5 * ((t - 120) / 30) ** 2)
+    tr = best_track(np.stack([cyg, cas]), 20)
+    assert tr == slice(90, 110)  # centred between the two transits
+    w = np.ones(200)
+    w[95] = 0
+    tr = best_track(np.stack([cyg, cas]), 20, w)
+    assert not (tr.start <= 95 < tr.stop)
