@@ -5,7 +5,7 @@ import argparse
 import json
 import sys
 
-BENCHMARKS = ("transfer", "solve", "simulate", "workflow")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate")
 
 
 def _common(p):

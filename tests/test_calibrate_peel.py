@@ -144,7 +144,7 @@ def test_source_selection_by_elevation_and_apparent_flux():
 def test_paper_scale_256_antennas_8_sources_5_passes():
     """The benchmark's configuration without noise: refraction (3' rms at 60 MHz) and 10 %
     scintillation on 8 sources from 16 kJy to 200 Jy, from unit DD gains."""
-    from mmflow.bench_calibrate import _layout
+    from mmflow.bench.calibrate import _layout
 
     rng = np.random.default_rng(4)
     enu, _ = _layout(256)

@@ -326,3 +326,16 @@ def test_usable_cores_follow_affinity():
     from mmflow.threads import usable_cores
 
     assert 1 <= usable_cores() <= len(os.sched_getaffinity(0))
+
+
+def test_every_benchmark_name_has_a_module_with_run():
+    import importlib
+    import inspect
+
+    from mmflow.bench import MODULES
+    from mmflow.cli import BENCHMARKS
+
+    assert set(BENCHMARKS) == set(MODULES)
+    for what, mod in MODULES.items():
+        fn = importlib.import_module(f"mmflow.bench.{mod}").run
+        assert list(inspect.signature(fn).parameters)[:2] == ["what", "quick"], what

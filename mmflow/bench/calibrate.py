@@ -135,9 +135,9 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None):
             "projected_minutes_28h_day_one_channel_cold": per_cold * N_DAY / 60}
 
 
-def run(quick=False):
+def run(what="calibrate", quick=False):
     """All figures as a dict (JSON-able)."""
-    from mmflow.bench import gemm_gflops, machine
+    from mmflow.bench.engine import gemm_gflops, machine
 
     n_ant = 64 if quick else 256
     res = {"machine": machine(), "threads": n_threads(), "sgemm_gflops_peak": gemm_gflops(np.float32),
@@ -152,4 +152,4 @@ def run(quick=False):
 
 
 if __name__ == "__main__":
-    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))
+    print(json.dumps(run(quick="--quick" in sys.argv), indent=2))  # same as `mmflow bench calibrate`

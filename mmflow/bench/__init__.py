@@ -1,0 +1,17 @@
+"""``mmflow bench WHAT``: measured figures printed as JSON (never asserted as times in tests).
+
+One module per subject: :mod:`.engine` (transfer, solve, simulate), :mod:`.workflow` (the
+workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.calibrate`
+(Stefcal and peeling).
+"""
+from __future__ import annotations
+
+import importlib
+
+MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
+           "calibrate": "calibrate"}
+
+
+def run(what, quick=False):
+    mod = importlib.import_module(f"mmflow.bench.{MODULES[what]}")
+    return mod.run(what, quick=quick)
