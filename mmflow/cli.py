@@ -5,6 +5,8 @@ import argparse
 import json
 import sys
 
+import yaml
+
 BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate")
 
 
@@ -90,10 +92,21 @@ def _config(args):
     from mmflow.workflow.config import schema_yaml
 
     text = schema_yaml()
-    if args.action == "init" and args.path:
-        with open(args.path, "w") as fh:
-            fh.write(text)
-        print(f"wrote {args.path}")
+    if args.action == "init":
+        from pathlib import Path
+
+        from mmflow.errors import InputError
+
+        if not args.path:
+            raise InputError("config init", "path", "no file name given", "write `mmflow config init my-workflow.yaml`")
+        path = Path(args.path)
+        if path.exists():
+            raise InputError(str(path), "file", "exists already (it is never overwritten)",
+                             "give a new file name, or remove the old file yourself")
+        default_dir = yaml.safe_load(text)["run"]["directory"]
+        text = text.replace(f"directory: {default_dir}", f"directory: runs/{path.stem}", 1)  # its own run directory
+        path.write_text(text)
+        print(f"wrote {path} (runs into runs/{path.stem}; edit it, then `mmflow run {path}`)")
     else:
         print(text, end="")
     return 0

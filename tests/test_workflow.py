@@ -119,6 +119,16 @@ def test_config_schema_overrides_and_errors(tmp_path, capsys):
     assert main(["config", "init", str(tmp_path / "w.yaml")]) == 0
     cfg = load_config(tmp_path / "w.yaml", ["mmode.lmax=99", "observation.freqs_mhz=[50, 60]"])
     assert cfg.mmode.lmax == 99 and cfg.observation.freqs_mhz == [50, 60]
+    assert cfg.run.directory.endswith("runs/w")  # its own run directory, not the demo's
+    before = (tmp_path / "w.yaml").read_text()
+    assert main(["config", "init", str(tmp_path / "w.yaml")]) == 2  # never overwrites
+    assert (tmp_path / "w.yaml").read_text() == before and "exists already" in capsys.readouterr().err
+    assert main([]) == 0 and "usage: mmflow" in capsys.readouterr().out  # bare mmflow: the help
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out.startswith("mmflow ")
+    assert main(["status", str(tmp_path / "no-such-run")]) == 2
+    assert "does not exist" in capsys.readouterr().err
     with pytest.raises(InputError, match=r"mmode.lmaxx.*Extra inputs"):
         load_config("workflows/demo.yaml", ["mmode.lmaxx=3"])
     with pytest.raises(InputError, match="freqs_mhz"):
