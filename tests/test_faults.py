@@ -339,3 +339,35 @@ def test_every_benchmark_name_has_a_module_with_run():
     for what, mod in MODULES.items():
         fn = importlib.import_module(f"mmflow.bench.{mod}").run
         assert list(inspect.signature(fn).parameters)[:2] == ["what", "quick"], what
+
+
+# ----------------------------------------------------------------------------- one code path, data splits
+
+def test_workflow_alm_equals_engine_alm_and_splits_share_one_transfer_pass(tmp_path):
+    """The solve stage and engine.solve_alm are one per-m loop; even/odd halves average to the full data."""
+    import zarr
+
+    from mmflow.mmode.engine import accumulate_normal_equations, solve_alm
+    from mmflow.workflow.stages.base import get_stage
+    from mmflow.workflow.stages.products import healpy_alm
+    from mmflow.workflow.stages.transfer import relative_weights
+
+    run_dir = tmp_path / "run"
+    cfg = small_config(run_dir, "mmode.splits=[full, even, odd]", "observation.integration_s=172.3281810",
+                       "imaging.filter_m1_lmin=null")
+    s = run_workflow(cfg, **QUIET)
+    assert s["transfer"]["tasks"] == len(RunDir(run_dir).manifest("transfer")["keys"])  # one pass for 3 splits
+    mg = zarr.open_group(str(run_dir / "mmodes.zarr"))
+    alm_wf = zarr.open_group(str(run_dir / "alm.zarr"))["alm"][:, 0]  # (split, m, l)
+    tel = Context(cfg.model_dump_json(), str(run_dir)).for_stage(get_stage("transfer")).telescope()
+    acc = accumulate_normal_equations(tel, 40e6, mg["mmodes"][:, 0], 24, relative_weights(mg["inv_var"][0]),
+                                      chunk_size=32)
+    im = cfg.imaging
+    filters = dict(zero_monopole=im.zero_monopole, filter_m0=im.filter_m0, filter_m1_lmin=im.filter_m1_lmin)
+    for split in range(3):
+        engine = solve_alm(acc, im.eps, filters=filters, split=split)
+        wf = healpy_alm(alm_wf[split], 24, 24)
+        np.testing.assert_allclose(wf, engine, rtol=0, atol=1e-9 * np.abs(engine).max())
+    # V_m(full) = (V_m(even) + V_m(odd)) / 2 exactly for a full day, and the solve is linear
+    np.testing.assert_allclose(alm_wf[0], 0.5 * (alm_wf[1] + alm_wf[2]), rtol=0, atol=1e-9 * np.abs(alm_wf[0]).max())
+    assert np.abs(alm_wf[1] - alm_wf[2]).max() > 1e-6 * np.abs(alm_wf[0]).max()  # the halves see different noise
