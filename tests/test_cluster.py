@@ -118,3 +118,17 @@ def test_jobqueue_cluster_from_workflow_options(kind, marker):
     assert marker in script and "normal" in script
     assert "--nworkers 2" in script or "--nprocs 2" in script
     assert "export MMFLOW_WORKERS_PER_HOST=2" in script  # the two processes of a job share its cores
+
+
+def test_relative_run_directory_with_workers_in_another_cwd(loopback_cluster, reference, tmp_path, monkeypatch):
+    """The driver resolves run.directory: workers whose cwd differs still write into the same run."""
+    client, _ = loopback_cluster
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    client.run(os.chdir, str(elsewhere))
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(os.path.join(os.path.dirname(os.path.dirname(__file__)), "workflows", "demo.yaml"),
+                      SMALL + ["run.directory=rel/run"])
+    run_workflow(cfg, client=client, progress=False, log=lambda *a: None)
+    assert not (elsewhere / "rel").exists()
+    assert_identical(reference, read_outputs(tmp_path / "rel" / "run"))

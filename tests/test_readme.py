@@ -20,9 +20,11 @@ def test_quick_tour_and_python_example_run_verbatim_after_the_demo(tmp_path):
     venv_bin.mkdir(parents=True)
     (venv_bin / "activate").write_text(f'export PATH="{os.path.dirname(sys.executable)}:$PATH"\n')
     env = dict(os.environ, PYTHONPATH=ROOT)
-    demo = subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", "--no-progress"],
+    demo = subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml"],  # as `make demo`
                           cwd=tmp_path, env=env, capture_output=True, text=True)
     assert demo.returncode == 0, demo.stderr[-3000:]
+    assert "\r" not in demo.stdout and "[transfer] " in demo.stdout  # progress lines, no bar, off a terminal
+    assert "[transfer] done" in (tmp_path / "runs" / "demo" / "mmflow.log").read_text()
     assert f"{tmp_path}/runs/demo/maps/map_40.000MHz.fits" in demo.stdout  # absolute paths at the end
     assert "resolution ~" in demo.stdout and "singular values above sqrt(eps)" in demo.stdout
 
