@@ -1,9 +1,17 @@
 """Ingest drift-scan data from any format pyuvdata reads (UVH5, uvfits, MeasurementSet).
 
-The plan (metadata of every file, read once by the driver without data) checks that files
-agree on frequencies and antennas, orders integrations by time, rejects duplicate times, and
-stores each row's time and file in ``vis.zarr``. Each task then reads only the files covering
-its time chunk; no worker rescans the glob. Stokes I = (XX + YY) / 2 (paper section 2); a single polarisation is used as is.
+The plan reads every file's metadata once (pyuvdata, no data; files read concurrently),
+checks them (``mmflow.io.checks``: same frequencies, antenna numbers, antenna positions and
+site; drift or zenith-phased data; units Jy or K sr; no duplicated (time, baseline) row inside a
+file or integration across files; a polarisation set that holds Stokes I), orders integrations
+by time and stores each row's time and file in ``vis.zarr`` with what each task needs per file
+(phase state, units, the polarisations that make Stokes I). Each task then reads only the
+files covering its time chunk (concurrently, ``mmflow.io.readers``), refuses (or, with
+``input.nonfinite=flag``, flags and counts) unflagged NaN/inf samples before it writes, and
+writes its rows. No worker rescans the glob.
+
+Stokes I: ``mmflow.io.polarization`` (I, (XX + YY) / 2, (RR + LL) / 2, or one parallel hand),
+chosen by pyuvdata polarisation number so that ``ee``/``nn`` labels are XX/YY.
 pyuvdata's data (``V_12 = <E_1 E_2*>``, ``b = x_2 - x_1``, as simulated by matvis and hera_sim)
 follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/test_ingest.py`` checks by
 imaging a matvis drift scan: sources land at their ICRS positions. ``input.conjugate``
@@ -13,13 +21,17 @@ from __future__ import annotations
 
 import glob as globmod
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 
 from mmflow.errors import InputError
+from mmflow.io import checks
+from mmflow.io.readers import read_file, read_metadata
 from mmflow.telescope.layout import Layout
+from mmflow.threads import n_threads
 
 log = logging.getLogger("mmflow.ingest")
 
@@ -37,43 +49,48 @@ class IngestPlan:
     epoch_jd: float
     integration_s: float
     skipped: list = field(default_factory=list)
-
-
-def _read(path, fmt, read_data=True, times=None):
-    from pyuvdata import UVData
-
-    uv = UVData()
-    kw = {} if fmt is None else {"file_type": fmt}
-    if times is not None:
-        kw["times"] = times
-    uv.read(path, read_data=read_data, **kw)
-    return uv
+    file_info: list = field(default_factory=list)  # per file: {"phase", "vis_units", "pol_indices"}
 
 
 def plan_ingest(cfg):
     return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file)
 
 
-@lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad):
+def _files(pattern):
     if not pattern:
         raise InputError("workflow", "input.path", "no input path", "set input.path=/data/*.uvh5")
     files = sorted(globmod.glob(pattern)) or ([pattern] if "*" not in pattern else [])
     if not files:
         raise InputError(pattern, "input.path", "no files match", "check the path or glob")
+    return files
+
+
+def _try_metadata(path, fmt):
+    try:
+        return read_metadata(path, fmt), None
+    except Exception as exc:  # pyuvdata raises many exception types for corrupt files
+        return None, exc
+
+
+@lru_cache(maxsize=4)
+def _plan(pattern, fmt, on_bad):
+    files = _files(pattern)
+    with ThreadPoolExecutor(max(1, min(n_threads(), len(files)))) as ex:
+        results = list(ex.map(lambda f: _try_metadata(f, fmt), files))
     metas, good, skipped = [], [], []
-    for f in files:
-        try:
-            metas.append(_read(f, fmt, read_data=False))
+    for f, (uv, exc) in zip(files, results):
+        if exc is None:
+            metas.append(uv)
             good.append(f)
-        except Exception as exc:  # pyuvdata raises many exception types for corrupt files
-            msg = f"{f}: unreadable ({type(exc).__name__}: {exc})"
-            if on_bad == "skip":
-                log.warning("skipping %s", msg)
-                skipped.append(msg)
-                continue
+            continue
+        msg = f"{f}: unreadable ({type(exc).__name__}: {exc})"
+        if on_bad != "skip":
             raise InputError(f, "file", f"pyuvdata cannot read it ({exc})",
                              "remove or replace the file, or set input.on_bad_file=skip") from exc
+        log.warning("skipping %s", msg)
+        skipped.append(msg)
+    if not metas:
+        raise InputError(pattern, "input.path", "no readable file", "check the files (see the skipped list)")
     ref = metas[0]
     freqs = np.asarray(ref.freq_array).ravel()
     ants = np.asarray(ref.telescope.antenna_numbers)
@@ -81,17 +98,13 @@ def _plan(pattern, fmt, on_bad):
         if not np.allclose(np.asarray(uv.freq_array).ravel(), freqs):
             raise InputError(f, "freq_array", f"frequencies differ from {good[0]}",
                              "ingest one spectral setup per run (select channels first)")
-        if not np.array_equal(np.asarray(uv.telescope.antenna_numbers), ants):
-            raise InputError(f, "antenna_numbers", f"antenna set differs from {good[0]}",
-                             "ingest files from one array configuration per run")
+        checks.compare_telescope(uv, ref, f, good[0])
+    infos = [checks.file_info(uv, f) for f, uv in zip(good, metas)]
     # baselines: the union over files as (i, j) antenna-index pairs with i <= j; a baseline a
     # file lacks is simply unmeasured (weight 0) in that file's integrations
-    index = {int(a): k for k, a in enumerate(ants)}
-    found = []
-    for uv in metas:
-        a1 = [index[int(x)] for x in np.asarray(uv.ant_1_array)]
-        a2 = [index[int(x)] for x in np.asarray(uv.ant_2_array)]
-        found.append(np.sort(np.stack([a1, a2], 1), 1))
+    index = _index_lookup(ants)
+    found = [np.sort(np.stack([index[np.asarray(uv.ant_1_array)], index[np.asarray(uv.ant_2_array)]], 1), 1)
+             for uv in metas]
     pairs = np.unique(np.concatenate(found), axis=0)
     seen = {}
     all_t = []
@@ -111,15 +124,25 @@ def _plan(pattern, fmt, on_bad):
     tint = float(np.median(np.asarray(ref.integration_time)))
     times = np.array([t for t, _ in all_t])
     return IngestPlan(good, times, np.array([fi for _, fi in all_t]), len(all_t), freqs, pairs, ants, layout,
-                      float(np.median(times)), tint, skipped)
+                      float(np.median(times)), tint, skipped, infos)
 
 
 def write_plan(group, plan):
-    """Store what tasks need (row times, each row's file, antenna numbers) so no worker rescans files."""
+    """Store what tasks need (row times, each row's file, antenna numbers, per-file phase state,
+    units and Stokes-I recipe) so no worker rescans or re-checks files."""
     if "plan_time_jd" not in group:
         group.create_array("plan_time_jd", data=plan.row_time)
         group.create_array("plan_file", data=plan.row_file.astype("int32"))
         group.create_array("antenna_numbers", data=np.asarray(plan.ant_numbers, "int64"))
+        group.attrs["ingest_file_info"] = plan.file_info
+
+
+def _index_lookup(ant_numbers):
+    """Dense array taking an antenna number to its index (-1 where unknown)."""
+    ant_numbers = np.asarray(ant_numbers, int)
+    lut = np.full(int(ant_numbers.max()) + 1, -1, int)
+    lut[ant_numbers] = np.arange(len(ant_numbers))
+    return lut
 
 
 def _antenna_enu(uv):
@@ -129,67 +152,67 @@ def _antenna_enu(uv):
     return ENU_from_ECEF(ecef, center_loc=uv.telescope.location)
 
 
-def stokes_i(uv):
-    """(XX + YY) / 2 from a UVData (or the single polarisation present); returns data, flags."""
-    pols = list(uv.get_pols())
-    data = np.asarray(uv.data_array)  # (nblt, nfreq, npol)
-    flags = np.asarray(uv.flag_array)
-    if "xx" in pols and "yy" in pols:
-        ix, iy = pols.index("xx"), pols.index("yy")
-        return 0.5 * (data[..., ix] + data[..., iy]), flags[..., ix] | flags[..., iy]
-    if "pI" in pols:
-        i = pols.index("pI")
-        return data[..., i], flags[..., i]
-    if len(pols) == 1:
-        return data[..., 0], flags[..., 0]
-    raise InputError("ingest", "polarization_array", f"cannot form Stokes I from {pols}",
-                     "provide xx and yy (or a single polarisation)")
-
-
 def _time_key(jd):
-    return np.round(np.asarray(jd, float) * 86400.0, 3)
+    return checks.time_key(jd)
 
 
 def ingest_time_chunk(cfg, store_path, row0, row1):
-    """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows."""
+    """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows.
+
+    Nothing is written if any of the files has unflagged NaN/inf samples (unless
+    ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged).
+    """
     import zarr
 
     g = zarr.open_group(str(store_path), mode="r+")
     files = g.attrs["files"]
+    infos = g.attrs.get("ingest_file_info")
     row_time = g["plan_time_jd"][row0:row1]
     row_file = g["plan_file"][row0:row1]
     pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
-    n, nbl, nf = len(row_time), len(pairs), g["freqs_hz"].shape[0]
-    row_of = {k: r for r, k in enumerate(_time_key(row_time))}
+    freqs = g["freqs_hz"][:]
+    n, nbl, nf = len(row_time), len(pairs), len(freqs)
+    mode = getattr(cfg.input, "nonfinite", "error")
+    chunk_keys = _time_key(row_time)
+    index = _index_lookup(ant_numbers)
+    na = len(ant_numbers)
+    pair_lut = np.full((na, na), -1, int)
+    pair_lut[pairs[:, 0], pairs[:, 1]] = np.arange(nbl)
+    fis = [int(f) for f in np.unique(row_file)]
+
+    def one(fi):
+        return read_file(files[fi], cfg.input.format, None if infos is None else infos[fi])
+
+    with ThreadPoolExecutor(max(1, min(n_threads(), len(fis)))) as ex:
+        parts = list(ex.map(one, fis))
     vis = np.zeros((n, nbl, nf), np.complex64)
     wts = np.zeros((n, nbl, nf), np.float32)
     lst = np.full(n, np.nan)
-    pair_index = {(int(i), int(j)): k for k, (i, j) in enumerate(pairs)}
-    index = {int(a): k for k, a in enumerate(ant_numbers)}
-    for fi in np.unique(row_file):
-        uv = _read(files[fi], cfg.input.format)
-        data, flags = stokes_i(uv)
-        nsamp = np.asarray(uv.nsample_array)[..., 0]
-        keys, l_arr = _time_key(uv.time_array), np.asarray(uv.lst_array)
-        a1 = np.array([index[int(x)] for x in uv.ant_1_array])
-        a2 = np.array([index[int(x)] for x in uv.ant_2_array])
-        for k in range(len(keys)):
-            r = row_of.get(keys[k])
-            if r is None:  # an integration of this file that belongs to another chunk
-                continue
-            i, j = int(a1[k]), int(a2[k])
-            v = data[k]
-            if i > j:  # V(j, i) = conj(V(i, j))
-                i, j, v = j, i, np.conj(v)
-            if cfg.input.conjugate:
-                v = np.conj(v)
-            b = pair_index[(i, j)]
-            vis[r, b] = v
-            wts[r, b] = np.where(flags[k], 0.0, nsamp[k])
-            lst[r] = l_arr[k]
+    n_nonfinite = 0
+    for fi, p in zip(fis, parts):
+        bad, nbad = checks.nonfinite(p.vis, p.flags, files[fi], mode)  # raises before anything is written
+        n_nonfinite += nbad
+        keys = _time_key(p.time_jd)
+        pos = np.searchsorted(chunk_keys, keys)
+        mine = (pos < n) & (chunk_keys[np.minimum(pos, n - 1)] == keys)  # rows of other chunks are skipped
+        r = pos[mine]
+        i, j = index[p.ant1[mine]], index[p.ant2[mine]]
+        swap = i > j  # V(j, i) = conj(V(i, j))
+        b = pair_lut[np.minimum(i, j), np.maximum(i, j)]
+        v = p.vis[mine]
+        if nbad:
+            v = np.where(bad[mine], 0, v)
+        if swap.any():
+            v[swap] = np.conj(v[swap])
+        if cfg.input.conjugate:
+            v = np.conj(v)
+        vis[r, b] = v
+        wts[r, b] = np.where(p.flags[mine] | bad[mine], 0.0, p.nsample[mine])
+        lst[r] = p.lst[mine]
     g["vis"][row0:row0 + n] = vis
     g["weights"][row0:row0 + n] = wts
     g["lst"][row0:row0 + n] = lst
     g["time_jd"][row0:row0 + n] = row_time
     flagged = int(np.sum(np.all(wts == 0, axis=(1, 2))))
-    return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": int(len(np.unique(row_file)))}
+    return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
+            "nonfinite_flagged": int(n_nonfinite)}
