@@ -160,7 +160,8 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows.
 
     Nothing is written if any of the files has unflagged NaN/inf samples (unless
-    ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged).
+    ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged). Flagged
+    non-finite samples are stored as 0 with weight 0, so ``vis.zarr`` holds only finite numbers.
     """
     import zarr
 
@@ -200,8 +201,9 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
         swap = i > j  # V(j, i) = conj(V(i, j))
         b = pair_lut[np.minimum(i, j), np.maximum(i, j)]
         v = p.vis[mine]
-        if nbad:
-            v = np.where(bad[mine], 0, v)
+        finite = np.isfinite(v)
+        if not finite.all():  # flagged (or, with nonfinite=flag, newly flagged) NaN/inf are stored as 0
+            v = np.where(finite, v, 0)
         if swap.any():
             v[swap] = np.conj(v[swap])
         if cfg.input.conjugate:
