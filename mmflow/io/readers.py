@@ -45,8 +45,13 @@ def _kind(path, fmt):
 
 
 def _kwargs(path, fmt):
+    """pyuvdata read arguments: the forced format, and single-channel MS spectral windows kept
+    (pyuvdata drops them by default as "continuum" windows)."""
     kind = _kind(path, fmt)
-    return {} if fmt is None else {"file_type": fmt}, kind
+    kw = {} if fmt is None else {"file_type": fmt}
+    if kind == "ms":
+        kw["ignore_single_chan"] = False
+    return kw, kind
 
 
 def read_metadata(path, fmt=None):
