@@ -94,3 +94,59 @@ def test_uvfits_per_integration_ingests_to_the_uvh5_store(scan, tmp_path):
     assert ref.attrs["ingest_file_info"][0]["phase"] == "drift"
     assert fits.attrs["ingest_file_info"][0]["phase"] == "zenith"
     _same_store(ref, fits)
+
+
+def test_ms_plan_reads_one_file_with_pyuvdata_the_rest_with_casacore_and_checks_each(scan, tmp_path):
+    """The plan's casacore pass over many MS gives pyuvdata's plan, and refuses what pyuvdata's would."""
+    from casacore.tables import table
+
+    from mmflow.errors import InputError
+    from mmflow.io import ingest
+    from mmflow.io.ms_index import MSIndex
+
+    d = tmp_path / "ms"
+    d.mkdir()
+    for p in sorted(scan["ms"].glob("*.ms"))[:5]:
+        shutil.copytree(p, d / p.name)
+    files = [str(p) for p in sorted(d.glob("*.ms"))]
+    fast = ingest._metadata_ms(files, None, "error")
+    assert fast is not None and all(isinstance(m, MSIndex) for m in fast[0][1:])
+    slow = ingest._metadata_pyuvdata(files, None, "error")
+    assert fast[1] == slow[1] and fast[3] == slow[3]  # same files, same per-file info
+    for a, b in zip(fast[0], slow[0]):
+        np.testing.assert_array_equal(a.time_array, b.time_array)
+        np.testing.assert_array_equal(a.ant_1_array, b.ant_1_array)
+        np.testing.assert_array_equal(a.ant_2_array, b.ant_2_array)
+
+    def refused(match, edit, name):
+        bad = tmp_path / name
+        shutil.copytree(d, bad)
+        edit(str(bad / "int_0003.ms"))
+        ingest._plan.cache_clear()
+        with pytest.raises(InputError, match=match):
+            ingest._plan(str(bad / "*.ms"), None, "error")
+
+    def move_antenna(p):
+        with table(p + "/ANTENNA", readonly=False, ack=False) as t:
+            t.putcell("POSITION", 3, t.getcell("POSITION", 3) + np.array([0.0, 0.05, 0.0]))
+
+    def phase_elsewhere(p):
+        with table(p + "/FIELD", readonly=False, ack=False) as t:
+            t.putcell("PHASE_DIR", 0, t.getcell("PHASE_DIR", 0) + np.array([[0.0, 0.2]]))
+
+    def uncalibrated(p):
+        with table(p, readonly=False, ack=False) as t:
+            t.putcolkeyword("DATA", "QuantumUnits", "uncalib")
+
+    def duplicate_row(p):
+        with table(p, readonly=False, ack=False) as t:
+            t.putcell("ANTENNA2", 2, t.getcell("ANTENNA2", 1))
+
+    refused(r"int_0003.ms.*antenna_positions.*antenna 3 is 0.050 m", move_antenna, "moved")
+    refused(r"int_0003.ms.*phase_center_catalog.*11.46 deg from the zenith.*unproject_phase", phase_elsewhere, "phased")
+    refused(r"int_0003.ms.*vis_units.*'uncalib'", uncalibrated, "uncal")
+    refused(r"int_0003.ms.*duplicated \(time, baseline\) rows: rows 1 and 2", duplicate_row, "dup")
+    shutil.copytree(d / "int_0001.ms", d / "int_0001_copy.ms")
+    ingest._plan.cache_clear()
+    with pytest.raises(InputError, match=r"time_array.*also in"):
+        ingest._plan(str(d / "*.ms"), None, "error")

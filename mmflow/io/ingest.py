@@ -29,7 +29,7 @@ import numpy as np
 
 from mmflow.errors import InputError
 from mmflow.io import checks
-from mmflow.io.readers import read_file, read_metadata
+from mmflow.io.readers import _kind, read_file, read_metadata
 from mmflow.telescope.layout import Layout
 from mmflow.threads import n_threads
 
@@ -72,9 +72,17 @@ def _try_metadata(path, fmt):
         return None, exc
 
 
-@lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad):
-    files = _files(pattern)
+def _unreadable(f, exc, on_bad, skipped):
+    msg = f"{f}: unreadable ({type(exc).__name__}: {exc})"
+    if on_bad != "skip":
+        raise InputError(f, "file", f"pyuvdata cannot read it ({exc})",
+                         "remove or replace the file, or set input.on_bad_file=skip") from exc
+    log.warning("skipping %s", msg)
+    skipped.append(msg)
+
+
+def _metadata_pyuvdata(files, fmt, on_bad):
+    """Every file's metadata with pyuvdata (read concurrently), each checked against the first."""
     with ThreadPoolExecutor(max(1, min(n_threads(), len(files)))) as ex:
         results = list(ex.map(lambda f: _try_metadata(f, fmt), files))
     metas, good, skipped = [], [], []
@@ -82,29 +90,73 @@ def _plan(pattern, fmt, on_bad):
         if exc is None:
             metas.append(uv)
             good.append(f)
-            continue
-        msg = f"{f}: unreadable ({type(exc).__name__}: {exc})"
-        if on_bad != "skip":
-            raise InputError(f, "file", f"pyuvdata cannot read it ({exc})",
-                             "remove or replace the file, or set input.on_bad_file=skip") from exc
-        log.warning("skipping %s", msg)
-        skipped.append(msg)
+        else:
+            _unreadable(f, exc, on_bad, skipped)
     if not metas:
-        raise InputError(pattern, "input.path", "no readable file", "check the files (see the skipped list)")
+        raise InputError(files[0], "input.path", "no readable file", "check the files (see the skipped list)")
     ref = metas[0]
     freqs = np.asarray(ref.freq_array).ravel()
-    ants = np.asarray(ref.telescope.antenna_numbers)
     for f, uv in zip(good[1:], metas[1:]):
         if not np.allclose(np.asarray(uv.freq_array).ravel(), freqs):
             raise InputError(f, "freq_array", f"frequencies differ from {good[0]}",
                              "ingest one spectral setup per run (select channels first)")
         checks.compare_telescope(uv, ref, f, good[0])
     infos = [checks.file_info(uv, f) for f, uv in zip(good, metas)]
+    return metas, good, skipped, infos
+
+
+def _metadata_ms(files, fmt, on_bad):
+    """Many MeasurementSets: pyuvdata for the first, python-casacore columns for the rest
+    (``mmflow.io.ms_index``); None where that does not apply (then pyuvdata reads them all)."""
+    try:
+        from mmflow.io import ms_index
+    except ImportError:
+        return None
+    skipped, indices, ref_uv = [], [], None
+    for f in files:
+        try:
+            if ref_uv is None:
+                ref_uv = read_metadata(f, fmt)
+                ref_file = f
+            indices.append(ms_index.read_index(f))
+        except Exception as exc:  # corrupt files raise many exception types
+            _unreadable(f, exc, on_bad, skipped)
+    if ref_uv is None or not indices:
+        return None
+    ms_index.convert_times(indices)
+    if indices[0].path != str(ref_file).rstrip("/") or not ms_index.agrees_with(indices[0], ref_uv):
+        log.warning("MS index of %s disagrees with pyuvdata's read: reading every file's metadata with pyuvdata",
+                    ref_file)
+        return None
+    info = checks.file_info(ref_uv, ref_file)
+    if info["phase"] != "zenith":
+        return None
+    ms_index.check_against(indices[1:], indices[0], ref_uv, info)
+    good = [ix.path for ix in indices]
+    good[0] = ref_file
+    return [ref_uv] + indices[1:], good, skipped, [info] * len(indices)
+
+
+@lru_cache(maxsize=4)
+def _plan(pattern, fmt, on_bad):
+    files = _files(pattern)
+    fast = None
+    if len(files) > 2 and all(_kind(f, fmt) == "ms" for f in files):
+        fast = _metadata_ms(files, fmt, on_bad)
+    metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
+    ref = metas[0]
+    freqs = np.asarray(ref.freq_array).ravel()
+    ants = np.asarray(ref.telescope.antenna_numbers)
     # baselines: the union over files as (i, j) antenna-index pairs with i <= j; a baseline a
     # file lacks is simply unmeasured (weight 0) in that file's integrations
     index = _index_lookup(ants)
-    found = [np.sort(np.stack([index[np.asarray(uv.ant_1_array)], index[np.asarray(uv.ant_2_array)]], 1), 1)
-             for uv in metas]
+    found = []
+    for f, uv in zip(good, metas):
+        a1, a2 = np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array)
+        if max(a1.max(), a2.max()) >= len(index) or min(index[a1].min(), index[a2].min()) < 0:
+            raise InputError(f, "ant_1_array/ant_2_array", f"antenna numbers outside {good[0]}'s antenna table",
+                             "ingest files from one array configuration per run")
+        found.append(np.sort(np.stack([index[a1], index[a2]], 1), 1))
     pairs = np.unique(np.concatenate(found), axis=0)
     seen = {}
     all_t = []
