@@ -62,8 +62,10 @@ def _write(uv, directory, fmt):
     for k, t in enumerate(np.unique(uv.time_array)):
         part = uv.select(times=[t], inplace=False)
         path = directory / f"int_{k:04d}.{fmt}"
+        if fmt in ("ms", "uvfits"):  # phased to the zenith of the integration (as write_ms(force_phase=True) does)
+            part.phase_to_time(float(t))
         if fmt == "ms":
-            part.write_ms(str(path), clobber=True, force_phase=True)
+            part.write_ms(str(path), clobber=True)
         else:
             part.write_uvh5(str(path), clobber=True)
         paths.append(path)

@@ -1,7 +1,6 @@
 """Ingest refuses or converts what it must not trust: polarisation labels (by number), phased data,
 units, antenna positions and site, duplicated rows, unflagged NaN/inf. Data: matvis through pyuvdata,
 recorded in 2023, two linear polarisations with different gains and flags."""
-import shutil
 from types import SimpleNamespace
 
 import numpy as np

@@ -85,16 +85,18 @@ def write_blocks(uv, directory, files=6, stem="scan"):
 def write_per_integration(uv, directory, fmt="ms", times=None):
     """One file per integration, as the OVRO-LWA writes MeasurementSets. MS and uvfits cannot
     hold unprojected data: pyuvdata phases each file to the zenith of its integration
-    (``force_phase``), as the OVRO-LWA's own files are."""
+    (``phase_to_time``), as the OVRO-LWA's own files are."""
     times = np.unique(uv.time_array) if times is None else times
     paths = []
     for k, t in enumerate(times):
         part = uv.select(times=[t], inplace=False)
         path = directory / f"int_{k:04d}.{fmt}"
+        if fmt in ("ms", "uvfits"):  # phased to the zenith of the integration (as write_ms(force_phase=True) does)
+            part.phase_to_time(float(t))
         if fmt == "ms":
-            part.write_ms(str(path), clobber=True, force_phase=True)
+            part.write_ms(str(path), clobber=True)
         elif fmt == "uvfits":
-            part.write_uvfits(str(path), force_phase=True)
+            part.write_uvfits(str(path))
         else:
             part.write_uvh5(str(path), clobber=True)
         paths.append(path)

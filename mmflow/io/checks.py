@@ -135,7 +135,7 @@ def file_info(uv, what):
     ``{"phase": "drift"|"zenith", "vis_units": ..., "pol_indices": [...]}``."""
     indices, single = stokes_i_recipe(uv.polarization_array, what)
     if single:
-        log.warning("%s: one parallel-hand polarisation stands in for Stokes I", what)
+        log.info("%s: one parallel-hand polarisation stands in for Stokes I", what)
     unit_scale(uv.vis_units, uv.freq_array, what)
     duplicate_rows(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array), what)
     return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices]}

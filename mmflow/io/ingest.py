@@ -29,7 +29,7 @@ import numpy as np
 
 from mmflow.errors import InputError
 from mmflow.io import checks
-from mmflow.io.readers import _kind, read_file, read_metadata
+from mmflow.io.readers import file_kind, read_file, read_metadata
 from mmflow.telescope.layout import Layout
 from mmflow.threads import n_threads
 
@@ -141,7 +141,7 @@ def _metadata_ms(files, fmt, on_bad):
 def _plan(pattern, fmt, on_bad):
     files = _files(pattern)
     fast = None
-    if len(files) > 2 and all(_kind(f, fmt) == "ms" for f in files):
+    if len(files) > 2 and all(file_kind(f, fmt) == "ms" for f in files):
         fast = _metadata_ms(files, fmt, on_bad)
     metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
     ref = metas[0]

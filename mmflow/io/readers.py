@@ -31,9 +31,11 @@ class FileData:
     vis: np.ndarray  # (nblt, nfreq) complex Stokes I, Jy
     flags: np.ndarray  # (nblt, nfreq) bool
     nsample: np.ndarray  # (nblt, nfreq) float
+    freqs: np.ndarray  # (nfreq,) Hz
 
 
-def _kind(path, fmt):
+def file_kind(path, fmt=None):
+    """The kind of one input path: the forced format, "uvh5", "ms", or None (pyuvdata decides)."""
     if fmt is not None:
         return fmt
     p = str(path).lower().rstrip("/")
@@ -47,7 +49,7 @@ def _kind(path, fmt):
 def _kwargs(path, fmt):
     """pyuvdata read arguments: the forced format, and single-channel MS spectral windows kept
     (pyuvdata drops them by default as "continuum" windows)."""
-    kind = _kind(path, fmt)
+    kind = file_kind(path, fmt)
     kw = {} if fmt is None else {"file_type": fmt}
     if kind == "ms":
         kw["ignore_single_chan"] = False
@@ -72,19 +74,14 @@ def read_metadata(path, fmt=None):
 def read_file(path, fmt=None, info=None):
     """Stokes I (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
     here from the file when None)."""
-    if info is not None and info["phase"] == "drift" and _kind(path, fmt) == "uvh5":
+    if info is not None and info["phase"] == "drift" and file_kind(path, fmt) == "uvh5":
         out = _read_uvh5_direct(path, info["pol_indices"])
     else:
         out, info = _read_pyuvdata(path, fmt, info)
     scale = checks.unit_scale(info["vis_units"], out.freqs, path)
     if np.any(scale != 1.0):
         out.vis = out.vis * scale[None, :]
-    return FileData(out.time_jd, out.ant1, out.ant2, out.lst, out.vis, out.flags, out.nsample)
-
-
-@dataclass
-class _Raw(FileData):
-    freqs: np.ndarray = None
+    return out
 
 
 def _read_pyuvdata(path, fmt, info):
@@ -103,7 +100,7 @@ def _read_pyuvdata(path, fmt, info):
         uv.unproject_phase()
     vis, flags, nsample = combine_stokes_i(np.asarray(uv.data_array), np.asarray(uv.flag_array),
                                            np.asarray(uv.nsample_array), info["pol_indices"])
-    raw = _Raw(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array),
+    raw = FileData(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array),
                np.asarray(uv.lst_array), vis, flags, nsample, np.asarray(uv.freq_array, float).ravel())
     return raw, info
 
@@ -134,4 +131,4 @@ def _read_uvh5_direct(path, pol_indices):
     auto = ant1 == ant2
     if auto.any():
         vis[auto] = vis[auto].real
-    return _Raw(time_jd, ant1, ant2, lst, vis, flags, nsample, freqs)
+    return FileData(time_jd, ant1, ant2, lst, vis, flags, nsample, freqs)
