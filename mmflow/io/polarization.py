@@ -79,6 +79,7 @@ def combine_stokes_i(data, flags, nsample, indices):
     idx = list(indices)
     if len(idx) == 1:
         return data[..., idx[0]], flags[..., idx[0]], nsample[..., idx[0]]
-    vis = data[..., idx[0]] + data[..., idx[1]]
+    a, b = idx
+    vis = data[..., a] + data[..., b]
     vis *= 0.5
-    return vis, np.any(flags[..., idx], axis=-1), np.min(nsample[..., idx], axis=-1)
+    return vis, flags[..., a] | flags[..., b], np.minimum(nsample[..., a], nsample[..., b])
