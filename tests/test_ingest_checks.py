@@ -191,3 +191,63 @@ def test_unflagged_nonfinite_refused_before_writing_or_flagged_and_counted(uv, t
     assert summary["nonfinite_flagged"] == 2
     w, v = g["weights"][:, :, 0].ravel(), g["vis"][:, :, 0].ravel()  # rows in file order here
     assert np.all(np.isfinite(v)) and list(np.flatnonzero(w == 0)) == [5, 9, 12]
+
+
+def test_uvh5_plan_reads_one_file_with_pyuvdata_the_rest_with_h5py_and_checks_each(uv, tmp_path):
+    """Many UVH5 files: the plan's h5py pass gives pyuvdata's plan and refuses what pyuvdata's would."""
+    import shutil
+
+    import h5py
+
+    from mmflow.io import ingest
+    from mmflow.io.uvh5_index import UVH5Index
+
+    d = tmp_path / "uvh5"
+    for k, t in enumerate(np.unique(uv.time_array)[:5]):
+        write(uv.select(times=[t], inplace=False), d / f"int_{k}.uvh5")
+    files = [str(p) for p in sorted(d.glob("*.uvh5"))]
+    fast = ingest._metadata_indexed(files, None, "error", "uvh5")
+    assert fast is not None and all(isinstance(m, UVH5Index) for m in fast[0][1:])
+    slow = ingest._metadata_pyuvdata(files, None, "error")
+    assert fast[1] == slow[1] and fast[3] == slow[3]
+    for a, b in zip(fast[0], slow[0]):
+        np.testing.assert_array_equal(a.time_array, b.time_array)
+        np.testing.assert_array_equal(a.ant_1_array, b.ant_1_array)
+
+    def refused(match, edit, name):
+        bad = tmp_path / name
+        shutil.copytree(d, bad)
+        with h5py.File(bad / "int_3.uvh5", "r+") as f:
+            edit(f["Header"])
+        ingest._plan.cache_clear()
+        with pytest.raises(InputError, match=match):
+            ingest._plan(str(bad / "*.uvh5"), None, "error")
+
+    def move_antenna(h):
+        h["antenna_positions"][2, 1] += 0.05
+
+    def move_site(h):
+        h["altitude"][()] = h["altitude"][()] + 1.0
+
+    def cross_pols(h):
+        h["polarization_array"][:] = [-7, -8]
+
+    def uncalibrated(h):
+        del h["vis_units"]
+        h["vis_units"] = np.bytes_("uncalib")
+
+    def phased(h):
+        for k in h["phase_center_catalog"]:
+            del h["phase_center_catalog"][k]["cat_type"]
+            h["phase_center_catalog"][k]["cat_type"] = np.bytes_("sidereal")
+
+    def duplicate_row(h):
+        h["ant_2_array"][2] = h["ant_2_array"][1]
+        h["ant_1_array"][2] = h["ant_1_array"][1]
+
+    refused(r"int_3.uvh5.*antenna_positions.*antenna 2 is 0.050 m", move_antenna, "moved")
+    refused(r"int_3.uvh5.*telescope.location.*1.000 m", move_site, "site")
+    refused(r"int_3.uvh5.*polarization_array.*\[-7, -8\] differ", cross_pols, "pols")
+    refused(r"int_3.uvh5.*vis_units.*'uncalib'", uncalibrated, "uncal")
+    refused(r"int_3.uvh5.*phase_center_catalog \(cat_type=sidereal\).*unproject_phase", phased, "phased")
+    refused(r"int_3.uvh5.*duplicated \(time, baseline\) rows: rows 1 and 2", duplicate_row, "dup")

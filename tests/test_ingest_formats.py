@@ -109,7 +109,7 @@ def test_ms_plan_reads_one_file_with_pyuvdata_the_rest_with_casacore_and_checks_
     for p in sorted(scan["ms"].glob("*.ms"))[:5]:
         shutil.copytree(p, d / p.name)
     files = [str(p) for p in sorted(d.glob("*.ms"))]
-    fast = ingest._metadata_ms(files, None, "error")
+    fast = ingest._metadata_indexed(files, None, "error", "ms")
     assert fast is not None and all(isinstance(m, MSIndex) for m in fast[0][1:])
     slow = ingest._metadata_pyuvdata(files, None, "error")
     assert fast[1] == slow[1] and fast[3] == slow[3]  # same files, same per-file info

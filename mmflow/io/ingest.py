@@ -105,44 +105,61 @@ def _metadata_pyuvdata(files, fmt, on_bad):
     return metas, good, skipped, infos
 
 
-def _metadata_ms(files, fmt, on_bad):
-    """Many MeasurementSets: pyuvdata for the first, python-casacore columns for the rest
-    (``mmflow.io.ms_index``); None where that does not apply (then pyuvdata reads them all)."""
+def _metadata_indexed(files, fmt, on_bad, kind):
+    """Many files of one kind: pyuvdata for the first, a cheap read of the columns the plan needs
+    for the rest (``mmflow.io.ms_index`` with python-casacore, ``mmflow.io.uvh5_index`` with h5py),
+    each checked against the first. None where that does not apply (then pyuvdata reads them all):
+    the first file's phase state is not the one the index handles, or its index disagrees with
+    pyuvdata's read of it."""
     try:
-        from mmflow.io import ms_index
+        if kind == "ms":
+            from mmflow.io import ms_index as indexer
+        else:
+            from mmflow.io import uvh5_index as indexer
     except ImportError:
         return None
+    phase = {"ms": "zenith", "uvh5": "drift"}[kind]
     skipped, indices, ref_uv = [], [], None
     for f in files:
         try:
             if ref_uv is None:
                 ref_uv = read_metadata(f, fmt)
                 ref_file = f
-            indices.append(ms_index.read_index(f))
+            indices.append(indexer.read_index(f))
         except Exception as exc:  # corrupt files raise many exception types
+            if ref_uv is not None and not indices:
+                return None  # the first file reads with pyuvdata but not with the index
             _unreadable(f, exc, on_bad, skipped)
     if ref_uv is None or not indices:
         return None
-    ms_index.convert_times(indices)
-    if indices[0].path != str(ref_file).rstrip("/") or not ms_index.agrees_with(indices[0], ref_uv):
-        log.warning("MS index of %s disagrees with pyuvdata's read: reading every file's metadata with pyuvdata",
-                    ref_file)
+    indexer.convert_times(indices)
+    if indices[0].path != str(ref_file).rstrip("/") or not index_agrees(indices[0], ref_uv):
+        log.warning("%s index of %s disagrees with pyuvdata's read: reading every file's metadata with pyuvdata",
+                    kind, ref_file)
         return None
     info = checks.file_info(ref_uv, ref_file)
-    if info["phase"] != "zenith":
+    if info["phase"] != phase:
         return None
-    ms_index.check_against(indices[1:], indices[0], ref_uv, info)
+    indexer.check_against(indices[1:], indices[0], ref_uv, info)
     good = [ix.path for ix in indices]
     good[0] = ref_file
     return [ref_uv] + indices[1:], good, skipped, [info] * len(indices)
+
+
+def index_agrees(ix, uv):
+    """True when a cheap index describes pyuvdata's read of the same file (times to 1 us, the
+    same (time, baseline) rows in the same order)."""
+    return (len(ix.time_array) == uv.Nblts and np.allclose(ix.time_array, uv.time_array, rtol=0, atol=1e-6 / 86400)
+            and np.array_equal(ix.ant_1_array, uv.ant_1_array) and np.array_equal(ix.ant_2_array, uv.ant_2_array))
 
 
 @lru_cache(maxsize=4)
 def _plan(pattern, fmt, on_bad):
     files = _files(pattern)
     fast = None
-    if len(files) > 2 and all(file_kind(f, fmt) == "ms" for f in files):
-        fast = _metadata_ms(files, fmt, on_bad)
+    kinds = {file_kind(f, fmt) for f in files}
+    if len(files) > 2 and len(kinds) == 1 and kinds <= {"ms", "uvh5"}:
+        fast = _metadata_indexed(files, fmt, on_bad, kinds.pop())
     metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
     ref = metas[0]
     freqs = np.asarray(ref.freq_array).ravel()

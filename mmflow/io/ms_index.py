@@ -12,8 +12,9 @@ same correlation types (so pyuvdata gives it the same polarisation axis and Stok
 same units, one spectral window, no duplicated (time, baseline) row, and its phase centre at the
 zenith of its integrations (one vectorised astropy call for all files). Times are converted as
 pyuvdata converts them (``Time(TIME / 86400, format="mjd", scale=<the column's MEASINFO>).utc.jd``);
-antenna numbers are ``ANTENNA1``/``ANTENNA2`` (pyuvdata's convention for MS). :func:`agrees_with`
-verifies both on the first file, and the plan falls back to pyuvdata for every file if it does not.
+antenna numbers are ``ANTENNA1``/``ANTENNA2`` (pyuvdata's convention for MS).
+``mmflow.io.ingest.index_agrees`` verifies both on the first file, and the plan falls back to
+pyuvdata for every file if it does not.
 """
 from __future__ import annotations
 
@@ -78,13 +79,6 @@ def convert_times(indices):
         for ix in group:
             ix.time_array = jd[start:start + len(ix.time_mjd_s)]
             start += len(ix.time_mjd_s)
-
-
-def agrees_with(ix, uv):
-    """True when this index describes the pyuvdata read of the same file (times to 1 us, the same
-    (time, baseline) rows in the same order)."""
-    return (len(ix.time_array) == uv.Nblts and np.allclose(ix.time_array, uv.time_array, rtol=0, atol=1e-6 / 86400)
-            and np.array_equal(ix.ant_1_array, uv.ant_1_array) and np.array_equal(ix.ant_2_array, uv.ant_2_array))
 
 
 def check_against(indices, ref, ref_uv, info):
