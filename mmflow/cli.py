@@ -7,7 +7,7 @@ import sys
 
 import yaml
 
-BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps")
 
 
 def _common(p):

@@ -22,7 +22,7 @@ def _cfg(run_dir, pattern, *extra):
     return load_config("workflows/uvh5-image.yaml", [
         f"run.directory={run_dir}", f"input.path={pattern}", "mmode.lmax=64", "transfer.dtype=float64",
         "transfer.m_block=8", "imaging.eps=0.0001", "transfer.noise_weighting=false", "imaging.filter_m0=false",
-        "products.nside=256", "products.unit=Jy/sr", "cluster.kind=synchronous",
+        "products.nside=256", "products.png=false", "products.unit=Jy/sr", "cluster.kind=synchronous",
         f"beam={{type: pyuvdata, file: {beam_file}}}", *extra])
 
 

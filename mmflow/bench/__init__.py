@@ -2,14 +2,15 @@
 
 One module per subject: :mod:`.engine` (transfer, solve, simulate), :mod:`.workflow` (the
 workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.calibrate`
-(Stefcal and peeling).
+(Stefcal and peeling), :mod:`.ingest` (ingest vs pyuvdata's read rate), :mod:`.gaps`
+(least-squares m-modes of flagged data).
 """
 from __future__ import annotations
 
 import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
-           "calibrate": "calibrate"}
+           "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps"}
 
 
 def run(what, quick=False):

@@ -1,9 +1,18 @@
 """Ingest drift-scan data from any format pyuvdata reads (UVH5, uvfits, MeasurementSet).
 
-The plan (metadata of every file, read once by the driver without data) checks that files
-agree on frequencies and antennas, orders integrations by time, rejects duplicate times, and
-stores each row's time and file in ``vis.zarr``. Each task then reads only the files covering
-its time chunk; no worker rescans the glob. Stokes I = (XX + YY) / 2 (paper section 2); a single polarisation is used as is.
+The plan reads every file's metadata once (no data): with pyuvdata, files read concurrently,
+or, for many UVH5 / MS files, pyuvdata for the first and only the header datasets / columns it
+needs for the rest (``mmflow.io.uvh5_index``, ``mmflow.io.ms_index``). It checks them (``mmflow.io.checks``: same frequencies, antenna numbers, antenna positions and
+site; drift or zenith-phased data; units Jy or K sr; no duplicated (time, baseline) row inside a
+file or integration across files; a polarisation set that holds Stokes I), orders integrations
+by time and stores each row's time and file in ``vis.zarr`` with what each task needs per file
+(phase state, units, the polarisations that make Stokes I). Each task then reads only the
+files covering its time chunk (concurrently, ``mmflow.io.readers``), refuses (or, with
+``input.nonfinite=flag``, flags and counts) unflagged NaN/inf samples before it writes, and
+writes its rows. No worker rescans the glob.
+
+Stokes I: ``mmflow.io.polarization`` (I, (XX + YY) / 2, (RR + LL) / 2, or one parallel hand),
+chosen by pyuvdata polarisation number so that ``ee``/``nn`` labels are XX/YY.
 pyuvdata's data (``V_12 = <E_1 E_2*>``, ``b = x_2 - x_1``, as simulated by matvis and hera_sim)
 follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/test_ingest.py`` checks by
 imaging a matvis drift scan: sources land at their ICRS positions. ``input.conjugate``
@@ -13,13 +22,17 @@ from __future__ import annotations
 
 import glob as globmod
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 
 from mmflow.errors import InputError
+from mmflow.io import checks
+from mmflow.io.readers import file_kind, read_file, read_metadata
 from mmflow.telescope.layout import Layout
+from mmflow.threads import n_threads
 
 log = logging.getLogger("mmflow.ingest")
 
@@ -37,61 +50,131 @@ class IngestPlan:
     epoch_jd: float
     integration_s: float
     skipped: list = field(default_factory=list)
-
-
-def _read(path, fmt, read_data=True, times=None):
-    from pyuvdata import UVData
-
-    uv = UVData()
-    kw = {} if fmt is None else {"file_type": fmt}
-    if times is not None:
-        kw["times"] = times
-    uv.read(path, read_data=read_data, **kw)
-    return uv
+    file_info: list = field(default_factory=list)  # per file: {"phase", "vis_units", "pol_indices"}
 
 
 def plan_ingest(cfg):
     return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file)
 
 
-@lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad):
+def _files(pattern):
     if not pattern:
         raise InputError("workflow", "input.path", "no input path", "set input.path=/data/*.uvh5")
     files = sorted(globmod.glob(pattern)) or ([pattern] if "*" not in pattern else [])
     if not files:
         raise InputError(pattern, "input.path", "no files match", "check the path or glob")
+    return files
+
+
+def _try_metadata(path, fmt):
+    try:
+        return read_metadata(path, fmt), None
+    except Exception as exc:  # pyuvdata raises many exception types for corrupt files
+        return None, exc
+
+
+def _unreadable(f, exc, on_bad, skipped):
+    msg = f"{f}: unreadable ({type(exc).__name__}: {exc})"
+    if on_bad != "skip":
+        raise InputError(f, "file", f"pyuvdata cannot read it ({exc})",
+                         "remove or replace the file, or set input.on_bad_file=skip") from exc
+    log.warning("skipping %s", msg)
+    skipped.append(msg)
+
+
+def _metadata_pyuvdata(files, fmt, on_bad):
+    """Every file's metadata with pyuvdata (read concurrently), each checked against the first."""
+    with ThreadPoolExecutor(max(1, min(n_threads(), len(files)))) as ex:
+        results = list(ex.map(lambda f: _try_metadata(f, fmt), files))
     metas, good, skipped = [], [], []
-    for f in files:
-        try:
-            metas.append(_read(f, fmt, read_data=False))
+    for f, (uv, exc) in zip(files, results):
+        if exc is None:
+            metas.append(uv)
             good.append(f)
-        except Exception as exc:  # pyuvdata raises many exception types for corrupt files
-            msg = f"{f}: unreadable ({type(exc).__name__}: {exc})"
-            if on_bad == "skip":
-                log.warning("skipping %s", msg)
-                skipped.append(msg)
-                continue
-            raise InputError(f, "file", f"pyuvdata cannot read it ({exc})",
-                             "remove or replace the file, or set input.on_bad_file=skip") from exc
+        else:
+            _unreadable(f, exc, on_bad, skipped)
+    if not metas:
+        raise InputError(files[0], "input.path", "no readable file", "check the files (see the skipped list)")
     ref = metas[0]
     freqs = np.asarray(ref.freq_array).ravel()
-    ants = np.asarray(ref.telescope.antenna_numbers)
     for f, uv in zip(good[1:], metas[1:]):
         if not np.allclose(np.asarray(uv.freq_array).ravel(), freqs):
             raise InputError(f, "freq_array", f"frequencies differ from {good[0]}",
                              "ingest one spectral setup per run (select channels first)")
-        if not np.array_equal(np.asarray(uv.telescope.antenna_numbers), ants):
-            raise InputError(f, "antenna_numbers", f"antenna set differs from {good[0]}",
-                             "ingest files from one array configuration per run")
+        checks.compare_telescope(uv, ref, f, good[0])
+    infos = [checks.file_info(uv, f) for f, uv in zip(good, metas)]
+    return metas, good, skipped, infos
+
+
+def _metadata_indexed(files, fmt, on_bad, kind):
+    """Many files of one kind: pyuvdata for the first, a cheap read of the columns the plan needs
+    for the rest (``mmflow.io.ms_index`` with python-casacore, ``mmflow.io.uvh5_index`` with h5py),
+    each checked against the first. None where that does not apply (then pyuvdata reads them all):
+    the first file's phase state is not the one the index handles, or its index disagrees with
+    pyuvdata's read of it."""
+    try:
+        if kind == "ms":
+            from mmflow.io import ms_index as indexer
+        else:
+            from mmflow.io import uvh5_index as indexer
+    except ImportError:
+        return None
+    phase = {"ms": "zenith", "uvh5": "drift"}[kind]
+    skipped, indices, ref_uv = [], [], None
+    for f in files:
+        try:
+            if ref_uv is None:
+                ref_uv = read_metadata(f, fmt)
+                ref_file = f
+            indices.append(indexer.read_index(f))
+        except Exception as exc:  # corrupt files raise many exception types
+            if ref_uv is not None and not indices:
+                return None  # the first file reads with pyuvdata but not with the index
+            _unreadable(f, exc, on_bad, skipped)
+    if ref_uv is None or not indices:
+        return None
+    indexer.convert_times(indices)
+    if indices[0].path != str(ref_file).rstrip("/") or not index_agrees(indices[0], ref_uv):
+        log.warning("%s index of %s disagrees with pyuvdata's read: reading every file's metadata with pyuvdata",
+                    kind, ref_file)
+        return None
+    info = checks.file_info(ref_uv, ref_file)
+    if info["phase"] != phase:
+        return None
+    indexer.check_against(indices[1:], indices[0], ref_uv, info)
+    good = [ix.path for ix in indices]
+    good[0] = ref_file
+    return [ref_uv] + indices[1:], good, skipped, [info] * len(indices)
+
+
+def index_agrees(ix, uv):
+    """True when a cheap index describes pyuvdata's read of the same file (times to 1 us, the
+    same (time, baseline) rows in the same order)."""
+    return (len(ix.time_array) == uv.Nblts and np.allclose(ix.time_array, uv.time_array, rtol=0, atol=1e-6 / 86400)
+            and np.array_equal(ix.ant_1_array, uv.ant_1_array) and np.array_equal(ix.ant_2_array, uv.ant_2_array))
+
+
+@lru_cache(maxsize=4)
+def _plan(pattern, fmt, on_bad):
+    files = _files(pattern)
+    fast = None
+    kinds = {file_kind(f, fmt) for f in files}
+    if len(files) > 2 and len(kinds) == 1 and kinds <= {"ms", "uvh5"}:
+        fast = _metadata_indexed(files, fmt, on_bad, kinds.pop())
+    metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
+    ref = metas[0]
+    freqs = np.asarray(ref.freq_array).ravel()
+    ants = np.asarray(ref.telescope.antenna_numbers)
     # baselines: the union over files as (i, j) antenna-index pairs with i <= j; a baseline a
     # file lacks is simply unmeasured (weight 0) in that file's integrations
-    index = {int(a): k for k, a in enumerate(ants)}
+    index = _index_lookup(ants)
     found = []
-    for uv in metas:
-        a1 = [index[int(x)] for x in np.asarray(uv.ant_1_array)]
-        a2 = [index[int(x)] for x in np.asarray(uv.ant_2_array)]
-        found.append(np.sort(np.stack([a1, a2], 1), 1))
+    for f, uv in zip(good, metas):
+        a1, a2 = np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array)
+        if max(a1.max(), a2.max()) >= len(index) or min(index[a1].min(), index[a2].min()) < 0:
+            raise InputError(f, "ant_1_array/ant_2_array", f"antenna numbers outside {good[0]}'s antenna table",
+                             "ingest files from one array configuration per run")
+        found.append(np.sort(np.stack([index[a1], index[a2]], 1), 1))
     pairs = np.unique(np.concatenate(found), axis=0)
     seen = {}
     all_t = []
@@ -111,15 +194,25 @@ def _plan(pattern, fmt, on_bad):
     tint = float(np.median(np.asarray(ref.integration_time)))
     times = np.array([t for t, _ in all_t])
     return IngestPlan(good, times, np.array([fi for _, fi in all_t]), len(all_t), freqs, pairs, ants, layout,
-                      float(np.median(times)), tint, skipped)
+                      float(np.median(times)), tint, skipped, infos)
 
 
 def write_plan(group, plan):
-    """Store what tasks need (row times, each row's file, antenna numbers) so no worker rescans files."""
+    """Store what tasks need (row times, each row's file, antenna numbers, per-file phase state,
+    units and Stokes-I recipe) so no worker rescans or re-checks files."""
     if "plan_time_jd" not in group:
         group.create_array("plan_time_jd", data=plan.row_time)
         group.create_array("plan_file", data=plan.row_file.astype("int32"))
         group.create_array("antenna_numbers", data=np.asarray(plan.ant_numbers, "int64"))
+        group.attrs["ingest_file_info"] = plan.file_info
+
+
+def _index_lookup(ant_numbers):
+    """Dense array taking an antenna number to its index (-1 where unknown)."""
+    ant_numbers = np.asarray(ant_numbers, int)
+    lut = np.full(int(ant_numbers.max()) + 1, -1, int)
+    lut[ant_numbers] = np.arange(len(ant_numbers))
+    return lut
 
 
 def _antenna_enu(uv):
@@ -129,67 +222,69 @@ def _antenna_enu(uv):
     return ENU_from_ECEF(ecef, center_loc=uv.telescope.location)
 
 
-def stokes_i(uv):
-    """(XX + YY) / 2 from a UVData (or the single polarisation present); returns data, flags."""
-    pols = list(uv.get_pols())
-    data = np.asarray(uv.data_array)  # (nblt, nfreq, npol)
-    flags = np.asarray(uv.flag_array)
-    if "xx" in pols and "yy" in pols:
-        ix, iy = pols.index("xx"), pols.index("yy")
-        return 0.5 * (data[..., ix] + data[..., iy]), flags[..., ix] | flags[..., iy]
-    if "pI" in pols:
-        i = pols.index("pI")
-        return data[..., i], flags[..., i]
-    if len(pols) == 1:
-        return data[..., 0], flags[..., 0]
-    raise InputError("ingest", "polarization_array", f"cannot form Stokes I from {pols}",
-                     "provide xx and yy (or a single polarisation)")
-
-
 def _time_key(jd):
-    return np.round(np.asarray(jd, float) * 86400.0, 3)
+    return checks.time_key(jd)
 
 
 def ingest_time_chunk(cfg, store_path, row0, row1):
-    """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows."""
+    """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows.
+
+    Nothing is written if any of the files has unflagged NaN/inf samples (unless
+    ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged). Flagged
+    non-finite samples are stored as 0 with weight 0, so ``vis.zarr`` holds only finite numbers.
+    """
     import zarr
 
     g = zarr.open_group(str(store_path), mode="r+")
     files = g.attrs["files"]
+    infos = g.attrs.get("ingest_file_info")
     row_time = g["plan_time_jd"][row0:row1]
     row_file = g["plan_file"][row0:row1]
     pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
-    n, nbl, nf = len(row_time), len(pairs), g["freqs_hz"].shape[0]
-    row_of = {k: r for r, k in enumerate(_time_key(row_time))}
+    freqs = g["freqs_hz"][:]
+    n, nbl, nf = len(row_time), len(pairs), len(freqs)
+    mode = getattr(cfg.input, "nonfinite", "error")
+    chunk_keys = _time_key(row_time)
+    index = _index_lookup(ant_numbers)
+    na = len(ant_numbers)
+    pair_lut = np.full((na, na), -1, int)
+    pair_lut[pairs[:, 0], pairs[:, 1]] = np.arange(nbl)
+    fis = [int(f) for f in np.unique(row_file)]
+
+    def one(fi):
+        return read_file(files[fi], cfg.input.format, None if infos is None else infos[fi])
+
+    with ThreadPoolExecutor(max(1, min(n_threads(), len(fis)))) as ex:
+        parts = list(ex.map(one, fis))
     vis = np.zeros((n, nbl, nf), np.complex64)
     wts = np.zeros((n, nbl, nf), np.float32)
     lst = np.full(n, np.nan)
-    pair_index = {(int(i), int(j)): k for k, (i, j) in enumerate(pairs)}
-    index = {int(a): k for k, a in enumerate(ant_numbers)}
-    for fi in np.unique(row_file):
-        uv = _read(files[fi], cfg.input.format)
-        data, flags = stokes_i(uv)
-        nsamp = np.asarray(uv.nsample_array)[..., 0]
-        keys, l_arr = _time_key(uv.time_array), np.asarray(uv.lst_array)
-        a1 = np.array([index[int(x)] for x in uv.ant_1_array])
-        a2 = np.array([index[int(x)] for x in uv.ant_2_array])
-        for k in range(len(keys)):
-            r = row_of.get(keys[k])
-            if r is None:  # an integration of this file that belongs to another chunk
-                continue
-            i, j = int(a1[k]), int(a2[k])
-            v = data[k]
-            if i > j:  # V(j, i) = conj(V(i, j))
-                i, j, v = j, i, np.conj(v)
-            if cfg.input.conjugate:
-                v = np.conj(v)
-            b = pair_index[(i, j)]
-            vis[r, b] = v
-            wts[r, b] = np.where(flags[k], 0.0, nsamp[k])
-            lst[r] = l_arr[k]
+    n_nonfinite = 0
+    for fi, p in zip(fis, parts):
+        bad, nbad = checks.nonfinite(p.vis, p.flags, files[fi], mode)  # raises before anything is written
+        n_nonfinite += nbad
+        keys = _time_key(p.time_jd)
+        pos = np.searchsorted(chunk_keys, keys)
+        mine = (pos < n) & (chunk_keys[np.minimum(pos, n - 1)] == keys)  # rows of other chunks are skipped
+        r = pos[mine]
+        i, j = index[p.ant1[mine]], index[p.ant2[mine]]
+        swap = i > j  # V(j, i) = conj(V(i, j))
+        b = pair_lut[np.minimum(i, j), np.maximum(i, j)]
+        v = p.vis[mine]
+        finite = np.isfinite(v)
+        if not finite.all():  # flagged (or, with nonfinite=flag, newly flagged) NaN/inf are stored as 0
+            v = np.where(finite, v, 0)
+        if swap.any():
+            v[swap] = np.conj(v[swap])
+        if cfg.input.conjugate:
+            v = np.conj(v)
+        vis[r, b] = v
+        wts[r, b] = np.where(p.flags[mine] | bad[mine], 0.0, p.nsample[mine])
+        lst[r] = p.lst[mine]
     g["vis"][row0:row0 + n] = vis
     g["weights"][row0:row0 + n] = wts
     g["lst"][row0:row0 + n] = lst
     g["time_jd"][row0:row0 + n] = row_time
     flagged = int(np.sum(np.all(wts == 0, axis=(1, 2))))
-    return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": int(len(np.unique(row_file)))}
+    return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
+            "nonfinite_flagged": int(n_nonfinite)}

@@ -1,0 +1,141 @@
+"""Metadata and data checks made at ingest: what mmflow must not trust in an input file.
+
+Each check either accepts, converts where the conversion is exact, or raises
+:class:`mmflow.errors.InputError` naming the file, the field and the fix. They work on
+plain arrays and pyuvdata ``UVData`` metadata (no data needed), so the plan runs them once per
+file before anything is written.
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from mmflow.errors import InputError
+from mmflow.io.polarization import stokes_i_recipe
+from mmflow.sky.units import jy_per_sr_per_kelvin
+
+log = logging.getLogger("mmflow.ingest")
+
+#: a phase centre within this angle of the zenith of every integration of a file is a
+#: snapshot phased to zenith (one MeasurementSet per integration, as the OVRO-LWA writes):
+#: it is unprojected exactly (pyuvdata ``unproject_phase``) rather than refused.
+ZENITH_TOL_DEG = 0.5
+#: antenna positions (absolute ECEF) and the telescope location must agree across files to this.
+POSITION_TOL_M = 0.01
+
+
+def phase_state(uv, what):
+    """``"drift"`` for unprojected data, ``"zenith"`` for data phased to the zenith of each
+    integration (exactly undone with pyuvdata's ``unproject_phase``); otherwise an error.
+
+    The zenith test compares each row's apparent phase centre (``phase_center_app_ra/dec``)
+    with the apparent zenith (RA = the row's LST, Dec = the site's latitude).
+    """
+    cat = uv.phase_center_catalog or {}
+    ids = np.unique(np.asarray(uv.phase_center_id_array)) if uv.phase_center_id_array is not None else []
+    types = {int(i): cat[int(i)]["cat_type"] for i in ids if int(i) in cat}
+    if all(t == "unprojected" for t in types.values()):
+        return "drift"
+    lat = uv.telescope.location.lat.rad
+    ra = np.asarray(uv.phase_center_app_ra, float)
+    dec = np.asarray(uv.phase_center_app_dec, float)
+    lst = np.asarray(uv.lst_array, float)
+    cos_sep = np.sin(dec) * np.sin(lat) + np.cos(dec) * np.cos(lat) * np.cos(ra - lst)
+    sep = float(np.rad2deg(np.arccos(np.clip(np.min(cos_sep), -1.0, 1.0))))
+    if sep <= ZENITH_TOL_DEG:
+        return "zenith"
+    kinds = sorted(set(types.values()))
+    raise InputError(what, f"phase_center_catalog (cat_type={','.join(kinds)})",
+                     f"the data are phased to a fixed phase centre up to {sep:.2f} deg from the zenith, not a "
+                     "drift scan (mmflow images drift scans; phased data would be imaged with wrong phases)",
+                     "unproject to drift with pyuvdata 3.x: uv = UVData.from_file(f); uv.unproject_phase(); "
+                     "uv.write_uvh5(out)")
+
+
+def unit_scale(units, freqs, what):
+    """Factor per frequency that takes visibilities in ``units`` (pyuvdata ``vis_units``) to Jy.
+
+    ``Jy``: 1. ``K str`` (Rayleigh-Jeans brightness temperature times solid angle):
+    ``2 k nu^2 / c^2 / 1e-26`` Jy per K sr, exact. ``uncalib`` and anything else: an error.
+    """
+    units = str(units)
+    freqs = np.asarray(freqs, float).ravel()
+    if units == "Jy":
+        return np.ones_like(freqs)
+    if units == "K str":
+        return jy_per_sr_per_kelvin(freqs)
+    if units == "uncalib":
+        raise InputError(what, "vis_units", "the visibilities are uncalibrated ('uncalib'); mmflow needs Jy",
+                         "calibrate first (e.g. with a sky model in CASA or pyuvdata's uvcalibrate), then set "
+                         "vis_units='Jy'")
+    raise InputError(what, "vis_units", f"unknown visibility unit {units!r}",
+                     "write the data in Jy (or 'K str', converted exactly at ingest)")
+
+
+def antenna_ecef(uv):
+    """Absolute ECEF (m) of every antenna, keyed by antenna number."""
+    pos = np.asarray(uv.telescope.antenna_positions, float) + np.asarray(uv.telescope._location.xyz())
+    return {int(n): p for n, p in zip(uv.telescope.antenna_numbers, pos)}
+
+
+def compare_telescope(uv, ref, what, ref_what):
+    """Antenna numbers, absolute antenna positions and the site agree with the reference file."""
+    if not np.array_equal(np.asarray(uv.telescope.antenna_numbers), np.asarray(ref.telescope.antenna_numbers)):
+        raise InputError(what, "antenna_numbers", f"antenna set differs from {ref_what}",
+                         "ingest files from one array configuration per run")
+    dloc = float(np.linalg.norm(np.asarray(uv.telescope._location.xyz()) - np.asarray(ref.telescope._location.xyz())))
+    if dloc > POSITION_TOL_M:
+        raise InputError(what, "telescope.location", f"the site is {dloc:.3f} m from {ref_what}'s "
+                         f"(tolerance {POSITION_TOL_M} m)", "ingest files from one site and one array survey per run")
+    a, b = antenna_ecef(uv), antenna_ecef(ref)
+    moved = {n: float(np.linalg.norm(a[n] - b[n])) for n in a}
+    worst = max(moved, key=moved.get)
+    if moved[worst] > POSITION_TOL_M:
+        raise InputError(what, "antenna_positions", f"antenna {worst} is {moved[worst]:.3f} m from its position in "
+                         f"{ref_what} (tolerance {POSITION_TOL_M} m)",
+                         "ingest files from one array survey per run (fix the antenna table)")
+
+
+def time_key(jd):
+    """Integration identity: the time rounded to the millisecond."""
+    return np.round(np.asarray(jd, float) * 86400.0, 3)
+
+
+def duplicate_rows(jd, ant1, ant2, what):
+    """Refuse two rows of one file with the same (time, baseline), (i, j) and (j, i) alike."""
+    lo, hi = np.minimum(ant1, ant2), np.maximum(ant1, ant2)
+    keys = np.rec.fromarrays([time_key(jd), lo, hi])
+    order = np.argsort(keys, kind="stable")
+    same = np.flatnonzero(keys[order][1:] == keys[order][:-1])
+    if len(same):
+        r1, r2 = int(order[same[0]]), int(order[same[0] + 1])
+        raise InputError(what, "time_array/ant_1_array/ant_2_array",
+                         f"{len(same)} duplicated (time, baseline) rows: rows {r1} and {r2} are both baseline "
+                         f"({int(lo[r1])}, {int(hi[r1])}) at JD {float(jd[r1]):.6f}",
+                         "remove the duplicated rows (pyuvdata: uv.select(blt_inds=...)) or the duplicated file")
+
+
+def nonfinite(vis, flagged, what, mode):
+    """Unflagged NaN / inf samples: ``mode="error"`` refuses the file naming the count;
+    ``mode="flag"`` returns a mask of them to flag (the caller counts and logs them)."""
+    bad = ~np.isfinite(vis) & ~flagged
+    n = int(np.count_nonzero(bad))
+    if n and mode != "flag":
+        raise InputError(what, "data_array", f"{n} unflagged samples are NaN or inf (of {vis.size})",
+                         "flag them in the file, or set input.nonfinite=flag to flag them at ingest (counted and "
+                         "logged)")
+    if n:
+        log.warning("%s: flagged %d unflagged NaN/inf samples (input.nonfinite=flag)", what, n)
+    return bad, n
+
+
+def file_info(uv, what):
+    """Check one file's metadata; return what a task needs to make Stokes I in Jy from it:
+    ``{"phase": "drift"|"zenith", "vis_units": ..., "pol_indices": [...]}``."""
+    indices, single = stokes_i_recipe(uv.polarization_array, what)
+    if single:
+        log.info("%s: one parallel-hand polarisation stands in for Stokes I", what)
+    unit_scale(uv.vis_units, uv.freq_array, what)
+    duplicate_rows(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array), what)
+    return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices]}

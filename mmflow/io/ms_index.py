@@ -1,0 +1,139 @@
+"""The plan's cheap pass over many MeasurementSets (one per integration, as the OVRO-LWA writes them).
+
+pyuvdata's metadata read of a MeasurementSet costs as much as reading it whole (it opens every
+subtable several times and computes apparent coordinates), so planning 768 single-integration
+MS files with it would read every file twice. The plan therefore reads the first MS fully with
+pyuvdata (every check of ``mmflow.io.checks``) and, for every other MS, only the columns the
+plan needs, with python-casacore: the main table's ``TIME``, ``ANTENNA1``, ``ANTENNA2``,
+``DATA_DESC_ID`` and the ``DATA`` unit, and the ``SPECTRAL_WINDOW``, ``ANTENNA``,
+``POLARIZATION`` and ``FIELD`` subtables. Each file is then checked against the first:
+same frequencies, same antenna table (absolute positions within ``checks.POSITION_TOL_M``),
+same correlation types (so pyuvdata gives it the same polarisation axis and Stokes-I recipe),
+same units, one spectral window, no duplicated (time, baseline) row, and its phase centre at the
+zenith of its integrations (one vectorised astropy call for all files). Times are converted as
+pyuvdata converts them (``Time(TIME / 86400, format="mjd", scale=<the column's MEASINFO>).utc.jd``);
+antenna numbers are ``ANTENNA1``/``ANTENNA2`` (pyuvdata's convention for MS).
+``mmflow.io.ingest.index_agrees`` verifies both on the first file, and the plan falls back to
+pyuvdata for every file if it does not.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmflow.errors import InputError
+from mmflow.io import checks
+
+
+@dataclass
+class MSIndex:
+    path: str
+    time_mjd_s: np.ndarray
+    time_scale: str
+    ant_1_array: np.ndarray
+    ant_2_array: np.ndarray
+    n_ddid: int
+    units: str
+    freqs: np.ndarray
+    antenna_positions: np.ndarray  # absolute ITRF (m), every row of the ANTENNA table
+    corr_type: np.ndarray
+    phase_dir: np.ndarray  # (nfield, 2) rad
+    phase_frame: str
+    time_array: np.ndarray = None  # UTC JD, set by :func:`convert_times`
+
+
+def read_index(path):
+    """The columns the plan needs from one MS (python-casacore; no data)."""
+    from casacore.tables import table
+
+    p = str(path).rstrip("/")
+    with table(p, ack=False, readonly=True) as t:
+        time = t.getcol("TIME")
+        a1, a2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+        n_ddid = len(np.unique(t.getcol("DATA_DESC_ID")))
+        scale = str(t.getcolkeyword("TIME", "MEASINFO").get("Ref", "UTC"))
+        units = t.getcolkeywords("DATA").get("QuantumUnits", "uncalib")
+    units = units[0] if isinstance(units, (list, tuple)) else units
+    with table(p + "/SPECTRAL_WINDOW", ack=False, readonly=True) as t:
+        freqs = np.asarray(t.getcol("CHAN_FREQ"), float)
+    with table(p + "/ANTENNA", ack=False, readonly=True) as t:
+        pos = np.asarray(t.getcol("POSITION"), float)
+    with table(p + "/POLARIZATION", ack=False, readonly=True) as t:
+        corr = np.asarray(t.getcol("CORR_TYPE"))
+    with table(p + "/FIELD", ack=False, readonly=True) as t:
+        phase_dir = np.asarray(t.getcol("PHASE_DIR"), float)[:, 0, :]
+        frame = str(t.getcolkeyword("PHASE_DIR", "MEASINFO").get("Ref", "J2000"))
+    return MSIndex(p, np.asarray(time, float), scale, np.asarray(a1), np.asarray(a2), n_ddid, str(units), freqs,
+                   pos, corr, phase_dir, frame)
+
+
+def convert_times(indices):
+    """Set ``time_array`` (UTC JD) of every index as pyuvdata does, one astropy call per time scale."""
+    from astropy.time import Time
+
+    for scale in {ix.time_scale for ix in indices}:
+        group = [ix for ix in indices if ix.time_scale == scale]
+        jd = Time(np.concatenate([ix.time_mjd_s for ix in group]) / 86400.0, format="mjd", scale=scale.lower()).utc.jd
+        start = 0
+        for ix in group:
+            ix.time_array = jd[start:start + len(ix.time_mjd_s)]
+            start += len(ix.time_mjd_s)
+
+
+def check_against(indices, ref, ref_uv, info):
+    """Check every MS index against the first file (``ref``, read and checked with pyuvdata)."""
+    if info["phase"] != "zenith":
+        raise InputError(ref.path, "FIELD.PHASE_DIR", "the first MeasurementSet is not phased to its zenith",
+                         "write one MS per integration phased to its zenith, or convert to UVH5 drift scans")
+    for ix in indices:
+        if ix.n_ddid != 1:
+            raise InputError(ix.path, "DATA_DESC_ID", f"{ix.n_ddid} spectral windows / polarisation setups",
+                             "split the MS by spectral window (one setup per run)")
+        if ix.freqs.shape != ref.freqs.shape or not np.allclose(ix.freqs, ref.freqs):
+            raise InputError(ix.path, "freq_array", f"frequencies differ from {ref.path}",
+                             "ingest one spectral setup per run (select channels first)")
+        if not np.array_equal(ix.corr_type, ref.corr_type):
+            raise InputError(ix.path, "POLARIZATION.CORR_TYPE", f"correlation types {ix.corr_type.ravel().tolist()} "
+                             f"differ from {ref.path}'s {ref.corr_type.ravel().tolist()}",
+                             "ingest files with one polarisation setup per run")
+        if ix.units != ref.units:
+            raise InputError(ix.path, "vis_units", f"unit {ix.units!r} differs from {ref.path}'s {ref.units!r}",
+                             "ingest files in one unit per run")
+        if ix.antenna_positions.shape != ref.antenna_positions.shape:
+            raise InputError(ix.path, "antenna_numbers", f"antenna set differs from {ref.path}",
+                             "ingest files from one array configuration per run")
+        moved = np.linalg.norm(ix.antenna_positions - ref.antenna_positions, axis=1)
+        if moved.max() > checks.POSITION_TOL_M:
+            k = int(np.argmax(moved))
+            raise InputError(ix.path, "antenna_positions", f"antenna {k} is {moved[k]:.3f} m from its position in "
+                             f"{ref.path} (tolerance {checks.POSITION_TOL_M} m)",
+                             "ingest files from one array survey per run (fix the antenna table)")
+        checks.duplicate_rows(ix.time_array, ix.ant_1_array, ix.ant_2_array, ix.path)
+    _check_zenith(indices, ref_uv)
+
+
+def _check_zenith(indices, ref_uv):
+    """Each file's phase centre(s) within ``checks.ZENITH_TOL_DEG`` of the zenith at its first and
+    last integration (ICRS, the MS's J2000/ICRS frame; one astropy transform for all files)."""
+    from astropy import units as u
+    from astropy.coordinates import AltAz, SkyCoord
+    from astropy.time import Time
+
+    t = np.concatenate([[ix.time_array.min(), ix.time_array.max()] for ix in indices])
+    loc = ref_uv.telescope.location
+    frame = AltAz(obstime=Time(t, format="jd", scale="utc"), location=loc)
+    zen = SkyCoord(alt=np.full(len(t), 90.0) * u.deg, az=np.zeros(len(t)) * u.deg, frame=frame).icrs
+    zra, zdec = zen.ra.rad.reshape(-1, 2), zen.dec.rad.reshape(-1, 2)
+    for k, ix in enumerate(indices):
+        if ix.phase_frame.upper() not in ("J2000", "ICRS"):
+            raise InputError(ix.path, "FIELD.PHASE_DIR", f"phase-centre frame {ix.phase_frame}",
+                             "write the MS with a J2000 or ICRS phase centre")
+        ra, dec = ix.phase_dir[:, :1], ix.phase_dir[:, 1:]
+        cos = np.sin(dec) * np.sin(zdec[k]) + np.cos(dec) * np.cos(zdec[k]) * np.cos(ra - zra[k])
+        sep = float(np.rad2deg(np.arccos(np.clip(cos.min(), -1, 1))))
+        if sep > checks.ZENITH_TOL_DEG:
+            raise InputError(ix.path, "phase_center_catalog (FIELD.PHASE_DIR)",
+                             f"the data are phased to a fixed phase centre {sep:.2f} deg from the zenith, not a drift "
+                             "scan", "unproject to drift with pyuvdata 3.x: uv = UVData.from_file(f); "
+                             "uv.unproject_phase(); uv.write_uvh5(out)")

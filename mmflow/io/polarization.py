@@ -1,0 +1,85 @@
+"""Stokes I from the polarisations a file holds, chosen by pyuvdata polarisation NUMBER.
+
+pyuvdata (AIPS memo 117) numbers: Stokes / pseudo-Stokes I = 1 (``I``, ``pI``), RR = -1,
+LL = -2, XX = -5, YY = -6; the cross hands are RL = -3, LR = -4, XY = -7, YX = -8. The
+string labels depend on the feeds (pyuvdata calls XX/YY ``ee``/``nn`` when the telescope's
+``x_orientation`` is east, and ``hh``/``vv`` for some instruments), so mmflow never looks at
+them: it works from the numbers.
+
+Stokes I (docs/conventions.md) is, in order of preference:
+
+* the file's I / pI (number 1) as it is;
+* ``(XX + YY) / 2`` (linear feeds, the paper's section 2; also from 4-pol files);
+* ``(RR + LL) / 2`` (circular feeds);
+* a single parallel hand (XX, YY, RR or LL alone) as it is, with a warning: for an
+  unpolarised sky XX = YY = I.
+
+Cross hands alone (XY, YX, RL, LR: no parallel hand) and Stokes Q/U/V alone carry no Stokes
+I and are refused. A Stokes-I sample is flagged when any polarisation it uses is flagged; its
+sample count is the smallest of theirs.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.errors import InputError
+
+STOKES_I = 1
+PAIRS = ((-5, -6), (-1, -2))  # (XX, YY), (RR, LL)
+PARALLEL = (-5, -6, -1, -2)
+_NAMES = {1: "I", 2: "Q", 3: "U", 4: "V", -1: "RR", -2: "LL", -3: "RL", -4: "LR", -5: "XX", -6: "YY",
+          -7: "XY", -8: "YX"}
+
+
+def pol_names(numbers):
+    """Feed-independent names of pyuvdata polarisation numbers (``-5 -> 'XX'``)."""
+    return [_NAMES.get(int(p), str(int(p))) for p in np.ravel(numbers)]
+
+
+def stokes_i_recipe(pol_numbers, what="input"):
+    """Which polarisation indices make Stokes I, and with what weight.
+
+    Parameters
+    ----------
+    pol_numbers : array_like of int
+        The file's ``polarization_array`` (pyuvdata numbers).
+    what : str
+        The file, for the error message.
+
+    Returns
+    -------
+    indices : tuple of int
+        Positions along the file's polarisation axis that are combined.
+    single : bool
+        True when one parallel hand alone stands in for Stokes I.
+
+    Stokes I = sum(data[..., indices]) / len(indices).
+    """
+    pols = [int(p) for p in np.ravel(pol_numbers)]
+    if STOKES_I in pols:
+        return (pols.index(STOKES_I),), False
+    for a, b in PAIRS:
+        if a in pols and b in pols:
+            return (pols.index(a), pols.index(b)), False
+    par = [p for p in pols if p in PARALLEL]
+    if len(par) == 1:
+        return (pols.index(par[0]),), True
+    raise InputError(what, "polarization_array",
+                     f"cannot form Stokes I from polarisations {pol_names(pols)} (numbers {pols}): "
+                     "no Stokes I and no parallel-hand pair (cross hands alone carry no Stokes I)",
+                     "provide XX and YY (pyuvdata also calls them ee/nn), RR and LL, or pseudo-Stokes pI")
+
+
+def combine_stokes_i(data, flags, nsample, indices):
+    """Stokes I, its flags and sample counts from ``(..., npol)`` arrays.
+
+    ``I = mean(data[..., indices])``; flagged where any used polarisation is flagged;
+    ``nsample = min(nsample[..., indices])``.
+    """
+    idx = list(indices)
+    if len(idx) == 1:
+        return data[..., idx[0]], flags[..., idx[0]], nsample[..., idx[0]]
+    a, b = idx
+    vis = data[..., a] + data[..., b]
+    vis *= 0.5
+    return vis, flags[..., a] | flags[..., b], np.minimum(nsample[..., a], nsample[..., b])

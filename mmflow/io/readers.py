@@ -1,0 +1,134 @@
+"""Read one input file into Stokes-I arrays (the per-file step of an ingest task).
+
+:func:`read_metadata` reads a file's metadata with pyuvdata (no data). :func:`read_file`
+returns a :class:`FileData`: each row's time, antennas, LST and the Stokes-I visibilities,
+flags and sample counts, in Jy. A drift-scan UVH5 file whose metadata the plan has already
+read and checked is read directly with h5py (its ``Data/visdata``, ``Data/flags``,
+``Data/nsamples`` and the header's row arrays, as the UVH5 format defines them), so its
+metadata are not parsed a second time; every other file (MeasurementSet, uvfits, zenith-phased
+data) goes through ``pyuvdata.UVData.read``, and zenith-phased data are unprojected exactly with
+``UVData.unproject_phase``. Both paths give the same numbers (``tests/test_ingest_formats.py``).
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmflow.io import checks
+from mmflow.io.polarization import combine_stokes_i
+
+_CASACORE_LOCK = threading.Lock()  # casacore's table cache is not thread-safe
+
+
+@dataclass
+class FileData:
+    time_jd: np.ndarray  # (nblt,)
+    ant1: np.ndarray  # (nblt,) antenna numbers
+    ant2: np.ndarray
+    lst: np.ndarray  # (nblt,) rad
+    vis: np.ndarray  # (nblt, nfreq) complex Stokes I, Jy
+    flags: np.ndarray  # (nblt, nfreq) bool
+    nsample: np.ndarray  # (nblt, nfreq) float
+    freqs: np.ndarray  # (nfreq,) Hz
+
+
+def file_kind(path, fmt=None):
+    """The kind of one input path: the forced format, "uvh5", "ms", or None (pyuvdata decides)."""
+    if fmt is not None:
+        return fmt
+    p = str(path).lower().rstrip("/")
+    if p.endswith((".uvh5", ".h5", ".hdf5")):
+        return "uvh5"
+    if p.endswith(".ms"):
+        return "ms"
+    return None
+
+
+def _kwargs(path, fmt):
+    """pyuvdata read arguments: the forced format, and single-channel MS spectral windows kept
+    (pyuvdata drops them by default as "continuum" windows)."""
+    kind = file_kind(path, fmt)
+    kw = {} if fmt is None else {"file_type": fmt}
+    if kind == "ms":
+        kw["ignore_single_chan"] = False
+    return kw, kind
+
+
+def read_metadata(path, fmt=None):
+    """pyuvdata ``UVData`` with metadata only. pyuvdata's own consistency check is skipped:
+    mmflow checks what it uses (``mmflow.io.checks``)."""
+    from pyuvdata import UVData
+
+    kw, kind = _kwargs(path, fmt)
+    uv = UVData()
+    if kind == "ms":
+        with _CASACORE_LOCK:
+            uv.read(str(path), read_data=False, run_check=False, **kw)
+    else:
+        uv.read(str(path), read_data=False, run_check=False, **kw)
+    return uv
+
+
+def read_file(path, fmt=None, info=None):
+    """Stokes I (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
+    here from the file when None)."""
+    if info is not None and info["phase"] == "drift" and file_kind(path, fmt) == "uvh5":
+        out = _read_uvh5_direct(path, info["pol_indices"])
+    else:
+        out, info = _read_pyuvdata(path, fmt, info)
+    scale = checks.unit_scale(info["vis_units"], out.freqs, path)
+    if np.any(scale != 1.0):
+        out.vis = out.vis * scale[None, :]
+    return out
+
+
+def _read_pyuvdata(path, fmt, info):
+    from pyuvdata import UVData
+
+    kw, kind = _kwargs(path, fmt)
+    uv = UVData()
+    if kind == "ms":
+        with _CASACORE_LOCK:
+            uv.read(str(path), run_check=False, **kw)
+    else:
+        uv.read(str(path), run_check=False, **kw)
+    if info is None:
+        info = checks.file_info(uv, str(path))
+    if info["phase"] == "zenith":
+        uv.unproject_phase()
+    vis, flags, nsample = combine_stokes_i(np.asarray(uv.data_array), np.asarray(uv.flag_array),
+                                           np.asarray(uv.nsample_array), info["pol_indices"])
+    raw = FileData(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array),
+               np.asarray(uv.lst_array), vis, flags, nsample, np.asarray(uv.freq_array, float).ravel())
+    return raw, info
+
+
+def _read_uvh5_direct(path, pol_indices):
+    """The UVH5 datasets themselves (format: pyuvdata docs, "UVH5 file format"): rows in file
+    order, ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex or an integer ``r``/``i`` compound.
+    Autocorrelations' Stokes I is made real, as pyuvdata's ``fix_autos`` does on read."""
+    import h5py
+
+    with h5py.File(str(path), "r") as f:
+        h, d = f["Header"], f["Data"]
+        time_jd = h["time_array"][()]
+        ant1, ant2 = h["ant_1_array"][()], h["ant_2_array"][()]
+        lst = h["lst_array"][()]
+        freqs = np.asarray(h["freq_array"][()], float).ravel()
+        pols = list(pol_indices)
+        lo, hi = min(pols), max(pols) + 1  # read the contiguous polarisation slab holding them
+        data = d["visdata"]
+        squeeze = data.ndim == 4
+        sl = (slice(None), 0, slice(None), slice(lo, hi)) if squeeze else (slice(None), slice(None), slice(lo, hi))
+        vis = data[sl]
+        if vis.dtype.names:
+            vis = vis["r"].astype(np.float64) + 1j * vis["i"].astype(np.float64)
+        flags, nsample = d["flags"][sl], d["nsamples"][sl]
+    idx = [p - lo for p in pols]
+    vis, flags, nsample = combine_stokes_i(vis, flags, nsample, idx)
+    auto = ant1 == ant2
+    if auto.any():
+        vis[auto] = vis[auto].real
+    return FileData(time_jd, ant1, ant2, lst, vis, flags, nsample, freqs)
