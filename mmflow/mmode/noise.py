@@ -88,11 +88,12 @@ def residual_variance(rss, n_filled, band_limit, signal_power=None, floor_fracti
     ----------
     rss, n_filled, band_limit : ndarray (n_bl,)
         From :class:`mmflow.mmode.gapfill.LsqMmodes`.
-    signal_power : ndarray (n_bl,), optional
+    signal_power : float or ndarray (n_bl,), optional
         ``sum_n w_n |V_n|^2 / N_filled`` (``LsqMmodes.signal_power``). With it ``sigma^2`` is
-        floored at ``floor_fraction * signal_power``: noiseless data (simulations without
-        autocorrelations) then get finite weights, those of a signal-to-noise ratio of
-        ``1 / floor_fraction`` per bin, instead of infinite ones.
+        floored at ``floor_fraction * max(signal_power)``: one floor for all baselines given
+        (a chunk), so noiseless data (simulations without autocorrelations) get finite and
+        equal weights, as the radiometer equation would give them, instead of infinite ones
+        (or weights set by rounding). Real data sit far above the floor.
     floor_fraction : float
 
     Returns
@@ -103,7 +104,8 @@ def residual_variance(rss, n_filled, band_limit, signal_power=None, floor_fracti
     with np.errstate(divide="ignore", invalid="ignore"):
         s2 = np.where(dof > 0, np.asarray(rss, float) / np.where(dof > 0, dof, 1), np.inf)
     if signal_power is not None:
-        s2 = np.where(np.isfinite(s2), np.maximum(s2, floor_fraction * np.asarray(signal_power, float)), s2)
+        floor = floor_fraction * float(np.max(signal_power, initial=0.0))
+        s2 = np.where(np.isfinite(s2), np.maximum(s2, floor), s2)
     return s2
 
 
