@@ -153,7 +153,7 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regulariz
         Inverse-variance weight of each bin up to one factor per baseline (summed sample
         weights from ``sidereal_bins``); 0 = no data.
     mmax : int
-        Size of the output's m axis; ``N >= 2 mmax + 1``.
+        Size of the output's m axis; ``N >= 2 max(M_b) + 1``.
     band_limit : int or ndarray (n_bl,), optional
         ``M_b <= mmax``: the fit holds ``|m| <= M_b`` only (default ``mmax``), e.g.
         ``Telescope.baseline_lmax(freq_hz, mmax, pairs)``.
@@ -180,9 +180,6 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regulariz
         raise InputError("least-squares m-modes", "binned", f"shapes {binned.shape} and {w.shape}",
                          "pass (n_bins, n_baselines) bins and weights of the same shape")
     n, n_bl = binned.shape
-    if n < 2 * mmax + 1:
-        raise InputError("m-mode transform", "n_bins", f"{n} sidereal bins cannot resolve mmax={mmax}",
-                         f"use at least {2 * mmax + 1} bins (or lower mmax)")
     if np.any(w < 0) or not np.all(np.isfinite(w)):
         raise InputError("least-squares m-modes", "bin_weight", "negative or non-finite weights",
                          "weights must be finite and >= 0 (0 = no data)")
@@ -190,6 +187,9 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regulariz
     if np.any(mb < 0) or np.any(mb > mmax):
         raise InputError("least-squares m-modes", "band_limit", f"band limits {mb.min()}..{mb.max()} outside "
                          f"0..{mmax}", "clip the per-baseline band limit to mmax")
+    if n < 2 * int(mb.max(initial=0)) + 1:
+        raise InputError("m-mode transform", "n_bins", f"{n} sidereal bins cannot resolve band limit "
+                         f"{int(mb.max())} (mmax={mmax})", f"use at least {2 * int(mb.max()) + 1} bins (or lower mmax)")
     if offset is not None:
         offset = np.asarray(offset, float)
         offset = offset if np.any(offset) else None
@@ -262,3 +262,30 @@ def relative_rms(mmodes, reference):
     d = np.asarray(mmodes) - np.asarray(reference)
     axes = tuple(range(d.ndim - 1))
     return np.sqrt(np.sum(np.abs(d) ** 2, axis=axes) / np.sum(np.abs(reference) ** 2, axis=axes))
+
+
+def split_lsq_mmodes(binned, bin_weight, mmax, offset=None, splits=("full",), band_limit=None, **kw):
+    """Least-squares m-modes of several splits of the bins, like :func:`~mmflow.mmode.transform.split_mmode_transform`.
+
+    ``full`` fits every bin; ``even`` / ``odd`` fit bins ``2k`` / ``2k + 1`` at their own phases
+    ``2 pi (2k + s) / N + offset``. Returns ``(mmodes (n_split, mmax + 1, 2, n_bl), results)`` with
+    one :class:`LsqMmodes` per split (the ``full`` one carries the residuals for the noise).
+    Keyword arguments go to :func:`lsq_mmodes`.
+    """
+    n = binned.shape[0]
+    offset = np.zeros(n) if offset is None else np.asarray(offset, float)
+    results = []
+    for s in splits:
+        if s == "full":
+            results.append(lsq_mmodes(binned, bin_weight, mmax, band_limit, offset, **kw))
+        elif s in ("even", "odd"):
+            start = 0 if s == "even" else 1
+            if n % 2:
+                raise InputError("m-mode transform", "mmode.splits", f"even/odd splits need an even number of "
+                                 f"sidereal bins, not {n}", "set mmode.n_bins to an even number")
+            results.append(lsq_mmodes(binned[start::2], bin_weight[start::2], mmax, band_limit,
+                                      offset[start::2] + start * TWO_PI / n, **kw))
+        else:
+            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
+                             "use ('full', 'even', 'odd')")
+    return np.stack([r.mmodes for r in results]), results
