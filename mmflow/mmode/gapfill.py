@@ -61,6 +61,8 @@ class LsqMmodes:
         Conjugate-gradient iterations each baseline took.
     converged : ndarray (n_bl,) bool
         ``||r|| <= tol ||b||`` reached within ``maxiter``.
+    gap_weight : ndarray (n_bl,)
+        Weight given to each empty bin as an observation of the prior model (0 without ``sigma2``).
     """
 
     mmodes: np.ndarray
@@ -71,6 +73,7 @@ class LsqMmodes:
     signal_power: np.ndarray
     iterations: np.ndarray
     converged: np.ndarray
+    gap_weight: np.ndarray
 
 
 def _phase_sums(values, k_max, offset, n):
@@ -141,8 +144,28 @@ def _from_layout(mm, k_max):
     return x
 
 
-def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regularization=1e-6, prior=None,
-               tol=1e-10, maxiter=None):
+def gap_weight(sigma2, signal_power, n_filled, weight_sum):
+    """Weight of an empty bin as a pseudo-observation of the prior model: ``sigma^2 / S``.
+
+    ``S = (sum_n w_n |V_n|^2 - N_filled sigma^2) / sum_n w_n`` is the sky's power per bin (the
+    data's power less the noise's, ``E[w_n |V_n|^2] = w_n |s_n|^2 + sigma^2``): the prior's
+    error in a gap is taken to be as large as the signal itself. High signal-to-noise: small
+    weights, the data decide all they measure; low: the gaps hold the prior, and noise is
+    not amplified into the directions the data barely constrain (a Wiener filter restricted
+    to the gaps). 0 where ``sigma^2 = 0`` or unknown; ``inf`` never (``S`` is floored at
+    ``1e-12`` of the data power).
+    """
+    sigma2 = np.nan_to_num(np.asarray(sigma2, float), nan=0.0, posinf=0.0)
+    total = np.asarray(signal_power, float) * n_filled  # sum w |V|^2
+    sky = np.maximum(total - n_filled * sigma2, 1e-12 * total)
+    ws = np.asarray(weight_sum, float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = np.where((sky > 0) & (ws > 0), sigma2 * ws / np.where(sky > 0, sky, 1), 0.0)
+    return g
+
+
+def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, sigma2=None, regularization=None,
+               prior=None, tol=1e-10, maxiter=None):
     """Weighted least-squares m-modes of sidereally binned data (see the module docstring).
 
     Parameters
@@ -160,11 +183,21 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regulariz
     offset : ndarray (N,), optional
         ``phi_n - 2 pi n / N`` from ``sidereal_bins``: the exact phases (type-1/2 NUFFT, accurate
         to ~1e-12) instead of the grid (FFT).
-    regularization : float
-        ``lambda`` in ``mu = lambda * sum_n w_n``. With equal weights the result is
-        ``(V_m^plain + lambda p_m) / (1 + lambda)``; pass 0 for the unregularised fit.
+    sigma2 : float or ndarray (n_bl,), optional
+        Noise variance per unit weight (``Var(V_n) = sigma^2 / w_n``), e.g. from
+        :func:`mmflow.mmode.noise.radiometer_variance`. When given, every empty bin becomes a
+        pseudo-observation of the prior model (0 without a prior) with weight
+        :func:`gap_weight` ``= sigma^2 / S``: noise-aware regularisation of the gaps only.
+        ``"residual"``: estimate it first from an unweighted-gap fit
+        (:func:`mmflow.mmode.noise.residual_variance`; twice the cost), for data without
+        autocorrelations.
+    regularization : float or ndarray (n_bl,), optional
+        ``lambda`` in ``mu = lambda * sum_n w_n`` (pulls every m towards the prior). Default
+        ``1e-6`` without ``sigma2`` (for long gaps), 0 with it. With equal weights and no
+        gaps the result is ``(V_m^plain + lambda p_m) / (1 + lambda)``.
     prior : ndarray (mmax + 1, 2, n_bl), optional
-        m-modes the regularisation pulls towards (and the starting point), in the output layout.
+        m-modes the regularisation pulls towards (and the starting point), in the output
+        layout: e.g. the m-modes of a first-pass map's model visibilities.
     tol : float
         Stop a baseline when ``||b - (A + mu) x|| <= tol ||b||``.
     maxiter : int, optional
@@ -193,33 +226,58 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regulariz
     if offset is not None:
         offset = np.asarray(offset, float)
         offset = offset if np.any(offset) else None
+    if isinstance(sigma2, str):
+        if sigma2 != "residual":
+            raise InputError("least-squares m-modes", "sigma2", f"unknown estimator '{sigma2}'",
+                             "pass variances, None or 'residual'")
+        from mmflow.mmode.noise import residual_variance
+
+        first = lsq_mmodes(binned, w, mmax, mb, offset, None, 1e-6, None, 1e-6, maxiter)
+        sigma2 = residual_variance(first.rss, first.n_filled, first.band_limit, first.signal_power)
+    if regularization is None:
+        regularization = 1e-6 if sigma2 is None else 0.0
     k_max = int(mb.max()) if n_bl else 0
     k = 2 * k_max + 1
     filled = w > 0
-    vw = np.where(filled, binned, 0).T * w.T  # (n_bl, N)
-    wt = np.ascontiguousarray(w.T).astype(np.complex128)
+    data = np.where(filled, binned, 0)
     c0 = w.sum(axis=0)
-    mu = regularization * c0
-    diag = c0 + mu
-    inv_diag = np.where(diag > 0, 1 / np.where(diag > 0, diag, 1), 0.0)[:, None]
+    n_filled = filled.sum(axis=0)
+    power = np.sum(w * np.abs(data) ** 2, axis=0) / np.maximum(n_filled, 1)
     mask = (np.abs(np.arange(-k_max, k_max + 1))[None, :] <= mb[:, None]) & (c0 > 0)[:, None]
+    x0 = None if prior is None else _from_layout(np.asarray(prior), k_max) * mask
 
-    toeplitz = _Toeplitz(_phase_sums(wt, 2 * k_max, offset, n), k)
-    rhs = _phase_sums(vw, k_max, offset, n) * mask
-    x = np.zeros((n_bl, k), np.complex128) if prior is None else _from_layout(np.asarray(prior), k_max) * mask
-    if prior is not None:
-        rhs = rhs + mu[:, None] * x
+    # empty bins as pseudo-observations of the prior model, weighted by sigma^2 / S
+    gw = np.zeros(n_bl) if sigma2 is None else gap_weight(np.broadcast_to(sigma2, (n_bl,)), power, n_filled, c0)
+    w_eff = w + gw[None, :] * ~filled
+    target = data if x0 is None else np.where(filled, data, _synthesis(x0, offset, n).T)
+    mu = np.asarray(regularization, float) * c0
+    diag = w_eff.sum(axis=0) + mu
+    inv_diag = np.where(diag > 0, 1 / np.where(diag > 0, diag, 1), 0.0)[:, None]
+
+    toeplitz = _Toeplitz(_phase_sums(np.ascontiguousarray(w_eff.T).astype(np.complex128), 2 * k_max, offset, n), k)
+    rhs = _phase_sums(np.ascontiguousarray((target * w_eff).T), k_max, offset, n) * mask
+    x = np.zeros((n_bl, k), np.complex128) if x0 is None else x0.copy()
+    if x0 is not None:
+        rhs = rhs + mu[:, None] * x0
 
     def matvec(v):
         return (toeplitz(v) + mu[:, None] * v) * mask
 
+    x, iters, converged = _pcg(matvec, rhs, x, inv_diag, tol, k if maxiter is None else int(maxiter))
+    model = _synthesis(x, offset, n).T  # (N, n_bl)
+    rss = np.sum(w * np.abs(np.where(filled, binned - model, 0)) ** 2, axis=0)
+    return LsqMmodes(_to_layout(x, mmax, k_max), mb.copy(), rss, n_filled, c0, power, iters,
+                     converged | (c0 == 0), gw)
+
+
+def _pcg(matvec, rhs, x, inv_diag, tol, maxiter):
+    """Jacobi-preconditioned conjugate gradients, one independent system per row, step lengths per row."""
     r = rhs - matvec(x) if np.any(x) else rhs.copy()
     bnorm = np.linalg.norm(rhs, axis=1)
     z = r * inv_diag
     p = z.copy()
     rz = np.real(np.sum(np.conj(r) * z, axis=1))
-    maxiter = k if maxiter is None else int(maxiter)
-    iters = np.zeros(n_bl, int)
+    iters = np.zeros(len(x), int)
     active = np.linalg.norm(r, axis=1) > tol * bnorm
     while np.any(active) and iters.max(initial=0) < maxiter:
         ap = matvec(p)
@@ -235,14 +293,7 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, regulariz
         iters += active
         active &= (np.linalg.norm(r, axis=1) > tol * bnorm) & (pap > 0)
     converged = np.linalg.norm(r, axis=1) <= tol * np.maximum(bnorm, np.finfo(float).tiny)
-
-    model = _synthesis(x, offset, n).T  # (N, n_bl)
-    resid = np.where(filled, binned - model, 0)
-    rss = np.sum(w * np.abs(resid) ** 2, axis=0)
-    n_filled = filled.sum(axis=0)
-    power = np.sum(w * np.abs(np.where(filled, binned, 0)) ** 2, axis=0) / np.maximum(n_filled, 1)
-    return LsqMmodes(_to_layout(x, mmax, k_max), mb.copy(), rss, n_filled, c0, power, iters,
-                     converged | (c0 == 0))
+    return x, iters, converged
 
 
 def zero_filled_error(binned, bin_weight, mmax, reference, offset=None):
