@@ -2,7 +2,8 @@
 
 One sidereal day at the OVRO-LWA cadence (N = 6628 bins); per band limit ``M_b`` (100, 500,
 1000) and flag pattern (none, 5 % of bins at random, 20 % in four blocks) a chunk of
-baselines holding random band-limited drift scans is fitted. The JSON gives ms per baseline,
+baselines holding random band-limited drift scans is fitted, noiseless (``sigma2`` not given) and
+with noise at 100 per bin (``sigma2`` given: the gaps' pseudo-observations). The JSON gives ms per baseline,
 CG iterations (median, max), how many converged to ``tol``, the error against the true
 m-modes and that of zero-filling, beside the plain FFT transform's ms per baseline and the
 FFT rate of this machine measured in the same run (the reference peak).
@@ -52,7 +53,8 @@ def fft_rate(n=N_BINS, nb=64, reps=5):
     return nb / best
 
 
-def case(band, pattern, nb, tol=1e-10, seed=0):
+def case(band, pattern, nb, tol=1e-10, snr=None, seed=0):
+    """One fit; ``snr``: signal-to-noise ratio per bin of added noise, passed as ``sigma2`` (None: noiseless)."""
     from mmflow.mmode.gapfill import lsq_mmodes, relative_rms
     from mmflow.mmode.transform import mmode_transform
 
@@ -60,13 +62,17 @@ def case(band, pattern, nb, tol=1e-10, seed=0):
     vis, _ = _scans(band, nb, rng)
     w = _flags(pattern, N_BINS, nb, rng)
     ref = mmode_transform(vis, band)
+    s2 = None
+    if snr is not None:
+        s2 = np.mean(np.abs(vis) ** 2, axis=0) / snr
+        vis = vis + np.sqrt(s2 / 2) * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
     t0 = time.perf_counter()
-    res = lsq_mmodes(vis, w, band, tol=tol)
+    res = lsq_mmodes(vis, w, band, sigma2=s2, tol=tol)
     el = time.perf_counter() - t0
     t0 = time.perf_counter()
     zf = mmode_transform(np.where(w > 0, vis, 0), band)
     el_plain = time.perf_counter() - t0
-    return {"band_limit": band, "flags": pattern, "tol": tol, "baselines": nb,
+    return {"band_limit": band, "flags": pattern, "tol": tol, "snr_per_bin": snr, "baselines": nb,
             "ms_per_baseline": 1e3 * el / nb, "plain_transform_ms_per_baseline": 1e3 * el_plain / nb,
             "iterations_median": float(np.median(res.iterations)), "iterations_max": int(res.iterations.max()),
             "converged": int(res.converged.sum()),
@@ -82,6 +88,7 @@ def run(what="gaps", quick=False):
     res = {"machine": machine(), "n_bins": N_BINS,
            "fft_per_s_length_n_bins": fft_rate(),
            "cases": [case(b, p, nb) for b in bands for p in ("none", "random5", "blocks20")]}
+    res["cases"] += [case(b, p, nb, snr=100.0) for b in bands for p in ("random5", "blocks20")]
     if not quick:
         res["cases"] += [case(b, "blocks20", nb, tol=1e-6) for b in bands]
     return res

@@ -10,14 +10,20 @@ when every bin holds data; zero-filling a flagged bin subtracts that bin's share
 ``m`` (power scattered across m, and all m-modes scaled down by the coverage). Here the
 m-modes of each baseline solve the weighted least-squares problem
 
-    min_x  sum_n w_n |V_n - sum_{|m|<=M_b} x_m e^{i m phi_n}|^2  +  mu sum_m |x_m - p_m|^2
+    min_x  sum_{n filled} w_n |V_n - (F x)_n|^2 + g sum_{n empty} |P_n - (F x)_n|^2 + mu sum_m |x_m - p_m|^2
+
+    (F x)_n = sum_{|m|<=M_b} x_m e^{i m phi_n}
 
 with ``phi_n = 2 pi n / N + offset_n`` (the bins' exact sidereal angles), bin weights
 ``w_n >= 0`` (0 = no data), an optional prior ``p`` (default 0; e.g. the m-modes of a first-pass
-map's model visibilities) and ``mu = lambda * sum_n w_n`` (``lambda`` relative, small: it only
-decides the directions the data leave undetermined, i.e. long gaps). The normal equations
+map's model visibilities) and its model ``P = F p``. Empty bins are pseudo-observations of the
+prior with weight ``g = sigma^2 / S`` (noise variance per unit weight over the sky's power per
+bin, :func:`gap_weight`; 0 when ``sigma^2`` is not given): the data decide every direction they
+measure above the noise, the prior the rest. ``mu = lambda * sum_n w_n`` (``lambda`` small,
+default ``1e-6`` without ``sigma^2``, else 0) pulls every m towards the prior. With
+``W' = W + g 1_empty`` the normal equations
 
-    (A + mu I) x = F^H W V + mu p,   A_{m m'} = c_{m - m'},   c_k = sum_n w_n e^{-i k phi_n}
+    (A + mu I) x = F^H W' [V or P] + mu p,   A_{m m'} = c_{m - m'},   c_k = sum_n w'_n e^{-i k phi_n}
 
 have a Hermitian Toeplitz matrix. They are solved by conjugate gradients for all baselines
 of a chunk at once (per-baseline step lengths), the Toeplitz products by circulant embedding
