@@ -134,3 +134,15 @@ def test_low_coverage_never_gains_weight():
 
     with pytest.raises(InputError, match="coverage_policy"):
         baseline_coverage(w, 0.3, "keep")
+
+
+def test_gap_weight_between_zero_and_a_real_bin():
+    """sigma^2 / S: small at high signal-to-noise, capped at a filled bin's mean weight when noise dominates."""
+    from mmflow.mmode.gapfill import gap_weight
+
+    n_filled, ws = np.array([100, 100, 100, 100]), np.array([200.0, 200.0, 200.0, 200.0])
+    sigma2 = np.array([1.0, 1.0, 1.0, 0.0])
+    power = np.array([1 + 2 * 1e4, 1.5, 0.5, 3.0])  # sum w |V|^2 / N_filled = sigma^2 + w S
+    g = gap_weight(sigma2, power, n_filled, ws)
+    np.testing.assert_allclose(g[0], 1.0 * 200 / (100 * 2e4))  # sigma^2 / S with S = 1e4 per bin
+    assert g[1] == 2.0 and g[2] == 2.0 and g[3] == 0.0  # at the cap (mean filled weight 2); none without noise

@@ -28,8 +28,10 @@ default ``1e-6`` without ``sigma^2``, else 0) pulls every m towards the prior. W
 have a Hermitian Toeplitz matrix. They are solved by conjugate gradients for all baselines
 of a chunk at once (per-baseline step lengths), the Toeplitz products by circulant embedding
 (one forward and one inverse FFT of length ``>= 4 M + 1`` per iteration), with the diagonal
-(Jacobi) preconditioner ``1 / (c_0 + mu)``. With equal weights on the bin grid ``A = c_0 I``:
-one iteration, and the result is the plain transform.
+(Jacobi) preconditioner ``1 / (sum_n w'_n + mu)``: the diagonal of a Toeplitz matrix is constant,
+so this only scales each baseline; what bounds the conditioning (and the iterations) is the
+gap weight ``g``. With equal weights on the bin grid ``A = c_0 I``: one iteration, and the
+result is the plain transform.
 """
 from __future__ import annotations
 
@@ -158,16 +160,19 @@ def gap_weight(sigma2, signal_power, n_filled, weight_sum):
     error in a gap is taken to be as large as the signal itself. High signal-to-noise: small
     weights, the data decide all they measure; low: the gaps hold the prior, and noise is
     not amplified into the directions the data barely constrain (a Wiener filter restricted
-    to the gaps). 0 where ``sigma^2 = 0`` or unknown; ``inf`` never (``S`` is floored at
-    ``1e-12`` of the data power).
+    to the gaps). Capped at the mean weight of a filled bin, ``sum w / N_filled`` (a
+    pseudo-observation never outweighs a real one; at the cap, noise-dominated data, the fit
+    tends to the zero-filled transform); 0 where ``sigma^2 = 0`` or unknown.
     """
     sigma2 = np.nan_to_num(np.asarray(sigma2, float), nan=0.0, posinf=0.0)
+    n_filled = np.asarray(n_filled, float)
     total = np.asarray(signal_power, float) * n_filled  # sum w |V|^2
-    sky = np.maximum(total - n_filled * sigma2, 1e-12 * total)
+    sky = total - n_filled * sigma2
     ws = np.asarray(weight_sum, float)
+    cap = ws / np.maximum(n_filled, 1)
     with np.errstate(divide="ignore", invalid="ignore"):
-        g = np.where((sky > 0) & (ws > 0), sigma2 * ws / np.where(sky > 0, sky, 1), 0.0)
-    return g
+        g = np.where(sky > 0, sigma2 * ws / np.where(sky > 0, sky, 1), np.inf)
+    return np.where(sigma2 > 0, np.minimum(g, cap), 0.0)
 
 
 def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, sigma2=None, regularization=None,
