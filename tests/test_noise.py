@@ -146,3 +146,27 @@ def test_gap_weight_between_zero_and_a_real_bin():
     g = gap_weight(sigma2, power, n_filled, ws)
     np.testing.assert_allclose(g[0], 1.0 * 200 / (100 * 2e4))  # sigma^2 / S with S = 1e4 per bin
     assert g[1] == 2.0 and g[2] == 2.0 and g[3] == 0.0  # at the cap (mean filled weight 2); none without noise
+
+
+def test_chunk_mmodes_weights_and_coverage(scan):
+    """The stage's one call: radiometer or residual noise, coverage decisions, splits."""
+    from mmflow.mmode.gapfill import chunk_mmodes
+    from mmflow.simulate.visibilities import thermal_noise
+
+    rng = np.random.default_rng(9)
+    vis, pairs = scan["vis"], scan["pairs"]
+    a = np.array([scan["mean_autos"][int(i)][0] for i in range(max(scan["mean_autos"]) + 1)])
+    noise, sigma = thermal_noise(vis, a[pairs[:, 0]], a[pairs[:, 1]], DNU_TAU, 1.0, rng)
+    flags = np.ones(vis.shape)
+    flags[rng.random(N_BINS) < 0.05] = 0
+    flags[: int(0.8 * N_BINS), 0] = 0  # one baseline at 15 % coverage
+    binned, wsum, offset = sidereal_bins(scan["lst"], vis + noise, flags, N_BINS, min_coverage=0.5)
+    radio = radiometer_variance(scan["mean_autos"], pairs, DNU_TAU, 1.0)[0]
+    got = chunk_mmodes(binned, wsum, MMAX, offset, scan["band"], ("full", "even", "odd"), radio, 0.5, "downweight")
+    est = chunk_mmodes(binned, wsum, MMAX, offset, scan["band"], ("full",), None, 0.5, "drop")
+    assert got.mmodes.shape == (3, MMAX + 1, 2, vis.shape[1])
+    assert got.coverage.n_downweighted == 1 and est.coverage.n_dropped == 1 and est.inv_var[0] == 0
+    ok = np.arange(vis.shape[1]) > 0
+    assert np.all(np.abs(est.sigma2[ok] / sigma[ok] ** 2 - 1) < 0.05)
+    np.testing.assert_allclose(est.inv_var[ok], got.inv_var[ok], rtol=0.05)
+    assert got.inv_var[0] < 0.2 * np.median(got.inv_var[ok])  # low coverage: less weight, never more

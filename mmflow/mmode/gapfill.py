@@ -41,6 +41,7 @@ import numpy as np
 import scipy.fft
 
 from mmflow.errors import InputError
+from mmflow.mmode.noise import baseline_coverage, lsq_inverse_variance, residual_variance
 from mmflow.threads import n_threads
 
 TWO_PI = 2 * np.pi
@@ -241,10 +242,7 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, sigma2=No
         if sigma2 != "residual":
             raise InputError("least-squares m-modes", "sigma2", f"unknown estimator '{sigma2}'",
                              "pass variances, None or 'residual'")
-        from mmflow.mmode.noise import residual_variance
-
-        first = lsq_mmodes(binned, w, mmax, mb, offset, None, 1e-6, None, 1e-6, maxiter)
-        sigma2 = residual_variance(first.rss, first.n_filled, first.band_limit, first.signal_power)
+        sigma2 = estimate_sigma2(binned, w, mmax, mb, offset)
     if regularization is None:
         regularization = 1e-6 if sigma2 is None else 0.0
     k_max = int(mb.max()) if n_bl else 0
@@ -351,3 +349,58 @@ def split_lsq_mmodes(binned, bin_weight, mmax, offset=None, splits=("full",), ba
             raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
                              "use ('full', 'even', 'odd')")
     return np.stack([r.mmodes for r in results]), results
+
+
+def estimate_sigma2(binned, bin_weight, mmax, band_limit=None, offset=None):
+    """Per-sample noise variance per baseline from the residual of a first fit (no gap weights).
+
+    :func:`mmflow.mmode.noise.residual_variance` of :func:`lsq_mmodes` with ``lambda = 1e-6``
+    and ``tol = 1e-6`` (the residual on the filled bins converges long before the directions
+    the gaps leave open), floored at ``1e-6`` of the chunk's largest signal power.
+    """
+    first = lsq_mmodes(binned, bin_weight, mmax, band_limit, offset, None, 1e-6, None, 1e-6)
+    return residual_variance(first.rss, first.n_filled, first.band_limit, first.signal_power)
+
+
+@dataclass
+class ChunkMmodes:
+    """What the ``mmodes`` stage stores for one chunk and frequency (see :func:`chunk_mmodes`).
+
+    Attributes
+    ----------
+    mmodes : ndarray (n_split, mmax + 1, 2, n_bl)
+    inv_var : ndarray (n_bl,)
+        ``1 / Var(V_m)`` with the coverage factor (0 = unusable).
+    sigma2 : ndarray (n_bl,)
+        Per-sample noise variance used (given or estimated from the residual).
+    coverage : mmflow.mmode.noise.Coverage
+    fits : list of LsqMmodes
+        One per split (iterations, convergence, residuals).
+    """
+
+    mmodes: np.ndarray
+    inv_var: np.ndarray
+    sigma2: np.ndarray
+    coverage: object
+    fits: list
+
+
+def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=("full",), sigma2=None,
+                 min_coverage=0.0, coverage_policy="drop", tol=1e-10):
+    """m-modes, noise and coverage of one chunk of baselines at one frequency.
+
+    1. ``sigma2`` (per sample, e.g. :func:`mmflow.mmode.noise.radiometer_variance`), or when
+       None :func:`estimate_sigma2` from the residual of a first fit;
+    2. :func:`split_lsq_mmodes` with that ``sigma2`` (gap pseudo-observations weighted
+       ``sigma^2 / S``);
+    3. :func:`mmflow.mmode.noise.baseline_coverage` (``drop`` / ``downweight`` below
+       ``min_coverage``) and ``inv_var = factor * sum_n w_n / sigma^2``
+       (:func:`mmflow.mmode.noise.lsq_inverse_variance`).
+    """
+    if sigma2 is None:
+        sigma2 = estimate_sigma2(binned, bin_weight, mmax, band_limit, offset)
+    sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
+    mm, fits = split_lsq_mmodes(binned, bin_weight, mmax, offset, splits, band_limit, sigma2=sigma2, tol=tol)
+    cov = baseline_coverage(bin_weight, min_coverage, coverage_policy)
+    inv_var = lsq_inverse_variance(sigma2, np.asarray(bin_weight, float).sum(axis=0), cov)
+    return ChunkMmodes(mm, inv_var, sigma2, cov, fits)
