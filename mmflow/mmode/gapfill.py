@@ -234,7 +234,8 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, sigma2=No
                          f"0..{mmax}", "clip the per-baseline band limit to mmax")
     if n < 2 * int(mb.max(initial=0)) + 1:
         raise InputError("m-mode transform", "n_bins", f"{n} sidereal bins cannot resolve band limit "
-                         f"{int(mb.max())} (mmax={mmax})", f"use at least {2 * int(mb.max()) + 1} bins (or lower mmax)")
+                         f"{int(mb.max())} (mmax={mmax})",
+                         f"use at least {2 * int(mb.max()) + 1} bins (or lower mmax)")
     if offset is not None:
         offset = np.asarray(offset, float)
         offset = offset if np.any(offset) else None
@@ -325,7 +326,7 @@ def relative_rms(mmodes, reference):
 
 
 def split_lsq_mmodes(binned, bin_weight, mmax, offset=None, splits=("full",), band_limit=None, **kw):
-    """Least-squares m-modes of several splits of the bins, like :func:`~mmflow.mmode.transform.split_mmode_transform`.
+    """Least-squares m-modes of splits of the bins (as :func:`mmflow.mmode.transform.split_mmode_transform`).
 
     ``full`` fits every bin; ``even`` / ``odd`` fit bins ``2k`` / ``2k + 1`` at their own phases
     ``2 pi (2k + s) / N + offset``. Returns ``(mmodes (n_split, mmax + 1, 2, n_bl), results)`` with
