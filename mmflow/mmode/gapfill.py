@@ -57,7 +57,7 @@ class LsqMmodes:
     mmodes : ndarray (mmax + 1, 2, n_bl) complex
         ``[m, 0] = V_m``, ``[m, 1] = conj(V_{-m})`` (``[0, 1] = 0``), zero for ``m > M_b``.
     band_limit : ndarray (n_bl,) int
-        ``M_b`` used per baseline.
+        ``M_b`` fitted per baseline (may exceed ``mmax``).
     rss : ndarray (n_bl,)
         Weighted residual sum of squares ``sum_n w_n |V_n - model_n|^2``.
     n_filled : ndarray (n_bl,) int
@@ -137,19 +137,21 @@ class _Toeplitz:
 
 
 def _to_layout(x, mmax, k_max):
-    """Internal ``(n_bl, 2 k_max + 1)`` (m = -k_max..k_max) -> ``(mmax + 1, 2, n_bl)``."""
+    """Internal ``(n_bl, 2 k_max + 1)`` (m = -k_max..k_max) -> ``(mmax + 1, 2, n_bl)`` (|m| > mmax dropped)."""
     out = np.zeros((mmax + 1, 2, x.shape[0]), np.complex128)
-    out[:k_max + 1, 0] = x[:, k_max:].T
-    out[:k_max + 1, 1] = np.conj(x[:, k_max::-1]).T
+    kk = min(k_max, mmax)
+    out[:kk + 1, 0] = x[:, k_max:k_max + kk + 1].T
+    out[:kk + 1, 1] = np.conj(x[:, k_max - kk:k_max + 1][:, ::-1]).T
     out[0, 1] = 0
     return out
 
 
 def _from_layout(mm, k_max):
-    """``(mmax + 1, 2, n_bl)`` -> internal ``(n_bl, 2 k_max + 1)``."""
-    x = np.empty((mm.shape[2], 2 * k_max + 1), np.complex128)
-    x[:, k_max:] = mm[:k_max + 1, 0].T
-    x[:, :k_max] = np.conj(mm[k_max:0:-1, 1]).T
+    """``(mmax + 1, 2, n_bl)`` -> internal ``(n_bl, 2 k_max + 1)`` (zero beyond mmax)."""
+    x = np.zeros((mm.shape[2], 2 * k_max + 1), np.complex128)
+    kk = min(k_max, mm.shape[0] - 1)
+    x[:, k_max:k_max + kk + 1] = mm[:kk + 1, 0].T
+    x[:, k_max - kk:k_max] = np.conj(mm[kk:0:-1, 1]).T
     return x
 
 
@@ -190,8 +192,10 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, sigma2=No
     mmax : int
         Size of the output's m axis; ``N >= 2 max(M_b) + 1``.
     band_limit : int or ndarray (n_bl,), optional
-        ``M_b <= mmax``: the fit holds ``|m| <= M_b`` only (default ``mmax``), e.g.
-        ``Telescope.baseline_lmax(freq_hz, mmax, pairs)``.
+        ``M_b``: the fit holds ``|m| <= M_b`` only (default ``mmax``). Give the band limit of
+        the *visibilities*, e.g. ``Telescope.baseline_lmax(freq_hz, (N - 1) // 2, pairs)``:
+        it may exceed ``mmax`` (a sky with power beyond the imaging lmax), in which case
+        ``|m| > mmax`` are fitted, so that flags do not fold them into the kept ones, and dropped.
     offset : ndarray (N,), optional
         ``phi_n - 2 pi n / N`` from ``sidereal_bins``: the exact phases (type-1/2 NUFFT, accurate
         to ~1e-12) instead of the grid (FFT).
@@ -229,9 +233,9 @@ def lsq_mmodes(binned, bin_weight, mmax, band_limit=None, offset=None, sigma2=No
         raise InputError("least-squares m-modes", "bin_weight", "negative or non-finite weights",
                          "weights must be finite and >= 0 (0 = no data)")
     mb = np.full(n_bl, mmax, int) if band_limit is None else np.broadcast_to(np.asarray(band_limit, int), (n_bl,))
-    if np.any(mb < 0) or np.any(mb > mmax):
-        raise InputError("least-squares m-modes", "band_limit", f"band limits {mb.min()}..{mb.max()} outside "
-                         f"0..{mmax}", "clip the per-baseline band limit to mmax")
+    if np.any(mb < 0):
+        raise InputError("least-squares m-modes", "band_limit", f"negative band limit {mb.min()}",
+                         "give each baseline's fringe band limit (>= 0)")
     if n < 2 * int(mb.max(initial=0)) + 1:
         raise InputError("m-mode transform", "n_bins", f"{n} sidereal bins cannot resolve band limit "
                          f"{int(mb.max())} (mmax={mmax})",
