@@ -409,3 +409,41 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     cov = baseline_coverage(bin_weight, min_coverage, coverage_policy)
     inv_var = lsq_inverse_variance(sigma2, np.asarray(bin_weight, float).sum(axis=0), cov)
     return ChunkMmodes(mm, inv_var, sigma2, cov, fits)
+
+
+def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.float64):
+    """m-modes of a map's model visibilities, ``v_m = B_m a_m``: the ``prior`` of :func:`lsq_mmodes`.
+
+    Iterating map -> ``prior_mmodes`` -> ``lsq_mmodes(..., prior=...)`` -> map fills the
+    directions a baseline's gaps leave open with what the other baselines saw (on simulated
+    20 % block flags the peaks settle within 0.02 FWHM of the unflagged map's in 1-3 passes,
+    see ``tests/test_mmode_gaps_map.py``).
+
+    Parameters
+    ----------
+    telescope : mmflow.telescope.Telescope
+    freq_hz : float
+    alm : ndarray, healpy layout (Jy/sr, frame of date), band limit ``lmax``
+    baselines : ndarray of int
+        Indices into ``telescope.antenna_pairs()`` (the chunk's columns).
+    mmax : int, optional (default ``lmax``)
+
+    Returns
+    -------
+    ndarray (mmax + 1, 2, n_bl) complex, the layout of :func:`lsq_mmodes`.
+    """
+    from mmflow.conventions import m_slice
+    from mmflow.mmode.engine import BaselineChunk, chunk_blocks
+
+    mmax = lmax if mmax is None else mmax
+    index = np.asarray(baselines, int)
+    lmax_b = telescope.baseline_lmax(freq_hz, lmax)
+    nb = len(index)
+    out = np.zeros((mmax + 1, 2, nb), np.complex128)
+    chunk = BaselineChunk(index, int(lmax_b[index].max(initial=0)))
+    for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, mmax=mmax):
+        v = blk @ alm[m_slice(lmax, m)]
+        out[m, 0] = v[:nb]
+        if m > 0:
+            out[m, 1] = v[nb:]
+    return out
