@@ -391,7 +391,7 @@ class ChunkMmodes:
 
 
 def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=("full",), sigma2=None,
-                 min_coverage=0.0, coverage_policy="drop", tol=1e-10):
+                 min_coverage=0.0, coverage_policy="drop", tol=1e-10, prior=None):
     """m-modes, noise and coverage of one chunk of baselines at one frequency.
 
     1. ``sigma2`` (per sample, e.g. :func:`mmflow.mmode.noise.radiometer_variance`), or when
@@ -401,11 +401,15 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     3. :func:`mmflow.mmode.noise.baseline_coverage` (``drop`` / ``downweight`` below
        ``min_coverage``) and ``inv_var = factor * sum_n w_n / sigma^2``
        (:func:`mmflow.mmode.noise.lsq_inverse_variance`).
+
+    ``prior``: m-modes ``(mmax + 1, 2, n_bl)`` of a previous map's model (:func:`prior_mmodes`)
+    for every split.
     """
     if sigma2 is None:
         sigma2 = estimate_sigma2(binned, bin_weight, mmax, band_limit, offset)
     sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
-    mm, fits = split_lsq_mmodes(binned, bin_weight, mmax, offset, splits, band_limit, sigma2=sigma2, tol=tol)
+    mm, fits = split_lsq_mmodes(binned, bin_weight, mmax, offset, splits, band_limit, sigma2=sigma2, tol=tol,
+                                prior=prior)
     cov = baseline_coverage(bin_weight, min_coverage, coverage_policy)
     inv_var = lsq_inverse_variance(sigma2, np.asarray(bin_weight, float).sum(axis=0), cov)
     return ChunkMmodes(mm, inv_var, sigma2, cov, fits)
