@@ -141,3 +141,33 @@ def test_antenna_sets_must_agree_but_missing_baselines_are_unmeasured(scan, tmp_
     lacking = np.flatnonzero(g["pairs"][:, 1] == last)
     assert np.all(w[:, lacking].sum(axis=0) < w.shape[0])  # unmeasured in scan_003's integrations
     assert np.all(w[:, lacking].sum(axis=0) > 0.8 * w.shape[0])
+
+
+@pytest.mark.parametrize("policy", ["drop", "downweight"])
+def test_a_low_coverage_baseline_never_gains_weight(scan, tmp_path, policy):
+    """One baseline flagged in 5 of 6 files (17 % coverage): dropped or down-weighted, counted and logged."""
+    from pyuvdata import UVData
+    import zarr
+
+    d, _ = scan
+    flagged = tmp_path / "uvh5"
+    shutil.copytree(d, flagged)
+    for k in range(1, 6):
+        uv = UVData.from_file(str(flagged / f"scan_{k:03d}.uvh5"))
+        uv.flag_array[uv.antpair2ind(0, 3)] = True
+        uv.write_uvh5(str(flagged / f"scan_{k:03d}.uvh5"), clobber=True)
+    lines = []
+    summaries = run_workflow(_cfg(tmp_path / "r", str(flagged / "*.uvh5"), "mmode.min_coverage=0.5",
+                                  f"mmode.coverage_policy={policy}", "transfer.noise_weighting=true"),
+                             progress=False, log=lines.append)
+    counts = summaries["mmodes"]["counts"]
+    assert counts == {"dropped_low_coverage": int(policy == "drop"), "downweighted_low_coverage": int(policy != "drop")}
+    assert any("low coverage: 1" in ln for ln in lines)
+    g = zarr.open_group(str(tmp_path / "r" / "vis.zarr"), mode="r")
+    b = [tuple(p) for p in g["pairs"][:]].index((0, 3))
+    iv = zarr.open_group(str(tmp_path / "r" / "mmodes.zarr"), mode="r")["inv_var"][0]
+    cross = g["pairs"][:, 0] != g["pairs"][:, 1]
+    if policy == "drop":
+        assert iv[b] == 0
+    else:
+        assert 0 < iv[b] < 0.17 * np.median(iv[cross])  # ~ coverage^2 / min_coverage of a full baseline's

@@ -198,15 +198,20 @@ class MmodeConfig(_Section):
     mmax: Optional[int] = Field(None, ge=0, description="Largest m (default lmax; at most lmax).")
     n_bins: Optional[int] = Field(None, ge=1, description="Sidereal bins (default: integrations per sidereal day; "
                                   "at least 2 mmax + 1).")
-    min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day that must hold data.")
+    min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day each baseline must "
+                                "cover (below: coverage_policy); a run where most baselines fall below stops.")
     baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
     splits: list[Literal["full", "even", "odd"]] = Field(
         ["full"], description="Data splits carried through m-modes, right-hand sides and alm: 'full' first, "
         "then e.g. 'even' and 'odd' sidereal bins for jackknife noise maps (one transfer pass for all).",
         json_schema_extra={"allowed": "'full' first, then each of even | odd at most once"})
-    noise: Literal["data", "radiometer"] = Field(
-        "data", description="Noise per baseline from successive-integration differences, or from the "
-        "radiometer equation sigma^2 = V_ii V_jj / (dnu tau) with the autocorrelations.")
+    noise: Literal["auto", "radiometer", "data"] = Field(
+        "auto", description="Thermal noise per baseline: 'radiometer' sigma^2 = V_ii V_jj / (dnu tau) from the "
+        "autocorrelations; 'data' from the residual of each baseline's band-limited m-mode fit (the sky removed, "
+        "docs/mmodes.md); 'auto' radiometer where the autocorrelations exist, else data.")
+    coverage_policy: Literal["drop", "downweight"] = Field(
+        "drop", description="Baselines whose sidereal coverage is below min_coverage: dropped (weight 0) or "
+        "down-weighted by coverage / min_coverage; counted and logged either way.")
 
     @field_validator("splits")
     @classmethod

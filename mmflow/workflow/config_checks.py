@@ -165,7 +165,7 @@ def _value_problems(cfg):
             out.extend(_source_problems(cfg.sky.sources))
     if mm.noise == "radiometer" and not cfg.telescope.include_autos:
         out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
-                           "set telescope.include_autos: true, or mmode.noise: data"))
+                           "set telescope.include_autos: true, or mmode.noise: data (or auto)"))
     im = cfg.imaging
     if im.method == "prior" and im.prior_map is None:
         out.append(Problem(("imaging", "prior_map"), None, "method 'prior' needs a prior map",

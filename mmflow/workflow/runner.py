@@ -218,6 +218,12 @@ def _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log):
         cycle += 1
 
 
+def _counts(run, st):
+    """The stage's counters summed over every finished task (this run's and earlier ones)."""
+    infos = run.task_infos(st.name).values()
+    return {c: sum(int(i.get(c, 0) or 0) for i in infos) for c in st.counters}
+
+
 def _stale_stages(run, fps, names):
     return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
@@ -283,7 +289,10 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
             fctx = sctx.for_task()
             fin = st.finalize(fctx)
             run.mark_done(st.name, "_finalize", fin, fctx.ledger.entries)
-        summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": len(keys),
+        counts = _counts(run, st)
+        if any(counts.values()):
+            log(f"[{st.name}] " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in counts.items() if v))
+        summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": len(keys), "counts": counts,
                    "tasks_run": sum(1 for r in results if not r.get("skipped")),
                    "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
                    "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),

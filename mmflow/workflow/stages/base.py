@@ -42,6 +42,7 @@ class Stage:
     files: Callable = field(default=lambda cfg: [])
     apply: Optional[Callable] = None
     next_cycle: Optional[Callable] = None
+    counters: tuple = ()  # numeric fields of the tasks' infos summed, stored and logged per stage
 
 
 STAGES: list = []

@@ -44,4 +44,5 @@ def _ingest_task(ctx, key):
 
 register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz"), (), ("vis.zarr",),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files,
+               counters=("fully_flagged_integrations", "nonfinite_flagged"),
                description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files"))

@@ -1,9 +1,12 @@
-"""The ``mmodes`` stage: corner turn (time -> baseline), corrections on read, m-mode transform.
+"""The ``mmodes`` stage: corner turn (time -> baseline), corrections on read, m-modes.
 
 Each task reads every integration of one baseline chunk from ``vis.zarr`` (whole chunks,
 checked against the data stage's records), applies the corrections of the enabled
 solve-then-apply stages (gains, peeled sources, terrestrial templates: never written back),
-bins onto sidereal bins, transforms each data split and writes ``mmodes.zarr``.
+bins onto sidereal bins and calls :func:`mmflow.mmode.gapfill.chunk_mmodes`: least-squares
+m-modes of each data split within each baseline's band limit (flagged time is not zero),
+thermal noise from the radiometer equation or from the fit's residual, and per-baseline
+coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
 """
 from __future__ import annotations
 
@@ -12,8 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmflow.io.run_stores import mmodes_store
-from mmflow.mmode.noise import difference_variance, mmode_inverse_variance, radiometer_variance
-from mmflow.mmode.transform import sidereal_bins, split_mmode_transform
+from mmflow.errors import CoverageError
+from mmflow.mmode.gapfill import chunk_mmodes
+from mmflow.mmode.noise import radiometer_variance
+from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.context import SIDEREAL_DAY_S, _parse
 from mmflow.workflow.stages.base import Stage, all_stages, register
 
@@ -72,24 +77,53 @@ def _task(ctx, key):
     vis, w, lst = block.vis[good_t], block.weights[good_t], lst[good_t]
     g = ctx.open("mmodes.zarr", mode="r+")
     mmax, n_bins, splits = g.attrs["mmax"], g.attrs["n_bins"], g.attrs["splits"]
+    sigma2, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs)
+    tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
+    n_fit = n_bins // 2 - 1 if len(splits) > 1 else n_bins - 1  # the bins of the smallest split bound the fit
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((nf, vis.shape[1]))
-    sigma2 = None
-    if cfg.mmode.noise == "radiometer":
-        mean = np.nanmean(block.autos[good_t], axis=0)  # (antenna, freq)
-        have = {a: mean[a] for a in range(len(mean)) if np.all(np.isfinite(mean[a]))}
-        sigma2 = radiometer_variance(have, block.pairs, vg.attrs["channel_width_hz"], vg.attrs["integration_s"],
-                                     str(ctx.run.store("vis.zarr")))
+    info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
+            "downweighted_low_coverage": 0, "max_cg_iterations": 0}
     for fi in range(nf):
         binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
-                                             cfg.mmode.min_coverage, source=str(ctx.run.store("vis.zarr")))
-        out[:, fi] = split_mmode_transform(binned, mmax, offset, splits)
-        s2 = sigma2[fi] if sigma2 is not None else difference_variance(vis[:, :, fi], w[:, :, fi])
-        inv_var[fi] = mmode_inverse_variance(s2, wsum)
+                                             0.0, source=str(ctx.run.store("vis.zarr")))
+        _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins)
+        res = chunk_mmodes(binned, wsum, mmax, offset, tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs),
+                           splits, None if sigma2 is None else sigma2[fi], cfg.mmode.min_coverage,
+                           cfg.mmode.coverage_policy)
+        out[:, fi], inv_var[fi] = res.mmodes, res.inv_var
+        info["dropped_low_coverage"] += res.coverage.n_dropped
+        info["downweighted_low_coverage"] += res.coverage.n_downweighted
+        info["max_cg_iterations"] = max([info["max_cg_iterations"]] + [int(np.max(f.iterations)) for f in res.fits])
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
-    return {"baselines": int(vis.shape[1])}
+    return info
 
 
-register(Stage("mmodes", ("mmode",), ("vis.zarr",) + CORRECTION_STORES, ("mmodes.zarr",), _prepare, _task,
-               description="corrections on read, sidereal binning + m-mode transform per baseline chunk"))
+def _radiometer_sigma2(ctx, vg, autos, pairs):
+    """Per-sample radiometer variance ``(freq, bl)`` where ``mmode.noise`` asks for it and the chunk's
+    antennas all have autocorrelations (``auto``); else None (estimated from the fit's residual)."""
+    noise = ctx.cfg.mmode.noise
+    if noise == "data":
+        return None, "data"
+    with np.errstate(all="ignore"):
+        mean = np.nanmean(autos, axis=0)  # (antenna, freq)
+    have = {a: mean[a] for a in range(len(mean)) if np.all(np.isfinite(mean[a]))}
+    if noise == "auto" and not set(np.unique(pairs)) <= set(have):
+        return None, "data"
+    return radiometer_variance(have, pairs, vg.attrs["channel_width_hz"], vg.attrs["integration_s"],
+                               str(ctx.run.store("vis.zarr"))), "radiometer"
+
+
+def _check_coverage(bin_weight, min_coverage, source, n_bins):
+    """A day where most baselines miss ``min_coverage`` is not a day's drift scan: stop, saying so."""
+    coverage = float(np.median(np.mean(bin_weight > 0, axis=0)))
+    if coverage < min_coverage:
+        raise CoverageError(str(source), "lst", f"only {coverage:.1%} of {n_bins} sidereal bins hold data for the "
+                            f"median baseline (need {min_coverage:.0%})",
+                            "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
+
+
+register(Stage("mmodes", ("mmode", "beam"), ("vis.zarr",) + CORRECTION_STORES, ("mmodes.zarr",), _prepare, _task,
+               counters=("dropped_low_coverage", "downweighted_low_coverage"),
+               description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk"))
