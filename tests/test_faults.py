@@ -371,3 +371,43 @@ def test_workflow_alm_equals_engine_alm_and_splits_share_one_transfer_pass(tmp_p
     # V_m(full) = (V_m(even) + V_m(odd)) / 2 exactly for a full day, and the solve is linear
     np.testing.assert_allclose(alm_wf[0], 0.5 * (alm_wf[1] + alm_wf[2]), rtol=0, atol=1e-9 * np.abs(alm_wf[0]).max())
     assert np.abs(alm_wf[1] - alm_wf[2]).max() > 1e-6 * np.abs(alm_wf[0]).max()  # the halves see different noise
+
+
+def test_nan_in_a_map_is_refused_before_any_file_is_written(ref, tmp_path, monkeypatch):
+    from mmflow.imaging import maps
+
+    run_dir = _copy(ref, tmp_path)
+    real = maps.alm_to_output_map
+    monkeypatch.setattr(maps, "alm_to_output_map", lambda *a, **k: real(*a, **k) * np.inf)
+    with pytest.raises(MmflowError, match=r"stage 'products' was about to write \d+ NaN/inf values to maps/map"):
+        run_workflow(small_config(run_dir, "products.png=false"), force=True, **QUIET)
+    assert not list((run_dir / "maps").glob("*.fits"))
+
+
+INVARIANCE = """
+import hashlib, numpy as np
+from mmflow.telescope import Telescope, ovro_lwa_layout
+from mmflow.telescope.beams import SinElevationBeam
+from mmflow.mmode.engine import accumulate_normal_equations
+from mmflow.mmode.gapfill import chunk_mmodes
+tel = Telescope(ovro_lwa_layout("core", radius_m=20), SinElevationBeam(1.5), [40e6])
+rng = np.random.default_rng(0)
+nb = len(tel.antenna_pairs())
+acc = accumulate_normal_equations(tel, 40e6, rng.normal(size=(33, 2, nb)) + 1j, 32, dtype=np.float32)
+h = hashlib.sha1(b"".join(acc.gram[m].tobytes() + acc.rhs[m].tobytes() for m in acc.ms))
+w = (rng.random((300, 20)) > 0.1).astype(float)
+res = chunk_mmodes((rng.normal(size=(300, 20)) + 1j) * w, w, 40, rng.uniform(-1e-3, 1e-3, 300), np.full(20, 60),
+                   ("full", "even", "odd"), None, 0.5)
+h.update(res.mmodes.tobytes() + res.inv_var.tobytes())
+print(h.hexdigest())
+"""
+
+
+def test_kernels_give_the_same_bits_for_any_thread_budget():
+    """A run resumed on another cluster size gets another per-task thread budget: the bits must not change."""
+    out = []
+    for threads in ("1", "2"):
+        env = dict(os.environ, MMFLOW_THREADS=threads, OPENBLAS_NUM_THREADS="1")  # BLAS as in dask workers
+        out.append(subprocess.run([sys.executable, "-c", INVARIANCE], cwd=ROOT, env=env, capture_output=True,
+                                  text=True, check=True).stdout.strip())
+    assert out[0] == out[1] and len(out[0]) == 40

@@ -97,22 +97,25 @@ def _ingest_s(pattern, store):
     from types import SimpleNamespace
 
     from mmflow.io import ingest
-    from mmflow.workflow.stages.data import TIME_CHUNK, _create_vis_store
+    from mmflow.io.run_stores import vis_store
+    from mmflow.workflow.stages.ingest import TIME_CHUNK
 
     cfg = SimpleNamespace(input=SimpleNamespace(path=pattern, format=None, on_bad_file="error", conjugate=False,
                                                 nonfinite="error"))
     ingest._plan.cache_clear()
     t0 = time.perf_counter()
     plan = ingest.plan_ingest(cfg)
-    g = _create_vis_store(store, plan.n_time, plan.pairs, plan.freqs_hz, plan.layout,
-                          {"source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
-                           "skipped_files": plan.skipped, "integration_s": plan.integration_s}, 256)
+    spec = vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu,
+                     {"source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
+                      "skipped_files": plan.skipped, "integration_s": plan.integration_s}, TIME_CHUNK, 256)
+    g = spec.create(store)  # the stage's own store declaration
     ingest.write_plan(g, plan)
+    store = store / spec.path
     t1 = time.perf_counter()
     for r0 in range(0, plan.n_time, TIME_CHUNK):
         ingest.ingest_time_chunk(cfg, store, r0, r0 + TIME_CHUNK)
     t2 = time.perf_counter()
-    shutil.rmtree(store)
+    shutil.rmtree(store.parent)
     return t1 - t0, t2 - t1
 
 

@@ -46,6 +46,9 @@ from mmflow.threads import n_threads
 
 TWO_PI = 2 * np.pi
 NUFFT_EPS = 1e-13  # ducc0's finest double-precision accuracy (off-grid phases)
+# ducc0's NUFFTs run on one thread: with several, the spreading sums in a thread-dependent order,
+# and a run resumed with another thread budget (another cluster size) must give the same bits.
+# Parallelism comes from the tasks (one per baseline chunk).
 
 
 @dataclass
@@ -98,7 +101,7 @@ def _phase_sums(values, k_max, offset, n):
     phi = TWO_PI * np.arange(n) / n + offset
     out = np.empty((values.shape[0], 2 * k_max + 1), np.complex128)
     ducc0.nufft.nu2u(points=np.ascontiguousarray(values, np.complex128), coord=phi[:, None], forward=True,
-                     epsilon=NUFFT_EPS, nthreads=n_threads(), out=out)
+                     epsilon=NUFFT_EPS, nthreads=1, out=out)
     return out
 
 
@@ -114,7 +117,7 @@ def _synthesis(x, offset, n):
     phi = TWO_PI * np.arange(n) / n + offset
     out = np.empty((x.shape[0], n), np.complex128)
     ducc0.nufft.u2nu(grid=np.ascontiguousarray(x), coord=phi[:, None], forward=False, epsilon=NUFFT_EPS,
-                     nthreads=n_threads(), out=out)
+                     nthreads=1, out=out)
     return out
 
 

@@ -58,6 +58,7 @@ def _products_task(ctx, key):
     p = cfg.products
     nside = p.nside or 2 * default_nside(lmax)
     hmap = alm_to_output_map(alm, lmax, f, epoch, p.frame, p.unit, nside)
+    ctx.check_finite(f"maps/map of channel {fi}", hmap)
     mask = observed_sky_mask(nside, lat, None if p.frame == "date" else rotation_matrix(p.frame, "date", epoch))
     tag = frequency_tags(freqs)[fi]
     maps = ctx.run.path / "maps"
