@@ -109,3 +109,137 @@ def test_psf_table_peaks_and_widths_vary_smoothly_with_declination(core_acc):
     zen = np.argmin(np.abs(decs - tel.lat_rad))
     assert tab["major"][0] / tab["minor"][0] > tab["major"][zen] / tab["minor"][zen]
     assert abs(np.cos(tab["pa"][0])) > 0.9  # major axis north-south
+
+
+# ----------------------------------------------------------------------------- CLEAN
+
+SRC_RA, SRC_DEC = np.deg2rad([20.0, 110.0, 200.0, 300.0]), np.deg2rad([10.0, 35.0, 60.0, 80.0])
+SRC_FLUX = np.array([100.0, 60.0, 40.0, 80.0])
+FILTERS = dict(filter_m1_lmin=40)  # m = 0, a_00 and m = 1, l > 40 filtered (the paper's kind)
+
+
+@pytest.fixture(scope="module")
+def dirty_sources(core_acc):
+    """Noiseless point sources observed through the transfer matrices' normal equations."""
+    from mmflow.mmode.engine import solve_alm
+
+    tel, acc = core_acc
+    vecs = radec_to_vec(SRC_RA, SRC_DEC)
+    truth = point_sources_alm(vecs, SRC_FLUX, LMAX)
+    for m in acc.ms:  # r_m = B^H v with v = B a_true
+        acc.rhs[m] = acc.full_gram(m) @ truth[m_slice(LMAX, m)]
+    eps = 1e-3 * max(np.linalg.eigvalsh(acc.full_gram(m))[-1] for m in acc.ms)
+    dirty = solve_alm(acc, eps, filters=FILTERS)
+    ops = psf.block_operators(acc, eps, FILTERS)
+    np.testing.assert_allclose(psf.observe_alm(ops, truth, LMAX), dirty, atol=1e-9 * np.abs(dirty).max())
+    table = psf.psf_table(ops, LMAX, np.deg2rad(np.arange(-50.0, 90.1, 2.5)))
+    return tel, vecs, dirty, ops, table
+
+
+def _components_near(state, vec, radius):
+    sel = np.arccos(np.clip(state.comp_vec @ vec, -1, 1)) < radius
+    c = (state.comp_vec[sel] * state.comp_flux[sel, None]).sum(0)
+    return state.comp_flux[sel].sum(), c / np.linalg.norm(c)
+
+
+def _ring(nside, dec, width, away_from, min_dist):
+    from mmflow.imaging.clean import dec_of_pixels
+
+    pix = np.flatnonzero(np.abs(dec_of_pixels(nside) - dec) < width)
+    v = np.array(healpy.pix2vec(nside, pix)).T
+    return pix[np.arccos(np.clip(v @ away_from, -1, 1)) > min_dist]
+
+
+def test_clean_recovers_point_sources_and_removes_the_ncp_rings(dirty_sources):
+    from mmflow.imaging import clean
+
+    tel, vecs, dirty, ops, table = dirty_sources
+    opts = clean.CleanOptions(min_sep_deg=15.0, rel_threshold=3e-4, max_cycles=200)
+    state, reason = clean.clean_alm(dirty, ops, LMAX, table, clean.never_seen_dec_min(tel.lat_rad), opts=opts)
+    assert reason == "rel_threshold"
+    fwhm = psf.interp_table(table, SRC_DEC, "major")
+    for v, f, w in zip(vecs, SRC_FLUX, fwhm):
+        flux, centroid = _components_near(state, v, w)
+        assert flux == pytest.approx(f, rel=0.01)
+        assert np.arccos(min(1.0, centroid @ v)) < 0.05 * w
+    nside = 128
+    dirty_map = healpy.alm2map(dirty, nside, lmax=LMAX)
+    resid_map = healpy.alm2map(state.residual_alm, nside, lmax=LMAX)
+    seen = clean.observed_mask(nside, clean.never_seen_dec_min(tel.lat_rad))
+    brightest = dirty_map[seen].max()
+    assert np.abs(resid_map[seen]).max() < 1e-3 * brightest
+    # the m = 0 filter leaves a negative ring through the dec-80 source; CLEAN removes it
+    ring = _ring(nside, SRC_DEC[3], np.deg2rad(1.0), vecs[3], 3 * fwhm[3])
+    restored = clean.restore_map(resid_map, state.comp_vec, state.comp_flux, table)
+    assert dirty_map[ring].mean() < -0.005 * brightest
+    assert abs(restored[ring].mean()) < 0.02 * abs(dirty_map[ring].mean())
+    assert abs(resid_map[ring].mean()) < 0.02 * abs(dirty_map[ring].mean())
+
+
+def test_clean_resumes_from_a_checkpoint_and_blocks_give_the_same_answer(dirty_sources):
+    from mmflow.imaging import clean
+
+    tel, _, dirty, ops, table = dirty_sources
+    nside, opts = 128, clean.CleanOptions(min_sep_deg=15.0)
+    mask = clean.observed_mask(nside, clean.never_seen_dec_min(tel.lat_rad))
+    s = clean.CleanState(dirty.copy())
+    for _ in range(4):
+        s, _ = clean.major_cycle(s, ops, LMAX, table, mask, nside, opts)
+    saved = {k: np.array(v) for k, v in s.to_arrays().items()}  # as npz/zarr would
+    a, _ = clean.major_cycle(s, ops, LMAX, table, mask, nside, opts)
+    b, _ = clean.major_cycle(clean.CleanState.from_arrays(saved), ops, LMAX, table, mask, nside, opts, m_block=7)
+    np.testing.assert_allclose(b.residual_alm, a.residual_alm, atol=1e-12 * np.abs(dirty).max())
+    np.testing.assert_array_equal(b.comp_flux, a.comp_flux)
+    assert a.cycle == b.cycle == 5 and a.comp_cycle.max() == 4
+    # observing the model reproduces the subtracted part exactly
+    np.testing.assert_allclose(dirty - psf.observe_alm(ops, a.model_alm(LMAX), LMAX), a.residual_alm,
+                               atol=1e-9 * np.abs(dirty).max())
+
+
+def test_peaks_respect_separation_and_the_declination_mask():
+    from mmflow.imaging import clean
+
+    nside = 128
+    dec = clean.dec_of_pixels(nside)
+    _, lat = healpy.pix2ang(nside, np.arange(healpy.nside2npix(nside)), lonlat=True)
+    np.testing.assert_allclose(np.rad2deg(dec), lat, atol=1e-9)  # dec = pi/2 - theta, not acos(z)
+    hmap = np.zeros(healpy.nside2npix(nside))
+    pts = radec_to_vec(np.deg2rad([10.0, 12.5, 100.0, 200.0]), np.deg2rad([20.0, 20.0, -70.0, 50.0]))
+    for v, amp in zip(pts, [5.0, 4.0, 9.0, 3.0]):
+        hmap += amp * np.exp(-0.5 * (np.arccos(np.clip(np.array(healpy.pix2vec(nside, np.arange(len(hmap)))).T @ v,
+                                                        -1, 1)) / np.deg2rad(0.6)) ** 2)
+    mask = clean.observed_mask(nside, clean.never_seen_dec_min(np.deg2rad(37.2)))
+    pix = clean.find_peaks(hmap, 10, np.deg2rad(3.0), mask, floor=0.1)
+    got = np.array(healpy.pix2vec(nside, pix)).T
+    assert len(pix) == 2  # the dec -70 peak is never seen; the 2-deg neighbour is within 3 deg
+    vecs, vals = clean.refine_peaks(hmap, pix)
+    np.testing.assert_allclose(np.arccos(np.clip(np.sum(vecs * pts[[0, 3]], 1), -1, 1)), 0, atol=np.deg2rad(0.1))
+    assert np.all(np.arccos(np.clip(np.sum(got * pts[[0, 3]], 1), -1, 1)) < healpy.nside2resol(nside))
+    assert vals[0] == pytest.approx(5.0, rel=0.02)
+
+
+def test_restoring_beam_conserves_flux_and_follows_the_table():
+    from mmflow.imaging import clean
+
+    nside = 256
+    table = {"dec": np.deg2rad([-90.0, 90.0]), "major": np.deg2rad([3.0, 3.0]), "minor": np.deg2rad([2.0, 2.0]),
+             "pa": np.deg2rad([30.0, 30.0]), "peak": np.ones(2)}
+    v = radec_to_vec(0.5, np.deg2rad(40.0))
+    out = clean.restore_map(np.zeros(healpy.nside2npix(nside)), v[None], np.array([12.0]), table)
+    assert out.sum() * healpy.nside2pixarea(nside) == pytest.approx(12.0, rel=1e-3)
+    fit = psf.measure_beam(lambda q: out[healpy.vec2pix(nside, *q.T)], v, np.deg2rad(1.0), n_grid=61)
+    assert fit["major"] == pytest.approx(np.deg2rad(3.0), rel=0.05)
+    assert fit["pa"] == pytest.approx(np.deg2rad(30.0), abs=np.deg2rad(5.0))
+
+
+def test_stop_reasons():
+    from mmflow.imaging.clean import stop_reason
+
+    assert stop_reason([]) is None
+    assert stop_reason([10.0, 2.0], threshold=3.0) == "threshold"
+    assert stop_reason([10.0, 5.0], threshold=3.0) is None
+    assert stop_reason([10.0, 0.5], rel_threshold=0.01) is None
+    assert stop_reason([10.0, 0.09], rel_threshold=0.01) == "rel_threshold"
+    assert stop_reason([10.0] + [9.0] * 11, stall_cycles=10) == "stall"
+    assert stop_reason(list(np.geomspace(10, 1, 12)), stall_cycles=10) is None
+    assert stop_reason([5.0] * 4, max_cycles=3, stall_cycles=0) == "max_cycles"
