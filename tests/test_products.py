@@ -105,3 +105,60 @@ def test_noise_summary_units():
     assert out["kelvin"] == pytest.approx(1000.0 / jy_per_sr_per_kelvin(73.152e6))
     omega = np.pi / (4 * np.log(2)) * np.deg2rad(16.8 / 60) * np.deg2rad(14.6 / 60)
     assert out["mjy_per_beam"] == pytest.approx(1e6 * omega)
+
+
+# ----------------------------------------------------------------------------- science products
+
+def test_tt_recovers_an_injected_spectral_index_and_ignores_offsets():
+    from mmflow.analysis.spectral_index import local_tt
+
+    nside, nu1, nu2 = 32, 36.528e6, 73.152e6
+    np.random.seed(3)
+    g = healpy.alm2map(healpy.synalm(np.r_[0, 0, (np.arange(2, 65) / 2.0) ** -2.0], lmax=64), nside, lmax=64)
+    t1 = 4000.0 * np.exp(0.6 * g / g.std())  # structure with dynamic range everywhere
+    x, y, z = healpy.pix2vec(nside, np.arange(healpy.nside2npix(nside)))
+    beta = -2.5 + 0.08 * z + 0.05 * x  # a smooth index map (-2.59 .. -2.41)
+    t2 = t1 * (nu2 / nu1) ** beta
+    out = local_tt(t1, t2, nu1, nu2, radius_deg=10.0, nside_out=8)
+    xo, yo, zo = healpy.pix2vec(8, np.arange(healpy.nside2npix(8)))
+    truth = -2.5 + 0.08 * zo + 0.05 * xo
+    assert np.all(np.isfinite(out["beta"]))
+    assert np.max(np.abs(out["beta"] - truth)) < 0.02
+    assert np.median(out["r2"]) > 0.95
+    off = local_tt(t1 + 300.0, t2 - 1234.0, nu1, nu2, radius_deg=10.0, nside_out=8)
+    np.testing.assert_allclose(off["beta"], out["beta"], atol=1e-9)
+
+
+def test_flux_from_disc_minus_annulus_over_the_psf_sum():
+    from mmflow.analysis.fluxscale import source_flux
+
+    nside = 128
+    v = healpy.ang2vec(np.deg2rad(50.0), 1.0)
+    pix_v = np.array(healpy.pix2vec(nside, np.arange(healpy.nside2npix(nside)))).T
+    d = np.arccos(np.clip(pix_v @ v, -1, 1))
+    # a PSF with a negative bowl around its main lobe (like a filtered m-mode PSF)
+    psf_map = 900.0 * np.exp(-0.5 * (d / np.deg2rad(0.8)) ** 2) - 40.0 * np.exp(-0.5 * (d / np.deg2rad(4.0)) ** 2)
+    sky = 37.0 * psf_map + 250.0 + 3.0 * pix_v[:, 2]  # background: offset and a gradient
+    got = source_flux(sky, psf_map, v, np.deg2rad(2.5), (np.deg2rad(3.0), np.deg2rad(4.5)))
+    assert got == pytest.approx(37.0, rel=0.01)
+
+
+def test_table1_formats_and_fraction_of_modes():
+    from mmflow.analysis import table1
+    from mmflow.imaging.jackknife import noise_summary
+
+    ev = [np.array([1.0, 1e-3, 5.0]), np.array([2e-2, 3.0])]
+    assert table1.fraction_of_modes(ev, 1e-2) == pytest.approx(4 / 5)
+    tab = {"dec": np.deg2rad([-30.0, 90.0]), "major": np.deg2rad([20.0, 14.0]) / 60,
+           "minor": np.deg2rad([16.0, 14.0]) / 60, "pa": np.zeros(2), "peak": np.ones(2)}
+    noise = noise_summary(3e4, 73.152e6, 1e-5)
+    rows = [table1.table1_row(73.152e6, 24e3, tab, noise, 0.512)]
+    md = table1.to_markdown(rows)
+    assert "73.152" in md and "0.512" in md and "18.5' x 15.5'" in md  # linear in dec: 20 - 6 * 30 / 120
+    import csv
+    import io
+    import json
+
+    back = list(csv.DictReader(io.StringIO(table1.to_csv(rows))))[0]
+    assert float(back["fwhm_major_arcmin_dec+45"]) == pytest.approx(20 - 6 * 75 / 120)
+    assert json.loads(table1.to_json(rows))[0]["noise_k"] == pytest.approx(noise["kelvin"])
