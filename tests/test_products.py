@@ -162,3 +162,15 @@ def test_table1_formats_and_fraction_of_modes():
     back = list(csv.DictReader(io.StringIO(table1.to_csv(rows))))[0]
     assert float(back["fwhm_major_arcmin_dec+45"]) == pytest.approx(20 - 6 * 75 / 120)
     assert json.loads(table1.to_json(rows))[0]["noise_k"] == pytest.approx(noise["kelvin"])
+
+
+def test_three_colour_is_white_for_index_minus_2p5():
+    from mmflow.analysis.spectral_index import three_colour
+
+    freqs = np.array([36.528e6, 52.224e6, 73.152e6])
+    t = np.geomspace(100.0, 1e4, 50)
+    rgb = three_colour([t * (f / freqs[0]) ** -2.5 for f in freqs], freqs)
+    np.testing.assert_allclose(rgb[:, 0], rgb[:, 2], atol=1e-12)
+    assert rgb.min() >= 0 and rgb.max() == pytest.approx(1.0)
+    flat = three_colour([t * (f / freqs[0]) ** -2.0 for f in freqs], freqs)
+    assert np.all(flat[:, 2] >= flat[:, 0])  # flatter spectrum: bluer

@@ -176,6 +176,22 @@ def test_clean_recovers_point_sources_and_removes_the_ncp_rings(dirty_sources):
     assert abs(resid_map[ring].mean()) < 0.02 * abs(dirty_map[ring].mean())
 
 
+def test_engine_path_cleans_from_the_normal_equations(dirty_sources, core_acc):
+    from mmflow.imaging import clean
+
+    tel, acc = core_acc
+    eps = dirty_sources[3][5].eps
+    opts = clean.CleanOptions(min_sep_deg=15.0, rel_threshold=1e-2, max_cycles=60)
+    out = clean.clean_normal_equations(acc, eps, tel.lat_rad, FILTERS, opts=opts, dec_step_deg=5.0)
+    np.testing.assert_allclose(out["dirty_alm"], dirty_sources[2], atol=1e-12 * np.abs(dirty_sources[2]).max())
+    assert out["reason"] == "rel_threshold"
+    v = dirty_sources[1][0]
+    flux, _ = _components_near(out["state"], v, np.deg2rad(5.0))
+    assert flux == pytest.approx(SRC_FLUX[0], rel=0.02)
+    pk = healpy.vec2pix(out["nside"], *v)
+    assert out["restored_map"][pk] > 10 * np.abs(out["residual_map"]).max()
+
+
 def test_clean_resumes_from_a_checkpoint_and_blocks_give_the_same_answer(dirty_sources):
     from mmflow.imaging import clean
 

@@ -378,3 +378,29 @@ def restore_map(residual_map, comp_vec, comp_flux, table, radius_fwhm=2.5):
         xb = x * np.cos(pa[i]) - y * np.sin(pa[i])
         out[disc] += flux[i] / (2 * np.pi * sa[i] * sb[i]) * np.exp(-0.5 * ((xa / sa[i]) ** 2 + (xb / sb[i]) ** 2))
     return out
+
+
+def clean_normal_equations(acc, eps, lat_rad, filters=None, noise=None, opts=None, dec_step_deg=1.0, nside=None):
+    """The engine path: dirty map, PSF table and CLEAN from one frequency's normal equations.
+
+    ``acc``: :class:`~mmflow.mmode.normal.NormalAccumulator` (Grams and right-hand sides);
+    ``eps`` and ``filters`` as for :func:`mmflow.mmode.engine.solve_alm`. The PSF table runs
+    from the lowest declination seen to the pole in ``dec_step_deg`` steps.
+
+    Returns
+    -------
+    dict: ``dirty_alm``, ``state`` (:class:`CleanState`), ``reason``, ``table``, ``nside``,
+    ``residual_map`` and ``restored_map`` (Jy/sr, frame of date).
+    """
+    from mmflow.mmode.engine import solve_alm
+
+    lmax = acc.lmax
+    dirty = solve_alm(acc, eps, filters=filters)
+    ops = psf_mod.block_operators(acc, eps, filters)
+    dec_min = never_seen_dec_min(lat_rad)
+    table = psf_mod.psf_table(ops, lmax, np.deg2rad(np.arange(np.rad2deg(dec_min), 90.0 + 1e-9, dec_step_deg)))
+    nside = nside or 2 * default_nside(lmax)
+    state, reason = clean_alm(dirty, ops, lmax, table, dec_min, noise, opts, nside)
+    resid = healpy.alm2map(state.residual_alm, nside, lmax=lmax)
+    return {"dirty_alm": dirty, "state": state, "reason": reason, "table": table, "nside": nside,
+            "residual_map": resid, "restored_map": restore_map(resid, state.comp_vec, state.comp_flux, table)}
