@@ -105,6 +105,11 @@ def test_noise_summary_units():
     assert out["kelvin"] == pytest.approx(1000.0 / jy_per_sr_per_kelvin(73.152e6))
     omega = np.pi / (4 * np.log(2)) * np.deg2rad(16.8 / 60) * np.deg2rad(14.6 / 60)
     assert out["mjy_per_beam"] == pytest.approx(1e6 * omega)
+    table = {"dec": np.deg2rad([0.0, 90.0]), "major": np.deg2rad([16.8, 16.8]) / 60,
+             "minor": np.deg2rad([14.6, 14.6]) / 60, "pa": np.zeros(2)}
+    a = np.zeros(100)
+    got = jackknife.jackknife_noise(a, a + 2000.0, a - 2000.0, None, 73.152e6, table)
+    assert got["jy_per_sr"] == pytest.approx(2000.0) and got["beam_solid_angle_sr"] == pytest.approx(omega)
 
 
 # ----------------------------------------------------------------------------- science products

@@ -67,3 +67,14 @@ def noise_summary(sigma_jy_sr, freq_hz, beam_solid_angle_sr):
     return {"jy_per_sr": float(sigma_jy_sr),
             "kelvin": float(units.jy_per_sr_to_kelvin(sigma_jy_sr, freq_hz)),
             "mjy_per_beam": float(1e3 * sigma_jy_sr * beam_solid_angle_sr)}
+
+
+def jackknife_noise(map_all, map_even, map_odd, mask, freq_hz, psf_table, beam_dec_deg=45.0):
+    """Table 1's noise: jackknife sigma (Jy/sr, K, mJy/beam), the beam being the fitted PSF
+    main lobe at ``beam_dec_deg`` (``Omega = pi / (4 ln 2) major minor``)."""
+    from mmflow.imaging.psf import gaussian_solid_angle, interp_table
+
+    sigma = np.sqrt(jackknife_variance(map_all, map_even, map_odd, mask))
+    dec = np.deg2rad(beam_dec_deg)
+    omega = gaussian_solid_angle(interp_table(psf_table, dec, "major"), interp_table(psf_table, dec, "minor"))
+    return {**noise_summary(sigma, freq_hz, omega), "beam_solid_angle_sr": float(omega)}
