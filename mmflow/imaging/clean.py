@@ -164,13 +164,13 @@ def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_
     """
     out = np.array(residual_block, np.complex128, copy=True)
     base = alm_index(lmax, m_start, m_start)
-    for m in range(m_start, min(m_stop, lmax + 1)):
-        op = ops.get(m)
-        if op is None:
-            continue
+
+    def one(m):
         s = alm_index(lmax, m, m) - base
         sl = slice(s, s + lmax - m + 1)
-        out[sl] -= psf_mod.observe_block(op, component_block[sl])
+        out[sl] -= psf_mod.observe_block(ops[m], component_block[sl])
+
+    psf_mod.map_blocks(one, [m for m in range(m_start, min(m_stop, lmax + 1)) if m in ops])
     return out
 
 

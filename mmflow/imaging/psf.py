@@ -28,13 +28,32 @@ import scipy.linalg as sla
 
 from mmflow.conventions import m_slice, radec_to_vec
 from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.solvers import tikhonov
+from mmflow.errors import InputError
 from mmflow.sky.harmonics import point_sources_alm, synthesize_at
+from mmflow.threads import n_threads, single_threaded_blas
 
 FWHM_PER_SIGMA = np.sqrt(8 * np.log(2))
 
 
 # ----------------------------------------------------------------------------- observing
+
+def map_blocks(fn, items, threads=None):
+    """``[fn(i) for i in items]`` on ``n_threads()`` threads, each with single-threaded BLAS.
+
+    m blocks are independent and LAPACK releases the GIL: on a loaded 2-core machine this is
+    ~10x faster than one multi-threaded LAPACK call per block (OpenBLAS threads stall at
+    every synchronisation when a core is taken away).
+    """
+    items = list(items)
+    threads = n_threads() if threads is None else threads
+    with single_threaded_blas():
+        if threads <= 1 or len(items) <= 1:
+            return [fn(i) for i in items]
+        from concurrent.futures import ThreadPoolExecutor
+
+        with ThreadPoolExecutor(threads) as ex:
+            return list(ex.map(fn, items))
+
 
 def observe(cho, gram, x_block, keep):
     """``y_k = (G_kk + eps I)^-1 (G x)_k``, ``y_f = 0`` for one m block (direct form).
@@ -90,8 +109,12 @@ def block_operator(m, gram, eps, keep):
     keep = np.asarray(keep, bool)
     if not keep.any():
         return BlockOperator(m, keep, None, eps)
-    gkk = gram[np.ix_(keep, keep)]
-    _, cho = tikhonov(gkk, np.zeros(len(gkk), gkk.dtype), eps)
+    if eps <= 0:
+        raise InputError("imaging", "eps", f"eps={eps} must be > 0 for a Cholesky factor",
+                         "use a positive eps")
+    gkk = np.array(gram if keep.all() else gram[np.ix_(keep, keep)], order="F", copy=True)
+    gkk[np.diag_indices(len(gkk))] += eps
+    cho = sla.cho_factor(gkk, lower=False, overwrite_a=True, check_finite=False)
     coupling = None if keep.all() else np.ascontiguousarray(gram[np.ix_(keep, ~keep)])
     return BlockOperator(m, keep, cho, eps, coupling)
 
@@ -117,8 +140,9 @@ def block_operators(acc, eps, filters=None, ms=None):
     use the same ones as the dirty map so that the PSF carries the filter's NCP rings.
     """
     filters = {} if filters is None else filters
-    return {m: block_operator(m, acc.full_gram(m), eps, filter_mask(m, acc.lmax, **filters))
-            for m in (acc.ms if ms is None else ms)}
+    ms = list(acc.ms if ms is None else ms)
+    ops = map_blocks(lambda m: block_operator(m, acc.full_gram(m), eps, filter_mask(m, acc.lmax, **filters)), ms)
+    return dict(zip(ms, ops))
 
 
 def observe_alm(ops, alm, lmax):
@@ -128,9 +152,12 @@ def observe_alm(ops, alm, lmax):
     """
     alm = np.asarray(alm)
     out = np.zeros(alm.shape, np.complex128)
-    for m, op in ops.items():
+
+    def one(m):
         sl = m_slice(lmax, m)
-        out[sl] = observe_block(op, alm[sl])
+        out[sl] = observe_block(ops[m], alm[sl])
+
+    map_blocks(one, ops)
     return out
 
 
