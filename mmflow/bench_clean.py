@@ -24,7 +24,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from mmflow.bench import gemm_gflops, machine
-from mmflow.conventions import m_slice, n_alm, radec_to_vec
+from mmflow.conventions import m_slice, radec_to_vec
 from mmflow.imaging import clean, psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
@@ -221,7 +221,8 @@ def paper_table1_fwhm(lmax=1000, freq_hz=73.152e6, target_fraction=0.512, decs_d
             r["paper_arcmin"] = paper[k]
             r["ratio_major"] = r["major_arcmin"] / paper[k][0]
             r["ratio_minor"] = r["minor_arcmin"] / paper[k][1]
-    return {"layout": "paper-2017 (approximation)" if layout is None else "given", "beam": type(BEAM).__name__, "baselines": nb, "lmax": lmax,
+    return {"layout": "paper-2017 (approximation)" if layout is None else "given", "beam": type(BEAM).__name__,
+            "baselines": nb, "lmax": lmax,
             "freq_mhz": freq_hz / 1e6, "eps": eps, "fraction_of_modes": float(np.mean(ev > eps)),
             "gram_seconds": t_gram, "total_seconds": time.perf_counter() - t0, "fwhm": rows}
 

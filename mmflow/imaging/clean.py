@@ -61,7 +61,9 @@ def find_peaks(hmap, n_peaks, min_sep_rad, mask=None, absolute=True, floor=-np.i
     """Up to ``n_peaks`` pixels of largest value, pairwise at least ``min_sep_rad`` apart.
 
     Greedy in decreasing value over local maxima (pixels not below any of their 8
-    neighbours): a pixel is taken unless it lies within ``min_sep`` of one already taken. ``absolute``: rank by ``|map|`` (negative components allowed).
+    neighbours): a pixel is taken unless it lies within ``min_sep`` of one already taken.
+    ``absolute``: rank by ``|map|`` (negative components allowed); pixels scoring below
+    ``floor`` are never taken (an exact plateau counts as a local maximum: set a floor).
 
     Returns
     -------
