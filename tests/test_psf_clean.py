@@ -192,6 +192,18 @@ def test_engine_path_cleans_from_the_normal_equations(dirty_sources, core_acc):
     assert out["restored_map"][pk] > 10 * np.abs(out["residual_map"]).max()
 
 
+def test_clean_stops_at_k_sigma_of_the_noise(dirty_sources):
+    from mmflow.imaging import clean
+
+    tel, _, dirty, ops, table = dirty_sources
+    peak0 = healpy.alm2map(dirty, 128, lmax=LMAX).max()
+    noise = peak0 / 300.0
+    opts = clean.CleanOptions(min_sep_deg=15.0, k_sigma=3.0, max_cycles=200)
+    state, reason = clean.clean_alm(dirty, ops, LMAX, table, clean.never_seen_dec_min(tel.lat_rad), noise, opts)
+    assert reason == "threshold"
+    assert state.peaks[-1] <= 3 * noise < state.peaks[-2]
+
+
 def test_clean_resumes_from_a_checkpoint_and_blocks_give_the_same_answer(dirty_sources):
     from mmflow.imaging import clean
 
