@@ -157,12 +157,13 @@ def m_block_slice(lmax, m_start, m_stop):
     return slice(alm_index(lmax, m_start, m_start), stop)
 
 
-def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_stop):
+def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_stop, weights=None):
     """The per-m-block kernel: ``residual_m - observe_m(x_m)`` for ``m_start <= m < m_stop``.
 
     ``residual_block`` and ``component_block`` are the :func:`m_block_slice` of the residual
     alm and of the components' alm; ``ops`` maps m to :class:`psf.BlockOperator` (m without
-    an operator are left unchanged: no data constrain them). Returns a new array.
+    an operator are left unchanged: no data constrain them). ``weights`` (over l = 0..lmax):
+    subtract ``w_l observe(x)`` instead (a high-pass CLEAN). Returns a new array.
     """
     out = np.array(residual_block, np.complex128, copy=True)
     base = alm_index(lmax, m_start, m_start)
@@ -170,7 +171,8 @@ def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_
     def one(m):
         s = alm_index(lmax, m, m) - base
         sl = slice(s, s + lmax - m + 1)
-        out[sl] -= psf_mod.observe_block(ops[m], component_block[sl])
+        y = psf_mod.observe_block(ops[m], component_block[sl])
+        out[sl] -= y if weights is None else weights[m:] * y
 
     psf_mod.map_blocks(one, [m for m in range(m_start, min(m_stop, lmax + 1)) if m in ops])
     return out
@@ -284,11 +286,12 @@ class CleanOptions:
                            self.stall_frac)
 
 
-def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, m_block=None):
+def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, m_block=None, weights=None):
     """One major cycle in memory (synthesis, peaks, component alm, observe and subtract).
 
     ``m_block``: m per call of :func:`observe_and_subtract` (None: one call), as a stage
-    would fan them out. Returns the updated state and the seconds spent in ``synthesis``,
+    would fan them out; ``weights``: high-pass CLEAN (the state's residual is ``H r``, the
+    table that of ``H`` PSF). Returns the updated state and the seconds spent in ``synthesis``,
     ``peaks``, ``components`` (the component alm) and ``observe``.
     """
     opts = opts or CleanOptions()
@@ -308,7 +311,7 @@ def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, 
     step = m_block or lmax + 1
     for m0 in range(0, lmax + 1, step):
         sl = m_block_slice(lmax, m0, m0 + step)
-        resid[sl] = observe_and_subtract(resid[sl], x[sl], ops, lmax, m0, m0 + step)
+        resid[sl] = observe_and_subtract(resid[sl], x[sl], ops, lmax, m0, m0 + step, weights)
     t["observe"] = time.perf_counter() - t0
     new = CleanState(resid, np.concatenate([state.comp_vec, vecs]), np.concatenate([state.comp_flux, flux]),
                      np.concatenate([state.comp_cycle, np.full(len(flux), state.cycle, int)]),
@@ -317,7 +320,7 @@ def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, 
 
 
 def clean_alm(dirty_alm, ops, lmax, table, dec_min_rad, noise=None, opts=None, nside=None, state=None,
-              checkpoint=None):
+              checkpoint=None, weights=None):
     """CLEAN a dirty alm in memory with the per-block kernels; returns ``(state, reason)``.
 
     Parameters
@@ -330,15 +333,19 @@ def clean_alm(dirty_alm, ops, lmax, table, dec_min_rad, noise=None, opts=None, n
     opts : :class:`CleanOptions`
     nside : int, the residual map's resolution (default twice :func:`maps.default_nside`)
     state : :class:`CleanState`, optional, to resume; ``checkpoint(state)`` is called each cycle.
+    weights : ndarray (lmax + 1,), optional, high-pass CLEAN (:func:`psf.highpass_weights`):
+        CLEAN ``H dirty`` with ``H observe`` and a table of ``H PSF``; combine the result
+        with :func:`restore_highpass`.
     """
     opts = opts or CleanOptions()
     nside = nside or 2 * default_nside(lmax)
     mask = observed_mask(nside, dec_min_rad)
     threshold = 0.0 if noise is None else opts.k_sigma * noise
-    state = state or CleanState(np.array(dirty_alm, np.complex128, copy=True))
+    start = dirty_alm if weights is None else psf_mod.apply_l_weights(dirty_alm, lmax, weights)
+    state = state or CleanState(np.array(start, np.complex128, copy=True))
     reason = opts.stop(state.peaks, threshold)
     while reason is None:
-        state, _ = major_cycle(state, ops, lmax, table, mask, nside, opts, threshold)
+        state, _ = major_cycle(state, ops, lmax, table, mask, nside, opts, threshold, weights=weights)
         if checkpoint is not None:
             checkpoint(state)
         reason = opts.stop(state.peaks, threshold)
@@ -406,3 +413,15 @@ def clean_normal_equations(acc, eps, lat_rad, filters=None, noise=None, opts=Non
     resid = healpy.alm2map(state.residual_alm, nside, lmax=lmax)
     return {"dirty_alm": dirty, "state": state, "reason": reason, "table": table, "nside": nside,
             "residual_map": resid, "restored_map": restore_map(resid, state.comp_vec, state.comp_flux, table)}
+
+
+def restore_highpass(dirty_alm, state, table, weights, lmax, nside):
+    """Restored map of a high-pass CLEAN: ``(1 - H) dirty + H residual-and-restored-components``.
+
+    The smooth part never went through CLEAN; the Gaussian-restored components are high-passed
+    (``map2alm``, ``w_l``, ``alm2map``) so their large scales are not counted twice.
+    """
+    smooth = psf_mod.apply_l_weights(dirty_alm, lmax, 1.0 - np.asarray(weights))
+    comps = restore_map(np.zeros(healpy.nside2npix(nside)), state.comp_vec, state.comp_flux, table)
+    comps_alm = psf_mod.apply_l_weights(healpy.map2alm(comps, lmax=lmax, iter=3), lmax, weights)
+    return healpy.alm2map(smooth + state.residual_alm + comps_alm, nside, lmax=lmax)

@@ -280,7 +280,27 @@ def measure_psf(alm, lmax, vec, n_grid=41):
     return out
 
 
-def psf_table(ops, lmax, dec_rad, ra_rad=0.0, batch=16, n_grid=41):
+def highpass_weights(lmax, l_cut, l_width):
+    """``w_l``: 0 below ``l_cut - l_width``, a cosine ramp to 1 at ``l_cut``, 1 above.
+
+    CLEANing ``H a`` (``H = diag(w_l)``, diagonal in l and so per m block) leaves the smooth
+    large-scale sky out of CLEAN (the reference CLEANs such a high-pass residual).
+    """
+    ell = np.arange(lmax + 1, dtype=float)
+    x = np.clip((ell - (l_cut - l_width)) / max(l_width, 1e-9), 0.0, 1.0)
+    return 0.5 - 0.5 * np.cos(np.pi * x)
+
+
+def apply_l_weights(alm, lmax, weights):
+    """``w_l a_lm`` for a healpy-layout alm (``alm`` may have trailing columns)."""
+    import healpy
+
+    ell = healpy.Alm.getlm(lmax)[0]
+    w = np.asarray(weights)[ell]
+    return alm * (w if np.ndim(alm) == 1 else w[:, None])
+
+
+def psf_table(ops, lmax, dec_rad, ra_rad=0.0, batch=16, n_grid=41, weights=None):
     """PSF peak and fitted beam on a declination grid (the PSF depends only on declination).
 
     Returns
@@ -288,6 +308,7 @@ def psf_table(ops, lmax, dec_rad, ra_rad=0.0, batch=16, n_grid=41):
     dict of arrays over ``dec``: ``dec`` (rad), ``peak`` (PSF at the source, Jy/sr per Jy),
     ``major``, ``minor`` (FWHM, rad), ``pa`` (rad, north through east). Declinations where
     the PSF has no measurable main lobe get NaN widths and their value at the source.
+    ``weights``: the PSF of a high-pass CLEAN (:func:`highpass_weights`).
     """
     dec = np.asarray(dec_rad, float)
     out = {k: np.full(len(dec), np.nan) for k in ("peak", "major", "minor", "pa")}
@@ -295,6 +316,8 @@ def psf_table(ops, lmax, dec_rad, ra_rad=0.0, batch=16, n_grid=41):
     vecs = radec_to_vec(np.full(len(dec), ra_rad), dec)
     for s in range(0, len(dec), batch):
         cols = psf_alm(ops, lmax, vecs[s:s + batch])
+        if weights is not None:
+            cols = apply_l_weights(cols, lmax, weights)
         for j in range(cols.shape[1]):
             k = s + j
             out["peak"][k] = value_at(cols[:, j], lmax, vecs[k])
