@@ -7,7 +7,7 @@ import sys
 
 import yaml
 
-BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean")
 
 
 def _common(p):

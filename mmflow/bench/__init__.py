@@ -3,14 +3,15 @@
 One module per subject: :mod:`.engine` (transfer, solve, simulate), :mod:`.workflow` (the
 workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.calibrate`
 (Stefcal and peeling), :mod:`.ingest` (ingest vs pyuvdata's read rate), :mod:`.gaps`
-(least-squares m-modes of flagged data).
+(least-squares m-modes of flagged data), :mod:`.clean` (PSF and CLEAN cycles).
 """
 from __future__ import annotations
 
 import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
-           "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps"}
+           "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps",
+           "clean": "clean"}
 
 
 def run(what, quick=False):

@@ -23,7 +23,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.bench import gemm_gflops, machine
+from mmflow.bench.engine import gemm_gflops, machine
 from mmflow.conventions import m_slice, radec_to_vec
 from mmflow.imaging import clean, psf
 from mmflow.imaging.filters import filter_mask
@@ -114,8 +114,9 @@ def _paper_projection(cycle_s, gain=0.15, n_peaks=256, noise_k=154.0, k_sigma=3.
             "compact_after_highpass_minutes": compact_cycles * cycle_s / 60}
 
 
-def run(quick=False):
-    """Measure and return the figures (also printed as JSON by ``python -m mmflow.bench_clean``)."""
+def run(what="clean", quick=False):
+    """Measure and return the figures (``mmflow bench clean``; ``python -m mmflow.bench.clean --paper-fwhm``
+    for the paper-array Table-1 FWHM)."""
     lmax = 200 if quick else 1000
     nside = 2 * default_nside(lmax)
     eps = 1e-2
@@ -180,7 +181,7 @@ def paper_table1_fwhm(lmax=1000, freq_hz=73.152e6, target_fraction=0.512, decs_d
     ``layout`` replaces the paper's (a quick check of the path on a small array).
     The paper reports 18.6' x 15.1', 16.8' x 14.6', 16.6' x 16.1' at dec 0, +45, +75.
     """
-    from mmflow.bench import BEAM
+    from mmflow.bench.engine import BEAM
     from mmflow.mmode.engine import accumulate_normal_equations
     from mmflow.telescope import Telescope, ovro_lwa_layout
 
