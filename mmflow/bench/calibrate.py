@@ -17,20 +17,12 @@ import numpy as np
 
 from mmflow.calibrate.peel import PEEL, add_component, peel_dense
 from mmflow.calibrate.stefcal import stefcal, sweep, sweep_numpy
+from mmflow.bench.engine import _best
 from mmflow.threads import n_threads
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
 N_CHANNELS_PAPER = 8
 FREQ = 60e6
-
-
-def _best(fn, reps=3):
-    best = np.inf
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def _layout(n_ant):
