@@ -32,7 +32,7 @@ def build_parser():
         _common(sub.add_parser(st.name, help=f"run only the '{st.name}' stage: {st.description}"))
     st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
-    vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and CRC-32)")
+    vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and XXH3 checksum)")
     vf.add_argument("run_dir")
     vf.add_argument("--quick", action="store_true", help="sizes only, no checksums")
     cf = sub.add_parser("config", help="show the schema or write a starting workflow")

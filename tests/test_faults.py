@@ -220,7 +220,7 @@ def test_truncated_chunk_is_named(ref, tmp_path):
 
 
 def test_altered_chunk_is_refused_when_read(ref, tmp_path):
-    """Same size, other bytes: only the CRC finds it; the stage reading it names the file."""
+    """Same size, other bytes: only the checksum finds it; the stage reading it names the file."""
     run_dir = _copy(ref, tmp_path)
     rel = _chunk(run_dir, "normal", "normal.zarr/f0/gram_b")
     data = bytearray((run_dir / rel).read_bytes())

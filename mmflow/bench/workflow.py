@@ -2,10 +2,11 @@
 
 For each case a whole workflow runs (in process, synchronous scheduler) in a temporary
 directory; per stage the JSON gives the wall time, the time inside tasks, the time spent on
-chunk checksums (CRC-32 of every written and read chunk) and on the non-finite guard, and
+chunk checksums (XXH3 checksum of every written and read chunk) and on the non-finite guard, and
 their fractions of the stage. The run-directory lock is taken once per run (one ``flock``).
 Cases: ``demo`` (the demo's workflow, one channel) and, without ``--quick``, ``lmax1000``
-(16 paper-2017 stands, 136 baselines all at lmax 1000, float32, one sidereal day at 73 MHz).
+(16 paper-2017 stands, 136 baselines all at lmax 1000, float32, one sidereal day at 73 MHz;
+stages up to the normal equations).
 """
 from __future__ import annotations
 
@@ -25,6 +26,10 @@ CASES = {
 }
 
 
+# the lmax-1000 case stops after the reduction: its solve is dominated by eigvalsh (issue 12)
+ONLY = {"lmax1000": ["simulate", "mmodes", "transfer", "normal"]}
+
+
 def run_case(name, root):
     from mmflow.workflow.config import load_config
     from mmflow.workflow.runner import run_workflow
@@ -32,7 +37,7 @@ def run_case(name, root):
     demo = os.path.join(os.path.dirname(__file__), "..", "..", "workflows", "demo.yaml")
     cfg = load_config(demo, CASES[name] + ["cluster.kind=synchronous", f"run.directory={root}/{name}"])
     t0 = time.perf_counter()
-    summaries = run_workflow(cfg, progress=False, log=lambda *a: None)
+    summaries = run_workflow(cfg, only=ONLY.get(name), progress=False, log=lambda *a: None)
     wall = time.perf_counter() - t0
     stages = {}
     for st, s in summaries.items():
@@ -45,22 +50,20 @@ def run_case(name, root):
             "bookkeeping_s": total_book, "bookkeeping_fraction": total_book / wall}
 
 
-def crc_rate(n_bytes=256 << 20):
-    """CRC-32 throughput of this machine (GB/s) on a file just written."""
-    from mmflow.io.stores import file_crc
+def checksum_rate(n_bytes=256 << 20):
+    """Chunk-checksum throughput of this machine (GB/s, in memory)."""
+    from mmflow.io.stores import checksum
 
-    with tempfile.NamedTemporaryFile() as fh:
-        fh.write(np.random.default_rng(0).bytes(n_bytes))
-        fh.flush()
-        t0 = time.perf_counter()
-        file_crc(fh.name)
-        return n_bytes / (time.perf_counter() - t0) / 1e9
+    data = np.frombuffer(np.random.default_rng(0).bytes(n_bytes), np.uint8)
+    t0 = time.perf_counter()
+    checksum(data)
+    return n_bytes / (time.perf_counter() - t0) / 1e9
 
 
 def run(what="workflow", quick=False):
     from mmflow.bench.engine import gemm_gflops, machine
 
-    res = {"machine": machine(), "sgemm_gflops": gemm_gflops(np.float32), "crc32_gb_per_s": crc_rate()}
+    res = {"machine": machine(), "sgemm_gflops": gemm_gflops(np.float32), "checksum_gb_per_s": checksum_rate()}
     with tempfile.TemporaryDirectory(prefix="mmflow-bench-") as root:
         res["cases"] = [run_case(n, root) for n in (["demo"] if quick else ["demo", "lmax1000"])]
     return res

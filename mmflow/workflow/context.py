@@ -3,7 +3,7 @@
 A :class:`Context` is picklable (configuration as JSON, the absolute run directory and the
 driver's lock token). ``ctx.for_stage(stage)`` gives a :class:`TaskContext`: the
 configuration through the stage's :class:`~mmflow.workflow.fingerprint.ConfigView`, verified
-reads of input stores, and writes recorded (size and CRC-32 per chunk) for the completion
+reads of input stores, and writes recorded (size and XXH3 checksum per chunk) for the completion
 marker, with a non-finite guard on everything written.
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ from functools import lru_cache
 import numpy as np
 
 from mmflow.errors import MmflowError
-from mmflow.io.stores import ChunkLedger, check_region
+from mmflow.io.stores import ChunkLedger, open_checked
 from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
 from mmflow.telescope.beams import make_beam
 from mmflow.workflow.config import WorkflowConfig
@@ -74,25 +74,27 @@ class TaskContext(Context):
         return g
 
     def open(self, store, mode="r"):
-        import zarr
-
-        if mode == "r" and store not in self.stage.inputs and store not in self.stage.outputs:
-            raise MmflowError(f"stage '{self.stage.name}' reads {store}, which it does not declare as an input")
-        return zarr.open_group(str(self.run.store(store)), mode=mode)
-
-    def read(self, store, name, region=()):
-        """Read ``store/name[region]`` after checking its chunks against the producer's records."""
+        """A declared store, through a :class:`~mmflow.io.stores.CheckedStore`: writes are checksummed
+        as they pass; reads of an input store are checked against its producer's chunk records."""
         from mmflow.workflow.stages.base import producer_of
 
+        if store not in self.stage.inputs and store not in self.stage.outputs:
+            raise MmflowError(f"stage '{self.stage.name}' opens {store}, which it does not declare")
+        producer = producer_of(store, _parse(self.config_json)) if store in self.stage.inputs else None
+        expected = None
+        if producer is not None and producer.name != self.stage.name and mode == "r":
+            expected = self.run.chunk_index(producer.name)
+        return open_checked(self.run_path, store, mode, expected, producer.name if producer else None)
+
+    def read(self, store, name, region=()):
+        """Read ``store/name[region]``; every chunk is checked against the producer's records as it is read."""
         g = self.open(store)
         arr = g[name]
-        producer = producer_of(store, _parse(self.config_json))
-        if producer is not None and store in self.stage.inputs:
-            t0 = time.perf_counter()
-            check_region(self.run_path, self.run.chunk_index(producer.name), arr, region, producer.name)
+        try:
+            return arr[tuple(region) if region else ...]
+        finally:
             if self.ledger is not None:
-                self.ledger.seconds += time.perf_counter() - t0
-        return arr[tuple(region) if region else ...]
+                self.ledger.seconds += g.store.seconds
 
     def write(self, group, name, region, data, allow_nan=False):
         """Write a chunk-aligned region, refusing NaN/inf, and record its chunks."""
@@ -104,7 +106,8 @@ class TaskContext(Context):
     def check_finite(self, what, data):
         """Refuse NaN/inf about to be written (timed: the guard's cost is reported per stage)."""
         t0 = time.perf_counter()
-        finite = data.dtype.kind not in "fc" or bool(np.isfinite(data).all())
+        # one reduction propagates any NaN/inf (exact check only if the sum is not finite)
+        finite = data.dtype.kind not in "fc" or bool(np.isfinite(np.sum(data))) or bool(np.isfinite(data).all())
         if self.ledger is not None:
             self.ledger.guard_seconds += time.perf_counter() - t0
         if not finite:

@@ -10,7 +10,7 @@ Layout (see docs/data-layout.md)::
                                chunks.json and complete.json when every key is done
 
 A chunk counts as done only when its marker exists: markers are written (atomically) after
-the data and list the size and CRC-32 of every chunk file the task wrote, so a killed task
+the data and list the size and XXH3 checksum of every chunk file the task wrote, so a killed task
 is simply redone and a damaged chunk is found (``mmflow verify``). A stage whose
 fingerprint (what it reads: settings, inputs' fingerprints, input files) differs from the
 stored manifest is stale: mmflow refuses to mix outputs unless asked to recompute
