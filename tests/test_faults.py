@@ -411,3 +411,17 @@ def test_kernels_give_the_same_bits_for_any_thread_budget():
         out.append(subprocess.run([sys.executable, "-c", INVARIANCE], cwd=ROOT, env=env, capture_output=True,
                                   text=True, check=True).stdout.strip())
     assert out[0] == out[1] and len(out[0]) == 40
+
+
+def test_unflagged_on_grid_fast_path_equals_the_least_squares_fit():
+    from mmflow.mmode.gapfill import chunk_mmodes
+
+    rng = np.random.default_rng(3)
+    binned = rng.normal(size=(400, 12)) + 1j * rng.normal(size=(400, 12))
+    w = np.ones((400, 12))
+    args = (binned, w, 60, None, np.full(12, 90), ("full", "even", "odd"), np.ones(12), 0.9)
+    fast = chunk_mmodes(*args)
+    fit = chunk_mmodes(*args, prior=np.zeros((61, 2, 12), complex))  # a prior forces the fit
+    assert fast.fits == [] and fit.fits
+    np.testing.assert_allclose(fast.mmodes, fit.mmodes, rtol=0, atol=1e-10 * np.abs(fit.mmodes).max())
+    np.testing.assert_array_equal(fast.inv_var, fit.inv_var)

@@ -408,6 +408,16 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     ``prior``: m-modes ``(mmax + 1, 2, n_bl)`` of a previous map's model (:func:`prior_mmodes`)
     for every split.
     """
+    w = np.asarray(bin_weight, float)
+    if sigma2 is not None and prior is None and _uniform_on_grid(w, offset):
+        # every bin filled with equal weight on the bin grid: the least-squares fit is the plain
+        # transform (to 1e-12, tests/test_mmode_gaps.py) -- take it directly (one FFT per split)
+        from mmflow.mmode.transform import split_mmode_transform
+
+        sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
+        mm = split_mmode_transform(binned, mmax, None, splits)
+        cov = baseline_coverage(w, min_coverage, coverage_policy)
+        return ChunkMmodes(mm, lsq_inverse_variance(sigma2, w.sum(axis=0), cov), sigma2, cov, [])
     if sigma2 is None:
         sigma2 = estimate_sigma2(binned, bin_weight, mmax, band_limit, offset)
     sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
@@ -416,6 +426,12 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     cov = baseline_coverage(bin_weight, min_coverage, coverage_policy)
     inv_var = lsq_inverse_variance(sigma2, np.asarray(bin_weight, float).sum(axis=0), cov)
     return ChunkMmodes(mm, inv_var, sigma2, cov, fits)
+
+
+def _uniform_on_grid(bin_weight, offset):
+    """True when every bin of every baseline holds data with one weight, on the bin grid."""
+    return (bin_weight.size > 0 and bool(np.all(bin_weight == bin_weight.flat[0])) and bin_weight.flat[0] > 0
+            and (offset is None or not np.any(offset)))
 
 
 def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.float64):
