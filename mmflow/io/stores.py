@@ -119,13 +119,12 @@ def _validate(arr, spec, location):
 
 # ----------------------------------------------------------------------------- checksums
 
-def chunk_keys(arr, region, aligned=True):
-    """Chunk keys (``c/i/j/...``) covered by ``region`` (a tuple of slices; chunk-aligned unless
-    ``aligned=False``: then every chunk it touches)."""
+def chunk_keys(arr, region):
+    """Chunk keys (``c/i/j/...``) covered by ``region`` (a tuple of slices, chunk-aligned)."""
     ranges = []
     for sl, n, c in zip(_full_region(arr, region), arr.shape, arr.chunks):
         start, stop = sl.start, sl.stop
-        if aligned and (start % c or (stop % c and stop != n)):
+        if start % c or (stop % c and stop != n):
             raise ValueError(f"region {region} of {arr.path} is not aligned to chunks {arr.chunks}")
         ranges.append(range(start // c, -(-stop // c)))
     if not ranges:
@@ -144,7 +143,7 @@ def checksum(data):
     return xxhash.xxh3_64_intdigest(data)
 
 
-def file_crc(path):
+def file_checksum(path):
     """:func:`checksum` of a file's bytes."""
     with open(path, "rb") as fh:
         return checksum(fh.read())
@@ -186,13 +185,13 @@ class ChunkLedger:
             if not p.exists():
                 raise DamagedStoreError(f"{p}: chunk missing right after it was written (is the run "
                                         "directory on a filesystem every worker shares?)")
-            self.entries[rel] = written[rel] if rel in written else [p.stat().st_size, file_crc(p)]
+            self.entries[rel] = written[rel] if rel in written else [p.stat().st_size, file_checksum(p)]
         self.seconds += time.perf_counter() - t0
 
     def record_file(self, path):
         """A plain output file (a FITS map, a PNG)."""
         p = Path(path)
-        self.entries[str(p.relative_to(self.root))] = [p.stat().st_size, file_crc(p)]
+        self.entries[str(p.relative_to(self.root))] = [p.stat().st_size, file_checksum(p)]
 
 
 class CheckedStore(LocalStore):
@@ -272,7 +271,7 @@ def verify_chunks(root, entries, full=True):
             problems.append(f"{p}: missing")
         elif p.stat().st_size != size:
             problems.append(f"{p}: {p.stat().st_size} bytes, {size} were written")
-        elif full and file_crc(p) != crc:
+        elif full and file_checksum(p) != crc:
             problems.append(f"{p}: contents changed (XXH3 checksum differs)")
     return problems
 
