@@ -72,13 +72,22 @@ def test_ms_per_integration_ingests_to_the_uvh5_store_and_map(scan, tmp_path):
     ms = _ingest(scan, tmp_path / "m", str(scan["ms"] / "*.ms"))
     assert len(ms.attrs["files"]) == 72 and ms.attrs["ingest_file_info"][0]["phase"] == "zenith"
     _same_store(uvh5, ms)
-    # Stokes I = (XX + YY) / 2, flagged where either is: against the simulation itself
+    # XX and YY kept as they are (Stokes I is formed after calibration, where the data are read),
+    # each with its own flags: against the simulation itself
+    from mmflow.io.polarization import stokes_i
+
     uv = scan["uv"]
+    assert ms.attrs["pols"] == ["xx", "yy"]
+    for p in range(2):
+        vp = uv.data_array[:, 0, p].reshape(uv.Ntimes, uv.Nbls)
+        fp = uv.flag_array[:, 0, p].reshape(uv.Ntimes, uv.Nbls)
+        np.testing.assert_array_equal(ms["weights"][:, :, 0, p] == 0, fp)
+        np.testing.assert_allclose(ms["vis"][:, :, 0, p][~fp], vp[~fp], rtol=0, atol=4 * F32 * np.abs(vp).max())
     xx = uv.data_array[:, 0, 0].reshape(uv.Ntimes, uv.Nbls)
     flags = np.any(uv.flag_array[:, 0, :], axis=-1).reshape(uv.Ntimes, uv.Nbls)
-    np.testing.assert_array_equal(ms["weights"][:, :, 0] == 0, flags)
-    np.testing.assert_allclose(ms["vis"][:, :, 0][~flags], (0.95 * xx)[~flags], rtol=0,
-                               atol=4 * F32 * np.abs(xx).max())
+    vi, wi = stokes_i(ms["vis"][:, :, 0].astype(complex), ms["weights"][:, :, 0])
+    np.testing.assert_array_equal(wi == 0, flags)  # Stokes I is flagged where either hand is
+    np.testing.assert_allclose(vi[~flags], (0.95 * xx)[~flags], rtol=0, atol=4 * F32 * np.abs(xx).max())
     # the same map, end to end
     maps = {}
     for name, pattern in (("h", scan["root"] / "uvh5" / "*.uvh5"), ("m", scan["ms"] / "*.ms")):

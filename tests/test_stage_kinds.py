@@ -40,8 +40,8 @@ def _cal_task(ctx, key):
 
 def _cal_apply(ctx, block):
     gain = ctx.read("gains.zarr", "gain")
-    per_row = np.repeat(gain, INTERVAL)[: block.vis.shape[0]]
-    block.vis /= per_row[:, None, None]
+    per_row = np.repeat(gain, INTERVAL)[block.rows]
+    block.vis /= per_row[:, None, None, None]
 
 
 def _toy_calibrate():
@@ -73,7 +73,7 @@ def test_correction_is_applied_once_on_read_and_never_written_back(toy_stages, t
     n = len(lst)
     gain = np.repeat([_gain(k) for k in range(-(-n // INTERVAL))], INTERVAL)[:n]
     mg = zarr.open_group(str(cal / "mmodes.zarr"))
-    binned, _, off = sidereal_bins(lst, v_plain[:, 5, 0].astype(complex) / gain, None, mg.attrs["n_bins"], 0.9)
+    binned, _, off = sidereal_bins(lst, v_plain[:, 5, 0, 0].astype(complex) / gain, None, mg.attrs["n_bins"], 0.9)
     expect = split_mmode_transform(binned, mg.attrs["mmax"], off)[0]
     np.testing.assert_allclose(mg["mmodes"][0, 0, :, :, 5], expect, rtol=1e-12, atol=1e-12 * np.abs(expect).max())
     # recomputing the m-modes (another setting) reads and corrects again: still applied once

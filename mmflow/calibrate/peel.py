@@ -209,8 +209,9 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
             continue
         f_resid, f_removed = guard_fluxes(R, coherencies[s], W, g[s], threads)
         f_measured = f_resid + f_removed
-        measured[s] = np.where(peel, f_measured / np.maximum(wsum, 1e-300), 0)
-        removed[s] = np.where(peel, f_removed / np.maximum(wsum, 1e-300), 0)
+        used = peel & (wsum > 0)  # an integration without usable baselines measures nothing
+        measured[s] = np.where(used, f_measured / np.where(used, wsum, 1.0), 0)
+        removed[s] = np.where(used, f_removed / np.where(used, wsum, 1.0), 0)
         if guard is not None:
             fired[s] = peel & ((removed[s] < guard * measured[s]) | (measured[s] <= 0))
         if fired[s].any():

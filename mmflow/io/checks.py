@@ -12,7 +12,7 @@ import logging
 import numpy as np
 
 from mmflow.errors import InputError
-from mmflow.io.polarization import stokes_i_recipe
+from mmflow.io.polarization import stokes_i_recipe, stored_names
 from mmflow.sky.units import jy_per_sr_per_kelvin
 
 log = logging.getLogger("mmflow.ingest")
@@ -132,10 +132,11 @@ def nonfinite(vis, flagged, what, mode):
 
 def file_info(uv, what):
     """Check one file's metadata; return what a task needs to make Stokes I in Jy from it:
-    ``{"phase": "drift"|"zenith", "vis_units": ..., "pol_indices": [...]}``."""
+    ``{"phase": "drift"|"zenith", "vis_units": ..., "pol_indices": [...], "pols": ['xx', 'yy']}``."""
     indices, single = stokes_i_recipe(uv.polarization_array, what)
     if single:
         log.info("%s: one parallel-hand polarisation stands in for Stokes I", what)
     unit_scale(uv.vis_units, uv.freq_array, what)
     duplicate_rows(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array), what)
-    return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices]}
+    return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices],
+            "pols": stored_names(uv.polarization_array, indices)}

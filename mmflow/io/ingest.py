@@ -11,8 +11,10 @@ files covering its time chunk (concurrently, ``mmflow.io.readers``), refuses (or
 ``input.nonfinite=flag``, flags and counts) unflagged NaN/inf samples before it writes, and
 writes its rows. No worker rescans the glob.
 
-Stokes I: ``mmflow.io.polarization`` (I, (XX + YY) / 2, (RR + LL) / 2, or one parallel hand),
-chosen by pyuvdata polarisation number so that ``ee``/``nn`` labels are XX/YY.
+Polarisations: ``mmflow.io.polarization`` keeps those that make Stokes I (I; XX and YY; RR and
+LL; or one parallel hand), chosen by pyuvdata polarisation number so that ``ee``/``nn``
+labels are XX/YY, as ``vis.zarr``'s ``pol`` axis: calibration acts per hand, and Stokes I is
+formed where the corrected data are next read.
 pyuvdata's data (``V_12 = <E_1 E_2*>``, ``b = x_2 - x_1``, as simulated by matvis and hera_sim)
 follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/test_ingest.py`` checks by
 imaging a matvis drift scan: sources land at their ICRS positions. ``input.conjugate``
@@ -50,7 +52,12 @@ class IngestPlan:
     epoch_jd: float
     integration_s: float
     skipped: list = field(default_factory=list)
-    file_info: list = field(default_factory=list)  # per file: {"phase", "vis_units", "pol_indices"}
+    file_info: list = field(default_factory=list)  # per file: {"phase", "vis_units", "pol_indices", "pols"}
+
+    @property
+    def pols(self):
+        """The polarisations kept (``vis.zarr``'s ``pol`` axis): the same for every file."""
+        return self.file_info[0]["pols"]
 
 
 def plan_ingest(cfg):
@@ -163,6 +170,10 @@ def _plan(pattern, fmt, on_bad):
         fast = _metadata_indexed(files, fmt, on_bad, kinds.pop())
     metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
     ref = metas[0]
+    for f, info in zip(good, infos):
+        if info["pols"] != infos[0]["pols"]:
+            raise InputError(f, "polarization_array", f"keeps polarisations {info['pols']} where {good[0]} keeps "
+                             f"{infos[0]['pols']}", "ingest files with the same polarisations in one run")
     freqs = np.asarray(ref.freq_array).ravel()
     ants = np.asarray(ref.telescope.antenna_numbers)
     # baselines: the union over files as (i, j) antenna-index pairs with i <= j; a baseline a
@@ -242,7 +253,7 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     row_file = g["plan_file"][row0:row1]
     pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
     freqs = g["freqs_hz"][:]
-    n, nbl, nf = len(row_time), len(pairs), len(freqs)
+    n, nbl, nf, npol = len(row_time), len(pairs), len(freqs), g["vis"].shape[3]
     mode = getattr(cfg.input, "nonfinite", "error")
     chunk_keys = _time_key(row_time)
     index = _index_lookup(ant_numbers)
@@ -256,8 +267,8 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
 
     with ThreadPoolExecutor(max(1, min(n_threads(), len(fis)))) as ex:
         parts = list(ex.map(one, fis))
-    vis = np.zeros((n, nbl, nf), np.complex64)
-    wts = np.zeros((n, nbl, nf), np.float32)
+    vis = np.zeros((n, nbl, nf, npol), np.complex64)
+    wts = np.zeros((n, nbl, nf, npol), np.float32)
     lst = np.full(n, np.nan)
     n_nonfinite = 0
     for fi, p in zip(fis, parts):
@@ -285,6 +296,6 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     g["weights"][row0:row0 + n] = wts
     g["lst"][row0:row0 + n] = lst
     g["time_jd"][row0:row0 + n] = row_time
-    flagged = int(np.sum(np.all(wts == 0, axis=(1, 2))))
+    flagged = int(np.sum(np.all(wts == 0, axis=(1, 2, 3))))
     return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
             "nonfinite_flagged": int(n_nonfinite)}

@@ -1,4 +1,5 @@
-"""Stokes I from the polarisations a file holds, chosen by pyuvdata polarisation NUMBER.
+"""The polarisations mmflow keeps from a file, chosen by pyuvdata polarisation NUMBER, and
+Stokes I formed from them.
 
 pyuvdata (AIPS memo 117) numbers: Stokes / pseudo-Stokes I = 1 (``I``, ``pI``), RR = -1,
 LL = -2, XX = -5, YY = -6; the cross hands are RL = -3, LR = -4, XY = -7, YX = -8. The
@@ -15,8 +16,13 @@ Stokes I (docs/conventions.md) is, in order of preference:
   unpolarised sky XX = YY = I.
 
 Cross hands alone (XY, YX, RL, LR: no parallel hand) and Stokes Q/U/V alone carry no Stokes
-I and are refused. A Stokes-I sample is flagged when any polarisation it uses is flagged; its
-sample count is the smallest of theirs.
+I and are refused.
+
+Ingest keeps the polarisations that make Stokes I *separately* (``vis.zarr``'s ``pol`` axis,
+named by :func:`stored_names`: ``xx, yy``, ``rr, ll``, ``I`` or one parallel hand): gains
+are per antenna *and* polarisation, so calibration and peeling act on each hand before
+:func:`stokes_i` combines them where the data are next read. A Stokes-I sample is flagged
+when any polarisation it uses is flagged; its sample count is the smallest of theirs.
 """
 from __future__ import annotations
 
@@ -70,16 +76,34 @@ def stokes_i_recipe(pol_numbers, what="input"):
                      "provide XX and YY (pyuvdata also calls them ee/nn), RR and LL, or pseudo-Stokes pI")
 
 
-def combine_stokes_i(data, flags, nsample, indices):
-    """Stokes I, its flags and sample counts from ``(..., npol)`` arrays.
+_STORED = {1: "I", -1: "rr", -2: "ll", -5: "xx", -6: "yy"}
 
-    ``I = mean(data[..., indices])``; flagged where any used polarisation is flagged;
-    ``nsample = min(nsample[..., indices])``.
-    """
+
+def stored_names(pol_numbers, indices):
+    """Names of the kept polarisations along ``vis.zarr``'s ``pol`` axis (``['xx', 'yy']``)."""
+    pols = [int(p) for p in np.ravel(pol_numbers)]
+    return [_STORED[pols[i]] for i in indices]
+
+
+def select_pols(data, flags, nsample, indices):
+    """The kept polarisations ``(..., len(indices))`` of ``(..., npol)`` arrays, in recipe order."""
     idx = list(indices)
-    if len(idx) == 1:
-        return data[..., idx[0]], flags[..., idx[0]], nsample[..., idx[0]]
-    a, b = idx
-    vis = data[..., a] + data[..., b]
-    vis *= 0.5
-    return vis, flags[..., a] | flags[..., b], np.minimum(nsample[..., a], nsample[..., b])
+    return data[..., idx], flags[..., idx], nsample[..., idx]
+
+
+def stokes_i(vis, weights):
+    """Stokes I and its weights from ``(..., npol)`` arrays of the kept polarisations.
+
+    ``I = mean_p V_p`` (``(XX + YY) / 2``; one kept polarisation is returned as it is); the
+    weight is the smallest of the polarisations' (0 where any hand is flagged).
+    """
+    if vis.shape[-1] == 1:
+        return vis[..., 0], weights[..., 0]
+    return vis.mean(axis=-1), weights.min(axis=-1)
+
+
+def stokes_i_variance(variances):
+    """``Var(I) = sum_p Var(V_p) / n_pol^2`` for independent noise in the kept polarisations
+    (``(..., npol)``): two hands halve the single-hand variance."""
+    n = variances.shape[-1]
+    return variances.sum(axis=-1) / n**2

@@ -1,7 +1,8 @@
-"""Read one input file into Stokes-I arrays (the per-file step of an ingest task).
+"""Read one input file's kept polarisations (the per-file step of an ingest task).
 
 :func:`read_metadata` reads a file's metadata with pyuvdata (no data). :func:`read_file`
-returns a :class:`FileData`: each row's time, antennas, LST and the Stokes-I visibilities,
+returns a :class:`FileData`: each row's time, antennas, LST and the visibilities of the kept
+polarisations (:mod:`mmflow.io.polarization`),
 flags and sample counts, in Jy. A drift-scan UVH5 file whose metadata the plan has already
 read and checked is read directly with h5py (its ``Data/visdata``, ``Data/flags``,
 ``Data/nsamples`` and the header's row arrays, as the UVH5 format defines them), so its
@@ -17,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmflow.io import checks
-from mmflow.io.polarization import combine_stokes_i
+from mmflow.io.polarization import select_pols
 
 _CASACORE_LOCK = threading.Lock()  # casacore's table cache is not thread-safe
 
@@ -28,9 +29,9 @@ class FileData:
     ant1: np.ndarray  # (nblt,) antenna numbers
     ant2: np.ndarray
     lst: np.ndarray  # (nblt,) rad
-    vis: np.ndarray  # (nblt, nfreq) complex Stokes I, Jy
-    flags: np.ndarray  # (nblt, nfreq) bool
-    nsample: np.ndarray  # (nblt, nfreq) float
+    vis: np.ndarray  # (nblt, nfreq, npol) complex, the kept polarisations, Jy
+    flags: np.ndarray  # (nblt, nfreq, npol) bool
+    nsample: np.ndarray  # (nblt, nfreq, npol) float
     freqs: np.ndarray  # (nfreq,) Hz
 
 
@@ -72,7 +73,7 @@ def read_metadata(path, fmt=None):
 
 
 def read_file(path, fmt=None, info=None):
-    """Stokes I (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
+    """The kept polarisations (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
     here from the file when None)."""
     if info is not None and info["phase"] == "drift" and file_kind(path, fmt) == "uvh5":
         out = _read_uvh5_direct(path, info["pol_indices"])
@@ -80,7 +81,7 @@ def read_file(path, fmt=None, info=None):
         out, info = _read_pyuvdata(path, fmt, info)
     scale = checks.unit_scale(info["vis_units"], out.freqs, path)
     if np.any(scale != 1.0):
-        out.vis = out.vis * scale[None, :]
+        out.vis = out.vis * scale[None, :, None]
     return out
 
 
@@ -98,8 +99,8 @@ def _read_pyuvdata(path, fmt, info):
         info = checks.file_info(uv, str(path))
     if info["phase"] == "zenith":
         uv.unproject_phase()
-    vis, flags, nsample = combine_stokes_i(np.asarray(uv.data_array), np.asarray(uv.flag_array),
-                                           np.asarray(uv.nsample_array), info["pol_indices"])
+    vis, flags, nsample = select_pols(np.asarray(uv.data_array), np.asarray(uv.flag_array),
+                                      np.asarray(uv.nsample_array), info["pol_indices"])
     raw = FileData(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array),
                np.asarray(uv.lst_array), vis, flags, nsample, np.asarray(uv.freq_array, float).ravel())
     return raw, info
@@ -108,7 +109,7 @@ def _read_pyuvdata(path, fmt, info):
 def _read_uvh5_direct(path, pol_indices):
     """The UVH5 datasets themselves (format: pyuvdata docs, "UVH5 file format"): rows in file
     order, ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex or an integer ``r``/``i`` compound.
-    Autocorrelations' Stokes I is made real, as pyuvdata's ``fix_autos`` does on read."""
+    Autocorrelations' parallel hands are made real, as pyuvdata's ``fix_autos`` does on read."""
     import h5py
 
     with h5py.File(str(path), "r") as f:
@@ -127,7 +128,7 @@ def _read_uvh5_direct(path, pol_indices):
             vis = vis["r"].astype(np.float64) + 1j * vis["i"].astype(np.float64)
         flags, nsample = d["flags"][sl], d["nsamples"][sl]
     idx = [p - lo for p in pols]
-    vis, flags, nsample = combine_stokes_i(vis, flags, nsample, idx)
+    vis, flags, nsample = select_pols(vis, flags, nsample, idx)
     auto = ant1 == ant2
     if auto.any():
         vis[auto] = vis[auto].real

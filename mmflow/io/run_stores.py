@@ -3,9 +3,10 @@
 ==============  ======================================================================
 store           arrays (dimensions)
 ==============  ======================================================================
-vis.zarr        vis, weights (time, baseline, freq); lst, time_jd (time); autos |V_ii|
-                (time, antenna, freq; NaN where absent or flagged); freqs_hz, pairs,
-                antenna_enu. Never rewritten by corrections.
+vis.zarr        vis, weights (time, baseline, freq, pol); lst, time_jd (time); autos |V_ii|
+                (time, antenna, freq, pol; NaN where absent or flagged); freqs_hz, pairs,
+                antenna_enu; attrs ``pols`` name the pol axis (xx, yy | rr, ll | I | one
+                hand). Never rewritten by corrections.
 mmodes.zarr     mmodes (split, freq, m, 2, baseline); inv_var (freq, baseline)
 partials.zarr   f{F}/gram_b{M0} (group, m, l, l'); f{F}/rhs (group, split, m, l);
                 f{F}/vhv (group, split, m): one partial sum per fixed baseline group
@@ -31,16 +32,17 @@ def m_blocks(mmax, m_block):
 
 
 def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk):
-    nbl, nf, n_ant = len(pairs), len(freqs_hz), len(antenna_enu)
-    ch = (time_chunk, min(baseline_chunk, nbl), nf)
-    dims = ("time", "baseline", "freq")
+    """``attrs["pols"]`` names the polarisation axis."""
+    nbl, nf, n_ant, npol = len(pairs), len(freqs_hz), len(antenna_enu), len(attrs["pols"])
+    ch = (time_chunk, min(baseline_chunk, nbl), nf, npol)
+    dims = ("time", "baseline", "freq", "pol")
     return StoreSpec("vis.zarr", (
-        ArraySpec("vis", dims, (n_time, nbl, nf), ch, "complex64"),
-        ArraySpec("weights", dims, (n_time, nbl, nf), ch, "float32"),
+        ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64"),
+        ArraySpec("weights", dims, (n_time, nbl, nf, npol), ch, "float32"),
         ArraySpec("lst", ("time",), (n_time,), (time_chunk,), "float64", np.nan),
         ArraySpec("time_jd", ("time",), (n_time,), (time_chunk,), "float64", np.nan),
-        ArraySpec("autos", ("time", "antenna", "freq"), (n_time, n_ant, nf), (time_chunk, n_ant, nf), "float32",
-                  np.nan),
+        ArraySpec("autos", ("time", "antenna", "freq", "pol"), (n_time, n_ant, nf, npol),
+                  (time_chunk, n_ant, nf, npol), "float32", np.nan),
         ArraySpec("freqs_hz", ("freq",), (nf,), (nf,), "float64", data=freqs_hz),
         ArraySpec("pairs", ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs),
         ArraySpec("antenna_enu", ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
@@ -110,3 +112,54 @@ def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
             arrays.append(ArraySpec(f"f{fi}/B_m{m:05d}", ("pm", "baseline", "l"), (2, nbl, lmax - m + 1),
                                     (2, min(baseline_chunk, nbl), lmax - m + 1), dtype))
     return StoreSpec("transfer.zarr", tuple(arrays))
+
+
+def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, time_chunk, attrs):
+    """``gains.zarr`` of the calibrate stage: per solution interval (``solve_rows``: the
+    integrations it was solved on; ``apply_rows``: those it corrects) and frequency the gains,
+    flags and diagnostics; ``ripple`` r(t) per integration (1 where not corrected)."""
+    per = (1, 1, n_ant, npol)
+    sol = ("interval", "freq", "antenna", "pol")
+    return StoreSpec("gains.zarr", (
+        ArraySpec("gains", sol, (n_interval, nf, n_ant, npol), per, "complex128"),
+        ArraySpec("flags", sol, (n_interval, nf, n_ant, npol), per, "bool"),
+        ArraySpec("chi2", sol, (n_interval, nf, n_ant, npol), per, "float64"),
+        ArraySpec("iterations", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "int32"),
+        ArraySpec("converged", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "bool"),
+        ArraySpec("ripple", ("time", "freq", "antenna", "pol"), (n_time, nf, n_ant, npol), (n_time, 1, n_ant, npol),
+                  "float64"),
+        ArraySpec("solve_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=solve_rows),
+        ArraySpec("apply_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=apply_rows),
+    ), attrs)
+
+
+def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs):
+    """``peel.zarr``: per integration, frequency and source the DD gains, the fitted flux scale,
+    the mode used (0 skip, 1 peel, 2 subtract), the guard's verdict and fluxes, and convergence."""
+    dims = ("time", "freq", "source", "pol")
+    shape, ch = (n_time, nf, n_src, npol), (time_chunk, 1, n_src, npol)
+    return StoreSpec("peel.zarr", (
+        ArraySpec("dd_gains", ("time", "freq", "source", "antenna", "pol"), (n_time, nf, n_src, n_ant, npol),
+                  (time_chunk, 1, n_src, n_ant, npol), "complex128"),
+        ArraySpec("scale", dims, shape, ch, "float64"),
+        ArraySpec("mode", dims, shape, ch, "int8"),
+        ArraySpec("guard", dims, shape, ch, "bool"),
+        ArraySpec("measured", dims, shape, ch, "float64"),
+        ArraySpec("removed", dims, shape, ch, "float64"),
+        ArraySpec("converged", dims, shape, ch, "bool"),
+    ), attrs)
+
+
+def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk):
+    """``terrestrial.zarr``: per time chunk the weighted sums of the (calibrated, peeled) data,
+    the rank-1 patterns fitted to their average, and per integration the templates' amplitudes."""
+    return StoreSpec("terrestrial.zarr", (
+        ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, nf, nbl, npol),
+                  "complex128"),
+        ArraySpec("sum_weight", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, nf, nbl, npol),
+                  "float64"),
+        ArraySpec("patterns", ("freq", "component", "antenna", "pol"), (nf, n_comp, n_ant, npol),
+                  (nf, n_comp, n_ant, npol), "complex128"),
+        ArraySpec("amplitudes", ("time", "freq", "component", "pol"), (n_time, nf, n_comp, npol),
+                  (time_chunk, nf, n_comp, npol), "float64"),
+    ))

@@ -68,9 +68,10 @@ def mmode_inverse_variance(sigma2, bin_weight):
 
 
 def autocorrelation_rows(vis, weights, pairs, n_ant):
-    """``|V_ii|`` per integration, antenna and frequency, ``(time, n_ant, freq)`` float32;
-    NaN where an antenna's autocorrelation is absent or flagged."""
-    out = np.full((vis.shape[0], n_ant, vis.shape[2]), np.nan, np.float32)
+    """``|V_ii|`` per integration, antenna, frequency (and any trailing axes, e.g. polarisation):
+    ``(time, n_ant, freq, ...)`` float32 from ``(time, bl, freq, ...)``; NaN where an antenna's
+    autocorrelation is absent or flagged."""
+    out = np.full((vis.shape[0], n_ant) + vis.shape[2:], np.nan, np.float32)
     cols = np.flatnonzero(pairs[:, 0] == pairs[:, 1])
     a = np.abs(vis[:, cols, :])
     out[:, pairs[cols, 0], :] = np.where(weights[:, cols, :] > 0, a, np.nan)

@@ -300,3 +300,65 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
                     channel_width=channel_width_hz or telescope.channel_width_hz, vis_units="Jy",
                     time_axis_faster_than_bls=False)
     return uv
+
+
+@dataclass
+class DayCorruptions:
+    """The whole drift scan's corruptions of one channel (the truth), sliced per time chunk.
+
+    gains (time, ant, pol) or None; dd_offsets (n_dd, time, 2) rad and dd_flux (n_dd, time)
+    for the sources with direction-dependent gains; terrestrial [(pattern (ant,), amplitude (time,))].
+    """
+
+    gains: np.ndarray
+    dd_offsets: np.ndarray
+    dd_flux: np.ndarray
+    terrestrial: list
+
+
+def day_corruptions(n_ant, freq_hz, times_s, n_dd, enu, rng, *, gains=True, sawtooth_db=0.1,
+                    ionosphere_arcmin=20.0, scintillation_sigma=0.2, crosstalk_jy=0.0, rfi_jy=0.0, n_pol=2):
+    """Draw every corruption of one channel for the whole scan (``times_s`` all integrations).
+
+    Drawn once per channel so that any time chunk sees the same gains, offsets and terrestrial
+    amplitudes (:func:`antenna_gains`, :func:`ionospheric_offsets`, :func:`scintillation`,
+    :func:`crosstalk_pattern`, :func:`near_field_rfi`); switched-off parts draw nothing.
+    """
+    t = np.asarray(times_s, float)
+    g = None
+    if gains or sawtooth_db > 0:
+        g, _ = antenna_gains(n_ant, n_pol, t, rng, bandpass=gains, drift=gains, sawtooth=sawtooth_db > 0,
+                             amplitude_db=sawtooth_db)
+    offsets = ionospheric_offsets(n_dd, t, freq_hz, rng, ionosphere_arcmin) if n_dd else np.zeros((0, len(t), 2))
+    flux = scintillation(n_dd, len(t), freq_hz, rng, scintillation_sigma) if n_dd else np.zeros((0, len(t)))
+    terr = []
+    if crosstalk_jy > 0:
+        terr.append((crosstalk_pattern(n_ant, rng, crosstalk_jy), np.ones(len(t))))
+    if rfi_jy > 0:
+        terr.append(near_field_rfi(enu, freq_hz, len(t), rng, amplitude_jy=rfi_jy))
+    return DayCorruptions(g, offsets, flux, terr)
+
+
+def corrupted_visibilities(telescope, freq_hz, lsts, sky_vis, dd_coherencies, dd_vecs, day, rows, pairs,
+                           noise_rng=None, integration_s=None, system_jy=0.0):
+    """One time chunk of corrupted ``(time, bl, pol)`` visibilities (see the module docstring).
+
+    ``sky_vis`` (time, bl): the sky without the DD sources; ``dd_coherencies`` (n_dd, time, bl)
+    their model visibilities and ``dd_vecs`` (n_dd, 3) their frame-of-date directions; ``day`` a
+    :class:`DayCorruptions`, ``rows`` the chunk's integrations in it; ``system_jy`` a receiver
+    (and unmodelled background) power added to the autocorrelations, uncorrelated between
+    antennas: it enters the radiometer noise and the gains act on it like on the sky.
+    """
+    n_pol = 2 if day.gains is None else day.gains.shape[-1]
+    vis = np.array(sky_vis, np.complex128)
+    vis[:, np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]] += system_jy
+    if len(dd_vecs):
+        h = direction_dependent_gains(telescope, freq_hz, lsts, dd_vecs, day.dd_offsets[:, rows],
+                                      day.dd_flux[:, rows])
+        vis += dd_visibilities(dd_coherencies, h, pairs)
+    vis = np.repeat(vis[..., None], n_pol, axis=-1)
+    terr = [(vec, amp[rows]) for vec, amp in day.terrestrial]
+    noise = None if noise_rng is None else {"bandwidth_hz": telescope.channel_width_hz, "integration_s": integration_s}
+    out, _ = corrupt(vis, pairs, noise_rng, gains=None if day.gains is None else day.gains[rows],
+                     terrestrial=terr, noise=noise)
+    return out

@@ -32,9 +32,9 @@ def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=
     sources (their spectra at ``freq_hz``, Cas A's secular decrease at the epoch's year) are
     rotated from ICRS to the frame of date.
     """
+    from mmflow.calibrate.coherency import source_points_date
     from mmflow.mmode.transfer import fringe_bandlimit
     from mmflow.sky.diffuse import synthetic_sky_kelvin
-    from mmflow.sky.frames import rotation_matrix
     from mmflow.sky.sources import get_sources
     from mmflow.sky.units import kelvin_to_jy_per_sr
 
@@ -44,23 +44,30 @@ def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=
         b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / 299792458.0
         quad = diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
         pts = pts + gauss_legendre_points(alm, diffuse_lmax, quad)
-    if sources:
-        rot = rotation_matrix("icrs", "date", epoch_jd)
-        year = 2000.0 + (epoch_jd - 2451545.0) / 365.25
-        for src in get_sources(list(sources)):
-            vec, flux = src.points(freq_hz, year)
-            pts = pts + SkyPoints(vec @ rot.T, flux)
+    for src in get_sources(list(sources)):
+        pts = pts + source_points_date(src, freq_hz, epoch_jd)
     return pts
 
 
-def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None):
-    """Visibilities ``(time, baseline, freq)`` complex64 of one time chunk, one sky per frequency.
+def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, corrupted=None, rows=None,
+                   system_jy=0.0):
+    """Visibilities ``(time, baseline, freq, pol)`` complex64 of one time chunk, one sky per frequency.
 
-    With ``noise_rng``, radiometer noise ``sigma^2 = V_ii V_jj / (dnu tau)`` is added from the
-    simulated autocorrelations (which therefore must be among the baselines).
+    Uncorrupted, the one polarisation is Stokes I. With ``noise_rng``, radiometer noise
+    ``sigma^2 = V_ii V_jj / (dnu tau)`` is added from the simulated autocorrelations (which
+    therefore must be among the baselines).
+
+    ``corrupted``: per frequency ``(day, dd_points, dd_vecs)`` -- a
+    :class:`mmflow.simulate.corrupt.DayCorruptions`, the direction-dependent sources as
+    :class:`SkyPoints` (not in ``skies``) and their directions -- gives XX and YY through
+    :func:`mmflow.simulate.corrupt.corrupted_visibilities`; ``rows`` are the chunk's
+    integrations in the day; ``system_jy`` the receiver power of the corrupted autocorrelations.
     """
+    from mmflow.simulate.corrupt import corrupted_visibilities
+
     pairs = telescope.antenna_pairs()
-    out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz)), np.complex64)
+    n_pol = 1 if corrupted is None else 2
+    out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), n_pol), np.complex64)
     if noise_rng is not None:
         is_auto = pairs[:, 0] == pairs[:, 1]
         if not is_auto.any():
@@ -70,10 +77,17 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None):
         ci, cj = [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
     for fi, f in enumerate(telescope.freqs_hz):
         v = simulate_drift_scan(telescope, f, lsts, skies[fi], pairs, np.complex64)
+        if corrupted is not None:
+            day, dd_points, dd_vecs = corrupted[fi]
+            dd = (np.stack([simulate_drift_scan(telescope, f, lsts, p, pairs) for p in dd_points])
+                  if dd_points else np.zeros((0,) + v.shape, complex))
+            out[:, :, fi] = corrupted_visibilities(telescope, f, lsts, v, dd, dd_vecs, day, rows, pairs, noise_rng,
+                                                   integration_s, system_jy)
+            continue
         if noise_rng is not None:
             autos = np.real(v[:, is_auto])
             noise, _ = thermal_noise(v, autos[:, ci], autos[:, cj], telescope.channel_width_hz, integration_s,
                                      noise_rng)
             v = v + noise
-        out[:, :, fi] = v
+        out[:, :, fi, 0] = v
     return out

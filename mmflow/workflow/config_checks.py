@@ -163,6 +163,20 @@ def _value_problems(cfg):
                                "set telescope.include_autos: true, or sky.noise: false"))
         if cfg.sky.sources:
             out.extend(_source_problems(cfg.sky.sources))
+        if cfg.corrupt.enabled:
+            out.extend(_source_problems(cfg.corrupt.dd_sources, ("corrupt", "dd_sources")))
+            missing = [n for n in cfg.corrupt.dd_sources if n not in cfg.sky.sources]
+            if missing:
+                out.append(Problem(("corrupt", "dd_sources"), missing, "not among sky.sources",
+                                   "add them to sky.sources, or remove them from corrupt.dd_sources"))
+    if cfg.calibrate.enabled:
+        out.extend(_source_problems(cfg.calibrate.sources, ("calibrate", "sources")))
+    if cfg.peel.enabled:
+        out.extend(_source_problems(cfg.peel.sources, ("peel", "sources")))
+        extra = [n for n in cfg.peel.peel if n not in cfg.peel.sources]
+        if extra:
+            out.append(Problem(("peel", "peel"), extra, "not among peel.sources",
+                               "list the peeled sources in peel.sources too"))
     if mm.noise == "radiometer" and not cfg.telescope.include_autos:
         out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
                            "set telescope.include_autos: true, or mmode.noise: data (or auto)"))
@@ -181,7 +195,7 @@ def _value_problems(cfg):
     return out
 
 
-def _source_problems(names):
+def _source_problems(names, field=("sky", "sources")):
     from mmflow.workflow.config_errors import nearest
     from mmflow.sky.sources import CATALOG
 
@@ -189,7 +203,7 @@ def _source_problems(names):
     for n in names:
         if n not in CATALOG:
             hit = nearest(n, CATALOG)
-            out.append(Problem(("sky", "sources"), n, "not in the source catalogue",
+            out.append(Problem(field, n, "not in the source catalogue",
                                f"did you mean '{hit}'?" if hit else f"use names from {sorted(CATALOG)}"))
     return out
 

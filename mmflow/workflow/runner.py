@@ -171,7 +171,7 @@ def _check_inputs(run, st, cfg):
 def _repair_or_refuse(run, st, force, log):
     """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop.
 
-    An iterative stage restarts from scratch: every later cycle depends on a damaged one.
+    A stage with cycles restarts from scratch: every later cycle depends on a damaged one.
     """
     stage = st.name
     damaged = run.damaged_keys(stage)
@@ -184,7 +184,7 @@ def _repair_or_refuse(run, st, force, log):
                                 f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
                                 f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
     log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
-    if "_prepare" in damaged or st.kind == "iterative":
+    if "_prepare" in damaged or st.next_cycle is not None:
         run.reset_stage(stage)
     else:
         run.forget_keys(stage, list(damaged))
@@ -282,7 +282,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
         _stamp_stores(run, st, cfg, fp.digest)
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
         results = _execute(client, ctx, st.name, todo, progress, worker_wait_s)
-        if st.kind == "iterative":
+        if st.next_cycle is not None:  # iterative stages, and solve stages with a second phase
             results += _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log)
         fin = None
         if st.finalize:

@@ -17,7 +17,8 @@ m blocks); ``reduce`` (each task sums its inputs in a fixed order with
 :func:`mmflow.workflow.reduce.ordered_tree_sum`, so results are bit-identical on any cluster);
 ``solve`` (solve-then-apply: tasks solve over intervals independent of storage chunks and
 write small solution stores; ``apply(ctx, block)`` corrects data where they are next read,
-so a correction can never be applied twice and ``vis.zarr`` is never rewritten);
+so a correction can never be applied twice and ``vis.zarr`` is never rewritten; a solve
+stage may also have ``next_cycle`` for a second phase, e.g. a fit to the first phase's sums);
 ``iterative`` (``next_cycle(ctx, cycle) -> keys or None``: a loop of maps with a checkpoint
 per cycle, resumable after a kill).
 """
@@ -81,5 +82,5 @@ def producer_of(store, cfg):
 
 def _load():
     # import order is stage order
-    from mmflow.workflow.stages import (ingest, mmodes, normal, products, simulate, slots,  # noqa: F401
-                                        solve, transfer)
+    from mmflow.workflow.stages import (calibrate, ingest, mmodes, normal, peel, products,  # noqa: F401
+                                        simulate, slots, solve, terrestrial, transfer)

@@ -10,19 +10,17 @@ coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from mmflow.io.run_stores import mmodes_store
 from mmflow.errors import CoverageError
+from mmflow.io.polarization import stokes_i, stokes_i_variance
+from mmflow.io.run_stores import mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes
 from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.transform import sidereal_bins
-from mmflow.workflow.context import SIDEREAL_DAY_S, _parse
-from mmflow.workflow.stages.base import Stage, all_stages, register
-
-CORRECTION_STORES = ("gains.zarr", "peel.zarr", "terrestrial.zarr")
+from mmflow.workflow.blocks import CORRECTION_STORES, read_block
+from mmflow.workflow.context import SIDEREAL_DAY_S
+from mmflow.workflow.stages.base import Stage, register
 
 
 def mmax_of(cfg):
@@ -33,26 +31,10 @@ def n_bins_of(cfg, integration_s):
     return cfg.mmode.n_bins or int(round(SIDEREAL_DAY_S / integration_s))
 
 
-@dataclass
-class DataBlock:
-    """What a corner-turn task holds: all integrations of one baseline chunk (corrected in place)."""
-
-    vis: np.ndarray  # (time, baseline, freq) complex128
-    weights: np.ndarray  # (time, baseline, freq)
-    pairs: np.ndarray  # (baseline, 2) antenna indices
-    columns: slice  # the chunk's baselines in vis.zarr
-    autos: np.ndarray  # (time, antenna, freq) |V_ii|
-
-
-def corrections(cfg):
-    """The enabled solve-then-apply stages, in pipeline order."""
-    return [s for s in all_stages() if s.kind == "solve" and s.enabled(cfg) and s.apply is not None]
-
-
 def _prepare(ctx):
     cfg = ctx.cfg
     vis = ctx.open("vis.zarr")
-    nt, nbl, nf = vis["vis"].shape
+    nt, nbl, nf = vis["vis"].shape[:3]
     mmax, n_bins = mmax_of(cfg), n_bins_of(cfg, vis.attrs["integration_s"])
     splits = list(cfg.mmode.splits)
     ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1],
@@ -63,18 +45,14 @@ def _prepare(ctx):
 def _task(ctx, key):
     cfg = ctx.cfg
     vg = ctx.open("vis.zarr")
-    nt, nbl, nf = vg["vis"].shape
+    nt, nbl, nf = vg["vis"].shape[:3]
     ch = vg["vis"].chunks[1]
     i = int(key[1:])
     cols = slice(i * ch, min(nbl, (i + 1) * ch))
-    block = DataBlock(ctx.read("vis.zarr", "vis", (slice(None), cols)).astype(np.complex128),
-                      ctx.read("vis.zarr", "weights", (slice(None), cols)).astype(float),
-                      vg["pairs"][cols], cols, ctx.read("vis.zarr", "autos"))
-    for stage in corrections(_parse(ctx.config_json)):
-        stage.apply(ctx, block)
-    lst = ctx.read("vis.zarr", "lst")
-    good_t = np.isfinite(lst)
-    vis, w, lst = block.vis[good_t], block.weights[good_t], lst[good_t]
+    block = read_block(ctx, slice(None), cols)  # all integrations, corrected
+    good_t = np.isfinite(block.lst)
+    vis, w = stokes_i(block.vis[good_t], block.weights[good_t])
+    lst = block.lst[good_t]
     g = ctx.open("mmodes.zarr", mode="r+")
     mmax, n_bins, splits = g.attrs["mmax"], g.attrs["n_bins"], g.attrs["splits"]
     sigma2, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs)
@@ -101,18 +79,22 @@ def _task(ctx, key):
 
 
 def _radiometer_sigma2(ctx, vg, autos, pairs):
-    """Per-sample radiometer variance ``(freq, bl)`` where ``mmode.noise`` asks for it and the chunk's
-    antennas all have autocorrelations (``auto``); else None (estimated from the fit's residual)."""
+    """Per-sample radiometer variance of Stokes I ``(freq, bl)`` where ``mmode.noise`` asks for it and
+    the chunk's antennas all have autocorrelations (``auto``); else None (estimated from the fit's
+    residual). Each kept polarisation has ``<V_ii,p> <V_jj,p> / (dnu tau)``; Stokes I, their mean,
+    has :func:`mmflow.io.polarization.stokes_i_variance` of them (two hands halve it)."""
     noise = ctx.cfg.mmode.noise
     if noise == "data":
         return None, "data"
     with np.errstate(all="ignore"):
-        mean = np.nanmean(autos, axis=0)  # (antenna, freq)
-    have = {a: mean[a] for a in range(len(mean)) if np.all(np.isfinite(mean[a]))}
+        mean = np.nanmean(autos, axis=0)  # (antenna, freq, pol)
+    have = [a for a in range(len(mean)) if np.all(np.isfinite(mean[a]))]
     if noise == "auto" and not set(np.unique(pairs)) <= set(have):
         return None, "data"
-    return radiometer_variance(have, pairs, vg.attrs["channel_width_hz"], vg.attrs["integration_s"],
-                               str(ctx.run.store("vis.zarr"))), "radiometer"
+    per_pol = [radiometer_variance({a: mean[a, :, p] for a in have}, pairs, vg.attrs["channel_width_hz"],
+                                   vg.attrs["integration_s"], str(ctx.run.store("vis.zarr")))
+               for p in range(mean.shape[-1])]
+    return stokes_i_variance(np.stack(per_pol, axis=-1)), "radiometer"
 
 
 def _check_coverage(bin_weight, min_coverage, source, n_bins):

@@ -1,6 +1,7 @@
 """The ``simulate`` stage (the demo's drift scan) and the time-chunk helpers it shares with ``ingest``.
 
-Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): Stokes-I visibilities in
+Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): visibilities per
+polarisation (Stokes I alone for a clean simulation; XX and YY for a corrupted one or as ingested) in
 Jy in mmflow's sign convention, weights (0 = flagged), LSTs and times per integration, and
 attributes with the site, the data's epoch, integration time and channel width.
 """
@@ -51,7 +52,10 @@ def _sim_prepare(ctx):
     n = _n_integrations(cfg)
     o = cfg.observation
     attrs = dict(layout_attrs(tel.layout), source="simulate", epoch_jd=o.epoch_jd, sky=cfg.sky.model_dump(),
-                 integration_s=o.integration_s, channel_width_hz=o.channel_width_khz * 1e3)
+                 integration_s=o.integration_s, channel_width_hz=o.channel_width_khz * 1e3,
+                 pols=["xx", "yy"] if cfg.corrupt.enabled else ["I"])
+    if cfg.corrupt.enabled:
+        attrs["corrupt"] = cfg.corrupt.model_dump()
     ctx.create(vis_store(n, tel.antenna_pairs(), tel.freqs_hz, tel.layout.enu, attrs, TIME_CHUNK,
                          cfg.mmode.baseline_chunk))
     return time_keys(n)
@@ -59,11 +63,33 @@ def _sim_prepare(ctx):
 
 @lru_cache(maxsize=2)
 def _skies(config_json):
+    """The telescope, the sky per frequency (without the DD-corrupted sources) and, when the
+    simulation is corrupted, per frequency the whole day's corruptions and the DD sources."""
+    from mmflow.calibrate.coherency import source_points_date, source_vector_date
+    from mmflow.simulate.corrupt import day_corruptions
+    from mmflow.sky.sources import get_sources
+
     cfg = _parse(config_json)
     tel = build_telescope(cfg)
-    s = cfg.sky
-    return tel, [sky_points(tel, float(f), cfg.observation.epoch_jd, s.diffuse_lmax if s.diffuse else None,
-                            s.seed, tuple(s.sources), s.quad_oversample) for f in tel.freqs_hz]
+    s, c, o = cfg.sky, cfg.corrupt, cfg.observation
+    dd = list(c.dd_sources) if c.enabled else []
+    plain = tuple(n for n in s.sources if n not in dd)
+    skies = [sky_points(tel, float(f), o.epoch_jd, s.diffuse_lmax if s.diffuse else None, s.seed, plain,
+                        s.quad_oversample) for f in tel.freqs_hz]
+    if not c.enabled:
+        return tel, skies, None
+    n = _n_integrations(cfg)
+    times_s = np.arange(n) * o.integration_s
+    srcs = get_sources(dd)
+    vecs = np.array([source_vector_date(x, o.epoch_jd) for x in srcs]).reshape(-1, 3)
+    corrupted = []
+    for fi, f in enumerate(tel.freqs_hz):
+        day = day_corruptions(tel.n_ant, float(f), times_s, len(srcs), tel.layout.enu,
+                              np.random.default_rng([c.seed, fi]), gains=c.gains, sawtooth_db=c.sawtooth_db,
+                              ionosphere_arcmin=c.ionosphere_arcmin, scintillation_sigma=c.scintillation,
+                              crosstalk_jy=c.crosstalk_jy, rfi_jy=c.rfi_jy)
+        corrupted.append((day, [source_points_date(x, float(f), o.epoch_jd) for x in srcs], vecs))
+    return tel, skies, corrupted
 
 
 def _sim_task(ctx, key):
@@ -72,10 +98,10 @@ def _sim_task(ctx, key):
     n = _n_integrations(cfg)
     t0, t1 = chunk_rows(key, n)
     k = np.arange(t0, t1)
-    tel, skies = _skies(ctx.config_json)
+    tel, skies, corrupted = _skies(ctx.config_json)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
     rng = np.random.default_rng([cfg.sky.seed, int(key[1:])]) if cfg.sky.noise else None  # fixed per chunk
-    vis = simulate_chunk(tel, lst, skies, rng, o.integration_s)
+    vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy)
     g = ctx.open("vis.zarr", mode="r+")
     rows = (slice(t0, t1),)
     weights = np.ones(vis.shape, np.float32)
@@ -87,8 +113,7 @@ def _sim_task(ctx, key):
     return {"integrations": int(len(k))}
 
 
-register(Stage("simulate", ("telescope", "beam", "observation", "sky", "mmode.baseline_chunk"), (), ("vis.zarr",),
-               _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
-               description="time-domain drift-scan simulation (independent of transfer matrices)"))
-
-
+register(Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk"), (),
+               ("vis.zarr",), _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
+               description="time-domain drift-scan simulation (independent of transfer matrices), "
+               "optionally corrupted (gains, DD effects, terrestrial signals)"))

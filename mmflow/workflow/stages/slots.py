@@ -1,4 +1,4 @@
-"""Stages built by other issues (calibration, peeling, terrestrial removal, CLEAN).
+"""Stages built by other issues (CLEAN).
 
 They have their place in the graph; disabled, they are skipped and the runner says so.
 Enabled before they exist, the run stops with a clear error: a stage is never faked.
@@ -14,9 +14,6 @@ def _unavailable(name):
     return prepare
 
 
-for _name, _desc, _kind in (("calibrate", "Stefcal per integration", "solve"),
-                            ("peel", "direction-dependent peeling", "solve"),
-                            ("terrestrial", "terrestrial component removal", "solve"),
-                            ("clean", "m-mode CLEAN", "iterative")):
+for _name, _desc, _kind in (("clean", "m-mode CLEAN", "iterative"),):
     register(Stage(_name, (_name,), (), (), _unavailable(_name), None, kind=_kind,
                    enabled=lambda cfg, n=_name: getattr(cfg, n).enabled, description=_desc))

@@ -1,0 +1,53 @@
+"""Blocks of visibilities as stage tasks read them, with the corrections of solve-then-apply stages.
+
+A solve-then-apply stage (calibrate, peel, terrestrial) never rewrites ``vis.zarr``: each
+writes a small solution store, and its ``apply(ctx, block)`` corrects a block where the data
+are next read. :func:`read_block` reads any rectangle (integrations x baselines) and applies,
+in pipeline order, the corrections of the enabled stages that come *before* the reader, so
+the peel stage reads calibrated data, the terrestrial stage calibrated and peeled data, and
+the ``mmodes`` corner turn all of them; a correction can never be applied twice.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmflow.workflow.context import _parse
+from mmflow.workflow.stages.base import ORDER, all_stages
+
+CORRECTION_STORES = ("gains.zarr", "peel.zarr", "terrestrial.zarr")
+
+
+@dataclass
+class DataBlock:
+    """Visibilities of ``rows`` x ``columns`` of ``vis.zarr`` (corrected in place by ``apply``)."""
+
+    vis: np.ndarray  # (time, baseline, freq, pol) complex128
+    weights: np.ndarray  # (time, baseline, freq, pol) float
+    pairs: np.ndarray  # (baseline, 2) antenna indices
+    rows: slice  # the block's integrations in vis.zarr
+    columns: slice  # the block's baselines in vis.zarr
+    autos: np.ndarray  # (time, antenna, freq, pol) |V_ii| of the block's integrations
+    lst: np.ndarray  # (time,) rad
+
+
+def corrections(cfg, before=None):
+    """The enabled solve-then-apply stages in pipeline order (those before stage ``before``)."""
+    last = len(ORDER) if before is None else ORDER.index(before)
+    return [s for s in all_stages() if s.kind == "solve" and s.enabled(cfg) and s.apply is not None
+            and ORDER.index(s.name) < last]
+
+
+def read_block(ctx, rows=slice(None), columns=slice(None), before=None):
+    """Read a block of ``vis.zarr`` and apply the corrections of the stages before ``before``."""
+    vg = ctx.open("vis.zarr")
+    nt, nbl = vg["vis"].shape[:2]
+    rows, columns = slice(*rows.indices(nt)), slice(*columns.indices(nbl))
+    block = DataBlock(ctx.read("vis.zarr", "vis", (rows, columns)).astype(np.complex128),
+                      ctx.read("vis.zarr", "weights", (rows, columns)).astype(float),
+                      vg["pairs"][columns], rows, columns, ctx.read("vis.zarr", "autos", (rows,)),
+                      ctx.read("vis.zarr", "lst", (rows,)))
+    for stage in corrections(_parse(ctx.config_json), before):
+        stage.apply(ctx, block)
+    return block

@@ -1,0 +1,154 @@
+"""The ``calibrate`` stage (solve-then-apply): autocorrelation ripple, then Stefcal gains.
+
+Tasks, fanned out over frequencies and solution intervals (independent of storage chunks):
+
+* ``r{F}``: the ripple ratio ``r(t)`` of every antenna and polarisation of channel F from the
+  autocorrelations (:func:`mmflow.calibrate.ripple.ripple_ratio`, paper section 3.2);
+* ``g{F}_{K}``: Stefcal gains of channel F on interval K against the model
+  ``calibrate.sources`` through the beam at the data's epoch
+  (:func:`mmflow.calibrate.stefcal.solve_gains`), on ripple-corrected data and on baselines
+  longer than ``calibrate.min_baseline_lambda``; outlier antennas are flagged one at a time.
+
+With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
+``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
+to the whole data set. ``apply`` corrects a block where it is read: autos by ``r_i``, cross
+correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0.
+``vis.zarr`` is never rewritten.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.errors import InputError
+from mmflow.io.run_stores import gains_store
+from mmflow.workflow.blocks import read_block
+from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.simulate import TIME_CHUNK
+
+
+def _epoch(ctx):
+    return float(ctx.open("vis.zarr").attrs["epoch_jd"])
+
+
+def _intervals(ctx, tel, lst, integration_s):
+    """``(solve_rows, apply_rows)`` (n_interval, 2) from ``calibrate.solint_s`` or the best track."""
+    from mmflow.calibrate.coherency import apparent_flux
+    from mmflow.calibrate.stefcal import best_track
+    from mmflow.sky.sources import get_sources
+
+    c, n = ctx.cfg.calibrate, len(lst)
+    if c.solint_s is not None:
+        step = max(1, int(round(c.solint_s / integration_s)))
+        edges = np.array([(t0, min(n, t0 + step)) for t0 in range(0, n, step)], np.int64)
+        return edges, edges
+    good = np.isfinite(lst)
+    flux, _ = apparent_flux(tel, float(tel.freqs_hz[0]), np.where(good, lst, 0.0), get_sources(c.sources),
+                            _epoch(ctx))
+    track = best_track(flux, max(1, int(round(c.track_min * 60 / integration_s))), good.astype(float))
+    return np.array([[track.start, track.stop]], np.int64), np.array([[0, n]], np.int64)
+
+
+def _prepare(ctx):
+    vg = ctx.open("vis.zarr")
+    nt, _, nf, npol = vg["vis"].shape
+    lst = vg["lst"][:]
+    tel = ctx.telescope()
+    if ctx.cfg.calibrate.ripple and not np.isfinite(vg["autos"][:]).any():
+        raise InputError(str(ctx.run.store("vis.zarr")), "autos", "no autocorrelations: the ripple correction "
+                         "needs them", "ingest autocorrelations (telescope.include_autos), or set "
+                         "calibrate.ripple=false")
+    solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
+    ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply, TIME_CHUNK,
+                           {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
+                            "ripple": bool(ctx.cfg.calibrate.ripple)}))
+    keys = [f"r{fi}" for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
+    return keys + [f"g{fi}_{k:05d}" for fi in range(nf) for k in range(len(solve))]
+
+
+_RIPPLE = {}  # (run, channel, smoothing, configuration) -> ratio: one computation per worker process
+
+
+def _ratio(ctx, fi):
+    """Ripple ratio ``(time, antenna, pol)`` of channel ``fi`` from the autocorrelations."""
+    from mmflow.calibrate.ripple import ripple_ratio
+
+    key = (str(ctx.run_path), fi, ctx.cfg.calibrate.ripple_smooth_min, ctx.config_json)
+    if key not in _RIPPLE:
+        autos = ctx.read("vis.zarr", "autos", (slice(None), slice(None), slice(fi, fi + 1)))[:, :, 0]
+        finite = np.isfinite(autos)
+        ratio, _ = ripple_ratio(np.where(finite, autos, 0.0), finite.astype(float),
+                                ctx.open("vis.zarr").attrs["integration_s"], key[2] * 60.0)
+        if len(_RIPPLE) >= 4:
+            _RIPPLE.clear()
+        _RIPPLE[key] = ratio
+    return _RIPPLE[key]
+
+
+def _task(ctx, key):
+    g = ctx.open("gains.zarr", mode="r+")
+    if key.startswith("r"):
+        fi = int(key[1:])
+        ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
+        return {"ripple_channels": 1}
+    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.calibrate.coherency import source_coherencies
+    from mmflow.calibrate.ripple import apply_ripple
+    from mmflow.calibrate.stefcal import solve_gains
+    from mmflow.sky.sources import get_sources
+
+    c = ctx.cfg.calibrate
+    fi, k = (int(x) for x in key[1:].split("_"))
+    t0, t1 = (int(x) for x in g["solve_rows"][k])
+    block = read_block(ctx, slice(t0, t1), before="calibrate")
+    tel = ctx.telescope()
+    f = float(tel.freqs_hz[fi])
+    good = np.isfinite(block.lst)
+    vis, w = block.vis[good, :, fi], block.weights[good, :, fi]
+    if c.ripple:
+        vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
+    model = source_coherencies(tel, f, block.lst[good], get_sources(c.sources), _epoch(ctx), block.pairs).sum(0)
+    keep = baseline_mask(block.pairs, tel.layout.enu, f, c.min_baseline_lambda)
+    if not keep.any():
+        raise InputError("workflow", "calibrate.min_baseline_lambda", f"no baseline is longer than "
+                         f"{c.min_baseline_lambda:g} wavelengths at {f / 1e6:.3f} MHz",
+                         "lower calibrate.min_baseline_lambda (the sky model must dominate those baselines)")
+    sol = solve_gains(vis, model[..., None], w, block.pairs, tel.n_ant, baseline_keep=keep, tol=c.tol,
+                      max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma)
+    region = (slice(k, k + 1), slice(fi, fi + 1))
+    ctx.write(g, "gains", region, sol.gains[:, None])
+    ctx.write(g, "flags", region, sol.flags[:, None])
+    ctx.write(g, "chi2", region, np.nan_to_num(sol.chi2[:, None]))
+    ctx.write(g, "iterations", region, sol.iterations[:, None].astype(np.int32))
+    ctx.write(g, "converged", region, sol.converged[:, None])
+    return {"solutions": int(sol.converged.size), "not_converged": int((~sol.converged).sum()),
+            "flagged_antennas": int(sol.flags.any(axis=-1).sum())}
+
+
+def _apply(ctx, block):
+    """Ripple and gains of every channel on a block (time, baseline, freq, pol), in place.
+
+    Reads only ``gains.zarr`` (never the configuration: the reading stage's fingerprint covers
+    the store)."""
+    from mmflow.calibrate.ripple import apply_ripple
+    from mmflow.calibrate.stefcal import apply_gains
+
+    gains = ctx.read("gains.zarr", "gains")  # (interval, freq, antenna, pol): small
+    flags = ctx.read("gains.zarr", "flags")
+    apply_rows = ctx.read("gains.zarr", "apply_rows")
+    rows = np.arange(block.rows.start, block.rows.stop)
+    which = np.full(len(rows), -1)
+    for k, (a, b) in enumerate(apply_rows):
+        which[(rows >= a) & (rows < b)] = k
+    ratio = ctx.read("gains.zarr", "ripple", (block.rows,)) if ctx.open("gains.zarr").attrs["ripple"] else None
+    for fi in range(block.vis.shape[2]):
+        v, w = block.vis[:, :, fi], block.weights[:, :, fi]
+        if ratio is not None:
+            v, w = apply_ripple(v, w, block.pairs, ratio[:, fi])
+        g, fl = gains[which, fi], flags[which, fi] | (which < 0)[:, None, None]
+        block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, np.where(fl, 0, g), fl)
+
+
+register(Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
+               apply=_apply, enabled=lambda cfg: cfg.calibrate.enabled,
+               counters=("not_converged", "flagged_antennas"),
+               description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)"))

@@ -1,0 +1,119 @@
+"""The ``peel`` stage (solve-then-apply): bright sources peeled or subtracted per integration.
+
+Tasks ``f{F}_t{K}`` run over channels and time chunks of ``vis.zarr``. Each reads its
+integrations calibrated (the corrections of the stages before it, :func:`read_block`), takes
+the model coherency of every ``peel.sources`` source through the beam at the data's epoch
+(:func:`mmflow.calibrate.coherency.source_coherencies`), chooses per integration whether a
+source is peeled (``peel.peel``, above ``peel.peel_min_elevation_deg``), subtracted with a
+fitted flux, or skipped (below the horizon) (:func:`select_modes`), and peels
+(:func:`mmflow.calibrate.peel.peel`: direction-dependent gains by Stefcal per source, in
+flux order, for ``peel.passes`` passes; the guard subtracts instead where peeling removed
+less than ``peel.guard`` of the measured flux). ``peel.zarr`` keeps per integration the DD
+gains, flux scales, modes, the guard's fluxes and convergence.
+
+``apply`` subtracts, where a block is read, what peeling removed::
+
+    V_ij -= sum_{s peeled} h_si conj(h_sj) M^s_ij + sum_{s subtracted} a_s M^s_ij
+
+with the same coherencies (recomputed for the block's baselines), so ``vis.zarr`` is never
+rewritten.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.io.run_stores import peel_store
+from mmflow.workflow.blocks import read_block
+from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.simulate import TIME_CHUNK
+
+
+def _prepare(ctx):
+    vg = ctx.open("vis.zarr")
+    nt, _, nf, npol = vg["vis"].shape
+    n_ant = vg["antenna_enu"].shape[0]
+    ctx.create(peel_store(nt, nf, len(ctx.cfg.peel.sources), n_ant, npol, TIME_CHUNK,
+                          {"sources": list(ctx.cfg.peel.sources), "peeled": list(ctx.cfg.peel.peel),
+                           "modes": {"skip": 0, "peel": 1, "subtract": 2}, "pols": vg.attrs["pols"]}))
+    return [f"f{fi}_t{k:05d}" for fi in range(nf) for k in range(-(-nt // TIME_CHUNK))]
+
+
+def _coherencies(ctx, tel, f, lst, pairs, names):
+    """(n_src, time, bl) model visibilities of sources ``names`` at the data's epoch; 0 at
+    integrations without an LST (missing)."""
+    from mmflow.calibrate.coherency import source_coherencies
+    from mmflow.sky.sources import get_sources
+
+    good = np.isfinite(lst)
+    out = np.zeros((len(names), len(lst), len(pairs)), complex)
+    if good.any():
+        out[:, good] = source_coherencies(tel, f, lst[good], get_sources(list(names)),
+                                          float(ctx.open("vis.zarr").attrs["epoch_jd"]), pairs)
+    return out
+
+
+def _task(ctx, key):
+    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.calibrate.coherency import apparent_flux
+    from mmflow.calibrate.peel import PEEL, SKIP, peel, select_modes
+    from mmflow.sky.sources import get_sources
+
+    p = ctx.cfg.peel
+    fi, k = (int(x[1:]) for x in key.split("_"))
+    nt = ctx.open("vis.zarr")["lst"].shape[0]
+    rows = slice(k * TIME_CHUNK, min(nt, (k + 1) * TIME_CHUNK))
+    block = read_block(ctx, rows, before="peel")
+    tel = ctx.telescope()
+    f = float(tel.freqs_hz[fi])
+    lst = block.lst
+    good = np.isfinite(lst)
+    coh = _coherencies(ctx, tel, f, lst, block.pairs, p.sources)
+    flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(list(p.sources)),
+                               float(ctx.open("vis.zarr").attrs["epoch_jd"]))
+    modes = select_modes(flux, elev, peelable=[n in p.peel for n in p.sources],
+                         peel_min_elevation_deg=p.peel_min_elevation_deg)
+    modes[:, ~good] = SKIP
+    keep = baseline_mask(block.pairs, tel.layout.enu, f, p.min_baseline_lambda)
+    out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes,
+               baseline_keep=keep, batch=p.batch, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard)
+    g = ctx.open("peel.zarr", mode="r+")
+    region = (rows, slice(fi, fi + 1))
+
+    def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
+        return np.moveaxis(x, 0, 1)[:, None]
+
+    ctx.write(g, "dd_gains", region, per_time(out.dd_gains))
+    for name in ("scale", "mode", "guard", "measured", "removed", "converged"):
+        ctx.write(g, name, region, per_time(getattr(out, name)))
+    peeled = out.mode == PEEL
+    return {"peeled": int(peeled.sum()), "guard_fired": int(out.guard.sum()),
+            "not_converged": int((peeled & ~out.converged).sum())}
+
+
+def _apply(ctx, block):
+    """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
+    ``peel.zarr``, never the configuration)."""
+    from mmflow.calibrate.baselines import gain_products
+    from mmflow.calibrate.peel import PEEL, SUBTRACT
+
+    tel = ctx.telescope()
+    names = ctx.open("peel.zarr").attrs["sources"]
+    for fi, f in enumerate(tel.freqs_hz):
+        region = (block.rows, slice(fi, fi + 1))
+        mode = ctx.read("peel.zarr", "mode", region)[:, 0]  # (time, src, pol)
+        scale = ctx.read("peel.zarr", "scale", region)[:, 0]
+        h = ctx.read("peel.zarr", "dd_gains", region)[:, 0]  # (time, src, ant, pol)
+        coh = _coherencies(ctx, tel, float(f), block.lst, block.pairs, names)  # (src, time, bl)
+        removed = np.zeros(block.vis[:, :, fi].shape, complex)
+        for s in range(coh.shape[0]):
+            prod = gain_products(h[:, s], block.pairs)  # (time, bl, pol)
+            factor = np.where((mode[:, s] == PEEL)[:, None], prod,
+                              np.where((mode[:, s] == SUBTRACT)[:, None], scale[:, s][:, None], 0.0))
+            removed += factor * coh[s][..., None]
+        block.vis[:, :, fi] -= removed
+
+
+register(Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
+               apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
+               counters=("peeled", "guard_fired", "not_converged"),
+               description="peel (DD gains) or subtract bright sources per integration (applied on read)"))

@@ -1,0 +1,119 @@
+"""The ``terrestrial`` stage (solve-then-apply, two phases): signals that do not move with the sky.
+
+Paper section 5.4, on the calibrated and peeled data (the corrections of the stages before
+it, :func:`read_block`):
+
+1. tasks ``s{K}`` sum each time chunk's visibilities and weights per baseline with the phase
+   centre at zenith (drift-scan data as stored); the sky smears into rings over > 24 h, a
+   cross-talk pattern or a near-field emitter does not;
+2. the driver adds the sums in a fixed order (:func:`ordered_tree_sum`), and fits
+   ``terrestrial.components`` rank-1 templates ``B_k = u_k u_k^H`` to the average per channel
+   and polarisation (:func:`mmflow.calibrate.terrestrial.fit_templates`);
+3. tasks ``a{K}`` fit a real amplitude per template and integration on baselines longer than
+   ``terrestrial.min_baseline_lambda`` (:func:`fit_amplitudes`) and report how much of the data
+   each template sees, ``||B^H v_t|| / (||B|| ||v_t||)`` (:func:`projection_fraction`).
+
+``apply`` subtracts ``sum_k a_k(t) B_k`` from a block where it is read.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.io.run_stores import terrestrial_store
+from mmflow.workflow.blocks import read_block
+from mmflow.workflow.reduce import ordered_tree_sum
+from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.simulate import TIME_CHUNK
+
+
+def _n_chunks(ctx):
+    return -(-ctx.open("vis.zarr")["lst"].shape[0] // TIME_CHUNK)
+
+
+def _prepare(ctx):
+    vg = ctx.open("vis.zarr")
+    nt, nbl, nf, npol = vg["vis"].shape
+    ctx.create(terrestrial_store(_n_chunks(ctx), nt, nf, nbl, ctx.cfg.terrestrial.components,
+                                 vg["antenna_enu"].shape[0], npol, TIME_CHUNK))
+    return [f"s{k:05d}" for k in range(_n_chunks(ctx))]
+
+
+def _rows(ctx, k):
+    nt = ctx.open("vis.zarr")["lst"].shape[0]
+    return slice(k * TIME_CHUNK, min(nt, (k + 1) * TIME_CHUNK))
+
+
+def _templates(ctx, fi, pairs):
+    """(K, bl, pol) templates ``u_i conj(u_j)`` of channel ``fi`` for ``pairs``."""
+    from mmflow.calibrate.baselines import gain_products
+
+    return gain_products(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
+
+
+def _task(ctx, key):
+    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.calibrate.terrestrial import fit_amplitudes, projection_fraction
+
+    cycle, _, key = key.rpartition("-")
+    k = int(key[1:])
+    rows = _rows(ctx, k)
+    block = read_block(ctx, rows, before="terrestrial")
+    g = ctx.open("terrestrial.zarr", mode="r+")
+    w = np.where(np.isfinite(block.lst)[:, None, None, None], block.weights, 0.0)
+    if key.startswith("s"):  # phase 1: weighted sums
+        v = np.where(w > 0, block.vis, 0)
+        ctx.write(g, "sum_vis", (slice(k, k + 1),), np.moveaxis((w * v).sum(0), 1, 0)[None])
+        ctx.write(g, "sum_weight", (slice(k, k + 1),), np.moveaxis(w.sum(0), 1, 0)[None])
+        return {}
+    tel = ctx.telescope()  # phase 2: amplitudes per integration
+    amps = np.zeros((rows.stop - rows.start,) + g["amplitudes"].shape[1:])
+    seen = []
+    for fi, f in enumerate(tel.freqs_hz):
+        B = _templates(ctx, fi, block.pairs)
+        keep = baseline_mask(block.pairs, tel.layout.enu, float(f), ctx.cfg.terrestrial.min_baseline_lambda)
+        amps[:, fi] = fit_amplitudes(block.vis[:, :, fi], w[:, :, fi], B, keep)
+        for c in range(B.shape[0]):
+            for p in range(B.shape[-1]):
+                v = block.vis[:, keep, fi, p].T
+                if np.linalg.norm(v) > 0:
+                    seen.append(projection_fraction(B[c, keep, p][:, None], v))
+    ctx.write(g, "amplitudes", (rows,), amps)
+    return {"max_projection_fraction": float(max(seen, default=0.0))}
+
+
+def _next_cycle(ctx, cycle):
+    """After the sums: fit the templates (driver), then the amplitudes (tasks); then done."""
+    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.calibrate.terrestrial import fit_templates
+
+    if cycle > 0:
+        return None
+    t = ctx.cfg.terrestrial
+    g = ctx.open("terrestrial.zarr", mode="r+")
+    n = g["sum_vis"].shape[0]
+    total = ordered_tree_sum([g["sum_vis"][i] for i in range(n)])  # (freq, bl, pol)
+    weight = ordered_tree_sum([g["sum_weight"][i] for i in range(n)])
+    mean = np.where(weight > 0, total / np.where(weight > 0, weight, 1), 0)
+    tel = ctx.telescope()
+    pairs = ctx.open("vis.zarr")["pairs"][:]
+    patterns = np.zeros(g["patterns"].shape, complex)
+    for fi, f in enumerate(tel.freqs_hz):
+        keep = baseline_mask(pairs, tel.layout.enu, float(f), t.min_baseline_lambda)
+        patterns[fi] = fit_templates(mean[fi], weight[fi], pairs, tel.n_ant, t.components, baseline_keep=keep).patterns
+    ctx.write(g, "patterns", (slice(None),), patterns)
+    return [f"a{k:05d}" for k in range(_n_chunks(ctx))]
+
+
+def _apply(ctx, block):
+    """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place."""
+    from mmflow.calibrate.terrestrial import subtract_templates
+
+    amps = ctx.read("terrestrial.zarr", "amplitudes", (block.rows,))  # (time, freq, K, pol)
+    for fi in range(block.vis.shape[2]):
+        block.vis[:, :, fi] = subtract_templates(block.vis[:, :, fi], _templates(ctx, fi, block.pairs), amps[:, fi])
+
+
+register(Stage("terrestrial", ("terrestrial", "beam"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
+               _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
+               enabled=lambda cfg: cfg.terrestrial.enabled,
+               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration"))
