@@ -81,5 +81,5 @@ def producer_of(store, cfg):
 
 def _load():
     # import order is stage order
-    from mmflow.workflow.stages import (ingest, mmodes, normal, products, simulate, slots,  # noqa: F401
-                                        solve, transfer)
+    from mmflow.workflow.stages import (clean, ingest, mmodes, normal, products, simulate,  # noqa: F401
+                                        slots, solve, transfer)

@@ -1,4 +1,4 @@
-"""Stages built by other issues (calibration, peeling, terrestrial removal, CLEAN).
+"""Stages built by other issues (calibration, peeling, terrestrial removal).
 
 They have their place in the graph; disabled, they are skipped and the runner says so.
 Enabled before they exist, the run stops with a clear error: a stage is never faked.
@@ -16,7 +16,6 @@ def _unavailable(name):
 
 for _name, _desc, _kind in (("calibrate", "Stefcal per integration", "solve"),
                             ("peel", "direction-dependent peeling", "solve"),
-                            ("terrestrial", "terrestrial component removal", "solve"),
-                            ("clean", "m-mode CLEAN", "iterative")):
+                            ("terrestrial", "terrestrial component removal", "solve")):
     register(Stage(_name, (_name,), (), (), _unavailable(_name), None, kind=_kind,
                    enabled=lambda cfg, n=_name: getattr(cfg, n).enabled, description=_desc))
