@@ -309,11 +309,15 @@ def _next_cycle(ctx, cycle):
     return keys or None
 
 
-def clean_result(g, fi, opts):
-    """``(state, reason)``: the :class:`clean.CleanState` of one frequency as the stage left it."""
+def clean_result(g, fi, opts, n=None):
+    """``(state, reason)``: the :class:`clean.CleanState` (no residual) of one frequency after
+    its ``n`` cycles (default: every cycle with a peak; readers of a finished stage pass
+    ``n_cycles``, so that no unwritten chunk is read)."""
     thr = float(g["threshold"][fi])
-    peaks = g["peaks"][fi]
-    n = int(np.argmin(np.isfinite(peaks))) if not np.isfinite(peaks).all() else len(peaks)
+    if n is None:
+        peaks = g["peaks"][fi]
+        n = int(np.argmin(np.isfinite(peaks))) if not np.isfinite(peaks).all() else len(peaks)
+    peaks = g["peaks"][fi, :n]
     comps = g["components"][fi, :n]
     vecs, flux, cyc = [], [], []
     for c in range(n):
