@@ -249,8 +249,11 @@ class ImagingConfig(_Section):
 
 
 class CleanConfig(_Section):
-    """m-mode CLEAN (paper section 2.4; docs/clean.md): PSF by declination, major cycles over m blocks,
-    jackknife noise threshold, restored / residual / model / noise maps and Table 1."""
+    """m-mode CLEAN (docs/clean.md): PSF by declination, CLEAN to k x jackknife noise, maps, Table 1.
+
+    Major cycles over m blocks (paper section 2.4); restored, residual, model and noise maps and
+    PSF stamps in maps/ (products stage).
+    """
 
     enabled: bool = Field(False, description="Run CLEAN after the solve.")
     gain: float = Field(0.15, gt=0, le=1, description="Loop gain: each component takes this fraction of its peak.")
