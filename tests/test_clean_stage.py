@@ -113,7 +113,8 @@ def test_workflow_clean_is_the_kernels_called_directly(noiseless):
         grams = ng[f"f0/gram_b{m0:05d}"][:]
         for m in range(m0, m1):
             n = LMAX - m + 1
-            ops[m] = psf.block_operator(m, hermitian_full(grams[m - m0, :n, :n]), im.eps, filter_mask(m, LMAX, **filters))
+            keep = filter_mask(m, LMAX, **filters)
+            ops[m] = psf.block_operator(m, hermitian_full(grams[m - m0, :n, :n]), im.eps, keep)
     from mmflow.workflow.stages.products import healpy_alm
 
     dirty = healpy_alm(zarr.open_group(str(run_dir / "alm.zarr"), mode="r")["alm"][0, 0], LMAX, LMAX)

@@ -225,7 +225,8 @@ def _clean_problems(cfg):
     if cfg.imaging.method not in ("tikhonov", "min_variance"):
         out.append(Problem(("imaging", "method"), cfg.imaging.method, "CLEAN observes its components through "
                            "(G + eps I)^-1 G, the Tikhonov operator; this method makes another PSF",
-                           "use imaging.method: tikhonov (or min_variance) with clean.enabled, or clean.enabled: false"))
+                           "use imaging.method: tikhonov (or min_variance) with clean.enabled, "
+                           "or clean.enabled: false"))
     jackknife = {"even", "odd"} <= set(cfg.mmode.splits)
     if not jackknife and c.threshold is None and c.rel_threshold == 0:
         out.append(Problem(("clean", "threshold"), None, "CLEAN stops at threshold_sigma x the jackknife noise, "
