@@ -153,8 +153,7 @@ def component_fluxes(vecs, values, table, gain):
 
 def m_block_slice(lmax, m_start, m_stop):
     """Slice of the healpy alm vector holding every ``a_lm`` with ``m_start <= m < m_stop``."""
-    stop = n_alm(lmax) if m_stop > lmax else alm_index(lmax, m_stop, m_stop)
-    return slice(alm_index(lmax, m_start, m_start), stop)
+    return psf_mod.block_range(lmax, m_start, m_stop)
 
 
 def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_stop, weights=None):
@@ -165,17 +164,8 @@ def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_
     an operator are left unchanged: no data constrain them). ``weights`` (over l = 0..lmax):
     subtract ``w_l observe(x)`` instead (a high-pass CLEAN). Returns a new array.
     """
-    out = np.array(residual_block, np.complex128, copy=True)
-    base = alm_index(lmax, m_start, m_start)
-
-    def one(m):
-        s = alm_index(lmax, m, m) - base
-        sl = slice(s, s + lmax - m + 1)
-        y = psf_mod.observe_block(ops[m], component_block[sl])
-        out[sl] -= y if weights is None else weights[m:] * y
-
-    psf_mod.map_blocks(one, [m for m in range(m_start, min(m_stop, lmax + 1)) if m in ops])
-    return out
+    return np.asarray(residual_block, np.complex128) - psf_mod.observe_range(ops, component_block, lmax, m_start,
+                                                                             m_stop, weights)
 
 
 # ----------------------------------------------------------------------------- state
@@ -211,6 +201,13 @@ class CleanState:
         return cls(a["residual_alm"].astype(np.complex128), a["comp_vec"].reshape(-1, 3), a["comp_flux"],
                    a["comp_cycle"].astype(int), a["peaks"], int(a["cycle"]))
 
+    def advance(self, residual_alm, vecs, fluxes, peak):
+        """The state after one more cycle with these components and the peak it started from."""
+        return CleanState(residual_alm, np.concatenate([self.comp_vec, np.reshape(vecs, (-1, 3))]),
+                          np.concatenate([self.comp_flux, fluxes]),
+                          np.concatenate([self.comp_cycle, np.full(len(fluxes), self.cycle, int)]),
+                          np.append(self.peaks, peak), self.cycle + 1)
+
     def model_alm(self, lmax):
         """``sum_i c_i conj(Y_lm(r_i))`` of every component so far."""
         return point_sources_alm(self.comp_vec, self.comp_flux, lmax) if len(self.comp_flux) else \
@@ -223,7 +220,7 @@ def stop_reason(peaks, threshold=0.0, rel_threshold=0.0, max_cycles=None, stall_
     ``threshold``: the last peak is below ``threshold`` (e.g. ``k sigma_jackknife``);
     ``rel_threshold``: below that fraction of the first peak; ``stall``: the best peak of the
     last ``stall_cycles`` cycles is not ``stall_frac`` below the best one before them;
-    ``max_cycles``: cycle limit.
+    ``max_cycles``: that many cycles are done.
     """
     peaks = np.asarray(peaks, float)
     if len(peaks) == 0:
@@ -232,7 +229,7 @@ def stop_reason(peaks, threshold=0.0, rel_threshold=0.0, max_cycles=None, stall_
         return "threshold"
     if rel_threshold > 0 and peaks[-1] <= rel_threshold * peaks[0]:
         return "rel_threshold"
-    if max_cycles is not None and len(peaks) > max_cycles:
+    if max_cycles is not None and len(peaks) >= max_cycles:
         return "max_cycles"
     if stall_cycles and len(peaks) > stall_cycles:
         before, recent = peaks[:-stall_cycles].min(), peaks[-stall_cycles:].min()
@@ -286,6 +283,32 @@ class CleanOptions:
                            self.stall_frac)
 
 
+def plan_cycle(residual_alm, lmax, table, mask, nside, opts=None, threshold=0.0):
+    """The driver's part of a major cycle: synthesis, peaks and the components.
+
+    Returns ``(vecs, fluxes, peak, seconds)`` with ``seconds`` of ``synthesis`` and ``peaks``;
+    the components' alm (:func:`component_alm`) are then observed and subtracted per m block.
+    """
+    opts = opts or CleanOptions()
+    t = {}
+    t0 = time.perf_counter()
+    rmap = healpy.alm2map(residual_alm, nside, lmax=lmax)
+    t["synthesis"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    vecs, flux, peak = select_components(rmap, table, mask, opts.n_peaks, np.deg2rad(opts.min_sep_deg), opts.gain,
+                                         threshold, opts.absolute, opts.peak_frac)
+    t["peaks"] = time.perf_counter() - t0
+    return vecs, flux, peak, t
+
+
+def component_alm(vecs, fluxes, lmax, m_stop=None):
+    """``x = sum_i c_i conj(Y_lm(r_i))`` for ``m < m_stop`` (default all m; healpy layout up to it)."""
+    mmax = lmax if m_stop is None else min(lmax, m_stop - 1)
+    if len(fluxes) == 0:
+        return np.zeros(n_alm(lmax) if mmax == lmax else alm_index(lmax, mmax + 1, mmax + 1), np.complex128)
+    return point_sources_alm(vecs, fluxes, lmax, mmax)
+
+
 def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, m_block=None, weights=None):
     """One major cycle in memory (synthesis, peaks, component alm, observe and subtract).
 
@@ -294,17 +317,9 @@ def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, 
     table that of ``H`` PSF). Returns the updated state and the seconds spent in ``synthesis``,
     ``peaks``, ``components`` (the component alm) and ``observe``.
     """
-    opts = opts or CleanOptions()
-    t = {}
+    vecs, flux, peak, t = plan_cycle(state.residual_alm, lmax, table, mask, nside, opts, threshold)
     t0 = time.perf_counter()
-    rmap = healpy.alm2map(state.residual_alm, nside, lmax=lmax)
-    t["synthesis"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    vecs, flux, peak = select_components(rmap, table, mask, opts.n_peaks, np.deg2rad(opts.min_sep_deg), opts.gain,
-                                         threshold, opts.absolute, opts.peak_frac)
-    t["peaks"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    x = point_sources_alm(vecs, flux, lmax) if len(flux) else np.zeros(n_alm(lmax), np.complex128)
+    x = component_alm(vecs, flux, lmax)
     t["components"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     resid = state.residual_alm.copy()
@@ -313,10 +328,7 @@ def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, 
         sl = m_block_slice(lmax, m0, m0 + step)
         resid[sl] = observe_and_subtract(resid[sl], x[sl], ops, lmax, m0, m0 + step, weights)
     t["observe"] = time.perf_counter() - t0
-    new = CleanState(resid, np.concatenate([state.comp_vec, vecs]), np.concatenate([state.comp_flux, flux]),
-                     np.concatenate([state.comp_cycle, np.full(len(flux), state.cycle, int)]),
-                     np.append(state.peaks, peak), state.cycle + 1)
-    return new, t
+    return state.advance(resid, vecs, flux, peak), t
 
 
 def clean_alm(dirty_alm, ops, lmax, table, dec_min_rad, noise=None, opts=None, nside=None, state=None,
@@ -366,12 +378,34 @@ def merge_components(vecs, fluxes, nside):
     return vsum, flux
 
 
-def restore_map(residual_map, comp_vec, comp_flux, table, radius_fwhm=2.5):
+def north_rotation(vecs, matrix):
+    """Angle ``psi`` (rad) by which position angles change from frame A to ``v_B = matrix v_A``.
+
+    A direction at position angle ``p`` (north through east) at ``r`` in A has position angle
+    ``p + psi`` at ``matrix r`` in B: ``psi = atan2(R n_A . e_B, R n_A . n_B)``, with ``(e, n)``
+    the east and north unit vectors (:func:`psf.tangent_basis`).
+    """
+    rmat = np.asarray(matrix, float)
+    out = np.zeros(len(vecs))
+    for i, v in enumerate(np.asarray(vecs, float).reshape(-1, 3)):
+        _, _, n_a = psf_mod.tangent_basis(v)
+        _, e_b, n_b = psf_mod.tangent_basis(rmat @ v)
+        rn = rmat @ n_a
+        out[i] = np.arctan2(rn @ e_b, rn @ n_b)
+    return out
+
+
+def restore_map(residual_map, comp_vec, comp_flux, table, radius_fwhm=2.5, to_frame=None):
     """Residual map plus each component convolved with the elliptical Gaussian of its declination.
 
     A component of ``c`` Jy at ``r_i`` adds ``c / (2 pi s_a s_b) exp(-(x_a^2/s_a^2 + x_b^2/s_b^2)/2)``
     (Jy/sr; integral ``c``), ``x_a, x_b`` azimuthal-equidistant offsets along the major and minor
-    axes, ``s = FWHM / sqrt(8 ln 2)``, beam ``(major, minor, pa)`` interpolated from ``table``.
+    axes, ``s = FWHM / sqrt(8 ln 2)``, beam ``(major, minor, pa)`` interpolated from ``table``
+    at the component's declination of date.
+
+    ``to_frame``: matrix ``v_out = R v_date`` when ``residual_map`` is in another frame (ICRS,
+    Galactic): the components are moved there and their beams' position angles turned by
+    :func:`north_rotation` (widths do not change), so nothing is resampled.
     """
     out = np.array(residual_map, float, copy=True)
     nside = healpy.npix2nside(len(out))
@@ -379,6 +413,9 @@ def restore_map(residual_map, comp_vec, comp_flux, table, radius_fwhm=2.5):
                                   4 * nside)
     dec = np.arcsin(np.clip(vecs[:, 2], -1, 1))
     maj, mnr, pa = (psf_mod.interp_table(table, dec, key) for key in ("major", "minor", "pa"))
+    if to_frame is not None:
+        pa = pa + north_rotation(vecs, to_frame)
+        vecs = vecs @ np.asarray(to_frame, float).T
     sa, sb = maj / psf_mod.FWHM_PER_SIGMA, mnr / psf_mod.FWHM_PER_SIGMA
     for i in range(len(flux)):
         disc = healpy.query_disc(nside, vecs[i], radius_fwhm * maj[i], inclusive=True)
@@ -387,6 +424,18 @@ def restore_map(residual_map, comp_vec, comp_flux, table, radius_fwhm=2.5):
         xb = x * np.cos(pa[i]) - y * np.sin(pa[i])
         out[disc] += flux[i] / (2 * np.pi * sa[i] * sb[i]) * np.exp(-0.5 * ((xa / sa[i]) ** 2 + (xb / sb[i]) ** 2))
     return out
+
+
+def model_map(comp_vec, comp_flux, nside, to_frame=None):
+    """The components as a map: each pixel holds the flux of the components in it over the
+    pixel's solid angle (Jy/sr; the map's integral is the total flux)."""
+    vecs = np.asarray(comp_vec, float).reshape(-1, 3)
+    if to_frame is not None:
+        vecs = vecs @ np.asarray(to_frame, float).T
+    out = np.zeros(healpy.nside2npix(nside))
+    if len(vecs):
+        np.add.at(out, healpy.vec2pix(nside, *vecs.T), np.asarray(comp_flux, float))
+    return out / healpy.nside2pixarea(nside)
 
 
 def clean_normal_equations(acc, eps, lat_rad, filters=None, noise=None, opts=None, dec_step_deg=1.0, nside=None):
@@ -421,7 +470,17 @@ def restore_highpass(dirty_alm, state, table, weights, lmax, nside):
     The smooth part never went through CLEAN; the Gaussian-restored components are high-passed
     (``map2alm``, ``w_l``, ``alm2map``) so their large scales are not counted twice.
     """
-    smooth = psf_mod.apply_l_weights(dirty_alm, lmax, 1.0 - np.asarray(weights))
     comps = restore_map(np.zeros(healpy.nside2npix(nside)), state.comp_vec, state.comp_flux, table)
-    comps_alm = psf_mod.apply_l_weights(healpy.map2alm(comps, lmax=lmax, iter=3), lmax, weights)
-    return healpy.alm2map(smooth + state.residual_alm + comps_alm, nside, lmax=lmax)
+    return combine_highpass(dirty_alm, state.residual_alm, comps, weights, lmax)
+
+
+def combine_highpass(dirty_alm, residual_alm, components_map, weights, lmax):
+    """``(1 - H) dirty + H residual + H components`` as a map at the components map's nside.
+
+    ``H = diag(w_l)`` commutes with rotations, so the alm and the restored-components map may
+    be in any one frame (the workflow uses the output frame).
+    """
+    nside = healpy.npix2nside(len(components_map))
+    smooth = psf_mod.apply_l_weights(dirty_alm, lmax, 1.0 - np.asarray(weights))
+    comps_alm = psf_mod.apply_l_weights(healpy.map2alm(components_map, lmax=lmax, iter=3), lmax, weights)
+    return healpy.alm2map(smooth + residual_alm + comps_alm, nside, lmax=lmax)

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.conventions import m_slice, radec_to_vec
+from mmflow.conventions import alm_index, radec_to_vec
 from mmflow.imaging.filters import filter_mask
 from mmflow.errors import InputError
 from mmflow.sky.harmonics import point_sources_alm, synthesize_at
@@ -150,25 +150,72 @@ def observe_alm(ops, alm, lmax):
 
     Blocks without an operator (m beyond the data's mmax) observe to zero.
     """
-    alm = np.asarray(alm)
-    out = np.zeros(alm.shape, np.complex128)
+    return observe_range(ops, alm, lmax, 0, lmax + 1)
+
+
+def block_range(lmax, m_start, m_stop):
+    """Slice of the healpy alm vector holding every ``a_lm`` with ``m_start <= m < m_stop``
+    (the layout is m-major, so a block of m is contiguous)."""
+    stop = (lmax + 1) * (lmax + 2) // 2 if m_stop > lmax else alm_index(lmax, m_stop, m_stop)
+    return slice(alm_index(lmax, m_start, m_start), stop)
+
+
+def observe_range(ops, x_block, lmax, m_start, m_stop, weights=None):
+    """Observe the ``m_start <= m < m_stop`` part of an alm (:func:`block_range` of it).
+
+    ``x_block`` (n,) or (n, k) columns; m without an operator observe to zero (no data
+    constrain them); ``weights`` (over l = 0..lmax) multiply the result (a high-pass CLEAN's
+    ``H observe``). This is the one observing loop: the PSF, CLEAN's subtraction and the
+    workflow's m-block tasks all call it.
+    """
+    x = np.asarray(x_block)
+    out = np.zeros(x.shape, np.complex128)
+    base = alm_index(lmax, m_start, m_start)
 
     def one(m):
-        sl = m_slice(lmax, m)
-        out[sl] = observe_block(ops[m], alm[sl])
+        s = alm_index(lmax, m, m) - base
+        sl = slice(s, s + lmax - m + 1)
+        y = observe_block(ops[m], x[sl])
+        if weights is not None:
+            w = np.asarray(weights)[m:]
+            y = y * (w if y.ndim == 1 else w[:, None])
+        out[sl] = y
 
-    map_blocks(one, ops)
+    map_blocks(one, [m for m in range(m_start, min(m_stop, lmax + 1)) if m in ops])
     return out
 
 
 # ----------------------------------------------------------------------------- PSF alm
 
+def point_columns(vecs, lmax, m_stop=None):
+    """``conj(Y_lm(r_k))`` for each direction, as columns ``(n, k)`` of the healpy layout up to
+    ``m < m_stop`` (default all m): the sky of a 1 Jy point source (eq. psf's ``a_PS``)."""
+    v = np.atleast_2d(np.asarray(vecs, float))
+    mmax = lmax if m_stop is None else min(lmax, m_stop - 1)
+    return np.stack([point_sources_alm(vk[None], [1.0], lmax, mmax) for vk in v], axis=1)
+
+
 def psf_alm(ops, lmax, vecs):
     """``a_PSF = observe(conj(Y_lm(r0)))`` for one direction (n_alm,) or several (n_alm, k)."""
-    v = np.atleast_2d(np.asarray(vecs, float))
-    cols = np.stack([point_sources_alm(vk[None], [1.0], lmax) for vk in v], axis=1)
-    out = observe_alm(ops, cols, lmax)
+    out = observe_alm(ops, point_columns(vecs, lmax), lmax)
     return out[:, 0] if np.ndim(vecs) == 1 else out
+
+
+def psf_columns(ops, lmax, vecs, m_start=0, m_stop=None, weights=None, batch=16):
+    """The ``m_start <= m < m_stop`` part (:func:`block_range`) of the PSFs at ``vecs``, ``(n, k)``.
+
+    Observed ``batch`` columns at a time; ``weights``: the PSF of a high-pass CLEAN,
+    ``H observe(a_PS)``. The workflow's m-block tasks call this per block; :func:`psf_table`
+    calls it for all m.
+    """
+    m_stop = lmax + 1 if m_stop is None else m_stop
+    vecs = np.atleast_2d(np.asarray(vecs, float))
+    sl = block_range(lmax, m_start, m_stop)
+    out = np.zeros((sl.stop - sl.start, len(vecs)), np.complex128)
+    for s in range(0, len(vecs), batch):
+        cols = point_columns(vecs[s:s + batch], lmax, m_stop)[sl]
+        out[:, s:s + batch] = observe_range(ops, cols, lmax, m_start, m_stop, weights)
+    return out
 
 
 def value_at(alm, lmax, vec):
@@ -300,33 +347,57 @@ def apply_l_weights(alm, lmax, weights):
     return alm * (w if np.ndim(alm) == 1 else w[:, None])
 
 
-def psf_table(ops, lmax, dec_rad, ra_rad=0.0, batch=16, n_grid=41, weights=None):
-    """PSF peak and fitted beam on a declination grid (the PSF depends only on declination).
+def table_vectors(dec_rad, ra_rad=0.0):
+    """Directions of a PSF table's sources: ``(ra, dec)`` for each declination."""
+    dec = np.asarray(dec_rad, float)
+    return radec_to_vec(np.full(len(dec), ra_rad), dec)
+
+
+def fit_psf_columns(cols, lmax, dec_rad, ra_rad=0.0, n_grid=41):
+    """PSF table from PSF alm columns ``(n_alm, n_dec)`` (one per declination, at ``ra_rad``).
 
     Returns
     -------
     dict of arrays over ``dec``: ``dec`` (rad), ``peak`` (PSF at the source, Jy/sr per Jy),
     ``major``, ``minor`` (FWHM, rad), ``pa`` (rad, north through east). Declinations where
     the PSF has no measurable main lobe get NaN widths and their value at the source.
-    ``weights``: the PSF of a high-pass CLEAN (:func:`highpass_weights`).
     """
     dec = np.asarray(dec_rad, float)
     out = {k: np.full(len(dec), np.nan) for k in ("peak", "major", "minor", "pa")}
     out["dec"] = dec
-    vecs = radec_to_vec(np.full(len(dec), ra_rad), dec)
-    for s in range(0, len(dec), batch):
-        cols = psf_alm(ops, lmax, vecs[s:s + batch])
-        if weights is not None:
-            cols = apply_l_weights(cols, lmax, weights)
-        for j in range(cols.shape[1]):
-            k = s + j
-            out["peak"][k] = value_at(cols[:, j], lmax, vecs[k])
-            try:
-                fit = measure_psf(cols[:, j], lmax, vecs[k], n_grid)
-            except ValueError:
-                continue
-            out["major"][k], out["minor"][k], out["pa"][k] = fit["major"], fit["minor"], fit["pa"]
+    vecs = table_vectors(dec, ra_rad)
+    for k in range(len(dec)):
+        out["peak"][k] = value_at(cols[:, k], lmax, vecs[k])
+        try:
+            fit = measure_psf(cols[:, k], lmax, vecs[k], n_grid)
+        except ValueError:
+            continue
+        out["major"][k], out["minor"][k], out["pa"][k] = fit["major"], fit["minor"], fit["pa"]
     return out
+
+
+def psf_table(ops, lmax, dec_rad, ra_rad=0.0, batch=16, n_grid=41, weights=None):
+    """PSF peak and fitted beam on a declination grid (the PSF depends only on declination).
+
+    :func:`psf_columns` for all m, then :func:`fit_psf_columns` (see there for the result).
+    ``weights``: the PSF of a high-pass CLEAN (:func:`highpass_weights`).
+    """
+    cols = psf_columns(ops, lmax, table_vectors(dec_rad, ra_rad), weights=weights, batch=batch)
+    return fit_psf_columns(cols, lmax, dec_rad, ra_rad, n_grid)
+
+
+TABLE_KEYS = ("dec", "peak", "major", "minor", "pa")
+
+
+def table_to_array(table):
+    """A PSF table as an ``(n_dec, 5)`` array (columns :data:`TABLE_KEYS`), for a store."""
+    return np.stack([np.asarray(table[k], float) for k in TABLE_KEYS], axis=1)
+
+
+def table_from_array(arr):
+    """Inverse of :func:`table_to_array`."""
+    a = np.asarray(arr, float)
+    return {k: a[:, i].copy() for i, k in enumerate(TABLE_KEYS)}
 
 
 def interp_table(table, dec_rad, key):

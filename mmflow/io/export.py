@@ -214,3 +214,68 @@ def write_lcurve_png(path, lc, eps, chosen, corner=None, freq_hz=None, weighted=
     plt.close(fig)
     os.replace(tmp, path)
     return ratio
+
+
+def write_image_fits(path, image, header):
+    """A 2-D image (``image[y, x]``) with header keywords (WCS included) from ``header``."""
+    from astropy.io import fits
+
+    hdu = fits.PrimaryHDU(np.asarray(image, np.float64))
+    for k, v in header.items():
+        hdu.header[k[:8]] = v
+    tmp = _tmp(path)
+    hdu.writeto(tmp, overwrite=True)
+    os.replace(tmp, path)
+
+
+def psf_stamp_header(dec_deg, pixel_deg, n, meta):
+    """WCS of a PSF stamp: azimuthal-equidistant (``ARC``) about ``(RA 0, dec)`` of date,
+    RA increasing to the left (``CDELT1 < 0``), plus ``meta`` keywords."""
+    c = (n + 1) / 2.0
+    return {"CTYPE1": "RA---ARC", "CTYPE2": "DEC--ARC", "CRVAL1": 0.0, "CRVAL2": float(dec_deg),
+            "CRPIX1": c, "CRPIX2": c, "CDELT1": -float(pixel_deg), "CDELT2": float(pixel_deg),
+            "CUNIT1": "deg", "CUNIT2": "deg", **meta}
+
+
+def write_psf_png(path, stamps, titles, half_width_deg, caption=""):
+    """PSF stamps side by side (linear scale, peak 1, contours at 0.5 and 0), offsets in degrees.
+
+    ``stamps``: list of ``image[y, x]`` (x east to the left, as on the sky), each ``2
+    half_width_deg`` across.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(stamps), figsize=(4.2 * len(stamps), 4.4), squeeze=False)
+    for ax, img, title, hw in zip(axes[0], stamps, titles, half_width_deg):
+        img = np.asarray(img, float)
+        ext = [hw, -hw, -hw, hw]  # east to the left
+        im = ax.imshow(img, origin="lower", extent=ext, cmap="RdBu_r", vmin=-1, vmax=1)
+        ax.contour(img, levels=[0.0, 0.5], colors=["0.4", "k"], linewidths=[0.6, 1.0], origin="lower", extent=ext)
+        ax.set_title(title, fontsize=9)
+        ax.set_xlabel("east offset (deg)")
+        ax.set_ylabel("north offset (deg)")
+    fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="PSF / peak")
+    if caption:
+        fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8)
+    tmp = _tmp(path)
+    fig.savefig(tmp, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+def write_table1(directory, rows):
+    """Table 1 as ``table1.md``, ``table1.csv`` and ``table1.json`` in ``directory``; returns the paths."""
+    from mmflow.analysis import table1
+
+    out = []
+    for name, text in (("table1.md", table1.to_markdown(rows)), ("table1.csv", table1.to_csv(rows)),
+                       ("table1.json", table1.to_json(rows))):
+        path = Path(directory) / name
+        tmp = _tmp(path)
+        tmp.write_text(text)
+        os.replace(tmp, path)
+        out.append(path)
+    return out

@@ -163,3 +163,57 @@ def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk
         ArraySpec("amplitudes", ("time", "freq", "component", "pol"), (n_time, nf, n_comp, npol),
                   (time_chunk, nf, n_comp, npol), "float64"),
     ))
+
+
+# ----------------------------------------------------------------------------- clean.zarr
+
+CLEAN_STOPS = ("threshold", "rel_threshold", "stall", "max_cycles")  # codes of clean.zarr's ``stop``
+NOISE_FIELDS = ("jy_per_sr", "kelvin", "mjy_per_beam", "beam_solid_angle_sr")  # columns of clean.zarr's ``noise``
+
+
+def alm_block_len(lmax, m0, m1):
+    """Number of healpy-layout ``a_lm`` with ``m0 <= m < m1`` (a contiguous run of the vector)."""
+    from mmflow.conventions import alm_index
+
+    stop = (lmax + 1) * (lmax + 2) // 2 if m1 > lmax else alm_index(lmax, m1, m1)
+    return stop - alm_index(lmax, m0, m0)
+
+
+def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_factors):
+    """``clean.zarr``: the CLEAN stage's factors, PSFs, per-cycle state and results.
+
+    Per frequency ``F`` and m block ``M0`` (healpy layout within the block):
+    ``f{F}/chol_b{M0}`` (m, l, l2) Cholesky factors of ``G_kk + eps I`` [keep_factors];
+    ``f{F}/psf_b{M0}`` (alm, dec) PSF columns of the declination grid;
+    ``f{F}/residual_b{M0}`` (cycle, alm) the residual alm at the start of each cycle (one chunk
+    per cycle, never rewritten: a killed cycle is redone from the one before).
+    Per frequency: ``psf_table`` (freq, kind, dec, 5: dec, peak, major, minor, pa; kind 0 the
+    PSF, kind 1 the PSF CLEAN uses, ``H PSF`` for a high-pass CLEAN); ``noise``
+    (freq, 4: :data:`NOISE_FIELDS`); ``threshold`` (freq) Jy/sr; ``peaks`` (freq, cycle) the
+    residual peak each cycle started from; ``components`` (freq, cycle, peak, 4: x, y, z, flux
+    in Jy; flux 0 = none); ``restored`` (freq, pixel) the restored map (frame of date, Jy/sr);
+    ``n_cycles`` and ``stop`` (:data:`CLEAN_STOPS` index) per frequency.
+    """
+    arrays = []
+    for fi in range(nf):
+        for m0, m1 in m_blocks(mmax, m_block):
+            n, k = lmax - m0 + 1, alm_block_len(lmax, m0, m1)
+            if keep_factors:
+                arrays.append(ArraySpec(f"f{fi}/chol_b{m0:05d}", ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
+                                        "complex128"))
+            arrays.append(ArraySpec(f"f{fi}/psf_b{m0:05d}", ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128"))
+            arrays.append(ArraySpec(f"f{fi}/residual_b{m0:05d}", ("cycle", "alm"), (max_cycles + 1, k), (1, k),
+                                    "complex128"))
+    arrays += [
+        ArraySpec("psf_table", ("freq", "kind", "dec", "column"), (nf, 2, n_dec, 5), (1, 2, n_dec, 5), "float64",
+                  np.nan),
+        ArraySpec("noise", ("freq", "quantity"), (nf, len(NOISE_FIELDS)), (1, len(NOISE_FIELDS)), "float64", np.nan),
+        ArraySpec("threshold", ("freq",), (nf,), (1,), "float64", np.nan),
+        ArraySpec("peaks", ("freq", "cycle"), (nf, max_cycles), (1, 1), "float64", np.nan),
+        ArraySpec("components", ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4), (1, 1, n_peaks, 4),
+                  "float64"),
+        ArraySpec("restored", ("freq", "pixel"), (nf, npix), (1, npix), "float64"),
+        ArraySpec("n_cycles", ("freq",), (nf,), (1,), "int64"),
+        ArraySpec("stop", ("freq",), (nf,), (1,), "int64", -1),
+    ]
+    return StoreSpec("clean.zarr", tuple(arrays))

@@ -230,9 +230,41 @@ def _is_loopback(host):
         return False
 
 
+def _clean_problems(cfg):
+    """CLEAN's settings against the rest: a threshold to stop at, peaks apart, the high-pass below lmax."""
+    c, lmax = cfg.clean, cfg.mmode.lmax
+    if not c.enabled:
+        return []
+    out = []
+    if cfg.imaging.method not in ("tikhonov", "min_variance"):
+        out.append(Problem(("imaging", "method"), cfg.imaging.method, "CLEAN observes its components through "
+                           "(G + eps I)^-1 G, the Tikhonov operator; this method makes another PSF",
+                           "use imaging.method: tikhonov (or min_variance) with clean.enabled, "
+                           "or clean.enabled: false"))
+    jackknife = {"even", "odd"} <= set(cfg.mmode.splits)
+    if not jackknife and c.threshold is None and c.rel_threshold == 0:
+        out.append(Problem(("clean", "threshold"), None, "CLEAN stops at threshold_sigma x the jackknife noise, "
+                           f"but mmode.splits = {list(cfg.mmode.splits)} has no even and odd halves to estimate it",
+                           "set mmode.splits=[full, even, odd] (one transfer pass for all), or give clean.threshold "
+                           "(in clean.threshold_unit) or clean.rel_threshold"))
+    if c.min_separation_deg < 180.0 / lmax:
+        out.append(Problem(("clean", "min_separation_deg"), c.min_separation_deg,
+                           f"closer than the resolution 180 / lmax = {180.0 / lmax:.3g} deg: peaks of one cycle "
+                           "would fall in one main lobe", f"use clean.min_separation_deg >= {180.0 / lmax:.3g} "
+                           "(a few PSF widths)"))
+    if c.highpass_lmin is not None:
+        if c.highpass_lmin >= lmax:
+            out.append(Problem(("clean", "highpass_lmin"), c.highpass_lmin, f"not below mmode.lmax = {lmax}: "
+                               "nothing would be CLEANed", f"use clean.highpass_lmin < {lmax}, or null (off)"))
+        if c.highpass_width > c.highpass_lmin:
+            out.append(Problem(("clean", "highpass_width"), c.highpass_width, "wider than highpass_lmin = "
+                               f"{c.highpass_lmin}", f"use clean.highpass_width <= {c.highpass_lmin}"))
+    return out
+
+
 def check_config(cfg):
     """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
-    out = _telescope_problems(cfg) + _value_problems(cfg)
+    out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg)
     if not any(p.loc[:1] == ("beam",) for p in out):
         out.extend(_beam_build_problems(cfg))
     return out

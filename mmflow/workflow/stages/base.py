@@ -82,5 +82,5 @@ def producer_of(store, cfg):
 
 def _load():
     # import order is stage order
-    from mmflow.workflow.stages import (calibrate, ingest, mmodes, normal, peel, products,  # noqa: F401
-                                        simulate, slots, solve, terrestrial, transfer)
+    from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, normal, peel,  # noqa: F401
+                                        products, simulate, solve, terrestrial, transfer)

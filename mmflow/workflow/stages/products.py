@@ -2,7 +2,10 @@
 
 It rotates the solved alm to ``products.frame`` at the *data's* epoch (stored with the
 visibilities) and writes ``maps/map_<MHz>MHz.fits`` (never-seen sky UNSEEN), PNGs and
-summaries; only the files it lists are ever removed.
+summaries; with ``clean.enabled`` also the restored, residual, model and noise maps, PSF
+stamps and Table 1 (:mod:`mmflow.workflow.stages.products_clean`). ``summary_<tag>.json``
+and ``summary.json`` hold what a report needs (paths, PSF FWHMs, noise, CLEAN history,
+Table-1 rows). Only the files it lists are ever removed.
 """
 from __future__ import annotations
 
@@ -83,6 +86,11 @@ def _products_task(ctx, key):
                 maps / f"lcurve_{tag}.png", lc, eps, cfg.imaging.eps, corner=info["lcurve_corner_eps"], freq_hz=f,
                 weighted=cfg.transfer.noise_weighting)
             ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
+    if cfg.clean.enabled:
+        from mmflow.workflow.stages.products_clean import clean_products, table1_row
+
+        info.update(clean_products(ctx, fi, tag, f, epoch, nside, mask, meta, p.png))
+        info["table1"] = table1_row(ctx, fi, f, info)
     (maps / f"summary_{tag}.json").write_text(json.dumps(info, indent=2))
     ctx.ledger.record_file(maps / f"summary_{tag}.json")
     return info
@@ -99,12 +107,20 @@ def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
     tags = frequency_tags(ctx.open("vis.zarr")["freqs_hz"][:])
     parts = [json.loads((maps / f"summary_{t}.json").read_text()) for t in tags]
-    (maps / "summary.json").write_text(json.dumps({"maps": parts}, indent=2))
+    out = {"maps": parts}
+    if ctx.cfg.clean.enabled:
+        from mmflow.io.export import write_table1
+
+        rows = [p["table1"] for p in parts]
+        out["table1"] = {"rows": rows, "files": [f"maps/{q.name}" for q in write_table1(maps, rows)]}
+        for q in out["table1"]["files"]:
+            ctx.ledger.record_file(ctx.run.path / q)
+    (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
     return {"maps": len(parts)}
 
 
-register(Stage("products", ("mmode.lmax", "mmode.mmax", "imaging.eps", "imaging.method", "products",
-                            "transfer.noise_weighting"),
-               ("vis.zarr", "alm.zarr"), ("maps",), _products_prepare, _products_task, _products_finalize,
-               description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary"))
+register(Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging.eps", "imaging.method", "products",
+                            "transfer.noise_weighting", "transfer.m_block", "clean"),
+               ("vis.zarr", "alm.zarr", "clean.zarr"), ("maps",), _products_prepare, _products_task, _products_finalize,
+               description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1"))
