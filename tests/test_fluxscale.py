@@ -47,6 +47,7 @@ def test_injected_fluxes_recovered_through_the_psf_normalisation(observed):
     assert np.rad2deg(fwhm) == pytest.approx(6.0, abs=1.0)
     rows = flux_scale_rows(hmap, srcs, psf_map_at, FREQ, 0.8 * fwhm, (1.2 * fwhm, 2.0 * fwhm))
     got = np.array([r["measured_jy"] for r in rows])
+    print("measured / injected:", np.round(got / true, 4).tolist())
     np.testing.assert_allclose(got / true, 1.0, atol=0.03)
     np.testing.assert_allclose([r["ratio"] for r in rows], FACTORS, rtol=0.03)
     # the PSF normalisation matters: the disc sum of the map alone is off by the PSF's disc sum
