@@ -44,3 +44,27 @@ def flux_scale_rows(hmap, sources, psf_map_at, freq_hz, radius_rad, annulus_rad,
         rows.append({"name": src.name, "freq_hz": float(freq_hz), "measured_jy": measured, "model_jy": model,
                      "ratio": measured / model, "reference": src.spectrum.reference})
     return rows
+
+
+def psf_map_function(ops, lmax, nside, map_to_date=None, scale=1.0):
+    """``psf_map_at(vec)``: the HEALPix map of a 1 Jy source at ``vec`` seen through the imaging.
+
+    ``vec`` is in the map's frame; ``map_to_date`` (3x3, None: the map is in the frame of
+    date) takes it to the frame of date, where the PSF
+    ``a_PSF = (G + eps I)^-1 G conj(Y_lm(r0))`` (:func:`mmflow.imaging.psf.psf_alm`, with the
+    data's filters) is computed, and the PSF's alm are rotated back with ``map_to_date^T``.
+    ``scale`` converts Jy/sr to the map's unit (e.g. K per Jy/sr at the channel's frequency),
+    though :func:`source_flux` is a ratio and needs it only when the maps' units differ.
+    """
+    from mmflow.imaging.psf import psf_alm
+    from mmflow.sky.frames import rotate_alm
+
+    def psf_map_at(vec):
+        v = np.asarray(vec, float)
+        v_date = v if map_to_date is None else map_to_date @ v
+        alm = psf_alm(ops, lmax, v_date)
+        if map_to_date is not None:
+            alm = rotate_alm(alm, np.asarray(map_to_date).T, lmax)
+        return scale * healpy.alm2map(alm, nside, lmax=lmax)
+
+    return psf_map_at
