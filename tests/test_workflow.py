@@ -32,6 +32,9 @@ def test_demo_chain_produces_maps_and_summaries(reference_run):
     for st in ("simulate", "mmodes", "transfer", "normal", "solve", "products"):
         assert summaries[st]["tasks"] >= 1 and summaries[st]["bytes_written"] > 0
     info = json.loads((run_dir / "maps" / "summary.json").read_text())["maps"][0]
+    from mmflow.io.report import check_report  # the run's HTML report: every image decodes, links resolve
+
+    assert check_report(run_dir / "maps" / "report.html") == []
     assert info["unit"] == "K" and info["frame"] == "galactic"
     assert (run_dir / info["fits"]).exists() and (run_dir / info["png"]).exists()
     assert 0 < info["fraction_singular_values_above_sqrt_eps"] <= 1

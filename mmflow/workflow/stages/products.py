@@ -117,10 +117,15 @@ def _products_finalize(ctx):
             ctx.ledger.record_file(ctx.run.path / q)
     (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
-    return {"maps": len(parts)}
+    from mmflow.io.report import summary_from_run, write_report
+
+    missing = write_report(maps / "report.html", summary_from_run(ctx.run.path), ctx.run.path)
+    ctx.ledger.record_file(maps / "report.html")
+    return {"maps": len(parts), "report": "maps/report.html", "report_missing": missing}
 
 
 register(Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging.eps", "imaging.method", "products",
                             "transfer.noise_weighting", "transfer.m_block", "clean"),
                ("vis.zarr", "alm.zarr", "clean.zarr"), ("maps",), _products_prepare, _products_task, _products_finalize,
-               description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1"))
+               description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
+               "HTML report"))
