@@ -69,10 +69,14 @@ def test_changed_settings_refuse_stale_outputs_then_force_recomputes(tmp_path):
     assert not any(s["stale"] for s in status(run_dir).values() if s)
 
 
-def test_enabled_stage_that_does_not_exist_is_an_error_not_a_fake(tmp_path):
+def test_calibration_without_long_enough_baselines_stops_before_solving(tmp_path):
+    """The small array's baselines are all < 15 wavelengths: calibrate refuses before any solve,
+    naming the field and the fix, and writes no solution."""
     cfg = small_config(tmp_path / "run", "calibrate.enabled=true")
-    with pytest.raises(InputError, match="calibrate.enabled.*not available"):
+    with pytest.raises(InputError, match="calibrate.min_baseline_lambda.*no baseline is longer than 15 wave"
+                                         ".*lower calibrate.min_baseline_lambda"):
         run_workflow(cfg, progress=False, log=lambda *a: None)
+    assert not (tmp_path / "run" / "gains.zarr").exists()
 
 
 def _interrupt_run(run_dir, stage, sig, extra=()):

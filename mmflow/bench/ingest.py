@@ -107,7 +107,8 @@ def _ingest_s(pattern, store):
     plan = ingest.plan_ingest(cfg)
     spec = vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu,
                      {"source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
-                      "skipped_files": plan.skipped, "integration_s": plan.integration_s}, TIME_CHUNK, 256)
+                      "skipped_files": plan.skipped, "integration_s": plan.integration_s, "pols": plan.pols},
+                     TIME_CHUNK, 256)
     g = spec.create(store)  # the stage's own store declaration
     ingest.write_plan(g, plan)
     store = store / spec.path

@@ -48,6 +48,17 @@ def _intervals(ctx, tel, lst, integration_s):
     return np.array([[track.start, track.stop]], np.int64), np.array([[0, n]], np.int64)
 
 
+def _check_baselines(tel, pairs, min_lambda):
+    """Refuse, before any solve, a channel with no baseline longer than ``min_lambda``."""
+    from mmflow.calibrate.baselines import baseline_mask
+
+    for f in tel.freqs_hz:
+        if not baseline_mask(pairs, tel.layout.enu, float(f), min_lambda).any():
+            raise InputError("workflow", "calibrate.min_baseline_lambda", f"no baseline is longer than "
+                             f"{min_lambda:g} wavelengths at {f / 1e6:.3f} MHz",
+                             "lower calibrate.min_baseline_lambda (the sky model must dominate those baselines)")
+
+
 def _prepare(ctx):
     vg = ctx.open("vis.zarr")
     nt, _, nf, npol = vg["vis"].shape
@@ -57,6 +68,7 @@ def _prepare(ctx):
         raise InputError(str(ctx.run.store("vis.zarr")), "autos", "no autocorrelations: the ripple correction "
                          "needs them", "ingest autocorrelations (telescope.include_autos), or set "
                          "calibrate.ripple=false")
+    _check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
     ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply, TIME_CHUNK,
                            {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
@@ -108,10 +120,6 @@ def _task(ctx, key):
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
     model = source_coherencies(tel, f, block.lst[good], get_sources(c.sources), _epoch(ctx), block.pairs).sum(0)
     keep = baseline_mask(block.pairs, tel.layout.enu, f, c.min_baseline_lambda)
-    if not keep.any():
-        raise InputError("workflow", "calibrate.min_baseline_lambda", f"no baseline is longer than "
-                         f"{c.min_baseline_lambda:g} wavelengths at {f / 1e6:.3f} MHz",
-                         "lower calibrate.min_baseline_lambda (the sky model must dominate those baselines)")
     sol = solve_gains(vis, model[..., None], w, block.pairs, tel.n_ant, baseline_keep=keep, tol=c.tol,
                       max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma)
     region = (slice(k, k + 1), slice(fi, fi + 1))
