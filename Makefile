@@ -14,9 +14,14 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## Run the demo end to end: simulate -> m-modes -> normal equations -> solve -> maps (runs/demo/maps)
+## Run the demos: simulate -> m-modes -> normal equations -> solve -> maps (runs/demo/maps); then a
+## corrupted scan through calibrate -> peel -> terrestrial (runs/demo-calibrate) and, for comparison,
+## the same data imaged without them (runs/demo-calibrate-before)
 demo: $(STAMP)
 	$(VENV)/bin/mmflow run workflows/demo.yaml
+	$(VENV)/bin/mmflow run workflows/demo-calibrate.yaml --no-progress
+	$(VENV)/bin/mmflow run workflows/demo-calibrate.yaml calibrate.enabled=false peel.enabled=false \
+	    terrestrial.enabled=false run.directory=runs/demo-calibrate-before --no-progress
 
 ## Run the test suite
 test: $(STAMP)

@@ -23,19 +23,9 @@ from mmflow.workflow.runner import run_workflow
 QUIET = dict(progress=False, log=lambda *a: None)
 BRIGHT = ["Cyg A", "Cas A", "Vir A", "Tau A"]
 FAINT = ["3C 123", "3C 48", "3C 147", "3C 196", "3C 286", "3C 295", "3C 380"]
-BASE = [
-    "telescope.radius_m=25", "observation.freqs_mhz=[40.0]", "observation.integration_s=84.14657",
-    "sky.diffuse=false", "mmode.lmax=60", "mmode.baseline_chunk=128", "transfer.baseline_chunk=64",
-    "transfer.m_block=8", "products.nside=64", "products.png=false", "imaging.lcurve=false",
-    "cluster.kind=synchronous",
-]
-CHAIN = [
-    f"sky.sources={BRIGHT + FAINT}", "corrupt.enabled=true", "corrupt.crosstalk_jy=5",
-    "corrupt.dd_sources=[Cyg A, Cas A]", "corrupt.system_jy=2e5",
-    "calibrate.enabled=true", f"calibrate.sources={BRIGHT}", "calibrate.min_baseline_lambda=2",
-    "calibrate.solint_s=1800", "peel.enabled=true", f"peel.sources={BRIGHT}", "peel.min_baseline_lambda=2",
-    "terrestrial.enabled=true", "terrestrial.components=1", "terrestrial.min_baseline_lambda=2",
-]
+DEMO = "workflows/demo-calibrate.yaml"  # the calibration demo of `make demo`, run here as it is
+BASE = ["products.nside=64", "products.png=false", "imaging.lcurve=false", "cluster.kind=synchronous"]
+OFF = ["calibrate.enabled=false", "peel.enabled=false", "terrestrial.enabled=false"]
 
 
 def _map(run_dir):
@@ -43,21 +33,20 @@ def _map(run_dir):
 
 
 def _run(path, *extra):
-    run_workflow(load_config("workflows/demo.yaml", BASE + [f"run.directory={path}", *extra]), **QUIET)
+    run_workflow(load_config(DEMO, BASE + [f"run.directory={path}", *extra]), **QUIET)
     return _map(path)
 
 
 # XX and YY with the chain's receiver power but no corruption: the same radiometer weights, so
 # the maps differ only by what the chain leaves (Tikhonov maps depend on the noise weighting)
-PLAIN = ["corrupt.enabled=true", "corrupt.gains=false", "corrupt.sawtooth_db=0", "corrupt.dd_sources=[]",
-         "corrupt.system_jy=2e5"]
+PLAIN = OFF + ["corrupt.gains=false", "corrupt.sawtooth_db=0", "corrupt.dd_sources=[]", "corrupt.crosstalk_jy=0"]
 
 
 @pytest.fixture(scope="module")
 def maps(tmp_path_factory):
     d = tmp_path_factory.mktemp("chain")
     out = {
-        "chain": _run(d / "chain", *CHAIN),
+        "chain": _run(d / "chain"),
         # the same sky without corruptions and without the removed sources, noiseless
         "truth": _run(d / "truth", f"sky.sources={FAINT}", "sky.noise=false", *PLAIN),
         # ... and with the chain's thermal noise
@@ -65,7 +54,7 @@ def maps(tmp_path_factory):
         # the bright sources alone, to measure their peaks through the same imaging
         "bright": _run(d / "bright", f"sky.sources={BRIGHT}", "sky.noise=false", *PLAIN),
         # the corrupted data imaged as they are (the "before" of the demo)
-        "raw": _run(d / "raw", *[c for c in CHAIN if not c.split(".")[0] in ("calibrate", "peel", "terrestrial")]),
+        "raw": _run(d / "raw", *OFF),
     }
     out["dir"] = d
     return out
