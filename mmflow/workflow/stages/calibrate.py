@@ -123,7 +123,7 @@ def _task(ctx, key):
     sol = solve_gains(vis, model[..., None], w, block.pairs, tel.n_ant, baseline_keep=keep, tol=c.tol,
                       max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma)
     region = (slice(k, k + 1), slice(fi, fi + 1))
-    ctx.write(g, "gains", region, sol.gains[:, None])
+    ctx.write(g, "gains", region, np.where(sol.flags, 0, np.nan_to_num(sol.gains))[:, None])  # flagged: 0
     ctx.write(g, "flags", region, sol.flags[:, None])
     ctx.write(g, "chi2", region, np.nan_to_num(sol.chi2[:, None]))
     ctx.write(g, "iterations", region, sol.iterations[:, None].astype(np.int32))
