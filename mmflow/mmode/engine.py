@@ -44,9 +44,11 @@ def plan_chunks(telescope, freq_hz, lmax, chunk_size=64, per_baseline_lmax=True,
     """
     lmax_b = telescope.baseline_lmax(freq_hz, lmax) if per_baseline_lmax else np.full(
         len(telescope.antenna_pairs()), lmax)
-    # by lmax_b, then by length: baselines capped at lmax share chunks with like fringe band limits
-    length = np.linalg.norm(telescope.baselines_enu(), axis=1)
-    order = np.lexsort((length, lmax_b))
+    if per_baseline_lmax:
+        # by lmax_b, then by length: baselines capped at lmax share chunks with like fringe band limits
+        order = np.lexsort((np.linalg.norm(telescope.baselines_enu(), axis=1), lmax_b))
+    else:
+        order = np.arange(len(lmax_b))  # one lmax: the telescope's own order
     sorted_lb = lmax_b[order]
     chunks, i, n = [], 0, len(order)
     while i < n:

@@ -97,7 +97,9 @@ def _transfer_task(ctx, key):
 def _block_writer(ctx, fi, chunks, bc):
     """Write each transfer block of a chunk at its rows of ``transfer.zarr`` (chunks in lmax order)."""
     store = ctx.open("transfer.zarr", mode="r+")
-    position = {id(c): k for k, c in enumerate(chunks)}
+    # chunks are contiguous in the lmax order and their sizes multiples of bc: rows stay chunk-aligned
+    starts = np.concatenate([[0], np.cumsum([len(c.index) for c in chunks])])
+    position = {id(c): int(starts[k]) for k, c in enumerate(chunks)}
 
     def write(chunk, m, blk):
         n = len(chunk.index)
@@ -105,7 +107,7 @@ def _block_writer(ctx, fi, chunks, bc):
         b2[0] = blk[:n]
         if m > 0:
             b2[1] = blk[n:]
-        row0 = position[id(chunk)] * bc
+        row0 = position[id(chunk)]
         ctx.write(store, f"f{fi}/B_m{m:05d}", (slice(None), slice(row0, row0 + n)), b2)
     return write
 
