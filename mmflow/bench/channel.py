@@ -147,9 +147,18 @@ def calibrate(dtype, lmaxes, nb=64):
         t0 = time.perf_counter()
         transfer_pass(grid, b, consume, np.full(n, lmax), lmax, dtype, lmax, np.ones(n), tim)
         wall = time.perf_counter() - t0
+        # a second pass on the same grid (tables built, Gram pages touched): the best of two per phase,
+        # as the shared machine's load comes and goes
+        again = {}
+        t0 = time.perf_counter()
+        transfer_pass(grid, b, consume, np.full(n, lmax), lmax, dtype, lmax, np.ones(n), again)
+        wall = min(wall, time.perf_counter() - t0)
+        for k, v in again.items():
+            if k != "tables_s" and k.endswith("_s"):
+                tim[k] = min(tim[k], v)
         w = chunk_work(n, lmax, lg, fr, lmax)
         g = grid_work(lg, fr)
-        pool_thread_s = sum(tim.get(p, 0.0) for p in POOL_PHASES)
+        pool_thread_s = sum(again.get(p, 0.0) for p in POOL_PHASES)
         out.append({"lmax": lmax, "baselines": n, "wall_s": wall, "timings": tim,
                     "rates": {"fourier": w["fourier"] / tim["fourier_s"],
                               "tables": g["tables"] / tim["tables_s"],
@@ -157,7 +166,7 @@ def calibrate(dtype, lmaxes, nb=64):
                               "herk": w["herk"] / tim["herk_s"],
                               "elements": w["elements"] / (tim.get("scale_s", 0.0) + tim["rhs_s"]),
                               "grid_points": g["grid_points"] / grid_s},
-                    "pool_efficiency": pool_thread_s / (tim["mpool_s"] * n_threads()),
+                    "pool_efficiency": pool_thread_s / (again["mpool_s"] * n_threads()),
                     "legendre_gflops_actual": tim["legendre_flops"] / tim["legendre_s"] / 1e9 * n_threads(),
                     "herk_gflops": tim["herk_flops"] / tim["herk_s"] / 1e9 * n_threads()})
     return out
@@ -279,7 +288,7 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
             "cluster.kind=local", f"cluster.n_workers={workers}", "cluster.threads_per_worker=1",
             "cluster.dashboard_address=:0", f"run.directory={root}/wf"]
     if scale < 1:
-        over.append(f"telescope.max_antennas={max(2, int(round(256 * np.sqrt(scale))))}")
+        over.append(f"telescope.max_antennas={workflow_antennas(scale)}")
     demo = os.path.join(os.path.dirname(__file__), "..", "..", "workflows", "demo.yaml")
     cfg = load_config(demo, over)
     _log("workflow: simulate + mmodes (not counted)")
@@ -291,9 +300,31 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
                                  log=lambda msg: _log(f"workflow: {msg}"))
         out["wall_s"] = time.perf_counter() - t0
         out["stages_s"] = {k: v["wall_s"] for k, v in summaries.items()}
+        out["stages"] = {k: {q: v.get(q) for q in ("wall_s", "task_s", "checksum_s", "guard_s", "bytes_written")}
+                         for k, v in summaries.items()}
         rss = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
         out["peak_rss_mb_per_worker"] = sorted(rss.values())
     return out
+
+
+def workflow_antennas(scale):
+    """Stands the workflow keeps at ``scale`` (it has no baseline-subsample setting): ``256 sqrt(scale)``."""
+    return None if scale >= 1 else max(2, int(round(256 * np.sqrt(scale))))
+
+
+def engine_on_workflow_case(layout, freq_mhz, lmax, scale, dtype):
+    """The engine on exactly the workflow's case (its first stands), every chunk and every m."""
+    from mmflow.mmode.engine import plan_chunks
+    from mmflow.telescope import Telescope, ovro_lwa_layout
+    from mmflow.telescope.beams import SinElevationBeam
+
+    f = freq_mhz * 1e6
+    tel = Telescope(ovro_lwa_layout(layout, max_antennas=workflow_antennas(scale)), SinElevationBeam(1.5), [f])
+    chunks, lmax_b = plan_chunks(tel, f, lmax, 64, True)
+    _log(f"engine on the workflow's case: {len(lmax_b)} baselines, {len(chunks)} chunks")
+    meas = measure_engine(tel, f, lmax, chunks, lmax_b, dtype, 1)
+    return {"baselines": int(len(lmax_b)), "wall_s": meas["wall_s"], "solve_s": meas["solve"]["seconds"],
+            "total_s": meas["wall_s"] + meas["solve"]["seconds"], "phases_s": meas["phases_s"]}
 
 
 def run_case(layout, freq_mhz, lmax, scale, dtype, cal, solve_stride, do_engine=True):
@@ -354,7 +385,14 @@ def run(what="channel", quick=False, layout=PAPER["layout"], freq_mhz=PAPER["fre
             case["herk_fraction_of_gemm_peak"] = case["measured"]["herk_gflops"] / peak
         if workflow:
             with tempfile.TemporaryDirectory(prefix="mmflow-bench-channel-") as root:
-                case["workflow"] = measure_workflow(layout, freq_mhz, lmax, s, workers, dt, root)
+                case["workflow"] = wf = measure_workflow(layout, freq_mhz, lmax, s, workers, dt, root)
+            if s < 1:  # a different case than the engine's subsample: time the engine on it too
+                wf["engine_same_case"] = engine_on_workflow_case(layout, freq_mhz, lmax, s, dt)
+                eng_total = wf["engine_same_case"]["total_s"]
+            else:
+                eng_total = case["measured"]["wall_s"] + case["measured"]["solve"]["seconds"] if engine else None
+            if eng_total:
+                wf["workflow_over_engine"] = wf["wall_s"] / eng_total
         res["cases"].append(case)
     res["sgemm_gflops_end"] = gemm_gflops(np.float32)
     res["peak_rss_mb_this_process"] = _rss_mb()
