@@ -102,11 +102,15 @@ def plan_work(tel, freq_hz, lmax, chunks):
     """Work units summed over ``chunks`` in order, with a grid build wherever the grid key changes."""
     from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 
-    tot = {"fourier": 0.0, "fourier_points": 0.0, "legendre": 0.0, "herk": 0.0, "elements": 0.0, "tables": 0.0,
-           "grid_points": 0.0, "grid_builds": 0, "chunks": len(chunks),
+    tot = {"fourier": 0.0, "fourier_points": 0.0, "gram_bytes": 0.0, "legendre": 0.0, "herk": 0.0, "elements": 0.0,
+           "tables": 0.0, "grid_points": 0.0, "grid_builds": 0, "chunks": len(chunks),
            "baselines": int(sum(len(c.index) for c in chunks))}
     prev = None
     pairs = tel.antenna_pairs()
+    # Gram pages written for the first time (upper triangles of the leading blocks the chunks reach)
+    top = max(c.lmax for c in chunks)
+    n_m = np.maximum(top - np.arange(top + 1) + 1.0, 0)
+    tot["gram_bytes"] = float((n_m * (n_m + 1) / 2).sum() * 8)  # complex64 accumulators
     for c in chunks:
         b = baselines_in_wavelengths(tel, pairs[c.index], freq_hz)
         key = _grid_key(c.lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), tel.beam.lmax_hint), lmax)
@@ -129,6 +133,11 @@ def calibrate(dtype, lmaxes, nb=64):
     from mmflow.mmode.transfer import fringe_bandlimit, make_grid, transfer_pass
 
     out = []
+    fresh = np.zeros(1 << 26, np.complex64)  # 512 MB never touched
+    t0 = time.perf_counter()
+    fresh.view(np.float32)[::1024] = 1.0  # one write per 4 KiB page: page faults and zeroing
+    touch_rate = fresh.nbytes / (time.perf_counter() - t0)
+    del fresh
     for lmax in lmaxes:
         n = nb
         b = _full_lmax_baselines(lmax, n, seed=lmax)
@@ -165,7 +174,7 @@ def calibrate(dtype, lmaxes, nb=64):
                               "legendre": w["legendre"] / tim["legendre_s"],
                               "herk": w["herk"] / tim["herk_s"],
                               "elements": w["elements"] / (tim.get("scale_s", 0.0) + tim["rhs_s"]),
-                              "grid_points": g["grid_points"] / grid_s},
+                              "grid_points": g["grid_points"] / grid_s, "gram_bytes": touch_rate},
                     "pool_efficiency": pool_thread_s / (again["mpool_s"] * n_threads()),
                     "legendre_gflops_actual": tim["legendre_flops"] / tim["legendre_s"] / 1e9 * n_threads(),
                     "herk_gflops": tim["herk_flops"] / tim["herk_s"] / 1e9 * n_threads()})
@@ -184,7 +193,8 @@ def model_seconds(work, cal):
     pool = {"tables_s": work["tables"] / rates["tables"], "legendre_s": work["legendre"] / rates["legendre"],
             "herk_s": work["herk"] / rates["herk"], "rhs_scale_s": work["elements"] / rates["elements"]}
     pool_wall = {k: v / (thr * eff) for k, v in pool.items()}
-    res = {"grid_s": work["grid_points"] / rates["grid_points"], "fourier_s": work["fourier"] / rates["fourier"]}
+    res = {"grid_s": work["grid_points"] / rates["grid_points"], "fourier_s": work["fourier"] / rates["fourier"],
+           "gram_first_touch_s": work["gram_bytes"] / rates["gram_bytes"]}
     res.update(pool_wall)
     res["transfer_and_gram_s"] = sum(res.values())
     return res
