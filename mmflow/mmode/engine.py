@@ -16,9 +16,10 @@ from mmflow.mmode.normal import NormalAccumulator
 from mmflow.mmode.transfer import (baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks, make_grid,
                                    transfer_pass)
 
-#: Rows x lmax^2 of a chunk's Fourier workspace: 64 baselines at lmax 1000 (~1 GB in float32).
-#: Chunks of shorter baselines hold more baselines (up to ``MAX_CHUNK_FACTOR`` x ``chunk_size``).
-WORKSPACE_ROWS_LMAX2 = 64 * 1000**2
+#: A chunk's Fourier workspace (~ baselines x lmax_c^2) stays below that of ``chunk_size`` baselines
+#: at ``max(lmax, REFERENCE_LMAX)``: chunks of shorter baselines hold more baselines (up to
+#: ``MAX_CHUNK_FACTOR`` x ``chunk_size``); 64 baselines at lmax 1000 are ~1 GB in float32.
+REFERENCE_LMAX = 1000
 MAX_CHUNK_FACTOR = 16
 #: A chunk's baselines span at most this ratio of per-baseline lmax (+2): its cost ~ n lmax^3.
 CHUNK_LMAX_SPAN = 1.1
@@ -37,7 +38,7 @@ def plan_chunks(telescope, freq_hz, lmax, chunk_size=64, per_baseline_lmax=True,
 
     A chunk's cost scales like ``n lmax_c^3`` and its Fourier workspace like ``n lmax_c^2``:
     chunks of short baselines (``adaptive``) take ``k = 1, 2, 4, .. MAX_CHUNK_FACTOR`` times
-    ``chunk_size`` baselines while ``k chunk_size lmax_c^2 <= WORKSPACE_ROWS_LMAX2`` and their
+    ``chunk_size`` baselines while ``k lmax_c^2 <= max(lmax, REFERENCE_LMAX)^2`` and their
     lmax spans at most ``CHUNK_LMAX_SPAN`` (fewer, fatter GEMMs and Gram updates; about 1 %
     more flops than per-baseline chunks at the paper's channel). Sizes are multiples of
     ``chunk_size`` and depend only on the baselines and settings, never on the cluster.
@@ -50,12 +51,13 @@ def plan_chunks(telescope, freq_hz, lmax, chunk_size=64, per_baseline_lmax=True,
     else:
         order = np.arange(len(lmax_b))  # one lmax: the telescope's own order
     sorted_lb = lmax_b[order]
+    budget = float(max(lmax, REFERENCE_LMAX)) ** 2
     chunks, i, n = [], 0, len(order)
     while i < n:
         k = MAX_CHUNK_FACTOR if adaptive else 1
         while k > 1:
             last = sorted_lb[min(i + k * chunk_size, n) - 1]
-            if k * chunk_size * float(last) ** 2 <= WORKSPACE_ROWS_LMAX2 and last <= CHUNK_LMAX_SPAN * sorted_lb[i] + 2:
+            if k * float(last) ** 2 <= budget and last <= CHUNK_LMAX_SPAN * sorted_lb[i] + 2:
                 break
             k //= 2
         j = min(i + k * chunk_size, n)
