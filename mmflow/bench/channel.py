@@ -48,6 +48,13 @@ def _rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def _vm_hwm_mb():
+    """Peak resident memory of this process's own address space (``VmHWM``; ``ru_maxrss``
+    survives fork+exec and can report a parent's peak)."""
+    with open("/proc/self/status") as fh:
+        return next(int(line.split()[1]) for line in fh if line.startswith("VmHWM")) / 1024.0
+
+
 def telescope_for(layout, freq_hz):
     from mmflow.telescope import Telescope, ovro_lwa_layout
     from mmflow.telescope.beams import SinElevationBeam
@@ -312,7 +319,7 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
         out["stages_s"] = {k: v["wall_s"] for k, v in summaries.items()}
         out["stages"] = {k: {q: v.get(q) for q in ("wall_s", "task_s", "checksum_s", "guard_s", "bytes_written")}
                          for k, v in summaries.items()}
-        rss = client.run(lambda: resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+        rss = client.run(_vm_hwm_mb)
         out["peak_rss_mb_per_worker"] = sorted(rss.values())
     return out
 
