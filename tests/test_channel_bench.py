@@ -143,3 +143,6 @@ def test_bench_channel_prints_every_phase_and_the_projection(capsys, monkeypatch
     assert case["measured"]["solve"]["m_solved"] == 7 and case["measured"]["peak_rss_mb"] > 0
     proj = case["projection_full_channel"]
     assert "PROJECTION" in proj["label"] and proj["total_minutes"] > 0
+    chans = case["projection_paper_channels"]
+    tg = [chans[f]["transfer_and_gram_s"] for f in ("36.528", "52.224", "73.152")]
+    assert tg[0] < tg[1] < tg[2]  # longer baselines in wavelengths at higher frequencies cost more

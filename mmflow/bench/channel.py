@@ -38,6 +38,8 @@ from mmflow.threads import n_threads
 
 POOL_PHASES = ("tables_s", "legendre_s", "scale_s", "herk_s", "rhs_s")
 PAPER = {"layout": "paper-2017", "freq_mhz": 73.152, "lmax": 1000}
+#: The paper's eight channels (MHz).
+PAPER_FREQS_MHZ = tuple(round(36.528 + 5.232 * k, 3) for k in range(8))
 
 
 def _log(msg):
@@ -377,7 +379,27 @@ def run_case(layout, freq_mhz, lmax, scale, dtype, cal, solve_stride, do_engine=
             "total_minutes": (extrap + solve_s) / 60.0,
             "table_and_grid_fraction": (model_full["tables_s"] + model_full["grid_s"]) /
             (model_full["transfer_and_gram_s"] + solve_s)}
+        res["projection_paper_channels"] = project_channels(layout, lmax, cal, meas["wall_s"] / model_sub[
+            "transfer_and_gram_s"], solve_s)
     return res
+
+
+def project_channels(layout, lmax, cal, measured_over_model, solve_s, freqs_mhz=PAPER_FREQS_MHZ):
+    """PROJECTION of each of the paper's channels: the model's transfer + Gram for that channel times
+    the measured/model ratio of this run, plus this run's solve (which depends on lmax only)."""
+    from mmflow.mmode.engine import plan_chunks
+
+    out = {}
+    for fm in freqs_mhz:
+        tel = telescope_for(layout, fm * 1e6)
+        chunks, _ = plan_chunks(tel, fm * 1e6, lmax, 64, True)
+        w = plan_work(tel, fm * 1e6, lmax, chunks)
+        w["mean_lmax"] = _mean_lmax(tel, fm * 1e6, lmax, chunks)
+        tg = model_seconds(w, cal)["transfer_and_gram_s"] * measured_over_model
+        out[f"{fm:.3f}"] = {"transfer_and_gram_s": tg, "solve_s": solve_s, "total_s": tg + solve_s}
+    out["all_channels_minutes"] = sum(v["total_s"] for v in out.values()) / 60.0
+    out["label"] = "PROJECTION from this run's measured/model ratio"
+    return out
 
 
 def run(what="channel", quick=False, layout=PAPER["layout"], freq_mhz=PAPER["freq_mhz"], lmax=None,

@@ -13,9 +13,11 @@ Folding rings ``k`` and ``pi - theta_k`` with ``lambda_lm(pi-theta) = (-1)^{l+m}
 halves the GEMM: even ``l+m`` use ``F_k + F_k'``, odd use ``F_k - F_k'``.
 
 Kernels here are numpy/ducc0 (and one numba loop, :mod:`mmflow.mmode.fringe_kernels`) on
-in-memory arrays; dask maps them over chunks. Within a call, rings (Fourier stage) and windows
-of m (Legendre stage) run on :func:`mmflow.threads.n_threads` threads, one ring per task so that
-its FFT buffers stay in cache.
+in-memory arrays; dask maps them over chunks. Within a call, rings (Fourier stage, one ring per
+task so that its FFT buffers stay in cache) and runs of consecutive m (:func:`transfer_pass`:
+Legendre GEMMs, then the caller's per-m step, e.g. the Gram update, on the same thread) run on
+:func:`mmflow.threads.n_threads` threads with one BLAS thread each: the bits of every block do
+not depend on the thread count.
 """
 from __future__ import annotations
 
