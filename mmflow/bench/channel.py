@@ -295,6 +295,8 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
 
     The workflow has no baseline-subsample setting: ``scale < 1`` keeps the first
     ``256 sqrt(scale)`` stands instead (a different baseline mix than the engine's subsample).
+    ``transfer.groups`` is the number of workers: every group writes a full-lmax partial Gram
+    (2.7 GB at lmax 1000 in float32) that the ``normal`` stage reads back.
     """
     from mmflow.workflow.cluster import open_cluster
     from mmflow.workflow.config import load_config
@@ -303,7 +305,7 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
     over = [f"telescope.preset={layout}", "telescope.radius_m=null", f"observation.freqs_mhz=[{freq_mhz}]",
             "sky.diffuse=false", "sky.sources=[Cyg A, Cas A]", "sky.noise=false", f"mmode.lmax={lmax}",
             f"transfer.dtype={np.dtype(dtype).name}", "transfer.noise_weighting=false", "transfer.baseline_chunk=64",
-            f"transfer.groups={max(2, workers)}", "imaging.lcurve=false", "products.nside=64",
+            f"transfer.groups={workers}", "imaging.lcurve=false", "products.nside=64",
             "cluster.kind=local", f"cluster.n_workers={workers}", "cluster.threads_per_worker=1",
             "cluster.dashboard_address=:0", f"run.directory={root}/wf"]
     if scale < 1:
