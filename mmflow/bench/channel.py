@@ -324,6 +324,9 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
         out["stages"] = {k: {q: v.get(q) for q in ("wall_s", "task_s", "checksum_s", "guard_s", "bytes_written")}
                          for k, v in summaries.items()}
         rss = client.run(_vm_hwm_mb)
+        from mmflow.workflow.rundir import RunDir
+
+        out["transfer_tasks"] = RunDir(cfg.run.directory).task_infos("transfer")
         out["peak_rss_mb_per_worker"] = sorted(rss.values())
     return out
 
