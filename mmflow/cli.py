@@ -7,7 +7,7 @@ import sys
 
 import yaml
 
-BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel")
 
 
 def _common(p):
@@ -42,6 +42,18 @@ def build_parser():
     b.add_argument("what", choices=BENCHMARKS)
     b.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
     b.add_argument("--output", help="also write the JSON here")
+    ch = b.add_argument_group("channel", "options of `mmflow bench channel` (defaults: the paper's channel)")
+    ch.add_argument("--layout", default="paper-2017", help="OVRO-LWA layout preset")
+    ch.add_argument("--freq-mhz", type=float, default=73.152, help="frequency in MHz")
+    ch.add_argument("--lmax", type=int, help="lmax (default 1000; 128 with --quick)")
+    ch.add_argument("--scale", help="fractions of the baseline chunks to run, comma-separated (1: the full "
+                    "channel; default 0.02,0.05; 0.05 with --quick)")
+    ch.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    ch.add_argument("--workflow", action="store_true",
+                    help="also run the workflow's transfer/normal/solve stages on a local cluster")
+    ch.add_argument("--engine-only", action="store_true", help="only the engine (the default; overrides --workflow)")
+    ch.add_argument("--workers", type=int, default=1, help="local worker processes for --workflow")
+    ch.add_argument("--solve-stride", type=int, default=1, help="solve every N-th m (the rest projected by n^3)")
     return ap
 
 
@@ -115,7 +127,13 @@ def _config(args):
 def _bench(args):
     from mmflow import bench
 
-    res = bench.run(args.what, quick=args.quick)
+    options = {}
+    if args.what == "channel":
+        options = dict(layout=args.layout, freq_mhz=args.freq_mhz, lmax=args.lmax, dtype=args.dtype,
+                       scales=[float(x) for x in args.scale.split(",")] if args.scale else None,
+                       workflow=args.workflow and not args.engine_only, workers=args.workers,
+                       solve_stride=args.solve_stride)
+    res = bench.run(args.what, quick=args.quick, **options)
     text = json.dumps(res, indent=2)
     print(text)
     if args.output:

@@ -3,7 +3,8 @@
 One module per subject: :mod:`.engine` (transfer, solve, simulate), :mod:`.workflow` (the
 workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.calibrate`
 (Stefcal and peeling), :mod:`.ingest` (ingest vs pyuvdata's read rate), :mod:`.gaps`
-(least-squares m-modes of flagged data), :mod:`.clean` (PSF and CLEAN cycles).
+(least-squares m-modes of flagged data), :mod:`.clean` (PSF and CLEAN cycles), :mod:`.channel`
+(one real channel through transfer, Gram and solve, per phase, beside the model's projection).
 """
 from __future__ import annotations
 
@@ -11,9 +12,10 @@ import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
            "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps",
-           "clean": "clean"}
+           "clean": "clean", "channel": "channel"}
 
 
-def run(what, quick=False):
+def run(what, quick=False, **options):
+    """Run one benchmark; ``options`` are passed on to benchmarks that take them (``channel``)."""
     mod = importlib.import_module(f"mmflow.bench.{MODULES[what]}")
-    return mod.run(what, quick=quick)
+    return mod.run(what, quick=quick, **options)

@@ -62,10 +62,49 @@ def generalized(gram, rhs, eps, penalty_diag):
     return sla.solve(a, rhs, assume_a="her", check_finite=False)
 
 
+def count_eigenvalues_above(gram, eps):
+    """Number of eigenvalues of the Hermitian ``G`` above ``eps``, from an LDL^H factorisation.
+
+    By Sylvester's law of inertia ``eps I - G = L D L^H`` has as many negative eigenvalues as
+    ``D``, i.e. as ``G`` has eigenvalues above ``eps``. ``D`` (LAPACK ``?hetrf``, Bunch-Kaufman)
+    has 1x1 and 2x2 blocks; a 2x2 block holds one negative eigenvalue if its determinant is
+    negative, else two or none by the sign of its trace. About a Cholesky's cost, versus ~10x
+    for ``eigvalsh``; exact except for eigenvalues within rounding of ``eps`` (float64 here).
+    """
+    from scipy.linalg import lapack
+
+    g = np.asarray(gram)
+    n = len(g)
+    if n == 0:
+        return 0
+    a = np.array(-g, dtype=np.complex128, order="F")
+    a[np.diag_indices(n)] += eps
+    ldu, ipiv, info = lapack.zhetrf(a, lower=0)
+    if info < 0:
+        raise ValueError(f"zhetrf: illegal argument {-info}")
+    diag = ldu.diagonal().real
+    neg, k = 0, n - 1
+    while k >= 0:  # upper storage: blocks are found from the bottom up
+        if ipiv[k] > 0 or k == 0:
+            neg += diag[k] < 0
+            k -= 1
+        else:
+            p, q, b = diag[k - 1], diag[k], abs(ldu[k - 1, k])
+            det = p * q - b * b
+            neg += 1 if det < 0 else (2 if p + q < 0 else 0)
+            k -= 2
+    return int(neg)
+
+
 def singular_fraction_above(gram, eps, eigenvalues=None):
-    """Fraction of singular values of B above ``sqrt(eps)`` (eigenvalues of G above eps)."""
-    s = np.linalg.eigvalsh(gram) if eigenvalues is None else eigenvalues
-    return float(np.mean(s > eps)) if len(s) else 0.0
+    """Fraction of singular values of B above ``sqrt(eps)`` (eigenvalues of G above eps).
+
+    From ``eigenvalues`` when given, else by an inertia count (:func:`count_eigenvalues_above`).
+    """
+    if eigenvalues is not None:
+        return float(np.mean(np.asarray(eigenvalues) > eps)) if len(eigenvalues) else 0.0
+    n = len(gram)
+    return count_eigenvalues_above(gram, eps) / n if n else 0.0
 
 
 def _as_column(x, rhs):

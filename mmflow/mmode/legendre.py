@@ -31,6 +31,22 @@ _LOG_STEP = _SHIFT * np.log(2.0)
 
 def legendre_table(m, lmax, theta):
     """``lambda_lm(theta_k)`` for ``l = m..lmax``; shape ``(lmax - m + 1, len(theta))``, float64."""
+    out, _ = weighted_legendre_table(m, lmax, theta)
+    return out
+
+
+def weighted_legendre_table(m, lmax, theta, weights=None, dtype=np.float64, l_block=256):
+    """``w_k lambda_lm(theta_k)`` for ``l = m..lmax`` in ``dtype``, and its column maxima per l-block.
+
+    The product is formed in float64 and rounded once to ``dtype`` as it is written (one pass
+    over memory: no float64 table, weighting or reduction passes afterwards).
+
+    Returns
+    -------
+    table : (lmax - m + 1, n) ``dtype``
+    colmax : (n_blocks, n) float64, ``max_{l in block} |w_k lambda_lm(theta_k)|`` for l-blocks
+        of ``l_block`` rows starting at ``l = m``.
+    """
     theta = np.ascontiguousarray(theta, float).ravel()
     x, s = np.cos(theta), np.sin(theta)
     # log |lambda_mm| = 0.5 log((2m+1)/(4 pi) (2m)! / (4^m (m!)^2)) + m log sin theta
@@ -41,9 +57,11 @@ def legendre_table(m, lmax, theta):
     exponent = np.minimum(np.ceil(log_start / _LOG_STEP), 0.0)
     exponent[~np.isfinite(exponent)] = 0.0  # sin theta = 0, m > 0: lambda_lm = 0 for every l
     start = (-1.0) ** m * np.exp(log_start - exponent * _LOG_STEP)  # exp(-inf) = 0 at the poles
-    out = np.empty((lmax - m + 1, len(theta)))
-    _kernel()(m, lmax, x, start, exponent.astype(np.int64), out)
-    return out
+    w = np.ones(len(theta)) if weights is None else np.ascontiguousarray(weights, float)
+    out = np.empty((lmax - m + 1, len(theta)), dtype)
+    colmax = np.zeros(((lmax - m) // l_block + 1, len(theta)))
+    _kernel()(m, lmax, x, start, exponent.astype(np.int64), w, out, colmax, l_block)
+    return out, colmax
 
 
 @lru_cache(maxsize=1)
@@ -57,32 +75,33 @@ def _kernel():
     powers = np.array([2.0 ** (-_SHIFT * j) for j in range(5)])
 
     @numba.njit(nogil=True, boundscheck=False)
-    def scaled_recurrence(m, lmax, x, start, exponent, out):
+    def scaled_recurrence(m, lmax, x, start, exponent, w, out, colmax, l_block):
         n = x.shape[0]
         prev = np.zeros(n)
         cur = start.copy()
         e = exponent.copy()
-        for k in range(n):
-            out[0, k] = cur[k] * powers[-e[k]] if -e[k] < 5 else 0.0
-        if lmax == m:
-            return
-        c1 = np.sqrt(2.0 * m + 3.0)
-        for k in range(n):
-            prev[k] = cur[k]
-            cur[k] = c1 * x[k] * cur[k]
-            out[1, k] = cur[k] * powers[-e[k]] if -e[k] < 5 else 0.0
-        for ell in range(m + 2, lmax + 1):
-            a = np.sqrt((4.0 * ell * ell - 1.0) / (ell * ell - m * m))
-            b = np.sqrt(((ell - 1.0) ** 2 - m * m) / (4.0 * (ell - 1.0) ** 2 - 1.0))
+        for ell in range(m, lmax + 1):
             i = ell - m
+            if ell == m + 1:
+                c1 = np.sqrt(2.0 * m + 3.0)
+                for k in range(n):
+                    prev[k] = cur[k]
+                    cur[k] = c1 * x[k] * cur[k]
+            elif ell > m + 1:
+                a = np.sqrt((4.0 * ell * ell - 1.0) / (ell * ell - m * m))
+                b = np.sqrt(((ell - 1.0) ** 2 - m * m) / (4.0 * (ell - 1.0) ** 2 - 1.0))
+                for k in range(n):
+                    nxt = a * (x[k] * cur[k] - b * prev[k])
+                    prev[k] = cur[k]
+                    cur[k] = nxt
+                    if e[k] < 0 and abs(nxt) > big:
+                        cur[k] *= small
+                        prev[k] *= small
+                        e[k] += 1
+            blk = i // l_block
             for k in range(n):
-                nxt = a * (x[k] * cur[k] - b * prev[k])
-                prev[k] = cur[k]
-                cur[k] = nxt
-                if e[k] < 0 and abs(nxt) > big:
-                    cur[k] *= small
-                    prev[k] *= small
-                    e[k] += 1
-                out[i, k] = cur[k] * powers[-e[k]] if -e[k] < 5 else 0.0
+                v = w[k] * (cur[k] * powers[-e[k]] if -e[k] < 5 else 0.0)
+                out[i, k] = v
+                colmax[blk, k] = max(colmax[blk, k], abs(v))
 
     return scaled_recurrence

@@ -5,6 +5,10 @@ Accumulated over baseline chunks with BLAS ``?herk`` (upper triangle) and never 
 """
 from __future__ import annotations
 
+import ctypes
+import time
+from functools import lru_cache
+
 import numpy as np
 from scipy.linalg import blas
 
@@ -20,6 +24,52 @@ def herk_upper(a, c=None, alpha=1.0):
     if c is None:
         return f(alpha, at, trans=0, lower=0)
     return f(alpha, at, beta=1.0, c=c, trans=0, lower=0, overwrite_c=1)
+
+
+@lru_cache(maxsize=None)
+def _herk_fn(prefix):
+    """BLAS ``cherk``/``zherk`` from scipy's ``cython_blas`` as a ctypes function (releases the GIL).
+
+    Called directly so that a leading sub-block ``C[:n, :n]`` of a Fortran-ordered Gram is
+    updated in place through ``ldc`` (scipy's Python wrapper would copy a non-contiguous C).
+    """
+    from scipy.linalg import cython_blas
+
+    api = ctypes.pythonapi
+    api.PyCapsule_GetName.restype, api.PyCapsule_GetName.argtypes = ctypes.c_char_p, [ctypes.py_object]
+    api.PyCapsule_GetPointer.restype = ctypes.c_void_p
+    api.PyCapsule_GetPointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+    cap = cython_blas.__pyx_capi__[prefix + "herk"]
+    ptr = api.PyCapsule_GetPointer(cap, api.PyCapsule_GetName(cap))
+    real = ctypes.c_float if prefix == "c" else ctypes.c_double
+    pint, preal = ctypes.POINTER(ctypes.c_int), ctypes.POINTER(real)
+    proto = ctypes.CFUNCTYPE(None, ctypes.c_char_p, ctypes.c_char_p, pint, pint, preal, ctypes.c_void_p, pint,
+                             preal, ctypes.c_void_p, pint)
+    return proto(ptr), real
+
+
+def herk_into(gram, a, k, n, lda, alpha=1.0):
+    """``G[:n, :n] += alpha A^H A`` (upper triangle) in place, ``A`` the ``k x n`` column-major matrix at ``a``.
+
+    Parameters
+    ----------
+    gram : (N, N) Fortran-ordered complex64/complex128, ``N >= n``; only its upper triangle is written.
+    a : C-ordered array of the same dtype whose memory holds ``A`` column-major with leading
+        dimension ``lda >= k``: a C-ordered ``(L, lda)`` array ``X`` is ``A = X[:n, :k]^T``, i.e.
+        row ``c`` of ``A`` is column ``c`` of ``X`` (a transfer block ``(l, baseline)``).
+    k, n : rows and columns of ``A`` (rank of the update and size of the updated sub-block).
+    """
+    if n == 0 or k == 0:
+        return gram
+    if not gram.flags.f_contiguous or a.dtype != gram.dtype or not a.flags.c_contiguous:
+        raise ValueError("herk_into: Fortran-ordered Gram and a C-ordered block of its dtype expected")
+    if a.shape[-1] != lda or a.size < lda * (n - 1) + k:
+        raise ValueError("herk_into: block smaller than its k x n matrix")
+    fn, real = _herk_fn("c" if gram.dtype == np.complex64 else "z")
+    c_int = ctypes.c_int
+    fn(b"U", b"C", ctypes.byref(c_int(n)), ctypes.byref(c_int(k)), ctypes.byref(real(alpha)), a.ctypes.data,
+       ctypes.byref(c_int(lda)), ctypes.byref(real(1.0)), gram.ctypes.data, ctypes.byref(c_int(gram.shape[0])))
+    return gram
 
 
 def hermitian_full(c_upper):
@@ -84,6 +134,30 @@ class NormalAccumulator:
             if inv_var is not None:
                 vv = vv * np.sqrt(np.asarray(inv_var, float)).astype(vv.real.dtype)
             self.rhs[m][:, :n] += (b.conj().T @ vv.T).T
+
+    def add_scaled_block(self, m, out, rows, ncols, vw=None, timings=None):
+        """Add one transfer block given as ``out[l - m, c]`` (C-ordered, ``(L, lda)``), already weighted.
+
+        ``G_m[:ncols, :ncols] += B^H B`` and ``r_m[:, :ncols] += B^H vw`` for ``B = out[:ncols, :rows]^T``
+        (rows are baselines times ``sqrt(w)``, ``vw`` the data times ``sqrt(w)``, ``(n_split, rows)``).
+        No copy of the Gram or of the block (:func:`herk_into`); one BLAS call each.
+        """
+        if m not in self.gram:
+            return
+        if out.dtype != self.dtype:
+            out = np.ascontiguousarray(out, self.dtype)
+        t0 = time.perf_counter()
+        herk_into(self.gram[m], out, rows, ncols, out.shape[1])
+        t1 = time.perf_counter()
+        if vw is not None:
+            # r[s, l] = sum_c conj(out[l, c]) vw[s, c]
+            tmp = out[:ncols, :rows] @ np.conj(np.asarray(vw, self.dtype)).T
+            self.rhs[m][:, :ncols] += tmp.conj().T
+        if timings is not None:
+            t2 = time.perf_counter()
+            timings["herk_s"] = timings.get("herk_s", 0.0) + t1 - t0
+            timings["rhs_s"] = timings.get("rhs_s", 0.0) + t2 - t1
+            timings["herk_flops"] = timings.get("herk_flops", 0.0) + 4.0 * rows * ncols * (ncols + 1)
 
     def full_gram(self, m):
         return hermitian_full(self.gram[m])

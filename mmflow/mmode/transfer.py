@@ -13,9 +13,11 @@ Folding rings ``k`` and ``pi - theta_k`` with ``lambda_lm(pi-theta) = (-1)^{l+m}
 halves the GEMM: even ``l+m`` use ``F_k + F_k'``, odd use ``F_k - F_k'``.
 
 Kernels here are numpy/ducc0 (and one numba loop, :mod:`mmflow.mmode.fringe_kernels`) on
-in-memory arrays; dask maps them over chunks. Within a call, rings (Fourier stage) and windows
-of m (Legendre stage) run on :func:`mmflow.threads.n_threads` threads, one ring per task so that
-its FFT buffers stay in cache.
+in-memory arrays; dask maps them over chunks. Within a call, rings (Fourier stage, one ring per
+task so that its FFT buffers stay in cache) and runs of consecutive m (:func:`transfer_pass`:
+Legendre GEMMs, then the caller's per-m step, e.g. the Gram update, on the same thread) run on
+:func:`mmflow.threads.n_threads` threads with one BLAS thread each: the bits of every block do
+not depend on the thread count.
 """
 from __future__ import annotations
 
@@ -28,7 +30,7 @@ import numpy as np
 
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
 from mmflow.mmode.fringe_kernels import fringe_folds
-from mmflow.mmode.legendre import legendre_table
+from mmflow.mmode.legendre import weighted_legendre_table
 from mmflow.threads import n_threads, single_threaded_blas
 
 
@@ -93,15 +95,14 @@ class TransferGrid:
         key = (m, np.dtype(dtype).str)
         if key not in self._tables:
             north = self.active
-            t = legendre_table(m, self.lmax, self.theta[north]) * self.weights[north]
-            tol = (1e-9 if np.dtype(dtype) == np.float32 else 1e-15) * max(np.abs(t).max(), 1e-300)
+            t, colmax = weighted_legendre_table(m, self.lmax, self.theta[north], self.weights[north], dtype, l_block)
+            tol = (1e-9 if np.dtype(dtype) == np.float32 else 1e-15) * max(colmax.max(initial=0.0), 1e-300)
             blocks = []
-            for i0 in range(0, t.shape[0], l_block):
-                sub = t[i0:i0 + l_block]
-                col = np.abs(sub).max(axis=0)
-                k0 = int(np.argmax(col > tol)) if np.any(col > tol) else len(col)
-                sub = sub[:, k0:]
-                blocks.append((i0, k0, np.ascontiguousarray(sub[0::2], dtype), np.ascontiguousarray(sub[1::2], dtype)))
+            for j, i0 in enumerate(range(0, t.shape[0], l_block)):
+                above = colmax[j] > tol
+                k0 = int(np.argmax(above)) if above.any() else t.shape[1]
+                sub = t[i0:i0 + l_block, k0:]
+                blocks.append((i0, k0, np.ascontiguousarray(sub[0::2]), np.ascontiguousarray(sub[1::2])))
             self._tables[key] = blocks
         return self._tables[key]
 
@@ -149,8 +150,97 @@ def _ring_fourier(grid, b, start, stop, mmax, cdtype, fsum, fdiff):
             neg[1:] = f[:, n - 1:n - 1 - mmax:-1, :].transpose(1, 0, 2)
 
 
+def fourier_stage(grid, b_wavelengths, mmax, dtype=np.float64, ring_block=1, timings=None):
+    """``F_k +/- F_k'`` for every m and north ring: the two inputs of the Legendre GEMMs.
+
+    Returns ``(fsum, fdiff)``, each ``(mmax + 1, n_active, 2 n_b)`` in the grid's reused
+    workspace (valid until the next call on this grid). Rings run in a pool of
+    :func:`mmflow.threads.n_threads` threads, one FFT thread each: the bits do not depend on
+    the thread count.
+    """
+    b = np.asarray(b_wavelengths, float).reshape(-1, 3)
+    cdtype = np.complex64 if np.dtype(dtype) == np.float32 else np.complex128
+    nn = len(grid.active)
+    # fsum[m, k, c] = F_{k,m} + F_{k',m} for north ring k and its mirror k'; fdiff the difference.
+    # Columns c < nb are the baselines, c >= nb the reversed baselines (the -m rows).
+    fsum, fdiff = grid.workspace((mmax + 1, nn, 2 * len(b)), cdtype)
+    bounds = [(s0, min(s0 + ring_block, nn)) for s0 in range(0, nn, ring_block)]
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=n_threads()) as pool:
+        list(pool.map(lambda se: _ring_fourier(grid, b, se[0], se[1], mmax, cdtype, fsum, fdiff), bounds))
+    _add(timings, "fourier_s", time.perf_counter() - t0)
+    return fsum, fdiff
+
+
+def _add(timings, key, value):
+    if timings is not None:
+        timings[key] = timings.get(key, 0.0) + value
+
+
+def transfer_pass(grid, b_wavelengths, consume, lmax_b=None, mmax=None, dtype=np.float64, lmax_rows=None,
+                  column_scale=None, timings=None):
+    """Compute ``B_m`` for ``m = 0..mmax`` and hand each to ``consume(m, out, timings)`` on a pool thread.
+
+    ``out`` is C-ordered ``(L, 2 n_b)``, ``L = lmax_rows - m + 1``: ``out[l - m, c]`` for baseline
+    ``c < n_b`` (``+m``) and ``c >= n_b`` (the ``-m`` row of baseline ``c - n_b``), with
+    coefficients ``l > lmax_b`` zeroed and column ``c`` multiplied by ``column_scale[c mod n_b]``.
+    Each m is computed and consumed by one task (one BLAS thread), so ``consume`` may update
+    per-m state without locks and the bits do not depend on the thread count.
+    Returns the list of ``consume``'s results in m order.
+
+    Parameters
+    ----------
+    lmax_rows : int, optional
+        Largest l computed (default the grid's lmax): a chunk may use a larger grid than it needs.
+    timings : dict, optional
+        Accumulates ``fourier_s`` (wall), ``mpool_s`` (wall of the per-m stage) and, summed over
+        threads, ``tables_s``, ``legendre_s``, ``legendre_flops``, ``scale_s`` and ``consume``'s own keys.
+    """
+    b = np.asarray(b_wavelengths, float).reshape(-1, 3)
+    nb = len(b)
+    lrows = grid.lmax if lmax_rows is None else min(int(lmax_rows), grid.lmax)
+    mmax = lrows if mmax is None else min(mmax, lrows)
+    rdtype = np.dtype(dtype)
+    fsum, fdiff = fourier_stage(grid, b, mmax, rdtype, timings=timings)
+    lmax_b = np.full(nb, lrows) if lmax_b is None else np.minimum(np.asarray(lmax_b), lrows)
+    scale = None
+    if column_scale is not None or np.any(lmax_b < lrows):
+        # one multiplier per (l, column): the mask l <= lmax_b times the column weight
+        col = np.ones(nb) if column_scale is None else np.asarray(column_scale, float)
+        lb2, col2 = np.concatenate([lmax_b, lmax_b]), np.concatenate([col, col])
+        scale = ((np.arange(lrows + 1)[:, None] <= lb2[None, :]) * col2[None, :]).astype(rdtype)
+    threads = n_threads()
+    # consecutive m per task: small blocks in larger tasks keep the hand-over small next to the work
+    per_task = max(1, 2048 // (lrows + 1))
+    tasks = [range(m0, min(m0 + per_task, mmax + 1)) for m0 in range(0, mmax + 1, per_task)]
+
+    def run(ms):
+        tim = {}
+        res = []
+        for m in ms:
+            out = _legendre_block(grid, fsum, fdiff, m, nb, rdtype, lrows, tim)
+            if scale is not None:
+                t0 = time.perf_counter()
+                np.multiply(out, scale[m:], out=out)
+                tim["scale_s"] = tim.get("scale_s", 0.0) + time.perf_counter() - t0
+            res.append(consume(m, out, tim))
+        return res, tim
+
+    t0 = time.perf_counter()
+    results = []
+    # each task's GEMMs on one BLAS thread (always: the same bits for any thread budget)
+    with single_threaded_blas(), ThreadPoolExecutor(max_workers=threads) as pool:
+        for res, tim in pool.map(run, tasks):
+            results.extend(res)
+            if timings is not None:
+                for k, v in tim.items():
+                    timings[k] = timings.get(k, 0.0) + v
+    _add(timings, "mpool_s", time.perf_counter() - t0)
+    return results
+
+
 def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64, ring_block=1,
-                         timings=None):
+                         timings=None, lmax_rows=None):
     """Yield ``(m, B_m)`` for ``m = 0..mmax`` for a chunk of baselines.
 
     Parameters
@@ -163,75 +253,53 @@ def iter_transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.f
     dtype : float32 or float64
         Precision of the GEMM and of the blocks (complex64 / complex128 out).
     ring_block : int
-        North rings per Fourier task (1 keeps a task's FFT buffers in a core's cache).
+        Unused (kept for callers); rings are one per Fourier task.
     timings : dict, optional
         Accumulates ``fourier_s``, ``legendre_s`` and ``legendre_flops`` (for benchmarks).
+    lmax_rows : int, optional
+        Largest l of the blocks (default the grid's lmax).
 
     Yields
     ------
     m : int
-    B_m : ndarray, shape ``(n_b, L)`` for m = 0 and ``(2 n_b, L)`` for m > 0, ``L = lmax - m + 1``;
-        columns are ``l = m..lmax``; rows ``n_b..2n_b-1`` are the -m rows (see conventions).
+    B_m : ndarray, shape ``(n_b, L)`` for m = 0 and ``(2 n_b, L)`` for m > 0, ``L = lmax_rows - m + 1``;
+        columns are ``l = m..lmax_rows``; rows ``n_b..2n_b-1`` are the -m rows (see conventions).
     """
-    b = np.asarray(b_wavelengths, float).reshape(-1, 3)
-    nb = len(b)
-    lmax = grid.lmax
-    mmax = lmax if mmax is None else min(mmax, lmax)
-    lmax_b = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b), lmax)
-    rdtype = np.dtype(dtype)
-    cdtype = np.complex64 if rdtype == np.float32 else np.complex128
-    nn = len(grid.active)
-    # fsum[m, k, c] = F_{k,m} + F_{k',m} for north ring k and its mirror k'; fdiff the difference.
-    # Columns c < nb are the baselines, c >= nb the reversed baselines (the -m rows).
-    fsum, fdiff = grid.workspace((mmax + 1, nn, 2 * nb), cdtype)
-    bounds = [(s0, min(s0 + ring_block, nn)) for s0 in range(0, nn, ring_block)]
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(max_workers=n_threads()) as pool:
-        list(pool.map(lambda se: _ring_fourier(grid, b, se[0], se[1], mmax, cdtype, fsum, fdiff), bounds))
-    if timings is not None:
-        timings["fourier_s"] = timings.get("fourier_s", 0.0) + time.perf_counter() - t0
-    ell_all = np.arange(lmax + 1)
-    threads = n_threads()
-    # m blocks computed concurrently, each GEMM on one BLAS thread; small blocks in larger windows
-    # so that the hand-over to the pool stays small next to the GEMMs
-    window = threads * max(2, 4096 // (lmax + 1))
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        for m0 in range(0, mmax + 1, window):
-            ms = range(m0, min(m0 + window, mmax + 1))
-            t0 = time.perf_counter()
-            with single_threaded_blas(threads > 1):
-                done = list(pool.map(lambda m: _legendre_block(grid, fsum, fdiff, m, nb, rdtype), ms))
-            if timings is not None:
-                timings["legendre_s"] = timings.get("legendre_s", 0.0) + time.perf_counter() - t0
-                timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + sum(f for _, f in done)
-            for m, (out, _) in zip(ms, done):
-                block = out.T if m > 0 else out[:, :nb].T
-                if np.any(lmax_b < lmax):
-                    mask = ell_all[m:][None, :] > np.concatenate([lmax_b, lmax_b] if m > 0 else [lmax_b])[:, None]
-                    block = np.where(mask, 0, block)
-                yield m, block
+    nb = len(np.asarray(b_wavelengths).reshape(-1, 3))
+    blocks = transfer_pass(grid, b_wavelengths, lambda m, out, tim: out, lmax_b, mmax, dtype, lmax_rows,
+                           timings=timings)
+    for m, out in enumerate(blocks):
+        yield m, (out.T if m > 0 else out[:, :nb].T)
 
 
-def _legendre_block(grid, fsum, fdiff, m, nb, rdtype):
-    """``B_m`` as ``(L, 2 nb)``: parity-split GEMMs of the weighted tables with ``F +/- F'``.
-
-    Returns the block and its GEMM flop count.
-    """
+def _legendre_block(grid, fsum, fdiff, m, nb, rdtype, lrows, timings):
+    """``B_m`` as ``(L, 2 nb)``, ``L = lrows - m + 1``: parity-split GEMMs of the weighted tables with ``F +/- F'``."""
     cdtype = fsum.dtype
     nn = fsum.shape[1]
-    out = np.zeros((grid.lmax - m + 1, 2 * nb), cdtype)
+    t0 = time.perf_counter()
+    tables = grid.tables(m, rdtype)
+    t1 = time.perf_counter()
+    n_out = lrows - m + 1
+    out = np.zeros((n_out, 2 * nb), cdtype)
     flops = 0.0
-    for i0, k0, even, odd in grid.tables(m, rdtype):
-        if k0 >= nn:
+    for i0, k0, even, odd in tables:
+        if k0 >= nn or i0 >= n_out:
             continue
         s = fsum[m, k0:].view(rdtype)  # (nn - k0, 4 nb) real view
         d = fdiff[m, k0:].view(rdtype)
         # l - m even rows use F + F', odd rows F - F' (i0 is even: blocks keep parity)
-        np.matmul(even, s, out=out[i0:i0 + 2 * len(even):2].view(rdtype))
-        np.matmul(odd, d, out=out[i0 + 1:i0 + 1 + 2 * len(odd):2].view(rdtype))
-        flops += 2.0 * (even.size + odd.size) * s.shape[1]
+        ne = min(len(even), (n_out - i0 + 1) // 2)
+        no = min(len(odd), (n_out - i0) // 2)
+        np.matmul(even[:ne], s, out=out[i0:i0 + 2 * ne:2].view(rdtype))
+        if no > 0:
+            np.matmul(odd[:no], d, out=out[i0 + 1:i0 + 1 + 2 * no:2].view(rdtype))
+        flops += 2.0 * (ne + no) * even.shape[1] * s.shape[1]
     np.conjugate(out[:, nb:], out=out[:, nb:])  # B_{-m}(b) = conj(T F_{-m}(b)): T is real
-    return out, flops
+    t2 = time.perf_counter()
+    timings["tables_s"] = timings.get("tables_s", 0.0) + t1 - t0
+    timings["legendre_s"] = timings.get("legendre_s", 0.0) + t2 - t1
+    timings["legendre_flops"] = timings.get("legendre_flops", 0.0) + flops
+    return out
 
 
 def transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float64):

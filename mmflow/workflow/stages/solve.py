@@ -6,6 +6,8 @@ of date, ``lcurve`` (first split) and ``fraction_above``.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 
 from mmflow.conventions import m_slice
@@ -13,6 +15,7 @@ from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
 from mmflow.io.run_stores import alm_store, gram_name, m_blocks
 from mmflow.mmode.normal import hermitian_full
+from mmflow.threads import n_threads, single_threaded_blas
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.mmodes import mmax_of
 
@@ -61,10 +64,16 @@ def _solve_task(ctx, key):
     alm = np.zeros((n_split, 1, m1 - m0, lmax + 1), np.complex128)
     lc = np.zeros((1, m1 - m0, N_EPS, 2))
     frac = np.zeros((1, m1 - m0))
-    for m in range(m0, m1):
+
+    def one(m):
         n = lmax - m + 1
-        sol = solve_m(hermitian_full(grams[m - m0, :n, :n]), rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps,
-                      _filters(im), None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
+        return solve_m(hermitian_full(grams[m - m0, :n, :n]), rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps,
+                       _filters(im), None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
+
+    # the m blocks of the task on the task's thread budget, one BLAS thread each (same bits on any cluster)
+    with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:
+        sols = list(pool.map(one, range(m0, m1)))
+    for m, sol in zip(range(m0, m1), sols):
         alm[:, 0, m - m0, m:] = sol.alm
         frac[0, m - m0] = sol.fraction_above
         if sol.lcurve is not None:

@@ -10,6 +10,8 @@ The ``normal`` stage (:mod:`.normal`) reduces the partials.
 """
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from mmflow.io.run_stores import gram_name, m_blocks, partials_store, transfer_store
@@ -67,8 +69,10 @@ def _transfer_task(ctx, key):
     tel, chunks, lmax_b, groups = _plan(ctx, fi)
     f = tel.freqs_hz[fi]
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
+    t0 = time.perf_counter()
     mm_all = ctx.read("mmodes.zarr", "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0]
     inv_var = ctx.read("mmodes.zarr", "inv_var", (slice(fi, fi + 1),))[0]
+    tim = {"read_s": time.perf_counter() - t0}
     inv_var = relative_weights(inv_var) if cfg.transfer.noise_weighting else np.ones_like(inv_var)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
     # accumulators follow the transfer precision: complex64 halves the ~lmax^3/3 Gram memory
@@ -77,8 +81,11 @@ def _transfer_task(ctx, key):
     on_block = None
     if cfg.transfer.mode == "store":
         on_block = _block_writer(ctx, fi, chunks, cfg.transfer.baseline_chunk)
+    t0 = time.perf_counter()
     accumulate_chunks(acc, tel, f, group, lmax_b, lambda c: mm_all[..., c.index], inv_var, dtype,
-                      GridCache(tel, f), on_block)
+                      GridCache(tel, f), on_block, timings=tim)
+    tim["accumulate_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
     pg = ctx.open("partials.zarr", mode="r+")
     for m0, m1 in m_blocks(mmax, cfg.transfer.m_block):
         n0 = lmax - m0 + 1
@@ -91,13 +98,17 @@ def _transfer_task(ctx, key):
         rhs[0, :, m, m:] = acc.rhs[m]
     ctx.write(pg, f"f{fi}/rhs", (slice(gk, gk + 1),), rhs)
     ctx.write(pg, f"f{fi}/vhv", (slice(gk, gk + 1),), acc.vhv[None])
-    return {"baselines": int(sum(len(c.index) for c in group))}
+    tim["write_s"] = time.perf_counter() - t0
+    # per-phase seconds (pool phases in thread-seconds) for `mmflow bench channel`
+    return {"baselines": int(sum(len(c.index) for c in group)), "timings": {k: round(v, 3) for k, v in tim.items()}}
 
 
 def _block_writer(ctx, fi, chunks, bc):
     """Write each transfer block of a chunk at its rows of ``transfer.zarr`` (chunks in lmax order)."""
     store = ctx.open("transfer.zarr", mode="r+")
-    position = {id(c): k for k, c in enumerate(chunks)}
+    # chunks are contiguous in the lmax order and their sizes multiples of bc: rows stay chunk-aligned
+    starts = np.concatenate([[0], np.cumsum([len(c.index) for c in chunks])])
+    position = {id(c): int(starts[k]) for k, c in enumerate(chunks)}
 
     def write(chunk, m, blk):
         n = len(chunk.index)
@@ -105,7 +116,7 @@ def _block_writer(ctx, fi, chunks, bc):
         b2[0] = blk[:n]
         if m > 0:
             b2[1] = blk[n:]
-        row0 = position[id(chunk)] * bc
+        row0 = position[id(chunk)]
         ctx.write(store, f"f{fi}/B_m{m:05d}", (slice(None), slice(row0, row0 + n)), b2)
     return write
 
