@@ -7,7 +7,7 @@ import sys
 
 import yaml
 
-BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel", "table1")
 
 
 def _common(p):

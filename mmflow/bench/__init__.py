@@ -4,7 +4,8 @@ One module per subject: :mod:`.engine` (transfer, solve, simulate), :mod:`.workf
 workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.calibrate`
 (Stefcal and peeling), :mod:`.ingest` (ingest vs pyuvdata's read rate), :mod:`.gaps`
 (least-squares m-modes of flagged data), :mod:`.clean` (PSF and CLEAN cycles), :mod:`.channel`
-(one real channel through transfer, Gram and solve, per phase, beside the model's projection).
+(one real channel through transfer, Gram and solve, per phase, beside the model's projection),
+:mod:`.table1` (the paper array's resolution at the paper's fraction of modes).
 """
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
            "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps",
-           "clean": "clean", "channel": "channel"}
+           "clean": "clean", "channel": "channel", "table1": "table1"}
 
 
 def run(what, quick=False, **options):

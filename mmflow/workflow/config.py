@@ -288,7 +288,9 @@ class TransferConfig(_Section):
 
     mode: Literal["normal", "store"] = Field("normal", description="'normal': stream G_m; 'store': also write B_m.")
     dtype: Literal["float32", "float64"] = Field("float64", description="Precision of the transfer matrices.")
-    baseline_chunk: int = Field(32, ge=1, description="Baselines per transfer task (memory ~ chunk * lmax^2 * 16 B).")
+    baseline_chunk: int = Field(32, ge=1, description="Baselines per transfer chunk of the longest baselines "
+                                "(memory ~ chunk * lmax^2 * 16 B); shorter baselines share chunks up to 16x larger "
+                                "within the same memory.")
     per_baseline_lmax: bool = Field(True, description="Cut each baseline's rows at its own band limit.")
     m_block: int = Field(16, ge=1, description="m values per reduction / solve task.")
     groups: int = Field(8, ge=1, description="Baseline groups of the transfer stage: tasks per frequency, and "
