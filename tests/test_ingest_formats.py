@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 import zarr
 
+from mmflow.io.export import write_per_integration
 from mmflow.workflow.config import load_config
 from mmflow.workflow.runner import run_workflow
-from tests.uvh5_helpers import JD_2023, gaussian_power_beamfits, matvis_uvdata, write_blocks, write_per_integration
+from tests.uvh5_helpers import JD_2023, gaussian_power_beamfits, matvis_uvdata, write_blocks
 
 pytest.importorskip("casacore")
 SOURCES = ((60.0, 45.0, 500.0), (200.0, 30.0, 400.0), (300.0, 60.0, 450.0))

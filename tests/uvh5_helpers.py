@@ -82,27 +82,6 @@ def write_blocks(uv, directory, files=6, stem="scan"):
     return paths
 
 
-def write_per_integration(uv, directory, fmt="ms", times=None):
-    """One file per integration, as the OVRO-LWA writes MeasurementSets. MS and uvfits cannot
-    hold unprojected data: pyuvdata phases each file to the zenith of its integration
-    (``phase_to_time``), as the OVRO-LWA's own files are."""
-    times = np.unique(uv.time_array) if times is None else times
-    paths = []
-    for k, t in enumerate(times):
-        part = uv.select(times=[t], inplace=False)
-        path = directory / f"int_{k:04d}.{fmt}"
-        if fmt in ("ms", "uvfits"):  # phased to the zenith of the integration (as write_ms(force_phase=True) does)
-            part.phase_to_time(float(t))
-        if fmt == "ms":
-            part.write_ms(str(path), clobber=True)
-        elif fmt == "uvfits":
-            part.write_uvfits(str(path))
-        else:
-            part.write_uvh5(str(path), clobber=True)
-        paths.append(path)
-    return paths
-
-
 def matvis_drift_scan(directory, beam, n_times=60, radius_m=12.0, freq_hz=40e6, files=6,
                       sources=((60.0, 45.0, 500.0), (200.0, 30.0, 400.0), (300.0, 60.0, 450.0)), start_jd=2457802.0):
     """:func:`matvis_uvdata` (one polarisation, XX) written as ``files`` UVH5 files."""

@@ -57,19 +57,10 @@ def _scan(n_ant, n_freq, n_time, seed=0):
 
 
 def _write(uv, directory, fmt):
+    from mmflow.io.export import write_per_integration
+
     directory.mkdir(parents=True)
-    paths = []
-    for k, t in enumerate(np.unique(uv.time_array)):
-        part = uv.select(times=[t], inplace=False)
-        path = directory / f"int_{k:04d}.{fmt}"
-        if fmt in ("ms", "uvfits"):  # phased to the zenith of the integration (as write_ms(force_phase=True) does)
-            part.phase_to_time(float(t))
-        if fmt == "ms":
-            part.write_ms(str(path), clobber=True)
-        else:
-            part.write_uvh5(str(path), clobber=True)
-        paths.append(path)
-    return paths
+    return write_per_integration(uv, directory, fmt)
 
 
 def _size_mb(paths):

@@ -279,3 +279,28 @@ def write_table1(directory, rows):
         os.replace(tmp, path)
         out.append(path)
     return out
+
+
+def write_per_integration(uv, directory, fmt="ms", times=None):
+    """Write a pyuvdata ``UVData`` as one file per integration, as the OVRO-LWA writes
+    MeasurementSets (``int_0000.<fmt>``, ...; ``times``: those integrations only).
+
+    MS and uvfits cannot hold unprojected data: each file is phased to the zenith of its
+    integration (``phase_to_time``, as ``write_ms(force_phase=True)`` does), as the OVRO-LWA's
+    own files are; UVH5 keeps the drift scan as it is. Returns the paths.
+    """
+    times = np.unique(uv.time_array) if times is None else times
+    paths = []
+    for k, t in enumerate(times):
+        part = uv.select(times=[t], inplace=False)
+        path = Path(directory) / f"int_{k:04d}.{fmt}"
+        if fmt in ("ms", "uvfits"):
+            part.phase_to_time(float(t))
+        if fmt == "ms":
+            part.write_ms(str(path), clobber=True)
+        elif fmt == "uvfits":
+            part.write_uvfits(str(path))
+        else:
+            part.write_uvh5(str(path), clobber=True)
+        paths.append(path)
+    return paths
