@@ -114,7 +114,7 @@ def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
     return StoreSpec("transfer.zarr", tuple(arrays))
 
 
-def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, time_chunk, attrs):
+def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, attrs):
     """``gains.zarr`` of the calibrate stage: per solution interval (``solve_rows``: the
     integrations it was solved on; ``apply_rows``: those it corrects) and frequency the gains,
     flags and diagnostics; ``ripple`` r(t) per integration (1 where not corrected)."""

@@ -165,18 +165,14 @@ def _value_problems(cfg):
             out.extend(_source_problems(cfg.sky.sources))
         if cfg.corrupt.enabled:
             out.extend(_source_problems(cfg.corrupt.dd_sources, ("corrupt", "dd_sources")))
-            missing = [n for n in cfg.corrupt.dd_sources if n not in cfg.sky.sources]
-            if missing:
-                out.append(Problem(("corrupt", "dd_sources"), missing, "not among sky.sources",
-                                   "add them to sky.sources, or remove them from corrupt.dd_sources"))
+            out.extend(_not_among(("corrupt", "dd_sources"), cfg.corrupt.dd_sources, cfg.sky.sources, "sky.sources",
+                                  "add them to sky.sources, or remove them from corrupt.dd_sources"))
     if cfg.calibrate.enabled:
         out.extend(_source_problems(cfg.calibrate.sources, ("calibrate", "sources")))
     if cfg.peel.enabled:
         out.extend(_source_problems(cfg.peel.sources, ("peel", "sources")))
-        extra = [n for n in cfg.peel.peel if n not in cfg.peel.sources]
-        if extra:
-            out.append(Problem(("peel", "peel"), extra, "not among peel.sources",
-                               "list the peeled sources in peel.sources too"))
+        out.extend(_not_among(("peel", "peel"), cfg.peel.peel, cfg.peel.sources, "peel.sources",
+                              "list the peeled sources in peel.sources too"))
     if mm.noise == "radiometer" and not cfg.telescope.include_autos:
         out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
                            "set telescope.include_autos: true, or mmode.noise: data (or auto)"))
@@ -193,6 +189,12 @@ def _value_problems(cfg):
                            "give a new or existing directory for the run"))
     out.extend(_cluster_problems(cfg.cluster))
     return out
+
+
+def _not_among(field, names, pool, pool_name, fix):
+    """A problem for the ``names`` that ``pool`` (the setting ``pool_name``) lacks, if any."""
+    missing = [n for n in names if n not in pool]
+    return [Problem(field, missing, f"not among {pool_name}", fix)] if missing else []
 
 
 def _source_problems(names, field=("sky", "sources")):

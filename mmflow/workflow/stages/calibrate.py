@@ -23,11 +23,10 @@ from mmflow.errors import InputError
 from mmflow.io.run_stores import gains_store
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK
 
 
 def _epoch(ctx):
-    return float(ctx.open("vis.zarr").attrs["epoch_jd"])
+    return float(ctx.vis_attrs()["epoch_jd"])
 
 
 def _intervals(ctx, tel, lst, integration_s):
@@ -70,7 +69,7 @@ def _prepare(ctx):
                          "calibrate.ripple=false")
     _check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
-    ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply, TIME_CHUNK,
+    ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply,
                            {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
                             "ripple": bool(ctx.cfg.calibrate.ripple)}))
     keys = [f"r{fi}" for fi in range(nf)] if ctx.cfg.calibrate.ripple else []

@@ -25,7 +25,7 @@ import numpy as np
 from mmflow.io.run_stores import peel_store
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK
+from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
 def _prepare(ctx):
@@ -35,7 +35,7 @@ def _prepare(ctx):
     ctx.create(peel_store(nt, nf, len(ctx.cfg.peel.sources), n_ant, npol, TIME_CHUNK,
                           {"sources": list(ctx.cfg.peel.sources), "peeled": list(ctx.cfg.peel.peel),
                            "modes": {"skip": 0, "peel": 1, "subtract": 2}, "pols": vg.attrs["pols"]}))
-    return [f"f{fi}_t{k:05d}" for fi in range(nf) for k in range(-(-nt // TIME_CHUNK))]
+    return [f"f{fi}_{t}" for fi in range(nf) for t in time_keys(nt)]
 
 
 def _coherencies(ctx, tel, f, lst, pairs, names):
@@ -48,7 +48,7 @@ def _coherencies(ctx, tel, f, lst, pairs, names):
     out = np.zeros((len(names), len(lst), len(pairs)), complex)
     if good.any():
         out[:, good] = source_coherencies(tel, f, lst[good], get_sources(list(names)),
-                                          float(ctx.open("vis.zarr").attrs["epoch_jd"]), pairs)
+                                          float(ctx.vis_attrs()["epoch_jd"]), pairs)
     return out
 
 
@@ -59,9 +59,9 @@ def _task(ctx, key):
     from mmflow.sky.sources import get_sources
 
     p = ctx.cfg.peel
-    fi, k = (int(x[1:]) for x in key.split("_"))
-    nt = ctx.open("vis.zarr")["lst"].shape[0]
-    rows = slice(k * TIME_CHUNK, min(nt, (k + 1) * TIME_CHUNK))
+    fkey, tkey = key.split("_")
+    fi = int(fkey[1:])
+    rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows, before="peel")
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
@@ -69,7 +69,7 @@ def _task(ctx, key):
     good = np.isfinite(lst)
     coh = _coherencies(ctx, tel, f, lst, block.pairs, p.sources)
     flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(list(p.sources)),
-                               float(ctx.open("vis.zarr").attrs["epoch_jd"]))
+                               float(ctx.vis_attrs()["epoch_jd"]))
     modes = select_modes(flux, elev, peelable=[n in p.peel for n in p.sources],
                          peel_min_elevation_deg=p.peel_min_elevation_deg)
     modes[:, ~good] = SKIP

@@ -3,13 +3,13 @@
 Paper section 5.4, on the calibrated and peeled data (the corrections of the stages before
 it, :func:`read_block`):
 
-1. tasks ``s{K}`` sum each time chunk's visibilities and weights per baseline with the phase
+1. tasks ``s_t{K}`` sum each time chunk's visibilities and weights per baseline with the phase
    centre at zenith (drift-scan data as stored); the sky smears into rings over > 24 h, a
    cross-talk pattern or a near-field emitter does not;
 2. the driver adds the sums in a fixed order (:func:`ordered_tree_sum`), and fits
    ``terrestrial.components`` rank-1 templates ``B_k = u_k u_k^H`` to the average per channel
    and polarisation (:func:`mmflow.calibrate.terrestrial.fit_templates`);
-3. tasks ``a{K}`` fit a real amplitude per template and integration on baselines longer than
+3. tasks ``a_t{K}`` fit a real amplitude per template and integration on baselines longer than
    ``terrestrial.min_baseline_lambda`` (:func:`fit_amplitudes`) and report how much of the data
    each template sees, ``||B^H v_t|| / (||B|| ||v_t||)`` (:func:`projection_fraction`).
 
@@ -23,24 +23,19 @@ from mmflow.io.run_stores import terrestrial_store
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK
+from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
-def _n_chunks(ctx):
-    return -(-ctx.open("vis.zarr")["lst"].shape[0] // TIME_CHUNK)
+def _time_keys(ctx):
+    return time_keys(ctx.open("vis.zarr")["lst"].shape[0])
 
 
 def _prepare(ctx):
     vg = ctx.open("vis.zarr")
     nt, nbl, nf, npol = vg["vis"].shape
-    ctx.create(terrestrial_store(_n_chunks(ctx), nt, nf, nbl, ctx.cfg.terrestrial.components,
+    ctx.create(terrestrial_store(len(time_keys(nt)), nt, nf, nbl, ctx.cfg.terrestrial.components,
                                  vg["antenna_enu"].shape[0], npol, TIME_CHUNK))
-    return [f"s{k:05d}" for k in range(_n_chunks(ctx))]
-
-
-def _rows(ctx, k):
-    nt = ctx.open("vis.zarr")["lst"].shape[0]
-    return slice(k * TIME_CHUNK, min(nt, (k + 1) * TIME_CHUNK))
+    return [f"s_{t}" for t in time_keys(nt)]
 
 
 def _templates(ctx, fi, pairs):
@@ -54,13 +49,13 @@ def _task(ctx, key):
     from mmflow.calibrate.baselines import baseline_mask
     from mmflow.calibrate.terrestrial import fit_amplitudes, projection_fraction
 
-    cycle, _, key = key.rpartition("-")
-    k = int(key[1:])
-    rows = _rows(ctx, k)
+    phase, tkey = key.rpartition("-")[2].split("_")  # phase-2 keys carry their cycle's prefix
+    k = int(tkey[1:])
+    rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows, before="terrestrial")
     g = ctx.open("terrestrial.zarr", mode="r+")
     w = np.where(np.isfinite(block.lst)[:, None, None, None], block.weights, 0.0)
-    if key.startswith("s"):  # phase 1: weighted sums
+    if phase == "s":  # phase 1: weighted sums
         v = np.where(w > 0, block.vis, 0)
         ctx.write(g, "sum_vis", (slice(k, k + 1),), np.moveaxis((w * v).sum(0), 1, 0)[None])
         ctx.write(g, "sum_weight", (slice(k, k + 1),), np.moveaxis(w.sum(0), 1, 0)[None])
@@ -101,7 +96,7 @@ def _next_cycle(ctx, cycle):
         keep = baseline_mask(pairs, tel.layout.enu, float(f), t.min_baseline_lambda)
         patterns[fi] = fit_templates(mean[fi], weight[fi], pairs, tel.n_ant, t.components, baseline_keep=keep).patterns
     ctx.write(g, "patterns", (slice(None),), patterns)
-    return [f"a{k:05d}" for k in range(_n_chunks(ctx))]
+    return [f"a_{t}" for t in _time_keys(ctx)]
 
 
 def _apply(ctx, block):
