@@ -63,8 +63,10 @@ def main(argv=None):
     if args.cmd is None:
         parser.print_help()
         return 0
+    from mmflow.allocator import keep_freed_memory
     from mmflow.errors import MmflowError
 
+    keep_freed_memory()  # the same allocator settings as mmflow's tasks in dask workers (mmflow.allocator)
     try:
         return _dispatch(args)
     except MmflowError as exc:

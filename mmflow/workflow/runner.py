@@ -45,6 +45,9 @@ def run_task(ctx, stage_name, key):
     """Worker side: skip if marked done, else compute, write, then mark (atomically)."""
     import os
 
+    from mmflow.allocator import keep_freed_memory
+
+    keep_freed_memory()  # dask workers start with a 64 kB trim threshold: every array a fresh mmap
     run = ctx.run
     run.check_holder(ctx.token)
     if run.is_done(stage_name, key):
