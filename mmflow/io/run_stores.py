@@ -77,13 +77,16 @@ def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
     return StoreSpec("partials.zarr", tuple(arrays))
 
 
-def normal_store(nf, lmax, mmax, m_block, n_split):
+def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
+    """Reduced normal equations. Grams keep the partials' precision (``gram_dtype``: complex64
+    for float32 transfer, half the bytes to write and read; summed in complex128 and rounded
+    once, so one group's Gram is the engine's bit for bit); right-hand sides are complex128."""
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
             arrays.append(ArraySpec(gram_name(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
-                                    "complex128"))
+                                    gram_dtype))
     arrays += [
         ArraySpec("rhs", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
                   (n_split, 1, m_block, lmax + 1), "complex128"),

@@ -236,9 +236,8 @@ def solve_alm(acc, eps, method="tikhonov", filters=None, lmax=None, a_prior=None
 
     def one(m):
         prior = None if a_prior is None else a_prior[m_slice(lmax, m)]
-        # in complex128 like the workflow (its reduction is complex128): a float32 Gram's
-        # Cholesky would lose digits to G's condition number
-        return solve_m(acc.full_gram(m).astype(np.complex128), acc.rhs[m].astype(np.complex128), m, lmax,
+        # full_gram is complex128 (hermitian_full), as in the workflow's solve
+        return solve_m(acc.full_gram(m), acc.rhs[m].astype(np.complex128), m, lmax,
                        method, eps, filters, prior)
 
     # largest blocks first so that the pool stays balanced

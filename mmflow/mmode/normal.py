@@ -73,9 +73,15 @@ def herk_into(gram, a, k, n, lda, alpha=1.0):
 
 
 def hermitian_full(c_upper):
-    """Fill the lower triangle of an upper-triangle Hermitian matrix."""
-    out = np.triu(c_upper) + np.triu(c_upper, 1).conj().T
-    return out
+    """Fill the lower triangle of an upper-triangle Hermitian matrix, in (at least) complex128.
+
+    Grams are accumulated and stored in the transfer precision (complex64 for float32), but
+    every solve, factorisation and eigenvalue count works in complex128: a float32 Gram's
+    Cholesky would lose digits to ``G``'s condition number.
+    """
+    c = np.asarray(c_upper)
+    c = c.astype(np.promote_types(c.dtype, np.complex128), copy=False)
+    return np.triu(c) + np.triu(c, 1).conj().T
 
 
 class NormalAccumulator:

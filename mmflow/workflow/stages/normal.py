@@ -18,7 +18,7 @@ def _normal_prepare(ctx):
     pg = ctx.open("partials.zarr")
     nf = len(list(pg.group_keys()))
     n_split = pg["f0/rhs"].shape[1]
-    ctx.create(normal_store(nf, lmax, mmax, cfg.transfer.m_block, n_split))
+    ctx.create(normal_store(nf, lmax, mmax, cfg.transfer.m_block, n_split, pg[gram_name(0, 0)].dtype.str))
     return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
 
 
@@ -32,7 +32,7 @@ def _normal_task(ctx, key):
     name = gram_name(fi, m0)
     gram = ordered_tree_sum(ctx.read("partials.zarr", name, (slice(k, k + 1),))[0].astype(np.complex128)
                             for k in range(ng))
-    ctx.write(g, name, (), gram)
+    ctx.write(g, name, (), gram.astype(g[name].dtype))  # summed in complex128, rounded once
     rhs = ordered_tree_sum(ctx.read("partials.zarr", f"f{fi}/rhs", (slice(k, k + 1),))[0, :, m0:m1]
                            .astype(np.complex128) for k in range(ng))
     vhv = ordered_tree_sum(ctx.read("partials.zarr", f"f{fi}/vhv", (slice(k, k + 1),))[0, :, m0:m1]
