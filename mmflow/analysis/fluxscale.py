@@ -39,11 +39,41 @@ def flux_scale_rows(hmap, sources, psf_map_at, freq_hz, radius_rad, annulus_rad,
     rows = []
     for src in sources:
         v = src.vector_icrs() if rotation is None else rotation @ src.vector_icrs()
-        measured = source_flux(hmap, psf_map_at(v), v, radius_rad, annulus_rad)
-        model = float(src.flux(freq_hz, epoch_year))
-        rows.append({"name": src.name, "freq_hz": float(freq_hz), "measured_jy": measured, "model_jy": model,
-                     "ratio": measured / model, "reference": src.spectrum.reference})
+        rows.append(flux_row(src, source_flux(hmap, psf_map_at(v), v, radius_rad, annulus_rad), freq_hz, epoch_year))
     return rows
+
+
+def flux_row(src, measured_jy, freq_hz, epoch_year=None, **extra):
+    """The flux-scale row of one source: name, measured and model flux (Jy), their ratio, reference."""
+    model = float(src.flux(freq_hz, epoch_year))
+    return {"name": src.name, "freq_hz": float(freq_hz), "measured_jy": float(measured_jy), "model_jy": model,
+            "ratio": float(measured_jy) / model, "reference": src.spectrum.reference, **extra}
+
+
+def peel_flux_factors(mode, scale, dd_gains, peel_code=1, subtract_code=2):
+    """Per integration, the factor by which the data held a peeled or subtracted source's model.
+
+    Peeling removes ``h_i conj(h_j) M_ij`` with ``M`` the model (published flux x beam) and
+    ``h`` the direction-dependent gains; subtracting removes ``a M_ij``. The factor is ``a``
+    for a subtracted integration and, for a peeled one, the mean over baselines ``i < j`` of
+    ``|h_i| |h_j|``,
+
+    ``f = [(sum_i |h_i|)^2 - sum_i |h_i|^2] / [N (N - 1)]``,
+
+    (amplitudes: the gains' phases follow the ionosphere, not the flux); NaN where the source
+    was skipped. ``measured flux = f x published flux`` at each integration.
+
+    Parameters
+    ----------
+    mode : int array (time,), 0 skip, ``peel_code``, ``subtract_code``
+    scale : float array (time,), the fitted scale of subtracted integrations
+    dd_gains : complex array (time, antenna), the DD gains of peeled integrations
+    """
+    amp = np.abs(np.asarray(dd_gains))
+    n = amp.shape[-1]
+    peeled = (amp.sum(-1) ** 2 - (amp**2).sum(-1)) / max(n * (n - 1), 1)
+    mode = np.asarray(mode)
+    return np.where(mode == peel_code, peeled, np.where(mode == subtract_code, np.asarray(scale, float), np.nan))
 
 
 def psf_map_function(ops, lmax, nside, map_to_date=None, scale=1.0):

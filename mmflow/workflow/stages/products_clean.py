@@ -184,3 +184,19 @@ def table1_row(ctx, fi, freq, info):
     noise = {"kelvin": info["noise"]["kelvin"], "mjy_per_beam": info["noise"]["mjy_per_beam"]}
     return table1.table1_row(freq, width, psf.table_from_array(g["psf_table"][fi, 0]), noise,
                              float(np.sum(frac * n_m) / np.sum(n_m)))
+
+
+def clean_history_figure(ctx, parts, tags):
+    """``maps/clean_history.png``: every channel's residual peak and components per cycle."""
+    from mmflow.io.plots import write_clean_history_png
+
+    hist, thr = {}, {}
+    for tag, part in zip(tags, parts):
+        h = part["clean"]["history"]
+        hist[tag] = [{"peak": pk, "components": n} for pk, n in zip(h["peak_jy_per_sr"], h["components"])]
+        if part["clean"]["threshold_jy_per_sr"] > 0:
+            thr[tag] = part["clean"]["threshold_jy_per_sr"]
+    path = ctx.run.path / "maps" / "clean_history.png"
+    write_clean_history_png(path, hist, thr, unit="Jy/sr")
+    ctx.ledger.record_file(path)
+    return "maps/clean_history.png"
