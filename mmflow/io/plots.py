@@ -85,10 +85,12 @@ def write_flux_scale_png(path, rows, epoch_year=None, catalog=None, ncols=4):
         ax.set_xlabel("frequency (MHz)", fontsize=8)
         ax.set_ylabel("flux density (Jy)", fontsize=8)
         ax.tick_params(labelsize=7)
-        ax.legend(fontsize=6, loc="best")
+        ax.legend(fontsize=6, loc="lower left")
     for ax in axes.ravel()[len(names):]:
         ax.set_visible(False)
-    fig.tight_layout()
+    # fixed margins in inches (tight_layout would draw the 14-panel figure twice)
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=0.6 / w, right=1 - 0.15 / w, bottom=0.45 / h, top=1 - 0.3 / h, wspace=0.35, hspace=0.55)
     _save(fig, path, plt)
     return out
 
