@@ -375,7 +375,7 @@ def render_report(summary, report_path, run_dir=None, embed=False):
         section("fluxscale", "Flux scale", body + (f"<p>{links}</p>" if links else ""))
     if s.astrometry or s.astrometry_fit:
         section("astrometry", "Astrometric registration", _facts(s.astrometry_fit) + _table(s.astrometry))
-    if s.spectral_index:
+    if s.spectral_index or s.spectral_index_files:
         links = w.links(s.spectral_index_files)
         section("spectral", "Spectral index", "".join(w.figure(f) for f in s.spectral_index)
                 + (f"<p>{links}</p>" if links else ""))
