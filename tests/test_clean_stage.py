@@ -32,7 +32,8 @@ NOISELESS = POINTS + ["sky.noise=false", "clean.rel_threshold=1e-3",
                       "products.flux_scale_sources=[Cyg A, Cas A, Vir A, Tau A]", "products.astrometry=catalog"]
 # a map of ~500 beams has noise peaks near 3.5 sigma and this lmax leaves a model-error floor near
 # 7 sigma: at 3 sigma CLEAN would stop by stall (docs/clean.md); 20 sigma is reached
-NOISY = POINTS + ["sky.noise=true", "products.png=false", "clean.threshold_sigma=20", "products.flux_scale=false"]
+NOISY = POINTS + ["sky.noise=true", "products.png=false", "clean.threshold_sigma=20",
+                  "products.flux_scale_sources=[Cyg A, Cas A, Vir A, Tau A]"]
 
 
 @pytest.fixture(scope="module")
@@ -380,3 +381,21 @@ def test_flux_scale_without_clean_factorises_the_grams_and_agrees(noiseless, tmp
         assert "clean_jy" not in rb
         assert rb["measured_jy"] == pytest.approx(ra["measured_jy"], rel=1e-9)
         assert rb["fwhm_arcmin"] == pytest.approx(ra["fwhm_arcmin"], rel=1e-9)
+
+
+def test_flux_scale_errors_from_the_jackknife_noise_map(noisy, noiseless):
+    """``measured_err_jy``: the rms change of each flux when jackknife noise realisations are
+    added to the map. Noiseless data give none. With noise, the same sky and operator (uniform
+    weights), the flux moves from the noiseless one by about that error."""
+    (nd, _, _), (qd, _, _) = noisy, noiseless
+    noisy_rows = json.loads((nd / "maps" / "summary.json").read_text())["flux_scale"]["rows"]
+    clean_rows = json.loads((qd / "maps" / "fluxscale.json").read_text())
+    z = []
+    for a, b in zip(noisy_rows, clean_rows):
+        assert a["name"] == b["name"]
+        assert 0 <= b["measured_err_jy"] < 1e-6 * b["measured_jy"]  # the sky cancels in odd - even
+        assert a["measured_err_jy"] > 0
+        z.append((a["measured_jy"] - b["measured_jy"]) / a["measured_err_jy"])
+        print(f"{a['name']}: noise moved the flux by {a['measured_jy'] - b['measured_jy']:+.3f} Jy, "
+              f"error {a['measured_err_jy']:.3f} Jy (z = {z[-1]:+.2f})")
+    assert np.all(np.abs(z) < 3.5)

@@ -41,7 +41,7 @@ def _rotate_to(frame, epoch):
     return None if frame == "date" else rotation_matrix("date", frame, epoch)
 
 
-def _alm_splits(ctx, fi, lmax, mmax):
+def alm_splits(ctx, fi, lmax, mmax):
     from mmflow.workflow.stages.products import healpy_alm
 
     alm = ctx.read("alm.zarr", "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
@@ -77,7 +77,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     state, reason = cs.clean_result(g, fi, cs.clean_options(cfg.clean), int(g["n_cycles"][fi]))
     state.residual_alm = cs.residual_alm(g, fi, state.cycle, lmax, blocks)
     tables = [psf.table_from_array(g["psf_table"][fi, k]) for k in (0, 1)]
-    alms = _alm_splits(ctx, fi, lmax, mmax)
+    alms = alm_splits(ctx, fi, lmax, mmax)
     w = cs.highpass(cfg)
 
     def in_frame(alm):

@@ -11,7 +11,11 @@ Per channel (:func:`channel_science`), for the catalogue sources the array sees:
   (:func:`mmflow.analysis.fluxscale.source_flux`) on the channel's (dirty, Tikhonov) map, with
   a disc of ``products.flux_disc_fwhm`` and an annulus of ``products.flux_annulus_fwhm`` FWHMs.
   With CLEAN, ``clean_jy`` is also given: the CLEAN components' flux within the disc.
-  Without CLEAN the flux scale is measured the same way (the PSF needs only the Grams);
+  Without CLEAN the flux scale is measured the same way (the PSF needs only the Grams). With
+  even and odd splits, ``measured_err_jy`` is the rms change of the measured flux when noise
+  realisations are added to the map (:func:`mmflow.analysis.fluxscale.flux_deviations`): the
+  jackknife noise map ``(odd - even) / 2``, its negative, and both turned about the pole of date
+  by multiples of ``2 pi / NOISE_ROTATIONS``;
 * peeled or subtracted sources (``peel.zarr``), which are no longer in the map: their flux is
   the published flux times the per-integration factor of the peel solutions
   (:func:`mmflow.analysis.fluxscale.peel_flux_factors`), median over integrations;
@@ -33,6 +37,7 @@ import numpy as np
 
 from mmflow.imaging import psf
 
+NOISE_ROTATIONS = 8  # noise realisations for the flux errors: 2 x this (turned jackknife maps and negatives)
 FLUX_COLUMNS = ("name", "freq_hz", "measured_jy", "measured_err_jy", "model_jy", "ratio", "clean_jy", "method",
                 "fwhm_arcmin", "reference")
 
@@ -95,7 +100,7 @@ def _peel_rows(ctx, fi, freq, epoch_year, wanted):
 def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
     """Flux scale and astrometry of one channel; returns the summary info to merge."""
     from mmflow.analysis.astrometry import register, registration_rows
-    from mmflow.analysis.fluxscale import flux_row, source_flux
+    from mmflow.analysis.fluxscale import disc_minus_annulus, flux_deviations, flux_row, source_flux
     from mmflow.calibrate.coherency import epoch_year
     from mmflow.imaging.clean import never_seen_dec_min
     from mmflow.imaging.maps import alm_to_output_map
@@ -121,18 +126,22 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
                                                                  for k in range(len(srcs)))])
     comps = _clean_components(ctx, fi) if cfg.clean.enabled else None
     if p.flux_scale:
-        rows = []
         a0, a1 = p.flux_annulus_fwhm
+        vecs = [to_map @ src.vector_icrs() for src in srcs]
+        radii, annuli = p.flux_disc_fwhm * fwhm, [(a0 * f, a1 * f) for f in fwhm]
+        psf_sums, rows = [], []
         for k, src in enumerate(srcs):
             pmap = alm_to_output_map(cols[:, k], lmax, freq, epoch, p.frame, p.unit, nside)
-            v = to_map @ src.vector_icrs()
-            r = p.flux_disc_fwhm * fwhm[k]
+            psf_sums.append(disc_minus_annulus(pmap, vecs[k], radii[k], annuli[k]))
             extra = {"method": "map", "fwhm_arcmin": float(np.rad2deg(fwhm[k]) * 60)}
             if comps is not None:
-                near = np.arccos(np.clip(comps[0] @ v_date[k], -1, 1)) < r
+                near = np.arccos(np.clip(comps[0] @ v_date[k], -1, 1)) < radii[k]
                 extra["clean_jy"] = float(comps[1][near].sum())
-            rows.append(flux_row(src, source_flux(hmap, pmap, v, r, (a0 * fwhm[k], a1 * fwhm[k])), freq, year,
-                                 **extra))
+            rows.append(flux_row(src, source_flux(hmap, pmap, vecs[k], radii[k], annuli[k]), freq, year, **extra))
+        dev = [flux_deviations(hmap, n, vecs, radii, annuli, psf_sums) for n in _noise_maps(ctx, fi, freq, epoch, nside)]
+        if dev:
+            for row, err in zip(rows, np.sqrt(np.mean(np.square(dev), axis=0))):
+                row["measured_err_jy"] = float(err)
         out["flux_scale"] = rows + peel_rows
     if p.astrometry:
         fw = float(np.median(fwhm))
@@ -142,6 +151,30 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
         out["astrometry"] = {"rows": [{"freq_hz": float(freq), **r} for r in rows],
                              "fit": {**fit, "fwhm_arcmin": fw * 60 * 180 / np.pi}}
     return out
+
+
+def _noise_maps(ctx, fi, freq, epoch, nside, n_rot=NOISE_ROTATIONS):
+    """Noise realisations (one map at a time) in the products' frame and unit: the jackknife
+    ``(odd - even) / 2``, its negative, and the same turned about the pole of date by
+    ``2 pi k / n_rot`` (``a_lm exp(-i m dphi)``: the noise of a drift scan depends on
+    declination); none without even and odd splits."""
+    from mmflow.conventions import m_slice
+    from mmflow.imaging.maps import alm_to_output_map
+    from mmflow.workflow.stages.mmodes import mmax_of
+    from mmflow.workflow.stages.products_clean import alm_splits
+
+    cfg = ctx.cfg
+    if not {"even", "odd"} <= set(cfg.mmode.splits):
+        return
+    lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
+    alm = alm_splits(ctx, fi, lmax, mmax)
+    noise = 0.5 * (alm["odd"] - alm["even"])
+    for k in range(n_rot):
+        turned = noise.copy()
+        for m in range(mmax + 1):
+            turned[m_slice(lmax, m)] *= np.exp(-2j * np.pi * m * k / n_rot)
+        for sign in (1.0, -1.0):
+            yield alm_to_output_map(sign * turned, lmax, freq, epoch, cfg.products.frame, cfg.products.unit, nside)
 
 
 def _clean_components(ctx, fi):
