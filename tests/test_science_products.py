@@ -96,3 +96,25 @@ def test_peeled_and_subtracted_sources_are_measured_from_the_peel_solutions(tmp_
         print(name, rows[name]["ratio"], rows[name]["measured_err_jy"])
         assert rows[name]["ratio"] == pytest.approx(1.0, abs=0.01)  # measured 1.000 and 0.999
         assert 0 <= rows[name]["measured_err_jy"] < 0.01 * rows[name]["model_jy"]
+
+
+def test_alm_sampler_equals_the_rotated_map_at_its_pixels():
+    """The flux scale evaluates PSFs and noise only at the disc and annulus pixels: the same
+    values as drawing the alm rotated to the map's frame, in the map's unit."""
+    from mmflow.analysis.fluxscale import alm_sampler, disc_minus_annulus
+    from mmflow.imaging.maps import alm_to_output_map
+    from mmflow.sky.diffuse import band_limited_random_alm
+    from mmflow.sky.frames import rotation_matrix
+    from mmflow.sky.units import convert
+
+    lmax, nside, epoch, freq = 24, 32, 2457802.0, 40e6
+    alm = band_limited_random_alm(lmax, seed=4)
+    alm[: lmax + 1] = alm[: lmax + 1].real  # a real sky: a_l0 real
+    full = alm_to_output_map(alm, lmax, freq, epoch, "galactic", "K", nside)
+    sampler = alm_sampler(alm, lmax, nside, rotation_matrix("date", "galactic", epoch).T,
+                          float(convert(1.0, "Jy/sr", "K", freq)))
+    pix = np.arange(0, len(full), 7)
+    np.testing.assert_allclose(sampler(pix), full[pix], rtol=1e-9, atol=1e-9 * np.abs(full).max())
+    v = np.array(healpy.pix2vec(nside, 1000))
+    assert disc_minus_annulus(sampler, v, 0.2, (0.3, 0.5), nside) == pytest.approx(
+        disc_minus_annulus(full, v, 0.2, (0.3, 0.5)), rel=1e-9)

@@ -7,7 +7,8 @@ Per channel (:func:`channel_science`), for the catalogue sources the array sees:
   data's filters, through the CLEAN stage's stored Cholesky factors when it kept them, else
   factorised from ``normal.zarr``'s Grams (:func:`psf_at`); its main lobe fitted
   (:func:`mmflow.imaging.psf.measure_psf`) gives the source's FWHM;
-* the flux density ``S = [sum_disc I - n median_annulus I] / [same for the PSF map]``
+* the flux density ``S = [sum_disc I - n median_annulus I] / [same for the PSF]``, the PSF
+  evaluated at the disc's and annulus's pixels only (:func:`mmflow.analysis.fluxscale.alm_sampler`)
   (:func:`mmflow.analysis.fluxscale.source_flux`) on the channel's (dirty, Tikhonov) map, with
   a disc of ``products.flux_disc_fwhm`` and an annulus of ``products.flux_annulus_fwhm`` FWHMs.
   With CLEAN, ``clean_jy`` is also given: the CLEAN components' flux within the disc.
@@ -100,10 +101,10 @@ def _peel_rows(ctx, fi, freq, epoch_year, wanted):
 def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
     """Flux scale and astrometry of one channel; returns the summary info to merge."""
     from mmflow.analysis.astrometry import register, registration_rows
-    from mmflow.analysis.fluxscale import disc_minus_annulus, flux_deviations, flux_row, source_flux
+    from mmflow.analysis.fluxscale import alm_sampler, disc_minus_annulus, flux_deviations, flux_row, source_flux
     from mmflow.calibrate.coherency import epoch_year
     from mmflow.imaging.clean import never_seen_dec_min
-    from mmflow.imaging.maps import alm_to_output_map
+    from mmflow.sky import units
     from mmflow.sky.frames import rotation_matrix
 
     cfg = ctx.cfg
@@ -112,7 +113,10 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
         return {}
     year = epoch_year(epoch)
     icrs_to_date = rotation_matrix("icrs", "date", epoch)
-    to_map = np.eye(3) if p.frame == "icrs" else rotation_matrix("icrs", p.frame, epoch)
+    # the map was drawn from the frame of date with rotation_matrix("date", frame): its inverse
+    # (the transpose) and the same path for the sources keep everything on the map's own frame
+    date_to_map = rotation_matrix("date", p.frame, epoch)
+    to_map = date_to_map @ icrs_to_date
     peel_rows, peeled = _peel_rows(ctx, fi, freq, year, p.flux_scale_sources) if cfg.peel.enabled else ([], [])
     dec_min = never_seen_dec_min(np.deg2rad(float(ctx.vis_attrs()["lat_deg"])))
     srcs = seen_sources(p.flux_scale_sources, icrs_to_date, dec_min, exclude=peeled)
@@ -129,16 +133,19 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
         a0, a1 = p.flux_annulus_fwhm
         vecs = [to_map @ src.vector_icrs() for src in srcs]
         radii, annuli = p.flux_disc_fwhm * fwhm, [(a0 * f, a1 * f) for f in fwhm]
+        map_to_date = date_to_map.T
+        scale = float(units.convert(1.0, "Jy/sr", p.unit, freq))  # the PSF's Jy/sr per Jy in the map's unit
         psf_sums, rows = [], []
         for k, src in enumerate(srcs):
-            pmap = alm_to_output_map(cols[:, k], lmax, freq, epoch, p.frame, p.unit, nside)
-            psf_sums.append(disc_minus_annulus(pmap, vecs[k], radii[k], annuli[k]))
+            pmap = alm_sampler(cols[:, k], lmax, nside, map_to_date, scale)
+            psf_sums.append(disc_minus_annulus(pmap, vecs[k], radii[k], annuli[k], nside))
             extra = {"method": "map", "fwhm_arcmin": float(np.rad2deg(fwhm[k]) * 60)}
             if comps is not None:
                 near = np.arccos(np.clip(comps[0] @ v_date[k], -1, 1)) < radii[k]
                 extra["clean_jy"] = float(comps[1][near].sum())
             rows.append(flux_row(src, source_flux(hmap, pmap, vecs[k], radii[k], annuli[k]), freq, year, **extra))
-        dev = [flux_deviations(hmap, n, vecs, radii, annuli, psf_sums) for n in _noise_maps(ctx, fi, freq, epoch, nside)]
+        dev = [flux_deviations(hmap, alm_sampler(a, lmax, nside, map_to_date, scale), vecs, radii, annuli, psf_sums)
+               for a in _noise_alms(ctx, fi)]
         if dev:
             for row, err in zip(rows, np.sqrt(np.mean(np.square(dev), axis=0))):
                 row["measured_err_jy"] = float(err)
@@ -146,20 +153,19 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
     if p.astrometry:
         fw = float(np.median(fwhm))
         res = register(hmap, srcs, fw, 0.6 * fw, axis="z" if p.astrometry_axis == "z" else None,
-                       rotation=None if p.frame == "icrs" else to_map)
+                       rotation=to_map)
         rows, fit = registration_rows(res)
         out["astrometry"] = {"rows": [{"freq_hz": float(freq), **r} for r in rows],
                              "fit": {**fit, "fwhm_arcmin": fw * 60 * 180 / np.pi}}
     return out
 
 
-def _noise_maps(ctx, fi, freq, epoch, nside, n_rot=NOISE_ROTATIONS):
-    """Noise realisations (one map at a time) in the products' frame and unit: the jackknife
-    ``(odd - even) / 2``, its negative, and the same turned about the pole of date by
-    ``2 pi k / n_rot`` (``a_lm exp(-i m dphi)``: the noise of a drift scan depends on
-    declination); none without even and odd splits."""
+def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
+    """Noise realisations (alm, frame of date, Jy/sr): the jackknife ``(odd - even) / 2``, its
+    negative, and the same turned about the pole of date by ``2 pi k / n_rot``
+    (``a_lm exp(-i m dphi)``: the noise of a drift scan depends on declination); none without
+    even and odd splits."""
     from mmflow.conventions import m_slice
-    from mmflow.imaging.maps import alm_to_output_map
     from mmflow.workflow.stages.mmodes import mmax_of
     from mmflow.workflow.stages.products_clean import alm_splits
 
@@ -173,8 +179,8 @@ def _noise_maps(ctx, fi, freq, epoch, nside, n_rot=NOISE_ROTATIONS):
         turned = noise.copy()
         for m in range(mmax + 1):
             turned[m_slice(lmax, m)] *= np.exp(-2j * np.pi * m * k / n_rot)
-        for sign in (1.0, -1.0):
-            yield alm_to_output_map(sign * turned, lmax, freq, epoch, cfg.products.frame, cfg.products.unit, nside)
+        yield turned
+        yield -turned
 
 
 def _clean_components(ctx, fi):
