@@ -28,10 +28,12 @@ LMAX = 48  # the longest baseline (40 m) needs ~51 at 40 MHz: little power alias
 POINTS = ["mmode.lmax=48", "mmode.splits=[full, even, odd]", "observation.integration_s=172.3281810",
           "sky.diffuse=false", "transfer.noise_weighting=false", "clean.enabled=true",
           "clean.min_separation_deg=15", "products.frame=galactic"]
-NOISELESS = POINTS + ["sky.noise=false", "clean.rel_threshold=1e-3"]
+NOISELESS = POINTS + ["sky.noise=false", "clean.rel_threshold=1e-3",
+                      "products.flux_scale_sources=[Cyg A, Cas A, Vir A, Tau A]", "products.astrometry=catalog"]
 # a map of ~500 beams has noise peaks near 3.5 sigma and this lmax leaves a model-error floor near
 # 7 sigma: at 3 sigma CLEAN would stop by stall (docs/clean.md); 20 sigma is reached
-NOISY = POINTS + ["sky.noise=true", "products.png=false", "clean.threshold_sigma=20"]
+NOISY = POINTS + ["sky.noise=true", "products.png=false", "clean.threshold_sigma=20",
+                  "products.flux_scale_sources=[Cyg A, Cas A, Vir A, Tau A]"]
 
 
 @pytest.fixture(scope="module")
@@ -296,3 +298,104 @@ def test_model_and_restored_maps_in_the_output_frame(noiseless):
         p = healpy.vec2pix(nside, *(rot @ v))
         back = rot.T @ np.array(healpy.pix2vec(nside, p))
         assert restored[p] == pytest.approx(date[healpy.vec2pix(healpy.npix2nside(len(date)), *back)], rel=0.03)
+
+
+def test_flux_scale_product_recovers_the_injected_fluxes(noiseless):
+    """The products stage's flux scale: each source's disc-minus-annulus flux on the dirty map
+    over its PSF's (through the stored factors) is within a few % of the simulated flux; the
+    CLEAN components within the disc within 1 %; CSV, JSON and the figure written."""
+    import csv
+
+    run_dir, cfg, _ = noiseless
+    vecs, flux, _ = _truth(cfg)
+    maps = run_dir / "maps"
+    rows = json.loads((maps / "fluxscale.json").read_text())
+    assert [r["name"] for r in rows] == list(cfg.sky.sources)
+    g = zarr.open_group(str(run_dir / "clean.zarr"), mode="r")
+    table = psf.table_from_array(g["psf_table"][0, 0])
+    for r, v, f in zip(rows, vecs, flux):
+        print(f"{r['name']}: map / simulated {r['measured_jy'] / f:.4f}, CLEAN / simulated {r['clean_jy'] / f:.5f}")
+        assert r["measured_jy"] == pytest.approx(f, rel=0.04)  # measured 0.985-1.029
+        assert r["clean_jy"] == pytest.approx(f, rel=0.01)
+        assert r["model_jy"] == pytest.approx(f, rel=1e-3) and r["method"] == "map"
+        # the source's own PSF fit agrees with the CLEAN stage's PSF table at its declination
+        fw = np.sqrt(psf.interp_table(table, np.arcsin(v[2]), "major") * psf.interp_table(table, np.arcsin(v[2]),
+                                                                                           "minor"))
+        assert np.deg2rad(r["fwhm_arcmin"] / 60) == pytest.approx(fw, rel=0.03)
+    with open(maps / "fluxscale.csv") as fh:
+        back = list(csv.DictReader(fh))
+    assert [float(b["measured_jy"]) for b in back] == pytest.approx([r["measured_jy"] for r in rows], rel=1e-12)
+    from mmflow.io.report import png_size
+
+    assert min(png_size((maps / "fluxscale.png").read_bytes())) > 200
+
+
+def test_astrometry_product_positions_before_and_after(noiseless):
+    run_dir, cfg, _ = noiseless
+    astro = json.loads((run_dir / "maps" / "summary.json").read_text())["astrometry"]
+    fit = astro["fit"]["40.000MHz"]
+    assert fit["n_fitted"] == 4 and len(astro["rows"]) == 4
+    # no shift was simulated: every source within 1 % of the FWHM before and after registration
+    for r in astro["rows"]:
+        assert r["ok"] and r["offset_before_arcmin"] < 0.01 * fit["fwhm_arcmin"]
+        assert r["offset_after_arcmin"] < 0.01 * fit["fwhm_arcmin"]
+    assert fit["rotation_arcmin"] < 0.01 * fit["fwhm_arcmin"]
+
+
+def test_report_shows_and_links_every_product(noiseless):
+    """maps/report.html: every image decodes (check_report), and the flux scale, astrometry,
+    Table 1, CLEAN images, PSF stamps and the CLEAN history are in it."""
+    from mmflow.io.report import check_report, summary_from_run
+
+    run_dir, _, _ = noiseless
+    report = run_dir / "maps" / "report.html"
+    assert check_report(report) == []
+    page = report.read_text()
+    s = summary_from_run(run_dir)
+    shown = {f.path for ch in s.channels for f in ch.images} | {s.flux_scale_figure.path} | \
+        {f.path for f in s.clean_figures}
+    for name in ("map", "restored", "residual", "model", "noise", "psf", "lcurve"):
+        assert f"maps/{name}_40.000MHz.png" in shown, name
+    assert {"maps/fluxscale.png", "maps/clean_history.png"} <= shown
+    for path in shown:  # relative to the report in maps/
+        assert f'src="{path.removeprefix("maps/")}"' in page, path
+    for link in ("fluxscale.csv", "fluxscale.json", "table1.csv", "restored_40.000MHz.fits",
+                 "psf_40.000MHz_dec+45.fits"):
+        assert f'href="{link}"' in page, link
+    assert 'id="fluxscale"' in page and 'id="astrometry"' in page and 'id="table1"' in page
+    assert page.count("<tr>") > 4 + len(s.flux_scale) + len(s.astrometry)
+    assert s.clean_stop["40.000 MHz"] == "rel_threshold" and len(s.clean_history["40.000 MHz"]) > 3
+
+
+def test_flux_scale_without_clean_factorises_the_grams_and_agrees(noiseless, tmp_path):
+    """Without CLEAN the products stage factorises normal.zarr's Grams for the PSFs instead of
+    reading the stored factors: the same fluxes (one computation, two sources of operators)."""
+    run_dir, _, _ = noiseless
+    other = tmp_path / "noclean"
+    shutil.copytree(run_dir, other)
+    run_workflow(small_config(other, *NOISELESS, "clean.enabled=false"), only=["products"], force=True, **QUIET)
+    a = json.loads((run_dir / "maps" / "fluxscale.json").read_text())
+    b = json.loads((other / "maps" / "fluxscale.json").read_text())
+    assert [r["name"] for r in a] == [r["name"] for r in b]
+    for ra, rb in zip(a, b):
+        assert "clean_jy" not in rb
+        assert rb["measured_jy"] == pytest.approx(ra["measured_jy"], rel=1e-9)
+        assert rb["fwhm_arcmin"] == pytest.approx(ra["fwhm_arcmin"], rel=1e-9)
+
+
+def test_flux_scale_errors_from_the_jackknife_noise_map(noisy, noiseless):
+    """``measured_err_jy``: the rms change of each flux when jackknife noise realisations are
+    added to the map. Noiseless data give none. With noise, the same sky and operator (uniform
+    weights), the flux moves from the noiseless one by about that error."""
+    (nd, _, _), (qd, _, _) = noisy, noiseless
+    noisy_rows = json.loads((nd / "maps" / "summary.json").read_text())["flux_scale"]["rows"]
+    clean_rows = json.loads((qd / "maps" / "fluxscale.json").read_text())
+    z = []
+    for a, b in zip(noisy_rows, clean_rows):
+        assert a["name"] == b["name"]
+        assert 0 <= b["measured_err_jy"] < 1e-6 * b["measured_jy"]  # the sky cancels in odd - even
+        assert a["measured_err_jy"] > 0
+        z.append((a["measured_jy"] - b["measured_jy"]) / a["measured_err_jy"])
+        print(f"{a['name']}: noise moved the flux by {a['measured_jy'] - b['measured_jy']:+.3f} Jy, "
+              f"error {a['measured_err_jy']:.3f} Jy (z = {z[-1]:+.2f})")
+    assert np.all(np.abs(z) < 3.5)

@@ -6,11 +6,13 @@ Measured in one run, beside this machine's DGEMM/ZGEMM-class peak (``gemm_gflops
   recomputes per m block), their memory, and the factorisation rate;
 * the PSF at one declination: the point source's alm, observing it through the factors, the
   elliptical fit of its main lobe;
-* one CLEAN major cycle split into synthesis, peak finding, component alm and observe;
+* one CLEAN major cycle as the ``clean`` stage runs it (:func:`stage_cycle`, the stage's own
+  functions): synthesis and peak finding on the driver, then per m block reading the stored
+  factors, the component alm and observe-and-subtract, the blocks on ``n_threads()`` threads;
 * a projection for the paper's channel to the threshold, stated as a projection.
 
-The Grams are synthetic (building the real ones at lmax 1000 for 256 antennas takes hours on
-this machine): ``G_m = D K D`` with ``D = diag(exp(-l^2 / 2 L^2))`` and ``K`` a Gaussian
+The Grams are synthetic (the paper array's real ones at lmax 1000 take ~4 min and 5 GB more,
+``mmflow bench table1``; these keep this bench quick and self-contained): ``G_m = D K D`` with ``D = diag(exp(-l^2 / 2 L^2))`` and ``K`` a Gaussian
 Toeplitz kernel in l (positive definite, Hermitian). Factorising and observing cost the same
 for any Gram of that size; the PSF's shape is not the paper's.
 """
@@ -31,6 +33,8 @@ from mmflow.imaging.maps import default_nside
 from mmflow.sky.diffuse import band_limited_random_alm
 from mmflow.sky.harmonics import point_sources_alm
 from mmflow.threads import n_threads
+
+L_SCALE = 0.7  # the synthetic Grams' D_ll falls as exp(-l^2 / 2 (L_SCALE lmax)^2)
 
 
 def synthetic_gram(m, lmax, l_scale, corr=3.0):
@@ -114,16 +118,88 @@ def _paper_projection(cycle_s, gain=0.15, n_peaks=256, noise_k=154.0, k_sigma=3.
             "compact_after_highpass_minutes": compact_cycles * cycle_s / 60}
 
 
+def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdir=None):
+    """One major cycle as the ``clean`` stage runs it, timed part by part.
+
+    The driver's :func:`clean.plan_cycle` (synthesis of the residual map, peak finding), then
+    per m block of ``m_block`` m, on ``n_threads()`` threads as the cluster's workers would:
+    read the block's stored Cholesky factors from a zarr array shaped as ``clean.zarr``'s
+    ``chol_b`` (written once, before the timing), :func:`clean_stage.operators_from_factors`
+    and :func:`clean_stage.cycle_block` (component alm, observe and subtract) -- the stage's
+    own functions; ``full_gram(m)`` gives the Gram where a filter leaves a coupling (m = 1),
+    as the stage reads it from ``normal.zarr``. The residual is checked against the in-memory :func:`clean.major_cycle`.
+    The stage also checksums what it reads and records markers; that bookkeeping is not here.
+    """
+    import shutil
+    import tempfile
+
+    import zarr
+
+    from mmflow.io.run_stores import m_blocks
+    from mmflow.workflow.stages import clean as clean_stage
+
+    blocks = m_blocks(lmax, m_block)
+    keeps = {m: op.keep for m, op in ops.items()}
+    tmp = tempfile.mkdtemp(prefix="mmflow-bench-clean-", dir=workdir)
+    try:
+        root = zarr.open_group(tmp, mode="w")
+        t0 = time.perf_counter()
+        for m0, m1 in blocks:
+            chol = clean_stage.factors_of(ops, lmax, m0, m1)
+            root.create_array(f"chol_b{m0:05d}", shape=chol.shape, chunks=chol.shape, dtype=chol.dtype)[...] = chol
+        store_s = time.perf_counter() - t0
+        state = clean.CleanState(dirty)
+        t0 = time.perf_counter()
+        vecs, flux, peak, t = clean.plan_cycle(dirty, lmax, table, mask, nside)
+        rows = np.zeros((len(flux), 4))
+        rows[:, :3], rows[:, 3] = vecs, flux
+        driver_s = time.perf_counter() - t0
+
+        def one(block):
+            m0, m1 = block
+            t_a = time.perf_counter()
+            chol = root[f"chol_b{m0:05d}"][...]
+            t_b = time.perf_counter()
+            bops = clean_stage.operators_from_factors(chol, keeps, ops[m0].eps, lmax, m0, m1,
+                                                      full_gram)
+            t_c = time.perf_counter()
+            new, tb = clean_stage.cycle_block(dirty[psf.block_range(lmax, m0, m1)], rows, bops, lmax, m0, m1)
+            return new, {"read_factors": t_b - t_a, "operators": t_c - t_b, **tb}
+
+        t0 = time.perf_counter()
+        res = psf.map_blocks(one, blocks)
+        blocks_s = time.perf_counter() - t0
+        resid = np.concatenate([r[0] for r in res])
+        direct, _ = clean.major_cycle(state, ops, lmax, table, mask, nside)
+        err = float(np.abs(resid - direct.residual_alm).max() / np.abs(direct.residual_alm).max())
+        sums = {k: float(sum(r[1][k] for r in res)) for k in res[0][1]}
+        return {"seconds": driver_s + blocks_s, "driver_s": driver_s, "synthesis_s": t["synthesis"],
+                "peaks_s": t["peaks"], "blocks_wall_s": blocks_s, "m_block": m_block, "n_blocks": len(blocks),
+                "block_task_seconds_summed": {f"{k}_s": v for k, v in sums.items()},
+                "observe_gflops": 2 * 8.0 * sum(op.keep.sum() ** 2 for op in ops.values()) / sums["observe"] / 1e9,
+                "components": int(len(flux)), "first_peak_jy_sr": float(peak),
+                "store_factors_once_s": store_s, "factors_gb_read_per_cycle": sum(
+                    root[f"chol_b{m0:05d}"].nbytes for m0, _ in blocks) / 1e9,
+                "max_rel_difference_to_in_memory_cycle": err,
+                "note": "threads run the m blocks as the stage's workers do: summed task seconds exceed the "
+                        "blocks' wall time by about the thread count"}
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def run(what="clean", quick=False):
     """Measure and return the figures (``mmflow bench clean``; ``python -m mmflow.bench.clean --paper-fwhm``
     for the paper-array Table-1 FWHM)."""
+    from mmflow.workflow.config import TransferConfig
+
     lmax = 200 if quick else 1000
+    m_block = TransferConfig.model_fields["m_block"].default
     nside = 2 * default_nside(lmax)
     eps = 1e-2
     out = {"machine": machine(), "threads": n_threads(), "lmax": lmax, "nside": nside,
-           "gram": "synthetic D K D per m (see module docstring)",
+           "gram": "synthetic D K D per m (see module docstring)", "m_block": m_block,
            "gemm_gflops": {"float64": gemm_gflops(np.float64), "float32": gemm_gflops(np.float32)}}
-    ops, fac_s, fac_cpu, fac_flops = build_operators(lmax, eps, l_scale=0.7 * lmax)
+    ops, fac_s, fac_cpu, fac_flops = build_operators(lmax, eps, l_scale=L_SCALE * lmax)
     best = best_block_factor_gflops(lmax + 1, eps)
     out["factor"] = {"seconds": fac_s, "cpu_seconds": fac_cpu, "gflops": fac_flops / fac_s / 1e9,
                      "best_single_block_gflops": best,
@@ -155,19 +231,12 @@ def run(what="clean", quick=False):
     table = psf.psf_table(ops, lmax, np.deg2rad([-30.0, 0.0, 45.0, 90.0]))
     table["peak"] = np.where(np.isfinite(table["peak"]), table["peak"], fit["value"])
     mask = clean.observed_mask(nside, np.deg2rad(-52.8))
-    state = clean.CleanState(dirty)
-    t0, c0 = time.perf_counter(), time.process_time()
-    state, tim = clean.major_cycle(state, ops, lmax, table, mask, nside)
-    cycle_s, cycle_cpu = time.perf_counter() - t0, time.process_time() - c0
-    out["clean_major_cycle"] = {"seconds": cycle_s, "cpu_seconds": cycle_cpu, **{f"{k}_s": v for k, v in tim.items()},
-                                "components": int(len(state.comp_flux)),
-                                "observe_gflops": 2 * 8.0 * sum(op.keep.sum() ** 2 for op in ops.values())
-                                / tim["observe"] / 1e9}
+    out["clean_major_cycle"] = stage_cycle(ops, lambda m: synthetic_gram(m, lmax, L_SCALE * lmax), dirty, table,
+                                           mask, nside, lmax, m_block)
+    cycle_s = out["clean_major_cycle"]["seconds"]
     out["paper_channel_projection"] = _paper_projection(cycle_s)
     out["gemm_gflops_at_end"] = {"float64": gemm_gflops(np.float64), "float32": gemm_gflops(np.float32)}
     return out
-
-
 
 
 def paper_table1_fwhm(lmax=1000, freq_hz=73.152e6, target_fraction=0.512, decs_deg=(0.0, 45.0, 75.0),

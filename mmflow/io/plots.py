@@ -9,6 +9,7 @@ The Mollweide projection used for RGB and for side-by-side panels is computed he
 from __future__ import annotations
 
 import os
+import textwrap
 
 import healpy
 import numpy as np
@@ -73,7 +74,8 @@ def write_flux_scale_png(path, rows, epoch_year=None, catalog=None, ncols=4):
         src = catalog.get(name)
         if src is not None:
             model = np.asarray(src.flux(grid, epoch_year), float)
-            ax.plot(grid / 1e6, model, "-", color="0.35", lw=1.2, label=src.spectrum.reference or "spectrum")
+            ax.plot(grid / 1e6, model, "-", color="0.35", lw=1.2,
+                    label=textwrap.fill(src.spectrum.reference or "spectrum", 34))
             out["median_ratio"][name] = float(np.median(s / np.asarray(src.flux(f * 1e6, epoch_year), float)))
         ax.errorbar(f, s, yerr=err if err.any() else None, fmt="o", ms=4, color="C3", label="this map")
         out["points"] += len(s)
@@ -84,13 +86,31 @@ def write_flux_scale_png(path, rows, epoch_year=None, catalog=None, ncols=4):
         ax.set_title(name + (f" (map / spectrum {ratio:.2f})" if ratio is not None else ""), fontsize=9)
         ax.set_xlabel("frequency (MHz)", fontsize=8)
         ax.set_ylabel("flux density (Jy)", fontsize=8)
+        ax.minorticks_off()  # log axes' minor ticks are most of the drawing time of 14 panels
+        ax.set_xticks(*_log_ticks(lo / 1e6, hi / 1e6))
+        if ax.get_yscale() == "log":
+            ax.set_yticks(*_log_ticks(*ax.get_ylim()))
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=6, loc="best")
     for ax in axes.ravel()[len(names):]:
         ax.set_visible(False)
-    fig.tight_layout()
+    # fixed margins in inches (tight_layout would draw the 14-panel figure twice)
+    w, h = fig.get_size_inches()
+    fig.subplots_adjust(left=0.6 / w, right=1 - 0.15 / w, bottom=0.45 / h, top=1 - 0.3 / h, wspace=0.35, hspace=0.55)
     _save(fig, path, plt)
     return out
+
+
+def _log_ticks(lo, hi, n=4):
+    """About ``n`` 1-2-5 ticks between ``lo`` and ``hi`` (> 0) and their labels, for a log axis."""
+    nice = np.array([d * 10.0**e for e in range(int(np.floor(np.log10(lo))) - 1, int(np.ceil(np.log10(hi))) + 1)
+                     for d in (1, 2, 5)])
+    inside = nice[(nice >= lo) & (nice <= hi)]
+    if len(inside) < 2:  # less than a 1-2-5 step: rounded log-spaced values
+        inside = np.unique([float(f"{v:.2g}") for v in np.geomspace(lo, hi, n)])
+    step = max(1, len(inside) // n)
+    ticks = inside[::step]
+    return ticks, [f"{t:g}" for t in ticks]
 
 
 # ----------------------------------------------------------------------------- Mollweide grids

@@ -88,12 +88,14 @@ class ReportSummary:
         Rows of :func:`mmflow.analysis.fluxscale.flux_scale_rows` (``name``, ``freq_hz``,
         ``measured_jy``, ``model_jy``, ``ratio``, ``reference``).
     flux_scale_figure : Figure or None (:func:`mmflow.io.plots.write_flux_scale_png`).
+    flux_scale_files : dict label -> path (the flux-scale CSV and JSON).
     astrometry : list of dict
         Rows of :func:`mmflow.analysis.astrometry.registration_rows`.
     astrometry_fit : dict
         The global fit (``rotation_arcmin``, ``axis``, ``rms_before_arcmin``, ...).
     spectral_index : list of Figure
         Three-colour and beta / R^2 Mollweides (:mod:`mmflow.io.plots`).
+    spectral_index_files : dict label -> path (the beta and R^2 FITS maps).
     clean_history : dict channel label -> list of dict
         One row per major cycle (e.g. ``cycle``, ``peak``, ``components``, ``seconds``), the
         stop reason as a row key or in ``clean_stop``.
@@ -115,9 +117,11 @@ class ReportSummary:
     table1_files: dict = field(default_factory=dict)
     flux_scale: list = field(default_factory=list)
     flux_scale_figure: Figure | None = None
+    flux_scale_files: dict = field(default_factory=dict)
     astrometry: list = field(default_factory=list)
     astrometry_fit: dict = field(default_factory=dict)
     spectral_index: list = field(default_factory=list)
+    spectral_index_files: dict = field(default_factory=dict)
     clean_history: dict = field(default_factory=dict)
     clean_stop: dict = field(default_factory=dict)
     clean_figures: list = field(default_factory=list)
@@ -149,12 +153,14 @@ class ReportSummary:
 
 
 def summary_from_run(run_dir):
-    """A :class:`ReportSummary` with what every run records today.
+    """A :class:`ReportSummary` of everything a run recorded.
 
     Reads ``run.json`` (name, versions), ``summary.json`` (per-stage ``wall_s``, tasks) and
-    ``maps/summary.json`` (the products stage's per-channel info with ``fits``, ``png``,
-    ``freq_hz``; each channel's L-curve PNG ``maps/lcurve_<tag>.png`` when present). The
-    caller adds CLEAN, Table 1, flux-scale and other products.
+    ``maps/summary.json``: per channel the map, its L-curve ``maps/lcurve_<tag>.png`` when
+    present, the CLEAN images (restored, residual, model, noise) and PSF stamps with their
+    FITS files, the CLEAN history and stop reason; for the run Table 1, the flux scale,
+    astrometry, spectral-index products and the CLEAN history figure, as the products stage
+    writes them (:mod:`mmflow.workflow.stages.products_science`).
     """
     run = Path(run_dir)
     s = ReportSummary()
@@ -162,19 +168,64 @@ def summary_from_run(run_dir):
     s.run_name, s.versions = meta.get("name", run.name) or run.name, meta.get("versions", {})
     for name, st in (_read_json(run / "summary.json") or {}).items():
         s.stage_times.append({"stage": name, **{k: st.get(k) for k in ("wall_s", "tasks", "tasks_run", "task_s")}})
-    for info in (_read_json(run / "maps" / "summary.json") or {}).get("maps", []):
-        ch = ChannelProducts(float(info["freq_hz"]))
-        facts = dict(info)
-        if facts.get("png"):
-            ch.images.append(Figure(facts.pop("png"), f"map at {ch.freq_hz / 1e6:.3f} MHz"))
-            lc = facts["fits"].replace("map_", "lcurve_").replace(".fits", ".png") if facts.get("fits") else None
-            if lc and (run / lc).is_file():
-                ch.images.append(Figure(lc, "L-curve"))
-        if facts.get("fits"):
-            ch.files["map (FITS)"] = facts.pop("fits")
-        ch.info = facts
-        s.channels.append(ch)
+    top = _read_json(run / "maps" / "summary.json") or {}
+    for info in top.get("maps", []):
+        s.channels.append(_channel(run, info, s))
+    t1 = top.get("table1") or {}
+    s.table1 = t1.get("rows", [])
+    s.table1_files = {PurePosixPath(f).suffix.lstrip(".").upper() or f: f for f in t1.get("files", [])}
+    fs = top.get("flux_scale") or {}
+    s.flux_scale, s.flux_scale_files = fs.get("rows", []), fs.get("files", {})
+    if fs.get("figure"):
+        s.flux_scale_figure = Figure(fs["figure"], "measured fluxes over the published spectra (flux scale)")
+    astro = top.get("astrometry") or {}
+    s.astrometry = astro.get("rows", [])
+    s.astrometry_fit = astro.get("fit", {})
+    si = top.get("spectral_index") or {}
+    s.spectral_index = [Figure(**f) for f in si.get("figures", [])]
+    s.spectral_index_files = si.get("files", {})
+    if top.get("clean_figure"):
+        s.clean_figures.append(Figure(top["clean_figure"], "CLEAN: residual peak and components per major cycle"))
     return s
+
+
+_CLEAN_IMAGES = ("restored", "residual", "model", "noise")
+
+
+def _channel(run, info, s):
+    """One channel's :class:`ChannelProducts` (and its CLEAN history into ``s``)."""
+    ch = ChannelProducts(float(info["freq_hz"]))
+    facts = dict(info)
+    mhz = f"{ch.freq_hz / 1e6:.3f} MHz"
+    if facts.get("png"):
+        ch.images.append(Figure(facts.pop("png"), f"map at {mhz}"))
+        lc = facts["fits"].replace("map_", "lcurve_").replace(".fits", ".png") if facts.get("fits") else None
+        if lc and (run / lc).is_file():
+            ch.images.append(Figure(lc, "L-curve"))
+    if facts.get("fits"):
+        ch.files["map (FITS)"] = facts.pop("fits")
+    for name, img in (facts.pop("images", None) or {}).items():
+        if img.get("png"):
+            ch.images.append(Figure(img["png"], f"CLEAN {name} at {mhz}"))
+        if img.get("fits"):
+            ch.files[f"{name} (FITS)"] = img["fits"]
+    stamps = facts.pop("psf_stamps", None) or []
+    for st in stamps:
+        ch.files[f"PSF dec {st['dec_deg']:+.0f} (FITS)"] = st["fits"]
+    pngs = list(dict.fromkeys(st["png"] for st in stamps if st.get("png")))
+    ch.images += [Figure(p, f"PSF at {mhz}, dec 0, +45, +75") for p in pngs]
+    clean = facts.pop("clean", None)
+    if clean:
+        label = mhz
+        hist = clean.get("history", {})
+        s.clean_history[label] = [{"cycle": c, "peak_jy_per_sr": pk, "components": n} for c, (pk, n) in
+                                  enumerate(zip(hist.get("peak_jy_per_sr", []), hist.get("components", [])))]
+        s.clean_stop[label] = str(clean.get("stop"))
+        facts["clean"] = {k: v for k, v in clean.items() if k != "history"}
+    for k in ("flux_scale", "astrometry", "table1"):  # shown in their own sections
+        facts.pop(k, None)
+    ch.info = facts
+    return ch
 
 
 def _read_json(path):
@@ -249,7 +300,7 @@ class _Writer:
         return " | ".join(out)
 
 
-def _table(rows, columns=None, left=("name", "stage", "reference", "key", "label", "reason")):
+def _table(rows, columns=None, left=("name", "stage", "reference", "key", "label", "reason", "method")):
     if not rows:
         return "<p>none</p>"
     columns = columns or list(dict.fromkeys(k for r in rows for k in r))
@@ -316,13 +367,18 @@ def render_report(summary, report_path, run_dir=None, embed=False):
         links = w.links(ch.files)
         section(f"ch{i}", f"Channel {ch.freq_hz / 1e6:.3f} MHz", body + (f"<p>{links}</p>" if links else ""))
     if s.flux_scale or s.flux_scale_figure:
-        body = (w.figure(s.flux_scale_figure) if s.flux_scale_figure else "") + _table(
-            s.flux_scale, ["name", "freq_hz", "measured_jy", "model_jy", "ratio", "reference"])
-        section("fluxscale", "Flux scale", body)
+        cols = ["name", "freq_hz", "measured_jy", "model_jy", "ratio", "reference"]
+        cols[4:4] = [c for c in ("measured_err_jy", "clean_jy", "method", "fwhm_arcmin")
+                     if any(c in r for r in s.flux_scale)]
+        body = (w.figure(s.flux_scale_figure) if s.flux_scale_figure else "") + _table(s.flux_scale, cols)
+        links = w.links(s.flux_scale_files)
+        section("fluxscale", "Flux scale", body + (f"<p>{links}</p>" if links else ""))
     if s.astrometry or s.astrometry_fit:
         section("astrometry", "Astrometric registration", _facts(s.astrometry_fit) + _table(s.astrometry))
-    if s.spectral_index:
-        section("spectral", "Spectral index", "".join(w.figure(f) for f in s.spectral_index))
+    if s.spectral_index or s.spectral_index_files:
+        links = w.links(s.spectral_index_files)
+        section("spectral", "Spectral index", "".join(w.figure(f) for f in s.spectral_index)
+                + (f"<p>{links}</p>" if links else ""))
     if s.clean_history or s.clean_figures:
         body = "".join(w.figure(f) for f in s.clean_figures)
         for label, rows in s.clean_history.items():

@@ -264,9 +264,23 @@ def _clean_problems(cfg):
     return out
 
 
+def _products_problems(cfg):
+    """The science products' settings: catalogue names, an annulus outside the disc."""
+    p = cfg.products
+    out = []
+    if p.flux_scale_sources is not None:
+        out.extend(_source_problems(p.flux_scale_sources, ("products", "flux_scale_sources")))
+    inner, outer = p.flux_annulus_fwhm
+    if not p.flux_disc_fwhm <= inner < outer:
+        out.append(Problem(("products", "flux_annulus_fwhm"), list(p.flux_annulus_fwhm),
+                           f"not an annulus outside the flux disc (radius {p.flux_disc_fwhm} FWHM)",
+                           "give [inner, outer] with flux_disc_fwhm <= inner < outer, e.g. [1.2, 2.0]"))
+    return out
+
+
 def check_config(cfg):
     """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
-    out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg)
+    out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg) + _products_problems(cfg)
     if not any(p.loc[:1] == ("beam",) for p in out):
         out.extend(_beam_build_problems(cfg))
     return out

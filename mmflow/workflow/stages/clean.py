@@ -107,16 +107,27 @@ def block_operators_from_gram(ctx, fi, m0, m1):
     return dict(zip(range(m0, m1), psf.map_blocks(one, range(m0, m1))))
 
 
-def _stored_operators(ctx, fi, m0, m1):
+def stored_operators(ctx, fi, m0, m1):
     """The block's operators from the stored factors (the Gram is read only where a filter
     leaves a coupling ``G_kf``: m = 1)."""
     from mmflow.mmode.normal import hermitian_full
 
     cfg = ctx.cfg
-    lmax, eps, keeps = cfg.mmode.lmax, cfg.imaging.eps, _keeps(cfg, m0, m1)
+    lmax, keeps = cfg.mmode.lmax, _keeps(cfg, m0, m1)
     chol = ctx.read("clean.zarr", f"f{fi}/chol_b{m0:05d}")
     partial = [m for m in range(m0, m1) if keeps[m].any() and not keeps[m].all()]
     grams = ctx.read("normal.zarr", gram_name(fi, m0)) if partial else None
+    return operators_from_factors(chol, keeps, cfg.imaging.eps, lmax, m0, m1,
+                                  lambda m: hermitian_full(grams[m - m0, :lmax - m + 1, :lmax - m + 1]))
+
+
+def operators_from_factors(chol, keeps, eps, lmax, m0, m1, full_gram=None):
+    """:class:`psf.BlockOperator` per m of a block from its stored upper Cholesky factors.
+
+    ``chol`` (m1 - m0, n0, n0): the factor ``U`` of ``G_kk + eps I`` of each m in the top-left
+    ``n_kept x n_kept`` corner; ``keeps[m]`` the kept coefficients; ``full_gram(m)`` the full
+    Gram of m, called only where a filter leaves a coupling ``G_kf`` (m = 1).
+    """
     ops = {}
     for m in range(m0, m1):
         keep = keeps[m]
@@ -125,11 +136,22 @@ def _stored_operators(ctx, fi, m0, m1):
             ops[m] = psf.BlockOperator(m, keep, None, eps)
             continue
         coupling = None
-        if m in partial:
-            n = lmax - m + 1
-            coupling = np.ascontiguousarray(hermitian_full(grams[m - m0, :n, :n])[np.ix_(keep, ~keep)])
+        if not keep.all():
+            coupling = np.ascontiguousarray(full_gram(m)[np.ix_(keep, ~keep)])
         ops[m] = psf.BlockOperator(m, keep, (chol[m - m0, :nk, :nk], False), eps, coupling)
     return ops
+
+
+def factors_of(ops, lmax, m0, m1):
+    """The block's factors as stored (``chol_b`` layout of :func:`operators_from_factors`)."""
+    n0 = lmax - m0 + 1
+    chol = np.zeros((m1 - m0, n0, n0), np.complex128)
+    for m in range(m0, m1):
+        op = ops[m]
+        if op.cho is not None:
+            nk = len(op.cho[0])
+            chol[m - m0, :nk, :nk] = op.cho[0]
+    return chol
 
 
 def _ml_to_block(alm_ml, lmax, m0, m1):
@@ -154,13 +176,7 @@ def _setup_task(ctx, key):
     ops = block_operators_from_gram(ctx, fi, m0, m1)
     t_factor = time.perf_counter() - t0
     if cfg.clean.keep_factors:
-        n0 = lmax - m0 + 1
-        chol = np.zeros((m1 - m0, n0, n0), np.complex128)
-        for m, op in ops.items():
-            if op.cho is not None:
-                nk = len(op.cho[0])
-                chol[m - m0, :nk, :nk] = op.cho[0]
-        ctx.write(g, f"f{fi}/chol_b{m0:05d}", (), chol)
+        ctx.write(g, f"f{fi}/chol_b{m0:05d}", (), factors_of(ops, lmax, m0, m1))
     t0 = time.perf_counter()
     decs = np.deg2rad(psf_decs_deg(_lat(ctx), cfg.clean.psf_dec_step_deg))
     ctx.write(g, f"f{fi}/psf_b{m0:05d}", (), psf.psf_columns(ops, lmax, psf.table_vectors(decs), m0, m1))
@@ -181,20 +197,30 @@ def _cycle_task(ctx, key):
     lmax, _, blocks = _geometry(ctx)
     m1 = dict(blocks)[m0]
     t0 = time.perf_counter()
-    ops = _stored_operators(ctx, fi, m0, m1) if cfg.clean.keep_factors else block_operators_from_gram(ctx, fi, m0, m1)
+    ops = stored_operators(ctx, fi, m0, m1) if cfg.clean.keep_factors else block_operators_from_gram(ctx, fi, m0, m1)
     t_ops = time.perf_counter() - t0
-    vecs, flux = cycle_components(ctx.read("clean.zarr", "components", (slice(fi, fi + 1), slice(c, c + 1)))[0, 0])
-    t0 = time.perf_counter()
-    x = ck.component_alm(vecs, flux, lmax, m1)[psf.block_range(lmax, m0, m1)]
-    t_comp = time.perf_counter() - t0
+    rows = ctx.read("clean.zarr", "components", (slice(fi, fi + 1), slice(c, c + 1)))[0, 0]
     name = f"f{fi}/residual_b{m0:05d}"
     resid = ctx.read("clean.zarr", name, (slice(c, c + 1),))[0]
-    t0 = time.perf_counter()
-    new = ck.observe_and_subtract(resid, x, ops, lmax, m0, m1, highpass(cfg))
-    t_obs = time.perf_counter() - t0
+    new, t = cycle_block(resid, rows, ops, lmax, m0, m1, highpass(cfg))
     ctx.write(ctx.open("clean.zarr", mode="r+"), name, (slice(c + 1, c + 2),), new[None])
-    return {"m": [m0, m1], "operators_s": round(t_ops, 4), "components_s": round(t_comp, 4),
-            "observe_s": round(t_obs, 4)}
+    return {"m": [m0, m1], "operators_s": round(t_ops, 4), "components_s": round(t["components"], 4),
+            "observe_s": round(t["observe"], 4)}
+
+
+def cycle_block(residual_block, rows, ops, lmax, m0, m1, weights=None):
+    """One m block's part of a major cycle: ``r_new = r - H observe(sum_i c_i conj(Y_lm(r_i)))``.
+
+    ``rows``: the cycle's ``components`` rows (x, y, z, flux; flux 0 = unused); ``weights``:
+    high-pass CLEAN's ``w_l`` or None. Returns the new residual block and the seconds spent
+    on the ``components`` alm and on ``observe`` (:func:`clean.observe_and_subtract`).
+    """
+    vecs, flux = cycle_components(rows)
+    t0 = time.perf_counter()
+    x = ck.component_alm(vecs, flux, lmax, m1)[psf.block_range(lmax, m0, m1)]
+    t1 = time.perf_counter()
+    new = ck.observe_and_subtract(residual_block, x, ops, lmax, m0, m1, weights)
+    return new, {"components": t1 - t0, "observe": time.perf_counter() - t1}
 
 
 def cycle_components(rows):

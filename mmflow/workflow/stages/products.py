@@ -3,7 +3,8 @@
 It rotates the solved alm to ``products.frame`` at the *data's* epoch (stored with the
 visibilities) and writes ``maps/map_<MHz>MHz.fits`` (never-seen sky UNSEEN), PNGs and
 summaries; with ``clean.enabled`` also the restored, residual, model and noise maps, PSF
-stamps and Table 1 (:mod:`mmflow.workflow.stages.products_clean`). ``summary_<tag>.json``
+stamps and Table 1 (:mod:`mmflow.workflow.stages.products_clean`); the flux scale, astrometric
+registration and spectral-index products (:mod:`mmflow.workflow.stages.products_science`). ``summary_<tag>.json``
 and ``summary.json`` hold what a report needs (paths, PSF FWHMs, noise, CLEAN history,
 Table-1 rows). Only the files it lists are ever removed.
 """
@@ -91,6 +92,9 @@ def _products_task(ctx, key):
 
         info.update(clean_products(ctx, fi, tag, f, epoch, nside, mask, meta, p.png))
         info["table1"] = table1_row(ctx, fi, f, info)
+    from mmflow.workflow.stages.products_science import channel_science
+
+    info.update(channel_science(ctx, fi, tag, f, epoch, hmap, nside))
     (maps / f"summary_{tag}.json").write_text(json.dumps(info, indent=2))
     ctx.ledger.record_file(maps / f"summary_{tag}.json")
     return info
@@ -115,6 +119,13 @@ def _products_finalize(ctx):
         out["table1"] = {"rows": rows, "files": [f"maps/{q.name}" for q in write_table1(maps, rows)]}
         for q in out["table1"]["files"]:
             ctx.ledger.record_file(ctx.run.path / q)
+        if ctx.cfg.products.png:
+            from mmflow.workflow.stages.products_clean import clean_history_figure
+
+            out["clean_figure"] = clean_history_figure(ctx, parts, tags)
+    from mmflow.workflow.stages.products_science import finalize_science
+
+    out.update(finalize_science(ctx, parts, tags))
     (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
     from mmflow.io.report import summary_from_run, write_report
@@ -124,8 +135,9 @@ def _products_finalize(ctx):
     return {"maps": len(parts), "report": "maps/report.html", "report_missing": missing}
 
 
-register(Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging.eps", "imaging.method", "products",
-                            "transfer.noise_weighting", "transfer.m_block", "clean"),
-               ("vis.zarr", "alm.zarr", "clean.zarr"), ("maps",), _products_prepare, _products_task, _products_finalize,
+register(Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
+                            "transfer.noise_weighting", "transfer.m_block", "clean", "peel.enabled"),
+               ("vis.zarr", "normal.zarr", "alm.zarr", "clean.zarr", "peel.zarr"), ("maps",), _products_prepare,
+               _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
-               "HTML report"))
+               "flux scale, spectral index, astrometry; HTML report"))

@@ -41,7 +41,7 @@ def _rotate_to(frame, epoch):
     return None if frame == "date" else rotation_matrix("date", frame, epoch)
 
 
-def _alm_splits(ctx, fi, lmax, mmax):
+def alm_splits(ctx, fi, lmax, mmax):
     from mmflow.workflow.stages.products import healpy_alm
 
     alm = ctx.read("alm.zarr", "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
@@ -77,7 +77,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     state, reason = cs.clean_result(g, fi, cs.clean_options(cfg.clean), int(g["n_cycles"][fi]))
     state.residual_alm = cs.residual_alm(g, fi, state.cycle, lmax, blocks)
     tables = [psf.table_from_array(g["psf_table"][fi, k]) for k in (0, 1)]
-    alms = _alm_splits(ctx, fi, lmax, mmax)
+    alms = alm_splits(ctx, fi, lmax, mmax)
     w = cs.highpass(cfg)
 
     def in_frame(alm):
@@ -184,3 +184,19 @@ def table1_row(ctx, fi, freq, info):
     noise = {"kelvin": info["noise"]["kelvin"], "mjy_per_beam": info["noise"]["mjy_per_beam"]}
     return table1.table1_row(freq, width, psf.table_from_array(g["psf_table"][fi, 0]), noise,
                              float(np.sum(frac * n_m) / np.sum(n_m)))
+
+
+def clean_history_figure(ctx, parts, tags):
+    """``maps/clean_history.png``: every channel's residual peak and components per cycle."""
+    from mmflow.io.plots import write_clean_history_png
+
+    hist, thr = {}, {}
+    for tag, part in zip(tags, parts):
+        h = part["clean"]["history"]
+        hist[tag] = [{"peak": pk, "components": n} for pk, n in zip(h["peak_jy_per_sr"], h["components"])]
+        if part["clean"]["threshold_jy_per_sr"] > 0:
+            thr[tag] = part["clean"]["threshold_jy_per_sr"]
+    path = ctx.run.path / "maps" / "clean_history.png"
+    write_clean_history_png(path, hist, thr, unit="Jy/sr")
+    ctx.ledger.record_file(path)
+    return "maps/clean_history.png"

@@ -1,0 +1,35 @@
+"""The science products' settings are refused before any work, naming the field, value and fix."""
+import pytest
+
+from mmflow.errors import InputError
+from mmflow.workflow.config import load_config
+from tests.test_clean_config import DEMO
+
+CASES = [
+    (["products.flux_scale_sources=[Cyg A, 3C 2866]"], "products.flux_scale_sources", "not in the source catalogue",
+     "did you mean '3C 286'?"),
+    (["products.flux_annulus_fwhm=[0.5, 2.0]"], "products.flux_annulus_fwhm", "not an annulus outside the flux disc",
+     "flux_disc_fwhm <= inner < outer"),
+    (["products.flux_annulus_fwhm=[2.0, 1.5]"], "products.flux_annulus_fwhm", "not an annulus", "inner < outer"),
+    (["products.spectral_index_nside=24"], "products.spectral_index_nside", "power of two", "use 16 or 32"),
+    (["products.astrometry=nvss"], "products.astrometry", "'nvss' is not allowed", "catalog"),
+    (["products.astrometry_axis=x"], "products.astrometry_axis", "'x' is not allowed", "any | z"),
+]
+
+
+@pytest.mark.parametrize("overrides, field, problem, fix", CASES, ids=[" ".join(c[0]) for c in CASES])
+def test_bad_products_setting_is_refused_naming_field_value_and_fix(overrides, field, problem, fix):
+    with pytest.raises(InputError) as info:
+        load_config(DEMO, overrides)
+    err = info.value
+    lines = getattr(err, "problems", [(err.what, err.field, err.problem, err.fix)])
+    hit = [ln for ln in lines if ln[1] == field]
+    assert hit, f"no problem for field {field}: {lines}"
+    assert problem in hit[0][2], hit[0][2]
+    assert fix in hit[0][3], hit[0][3]
+
+
+def test_products_defaults_flux_scale_and_spectral_index_on_astrometry_off():
+    p = load_config(DEMO, ["products.astrometry=catalog", "products.flux_scale_sources=[3C 286]"]).products
+    assert p.flux_scale and p.spectral_index and p.astrometry == "catalog" and p.flux_scale_sources == ["3C 286"]
+    assert load_config(DEMO, []).products.astrometry is None
