@@ -58,3 +58,14 @@ def test_data_from_2030_image_at_their_icrs_positions(run_2030):
     alm = healpy_alm(zarr.open_group(str(run_2030 / "alm.zarr"))["alm"][0, 0], 96, 96)
     wrong = _offsets(alm_to_output_map(alm, 96, 40e6, 2457802.0, "icrs", "Jy/sr", 256))
     assert wrong.max() > 0.02 and np.all(wrong > 3 * good), (good, wrong)  # measured 0.009-0.038 vs <= 0.0015
+
+
+def test_frame_rotations_are_exact_inverses_of_each_other():
+    """A map rotated to Galactic and back comes home: astropy's two directions differ by ~3"
+    (aberration), so each pair is fitted once and the reverse is its transpose."""
+    from mmflow.sky.frames import rotation_matrix
+
+    for a, b in (("date", "galactic"), ("date", "icrs"), ("icrs", "galactic")):
+        fwd, back = rotation_matrix(a, b, 2461000.5), rotation_matrix(b, a, 2461000.5)
+        assert np.array_equal(back, fwd.T)
+        assert np.allclose(fwd @ fwd.T, np.eye(3), atol=1e-14)

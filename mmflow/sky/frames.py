@@ -36,10 +36,18 @@ def rotation_matrix(src, dst, epoch_jd):
 
     ``'date'`` is TETE (true equator and equinox of date) at ``epoch_jd`` (UTC Julian
     date); its RA zero point is the one the apparent sidereal time refers to.
+    ``rotation_matrix(b, a, t)`` is exactly the transpose of ``rotation_matrix(a, b, t)``: each
+    pair is fitted once, from the frame of date outwards (astropy's two directions differ by
+    up to 3 arcsec for Galactic, through aberration; a map rotated out and back must come home).
     """
     if src == dst:
         return np.eye(3)
+    if _FIT_ORDER.index(src) > _FIT_ORDER.index(dst):
+        return _matrix(dst, src, float(epoch_jd)).T
     return _matrix(src, dst, float(epoch_jd))
+
+
+_FIT_ORDER = ("date", "icrs", "galactic")
 
 
 def rotate_alm(alm, matrix, lmax):
