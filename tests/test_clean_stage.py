@@ -28,11 +28,11 @@ LMAX = 48  # the longest baseline (40 m) needs ~51 at 40 MHz: little power alias
 POINTS = ["mmode.lmax=48", "mmode.splits=[full, even, odd]", "observation.integration_s=172.3281810",
           "sky.diffuse=false", "transfer.noise_weighting=false", "clean.enabled=true",
           "clean.min_separation_deg=15", "products.frame=galactic"]
-NOISELESS = POINTS + ["sky.noise=false", "clean.rel_threshold=1e-3",
+NOISELESS = POINTS + ["sky.noise=false", "clean.rel_threshold=1e-3", "products.flux_scale=true",
                       "products.flux_scale_sources=[Cyg A, Cas A, Vir A, Tau A]", "products.astrometry=catalog"]
 # a map of ~500 beams has noise peaks near 3.5 sigma and this lmax leaves a model-error floor near
 # 7 sigma: at 3 sigma CLEAN would stop by stall (docs/clean.md); 20 sigma is reached
-NOISY = POINTS + ["sky.noise=true", "products.png=false", "clean.threshold_sigma=20",
+NOISY = POINTS + ["sky.noise=true", "products.png=false", "clean.threshold_sigma=20", "products.flux_scale=true",
                   "products.flux_scale_sources=[Cyg A, Cas A, Vir A, Tau A]"]
 
 

@@ -86,7 +86,8 @@ def test_peeled_and_subtracted_sources_are_measured_from_the_peel_solutions(tmp_
     run_dir = tmp_path / "peel"
     cfg = small_config(run_dir, "peel.enabled=true", "peel.sources=[Cyg A, Cas A]", "peel.peel=[Cyg A]",
                        "peel.min_baseline_lambda=1", "sky.noise=false", "sky.diffuse=false", "products.png=false",
-                       "products.flux_scale_sources=[Cyg A, Cas A, Vir A]", "imaging.lcurve=false")
+                       "products.flux_scale=true", "products.flux_scale_sources=[Cyg A, Cas A, Vir A]",
+                       "imaging.lcurve=false")
     run_workflow(cfg, **QUIET)
     rows = {r["name"]: r for r in json.loads((run_dir / "maps" / "fluxscale.json").read_text())}
     assert set(rows) == {"Cyg A", "Cas A", "Vir A"}
