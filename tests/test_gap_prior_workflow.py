@@ -123,6 +123,28 @@ def test_random_flags_are_within_the_issue_without_a_prior(scene):
     assert shift.max() < 0.03 and rms < 1e-3
 
 
+def test_refit_prior_m0_gives_the_data_m0_beside_the_map_model():
+    """Band-limited data with gaps: a prior holding the true m != 0 and a wrong m = 0 gets the true m = 0."""
+    from mmflow.mmode.gapfill import refit_prior_m0
+
+    rng = np.random.default_rng(3)
+    n, k, nbl = 96, 12, 4
+    true = rng.normal(size=(k + 1, 2, nbl)) + 1j * rng.normal(size=(k + 1, 2, nbl))
+    true[0, 1] = 0
+    for offset in (np.zeros(n), rng.uniform(-0.02, 0.02, n)):
+        phi = 2 * np.pi * np.arange(n) / n + offset
+        # V_n = sum_m V_m e^{i m phi_n}, V_{-m} = conj(layout[m, 1]), written out independently of the kernels
+        vis = sum(true[m, 0][None, :] * np.exp(1j * m * phi)[:, None] for m in range(k + 1))
+        vis = vis + sum(np.conj(true[m, 1])[None, :] * np.exp(-1j * m * phi)[:, None] for m in range(1, k + 1))
+        w = rng.uniform(0.5, 2.0, (n, nbl)) * (rng.random((n, nbl)) > 0.2)
+        w[30:45] = 0  # a gap
+        prior = true.copy()
+        prior[0, 0] = 0  # what a map with m = 0 filtered predicts
+        out = refit_prior_m0(prior, vis, w, offset)
+        np.testing.assert_allclose(out[0, 0], true[0, 0], atol=1e-10)
+        np.testing.assert_array_equal(out[1:], true[1:])
+
+
 def test_prior_run_refused_before_any_work(scene, tmp_path):
     root = scene["root"]
     ref = root / "ref"

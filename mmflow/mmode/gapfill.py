@@ -434,6 +434,41 @@ def _uniform_on_grid(bin_weight, offset):
             and (offset is None or not np.any(offset)))
 
 
+def refit_prior_m0(prior, binned, bin_weight, offset=None):
+    """The prior with its ``m = 0`` term fitted to the data: the map's model for ``m != 0`` plus the constant
+    that best matches the filled bins,
+
+        p_0 = sum_n w_n (V_n - sum_{m != 0} p_m e^{i m phi_n}) / sum_n w_n.
+
+    A map's model ``B_0 a_0`` is no model of a baseline's ``m = 0``: the imaging solve drops
+    ``m = 0`` (``imaging.filter_m0``, the paper's default) and zeroes the monopole. Left so, the
+    prior would put ``-V_0`` into every gap. Measured in the workflow
+    (``tests/test_gap_prior_workflow.py`` scene, two 10 % gaps): the fixed point of the passes goes
+    from 0.088 to ~0.05 FWHM (faint-source peak shift), the first pass from 0.126 to 0.105.
+
+    Parameters
+    ----------
+    prior : ndarray (K + 1, 2, n_bl)
+        Prior m-modes in the layout of :func:`lsq_mmodes` (e.g. :func:`prior_mmodes`).
+    binned, bin_weight, offset
+        As for :func:`lsq_mmodes` (the bins of the fit the prior is for).
+
+    Returns
+    -------
+    ndarray, a copy of ``prior`` with ``[0, 0]`` replaced (``p_0 = 0`` where no bin is filled).
+    """
+    w = np.asarray(bin_weight, float)
+    out = np.array(prior, np.complex128)
+    out[0] = 0
+    n = w.shape[0]
+    offset = None if offset is None or not np.any(offset) else np.asarray(offset, float)
+    model = _synthesis(_from_layout(out, out.shape[0] - 1), offset, n).T  # (N, n_bl), m != 0 only
+    ws = w.sum(axis=0)
+    resid = np.sum(np.where(w > 0, w * (np.asarray(binned) - model), 0), axis=0)
+    out[0, 0] = np.where(ws > 0, resid / np.where(ws > 0, ws, 1), 0)
+    return out
+
+
 def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.float64):
     """m-modes of a map's model visibilities, ``v_m = B_m a_m``: the ``prior`` of :func:`lsq_mmodes`.
 

@@ -20,7 +20,7 @@ import numpy as np
 from mmflow.errors import CoverageError
 from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
-from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes
+from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
@@ -75,7 +75,7 @@ def _task(ctx, key):
         binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
                                              0.0, source=str(ctx.run.store("vis.zarr")))
         _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins)
-        prior = _prior(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop), wsum)
+        prior = _prior(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop), binned, wsum, offset)
         info["fits_with_prior"] += prior is not None
         res = chunk_mmodes(binned, wsum, mmax, offset, tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs),
                            splits, None if sigma2 is None else sigma2[fi], cfg.mmode.min_coverage,
@@ -89,8 +89,9 @@ def _task(ctx, key):
     return info
 
 
-def _prior(ctx, tel, freq_hz, fi, baselines, bin_weight):
-    """The earlier run's model m-modes ``B_m a_m`` for the chunk's baselines (``mmode.prior_run``), or None.
+def _prior(ctx, tel, freq_hz, fi, baselines, binned, bin_weight, offset):
+    """The earlier run's model m-modes ``B_m a_m`` for the chunk's baselines (``mmode.prior_run``), their
+    ``m = 0`` fitted to the data (:func:`mmflow.mmode.gapfill.refit_prior_m0`: the map has none), or None.
 
     None also where no bin of the chunk is empty: with every bin filled (and the fit's ``sigma2``
     given, as :func:`chunk_mmodes` always does) the prior does not enter the fit, so its cost --
@@ -100,7 +101,8 @@ def _prior(ctx, tel, freq_hz, fi, baselines, bin_weight):
     if prior_run is None or np.all(bin_weight > 0):
         return None
     lmax = ctx.cfg.mmode.lmax
-    return prior_mmodes(tel, freq_hz, read_prior_alm(prior_run, fi, lmax), lmax, baselines)
+    model = prior_mmodes(tel, freq_hz, read_prior_alm(prior_run, fi, lmax), lmax, baselines)
+    return refit_prior_m0(model, binned, bin_weight, offset)
 
 
 def _radiometer_sigma2(ctx, vg, autos, pairs):
