@@ -469,7 +469,7 @@ def refit_prior_m0(prior, binned, bin_weight, offset=None):
     return out
 
 
-def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.float64):
+def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.float64, chunk_size=32):
     """m-modes of a map's model visibilities, ``v_m = B_m a_m``: the ``prior`` of :func:`lsq_mmodes`.
 
     Iterating map -> ``prior_mmodes`` -> ``lsq_mmodes(..., prior=...)`` -> map fills the
@@ -485,23 +485,29 @@ def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.f
     baselines : ndarray of int
         Indices into ``telescope.antenna_pairs()`` (the chunk's columns).
     mmax : int, optional (default ``lmax``)
+    chunk_size : int
+        Baselines per transfer-matrix block (by band limit, one quadrature grid shared): memory
+        ``~ chunk_size * lmax^2 * 16 B`` as in the transfer stage, whatever the number of baselines.
 
     Returns
     -------
     ndarray (mmax + 1, 2, n_bl) complex, the layout of :func:`lsq_mmodes`.
     """
     from mmflow.conventions import m_slice
-    from mmflow.mmode.engine import BaselineChunk, chunk_blocks
+    from mmflow.mmode.engine import BaselineChunk, GridCache, chunk_blocks
 
     mmax = lmax if mmax is None else mmax
     index = np.asarray(baselines, int)
     lmax_b = telescope.baseline_lmax(freq_hz, lmax)
-    nb = len(index)
-    out = np.zeros((mmax + 1, 2, nb), np.complex128)
-    chunk = BaselineChunk(index, int(lmax_b[index].max(initial=0)))
-    for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, mmax=mmax):
-        v = blk @ alm[m_slice(lmax, m)]
-        out[m, 0] = v[:nb]
-        if m > 0:
-            out[m, 1] = v[nb:]
+    out = np.zeros((mmax + 1, 2, len(index)), np.complex128)
+    order = np.argsort(lmax_b[index], kind="stable")  # like band limits share a grid
+    cache = GridCache(telescope, freq_hz)
+    for start in range(0, len(index), max(1, int(chunk_size))):
+        cols = order[start:start + max(1, int(chunk_size))]
+        chunk = BaselineChunk(index[cols], int(lmax_b[index[cols]].max()))
+        for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, cache, mmax=mmax):
+            v = blk @ alm[m_slice(lmax, m)]
+            out[m, 0, cols] = v[:len(cols)]
+            if m > 0:
+                out[m, 1, cols] = v[len(cols):]
     return out
