@@ -107,7 +107,8 @@ def test_block_flags_meet_the_issue_after_one_pass_with_the_first_map_as_prior(b
     (shift0, rms0, prior0), (shift1, rms1, prior1) = block_passes[0], block_passes[1]
     print(f"20 % in 4 blocks: least squares {shift0.round(3)} rms {rms0:.4f}; one pass with its map as prior "
           f"{shift1.round(3)} rms {rms1:.4f}")
-    # measured: least squares faint sources up to 0.072 FWHM, map 2.8 %; one pass <= 0.022 FWHM, 1.7 %
+    # measured: least squares faint sources up to 0.072 FWHM, map 2.8 %; one pass <= 0.021 FWHM, 1.4 %
+    # (docs/mmodes.md: zero-filled 1.17 FWHM, map 88 %, on the same bins imaged by the kernels)
     assert prior0 == 0 and prior1 == 1  # the one chunk's one channel was fitted with the prior
     assert shift0.max() > 0.05  # least squares alone misses issue 8's 0.05 FWHM at this eps ...
     assert shift1.max() < 0.05  # ... one pass meets it

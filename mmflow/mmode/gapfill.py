@@ -494,7 +494,8 @@ def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.f
     ndarray (mmax + 1, 2, n_bl) complex, the layout of :func:`lsq_mmodes`.
     """
     from mmflow.conventions import m_slice
-    from mmflow.mmode.engine import BaselineChunk, GridCache, chunk_blocks
+    from mmflow.mmode.engine import BaselineChunk, GridCache, _chunk_grid
+    from mmflow.mmode.transfer import transfer_pass
 
     mmax = lmax if mmax is None else mmax
     index = np.asarray(baselines, int)
@@ -502,12 +503,18 @@ def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.f
     out = np.zeros((mmax + 1, 2, len(index)), np.complex128)
     order = np.argsort(lmax_b[index], kind="stable")  # like band limits share a grid
     cache = GridCache(telescope, freq_hz)
-    for start in range(0, len(index), max(1, int(chunk_size))):
-        cols = order[start:start + max(1, int(chunk_size))]
+    step = max(1, int(chunk_size))
+    for start in range(0, len(index), step):
+        cols = order[start:start + step]
         chunk = BaselineChunk(index[cols], int(lmax_b[index[cols]].max()))
-        for m, blk in chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype, cache, mmax=mmax):
-            v = blk @ alm[m_slice(lmax, m)]
-            out[m, 0, cols] = v[:len(cols)]
+        b, grid = _chunk_grid(telescope, freq_hz, chunk, lmax, cache)
+
+        def model(m, blk, tim):  # blk[l - m, c]: B_m's column c (+m rows, then -m rows), l <= chunk.lmax
+            return alm[m_slice(lmax, m)][:blk.shape[0]] @ blk
+
+        v = transfer_pass(grid, b, model, lmax_b[chunk.index], min(mmax, chunk.lmax), dtype, chunk.lmax)
+        for m, vm in enumerate(v):  # m beyond the chunk's band limit: B_m = 0
+            out[m, 0, cols] = vm[:len(cols)]
             if m > 0:
-                out[m, 1, cols] = v[len(cols):]
+                out[m, 1, cols] = vm[len(cols):]
     return out

@@ -11,7 +11,7 @@ coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
 With ``mmode.prior_run`` the fit of every chunk with flagged time takes as its prior the
 m-modes of an earlier run's map (:func:`mmflow.mmode.gapfill.prior_mmodes` of that run's
 ``alm.zarr``, :mod:`mmflow.workflow.prior_run`): what a baseline's gaps leave unmeasured comes
-from what the other baselines saw, not 0.
+from the map (what the array saw of that sky at other times and on other baselines), not 0.
 """
 from __future__ import annotations
 
