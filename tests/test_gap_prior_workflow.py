@@ -88,7 +88,9 @@ def _compare(scene, hmap):
     for v, ref in zip(scene["vecs"], scene["peaks"]):
         pk = measure_peak(hmap, v, np.deg2rad(8))
         shifts.append(np.arccos(np.clip(np.dot(pk["vec"], ref["vec"]), -1, 1)) / ref["fwhm_rad"])
-    seen = scene["ref"] != -1.6375e30
+    import healpy
+
+    seen = scene["ref"] != healpy.UNSEEN  # the sky the array never sees
     return np.array(shifts), float(np.std((hmap - scene["ref"])[seen]) / np.std(scene["ref"][seen]))
 
 
