@@ -274,6 +274,18 @@ class MmodeConfig(_Section):
     coverage_policy: Literal["drop", "downweight"] = Field(
         "drop", description="Baselines whose sidereal coverage is below min_coverage: dropped (weight 0) or "
         "down-weighted by coverage / min_coverage; counted and logged either way.")
+    prior_run: Optional[str] = Field(
+        None, description="Run directory of a finished earlier run of the same data (same lmax, channels and "
+        "epoch): its solved map's model visibilities are the prior of each baseline's m-mode fit, filling what "
+        "flagged time leaves unmeasured (a second pass; docs/mmodes.md). Run it in a new run.directory. "
+        "null: no prior (gaps held at 0).", json_schema_extra={"allowed": "null or a run directory"})
+
+    @field_validator("prior_run")
+    @classmethod
+    def _prior_path(cls, v):
+        if v is not None and not v.strip():
+            raise BadValue("the prior run directory is empty", "give an earlier run's run.directory, or null")
+        return None if v is None else os.path.expanduser(os.path.expandvars(v))
 
     @field_validator("splits")
     @classmethod

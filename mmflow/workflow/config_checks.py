@@ -176,6 +176,8 @@ def _value_problems(cfg):
     if mm.noise == "radiometer" and not cfg.telescope.include_autos:
         out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
                            "set telescope.include_autos: true, or mmode.noise: data (or auto)"))
+    if mm.prior_run is not None:
+        out.extend(_prior_run_problems(cfg))
     im = cfg.imaging
     if im.method == "prior" and im.prior_map is None:
         out.append(Problem(("imaging", "prior_map"), None, "method 'prior' needs a prior map",
@@ -189,6 +191,18 @@ def _value_problems(cfg):
                            "give a new or existing directory for the run"))
     out.extend(_cluster_problems(cfg.cluster))
     return out
+
+
+def _prior_run_problems(cfg):
+    """``mmode.prior_run`` holds a finished run with this run's lmax (and, for simulated data, channels and
+    epoch; ingested data are checked by the mmodes stage once their channels and epoch are known)."""
+    from mmflow.workflow.prior_run import prior_run_problems
+
+    mm, ob = cfg.mmode, cfg.observation
+    sim = cfg.source == "simulate"
+    found = prior_run_problems(mm.prior_run, mm.lmax, mm.lmax if mm.mmax is None else mm.mmax, cfg.run.directory,
+                               np.asarray(ob.freqs_mhz) * 1e6 if sim else None, ob.epoch_jd if sim else None)
+    return [Problem(("mmode", "prior_run"), mm.prior_run, problem, fix) for problem, fix in found]
 
 
 def _not_among(field, names, pool, pool_name, fix):

@@ -7,6 +7,11 @@ bins onto sidereal bins and calls :func:`mmflow.mmode.gapfill.chunk_mmodes`: lea
 m-modes of each data split within each baseline's band limit (flagged time is not zero),
 thermal noise from the radiometer equation or from the fit's residual, and per-baseline
 coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
+
+With ``mmode.prior_run`` the fit of every chunk with flagged time takes as its prior the
+m-modes of an earlier run's map (:func:`mmflow.mmode.gapfill.prior_mmodes` of that run's
+``alm.zarr``, :mod:`mmflow.workflow.prior_run`): what a baseline's gaps leave unmeasured comes
+from the map (what the array saw of that sky at other times and on other baselines), not 0.
 """
 from __future__ import annotations
 
@@ -15,11 +20,12 @@ import numpy as np
 from mmflow.errors import CoverageError
 from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
-from mmflow.mmode.gapfill import chunk_mmodes
+from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
 from mmflow.workflow.context import SIDEREAL_DAY_S
+from mmflow.workflow.prior_run import check_prior_run, prior_files, read_prior_alm
 from mmflow.workflow.stages.base import Stage, register
 
 
@@ -37,6 +43,9 @@ def _prepare(ctx):
     nt, nbl, nf = vis["vis"].shape[:3]
     mmax, n_bins = mmax_of(cfg), n_bins_of(cfg, vis.attrs["integration_s"])
     splits = list(cfg.mmode.splits)
+    if cfg.mmode.prior_run is not None:  # channels and epoch of ingested data are known only now
+        check_prior_run(cfg.mmode.prior_run, cfg.mmode.lmax, mmax, ctx.run.path, vis["freqs_hz"][:],
+                        float(vis.attrs["epoch_jd"]))
     ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1],
                             {"mmax": mmax, "n_bins": n_bins, "splits": splits}))
     return [f"b{i:05d}" for i in range(-(-nbl // vis["vis"].chunks[1]))]
@@ -61,14 +70,16 @@ def _task(ctx, key):
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((nf, vis.shape[1]))
     info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
-            "downweighted_low_coverage": 0, "max_cg_iterations": 0}
+            "downweighted_low_coverage": 0, "max_cg_iterations": 0, "fits_with_prior": 0}
     for fi in range(nf):
         binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
                                              0.0, source=str(ctx.run.store("vis.zarr")))
         _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins)
+        prior = _prior(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop), binned, wsum, offset)
+        info["fits_with_prior"] += prior is not None
         res = chunk_mmodes(binned, wsum, mmax, offset, tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs),
                            splits, None if sigma2 is None else sigma2[fi], cfg.mmode.min_coverage,
-                           cfg.mmode.coverage_policy)
+                           cfg.mmode.coverage_policy, prior=prior)
         out[:, fi], inv_var[fi] = res.mmodes, res.inv_var
         info["dropped_low_coverage"] += res.coverage.n_dropped
         info["downweighted_low_coverage"] += res.coverage.n_downweighted
@@ -76,6 +87,22 @@ def _task(ctx, key):
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
     return info
+
+
+def _prior(ctx, tel, freq_hz, fi, baselines, binned, bin_weight, offset):
+    """The earlier run's model m-modes ``B_m a_m`` for the chunk's baselines (``mmode.prior_run``), their
+    ``m = 0`` fitted to the data (:func:`mmflow.mmode.gapfill.refit_prior_m0`: the map has none), or None.
+
+    None also where no bin of the chunk is empty: with every bin filled (and the fit's ``sigma2``
+    given, as :func:`chunk_mmodes` always does) the prior does not enter the fit, so its cost --
+    one transfer-matrix pass over the chunk -- is spent only on chunks with flagged time.
+    """
+    prior_run = ctx.cfg.mmode.prior_run
+    if prior_run is None or np.all(bin_weight > 0):
+        return None
+    lmax = ctx.cfg.mmode.lmax
+    model = prior_mmodes(tel, freq_hz, read_prior_alm(prior_run, fi, lmax), lmax, baselines)
+    return refit_prior_m0(model, binned, bin_weight, offset)
 
 
 def _radiometer_sigma2(ctx, vg, autos, pairs):
@@ -107,5 +134,5 @@ def _check_coverage(bin_weight, min_coverage, source, n_bins):
 
 
 register(Stage("mmodes", ("mmode", "beam"), ("vis.zarr",) + CORRECTION_STORES, ("mmodes.zarr",), _prepare, _task,
-               counters=("dropped_low_coverage", "downweighted_low_coverage"),
+               counters=("dropped_low_coverage", "downweighted_low_coverage", "fits_with_prior"), files=prior_files,
                description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk"))
