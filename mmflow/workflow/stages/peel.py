@@ -74,8 +74,10 @@ def _task(ctx, key):
                          peel_min_elevation_deg=p.peel_min_elevation_deg)
     modes[:, ~good] = SKIP
     keep = baseline_mask(block.pairs, tel.layout.enu, f, p.min_baseline_lambda)
+    solint = 1 if p.solint_s is None else max(1, int(round(p.solint_s / float(ctx.vis_attrs()["integration_s"]))))
     out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes,
-               baseline_keep=keep, batch=p.batch, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard)
+               baseline_keep=keep, batch=p.batch, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard,
+               solint=solint)
     g = ctx.open("peel.zarr", mode="r+")
     region = (rows, slice(fi, fi + 1))
 
