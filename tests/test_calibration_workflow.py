@@ -5,12 +5,13 @@ sawtooth), direction-dependent gains on Cyg A and Cas A (ionospheric refraction 
 scintillation), Vir A and Tau A, a constant cross-talk pattern and thermal noise in XX and YY.
 The pipeline undoes them and removes the four bright sources. Measured on this 26-antenna
 array (325 baselines; docs/calibration.md): the peeled Cyg A and Cas A are suppressed by
-more than 30 dB at their positions, and the map is an order of magnitude closer to the
-clean sky than the uncalibrated map. The issue's target -- a difference within 1.5 x the
-thermal-noise map rms -- is NOT met here: per-integration flux and DD-gain fits on 325
-baselines absorb part of the unmodelled faint sky (confusion), which leaves ~20 K rms even
-on noiseless, uncorrupted data, and ~110 K with the ionospheric and scintillation effects on
-Cyg A and Cas A; the test prints every figure.
+more than 30 dB at their positions (-36.1 and -33.7 dB), and the map's difference from the
+clean faint sky is 13.3 K rms against 1235 K uncalibrated: 7.0 x the thermal-noise map rms
+(1.9 K). The issue's target of 1.5 x is NOT met: the same chain on noiseless, uncorrupted data
+leaves 12.7 K, the confusion of per-integration fits on 325 baselines (Tau A's fitted flux is
+1.3 % low on median, biased by 3C 123 two beams away; the DD gains absorb part of the faint sky);
+the corruptions add ~0.6 K. Until the autocorrelations were left out of the imaging after
+calibration (``calibrate.flag_autos``) the difference was 123 K. The test prints every figure.
 """
 import healpy
 import numpy as np
@@ -69,7 +70,8 @@ def test_corrupted_chain_brings_the_map_close_to_the_clean_sky(maps):
     print(f"map difference rms: chain {diff_rms:.4g} K, uncalibrated {raw_rms:.4g} K; clean faint sky "
           f"{truth_rms:.4g} K; thermal-noise map rms {noise_rms:.4g} K (chain / noise = {diff_rms / noise_rms:.1f})")
     assert noise_rms > 0
-    assert diff_rms < raw_rms / 5  # measured 123 K against 1235 K
+    assert diff_rms < raw_rms / 50  # measured 13.3 K against 1235 K
+    assert diff_rms < 10 * noise_rms  # measured 7.0 x (the issue's target, 1.5 x, is not met)
 
 
 def test_peeled_sources_are_suppressed_by_more_than_30_db(maps):
