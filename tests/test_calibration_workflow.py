@@ -106,6 +106,12 @@ def test_chain_wrote_solutions_and_never_rewrote_the_data(maps):
     assert np.abs(t["patterns"][:]).max() > 0
     v = zarr.open_group(str(d / "vis.zarr"), mode="r")
     assert v.attrs["pols"] == ["xx", "yy"]
+    # calibrate.flag_autos: the autocorrelations are kept in vis.zarr but carry no imaging weight
+    pairs = v["pairs"][:]
+    autos = pairs[:, 0] == pairs[:, 1]
+    assert (v["weights"][:, autos] > 0).all()
+    inv_var = zarr.open_group(str(d / "mmodes.zarr"), mode="r")["inv_var"][:]
+    assert (inv_var[:, autos] == 0).all() and (inv_var[:, ~autos] > 0).all()
 
 
 class Crash(BaseException):
