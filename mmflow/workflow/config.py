@@ -252,6 +252,9 @@ class PeelConfig(_Section):
                                       "gains shared over the interval (a phase screen smooth over it), amplitude "
                                       "per integration (scintillation); rounded to whole integrations, counted "
                                       "from each time chunk's start. null: DD gains per integration.")
+    fit_positions: bool = Field(False, description="Fit the subtracted sources' positions per integration (matched "
+                                "filter within 30 arcmin, on the peeled data with the source put back), then peel "
+                                "again with them (stored as DD phase gradients).")
 
 
 class TerrestrialConfig(_Section):
