@@ -8,8 +8,11 @@ source is peeled (``peel.peel``, above ``peel.peel_min_elevation_deg``), subtrac
 fitted flux, or skipped (below the horizon) (:func:`select_modes`), and peels
 (:func:`mmflow.calibrate.peel.peel`: direction-dependent gains by Stefcal per source, in
 flux order, for ``peel.passes`` passes; the guard subtracts instead where peeling removed
-less than ``peel.guard`` of the measured flux). ``peel.zarr`` keeps per integration the DD
-gains, flux scales, modes, the guard's fluxes and convergence.
+less than ``peel.guard`` of the measured flux). ``peel.solint_s`` shares a peeled source's DD
+gains over an interval (amplitude still per integration); ``peel.fit_positions`` fits the
+subtracted sources' positions per integration and peels again with the moved models.
+``peel.zarr`` keeps per integration the DD gains (for a subtracted source: 1, or the phase
+gradient of its fitted position), flux scales, modes, the guard's fluxes and convergence.
 
 ``apply`` subtracts, where a block is read, what peeling removed::
 
