@@ -5,12 +5,13 @@ sawtooth), direction-dependent gains on Cyg A and Cas A (ionospheric refraction 
 scintillation), Vir A and Tau A, a constant cross-talk pattern and thermal noise in XX and YY.
 The pipeline undoes them and removes the four bright sources. Measured on this 26-antenna
 array (325 baselines; docs/calibration.md): the peeled Cyg A and Cas A are suppressed by
-more than 30 dB at their positions, and the map is an order of magnitude closer to the
-clean sky than the uncalibrated map. The issue's target -- a difference within 1.5 x the
-thermal-noise map rms -- is NOT met here: per-integration flux and DD-gain fits on 325
-baselines absorb part of the unmodelled faint sky (confusion), which leaves ~20 K rms even
-on noiseless, uncorrupted data, and ~110 K with the ionospheric and scintillation effects on
-Cyg A and Cas A; the test prints every figure.
+more than 30 dB at their positions (-36.1 and -33.7 dB), and the map's difference from the
+clean faint sky is 13.3 K rms against 1235 K uncalibrated: 7.0 x the thermal-noise map rms
+(1.9 K). The issue's target of 1.5 x is NOT met: the same chain on noiseless, uncorrupted data
+leaves 12.7 K, the confusion of per-integration fits on 325 baselines (Tau A's fitted flux is
+1.3 % low on median, biased by 3C 123 two beams away; the DD gains absorb part of the faint sky);
+the corruptions add ~0.6 K. Until the autocorrelations were left out of the imaging after
+calibration (``calibrate.flag_autos``) the difference was 123 K. The test prints every figure.
 """
 import healpy
 import numpy as np
@@ -69,7 +70,8 @@ def test_corrupted_chain_brings_the_map_close_to_the_clean_sky(maps):
     print(f"map difference rms: chain {diff_rms:.4g} K, uncalibrated {raw_rms:.4g} K; clean faint sky "
           f"{truth_rms:.4g} K; thermal-noise map rms {noise_rms:.4g} K (chain / noise = {diff_rms / noise_rms:.1f})")
     assert noise_rms > 0
-    assert diff_rms < raw_rms / 5  # measured 123 K against 1235 K
+    assert diff_rms < raw_rms / 50  # measured 13.3 K against 1235 K
+    assert diff_rms < 10 * noise_rms  # measured 7.0 x (the issue's target, 1.5 x, is not met)
 
 
 def test_peeled_sources_are_suppressed_by_more_than_30_db(maps):
@@ -104,6 +106,12 @@ def test_chain_wrote_solutions_and_never_rewrote_the_data(maps):
     assert np.abs(t["patterns"][:]).max() > 0
     v = zarr.open_group(str(d / "vis.zarr"), mode="r")
     assert v.attrs["pols"] == ["xx", "yy"]
+    # calibrate.flag_autos: the autocorrelations are kept in vis.zarr but carry no imaging weight
+    pairs = v["pairs"][:]
+    autos = pairs[:, 0] == pairs[:, 1]
+    assert (v["weights"][:, autos] > 0).all()
+    inv_var = zarr.open_group(str(d / "mmodes.zarr"), mode="r")["inv_var"][:]
+    assert (inv_var[:, autos] == 0).all() and (inv_var[:, ~autos] > 0).all()
 
 
 class Crash(BaseException):
@@ -136,3 +144,35 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
         a, b = zarr.open_group(str(ref / store), mode="r"), zarr.open_group(str(run / store), mode="r")
         for name, arr in a.arrays():
             assert np.array_equal(arr[:], b[name][:], equal_nan=True), (store, name)
+
+
+def test_dd_solution_interval_shares_the_screen_and_keeps_the_map(maps, tmp_path):
+    """``peel.solint_s`` of 4 integrations: within each interval the stored DD gains of a peeled
+    source are one antenna vector times a real amplitude per integration (the interval model
+    ``sqrt(a(t)) p``), and the map stays as close to the clean sky (measured: 13.16 K against
+    13.32 K per integration, docs/calibration.md)."""
+    import shutil
+
+    run = tmp_path / "solint"
+    shutil.copytree(maps["dir"] / "chain", run)
+    cfg = load_config(DEMO, BASE + [f"run.directory={run}", "peel.solint_s=336.6"])
+    run_workflow(cfg, force=True, **QUIET)  # simulate and calibrate are kept; peel onwards recomputed
+    p = zarr.open_group(str(run / "peel.zarr"), mode="r")
+    h, mode = p["dd_gains"][:, 0], p["mode"][:, 0]  # (time, src, ant, pol), (time, src, pol)
+    checked = 0
+    for t0 in range(0, h.shape[0], 4):
+        for s in range(h.shape[1]):
+            for q in range(h.shape[3]):
+                peeled = np.flatnonzero(mode[t0:t0 + 4, s, q] == 1)
+                if len(peeled) < 2 or p["guard"][t0:t0 + 4, 0, s, q].any():
+                    continue
+                g = h[t0 + peeled, s, :, q]
+                ratio = g / g[:1]  # the same p: a real positive factor per integration, equal for all antennas
+                assert np.abs(ratio - ratio[:, :1]).max() < 1e-9 and np.abs(ratio.imag).max() < 1e-9
+                checked += 1
+    assert checked > 100
+    seen = maps["truth"] != healpy.UNSEEN
+    diff = np.std((_map(run) - maps["truth"])[seen])
+    base = np.std((maps["chain"] - maps["truth"])[seen])
+    print(f"map difference rms: DD interval 4 integrations {diff:.4g} K, per integration {base:.4g} K")
+    assert diff < 1.1 * base

@@ -152,8 +152,57 @@ class PeelResult:
     residual: np.ndarray
 
 
+def interval_index(n_time, n_pol, solint):
+    """Solution indices ``t * n_pol + p`` of each DD solution interval, grouped by interval length.
+
+    Interval ``k`` holds integrations ``k solint .. (k + 1) solint - 1`` of one polarisation (the
+    last one may be shorter). Returns a list of int arrays (n_intervals, K), one per distinct K.
+    """
+    groups = {}
+    for t0 in range(0, n_time, solint):
+        ts = np.arange(t0, min(n_time, t0 + solint))
+        for p in range(n_pol):
+            groups.setdefault(len(ts), []).append(ts * n_pol + p)
+    return [np.array(v) for _, v in sorted(groups.items())]
+
+
+def _solve_interval_gains(R, M, W, peel, p, amp, intervals, tol, max_iter, damping, threads):
+    """DD gains ``h(t) = sqrt(a(t)) p`` of one source, ``p`` shared by the integrations of each
+    interval (refraction: a phase screen smooth over the interval) and ``a(t) >= 0`` per
+    integration (scintillation), with the source put back in ``R`` (S, N, N).
+
+    ``p`` by Stefcal summed over the interval's integrations against the model ``a(t) M(t)``,
+    then ``a(t) = Re<P M P^H, R>_w / <P M P^H, P M P^H>_w`` per integration. Updates ``p`` and
+    ``amp`` (S, N), (S,) in place for the solutions with ``peel``; returns Stefcal's
+    (iterations, converged) per solution.
+    """
+    S = R.shape[0]
+    iters = np.zeros(S, int)
+    conv = np.ones(S, bool)
+    for idx in intervals:
+        act = peel[idx]  # (G, K)
+        use = act.any(1)
+        if not use.any():
+            continue
+        Wk = W[idx] * act[..., None, None]
+        Mk = M[idx] * amp[idx][..., None, None]
+        g0 = p[idx[:, 0]]
+        res = stefcal(R[idx], Mk, Wk, g0, tol=tol, max_iter=max_iter, damping=damping, ref_ant=-1,
+                      threads=threads, diagnostics=False, active=use)
+        for k in range(idx.shape[1]):
+            sel = act[:, k]
+            p[idx[sel, k]] = res.gains[sel]
+            iters[idx[sel, k]] = res.iterations[sel]
+            conv[idx[sel, k]] = res.converged[sel]
+    Mp = M * (p[:, :, None] * np.conj(p[:, None, :]))
+    num, den, _ = projections(R, Mp, W, threads)
+    new = np.where(den > 0, np.maximum(num, 0.0) / np.maximum(den, 1e-300), 0.0)
+    amp[peel] = new[peel]
+    return iters, conv
+
+
 def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_iter=30, guard=0.9,
-               damping="half", threads=None):
+               damping="half", threads=None, intervals=None):
     """Peel and subtract sources from S independent antenna-matrix visibilities.
 
     Parameters
@@ -166,6 +215,10 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     g0 : ndarray (n_src, S, N), optional warm start for the DD gains
     passes, tol, max_iter, damping : outer passes; Stefcal tolerance, iterations, damping
     guard : float or None: the fraction of the measured flux peeling must remove
+    intervals : list of int arrays (n_interval, K), optional (:func:`interval_index`)
+        DD solution intervals: the peeled sources' gains are ``sqrt(a_s(t)) p_s`` with ``p_s``
+        shared by the solutions of an interval and a real amplitude ``a_s(t)`` per solution
+        (:func:`_solve_interval_gains`). Default: every solution its own gains (K = 1).
 
     Returns
     -------
@@ -183,12 +236,23 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     # 1. subtract everything with the starting gains
     for s in order:
         add_component(R, coherencies[s], g[s], -scale[s] * (modes[s] != SKIP), threads)
+    if intervals is not None:  # interval gains p and amplitudes a with g = sqrt(a) p
+        p_int = g.copy()
+        amp = np.ones((n_src, S))
     # 2. passes
     for _ in range(passes):
         for s in order:
             peel = modes[s] == PEEL
             sub = modes[s] == SUBTRACT
-            if peel.any():
+            if peel.any() and intervals is not None:
+                add_component(R, coherencies[s], g[s], 1.0 * peel, threads)
+                it, cv = _solve_interval_gains(R, coherencies[s], W, peel, p_int[s], amp[s], intervals, tol,
+                                               max_iter, damping, threads)
+                g[s, peel] = (np.sqrt(amp[s])[:, None] * p_int[s])[peel]
+                iters[s, peel] += it[peel]
+                conv[s, peel] = cv[peel]
+                add_component(R, coherencies[s], g[s], -1.0 * peel, threads)
+            elif peel.any():
                 add_component(R, coherencies[s], g[s], 1.0 * peel, threads)
                 res = stefcal(R[:, None], coherencies[s][:, None], W[:, None], g[s], tol=tol, max_iter=max_iter,
                               damping=damping, ref_ant=-1, threads=threads, diagnostics=False, active=peel)
@@ -278,7 +342,7 @@ class PeelSolution:
 
 
 def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, batch=16, warm_start=True,
-         g0=None, threads=None, **kwargs):
+         g0=None, threads=None, solint=1, **kwargs):
     """Peel a time chunk in batches of ``batch`` integrations (memory bounded by the batch).
 
     Parameters
@@ -290,6 +354,10 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, 
     warm_start : start each batch from the last integration of the previous batch
         (``batch=1``: every integration starts from the previous one)
     g0 : ndarray (n_src, n_ant, pol), optional: start of the first batch
+    solint : int, DD solution interval in integrations, counted from the chunk's first
+        (``peel_dense(intervals=...)``: gains shared over the interval, amplitude per
+        integration); 1: every integration its own DD gains. ``batch`` is rounded up to a
+        multiple of it.
     kwargs : passed to :func:`peel_dense` (passes, tol, max_iter, guard, damping)
 
     Returns
@@ -300,6 +368,8 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, 
     T, B, P = vis.shape
     pairs = check_pairs(pairs, n_ant)
     n_src = coherencies.shape[0]
+    solint = max(1, int(solint))
+    batch = -(-batch // solint) * solint
     coh = coherencies if coherencies.ndim == 4 else coherencies[..., None]
     w = np.array(np.broadcast_to(weights, vis.shape), float)
     bad = ~np.isfinite(vis)
@@ -330,7 +400,8 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, baseline_keep=None, 
         start = None
         if last is not None:
             start = np.broadcast_to(last[:, None], (n_src, nb, P, n_ant)).reshape(n_src, nb * P, n_ant)
-        r = peel_dense(V, M, W, md, start, threads=threads, **kwargs)
+        intervals = interval_index(nb, P, solint) if solint > 1 else None
+        r = peel_dense(V, M, W, md, start, threads=threads, intervals=intervals, **kwargs)
         if warm_start:
             gl = r.dd_gains.reshape(n_src, nb, P, n_ant)[:, -1]
             ok = np.isfinite(gl).all(-1) & (np.abs(gl).min(-1) > 0)

@@ -188,6 +188,23 @@ def fit_point_position(vis, weights, uvw, *, radius_arcmin=30.0, step_arcmin=2.0
     return off, peak
 
 
+def position_gains(telescope, freq_hz, lsts, pairs, vec_date, vis, weights, *, radius_arcmin=30.0):
+    """A point source's position per integration as direction-dependent gains.
+
+    Fits the offset ``dr`` (east, north) of the source at ``vec_date`` in ``vis`` (n_time, n_bl)
+    by the matched filter of :func:`fit_point_position` and returns ``(offsets (n_time, 2) rad,
+    h (n_time, n_ant))`` with ``h_i = exp(-2 pi i x_i . dr / lambda)``
+    (:func:`mmflow.simulate.corrupt.direction_dependent_gains`): ``h_i conj(h_j) M_ij`` is the
+    model ``M`` moved by ``dr``, so a subtracted source with a fitted position is stored and
+    applied like a peeled one.
+    """
+    from mmflow.simulate.corrupt import direction_dependent_gains
+
+    uvw, _ = source_uvw(telescope, freq_hz, lsts, pairs, vec_date)
+    off, _ = fit_point_position(vis, weights, uvw, radius_arcmin=radius_arcmin)
+    return off, direction_dependent_gains(telescope, freq_hz, lsts, vec_date, off[None])[0]
+
+
 def _quadratic_peak(p):
     """Sub-pixel peak of a 3x3 patch (rows y, columns x) by a 2-D quadratic fit."""
     y, x = np.mgrid[-1:2, -1:2]

@@ -267,14 +267,42 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
     return out, truth
 
 
+def utc_at_lsts(lsts, layout, near_jd, iterations=3):
+    """UTC Julian dates near ``near_jd`` at which the site's apparent LST (as pyuvdata computes
+    it, ``lst_array``) equals ``lsts`` (rad, one sidereal day of consecutive integrations).
+
+    The simulation is a function of LST alone (``simulate.scene.drift_scan_lsts``); files
+    written through pyuvdata carry times, from which a reader recomputes the LST. Solves
+    ``LST(t) = phi`` by Newton steps with ``dLST/dt = 2 pi / 86164.0905 s``: the first
+    integration's time is found first, the rest follow from the unwrapped LSTs.
+    """
+    from pyuvdata.utils import get_lst_for_time
+
+    phi = np.unwrap(np.asarray(lsts, float))
+    rate = 2 * np.pi / (86164.0905 / 86400.0)  # rad per (UTC) day
+
+    def lst(jd):
+        return get_lst_for_time(np.atleast_1d(jd), latitude=layout.lat_deg, longitude=layout.lon_deg,
+                                altitude=layout.height_m)
+
+    t = np.full(phi.shape, float(near_jd)) + (phi - phi[0]) / rate
+    for _ in range(iterations):
+        err = np.angle(np.exp(1j * (phi - lst(t))))
+        t = t + err / rate
+    return t
+
+
 def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy"), channel_width_hz=None,
-              integration_s=None):
+              integration_s=None, x_orientation=None):
     """A pyuvdata ``UVData`` of (time, bl, pol) visibilities, to write as UVH5 or MS.
 
     ``ant_1 = i``, ``ant_2 = j`` for ``pairs[b] = (i, j)`` and the data as they are: pyuvdata's
     ``uvw = x_2 - x_1`` and mmflow's ``V_ij ~ exp(+2 pi i (x_j - x_i).r / lambda)`` agree (ingest
     with ``conjugate: false``). Weights of 0 become flags. Antenna positions are the layout's
-    ENU positions about its centre.
+    ENU positions about its centre. Autocorrelations are written as their real part, as a
+    correlator writes them (the simulator's radiometer noise is complex on every baseline).
+    ``x_orientation="east"`` labels linear polarisations as pyuvdata does for such feeds:
+    ``pols=("ee", "nn")`` are then XX and YY (the same polarisation numbers, -5 and -6).
     """
     from astropy import units as u
     from astropy.coordinates import EarthLocation
@@ -289,12 +317,15 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     n_ant = lay.n_ant
     tel = UVTelescope.new("mmflow-sim", loc, antenna_positions=ecef, antenna_names=list(lay.names),
                           antenna_numbers=list(range(n_ant)), instrument="mmflow-corrupt", mount_type="fixed",
-                          feeds=["x", "y"] if len(pols) > 1 else ["x"])
-    vis = np.asarray(vis)
+                          feeds=["x", "y"] if len(pols) > 1 else ["x"], x_orientation=x_orientation)
+    vis = np.array(vis, np.complex128)
     T, B, P = vis.shape
-    data = vis.reshape(T * B, 1, P).astype(np.complex128)
+    autos = np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]
+    vis[:, autos] = vis[:, autos].real
+    data = vis.reshape(T * B, 1, P)
     flags = (np.broadcast_to(weights, vis.shape) == 0).reshape(T * B, 1, P)
     uv = UVData.new(freq_array=np.array([float(freq_hz)]), polarization_array=list(pols), times=np.asarray(times_jd),
+                    x_orientation=x_orientation,
                     telescope=tel, antpairs=[tuple(map(int, p)) for p in pairs], do_blt_outer=True, data_array=data,
                     flag_array=flags, integration_time=integration_s or telescope.integration_s,
                     channel_width=channel_width_hz or telescope.channel_width_hz, vis_units="Jy",

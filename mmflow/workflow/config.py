@@ -224,6 +224,11 @@ class CalibrateConfig(_Section):
                                            "outliers at this many sigma (one at a time); null: off.")
     ripple: bool = Field(True, description="Correct the autocorrelation ripple (HVAC sawtooth) first.")
     ripple_smooth_min: float = Field(45.0, gt=0, description="FWHM of the ripple smoothing kernel (minutes).")
+    flag_autos: bool = Field(True, description="After calibration, give the autocorrelations weight 0 in every "
+                             "later stage and the imaging (they stay in vis.zarr and still set the radiometer "
+                             "noise): they hold the receiver power, so a gain error of 1e-3 leaves more than the "
+                             "sky's power in them, and the ripple correction replaces them by their own 45-min "
+                             "smooth (docs/calibration.md).")
 
 
 class PeelConfig(_Section):
@@ -243,6 +248,13 @@ class PeelConfig(_Section):
     guard: Optional[float] = Field(0.9, gt=0, le=1, description="Subtract instead when peeling removed less than "
                                    "this fraction of the measured flux; null: off.")
     batch: int = Field(16, ge=1, description="Integrations solved together (memory ~ batch x n_ant^2).")
+    solint_s: Optional[float] = Field(None, gt=0, description="DD solution interval (s) of the peeled sources: "
+                                      "gains shared over the interval (a phase screen smooth over it), amplitude "
+                                      "per integration (scintillation); rounded to whole integrations, counted "
+                                      "from each time chunk's start. null: DD gains per integration.")
+    fit_positions: bool = Field(False, description="Fit the subtracted sources' positions per integration (matched "
+                                "filter within 30 arcmin, on the peeled data with the source put back), then peel "
+                                "again with them (stored as DD phase gradients).")
 
 
 class TerrestrialConfig(_Section):

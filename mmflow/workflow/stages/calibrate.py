@@ -12,8 +12,13 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
 ``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
 to the whole data set. ``apply`` corrects a block where it is read: autos by ``r_i``, cross
-correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0.
-``vis.zarr`` is never rewritten.
+correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0,
+and so do the autocorrelations with ``calibrate.flag_autos`` (the default): after calibration
+they hold the receiver power times the residual gain error (a 1e-3 error in a 2e5 Jy receiver
+power is 200 Jy, more than the faint sky), the ripple correction has replaced them by their own
+45-min smooth, and peeling subtracts the bright sources' per-integration (scintillating) flux
+from that smooth; imaged, they left ~110 K of large-scale error in the calibration demo's map
+(docs/calibration.md). ``vis.zarr`` is never rewritten.
 """
 from __future__ import annotations
 
@@ -71,7 +76,8 @@ def _prepare(ctx):
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
     ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply,
                            {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
-                            "ripple": bool(ctx.cfg.calibrate.ripple)}))
+                            "ripple": bool(ctx.cfg.calibrate.ripple),
+                            "flag_autos": bool(ctx.cfg.calibrate.flag_autos)}))
     keys = [f"r{fi}" for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [f"g{fi}_{k:05d}" for fi in range(nf) for k in range(len(solve))]
 
@@ -153,6 +159,8 @@ def _apply(ctx, block):
             v, w = apply_ripple(v, w, block.pairs, ratio[:, fi])
         g, fl = gains[which, fi], flags[which, fi] | (which < 0)[:, None, None]
         block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, np.where(fl, 0, g), fl)
+    if ctx.open("gains.zarr").attrs.get("flag_autos", False):
+        block.weights[:, block.pairs[:, 0] == block.pairs[:, 1]] = 0.0
 
 
 register(Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",

@@ -8,12 +8,18 @@ source is peeled (``peel.peel``, above ``peel.peel_min_elevation_deg``), subtrac
 fitted flux, or skipped (below the horizon) (:func:`select_modes`), and peels
 (:func:`mmflow.calibrate.peel.peel`: direction-dependent gains by Stefcal per source, in
 flux order, for ``peel.passes`` passes; the guard subtracts instead where peeling removed
-less than ``peel.guard`` of the measured flux). ``peel.zarr`` keeps per integration the DD
-gains, flux scales, modes, the guard's fluxes and convergence.
+less than ``peel.guard`` of the measured flux). ``peel.solint_s`` shares a peeled source's DD
+gains over an interval (amplitude still per integration); ``peel.fit_positions`` fits the
+subtracted sources' positions per integration and peels again with the moved models.
+``peel.zarr`` keeps per integration the DD gains (for a subtracted source: 1, or the phase
+gradient of its fitted position), flux scales, modes, the guard's fluxes and convergence.
 
 ``apply`` subtracts, where a block is read, what peeling removed::
 
-    V_ij -= sum_{s peeled} h_si conj(h_sj) M^s_ij + sum_{s subtracted} a_s M^s_ij
+    V_ij -= sum_{s peeled} h_si conj(h_sj) M^s_ij + sum_{s subtracted} a_s h_si conj(h_sj) M^s_ij
+
+(for a subtracted source ``h`` is 1, or with ``peel.fit_positions`` the phase gradient that
+moves it to its fitted position in that integration)
 
 with the same coherencies (recomputed for the block's baselines), so ``vis.zarr`` is never
 rewritten.
@@ -53,9 +59,9 @@ def _coherencies(ctx, tel, f, lst, pairs, names):
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.calibrate.baselines import baseline_mask, gain_products
     from mmflow.calibrate.coherency import apparent_flux
-    from mmflow.calibrate.peel import PEEL, SKIP, peel, select_modes
+    from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, select_modes
     from mmflow.sky.sources import get_sources
 
     p = ctx.cfg.peel
@@ -74,8 +80,17 @@ def _task(ctx, key):
                          peel_min_elevation_deg=p.peel_min_elevation_deg)
     modes[:, ~good] = SKIP
     keep = baseline_mask(block.pairs, tel.layout.enu, f, p.min_baseline_lambda)
-    out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes,
-               baseline_keep=keep, batch=p.batch, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard)
+    solint = 1 if p.solint_s is None else max(1, int(round(p.solint_s / float(ctx.vis_attrs()["integration_s"]))))
+    kw = dict(baseline_keep=keep, batch=p.batch, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard,
+              solint=solint)
+    out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes, **kw)
+    h = np.ones(out.dd_gains.shape[:3], complex)  # (src, time, ant): subtracted sources at their positions
+    if p.fit_positions:
+        h = _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good)
+        coh = coh * gain_products(h[..., None], block.pairs)[..., 0]
+        out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes, **kw)
+    sub = out.mode == SUBTRACT  # (src, time, pol): stored DD gains are the position gradient (1: catalogue)
+    out.dd_gains = np.where(sub[:, :, None, :], h[..., None], out.dd_gains)
     g = ctx.open("peel.zarr", mode="r+")
     region = (rows, slice(fi, fi + 1))
 
@@ -88,6 +103,27 @@ def _task(ctx, key):
     peeled = out.mode == PEEL
     return {"peeled": int(peeled.sum()), "guard_fired": int(out.guard.sum()),
             "not_converged": int((peeled & ~out.converged).sum())}
+
+
+def _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good):
+    """DD phase gradients (src, time, ant) of each subtracted source's fitted position per
+    integration (:func:`mmflow.calibrate.source_models.position_gains`) on the peeled data with the
+    source put back (mean of the polarisations; autos and short baselines unused); 1 elsewhere."""
+    from mmflow.calibrate.coherency import source_vector_date
+    from mmflow.calibrate.peel import SUBTRACT
+    from mmflow.calibrate.source_models import position_gains
+    from mmflow.sky.sources import get_sources
+
+    h = np.ones(out.dd_gains.shape[:3], complex)
+    w = block.weights[:, :, fi].min(-1) * keep * (block.pairs[:, 0] != block.pairs[:, 1])
+    epoch = float(ctx.vis_attrs()["epoch_jd"])
+    for s, src in enumerate(get_sources(list(ctx.cfg.peel.sources))):
+        sub = (out.mode[s] == SUBTRACT).any(-1) & good & (w.sum(1) > 0)  # a flagged integration: no fit
+        if not sub.any():
+            continue
+        data = (out.residual[sub] + out.scale[s][sub][:, None, :] * coh[s][sub][..., None]).mean(-1)
+        _, h[s, sub] = position_gains(tel, f, block.lst[sub], block.pairs, source_vector_date(src, epoch), data, w[sub])
+    return h
 
 
 def _apply(ctx, block):
@@ -108,7 +144,7 @@ def _apply(ctx, block):
         for s in range(coh.shape[0]):
             prod = gain_products(h[:, s], block.pairs)  # (time, bl, pol)
             factor = np.where((mode[:, s] == PEEL)[:, None], prod,
-                              np.where((mode[:, s] == SUBTRACT)[:, None], scale[:, s][:, None], 0.0))
+                              np.where((mode[:, s] == SUBTRACT)[:, None], scale[:, s][:, None] * prod, 0.0))
             removed += factor * coh[s][..., None]
         block.vis[:, :, fi] -= removed
 
