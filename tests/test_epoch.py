@@ -69,3 +69,20 @@ def test_frame_rotations_are_exact_inverses_of_each_other():
         fwd, back = rotation_matrix(a, b, 2461000.5), rotation_matrix(b, a, 2461000.5)
         assert np.array_equal(back, fwd.T)
         assert np.allclose(fwd @ fwd.T, np.eye(3), atol=1e-14)
+
+
+def test_simulated_times_are_the_utc_of_their_lsts(tmp_path):
+    """vis.zarr's time_jd and lst describe the same instants (an exported file's reader recomputes
+    the LST from the time), here in 2026, far from the default epoch."""
+    from pyuvdata.utils import get_lst_for_time
+
+    from tests.workflow_helpers import small_config
+
+    cfg = small_config(tmp_path / "run", "observation.epoch_jd=2461000.5", "sky.diffuse=false")
+    run_workflow(cfg, only=["simulate"], progress=False, log=lambda *a: None)
+    g = zarr.open_group(str(tmp_path / "run" / "vis.zarr"), mode="r")
+    t, lst, a = g["time_jd"][:], g["lst"][:], g.attrs
+    site_lst = get_lst_for_time(t, latitude=a["lat_deg"], longitude=a["lon_deg"], altitude=a["height_m"])
+    assert np.abs(np.angle(np.exp(1j * (site_lst - lst)))).max() < 1e-7
+    assert abs(np.median(t) - 2461000.5) < 0.51  # the day around the epoch
+    assert np.all(np.diff(t) > 0)

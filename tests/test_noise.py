@@ -170,3 +170,23 @@ def test_chunk_mmodes_weights_and_coverage(scan):
     assert np.all(np.abs(est.sigma2[ok] / sigma[ok] ** 2 - 1) < 0.05)
     np.testing.assert_allclose(est.inv_var[ok], got.inv_var[ok], rtol=0.05)
     assert got.inv_var[0] < 0.2 * np.median(got.inv_var[ok])  # low coverage: less weight, never more
+
+
+def test_simulated_thermal_noise_is_real_on_autocorrelations_complex_elsewhere():
+    """Radiometer noise: an autocorrelation stays real, with std V_ii / sqrt(dnu tau); a cross-
+    correlation gets sqrt(V_ii V_jj / (dnu tau)) / sqrt(2) per component."""
+    from mmflow.simulate.visibilities import thermal_noise
+
+    rng = np.random.default_rng(3)
+    n_t, dnu, tau = 20000, 24e3, 13.0
+    pairs = np.array([(0, 0), (0, 1), (1, 1)])
+    power = np.array([4e4, 0.0, 9e4])  # autos' powers; the cross row's value is unused
+    vis = np.broadcast_to(power, (n_t, 3)).astype(complex)
+    ai, aj = power[[0, 0, 2]], power[[0, 2, 2]]
+    noise, sigma = thermal_noise(vis, ai, aj, dnu, tau, rng, pairs[:, 0] == pairs[:, 1])
+    assert np.all(noise[:, [0, 2]].imag == 0)
+    for c in (0, 2):
+        assert np.std(noise[:, c].real) == pytest.approx(power[c] / np.sqrt(dnu * tau), rel=0.03)
+    s01 = np.sqrt(power[0] * power[2] / (dnu * tau))
+    assert np.std(noise[:, 1].real) == pytest.approx(s01 / np.sqrt(2), rel=0.03)
+    assert np.std(noise[:, 1].imag) == pytest.approx(s01 / np.sqrt(2), rel=0.03)

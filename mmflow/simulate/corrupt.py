@@ -259,7 +259,7 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
         if np.any(ai < 0) or np.any(aj < 0):
             raise ValueError("thermal noise needs every antenna's autocorrelation in pairs")
         n, sigma = thermal_noise(out, out[:, ai].real, out[:, aj].real, noise["bandwidth_hz"],
-                                 noise["integration_s"], rng)
+                                 noise["integration_s"], rng, autos.reshape((1, -1) + (1,) * (out.ndim - 2)))
         out += n
         truth.noise_sigma = sigma
     if weights is not None:

@@ -87,7 +87,7 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
         if noise_rng is not None:
             autos = np.real(v[:, is_auto])
             noise, _ = thermal_noise(v, autos[:, ci], autos[:, cj], telescope.channel_width_hz, integration_s,
-                                     noise_rng)
+                                     noise_rng, is_auto)
             v = v + noise
         out[:, :, fi, 0] = v
     return out

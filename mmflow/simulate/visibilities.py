@@ -150,12 +150,18 @@ def _phasors(x, r, phase_buf, p_buf):
     return p
 
 
-def thermal_noise(vis, autos_i, autos_j, bandwidth_hz, integration_s, rng):
-    """Radiometer-equation noise: ``sigma_ij = sqrt(V_ii V_jj / (dnu tau))`` per complex component.
+def thermal_noise(vis, autos_i, autos_j, bandwidth_hz, integration_s, rng, is_auto=None):
+    """Radiometer-equation noise: ``sigma_ij = sqrt(V_ii V_jj / (dnu tau))``.
 
-    ``autos_i``/``autos_j`` are the autocorrelation powers (Jy) of each baseline's antennas,
-    broadcast against ``vis``. Returns the noise array and ``sigma``.
+    Cross-correlations get complex noise, ``sigma / sqrt(2)`` per component; the
+    autocorrelations (``is_auto``, broadcast against ``vis``) real noise of standard deviation
+    ``sigma_ii = V_ii / sqrt(dnu tau)``: an autocorrelation is real. ``autos_i``/``autos_j`` are
+    the autocorrelation powers (Jy) of each baseline's antennas, broadcast against ``vis``.
+    Returns the noise array and ``sigma``.
     """
     sigma = np.sqrt(np.abs(autos_i * autos_j) / (bandwidth_hz * integration_s))
-    noise = sigma / np.sqrt(2) * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
+    re, im = rng.normal(size=vis.shape), rng.normal(size=vis.shape)
+    noise = sigma / np.sqrt(2) * (re + 1j * im)
+    if is_auto is not None:
+        noise = np.where(np.broadcast_to(is_auto, noise.shape), sigma * re + 0j, noise)
     return noise, sigma

@@ -12,6 +12,7 @@ from functools import lru_cache
 import numpy as np
 
 from mmflow.io.run_stores import vis_store
+from mmflow.simulate.corrupt import utc_at_lsts
 from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
 from mmflow.workflow.context import SIDEREAL_DAY_S, _parse, build_telescope
 from mmflow.workflow.stages.base import Stage, register
@@ -109,7 +110,8 @@ def _sim_task(ctx, key):
     ctx.write(g, "weights", rows, weights)
     write_autos(ctx, g, rows, vis, weights)
     ctx.write(g, "lst", rows, lst)
-    ctx.write(g, "time_jd", rows, drift_scan_times(o.epoch_jd, o.integration_s, k, n))
+    # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
+    ctx.write(g, "time_jd", rows, utc_at_lsts(lst, tel.layout, drift_scan_times(o.epoch_jd, o.integration_s, k[:1], n)[0]))
     return {"integrations": int(len(k))}
 
 
