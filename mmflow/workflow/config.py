@@ -12,21 +12,12 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from mmflow.errors import InputError
+from mmflow.workflow.config_base import Section, power_of_two
+from mmflow.workflow.config_calibration import CalibrateConfig, CorruptConfig, PeelConfig, TerrestrialConfig
 from mmflow.workflow.config_errors import BadValue, Origins, allowed_text, from_pydantic, report, yaml_error
 
 
-class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-
-
-def _power_of_two(v):
-    if v is not None and (v < 1 or v > 2**29 or v & (v - 1)):
-        lo = 1 << max(0, int(v).bit_length() - 1)
-        raise BadValue("HEALPix nside must be a power of two", f"use {lo} or {2 * lo} (or null for the default)")
-    return v
-
-
-class RunConfig(_Section):
+class RunConfig(Section):
     """Where outputs go."""
 
     directory: str = Field("runs/demo", description="Run directory (zarr stores, maps, status markers).",
@@ -41,7 +32,7 @@ class RunConfig(_Section):
         return v
 
 
-class TelescopeConfig(_Section):
+class TelescopeConfig(Section):
     """The array. Either an OVRO-LWA preset or a layout file plus a site."""
 
     preset: Optional[Literal["core", "full", "paper-2017", "leda512-2013"]] = Field(
@@ -61,13 +52,13 @@ class TelescopeConfig(_Section):
 # One model per beam type of mmflow.telescope.beams.make_beam; defaults match the beam classes
 # (a test checks). BeamConfig keeps the user's keys as given and validates them with these.
 
-class SinElevationBeamParams(_Section):
+class SinElevationBeamParams(Section):
     """sin_elevation: A = sin(elevation)^alpha, frequency independent."""
 
     alpha: float = Field(1.5, gt=0, description="Exponent; 1.5 mimics a dipole over a ground screen.")
 
 
-class GaussianBeamParams(_Section):
+class GaussianBeamParams(Section):
     """gaussian: A = exp(-za^2 / (2 sigma^2)), sigma = fwhm / sqrt(8 ln 2) scaled by ref_freq_hz / freq."""
 
     fwhm_deg: float = Field(60.0, gt=0, le=360, description="Full width at half maximum in zenith angle (degrees).")
@@ -75,7 +66,7 @@ class GaussianBeamParams(_Section):
                                          "null: the same width at every frequency.")
 
 
-class ZernikeBeamParams(_Section):
+class ZernikeBeamParams(Section):
     """zernike: the paper's nine Zernike terms (section 3.3), 1 at zenith, linear in frequency between fits."""
 
     freqs_hz: list[float] = Field(..., min_length=1, description="Ascending frequencies (Hz) of the fits; "
@@ -98,7 +89,7 @@ class ZernikeBeamParams(_Section):
 PYUVDATA_ANALYTIC = ("AiryBeam", "GaussianBeam", "ShortDipoleBeam", "UniformBeam")
 
 
-class PyUVDataBeamParams(_Section):
+class PyUVDataBeamParams(Section):
     """pyuvdata: a beam file pyuvdata reads, or one of pyuvdata's analytic beams (give file or class)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
@@ -125,7 +116,7 @@ BEAM_PARAMS = {"sin_elevation": SinElevationBeamParams, "gaussian": GaussianBeam
                "zernike": ZernikeBeamParams, "pyuvdata": PyUVDataBeamParams}
 
 
-class BeamConfig(_Section):
+class BeamConfig(Section):
     """Primary beam (Stokes-I power, 1 at zenith). The other keys are the parameters of the chosen type."""
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
@@ -137,7 +128,7 @@ class BeamConfig(_Section):
         return dict(self.model_extra or {})
 
 
-class ObservationConfig(_Section):
+class ObservationConfig(Section):
     """Frequencies and the drift scan that is simulated or expected."""
 
     freqs_mhz: list[float] = Field([40.0], min_length=1, description="Channel centre frequencies in MHz.",
@@ -158,7 +149,7 @@ class ObservationConfig(_Section):
         return v
 
 
-class SkyConfig(_Section):
+class SkyConfig(Section):
     """Simulated sky for the simulate stage."""
 
     diffuse: bool = Field(True, description="Include the synthetic Galaxy-like diffuse sky.")
@@ -171,7 +162,7 @@ class SkyConfig(_Section):
     quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")
 
 
-class InputConfig(_Section):
+class InputConfig(Section):
     """Existing data for the ingest stage."""
 
     path: Optional[str] = Field(None, description="File or glob of UVH5 / uvfits / MS files.")
@@ -185,87 +176,7 @@ class InputConfig(_Section):
                             "only for data in the opposite sign convention.")
 
 
-_CATALOG_NAMES = {"allowed": "names from mmflow.sky.sources.CATALOG"}
-
-
-class CorruptConfig(_Section):
-    """Corruptions of the simulated drift scan (``mmflow.simulate.corrupt``); when enabled the data
-    hold XX and YY, each with its own gains and noise, for calibrate, peel and terrestrial to undo."""
-
-    enabled: bool = Field(False, description="Corrupt the simulation (data then hold XX and YY).")
-    seed: int = Field(7, ge=0, description="Random seed of the corruptions.")
-    gains: bool = Field(True, description="Per-antenna, per-pol complex gains: bandpass and a slow phase drift.")
-    sawtooth_db: float = Field(0.1, ge=0, description="HVAC gain sawtooth, peak to peak in power (dB; 0 = off).")
-    dd_sources: list[str] = Field(["Cyg A", "Cas A"], description="Sources of sky.sources given direction-"
-                                  "dependent gains (ionospheric offsets and scintillation).",
-                                  json_schema_extra=_CATALOG_NAMES)
-    ionosphere_arcmin: float = Field(20.0, ge=0, description="Largest refractive offset at 36.5 MHz (scales nu^-2).")
-    scintillation: float = Field(0.2, ge=0, description="Scintillation log-amplitude sigma at 36.5 MHz (nu^-2).")
-    crosstalk_jy: float = Field(0.0, ge=0, description="Constant rank-1 cross-talk pattern (Jy; 0 = off).")
-    rfi_jy: float = Field(0.0, ge=0, description="Near-field RFI source 10 km west on the horizon (Jy; 0 = off).")
-    system_jy: float = Field(0.0, ge=0, description="Receiver and unmodelled background power added to every "
-                             "autocorrelation (Jy): it sets the radiometer noise and dominates real autos.")
-
-
-class CalibrateConfig(_Section):
-    """Gain calibration (Stefcal) against a source model, after the autocorrelation ripple correction."""
-
-    enabled: bool = Field(False, description="Run this stage.")
-    sources: list[str] = Field(["Cyg A", "Cas A"], min_length=1, description="Sky model (catalogue sources "
-                               "through the beam).", json_schema_extra=_CATALOG_NAMES)
-    min_baseline_lambda: float = Field(15.0, ge=0, description="Use baselines longer than this (wavelengths).")
-    solint_s: Optional[float] = Field(None, gt=0, description="Solution interval (s); null: one solution on the "
-                                      "track where the sources are highest, applied to the whole data set.")
-    track_min: float = Field(22.0, gt=0, description="Length of that track (minutes).")
-    tol: float = Field(1e-5, gt=0, lt=1, description="Convergence: ||dg|| / ||g|| below this.")
-    max_iter: int = Field(100, ge=1, description="Stefcal iterations at most.")
-    damping: Literal["half", "rk4", "none"] = Field("half", description="Stefcal damping of the update.")
-    outlier_sigma: Optional[float] = Field(5.0, gt=0, description="Flag antennas whose corrected residuals are "
-                                           "outliers at this many sigma (one at a time); null: off.")
-    ripple: bool = Field(True, description="Correct the autocorrelation ripple (HVAC sawtooth) first.")
-    ripple_smooth_min: float = Field(45.0, gt=0, description="FWHM of the ripple smoothing kernel (minutes).")
-    flag_autos: bool = Field(True, description="After calibration, give the autocorrelations weight 0 in every "
-                             "later stage and the imaging (they stay in vis.zarr and still set the radiometer "
-                             "noise): they hold the receiver power, so a gain error of 1e-3 leaves more than the "
-                             "sky's power in them, and the ripple correction replaces them by their own 45-min "
-                             "smooth (docs/calibration.md).")
-
-
-class PeelConfig(_Section):
-    """Per-integration peeling (direction-dependent gains) and subtraction of bright sources."""
-
-    enabled: bool = Field(False, description="Run this stage.")
-    sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], min_length=1,
-                               description="Sources removed (peeled or subtracted).", json_schema_extra=_CATALOG_NAMES)
-    peel: list[str] = Field(["Cyg A", "Cas A"], description="Of those, the ones peeled (DD gains) when above "
-                            "peel_min_elevation_deg; the others are subtracted with a fitted flux.",
-                            json_schema_extra=_CATALOG_NAMES)
-    peel_min_elevation_deg: float = Field(10.0, ge=0, le=90, description="Peel only above this elevation.")
-    min_baseline_lambda: float = Field(15.0, ge=0, description="Solve on baselines longer than this (wavelengths).")
-    passes: int = Field(3, ge=1, description="Passes over the sources.")
-    tol: float = Field(1e-4, gt=0, lt=1, description="Stefcal tolerance of the DD gains.")
-    max_iter: int = Field(30, ge=1, description="Stefcal iterations per pass.")
-    guard: Optional[float] = Field(0.9, gt=0, le=1, description="Subtract instead when peeling removed less than "
-                                   "this fraction of the measured flux; null: off.")
-    batch: int = Field(16, ge=1, description="Integrations solved together (memory ~ batch x n_ant^2).")
-    solint_s: Optional[float] = Field(None, gt=0, description="DD solution interval (s) of the peeled sources: "
-                                      "gains shared over the interval (a phase screen smooth over it), amplitude "
-                                      "per integration (scintillation); rounded to whole integrations, counted "
-                                      "from each time chunk's start. null: DD gains per integration.")
-    fit_positions: bool = Field(False, description="Fit the subtracted sources' positions per integration (matched "
-                                "filter within 30 arcmin, on the peeled data with the source put back), then peel "
-                                "again with them (stored as DD phase gradients).")
-
-
-class TerrestrialConfig(_Section):
-    """Removal of terrestrial signals (cross-talk, near-field RFI) that do not move with the sky."""
-
-    enabled: bool = Field(False, description="Run this stage.")
-    components: int = Field(2, ge=1, description="Rank-1 templates fitted to the zenith-phased average.")
-    min_baseline_lambda: float = Field(15.0, ge=0, description="Fit amplitudes on baselines longer than this.")
-
-
-class MmodeConfig(_Section):
+class MmodeConfig(Section):
     """Sidereal binning and the m-mode transform."""
 
     lmax: int = Field(64, ge=1, description="Largest spherical-harmonic degree.")
@@ -307,7 +218,7 @@ class MmodeConfig(_Section):
         return v
 
 
-class TransferConfig(_Section):
+class TransferConfig(Section):
     """Transfer matrices and normal equations."""
 
     mode: Literal["normal", "store"] = Field("normal", description="'normal': stream G_m; 'store': also write B_m.")
@@ -323,7 +234,7 @@ class TransferConfig(_Section):
     noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
 
 
-class ImagingConfig(_Section):
+class ImagingConfig(Section):
     """The regularised solve for a_lm."""
 
     method: Literal["tikhonov", "min_variance", "moore_penrose", "prior", "smoothness"] = Field(
@@ -336,7 +247,7 @@ class ImagingConfig(_Section):
     prior_map: Optional[str] = Field(None, description="HEALPix FITS map for method: prior.")
 
 
-class CleanConfig(_Section):
+class CleanConfig(Section):
     """m-mode CLEAN (docs/clean.md): PSF by declination, CLEAN to k x jackknife noise, maps, Table 1.
 
     Major cycles over m blocks (paper section 2.4); restored, residual, model and noise maps and
@@ -376,10 +287,10 @@ class CleanConfig(_Section):
     @field_validator("nside")
     @classmethod
     def _nside(cls, v):
-        return _power_of_two(v)
+        return power_of_two(v)
 
 
-class ProductsConfig(_Section):
+class ProductsConfig(Section):
     """Maps, plots, science products (flux scale, spectral index, astrometry), HTML report.
 
     See docs/products.md.
@@ -418,15 +329,15 @@ class ProductsConfig(_Section):
     @field_validator("spectral_index_nside")
     @classmethod
     def _si_nside(cls, v):
-        return _power_of_two(v)
+        return power_of_two(v)
 
     @field_validator("nside")
     @classmethod
     def _nside(cls, v):
-        return _power_of_two(v)
+        return power_of_two(v)
 
 
-class ClusterConfig(_Section):
+class ClusterConfig(Section):
     """Where the dask graph runs."""
 
     kind: Literal["local", "address", "slurm", "pbs", "synchronous"] = Field(
@@ -491,7 +402,7 @@ def check_memory_limit(v):
     return v.strip()
 
 
-class WorkflowConfig(_Section):
+class WorkflowConfig(Section):
     """A whole mmflow workflow."""
 
     run: RunConfig = RunConfig()

@@ -1,0 +1,86 @@
+"""The schema sections of the per-integration half: the corrupted simulation, gain calibration,
+peeling and terrestrial removal (``docs/calibration.md``)."""
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import Field
+
+from mmflow.workflow.config_base import CATALOG_NAMES, Section
+
+
+class CorruptConfig(Section):
+    """Corruptions of the simulated drift scan (``mmflow.simulate.corrupt``); when enabled the data
+    hold XX and YY, each with its own gains and noise, for calibrate, peel and terrestrial to undo."""
+
+    enabled: bool = Field(False, description="Corrupt the simulation (data then hold XX and YY).")
+    seed: int = Field(7, ge=0, description="Random seed of the corruptions.")
+    gains: bool = Field(True, description="Per-antenna, per-pol complex gains: bandpass and a slow phase drift.")
+    sawtooth_db: float = Field(0.1, ge=0, description="HVAC gain sawtooth, peak to peak in power (dB; 0 = off).")
+    dd_sources: list[str] = Field(["Cyg A", "Cas A"], description="Sources of sky.sources given direction-"
+                                  "dependent gains (ionospheric offsets and scintillation).",
+                                  json_schema_extra=CATALOG_NAMES)
+    ionosphere_arcmin: float = Field(20.0, ge=0, description="Largest refractive offset at 36.5 MHz (scales nu^-2).")
+    scintillation: float = Field(0.2, ge=0, description="Scintillation log-amplitude sigma at 36.5 MHz (nu^-2).")
+    crosstalk_jy: float = Field(0.0, ge=0, description="Constant rank-1 cross-talk pattern (Jy; 0 = off).")
+    rfi_jy: float = Field(0.0, ge=0, description="Near-field RFI source 10 km west on the horizon (Jy; 0 = off).")
+    system_jy: float = Field(0.0, ge=0, description="Receiver and unmodelled background power added to every "
+                             "autocorrelation (Jy): it sets the radiometer noise and dominates real autos.")
+
+
+class CalibrateConfig(Section):
+    """Gain calibration (Stefcal) against a source model, after the autocorrelation ripple correction."""
+
+    enabled: bool = Field(False, description="Run this stage.")
+    sources: list[str] = Field(["Cyg A", "Cas A"], min_length=1, description="Sky model (catalogue sources "
+                               "through the beam).", json_schema_extra=CATALOG_NAMES)
+    min_baseline_lambda: float = Field(15.0, ge=0, description="Use baselines longer than this (wavelengths).")
+    solint_s: Optional[float] = Field(None, gt=0, description="Solution interval (s); null: one solution on the "
+                                      "track where the sources are highest, applied to the whole data set.")
+    track_min: float = Field(22.0, gt=0, description="Length of that track (minutes).")
+    tol: float = Field(1e-5, gt=0, lt=1, description="Convergence: ||dg|| / ||g|| below this.")
+    max_iter: int = Field(100, ge=1, description="Stefcal iterations at most.")
+    damping: Literal["half", "rk4", "none"] = Field("half", description="Stefcal damping of the update.")
+    outlier_sigma: Optional[float] = Field(5.0, gt=0, description="Flag antennas whose corrected residuals are "
+                                           "outliers at this many sigma (one at a time); null: off.")
+    ripple: bool = Field(True, description="Correct the autocorrelation ripple (HVAC sawtooth) first.")
+    ripple_smooth_min: float = Field(45.0, gt=0, description="FWHM of the ripple smoothing kernel (minutes).")
+    flag_autos: bool = Field(True, description="After calibration, give the autocorrelations weight 0 in every "
+                             "later stage and the imaging (they stay in vis.zarr and still set the radiometer "
+                             "noise): they hold the receiver power, so a gain error of 1e-3 leaves more than the "
+                             "sky's power in them, and the ripple correction replaces them by their own 45-min "
+                             "smooth (docs/calibration.md).")
+
+
+class PeelConfig(Section):
+    """Per-integration peeling (direction-dependent gains) and subtraction of bright sources."""
+
+    enabled: bool = Field(False, description="Run this stage.")
+    sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], min_length=1,
+                               description="Sources removed (peeled or subtracted).", json_schema_extra=CATALOG_NAMES)
+    peel: list[str] = Field(["Cyg A", "Cas A"], description="Of those, the ones peeled (DD gains) when above "
+                            "peel_min_elevation_deg; the others are subtracted with a fitted flux.",
+                            json_schema_extra=CATALOG_NAMES)
+    peel_min_elevation_deg: float = Field(10.0, ge=0, le=90, description="Peel only above this elevation.")
+    min_baseline_lambda: float = Field(15.0, ge=0, description="Solve on baselines longer than this (wavelengths).")
+    passes: int = Field(3, ge=1, description="Passes over the sources.")
+    tol: float = Field(1e-4, gt=0, lt=1, description="Stefcal tolerance of the DD gains.")
+    max_iter: int = Field(30, ge=1, description="Stefcal iterations per pass.")
+    guard: Optional[float] = Field(0.9, gt=0, le=1, description="Subtract instead when peeling removed less than "
+                                   "this fraction of the measured flux; null: off.")
+    batch: int = Field(16, ge=1, description="Integrations solved together (memory ~ batch x n_ant^2).")
+    solint_s: Optional[float] = Field(None, gt=0, description="DD solution interval (s) of the peeled sources: "
+                                      "gains shared over the interval (a phase screen smooth over it), amplitude "
+                                      "per integration (scintillation); rounded to whole integrations, counted "
+                                      "from each time chunk's start. null: DD gains per integration.")
+    fit_positions: bool = Field(False, description="Fit the subtracted sources' positions per integration (matched "
+                                "filter within 30 arcmin, on the peeled data with the source put back), then peel "
+                                "again with them (stored as DD phase gradients).")
+
+
+class TerrestrialConfig(Section):
+    """Removal of terrestrial signals (cross-talk, near-field RFI) that do not move with the sky."""
+
+    enabled: bool = Field(False, description="Run this stage.")
+    components: int = Field(2, ge=1, description="Rank-1 templates fitted to the zenith-phased average.")
+    min_baseline_lambda: float = Field(15.0, ge=0, description="Fit amplitudes on baselines longer than this.")
