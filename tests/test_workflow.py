@@ -79,6 +79,15 @@ def test_calibration_without_long_enough_baselines_stops_before_solving(tmp_path
     assert not (tmp_path / "run" / "gains.zarr").exists()
 
 
+def test_peeling_without_long_enough_baselines_stops_before_any_fit(tmp_path):
+    """Peel's own minimum baseline: without it every fit would be empty (scale 0) and pass silently."""
+    cfg = small_config(tmp_path / "run", "peel.enabled=true", "peel.sources=[Cyg A]", "peel.peel=[Cyg A]")
+    with pytest.raises(InputError, match="peel.min_baseline_lambda.*no baseline is longer than"
+                                         ".*lower peel.min_baseline_lambda"):
+        run_workflow(cfg, progress=False, log=lambda *a: None)
+    assert not (tmp_path / "run" / "peel.zarr").exists()
+
+
 def _interrupt_run(run_dir, stage, sig, extra=()):
     """Start a CLI run in a subprocess and send ``sig`` once ``stage`` has finished its first chunk."""
     args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, *extra,

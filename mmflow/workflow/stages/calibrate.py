@@ -52,15 +52,15 @@ def _intervals(ctx, tel, lst, integration_s):
     return np.array([[track.start, track.stop]], np.int64), np.array([[0, n]], np.int64)
 
 
-def _check_baselines(tel, pairs, min_lambda):
-    """Refuse, before any solve, a channel with no baseline longer than ``min_lambda``."""
+def check_baselines(tel, pairs, min_lambda, field="calibrate.min_baseline_lambda"):
+    """Refuse, before any solve, a channel with no baseline longer than ``min_lambda`` (the
+    ``field`` that sets it: calibrate's or peel's)."""
     from mmflow.calibrate.baselines import baseline_mask
 
     for f in tel.freqs_hz:
         if not baseline_mask(pairs, tel.layout.enu, float(f), min_lambda).any():
-            raise InputError("workflow", "calibrate.min_baseline_lambda", f"no baseline is longer than "
-                             f"{min_lambda:g} wavelengths at {f / 1e6:.3f} MHz",
-                             "lower calibrate.min_baseline_lambda (the sky model must dominate those baselines)")
+            raise InputError("workflow", field, f"no baseline is longer than {min_lambda:g} wavelengths at "
+                             f"{f / 1e6:.3f} MHz", f"lower {field} (the sky model must dominate those baselines)")
 
 
 def _prepare(ctx):
@@ -72,7 +72,7 @@ def _prepare(ctx):
         raise InputError(str(ctx.run.store("vis.zarr")), "autos", "no autocorrelations: the ripple correction "
                          "needs them", "ingest autocorrelations (telescope.include_autos), or set "
                          "calibrate.ripple=false")
-    _check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)
+    check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
     ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply,
                            {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],

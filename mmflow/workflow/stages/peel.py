@@ -31,6 +31,7 @@ import numpy as np
 from mmflow.io.run_stores import peel_store
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.calibrate import check_baselines
 from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
@@ -38,6 +39,8 @@ def _prepare(ctx):
     vg = ctx.open("vis.zarr")
     nt, _, nf, npol = vg["vis"].shape
     n_ant = vg["antenna_enu"].shape[0]
+    # with no baseline long enough every fit would be empty: refuse before any task
+    check_baselines(ctx.telescope(), vg["pairs"][:], ctx.cfg.peel.min_baseline_lambda, "peel.min_baseline_lambda")
     ctx.create(peel_store(nt, nf, len(ctx.cfg.peel.sources), n_ant, npol, TIME_CHUNK,
                           {"sources": list(ctx.cfg.peel.sources), "peeled": list(ctx.cfg.peel.peel),
                            "modes": {"skip": 0, "peel": 1, "subtract": 2}, "pols": vg.attrs["pols"]}))
