@@ -1,6 +1,7 @@
 """One piece of code per computation: the workflow's transfer/normal/solve stages give the
 engine's normal equations and alm bit for bit (float32 transfer, complex64 Grams)."""
 import numpy as np
+import pytest
 import zarr
 
 from mmflow.conventions import m_slice
@@ -12,9 +13,13 @@ from mmflow.workflow.stages.transfer import relative_weights
 from tests.workflow_helpers import small_config
 
 
-def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path):
+@pytest.mark.parametrize("groups", [1, 3])
+def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path, groups):
+    """One group: bit for bit. Three: each group's partial holds only its baselines' m-modes, and
+    the partials summed in complex128 then rounded once differ from the engine's streaming
+    complex64 sum by rounding only."""
     run = tmp_path / "run"
-    cfg = small_config(run, "transfer.dtype=float32", "transfer.groups=1", "imaging.lcurve=false",
+    cfg = small_config(run, "transfer.dtype=float32", f"transfer.groups={groups}", "imaging.lcurve=false",
                        "mmode.splits=[full]")
     run_workflow(cfg, only=["simulate", "mmodes", "transfer", "normal", "solve"], progress=False,
                  log=lambda *a: None)
@@ -28,16 +33,26 @@ def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path):
                                       chunk_size=cfg.transfer.baseline_chunk, dtype=np.float32)
     assert acc.gram[0].dtype == np.complex64 and ng[gram_name(0, 0)].dtype == np.complex64
     m_block = cfg.transfer.m_block
+    scale = np.abs(acc.gram[0]).max()
+
+    def same(a, b):
+        if groups == 1:
+            assert np.array_equal(a, b)
+        else:
+            assert np.abs(a - b).max() <= 2e-6 * max(scale, np.abs(b).max())
     for m in range(lmax + 1):
         m0 = m - m % m_block
         n = lmax - m + 1
         stored = ng[gram_name(0, m0)][m - m0, :n, :n]
-        assert np.array_equal(np.triu(stored), np.triu(acc.gram[m])), m
-        assert np.array_equal(ng["rhs"][0, 0, m, m:], acc.rhs[m][0].astype(np.complex128)), m
+        same(np.triu(stored), np.triu(acc.gram[m]))
+        same(ng["rhs"][0, 0, m, m:], acc.rhs[m][0].astype(np.complex128))
     im = cfg.imaging
     alm = solve_alm(acc, im.eps, im.method, dict(zero_monopole=im.zero_monopole, filter_m0=im.filter_m0,
                                                  filter_m1_lmin=im.filter_m1_lmin))
     wf = ag["alm"][0, 0]
     assert np.abs(alm).max() > 0
     for m in range(lmax + 1):
-        assert np.array_equal(wf[m, m:], alm[m_slice(lmax, m)]), m
+        if groups == 1:
+            assert np.array_equal(wf[m, m:], alm[m_slice(lmax, m)]), m
+        else:
+            assert np.abs(wf[m, m:] - alm[m_slice(lmax, m)]).max() <= 1e-4 * np.abs(alm).max(), m

@@ -69,21 +69,25 @@ def _transfer_task(ctx, key):
     tel, chunks, lmax_b, groups = _plan(ctx, fi)
     f = tel.freqs_hz[fi]
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
+    group = groups[gk] if gk < len(groups) else []
     t0 = time.perf_counter()
-    mm_all = ctx.read("mmodes.zarr", "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0]
+    # only the group's baselines are kept (all of them are 1 GB at the paper's channel), in the
+    # group's chunk order: chunk k's m-modes are columns starts[k]:starts[k + 1]
+    cols = np.concatenate([c.index for c in group]) if group else np.zeros(0, int)
+    starts = dict(zip((id(c) for c in group), np.cumsum([0] + [len(c.index) for c in group])))
+    mm_group = ctx.read("mmodes.zarr", "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0][..., cols]
     inv_var = ctx.read("mmodes.zarr", "inv_var", (slice(fi, fi + 1),))[0]
     tim = {"read_s": time.perf_counter() - t0}
     inv_var = relative_weights(inv_var) if cfg.transfer.noise_weighting else np.ones_like(inv_var)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
     # accumulators follow the transfer precision: complex64 halves the ~lmax^3/3 Gram memory
-    acc = NormalAccumulator(lmax, mmax, np.dtype(_acc_dtype(cfg)), n_split=mm_all.shape[0])
-    group = groups[gk] if gk < len(groups) else []
+    acc = NormalAccumulator(lmax, mmax, np.dtype(_acc_dtype(cfg)), n_split=mm_group.shape[0])
     on_block = None
     if cfg.transfer.mode == "store":
         on_block = _block_writer(ctx, fi, chunks, cfg.transfer.baseline_chunk)
     t0 = time.perf_counter()
-    accumulate_chunks(acc, tel, f, group, lmax_b, lambda c: mm_all[..., c.index], inv_var, dtype,
-                      GridCache(tel, f), on_block, timings=tim)
+    accumulate_chunks(acc, tel, f, group, lmax_b, lambda c: mm_group[..., starts[id(c)]:starts[id(c)] + len(c.index)],
+                      inv_var, dtype, GridCache(tel, f), on_block, timings=tim)
     tim["accumulate_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     pg = ctx.open("partials.zarr", mode="r+")
