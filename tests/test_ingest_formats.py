@@ -160,3 +160,30 @@ def test_ms_plan_reads_one_file_with_pyuvdata_the_rest_with_casacore_and_checks_
     ingest._plan.cache_clear()
     with pytest.raises(InputError, match=r"time_array.*also in"):
         ingest._plan(str(d / "*.ms"), None, "error")
+
+
+@pytest.mark.parametrize("convention", ["keyword", "history"])
+def test_direct_ms_read_equals_pyuvdata_read_and_unprojection(scan, tmp_path, convention):
+    """The tasks' casacore reader gives what pyuvdata's read + unproject_phase gives, bit for bit
+    (LSTs to 1e-9 rad: computed at the plan's site), whether the conjugation convention is in the
+    main table's keyword or (keyword removed, as in files not written by pyuvdata) in HISTORY."""
+    from casacore.tables import table
+
+    from mmflow.io.readers import _CASACORE_LOCK, _read_pyuvdata
+    from mmflow.io.ms_read import read_ms_direct
+
+    src = sorted(scan["ms"].glob("*.ms"))[5]
+    path = tmp_path / src.name
+    shutil.copytree(src, path)
+    if convention == "history":
+        with table(str(path), readonly=False, ack=False) as t:
+            t.removekeyword("pyuvdata_flip_conj")
+    ref, info = _read_pyuvdata(path, None, None)
+    assert info["phase"] == "zenith"
+    loc = scan["uv"].telescope.location
+    site = (loc.lat.deg, loc.lon.deg, loc.height.to_value("m"))
+    got = read_ms_direct(path, info["pol_indices"], True, site, _CASACORE_LOCK)
+    for name in ("time_jd", "ant1", "ant2", "vis", "flags", "freqs"):
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name), err_msg=name)
+    np.testing.assert_array_equal(got.nsample.astype(np.float32), ref.nsample.astype(np.float32))
+    np.testing.assert_allclose(got.lst, ref.lst, rtol=0, atol=1e-9)

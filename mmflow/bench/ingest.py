@@ -89,15 +89,18 @@ def _ingest_s(pattern, store):
 
     from mmflow.io import ingest
     from mmflow.io.run_stores import vis_store
+    from mmflow.threads import n_threads
     from mmflow.workflow.stages.ingest import TIME_CHUNK
+    from mmflow.workflow.stages.simulate import layout_attrs
 
     cfg = SimpleNamespace(input=SimpleNamespace(path=pattern, format=None, on_bad_file="error", conjugate=False,
                                                 nonfinite="error"))
     ingest._plan.cache_clear()
+    n_threads()  # its first call imports distributed (0.5 s): a worker has it loaded already
     t0 = time.perf_counter()
     plan = ingest.plan_ingest(cfg)
     spec = vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu,
-                     {"source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
+                     {**layout_attrs(plan.layout), "source": "ingest", "epoch_jd": plan.epoch_jd, "files": plan.files,
                       "skipped_files": plan.skipped, "integration_s": plan.integration_s, "pols": plan.pols},
                      TIME_CHUNK, 256)
     g = spec.create(store)  # the stage's own store declaration

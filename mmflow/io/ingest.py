@@ -262,8 +262,10 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     pair_lut[pairs[:, 0], pairs[:, 1]] = np.arange(nbl)
     fis = [int(f) for f in np.unique(row_file)]
 
+    site = (g.attrs["lat_deg"], g.attrs["lon_deg"], g.attrs["height_m"]) if "lat_deg" in g.attrs else None
+
     def one(fi):
-        return read_file(files[fi], cfg.input.format, None if infos is None else infos[fi])
+        return read_file(files[fi], cfg.input.format, None if infos is None else infos[fi], site)
 
     with ThreadPoolExecutor(max(1, min(n_threads(), len(fis)))) as ex:
         parts = list(ex.map(one, fis))

@@ -6,9 +6,12 @@ polarisations (:mod:`mmflow.io.polarization`),
 flags and sample counts, in Jy. A drift-scan UVH5 file whose metadata the plan has already
 read and checked is read directly with h5py (its ``Data/visdata``, ``Data/flags``,
 ``Data/nsamples`` and the header's row arrays, as the UVH5 format defines them), so its
-metadata are not parsed a second time; every other file (MeasurementSet, uvfits, zenith-phased
-data) goes through ``pyuvdata.UVData.read``, and zenith-phased data are unprojected exactly with
-``UVData.unproject_phase``. Both paths give the same numbers (``tests/test_ingest_formats.py``).
+metadata are not parsed a second time. A MeasurementSet whose metadata the plan has checked is
+read directly with python-casacore (:mod:`mmflow.io.ms_read`: the main table's columns,
+pyuvdata's conjugation and unprojection reproduced bit for bit). Every other file (uvfits, files
+read without a plan) goes through ``pyuvdata.UVData.read``, and zenith-phased data are
+unprojected exactly with ``UVData.unproject_phase``. The paths give the same numbers
+(``tests/test_ingest_formats.py``).
 """
 from __future__ import annotations
 
@@ -72,11 +75,17 @@ def read_metadata(path, fmt=None):
     return uv
 
 
-def read_file(path, fmt=None, info=None):
+def read_file(path, fmt=None, info=None, site=None):
     """The kept polarisations (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
-    here from the file when None)."""
-    if info is not None and info["phase"] == "drift" and file_kind(path, fmt) == "uvh5":
+    here from the file when None); ``site`` = ``(lat_deg, lon_deg, height_m)`` of the checked layout lets a
+    MeasurementSet be read directly (its LSTs computed from its times there)."""
+    kind = file_kind(path, fmt)
+    if info is not None and info["phase"] == "drift" and kind == "uvh5":
         out = _read_uvh5_direct(path, info["pol_indices"])
+    elif info is not None and site is not None and kind == "ms":
+        from mmflow.io.ms_read import read_ms_direct
+
+        out = read_ms_direct(path, info["pol_indices"], info["phase"] == "zenith", site, _CASACORE_LOCK)
     else:
         out, info = _read_pyuvdata(path, fmt, info)
     scale = checks.unit_scale(info["vis_units"], out.freqs, path)

@@ -1,0 +1,83 @@
+"""Read one MeasurementSet's rows directly with python-casacore (an ingest task's step).
+
+The plan has read and checked every file's metadata (``mmflow.io.ms_index``: one spectral
+window, the antenna table, correlation types, units, the phase centre at the zenith of each
+integration), so a task needs only the main table's columns. pyuvdata's MS reader re-reads
+every subtable and computes apparent coordinates per file, which costs as much as the data.
+This reader reproduces what ``UVData.read`` followed by ``unproject_phase`` gives (pyuvdata
+docs, "MeasurementSet"; ``tests/test_ingest_formats.py`` compares the stores to the UVH5 path):
+
+* conjugation: an MS stores ``V_21`` where pyuvdata stores ``V_12``; pyuvdata conjugates
+  ``DATA`` and negates ``UVW`` unless the file says it was written in pyuvdata's convention
+  (the main table's ``pyuvdata_flip_conj`` keyword, else a ``pyuvdata`` entry in ``HISTORY``);
+* times ``Time(TIME / 86400, format="mjd", scale=<TIME's MEASINFO Ref>).utc.jd``; LSTs the
+  site's apparent sidereal time at those times (``pyuvdata.utils.get_lst_for_time``);
+* weights ``WEIGHT_SPECTRUM``, else ``WEIGHT`` repeated over channels;
+* zenith-phased rows unprojected to a drift scan as ``unproject_phase`` does: new w = 0,
+  ``V *= exp(-2 pi i (0 - w) nu / c)`` with ``w`` pyuvdata's (sign-flipped) ``UVW[:, 2]``,
+  in the same order of operations, in the column's precision;
+* autocorrelations' parallel hands made real, as the UVH5 reader does.
+"""
+from __future__ import annotations
+
+from contextlib import nullcontext
+
+import numpy as np
+
+SPEED_OF_LIGHT = 299792458.0  # m/s (astropy.constants.c)
+
+
+def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
+    """A :class:`mmflow.io.readers.FileData` of one MS's kept polarisations ``pol_indices``.
+
+    Parameters
+    ----------
+    zenith_phased : bool
+        The plan found the file phased to the zenith of its integrations: unproject it.
+    site : (lat_deg, lon_deg, height_m)
+        Where the LSTs are computed (the plan's checked layout).
+    lock : threading.Lock, optional
+        Held while casacore reads (its table cache is not thread-safe).
+    """
+    from astropy.time import Time
+    from casacore.tables import table
+    from pyuvdata.utils import get_lst_for_time
+
+    from mmflow.io.polarization import select_pols
+    from mmflow.io.readers import FileData
+
+    p = str(path).rstrip("/")
+    with lock or nullcontext():
+        with table(p, ack=False, readonly=True) as t:
+            flip = t.getkeywords().get("pyuvdata_flip_conj", None)
+            time_s = t.getcol("TIME")
+            scale = str(t.getcolkeyword("TIME", "MEASINFO")["Ref"]).lower()
+            ant1, ant2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
+            uvw = t.getcol("UVW")
+            data = t.getcol("DATA")
+            flags = t.getcol("FLAG")
+            try:
+                nsample = t.getcol("WEIGHT_SPECTRUM")
+            except RuntimeError:
+                nsample = np.repeat(t.getcol("WEIGHT")[:, None, :], data.shape[1], axis=1)
+        with table(p + "/SPECTRAL_WINDOW", ack=False, readonly=True) as t:
+            freqs = np.asarray(t.getcol("CHAN_FREQ"), float).ravel()
+        if flip is None:
+            with table(p + "/HISTORY", ack=False, readonly=True) as t:
+                apps = t.getcol("APPLICATION") if t.nrows() > 0 else []
+            flip = not any("pyuvdata" in a for a in apps)
+    if flip:
+        data = np.conj(data)
+        uvw = -uvw
+    if zenith_phased:
+        delta_w = (0.0 - np.asarray(uvw[:, 2], np.float64)).reshape(-1, 1)
+        delta_w_lambda = delta_w * (1.0 / SPEED_OF_LIGHT) * freqs.reshape(1, -1)
+        data *= np.exp((-1j * 2 * np.pi) * delta_w_lambda[:, :, None])
+    time_jd = Time(time_s / 86400.0, format="mjd", scale=scale).utc.jd
+    lat, lon, height = site
+    lst = get_lst_for_time(time_jd, latitude=lat, longitude=lon, altitude=height)
+    vis, flg, ns = select_pols(data, flags, np.asarray(nsample, float), list(pol_indices))
+    auto = ant1 == ant2
+    if auto.any():
+        vis[auto] = vis[auto].real
+    return FileData(time_jd, ant1, ant2, lst, vis, flg, ns, freqs)
