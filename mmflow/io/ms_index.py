@@ -68,13 +68,19 @@ def read_index(path):
                    pos, corr, phase_dir, frame)
 
 
-def convert_times(indices):
-    """Set ``time_array`` (UTC JD) of every index as pyuvdata does, one astropy call per time scale."""
+def ms_time_to_jd(time_mjd_s, scale):
+    """An MS ``TIME`` column (MJD seconds in the column's ``MEASINFO`` scale) as UTC JD, as pyuvdata
+    converts it: ``Time(TIME / 86400, format="mjd", scale=scale).utc.jd``."""
     from astropy.time import Time
 
+    return Time(np.asarray(time_mjd_s) / 86400.0, format="mjd", scale=str(scale).lower()).utc.jd
+
+
+def convert_times(indices):
+    """Set ``time_array`` (UTC JD) of every index as pyuvdata does, one astropy call per time scale."""
     for scale in {ix.time_scale for ix in indices}:
         group = [ix for ix in indices if ix.time_scale == scale]
-        jd = Time(np.concatenate([ix.time_mjd_s for ix in group]) / 86400.0, format="mjd", scale=scale.lower()).utc.jd
+        jd = ms_time_to_jd(np.concatenate([ix.time_mjd_s for ix in group]), scale)
         start = 0
         for ix in group:
             ix.time_array = jd[start:start + len(ix.time_mjd_s)]

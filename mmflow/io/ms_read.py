@@ -10,7 +10,7 @@ docs, "MeasurementSet"; ``tests/test_ingest_formats.py`` compares the stores to 
 * conjugation: an MS stores ``V_21`` where pyuvdata stores ``V_12``; pyuvdata conjugates
   ``DATA`` and negates ``UVW`` unless the file says it was written in pyuvdata's convention
   (the main table's ``pyuvdata_flip_conj`` keyword, else a ``pyuvdata`` entry in ``HISTORY``);
-* times ``Time(TIME / 86400, format="mjd", scale=<TIME's MEASINFO Ref>).utc.jd``; LSTs the
+* times as the plan converts them (:func:`mmflow.io.ms_index.ms_time_to_jd`); LSTs the
   site's apparent sidereal time at those times (``pyuvdata.utils.get_lst_for_time``);
 * weights ``WEIGHT_SPECTRUM``, else ``WEIGHT`` repeated over channels;
 * zenith-phased rows unprojected to a drift scan as ``unproject_phase`` does: new w = 0,
@@ -39,10 +39,10 @@ def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
     lock : threading.Lock, optional
         Held while casacore reads (its table cache is not thread-safe).
     """
-    from astropy.time import Time
     from casacore.tables import table
     from pyuvdata.utils import get_lst_for_time
 
+    from mmflow.io.ms_index import ms_time_to_jd
     from mmflow.io.polarization import select_pols
     from mmflow.io.readers import FileData
 
@@ -51,7 +51,7 @@ def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
         with table(p, ack=False, readonly=True) as t:
             flip = t.getkeywords().get("pyuvdata_flip_conj", None)
             time_s = t.getcol("TIME")
-            scale = str(t.getcolkeyword("TIME", "MEASINFO")["Ref"]).lower()
+            scale = t.getcolkeyword("TIME", "MEASINFO")["Ref"]
             ant1, ant2 = t.getcol("ANTENNA1"), t.getcol("ANTENNA2")
             uvw = t.getcol("UVW")
             data = t.getcol("DATA")
@@ -73,7 +73,7 @@ def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
         delta_w = (0.0 - np.asarray(uvw[:, 2], np.float64)).reshape(-1, 1)
         delta_w_lambda = delta_w * (1.0 / SPEED_OF_LIGHT) * freqs.reshape(1, -1)
         data *= np.exp((-1j * 2 * np.pi) * delta_w_lambda[:, :, None])
-    time_jd = Time(time_s / 86400.0, format="mjd", scale=scale).utc.jd
+    time_jd = ms_time_to_jd(time_s, scale)
     lat, lon, height = site
     lst = get_lst_for_time(time_jd, latitude=lat, longitude=lon, altitude=height)
     vis, flg, ns = select_pols(data, flags, np.asarray(nsample, float), list(pol_indices))
