@@ -1,13 +1,10 @@
 """CLEAN's settings are refused before any work, naming the override, the field, the value and the fix."""
-import os
 
 import pytest
 
-from mmflow.errors import InputError
 from mmflow.workflow.config import load_config
+from tests.workflow_helpers import DEMO, refused_problem
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-DEMO = os.path.join(ROOT, "workflows", "demo.yaml")
 ON = ["clean.enabled=true", "mmode.splits=[full, even, odd]"]
 
 # (overrides, field, text in the problem, text in the fix)
@@ -36,13 +33,7 @@ CASES = [
 
 @pytest.mark.parametrize("overrides, field, problem, fix", CASES, ids=[" ".join(c[0]) for c in CASES])
 def test_bad_clean_setting_is_refused_naming_field_value_and_fix(overrides, field, problem, fix):
-    with pytest.raises(InputError) as info:
-        load_config(DEMO, overrides)
-    err = info.value
-    lines = getattr(err, "problems", [(err.what, err.field, err.problem, err.fix)])
-    hit = [ln for ln in lines if ln[1] == field]
-    assert hit, f"no problem for field {field}: {lines}"
-    _, _, prob, fx = hit[0]
+    (_, _, prob, fx), err = refused_problem(overrides, field, DEMO)
     assert problem in prob, prob
     assert fix in fx, fx
     assert "Fix:" in str(err)

@@ -12,6 +12,7 @@ import yaml
 from mmflow.errors import InputError
 from mmflow.workflow.config import BEAM_PARAMS, WorkflowConfig, load_config, schema_yaml
 from mmflow.workflow.config_errors import ConfigError
+from tests.workflow_helpers import refused_problem
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEMO = os.path.join(ROOT, "workflows", "demo.yaml")
@@ -84,13 +85,7 @@ OVERRIDE_CASES = [
 
 @pytest.mark.parametrize("override, field, problem, fix", OVERRIDE_CASES, ids=[c[0] for c in OVERRIDE_CASES])
 def test_bad_override_names_override_field_value_and_fix(override, field, problem, fix):
-    with pytest.raises(InputError) as info:
-        load_config(DEMO, [override])
-    err = info.value
-    lines = getattr(err, "problems", [(err.what, err.field, err.problem, err.fix)])
-    hit = [ln for ln in lines if ln[1] == field]
-    assert hit, f"no problem for field {field}: {lines}"
-    what, _, prob, fx = hit[0]
+    (what, _, prob, fx), err = refused_problem([override], field, DEMO)
     assert problem in prob, prob
     assert fix in fx, fx
     # the override that set the value is named (cross-field rules may name the other field's origin)

@@ -1,9 +1,8 @@
 """The science products' settings are refused before any work, naming the field, value and fix."""
 import pytest
 
-from mmflow.errors import InputError
 from mmflow.workflow.config import load_config
-from tests.test_clean_config import DEMO
+from tests.workflow_helpers import DEMO, refused_problem
 
 CASES = [
     (["products.flux_scale_sources=[Cyg A, 3C 2866]"], "products.flux_scale_sources", "not in the source catalogue",
@@ -19,14 +18,9 @@ CASES = [
 
 @pytest.mark.parametrize("overrides, field, problem, fix", CASES, ids=[" ".join(c[0]) for c in CASES])
 def test_bad_products_setting_is_refused_naming_field_value_and_fix(overrides, field, problem, fix):
-    with pytest.raises(InputError) as info:
-        load_config(DEMO, overrides)
-    err = info.value
-    lines = getattr(err, "problems", [(err.what, err.field, err.problem, err.fix)])
-    hit = [ln for ln in lines if ln[1] == field]
-    assert hit, f"no problem for field {field}: {lines}"
-    assert problem in hit[0][2], hit[0][2]
-    assert fix in hit[0][3], hit[0][3]
+    (_, _, prob, fx), _ = refused_problem(overrides, field)
+    assert problem in prob, prob
+    assert fix in fx, fx
 
 
 def test_products_defaults_flux_scale_and_spectral_index_on_astrometry_off():

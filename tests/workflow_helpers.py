@@ -1,8 +1,14 @@
 """Small workflow configurations shared by the workflow tests."""
+import os
+
 import numpy as np
+import pytest
 import zarr
 
+from mmflow.errors import InputError
 from mmflow.workflow.config import load_config
+
+DEMO = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "workflows", "demo.yaml")
 
 SMALL = [
     "telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.integration_s=344.6563620",
@@ -11,6 +17,18 @@ SMALL = [
     "products.flux_scale=false",  # its 14-panel figure costs ~2 s a run; tests/test_science_products.py covers it
     "cluster.kind=synchronous",
 ]
+
+
+def refused_problem(overrides, field, path=DEMO):
+    """Load ``path`` with ``overrides``, expect the InputError, and return ``((what, field, problem,
+    fix), error)`` for the problem it names for ``field`` (failing when it names none)."""
+    with pytest.raises(InputError) as info:
+        load_config(path, overrides)
+    err = info.value
+    lines = getattr(err, "problems", [(err.what, err.field, err.problem, err.fix)])
+    hit = [ln for ln in lines if ln[1] == field]
+    assert hit, f"no problem for field {field}: {lines}"
+    return hit[0], err
 
 
 def small_config(run_dir, *extra):
