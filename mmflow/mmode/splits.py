@@ -64,6 +64,15 @@ def day_splits(names):
     return {split_kind(s)[1]: s for s in names if split_kind(s)[0] == "day"}
 
 
+def jackknife_kind(names):
+    """The jackknife that splits ``names`` allow: ``"even_odd"`` when both halves are there (the
+    paper's), else ``"per_day"`` with ``day<k>`` splits, else None
+    (:func:`mmflow.imaging.jackknife.split_variance`)."""
+    if {"even", "odd"} <= set(names):
+        return "even_odd"
+    return "per_day" if day_splits(names) else None
+
+
 def day_index(lsts, times_jd=None):
     """Sidereal day of each integration, counted from the first one (0, 1, ...).
 

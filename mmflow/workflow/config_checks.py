@@ -257,6 +257,8 @@ def _clean_problems(cfg):
                            "(G + eps I)^-1 G, the Tikhonov operator; this method makes another PSF",
                            "use imaging.method: tikhonov (or min_variance) with clean.enabled, "
                            "or clean.enabled: false"))
+    from mmflow.mmode.splits import jackknife_kind
+
     if jackknife_kind(cfg.mmode.splits) is None and c.threshold is None and c.rel_threshold == 0:
         out.append(Problem(("clean", "threshold"), None, "CLEAN stops at threshold_sigma x the jackknife noise, "
                            f"but mmode.splits = {list(cfg.mmode.splits)} has no even and odd halves and no day<k> "
@@ -276,16 +278,6 @@ def _clean_problems(cfg):
             out.append(Problem(("clean", "highpass_width"), c.highpass_width, "wider than highpass_lmin = "
                                f"{c.highpass_lmin}", f"use clean.highpass_width <= {c.highpass_lmin}"))
     return out
-
-
-def jackknife_kind(splits):
-    """The jackknife the clean stage and the products use: ``"even_odd"`` when both halves are
-    split, else ``"per_day"`` with ``day<k>`` splits, else None."""
-    from mmflow.mmode.splits import day_splits
-
-    if {"even", "odd"} <= set(splits):
-        return "even_odd"
-    return "per_day" if day_splits(splits) else None
 
 
 def _split_problems(cfg):

@@ -94,6 +94,14 @@ def _check_time_splits(ctx, vis, splits, n_bins):
     return {"n_days": int(days.max()) + 1, "split_weights": split_weights(splits, masks, int(good.sum()))}
 
 
+def split_fractions(ctx, splits):
+    """Each split's share of the integrations of ``vis.zarr`` (:func:`mmflow.mmode.splits.split_weights`):
+    the ``f_k`` of the per-day jackknife, for any stage that reads ``vis.zarr``."""
+    vis = ctx.open("vis.zarr")
+    lst, _, _, masks = _time_splits(ctx, vis, list(splits))
+    return split_weights(splits, masks, int(np.isfinite(lst).sum()))
+
+
 def _task(ctx, key):
     cfg = ctx.cfg
     vg = ctx.open("vis.zarr")
