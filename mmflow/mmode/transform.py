@@ -157,5 +157,7 @@ def split_mmode_transform(binned, mmax, offset, splits=("full",)):
                                  f"sidereal bins, not {n}", "set mmode.n_bins to an even number")
             out.append(mmode_transform(binned[start::2], mmax, offset[start::2] + start * TWO_PI / n))
         else:
-            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'", f"use {SPLITS}")
+            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
+                             f"use {SPLITS} (time subsets day<k> / day / night are binned on their own: "
+                             "mmflow.mmode.splits)")
     return np.stack(out)

@@ -9,8 +9,8 @@ computed by those kernels, this module only maps them over m blocks and cycles:
   high-pass CLEAN) as the residual of cycle 0;
 * ``next_cycle`` on the driver: at cycle 0 fit the PSF table (:func:`psf.fit_psf_columns`)
   and the jackknife noise and threshold (:mod:`mmflow.imaging.jackknife`, from the even and
-  odd splits of ``alm.zarr``, else from its ``day<k>`` splits); then, per frequency not yet stopped (:func:`clean.stop_reason`),
-  synthesise the residual map and pick this cycle's components (:func:`clean.plan_cycle`);
+  odd splits of ``alm.zarr``, else from its ``day<k>`` splits); then, per frequency not yet
+  stopped (:func:`clean.stop_reason`), synthesise the residual map and pick this cycle's components (:func:`clean.plan_cycle`);
 * cycle tasks, one per (frequency, m block): ``residual[c + 1] = residual[c] - observe(x)``
   (:func:`clean.observe_and_subtract`), ``x`` the block of the cycle's components' alm;
 * finalize: the restored map (frame of date) per frequency.

@@ -8,6 +8,11 @@ m-modes of each data split within each baseline's band limit (flagged time is no
 thermal noise from the radiometer equation or from the fit's residual, and per-baseline
 coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
 
+Time-subset splits (``day<k>``, ``day``, ``night``; :mod:`mmflow.mmode.splits`) are binned from
+their own integrations and fitted the same way; their masks are computed once per process from
+``vis.zarr``'s ``lst`` and ``time_jd``, and the prepare refuses splits the data cannot make
+(:func:`mmflow.mmode.splits.split_problems`) before any task.
+
 With ``mmode.prior_run`` the fit of every chunk with flagged time takes as its prior the
 m-modes of an earlier run's map (:func:`mmflow.mmode.gapfill.prior_mmodes` of that run's
 ``alm.zarr``, :mod:`mmflow.workflow.prior_run`): what a baseline's gaps leave unmeasured comes
