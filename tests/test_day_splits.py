@@ -76,6 +76,11 @@ def test_day_night_masks_follow_the_suns_elevation_at_the_site():
     np.testing.assert_array_equal(masks["day"][clear], (ref > 0)[clear])
     np.testing.assert_array_equal(masks["night"], ~masks["day"])
     assert 0.3 < masks["day"][:49].mean() < 0.6  # a February day at +37 deg: ~11 h of Sun
+    # many times: astropy on a 300 s grid, interpolated
+    many = 2457802.0 + np.arange(1500) * 61.0 / 86400.0
+    fast = sp.sun_elevation_deg(many, lat, lon, 1222.0)
+    assert np.abs(fast - _almanac_sun_elevation_deg(many, lat, lon)).max() < 0.02
+    assert np.abs(fast[::50] - sp.sun_elevation_deg(many[::50], lat, lon, 1222.0)).max() < 0.005
 
 
 def test_split_problems_name_the_split_and_the_reason():
