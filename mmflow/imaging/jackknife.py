@@ -15,6 +15,11 @@ variance is
 ``sigma^2 = (1/2) mean_observed(|odd - all|^2 + |even - all|^2)``,
 
 unbiased for independent noise in the two halves: ``odd - all = (odd - even) / 2``.
+
+With data of several sidereal days, the ``day<k>`` splits (:mod:`mmflow.mmode.splits`) give a
+per-day jackknife (:func:`per_day_variance`), which also sees errors slower than one
+integration (but faster than a day); the ``day`` / ``night`` splits give a map of day-night
+systematics (:func:`day_night_difference`), not a noise estimate.
 """
 from __future__ import annotations
 
@@ -62,6 +67,94 @@ def jackknife_variance(map_all, map_even, map_odd, mask=None):
     return float(0.5 * np.mean(np.abs(d_odd) ** 2 + np.abs(d_even) ** 2))
 
 
+def per_day_variance(map_all, day_maps, fractions, mask=None):
+    """Per-day jackknife estimate of the full map's noise variance, over the pixels in ``mask``:
+
+    ``sigma_all^2 = mean_k [ f_k / (1 - f_k) ] |day_k - all|^2``,
+
+    which for ``D`` equal days (``f_k = 1/D``) is ``sigma_all^2 = mean_k |day_k - all|^2 / (D - 1)``.
+
+    Derivation: day ``k`` holds the share ``f_k`` of the data's weight (its integrations over
+    all), its map noise ``n_k`` has variance ``sigma_all^2 / f_k`` (inverse-variance weights
+    add), and the full map is the weighted mean ``all = sum_j f_j day_j`` (the same linear
+    operator images every split). Then ``day_k - all = (1 - f_k) n_k - sum_{j != k} f_j n_j``
+    has variance ``(1 - f_k)^2 sigma_all^2 / f_k + sum_{j != k} f_j sigma_all^2
+    = sigma_all^2 (1 - f_k) / f_k``, so each listed day gives an unbiased
+    ``f_k / (1 - f_k) |day_k - all|^2``; the mean over the listed days (any subset of the data's
+    days) is the estimate. For ``D = 2`` equal days it is
+    ``(1/2)(|day_0 - all|^2 + |day_1 - all|^2)``, the even/odd formula of :func:`jackknife_variance`.
+    Unequal days (a flagged stretch, a partial day refused by the stage below min_coverage) enter
+    through ``f_k``, the day's share of the integrations; this assumes each day's weight is
+    spread over the sidereal bins like the full data's (a day with a long gap is noisier at
+    the LSTs it misses, which one ``f_k`` cannot say).
+
+    Parameters
+    ----------
+    map_all : ndarray
+        The full data's map.
+    day_maps : sequence of ndarray
+        The maps of the ``day<k>`` splits (all days of the data or some of them).
+    fractions : sequence of float
+        ``f_k``, each day's share of the data's integrations (``0 < f_k < 1``).
+    """
+    sel = slice(None) if mask is None else np.asarray(mask, bool)
+    f = np.asarray(fractions, float)
+    if len(day_maps) == 0 or len(f) != len(day_maps) or np.any((f <= 0) | (f >= 1)):
+        raise InputError("jackknife", "fractions", f"{len(day_maps)} day maps with shares {f.tolist()}",
+                         "give one share 0 < f_k < 1 per day map (two or more days in the data)")
+    full = np.asarray(map_all)[sel]
+    terms = [fk / (1 - fk) * np.mean(np.abs(np.asarray(m)[sel] - full) ** 2) for m, fk in zip(day_maps, f)]
+    return float(np.mean(terms))
+
+
+def day_night_difference(map_day, map_night):
+    """The day/night systematics map ``(day - night) / 2``.
+
+    A systematics check, not a noise estimate: the two halves differ by the thermal noise
+    *and* by everything that depends on the time of day (the Sun and its sidelobes, the
+    day-time ionosphere, RFI and the system temperature's daily cycle). With equal halves the
+    noise alone gives it the rms of the full map's noise (``Var = (sigma_d^2 + sigma_n^2) / 4 =
+    sigma_all^2``); an rms well above the jackknife sigma measures day-night systematics. Only
+    meaningful for data spanning months, where each half covers every LST.
+    """
+    return 0.5 * (np.asarray(map_day) - np.asarray(map_night))
+
+
+def masked_rms(hmap, mask=None):
+    """``sqrt(mean |x|^2)`` over the pixels in ``mask``."""
+    sel = slice(None) if mask is None else np.asarray(mask, bool)
+    return float(np.sqrt(np.mean(np.abs(np.asarray(hmap)[sel]) ** 2)))
+
+
+def split_variance(maps, kind, fractions=None, mask=None):
+    """The full map's jackknife noise variance from the split maps ``{name: map}``.
+
+    ``kind``: ``"even_odd"`` (:func:`jackknife_variance` of ``full``, ``even``, ``odd``) or
+    ``"per_day"`` (:func:`per_day_variance` over every ``day<k>`` map, ``fractions[name]`` its ``f_k``).
+    """
+    from mmflow.mmode.splits import day_splits
+
+    if kind == "even_odd":
+        return jackknife_variance(maps["full"], maps["even"], maps["odd"], mask)
+    if kind == "per_day":
+        days = sorted(day_splits(maps).items())
+        return per_day_variance(maps["full"], [maps[s] for _, s in days], [fractions[s] for _, s in days], mask)
+    raise ValueError(f"unknown jackknife '{kind}'")
+
+
+def noise_realisation(maps, kind, fractions=None):
+    """One realisation of the full map's noise from the splits (alm or maps, linear):
+    ``(odd - even) / 2`` (even/odd), else ``sqrt(f_k / (1 - f_k)) (day_k - all)`` of the first
+    listed day (per-day): each has the variance the jackknife estimates."""
+    from mmflow.mmode.splits import day_splits
+
+    if kind == "even_odd":
+        return 0.5 * (np.asarray(maps["odd"]) - np.asarray(maps["even"]))
+    name = day_splits(maps)[min(day_splits(maps))]
+    f = float(fractions[name])
+    return np.sqrt(f / (1 - f)) * (np.asarray(maps[name]) - np.asarray(maps["full"]))
+
+
 def noise_summary(sigma_jy_sr, freq_hz, beam_solid_angle_sr):
     """The noise in the units of Table 1: K and mJy/beam (``sigma Omega_beam``)."""
     return {"jy_per_sr": float(sigma_jy_sr),
@@ -72,9 +165,15 @@ def noise_summary(sigma_jy_sr, freq_hz, beam_solid_angle_sr):
 def jackknife_noise(map_all, map_even, map_odd, mask, freq_hz, psf_table, beam_dec_deg=45.0):
     """Table 1's noise: jackknife sigma (Jy/sr, K, mJy/beam), the beam being the fitted PSF
     main lobe at ``beam_dec_deg`` (``Omega = pi / (4 ln 2) major minor``)."""
+    return beam_noise(np.sqrt(jackknife_variance(map_all, map_even, map_odd, mask)), freq_hz, psf_table,
+                      beam_dec_deg)
+
+
+def beam_noise(sigma, freq_hz, psf_table, beam_dec_deg=45.0):
+    """:func:`noise_summary` of ``sigma`` (Jy/sr) with the fitted PSF main lobe at ``beam_dec_deg`` as
+    the beam, and that beam's solid angle."""
     from mmflow.imaging.psf import gaussian_solid_angle, interp_table
 
-    sigma = np.sqrt(jackknife_variance(map_all, map_even, map_odd, mask))
     dec = np.deg2rad(beam_dec_deg)
     omega = gaussian_solid_angle(interp_table(psf_table, dec, "major"), interp_table(psf_table, dec, "minor"))
     return {**noise_summary(sigma, freq_hz, omega), "beam_solid_angle_sr": float(omega)}

@@ -189,7 +189,7 @@ def summary_from_run(run_dir):
     return s
 
 
-_CLEAN_IMAGES = ("restored", "residual", "model", "noise")
+_CLEAN_IMAGES = ("restored", "residual", "model", "noise", "daynight")
 
 
 def _channel(run, info, s):
@@ -206,7 +206,7 @@ def _channel(run, info, s):
         ch.files["map (FITS)"] = facts.pop("fits")
     for name, img in (facts.pop("images", None) or {}).items():
         if img.get("png"):
-            ch.images.append(Figure(img["png"], f"CLEAN {name} at {mhz}"))
+            ch.images.append(Figure(img["png"], _image_caption(name, mhz, facts.get("noise") or {})))
         if img.get("fits"):
             ch.files[f"{name} (FITS)"] = img["fits"]
     stamps = facts.pop("psf_stamps", None) or []
@@ -226,6 +226,16 @@ def _channel(run, info, s):
         facts.pop(k, None)
     ch.info = facts
     return ch
+
+
+def _image_caption(name, mhz, noise):
+    """The caption of one CLEAN image; the day/night map's says its rms beside the jackknife sigma."""
+    dn = (noise.get("by_split") or {}).get("day_night")
+    if name != "daynight" or not dn:
+        return f"CLEAN {name} at {mhz}"
+    return (f"day/night systematics (day - night) / 2 at {mhz}: rms {dn['kelvin']:.3g} K over the seen sky, "
+            f"jackknife noise {noise.get('kelvin', float('nan')):.3g} K (a systematics check, not a noise estimate: "
+            "noise alone gives about the jackknife sigma)")
 
 
 def _read_json(path):
@@ -317,18 +327,24 @@ def _facts(d):
 
 
 def table1_html(rows):
-    """Table 1 as the paper lays it out (FWHM as ``major' x minor'`` per declination)."""
+    """Table 1 as the paper lays it out (FWHM as ``major' x minor'`` per declination), then the
+    noise of each jackknife the splits allow and the day/night rms
+    (:func:`mmflow.analysis.table1.split_columns`)."""
+    from mmflow.analysis.table1 import split_columns
+
     if not rows:
         return "<p>none</p>"
     decs = [k[len("fwhm_major_arcmin_dec"):] for k in rows[0] if k.startswith("fwhm_major_arcmin_dec")]
     head = ["#", "&nu; (MHz)", "&Delta;&nu; (MHz)"] + [f"FWHM at &delta; = {_esc(d)}&deg;" for d in decs] + \
-        ["noise (K)", "noise (mJy/beam)", "fraction &sigma; &gt; &radic;&epsilon;"]
+        ["noise (K)", "noise (mJy/beam)", "fraction &sigma; &gt; &radic;&epsilon;"] + \
+        [f"{_esc(label)} {u}" for _, label in split_columns(rows) for u in ("(K)", "(mJy/beam)")]
     out = ["<table><tr>" + "".join(f"<th>{h}</th>" for h in head) + "</tr>"]
     for i, r in enumerate(rows, 1):
         cells = [str(i), f"{r['freq_mhz']:.3f}", f"{r['bandwidth_mhz']:.3f}"]
         cells += [f"{r['fwhm_major_arcmin_dec' + d]:.1f}&prime; &times; {r['fwhm_minor_arcmin_dec' + d]:.1f}&prime;"
                   for d in decs]
         cells += [f"{r['noise_k']:.0f}", f"{r['noise_mjy_per_beam']:.0f}", f"{r['fraction_of_modes']:.3f}"]
+        cells += [f"{r[f'noise_{u}_{k}']:.0f}" for k, _ in split_columns(rows) for u in ("k", "mjy_per_beam")]
         out.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
     return "".join(out) + "</table>"
 

@@ -355,7 +355,8 @@ def split_lsq_mmodes(binned, bin_weight, mmax, offset=None, splits=("full",), ba
                                       offset[start::2] + start * TWO_PI / n, **kw))
         else:
             raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
-                             "use ('full', 'even', 'odd')")
+                             "use ('full', 'even', 'odd') (time subsets day<k> / day / night are binned on their "
+                             "own: mmflow.mmode.splits)")
     return np.stack([r.mmodes for r in results]), results
 
 

@@ -59,9 +59,7 @@ def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source
         t_bad = np.unique(np.nonzero(bad)[0])[:5]
         raise InputError(source, "visibilities", f"{int(bad.sum())} NaN/inf values that are not flagged "
                          f"(first integrations {t_bad.tolist()})", "flag them (weight 0) or fix the data")
-    pos = np.mod(lsts, TWO_PI) / TWO_PI * n_bins
-    idx = np.round(pos).astype(int) % n_bins
-    delta = (pos - np.round(pos)) * TWO_PI / n_bins
+    idx, delta = bin_index(lsts, n_bins)
     flat_v = np.where(w > 0, vis, 0).reshape(len(vis), -1)
     flat_w = w.reshape(len(vis), -1)
     acc = np.zeros((n_bins, flat_v.shape[1]), np.complex128)
@@ -83,6 +81,13 @@ def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source
     np.add.at(off_w, idx, w_t)
     offset = np.where(off_w > 0, off_acc / np.where(off_w > 0, off_w, 1), 0.0)
     return binned.reshape(shape), wsum.reshape(shape), offset
+
+
+def bin_index(lsts, n_bins):
+    """Nearest sidereal bin ``n = round(N phi / 2 pi) mod N`` of each LST and its offset
+    ``phi - 2 pi n / N`` (radians, within half a bin): the binning of :func:`sidereal_bins`."""
+    pos = np.mod(np.asarray(lsts, float), TWO_PI) / TWO_PI * n_bins
+    return np.round(pos).astype(int) % n_bins, (pos - np.round(pos)) * TWO_PI / n_bins
 
 
 def mmode_transform(binned, mmax, offset=None):
@@ -152,5 +157,7 @@ def split_mmode_transform(binned, mmax, offset, splits=("full",)):
                                  f"sidereal bins, not {n}", "set mmode.n_bins to an even number")
             out.append(mmode_transform(binned[start::2], mmax, offset[start::2] + start * TWO_PI / n))
         else:
-            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'", f"use {SPLITS}")
+            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
+                             f"use {SPLITS} (time subsets day<k> / day / night are binned on their own: "
+                             "mmflow.mmode.splits)")
     return np.stack(out)

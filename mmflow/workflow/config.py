@@ -186,10 +186,13 @@ class MmodeConfig(Section):
     min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day each baseline must "
                                 "cover (below: coverage_policy); a run where most baselines fall below stops.")
     baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
-    splits: list[Literal["full", "even", "odd"]] = Field(
-        ["full"], description="Data splits carried through m-modes, right-hand sides and alm: 'full' first, "
-        "then e.g. 'even' and 'odd' sidereal bins for jackknife noise maps (one transfer pass for all).",
-        json_schema_extra={"allowed": "'full' first, then each of even | odd at most once"})
+    splits: list[str] = Field(
+        ["full"], description="Data splits carried through m-modes, right-hand sides and alm (one transfer pass "
+        "for all; docs/mmodes.md): 'full' first, then 'even' / 'odd' sidereal bins (jackknife halves), 'day<k>' "
+        "the k-th sidereal day of the data (k = 0, 1, ...; per-day jackknife), 'day' / 'night' the integrations "
+        "with the Sun above / below the horizon (a systematics check for data spanning months).",
+        json_schema_extra={"allowed": "'full' first, then each of even | odd | day<k> (k = 0, 1, ...) | day | "
+                           "night at most once"})
     noise: Literal["auto", "radiometer", "data"] = Field(
         "auto", description="Thermal noise per baseline: 'radiometer' sigma^2 = V_ii V_jj / (dnu tau) from the "
         "autocorrelations; 'data' from the residual of each baseline's band-limited m-mode fit (the sky removed, "
@@ -213,6 +216,14 @@ class MmodeConfig(Section):
     @field_validator("splits")
     @classmethod
     def _full_first(cls, v):
+        from mmflow.mmode.splits import split_kind
+
+        for s in v:
+            try:
+                split_kind(s)
+            except ValueError:
+                raise BadValue(f"unknown split '{s}'", "use full, even, odd, day<k> (k = 0, 1, ...: the k-th "
+                               "sidereal day), day or night, e.g. mmode.splits=[full, day0, day1]") from None
         if not v or v[0] != "full" or len(set(v)) != len(v):
             raise BadValue("'full' must come first and each split once", "write e.g. mmode.splits=[full, even, odd]")
         return v
@@ -263,7 +274,8 @@ class CleanConfig(Section):
                                  "the cycle's largest (0: the paper's N largest pixels).")
     absolute: bool = Field(True, description="Rank peaks by |residual| (negative components allowed).")
     threshold_sigma: float = Field(3.0, gt=0, description="Stop when the residual peak is below this many "
-                                   "jackknife noise sigmas (needs mmode.splits with even and odd).")
+                                   "jackknife noise sigmas (needs mmode.splits with even and odd, or day<k> "
+                                   "splits of data spanning two or more sidereal days).")
     threshold: Optional[float] = Field(None, gt=0, description="Stop below this residual peak instead "
                                        "(threshold_unit); null: threshold_sigma x the jackknife noise.")
     threshold_unit: Literal["K", "Jy/sr"] = Field("K", description="Unit of threshold.")

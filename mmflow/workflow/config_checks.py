@@ -257,11 +257,13 @@ def _clean_problems(cfg):
                            "(G + eps I)^-1 G, the Tikhonov operator; this method makes another PSF",
                            "use imaging.method: tikhonov (or min_variance) with clean.enabled, "
                            "or clean.enabled: false"))
-    jackknife = {"even", "odd"} <= set(cfg.mmode.splits)
-    if not jackknife and c.threshold is None and c.rel_threshold == 0:
+    from mmflow.mmode.splits import jackknife_kind
+
+    if jackknife_kind(cfg.mmode.splits) is None and c.threshold is None and c.rel_threshold == 0:
         out.append(Problem(("clean", "threshold"), None, "CLEAN stops at threshold_sigma x the jackknife noise, "
-                           f"but mmode.splits = {list(cfg.mmode.splits)} has no even and odd halves to estimate it",
-                           "set mmode.splits=[full, even, odd] (one transfer pass for all), or give clean.threshold "
+                           f"but mmode.splits = {list(cfg.mmode.splits)} has no even and odd halves and no day<k> "
+                           "splits to estimate it", "set mmode.splits=[full, even, odd] (one transfer pass for all; "
+                           "or day0, day1, ... for data of several days), or give clean.threshold "
                            "(in clean.threshold_unit) or clean.rel_threshold"))
     if c.min_separation_deg < 180.0 / lmax:
         out.append(Problem(("clean", "min_separation_deg"), c.min_separation_deg,
@@ -276,6 +278,22 @@ def _clean_problems(cfg):
             out.append(Problem(("clean", "highpass_width"), c.highpass_width, "wider than highpass_lmin = "
                                f"{c.highpass_lmin}", f"use clean.highpass_width <= {c.highpass_lmin}"))
     return out
+
+
+def _split_problems(cfg):
+    """``day<k>`` splits of a simulation against the days it simulates (the stage checks ingested data,
+    and ``day`` / ``night``, in its prepare: :func:`mmflow.mmode.splits.split_problems`)."""
+    from mmflow.mmode.splits import day_index, day_splits, split_problems
+    from mmflow.simulate.scene import drift_scan_lsts
+
+    mm, ob = cfg.mmode, cfg.observation
+    if cfg.source != "simulate" or not day_splits(mm.splits):
+        return []
+    n = ob.n_integrations or int(round(SIDEREAL_DAY_S / ob.integration_s))
+    lsts = drift_scan_lsts(np.deg2rad(ob.start_lst_deg), ob.integration_s, np.arange(n))
+    n_bins = mm.n_bins or int(round(SIDEREAL_DAY_S / ob.integration_s))
+    return [Problem(("mmode", "splits"), name, problem, fix)
+            for name, problem, fix in split_problems(mm.splits, lsts, day_index(lsts), None, n_bins, mm.min_coverage)]
 
 
 def _products_problems(cfg):
@@ -294,7 +312,8 @@ def _products_problems(cfg):
 
 def check_config(cfg):
     """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
-    out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg) + _products_problems(cfg)
+    out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg) + _products_problems(cfg) + \
+        _split_problems(cfg)
     if not any(p.loc[:1] == ("beam",) for p in out):
         out.extend(_beam_build_problems(cfg))
     return out

@@ -9,8 +9,8 @@ computed by those kernels, this module only maps them over m blocks and cycles:
   high-pass CLEAN) as the residual of cycle 0;
 * ``next_cycle`` on the driver: at cycle 0 fit the PSF table (:func:`psf.fit_psf_columns`)
   and the jackknife noise and threshold (:mod:`mmflow.imaging.jackknife`, from the even and
-  odd splits of ``alm.zarr``); then, per frequency not yet stopped (:func:`clean.stop_reason`),
-  synthesise the residual map and pick this cycle's components (:func:`clean.plan_cycle`);
+  odd splits of ``alm.zarr``, else from its ``day<k>`` splits); then, per frequency not yet
+  stopped (:func:`clean.stop_reason`), synthesise the residual map and pick this cycle's components (:func:`clean.plan_cycle`);
 * cycle tasks, one per (frequency, m block): ``residual[c + 1] = residual[c] - observe(x)``
   (:func:`clean.observe_and_subtract`), ``x`` the block of the cycle's components' alm;
 * finalize: the restored map (frame of date) per frequency.
@@ -259,11 +259,40 @@ def _split_alm(ctx, fi, lmax, mmax):
     return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
 
 
-def _setup_tables(ctx, g):
-    """Cycle 0 on the driver: PSF tables, jackknife noise and the stop threshold per frequency."""
+def jackknife_splits(ctx, kind=None):
+    """``(kind, splits, f_k)`` of the jackknife (:func:`mmflow.mmode.splits.jackknife_kind`: even/odd,
+    else per-day; or the ``kind`` asked for): the splits it images and each split's share of the
+    integrations (:func:`mmflow.workflow.stages.mmodes.split_fractions`); ``(None, (), {})`` without one."""
+    from mmflow.mmode.splits import day_splits, jackknife_kind
+    from mmflow.workflow.stages.mmodes import split_fractions
+
+    splits = ctx.cfg.mmode.splits
+    kind = jackknife_kind(splits) if kind is None else kind
+    if kind == "even_odd" and {"even", "odd"} <= set(splits):
+        return kind, ("full", "even", "odd"), {}
+    if kind == "per_day" and day_splits(splits):
+        used = ("full",) + tuple(day_splits(splits).values())
+        return kind, used, split_fractions(ctx, used)
+    return None, (), {}
+
+
+def jackknife_sigma(alms, jackknife, lmax, nside, mask, l_weights=None):
+    """The full map's jackknife sigma (Jy/sr) over ``mask`` (frame of date) from the split alm
+    ``{name: healpy alm}`` (:func:`mmflow.imaging.jackknife.split_variance`); ``jackknife`` from
+    :func:`jackknife_splits`; ``l_weights``: of high-pass CLEAN's ``H`` maps (None: the maps)."""
     import healpy
 
-    from mmflow.imaging.jackknife import jackknife_noise, jackknife_variance
+    from mmflow.imaging.jackknife import split_variance
+
+    kind, used, fractions = jackknife
+    maps = {s: healpy.alm2map(alms[s] if l_weights is None else psf.apply_l_weights(alms[s], lmax, l_weights),
+                              nside, lmax=lmax) for s in used}
+    return float(np.sqrt(split_variance(maps, kind, fractions, mask)))
+
+
+def _setup_tables(ctx, g):
+    """Cycle 0 on the driver: PSF tables, jackknife noise and the stop threshold per frequency."""
+    from mmflow.imaging.jackknife import beam_noise
     from mmflow.sky import units
 
     cfg = ctx.cfg
@@ -274,6 +303,7 @@ def _setup_tables(ctx, g):
     nside = clean_nside(cfg)
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(np.deg2rad(_lat(ctx))))
     freqs = ctx.read("vis.zarr", "freqs_hz")
+    jk = jackknife_splits(ctx)
     for fi in range(g["threshold"].shape[0]):
         cols = psf_alm_columns(g, fi, lmax, blocks)
         tables = [psf.fit_psf_columns(cols, lmax, decs)]
@@ -281,15 +311,13 @@ def _setup_tables(ctx, g):
         ctx.write(g, "psf_table", (slice(fi, fi + 1),), np.stack([psf.table_to_array(t) for t in tables])[None],
                   allow_nan=True)
         noise, sigma_clean = np.full(len(NOISE_FIELDS), np.nan), None
-        if {"even", "odd"} <= set(cfg.mmode.splits):
+        if jk[0] is not None:
             alms = _split_alm(ctx, fi, lmax, mmax)
-            maps = {s: healpy.alm2map(alms[s], nside, lmax=lmax) for s in ("full", "even", "odd")}
-            nz = jackknife_noise(maps["full"], maps["even"], maps["odd"], mask, float(freqs[fi]), tables[0])
+            sigma_clean = jackknife_sigma(alms, jk, lmax, nside, mask)
+            nz = beam_noise(sigma_clean, float(freqs[fi]), tables[0])
             noise = np.array([nz[k] for k in NOISE_FIELDS])
-            sigma_clean = nz["jy_per_sr"]
             if w is not None:  # CLEAN sees H maps: their noise sets its threshold
-                hm = {s: healpy.alm2map(psf.apply_l_weights(alms[s], lmax, w), nside, lmax=lmax) for s in maps}
-                sigma_clean = float(np.sqrt(jackknife_variance(hm["full"], hm["even"], hm["odd"], mask)))
+                sigma_clean = jackknife_sigma(alms, jk, lmax, nside, mask, w)
         ctx.write(g, "noise", (slice(fi, fi + 1),), noise[None], allow_nan=True)
         if c.threshold is not None:
             thr = float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", float(freqs[fi])))

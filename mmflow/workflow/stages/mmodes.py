@@ -8,6 +8,11 @@ m-modes of each data split within each baseline's band limit (flagged time is no
 thermal noise from the radiometer equation or from the fit's residual, and per-baseline
 coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
 
+Time-subset splits (``day<k>``, ``day``, ``night``; :mod:`mmflow.mmode.splits`) are binned from
+their own integrations and fitted the same way; their masks are computed once per process from
+``vis.zarr``'s ``lst`` and ``time_jd``, and the prepare refuses splits the data cannot make
+(:func:`mmflow.mmode.splits.split_problems`) before any task.
+
 With ``mmode.prior_run`` the fit of every chunk with flagged time takes as its prior the
 m-modes of an earlier run's map (:func:`mmflow.mmode.gapfill.prior_mmodes` of that run's
 ``alm.zarr``, :mod:`mmflow.workflow.prior_run`): what a baseline's gaps leave unmeasured comes
@@ -15,13 +20,17 @@ from the map (what the array saw of that sky at other times and on other baselin
 """
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
-from mmflow.errors import CoverageError
+from mmflow.errors import CoverageError, InputError
 from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
+from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, split_weights, \
+    sun_elevation_deg
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
 from mmflow.workflow.context import SIDEREAL_DAY_S
@@ -46,9 +55,56 @@ def _prepare(ctx):
     if cfg.mmode.prior_run is not None:  # channels and epoch of ingested data are known only now
         check_prior_run(cfg.mmode.prior_run, cfg.mmode.lmax, mmax, ctx.run.path, vis["freqs_hz"][:],
                         float(vis.attrs["epoch_jd"]))
-    ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1],
-                            {"mmax": mmax, "n_bins": n_bins, "splits": splits}))
+    attrs = {"mmax": mmax, "n_bins": n_bins, "splits": splits}
+    if any(is_time_split(s) for s in splits):
+        attrs.update(_check_time_splits(ctx, vis, splits, n_bins))
+    ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1], attrs))
     return [f"b{i:05d}" for i in range(-(-nbl // vis["vis"].chunks[1]))]
+
+
+def _time_splits(ctx, vis, splits):
+    """``(lst, days, {split: integration mask})`` over every integration of ``vis.zarr`` (NaN LSTs in no
+    split), the Sun's elevation computed only for ``day`` / ``night``; cached per process for the
+    data's times (every task of a run needs the same masks)."""
+    lst, times = vis["lst"][:], vis["time_jd"][:]
+    a = vis.attrs
+    sun = any(split_kind(s)[0] == "sun" for s in splits)
+    key = (hashlib.sha1(lst.tobytes() + times.tobytes()).hexdigest(), tuple(splits),
+           (a["lat_deg"], a["lon_deg"], a.get("height_m", 0.0)) if sun else None)
+    if key not in _MASKS:
+        good = np.isfinite(lst)
+        days = np.full(len(lst), -1)
+        days[good] = day_index(lst[good], times[good])
+        elev = sun_elevation_deg(times, a["lat_deg"], a["lon_deg"], a.get("height_m", 0.0)) if sun else None
+        masks = {s: m & good for s, m in split_masks(splits, days, elev).items()}
+        _MASKS.clear()
+        _MASKS[key] = (lst, days, elev, masks)
+    return _MASKS[key]
+
+
+_MASKS = {}
+
+
+def _check_time_splits(ctx, vis, splits, n_bins):
+    """Refuse time-subset splits the data cannot make (:func:`mmflow.mmode.splits.split_problems`);
+    return the attributes the jackknives need: days in the data, each split's share of the integrations."""
+    lst, days, elev, masks = _time_splits(ctx, vis, splits)
+    good = np.isfinite(lst)
+    problems = split_problems(splits, lst[good], days[good], None if elev is None else elev[good], n_bins,
+                              ctx.cfg.mmode.min_coverage)
+    if problems:
+        name, problem, fix = problems[0]
+        more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
+        raise InputError(str(ctx.run.store("vis.zarr")), "mmode.splits", f"'{name}': {problem}{more}", fix)
+    return {"n_days": int(days.max()) + 1, "split_weights": split_weights(splits, masks, int(good.sum()))}
+
+
+def split_fractions(ctx, splits):
+    """Each split's share of the integrations of ``vis.zarr`` (:func:`mmflow.mmode.splits.split_weights`):
+    the ``f_k`` of the per-day jackknife, for any stage that reads ``vis.zarr``."""
+    vis = ctx.open("vis.zarr")
+    lst, _, _, masks = _time_splits(ctx, vis, list(splits))
+    return split_weights(splits, masks, int(np.isfinite(lst).sum()))
 
 
 def _task(ctx, key):
@@ -64,45 +120,67 @@ def _task(ctx, key):
     lst = block.lst[good_t]
     g = ctx.open("mmodes.zarr", mode="r+")
     mmax, n_bins, splits = g.attrs["mmax"], g.attrs["n_bins"], g.attrs["splits"]
+    bin_splits = [s for s in splits if not is_time_split(s)]
+    masks = {s: m[good_t] for s, m in _time_splits(ctx, vg, splits)[3].items()} if len(bin_splits) < len(splits) \
+        else {}
     sigma2, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs)
     tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
-    n_fit = n_bins // 2 - 1 if len(splits) > 1 else n_bins - 1  # the bins of the smallest split bound the fit
+    # the bins of the smallest split bound the fit: half of them for even / odd
+    n_fit = n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((nf, vis.shape[1]))
     info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
             "downweighted_low_coverage": 0, "max_cg_iterations": 0, "fits_with_prior": 0}
+    src = str(ctx.run.store("vis.zarr"))
     for fi in range(nf):
-        binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi], (w[:, :, fi] > 0).astype(float), n_bins,
-                                             0.0, source=str(ctx.run.store("vis.zarr")))
-        _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins)
-        prior = _prior(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop), binned, wsum, offset)
-        info["fits_with_prior"] += prior is not None
-        res = chunk_mmodes(binned, wsum, mmax, offset, tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs),
-                           splits, None if sigma2 is None else sigma2[fi], cfg.mmode.min_coverage,
-                           cfg.mmode.coverage_policy, prior=prior)
-        out[:, fi], inv_var[fi] = res.mmodes, res.inv_var
-        info["dropped_low_coverage"] += res.coverage.n_dropped
-        info["downweighted_low_coverage"] += res.coverage.n_downweighted
-        info["max_cg_iterations"] = max([info["max_cg_iterations"]] + [int(np.max(f.iterations)) for f in res.fits])
+        band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
+        s2 = None if sigma2 is None else sigma2[fi]
+        model = _PriorModel(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop))
+        for names, sel in [(bin_splits, slice(None))] + [([s], m) for s, m in masks.items()]:
+            binned, wsum, offset = sidereal_bins(lst[sel], vis[sel, :, fi], (w[sel, :, fi] > 0).astype(float), n_bins,
+                                                 0.0, source=src)
+            if names is bin_splits:
+                _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins)
+            prior = model.prior(binned, wsum, offset)
+            info["fits_with_prior"] += prior is not None
+            res = chunk_mmodes(binned, wsum, mmax, offset, band, names if names is bin_splits else ["full"], s2,
+                               cfg.mmode.min_coverage, cfg.mmode.coverage_policy, prior=prior)
+            out[[splits.index(s) for s in names], fi] = res.mmodes
+            info["max_cg_iterations"] = max([info["max_cg_iterations"]] +
+                                            [int(np.max(f.iterations)) for f in res.fits])
+            if names is bin_splits:  # the full data's noise and coverage
+                inv_var[fi] = res.inv_var
+                info["dropped_low_coverage"] += res.coverage.n_dropped
+                info["downweighted_low_coverage"] += res.coverage.n_downweighted
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
     return info
 
 
-def _prior(ctx, tel, freq_hz, fi, baselines, binned, bin_weight, offset):
-    """The earlier run's model m-modes ``B_m a_m`` for the chunk's baselines (``mmode.prior_run``), their
-    ``m = 0`` fitted to the data (:func:`mmflow.mmode.gapfill.refit_prior_m0`: the map has none), or None.
+class _PriorModel:
+    """The earlier run's model m-modes ``B_m a_m`` for the chunk's baselines (``mmode.prior_run``), computed
+    at most once per chunk and frequency, and fitted to each split's bins.
 
-    None also where no bin of the chunk is empty: with every bin filled (and the fit's ``sigma2``
-    given, as :func:`chunk_mmodes` always does) the prior does not enter the fit, so its cost --
-    one transfer-matrix pass over the chunk -- is spent only on chunks with flagged time.
+    :meth:`prior` gives the model with its ``m = 0`` fitted to the data
+    (:func:`mmflow.mmode.gapfill.refit_prior_m0`: the map has none), or None: without a prior run,
+    and where no bin of the chunk is empty: with every bin filled (and the fit's ``sigma2`` given,
+    as :func:`chunk_mmodes` always does) the prior does not enter the fit, so its cost -- one
+    transfer-matrix pass over the chunk -- is spent only on chunks with flagged time.
     """
-    prior_run = ctx.cfg.mmode.prior_run
-    if prior_run is None or np.all(bin_weight > 0):
-        return None
-    lmax = ctx.cfg.mmode.lmax
-    model = prior_mmodes(tel, freq_hz, read_prior_alm(prior_run, fi, lmax), lmax, baselines)
-    return refit_prior_m0(model, binned, bin_weight, offset)
+
+    def __init__(self, ctx, tel, freq_hz, fi, baselines):
+        self.ctx, self.tel, self.freq_hz, self.fi, self.baselines = ctx, tel, freq_hz, fi, baselines
+        self.model = None
+
+    def prior(self, binned, bin_weight, offset):
+        prior_run = self.ctx.cfg.mmode.prior_run
+        if prior_run is None or np.all(bin_weight > 0):
+            return None
+        if self.model is None:
+            lmax = self.ctx.cfg.mmode.lmax
+            self.model = prior_mmodes(self.tel, self.freq_hz, read_prior_alm(prior_run, self.fi, lmax), lmax,
+                                      self.baselines)
+        return refit_prior_m0(self.model, binned, bin_weight, offset)
 
 
 def _radiometer_sigma2(ctx, vg, autos, pairs):

@@ -13,7 +13,10 @@ file (``maps/``)                   content
                                    declination (high-pass: ``(1 - H) dirty + H (...)``)
 ``residual_<tag>.fits/.png``       the restored map without the restored components
 ``model_<tag>.fits/.png``          the components, flux / pixel solid angle (integral = flux)
-``noise_<tag>.fits/.png``          jackknife ``(odd - even) / 2``: its rms is the Table-1 noise
+``noise_<tag>.fits/.png``          a jackknife noise realisation, ``(odd - even) / 2``, else
+                                   ``sqrt(f_0 / (1 - f_0)) (day0 - all)``: its rms is the Table-1 noise
+``daynight_<tag>.fits/.png``       the day/night systematics map ``(day - night) / 2`` (splits
+                                   day and night; a systematics check, not noise)
 ``psf_<tag>_dec+45.fits``          PSF stamps at dec 0, +45, +75 (of date, peak 1, ARC projection)
 ``psf_<tag>.png``                  the three stamps
 =================================  =============================================================
@@ -25,6 +28,7 @@ import numpy as np
 from mmflow.analysis import table1
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
+from mmflow.imaging.jackknife import day_night_difference, noise_realisation
 from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, m_blocks
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map
@@ -92,8 +96,11 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
         restored = ck.combine_highpass(in_frame(alms["full"]), in_frame(state.residual_alm), comps, w, lmax)
     products = {"restored": restored, "residual": resid_map,
                 "model": ck.model_map(state.comp_vec, state.comp_flux, nside, rot)}
-    if {"even", "odd"} <= set(cfg.mmode.splits):
-        products["noise"] = alm_to_map(in_frame(0.5 * (alms["odd"] - alms["even"])), nside, lmax)
+    jk = cs.jackknife_splits(ctx)
+    if jk[0] is not None:
+        products["noise"] = alm_to_map(in_frame(noise_realisation(alms, jk[0], jk[2])), nside, lmax)
+    if {"day", "night"} <= set(cfg.mmode.splits):
+        products["daynight"] = alm_to_map(in_frame(day_night_difference(alms["day"], alms["night"])), nside, lmax)
     info = {"images": {}}
     for name, hmap in products.items():
         hmap = np.asarray(units.convert(hmap, "Jy/sr", p.unit, freq))
@@ -114,6 +121,8 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
                                        write_image_fits, write_psf_png)
     noise = dict(zip(NOISE_FIELDS, (float(x) for x in g["noise"][fi])))
     noise["kelvin_map_units"] = p.unit
+    noise["estimator"] = jk[0]
+    noise["by_split"] = split_noise(ctx, alms, freq, tables[0])
     per_cycle = [int(np.count_nonzero(state.comp_cycle == c)) for c in range(state.cycle)]
     thr = float(g["threshold"][fi])
     info.update({
@@ -125,6 +134,31 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
         "psf": _psf_summary(tables[0]), "noise": noise})
     info["clean"]["stop_code"] = CLEAN_STOPS.index(reason) if reason else -1
     return info
+
+
+def split_noise(ctx, alms, freq, table):
+    """Every jackknife the splits allow, on the clean stage's pixels and mask (frame of date):
+    ``{"even_odd": ..., "per_day": ...}`` with :func:`mmflow.imaging.jackknife.beam_noise`'s
+    fields, and ``"day_night"``: the rms of the day/night systematics map ``(day - night) / 2``
+    (:func:`mmflow.imaging.jackknife.day_night_difference`; not a noise estimate)."""
+    import healpy
+
+    from mmflow.imaging.jackknife import beam_noise, masked_rms
+    from mmflow.workflow.stages import clean as cs
+
+    cfg = ctx.cfg
+    lmax, nside = cfg.mmode.lmax, cs.clean_nside(cfg)
+    lat = np.deg2rad(float(ctx.vis_attrs()["lat_deg"]))
+    mask = ck.observed_mask(nside, ck.never_seen_dec_min(lat))
+    out = {}
+    for kind in ("even_odd", "per_day"):
+        jk = cs.jackknife_splits(ctx, kind)
+        if jk[0] is not None:
+            out[kind] = beam_noise(cs.jackknife_sigma(alms, jk, lmax, nside, mask), freq, table)
+    if {"day", "night"} <= set(alms):
+        diff = healpy.alm2map(day_night_difference(alms["day"], alms["night"]), nside, lmax=lmax)
+        out["day_night"] = beam_noise(masked_rms(diff, mask), freq, table)
+    return out
 
 
 def _psf_summary(table):
@@ -183,7 +217,7 @@ def table1_row(ctx, fi, freq, info):
     width = float(ctx.vis_attrs().get("channel_width_hz", 0.0))
     noise = {"kelvin": info["noise"]["kelvin"], "mjy_per_beam": info["noise"]["mjy_per_beam"]}
     return table1.table1_row(freq, width, psf.table_from_array(g["psf_table"][fi, 0]), noise,
-                             float(np.sum(frac * n_m) / np.sum(n_m)))
+                             float(np.sum(frac * n_m) / np.sum(n_m)), info["noise"].get("by_split"))
 
 
 def clean_history_figure(ctx, parts, tags):

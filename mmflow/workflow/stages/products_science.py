@@ -161,20 +161,23 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
 
 
 def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
-    """Noise realisations (alm, frame of date, Jy/sr): the jackknife ``(odd - even) / 2``, its
-    negative, and the same turned about the pole of date by ``2 pi k / n_rot``
-    (``a_lm exp(-i m dphi)``: the noise of a drift scan depends on declination); none without
-    even and odd splits."""
+    """Noise realisations (alm, frame of date, Jy/sr): the jackknife's
+    (:func:`mmflow.imaging.jackknife.noise_realisation`: ``(odd - even) / 2``, else from a
+    ``day<k>`` split), its negative, and the same turned about the pole of date by
+    ``2 pi k / n_rot`` (``a_lm exp(-i m dphi)``: the noise of a drift scan depends on
+    declination); none without even and odd or day<k> splits."""
     from mmflow.conventions import m_slice
+    from mmflow.imaging.jackknife import noise_realisation
+    from mmflow.workflow.stages.clean import jackknife_splits
     from mmflow.workflow.stages.mmodes import mmax_of
     from mmflow.workflow.stages.products_clean import alm_splits
 
     cfg = ctx.cfg
-    if not {"even", "odd"} <= set(cfg.mmode.splits):
+    kind, _, fractions = jackknife_splits(ctx)
+    if kind is None:
         return
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    alm = alm_splits(ctx, fi, lmax, mmax)
-    noise = 0.5 * (alm["odd"] - alm["even"])
+    noise = noise_realisation(alm_splits(ctx, fi, lmax, mmax), kind, fractions)
     for k in range(n_rot):
         turned = noise.copy()
         for m in range(mmax + 1):

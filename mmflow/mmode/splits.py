@@ -1,0 +1,233 @@
+"""Data splits of a drift scan: which integrations (or sidereal bins) each split holds.
+
+Two kinds of split travel through the m-modes, right-hand sides and alm (``mmode.splits``),
+all projected by one transfer pass:
+
+* **bin parities** ``even`` / ``odd``: the even (``n = 2k``) or odd (``n = 2k + 1``) sidereal
+  bins of the full grid (:func:`mmflow.mmode.transform.split_mmode_transform`); every
+  integration of every day goes to one of them;
+* **time subsets** ``day<k>``, ``day``, ``night``: a subset of the integrations, binned on its
+  own (:func:`mmflow.mmode.transform.sidereal_bins`) and fitted like the full data
+  (:func:`mmflow.mmode.gapfill.chunk_mmodes`):
+
+  - ``day<k>`` (``k = 0, 1, ...``): the integrations of the k-th sidereal day counted from the
+    first integration's LST, ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``
+    with ``Omega = 2 pi / 86164.0905 s`` (:func:`day_index`): the elapsed sidereal angle less
+    the wrapped LST difference is a whole number of turns;
+  - ``day`` / ``night``: integrations with the Sun's centre above / below the horizon at the
+    site (geometric elevation > 0 / <= 0, no refraction; :func:`sun_elevation_deg`).
+
+A time subset measures the sky only at the LSTs it covers: one day of data splits into a day
+half and a night half that each see only part of the sidereal day, so ``day`` / ``night`` is a
+jackknife only for data spanning months (the Sun's RA moves ~1 deg a day). The stage refuses a
+split covering less than ``mmode.min_coverage`` of the sidereal bins (:func:`bin_coverage`).
+
+Plain numpy (and astropy for the Sun); no dask, no configuration.
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+SIDEREAL_DAY_S = 86164.0905
+TWO_PI = 2 * np.pi
+PARITY_SPLITS = ("full", "even", "odd")  # splits of the sidereal bins (every integration used)
+SUN_SPLITS = ("day", "night")
+_DAY = re.compile(r"^day(0|[1-9][0-9]*)$")
+
+
+def split_kind(name):
+    """``("full" | "parity" | "day" | "sun", k)`` of a split name (``k`` the day of ``day<k>``, else None).
+
+    Raises ValueError for a name that is none of ``full``, ``even``, ``odd``, ``day<k>``, ``day``, ``night``.
+    """
+    if name == "full":
+        return "full", None
+    if name in ("even", "odd"):
+        return "parity", None
+    if name in SUN_SPLITS:
+        return "sun", None
+    hit = _DAY.match(str(name))
+    if hit:
+        return "day", int(hit.group(1))
+    raise ValueError(f"unknown split '{name}'")
+
+
+def is_time_split(name):
+    """True for the splits that select integrations (``day<k>``, ``day``, ``night``)."""
+    return split_kind(name)[0] in ("day", "sun")
+
+
+def day_splits(names):
+    """``{k: name}`` of the ``day<k>`` splits among ``names``."""
+    return {split_kind(s)[1]: s for s in names if split_kind(s)[0] == "day"}
+
+
+def jackknife_kind(names):
+    """The jackknife that splits ``names`` allow: ``"even_odd"`` when both halves are there (the
+    paper's), else ``"per_day"`` with ``day<k>`` splits, else None
+    (:func:`mmflow.imaging.jackknife.split_variance`)."""
+    if {"even", "odd"} <= set(names):
+        return "even_odd"
+    return "per_day" if day_splits(names) else None
+
+
+def day_index(lsts, times_jd=None):
+    """Sidereal day of each integration, counted from the first one (0, 1, ...).
+
+    With UTC times: ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``,
+    ``Omega = 2 pi / 86164.0905 s``: exact whatever the gaps, as long as the times are good to
+    a fraction of a day (the day turns over where the LST passes the first integration's).
+    Without times (or where a time is NaN): the turns of the unwrapped LSTs, which holds only
+    for data without gaps longer than half a sidereal day.
+
+    Parameters
+    ----------
+    lsts : ndarray (n_time,)
+        Sidereal angle of each integration (rad), in time order.
+    times_jd : ndarray (n_time,), optional
+        UTC Julian date of each integration.
+
+    Returns
+    -------
+    ndarray (n_time,) int
+    """
+    phi = np.asarray(lsts, float)
+    if phi.size == 0:
+        return np.zeros(0, int)
+    wrapped = np.mod(phi - phi[0], TWO_PI)
+    unwrapped = np.floor((np.unwrap(phi) - phi[0]) / TWO_PI + 1e-9).astype(int)
+    if times_jd is None:
+        return unwrapped
+    t = np.asarray(times_jd, float)
+    turns = (t - t[0]) * 86400.0 * TWO_PI / SIDEREAL_DAY_S
+    with np.errstate(invalid="ignore"):
+        k = np.round((turns - wrapped) / TWO_PI)
+    good = np.isfinite(k) & np.isfinite(t[0])
+    return np.where(good, np.nan_to_num(k), unwrapped).astype(int)
+
+
+SUN_GRID_S = 300.0  # the Sun's elevation is evaluated on this grid and interpolated (error < 0.01 deg)
+
+
+def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_S):
+    """Geometric elevation (deg, no refraction) of the Sun's centre at the site at each UTC time.
+
+    astropy's ``get_body("sun")`` (apparent, geocentric) to ``AltAz`` at the site; offline
+    (:mod:`mmflow.offline`, set up by ``import mmflow``). astropy takes ~0.5 ms a time, so
+    where the times outnumber a ``grid_s`` grid over their span the elevation is computed on
+    the grid and interpolated linearly: the error is at most ``h^2 / 8`` times the largest
+    second derivative, ``A (2 pi / day)^2`` for a daily swing of amplitude ``A <= 90`` deg,
+    i.e. < 0.005 deg for 300 s.
+    """
+    t = np.asarray(times_jd, float)
+    good = np.isfinite(t)
+    if good.any():
+        lo, hi = float(t[good].min()), float(t[good].max())
+        grid = lo + np.arange(int(np.ceil((hi - lo) * 86400.0 / grid_s)) + 2) * grid_s / 86400.0
+        if len(grid) < good.sum():
+            out = np.full(t.shape, np.nan)
+            out[good] = np.interp(t[good], grid, _sun_elevation_deg(grid, lat_deg, lon_deg, height_m))
+            return out
+    return _sun_elevation_deg(t, lat_deg, lon_deg, height_m)
+
+
+def _sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m):
+    """:func:`sun_elevation_deg` by astropy at every time."""
+    import mmflow  # noqa: F401  (astropy offline before any astropy use)
+    from astropy import units as u
+    from astropy.coordinates import AltAz, EarthLocation, get_body
+    from astropy.time import Time
+
+    t = np.asarray(times_jd, float)
+    out = np.full(t.shape, np.nan)
+    good = np.isfinite(t)
+    if not good.any():
+        return out
+    loc = EarthLocation.from_geodetic(lon=lon_deg * u.deg, lat=lat_deg * u.deg, height=height_m * u.m)
+    when = Time(t[good], format="jd", scale="utc")
+    sun = get_body("sun", when, location=loc)
+    out[good] = sun.transform_to(AltAz(obstime=when, location=loc)).alt.deg
+    return out
+
+
+def split_masks(names, days=None, sun_elevation=None):
+    """``{name: bool (n_time,)}``: the integrations of each time-subset split in ``names``.
+
+    ``days``: :func:`day_index` (for ``day<k>``); ``sun_elevation``: :func:`sun_elevation_deg`
+    (for ``day`` = elevation > 0, ``night`` = elevation <= 0; NaN: neither). Bin-parity splits
+    (``full``, ``even``, ``odd``) select no integrations and are left out.
+    """
+    out = {}
+    for s in names:
+        kind, k = split_kind(s)
+        if kind == "day":
+            out[s] = np.asarray(days) == k
+        elif kind == "sun":
+            el = np.asarray(sun_elevation, float)
+            with np.errstate(invalid="ignore"):
+                out[s] = el > 0 if s == "day" else el <= 0
+    return out
+
+
+def bin_coverage(lsts, n_bins):
+    """Fraction of the ``n_bins`` sidereal bins that hold at least one of the integrations ``lsts``
+    (the bins of :func:`mmflow.mmode.transform.bin_index`)."""
+    from mmflow.mmode.transform import bin_index
+
+    lsts = np.asarray(lsts, float)
+    lsts = lsts[np.isfinite(lsts)]
+    if lsts.size == 0:
+        return 0.0
+    return float(len(np.unique(bin_index(lsts, n_bins)[0])) / n_bins)
+
+
+def split_weights(names, masks, n_total):
+    """Share of the integrations in each split: ``{name: n_split / n_total}`` (1 for ``full``, 1/2
+    for ``even`` / ``odd``): the ``f_k`` of the per-day jackknife with unequal days
+    (:func:`mmflow.imaging.jackknife.per_day_variance`)."""
+    out = {}
+    for s in names:
+        kind, _ = split_kind(s)
+        out[s] = 1.0 if kind == "full" else 0.5 if kind == "parity" else float(np.sum(masks[s]) / max(n_total, 1))
+    return out
+
+
+def split_problems(names, lsts, days, sun_elevation, n_bins, min_coverage):
+    """What is wrong with the time-subset splits among ``names`` for these data: ``[(name, problem, fix)]``.
+
+    ``day<k>`` beyond the data's days; per-day splits of less than two days; a split whose
+    integrations fill less than ``min_coverage`` of the ``n_bins`` sidereal bins
+    (:func:`bin_coverage`: a partial day, or ``day`` / ``night`` of too few days).
+    ``sun_elevation`` None: the ``day`` / ``night`` splits are not checked.
+    """
+    lsts = np.asarray(lsts, float)
+    days = np.asarray(days, int)
+    n_days = int(days.max()) + 1 if days.size else 0
+    out = []
+    listed = day_splits(names)
+    if listed and n_days < 2:
+        out.append((listed[min(listed)], f"per-day splits of data spanning {n_days} sidereal day: the one day is "
+                    "the full data", "observe two or more sidereal days, or use mmode.splits=[full, even, odd]"))
+        listed = {}
+    beyond = [s for k, s in listed.items() if k >= n_days]
+    for s in beyond:
+        out.append((s, f"the data hold {n_days} sidereal days (day0 .. day{n_days - 1}), no {s}",
+                    f"list only day0 .. day{n_days - 1} in mmode.splits"))
+    masks = split_masks([s for s in names if is_time_split(s) and s not in beyond and
+                         (sun_elevation is not None or split_kind(s)[0] == "day")], days, sun_elevation)
+    for s, mask in masks.items():
+        cov = bin_coverage(lsts[mask], n_bins)
+        if cov >= min_coverage:
+            continue
+        if split_kind(s)[0] == "sun":
+            out.append((s, f"the '{s}' integrations fill only {cov:.1%} of the {n_bins} sidereal bins (need "
+                        f"mmode.min_coverage = {min_coverage:g}): over one day, or a few, each half of a day sees "
+                        "only part of the LSTs", "day/night is a jackknife only with months of data (the Sun's RA "
+                        "moves ~1 deg a day); remove day / night from mmode.splits"))
+        else:
+            out.append((s, f"{s} fills only {cov:.1%} of the {n_bins} sidereal bins (need mmode.min_coverage = "
+                        f"{min_coverage:g}): a partial day", f"remove {s} from mmode.splits (or lower "
+                        "mmode.min_coverage)"))
+    return out

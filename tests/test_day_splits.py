@@ -1,0 +1,272 @@
+"""Per-day and day/night data splits (issue 11, section 3: "with more than one day, day/night and
+per-day splits too").
+
+Kernels: the sidereal day of each integration, the Sun's elevation against the Astronomical
+Almanac's low-precision solar position, the per-day jackknife against a Monte Carlo of the map
+noise (equal and unequal days). Workflow: noiseless data of three sidereal days (every day sees
+the same sky, so each day's m-modes are the full m-modes); pure thermal noise over three days
+(the per-day jackknife sigma against a Monte Carlo of the map noise, beside the even/odd one,
+and as the clean stage's threshold when even/odd are absent); the refusals.
+"""
+import json
+import shutil
+
+import healpy
+import numpy as np
+import pytest
+import zarr
+
+from mmflow.errors import InputError
+from mmflow.imaging import clean as ck
+from mmflow.imaging import jackknife
+from mmflow.mmode import splits as sp
+from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.stages import clean as cs
+from mmflow.workflow.stages.products import healpy_alm
+from tests.test_products import Imager, blocks  # noqa: F401  (the transfer blocks fixture)
+from tests.workflow_helpers import SMALL, refused_problem, small_config
+
+QUIET = dict(progress=False, log=lambda *a: None)
+T_SID = 86164.0905
+DAYS3 = ["observation.n_integrations=750", "sky.diffuse=false", "sky.sources=[Cyg A]",
+         "transfer.noise_weighting=false", "products.png=false", "clean.min_separation_deg=15", "clean.max_cycles=2"]
+LMAX = 24
+
+
+# ----------------------------------------------------------------------------- kernels
+
+def test_day_index_counts_sidereal_days_from_the_first_lst_across_gaps():
+    tau = T_SID / 100
+    k = np.concatenate([np.arange(0, 130), np.arange(260, 300)])  # a gap of more than a day
+    lst = np.mod(1.0 + 2 * np.pi * k * tau / T_SID, 2 * np.pi)
+    t = 2457802.0 + k * tau / 86400.0
+    np.testing.assert_array_equal(sp.day_index(lst, t), k // 100)
+    # the turnover is where the LST passes the first integration's, not at LST 0 (here 1 rad)
+    assert sp.day_index(lst, t)[99] == 0 and sp.day_index(lst, t)[100] == 1
+    # without times the unwrapped LSTs cannot see the skipped day
+    assert sp.day_index(lst)[-1] == 1
+
+
+def _almanac_sun_elevation_deg(jd, lat_deg, lon_deg):
+    """The Astronomical Almanac's low-precision Sun (~0.01 deg, 1950-2050) and GMST: independent of astropy."""
+    n = jd - 2451545.0
+    g = np.deg2rad(357.528 + 0.9856003 * n)
+    lam = np.deg2rad(280.460 + 0.9856474 * n + 1.915 * np.sin(g) + 0.020 * np.sin(2 * g))
+    eps = np.deg2rad(23.439 - 4e-7 * n)
+    ra = np.arctan2(np.cos(eps) * np.sin(lam), np.cos(lam))
+    dec = np.arcsin(np.sin(eps) * np.sin(lam))
+    lst = np.deg2rad(15 * (18.697374558 + 24.06570982441908 * n) + lon_deg)
+    phi = np.deg2rad(lat_deg)
+    return np.rad2deg(np.arcsin(np.sin(phi) * np.sin(dec) + np.cos(phi) * np.cos(dec) * np.cos(lst - ra)))
+
+
+def test_day_night_masks_follow_the_suns_elevation_at_the_site():
+    lat, lon = 37.2398, -118.2817  # OVRO-LWA
+    jd = 2457802.0 + np.linspace(-0.5, 0.5, 49)  # 2017-02-17 12:00 .. 02-18 12:00 UTC
+    jd = np.concatenate([jd, [2457926.3 + 0.5 / 24]])  # 2017-06-21 19:30 UTC: near local noon in June
+    el = sp.sun_elevation_deg(jd, lat, lon, 1222.0)
+    ref = _almanac_sun_elevation_deg(jd, lat, lon)
+    print("max |astropy - almanac| elevation (deg)", np.abs(el - ref).max())
+    assert np.abs(el - ref).max() < 0.05
+    assert el[-1] == pytest.approx(90 - lat + 23.44, abs=0.5)  # the June Sun at upper culmination
+    masks = sp.split_masks(["full", "day", "night"], sun_elevation=el)
+    assert set(masks) == {"day", "night"}
+    clear = np.abs(ref) > 0.05  # away from the horizon, where the two may round either way
+    assert clear.sum() >= 48
+    np.testing.assert_array_equal(masks["day"][clear], (ref > 0)[clear])
+    np.testing.assert_array_equal(masks["night"], ~masks["day"])
+    assert 0.3 < masks["day"][:49].mean() < 0.6  # a February day at +37 deg: ~11 h of Sun
+    # many times: astropy on a 300 s grid, interpolated
+    many = 2457802.0 + np.arange(1500) * 61.0 / 86400.0
+    fast = sp.sun_elevation_deg(many, lat, lon, 1222.0)
+    assert np.abs(fast - _almanac_sun_elevation_deg(many, lat, lon)).max() < 0.02
+    assert np.abs(fast[::50] - sp.sun_elevation_deg(many[::50], lat, lon, 1222.0)).max() < 0.005
+
+
+def test_split_problems_name_the_split_and_the_reason():
+    lst = np.mod(2 * np.pi * np.arange(250) / 100, 2 * np.pi)  # 2.5 days of 100 bins
+    days = sp.day_index(lst)
+    probs = {name: problem for name, problem, _ in sp.split_problems(["full", "day1", "day2", "day3"], lst, days,
+                                                                        None, 100, 0.95)}
+    assert set(probs) == {"day2", "day3"}
+    assert "partial day" in probs["day2"] and "50.0%" in probs["day2"]
+    assert "3 sidereal days" in probs["day3"]
+    sun = np.where(np.arange(250) % 100 < 50, 10.0, -10.0)  # the Sun up at the same LSTs every day
+    (name, problem, fix), = sp.split_problems(["full", "night"], lst, days, sun, 100, 0.95)
+    assert name == "night" and "months" in fix
+
+
+@pytest.mark.parametrize("day_weights", [(1, 1, 1), (1, 1, 0.5)])
+def test_per_day_jackknife_matches_a_monte_carlo_of_the_map_noise(blocks, small_telescope, day_weights):
+    """D = 3 days on one sidereal grid (a bright sky that every day sees, plus noise of variance
+    ``sigma^2 / w_k``); the full data are the inverse-variance weighted mean of the days; the
+    per-day jackknife with ``f_k = w_k / sum w`` against 60 Monte Carlo maps of the full data's noise."""
+    from mmflow.mmode.transform import mmode_transform
+    from mmflow.sky.diffuse import band_limited_random_alm
+    from tests.test_products import _to_time
+
+    eps = 1e-3 * max(np.linalg.eigvalsh(b.conj().T @ b)[-1] for b in blocks.values())
+    imager, mask = Imager(blocks, eps), ck.observed_mask(16, ck.never_seen_dec_min(small_telescope.lat_rad))
+    n_bins, sigma, nb = 4 * LMAX + 8, 3.0, blocks[0].shape[0]
+    w = np.asarray(day_weights, float)
+    f = w / w.sum()
+    rng = np.random.default_rng(11)
+
+    def day_noise():
+        return [sigma / np.sqrt(wk) * (rng.normal(size=(n_bins, nb)) + 1j * rng.normal(size=(n_bins, nb))) / np.sqrt(2)
+                for wk in w]
+
+    mc = np.array([imager.map(mmode_transform(sum(fk * n for fk, n in zip(f, day_noise())), LMAX))
+                   for _ in range(60)])
+    var_mc = np.mean(np.var(mc, axis=0, ddof=1)[mask])
+    signal = _to_time(blocks, 50 * band_limited_random_alm(LMAX, seed=2), n_bins)
+    jk = []
+    for _ in range(20):
+        days = [signal + n for n in day_noise()]
+        full = imager.map(mmode_transform(sum(fk * d for fk, d in zip(f, days)), LMAX))
+        jk.append(jackknife.per_day_variance(full, [imager.map(mmode_transform(d, LMAX)) for d in days], f, mask))
+    ratio = np.sqrt(np.mean(jk) / var_mc)
+    print("per-day jackknife / MC sigma", day_weights, ratio)
+    assert ratio == pytest.approx(1.0, abs=0.05)
+    if day_weights[-1] != 1:  # ignoring the unequal weights (1 / (D - 1)) is biased
+        naive = [jackknife.per_day_variance(full, [imager.map(mmode_transform(d, LMAX)) for d in days],
+                                            np.full(3, 1 / 3), mask)]
+        assert naive[0] != pytest.approx(jk[-1], rel=0.05)
+
+
+def test_two_equal_days_give_the_even_odd_formula():
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(size=500), rng.normal(size=500)
+    full = 0.5 * (a + b)
+    assert jackknife.per_day_variance(full, [a, b], [0.5, 0.5]) == pytest.approx(
+        jackknife.jackknife_variance(full, a, b), rel=1e-14)
+    np.testing.assert_allclose(jackknife.noise_realisation({"full": full, "day0": a}, "per_day", {"day0": 0.5}),
+                               a - full)
+    with pytest.raises(InputError, match="share"):
+        jackknife.per_day_variance(full, [a], [1.0])
+
+
+# ----------------------------------------------------------------------------- workflow
+
+@pytest.fixture(scope="module")
+def three_days(tmp_path_factory):
+    """Noiseless and noisy runs of the same three sidereal days (250 integrations a day)."""
+    root = tmp_path_factory.mktemp("days")
+    runs = {}
+    for name, extra in [("noiseless", ["sky.noise=false", "mmode.splits=[full, day0, day1, day2]"]),
+                        ("noisy", ["sky.noise=true", "mmode.splits=[full, day0, day1, day2, even, odd]",
+                                   "clean.enabled=true"]),
+                        ("noisy_days", ["sky.noise=true", "mmode.splits=[full, day0, day1, day2]", "clean.enabled=true",
+                                        "clean.threshold_sigma=4"])]:
+        cfg = small_config(root / name, *DAYS3, *extra)
+        run_workflow(cfg, **QUIET)
+        runs[name] = (root / name, cfg)
+    return runs
+
+
+def _alm(run_dir):
+    return zarr.open_group(str(run_dir / "alm.zarr"), mode="r")["alm"][:, 0]
+
+
+def _seen(run_dir, nside):
+    lat = np.deg2rad(zarr.open_group(str(run_dir / "vis.zarr"), mode="r").attrs["lat_deg"])
+    return ck.observed_mask(nside, ck.never_seen_dec_min(lat))
+
+
+def test_each_day_of_noiseless_data_has_the_full_mmodes(three_days):
+    run_dir, _ = three_days["noiseless"]
+    g = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")
+    mm = g["mmodes"][:]
+    assert g.attrs["splits"] == ["full", "day0", "day1", "day2"] and g.attrs["n_days"] == 3
+    assert g.attrs["split_weights"]["day1"] == pytest.approx(1 / 3)
+    scale = np.abs(mm[0]).max()
+    for k in (1, 2, 3):
+        assert np.abs(mm[k] - mm[0]).max() < 1e-12 * scale
+    alm = _alm(run_dir)
+    assert np.abs(alm[1:] - alm[0]).max() < 1e-10 * np.abs(alm[0]).max()
+
+
+def test_per_day_jackknife_on_pure_noise_matches_a_monte_carlo(three_days):
+    """The noise of each day's map (noisy - noiseless, same operator) is an independent draw of
+    D times the full map's noise variance: a 3-draw Monte Carlo of the map noise. The per-day and
+    the even/odd jackknife sigma of the noisy run (products' ``noise.by_split``) match it within 5 %."""
+    (q_dir, cfg), (n_dir, _) = three_days["noiseless"], three_days["noisy"]
+    nside = cs.clean_nside(cfg)
+    seen = _seen(n_dir, nside)
+    alm_q, alm_n = _alm(q_dir), _alm(n_dir)
+
+    def noise_map(k):  # split k of both runs (the same first four splits)
+        return healpy.alm2map(healpy_alm(alm_n[k] - alm_q[k], LMAX, LMAX), nside, lmax=LMAX)
+
+    sigma_mc = np.sqrt(np.mean([np.mean(noise_map(k)[seen] ** 2) for k in (1, 2, 3)]) / 3)
+    summ = json.loads((n_dir / "maps" / "summary_40.000MHz.json").read_text())
+    by = summ["noise"]["by_split"]
+    ratios = {k: by[k]["jy_per_sr"] / sigma_mc for k in ("per_day", "even_odd")}
+    full = np.sqrt(np.mean(noise_map(0)[seen] ** 2))  # the full map's one realisation
+    print("jackknife / Monte Carlo sigma", ratios, "full map's realisation / MC", full / sigma_mc)
+    for r in ratios.values():
+        assert r == pytest.approx(1.0, abs=0.05)
+    assert full == pytest.approx(sigma_mc, rel=0.1)
+    # Table 1 carries both beside the paper's column (even/odd: the paper's estimator)
+    row = summ["table1"]
+    assert summ["noise"]["estimator"] == "even_odd" and row["noise_k"] == row["noise_k_even_odd"]
+    assert row["noise_k_per_day"] == pytest.approx(by["per_day"]["kelvin"], rel=1e-12)
+    md = (n_dir / "maps" / "table1.md").read_text()
+    assert "per-day (K)" in md and "even/odd (K)" in md
+    assert "noise_k_per_day" in (n_dir / "maps" / "table1.csv").read_text().splitlines()[0]
+
+
+def test_clean_threshold_uses_the_per_day_jackknife_without_even_odd(three_days):
+    run_dir, cfg = three_days["noisy_days"]
+    nside = cs.clean_nside(cfg)
+    alm = _alm(run_dir)
+    maps = {s: healpy.alm2map(healpy_alm(alm[k], LMAX, LMAX), nside, lmax=LMAX)
+            for k, s in enumerate(cfg.mmode.splits)}
+    sigma = np.sqrt(jackknife.per_day_variance(maps["full"], [maps[f"day{k}"] for k in range(3)], [1 / 3] * 3,
+                                               _seen(run_dir, nside)))
+    g = zarr.open_group(str(run_dir / "clean.zarr"), mode="r")
+    assert float(g["noise"][0, 0]) == pytest.approx(sigma, rel=1e-9)
+    assert float(g["threshold"][0]) == pytest.approx(4 * sigma, rel=1e-9)
+    summ = json.loads((run_dir / "maps" / "summary_40.000MHz.json").read_text())
+    assert summ["noise"]["estimator"] == "per_day" and "even_odd" not in summ["noise"]["by_split"]
+    noise_map = healpy.read_map(str(run_dir / summ["images"]["noise"]["fits"]))  # sqrt(f/(1-f)) (day0 - all)
+    seen = noise_map != healpy.UNSEEN
+    assert np.sqrt(np.mean(noise_map[seen] ** 2)) == pytest.approx(summ["noise"]["kelvin"], rel=0.15)
+
+
+def test_day_night_map_and_report_line(tmp_path):
+    """One day split at the horizon (a low min_coverage lets the halves through: the workflow path,
+    not a jackknife): the systematics map (day - night) / 2 in maps/, its rms in Table 1 and the report."""
+    cfg = small_config(tmp_path / "dn", "sky.diffuse=false", "sky.sources=[Cyg A]", "products.nside=16",
+                       "mmode.splits=[full, even, odd, day, night]", "mmode.min_coverage=0.3", "clean.enabled=true",
+                       "clean.min_separation_deg=15", "clean.max_cycles=1", "transfer.noise_weighting=false")
+    run_workflow(cfg, **QUIET)
+    summ = json.loads((tmp_path / "dn" / "maps" / "summary_40.000MHz.json").read_text())
+    img = summ["images"]["daynight"]
+    dn = healpy.read_map(str(tmp_path / "dn" / img["fits"]))
+    assert np.isclose(img["rms_observed"], dn[dn != healpy.UNSEEN].std())
+    g = zarr.open_group(str(tmp_path / "dn" / "mmodes.zarr"), mode="r")
+    f_day = g.attrs["split_weights"]["day"]
+    assert 0.3 < f_day < 0.6 and g.attrs["split_weights"]["night"] == pytest.approx(1 - f_day)
+    assert summ["table1"]["noise_k_day_night"] == summ["noise"]["by_split"]["day_night"]["kelvin"] > 0
+    html = (tmp_path / "dn" / "maps" / "report.html").read_text()
+    assert "day/night systematics" in html and "not a noise estimate" in html
+
+
+def test_refusals_name_the_splits_field(tmp_path):
+    (what, field, problem, fix), _ = refused_problem(SMALL + DAYS3 + ["mmode.splits=[full, day3]"], "mmode.splits")
+    assert "3 sidereal days" in problem and "day0 .. day2" in fix
+    (_, _, problem, _), _ = refused_problem(["mmode.splits=[full, day-1]"], "mmode.splits")
+    assert "unknown split" in problem
+    (_, _, problem, _), _ = refused_problem(SMALL + DAYS3 + ["mmode.splits=[full, day0, day0]"], "mmode.splits")
+    assert "once" in problem
+    (_, _, problem, fix), _ = refused_problem(["mmode.splits=[full]", "clean.enabled=true"], "clean.threshold")
+    assert "day<k>" in problem
+    # night on one day of data: refused by the mmodes stage before any task (the data decide it)
+    cfg = small_config(tmp_path / "night", "sky.diffuse=false", "sky.sources=[Cyg A]",
+                       "mmode.splits=[full, night]")
+    with pytest.raises(InputError) as err:
+        run_workflow(cfg, only=["simulate", "mmodes"], **QUIET)
+    assert err.value.field == "mmode.splits" and "months" in err.value.fix
+    assert not (tmp_path / "night" / "mmodes.zarr" / "mmodes").exists()
+    shutil.rmtree(tmp_path / "night")
