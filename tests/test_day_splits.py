@@ -83,6 +83,33 @@ def test_day_night_masks_follow_the_suns_elevation_at_the_site():
     assert np.abs(fast[::50] - sp.sun_elevation_deg(many[::50], lat, lon, 1222.0)).max() < 0.005
 
 
+@pytest.mark.parametrize("start", [0.0, 0.3, 1.0, 2.0, 5.5, 6.28])
+def test_day_index_splits_a_regular_grid_into_whole_days_for_any_start_lst(start):
+    """Three days of 250 integrations: one LST a whole turn after the first is ``phi_0 + 2 pi`` up to
+    rounding, and must start the next day (not end this one: start 0.3 gave [251, 249, 250]). The
+    times of the simulation (apparent LST, pyuvdata), the config check's sidereal-rate times and
+    the unwrapped LSTs all give the same days."""
+    from types import SimpleNamespace
+
+    from mmflow.simulate.corrupt import utc_at_lsts
+    from mmflow.simulate.scene import drift_scan_lsts
+
+    lst = np.asarray(drift_scan_lsts(start, T_SID / 250, np.arange(750)))
+    site = SimpleNamespace(lat_deg=37.2398, lon_deg=-118.2817, height_m=1222.0)
+    stage = sp.day_index(lst, utc_at_lsts(lst, site, 2457802.0))  # what the mmodes stage sees
+    np.testing.assert_array_equal(stage, np.arange(750) // 250)
+    np.testing.assert_array_equal(sp.day_index(lst, sp.sidereal_times_jd(lst, 2457802.0)), stage)  # config check
+    np.testing.assert_array_equal(sp.day_index(lst), stage)
+    assert [sp.bin_coverage(lst[stage == j], 250) for j in range(3)] == [1.0, 1.0, 1.0]
+
+
+def test_day_index_counts_from_the_earliest_time_whatever_the_row_order():
+    k = np.arange(750)
+    lst, t = np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), 2457802.0 + k * T_SID / 250 / 86400.0
+    perm = np.r_[10:750, 0:10]  # the first rows are not the earliest
+    np.testing.assert_array_equal(sp.day_index(lst[perm], t[perm]), (k // 250)[perm])
+
+
 def test_split_problems_name_the_split_and_the_reason():
     lst = np.mod(2 * np.pi * np.arange(250) / 100, 2 * np.pi)  # 2.5 days of 100 bins
     days = sp.day_index(lst)

@@ -11,7 +11,7 @@ all projected by one transfer pass:
   (:func:`mmflow.mmode.gapfill.chunk_mmodes`):
 
   - ``day<k>`` (``k = 0, 1, ...``): the integrations of the k-th sidereal day counted from the
-    first integration's LST, ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``
+    earliest integration's LST, ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``
     with ``Omega = 2 pi / 86164.0905 s`` (:func:`day_index`): the elapsed sidereal angle less
     the wrapped LST difference is a whole number of turns;
   - ``day`` / ``night``: integrations with the Sun's centre above / below the horizon at the
@@ -74,18 +74,21 @@ def jackknife_kind(names):
 
 
 def day_index(lsts, times_jd=None):
-    """Sidereal day of each integration, counted from the first one (0, 1, ...).
+    """Sidereal day of each integration, counted from the earliest one (0, 1, ...).
 
     With UTC times: ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``,
-    ``Omega = 2 pi / 86164.0905 s``: exact whatever the gaps, as long as the times are good to
-    a fraction of a day (the day turns over where the LST passes the first integration's).
-    Without times (or where a time is NaN): the turns of the unwrapped LSTs, which holds only
-    for data without gaps longer than half a sidereal day.
+    ``Omega = 2 pi / 86164.0905 s``, ``t_0``, ``phi_0`` the earliest integration's: exact
+    whatever the gaps and the row order, as long as the times are good to a fraction of a day
+    (the day turns over where the LST passes the earliest integration's). The wrapped difference
+    is taken as ``((phi_n - phi_0 + 1e-9) mod 2 pi) - 1e-9``: on a regular grid the LST one turn
+    later is ``phi_0 + 2 pi`` up to rounding, which must give 0 (the next day), not ``2 pi - eps``.
+    Without times (or where a time is NaN): the turns of the unwrapped LSTs (in row order, from
+    row 0), which holds only for data in time order without gaps longer than half a sidereal day.
 
     Parameters
     ----------
     lsts : ndarray (n_time,)
-        Sidereal angle of each integration (rad), in time order.
+        Sidereal angle of each integration (rad).
     times_jd : ndarray (n_time,), optional
         UTC Julian date of each integration.
 
@@ -96,16 +99,29 @@ def day_index(lsts, times_jd=None):
     phi = np.asarray(lsts, float)
     if phi.size == 0:
         return np.zeros(0, int)
-    wrapped = np.mod(phi - phi[0], TWO_PI)
-    unwrapped = np.floor((np.unwrap(phi) - phi[0]) / TWO_PI + 1e-9).astype(int)
+    unwrapped = np.floor((np.unwrap(phi) - phi[0]) / TWO_PI + _TURN_TOL).astype(int)
     if times_jd is None:
         return unwrapped
     t = np.asarray(times_jd, float)
-    turns = (t - t[0]) * 86400.0 * TWO_PI / SIDEREAL_DAY_S
+    if not np.isfinite(t).any():
+        return unwrapped
+    i0 = int(np.nanargmin(t))
+    wrapped = np.mod(phi - phi[i0] + _TURN_TOL, TWO_PI) - _TURN_TOL
+    turns = (t - t[i0]) * 86400.0 * TWO_PI / SIDEREAL_DAY_S
     with np.errstate(invalid="ignore"):
         k = np.round((turns - wrapped) / TWO_PI)
-    good = np.isfinite(k) & np.isfinite(t[0])
-    return np.where(good, np.nan_to_num(k), unwrapped).astype(int)
+    return np.where(np.isfinite(k), np.nan_to_num(k), unwrapped).astype(int)
+
+
+_TURN_TOL = 1e-9  # rad: an LST this close below a whole turn from the first is on the next turn
+
+
+def sidereal_times_jd(lsts, t0_jd=0.0):
+    """Times (JD) of consecutive integrations ``lsts`` (rad, in time order, no gaps) at the sidereal
+    rate: ``t_n = t_0 + (unwrap(phi)_n - phi_0) T_sid / (2 pi 86400 s)``, as a simulation's
+    ``time_jd`` (:func:`mmflow.simulate.corrupt.utc_at_lsts`) up to the apparent LST's wobble."""
+    phi = np.unwrap(np.asarray(lsts, float))
+    return t0_jd + (phi - phi[0]) * SIDEREAL_DAY_S / (TWO_PI * 86400.0)
 
 
 SUN_GRID_S = 300.0  # the Sun's elevation is evaluated on this grid and interpolated (error < 0.01 deg)
