@@ -116,11 +116,36 @@ def test_split_problems_name_the_split_and_the_reason():
     probs = {name: problem for name, problem, _ in sp.split_problems(["full", "day1", "day2", "day3"], lst, days,
                                                                         None, 100, 0.95)}
     assert set(probs) == {"day2", "day3"}
-    assert "partial day" in probs["day2"] and "50.0%" in probs["day2"]
-    assert "3 sidereal days" in probs["day3"]
+    assert "whole days" in probs["day2"] and "50.0%" in probs["day2"]
+    assert "3 sidereal days (day0 .. day2), no day3" in probs["day3"]
     sun = np.where(np.arange(250) % 100 < 50, 10.0, -10.0)  # the Sun up at the same LSTs every day
     (name, problem, fix), = sp.split_problems(["full", "night"], lst, days, sun, 100, 0.95)
     assert name == "night" and "months" in fix
+
+
+def test_a_partial_day_is_refused_even_when_not_listed():
+    """1.5 days: the half day is in the full data, so day0 alone is no whole-day jackknife (a Monte
+    Carlo of [full, day0] here gives sigma ~19 % low); refused naming the partial day, listed or not."""
+    k = np.arange(375)
+    lst, t = np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), 2457802.0 + k * T_SID / 250 / 86400.0
+    days = sp.day_index(lst, t)
+    for names in (["full", "day0"], ["full", "day0", "day1"]):
+        (name, problem, fix), = sp.split_problems(names, lst, days, None, 250, 0.95)
+        assert name == "day1" and "day1 fills 50.0% of the 250 sidereal bins" in problem
+        assert "per-day jackknife needs whole days" in problem and "whole sidereal days" in fix and "even/odd" in fix
+    assert sp.split_problems(["full", "even", "odd"], lst, days, None, 250, 0.95) == []  # no day<k>: no day check
+
+
+def test_days_after_a_gap_are_named():
+    """Days 0-2 and 150-152 (a gap of months): day150 is a day of the data, day3 is named absent, not partial."""
+    k = np.concatenate([np.arange(0, 750), np.arange(150 * 250, 153 * 250)])
+    lst, t = np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), 2457802.0 + k * T_SID / 250 / 86400.0
+    days = sp.day_index(lst, t)
+    assert sorted(set(days)) == [0, 1, 2, 150, 151, 152]
+    assert sp.split_problems(["full", "day0", "day150"], lst, days, None, 250, 0.95) == []
+    (name, problem, fix), = sp.split_problems(["full", "day0", "day3"], lst, days, None, 250, 0.95)
+    assert name == "day3" and "6 sidereal days (day0 .. day2, day150 .. day152), no day3" in problem
+    assert "day0 .. day2, day150 .. day152" in fix and "partial" not in problem
 
 
 @pytest.mark.parametrize("day_weights", [(1, 1, 1), (1, 1, 0.5)])
@@ -283,6 +308,10 @@ def test_day_night_map_and_report_line(tmp_path):
 def test_refusals_name_the_splits_field(tmp_path):
     (what, field, problem, fix), _ = refused_problem(SMALL + DAYS3 + ["mmode.splits=[full, day3]"], "mmode.splits")
     assert "3 sidereal days" in problem and "day0 .. day2" in fix
+    # 1.5 days: [full, day0] is refused too, naming the half day (the jackknife needs whole days)
+    (_, _, problem, fix), _ = refused_problem(SMALL + DAYS3 + ["observation.n_integrations=375",
+                                                               "mmode.splits=[full, day0]"], "mmode.splits")
+    assert "day1 fills 50.0%" in problem and "whole days" in problem and "even/odd" in fix
     (_, _, problem, _), _ = refused_problem(["mmode.splits=[full, day-1]"], "mmode.splits")
     assert "unknown split" in problem
     (_, _, problem, _), _ = refused_problem(SMALL + DAYS3 + ["mmode.splits=[full, day0, day0]"], "mmode.splits")

@@ -96,7 +96,9 @@ def _check_time_splits(ctx, vis, splits, n_bins):
         name, problem, fix = problems[0]
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
         raise InputError(str(ctx.run.store("vis.zarr")), "mmode.splits", f"'{name}': {problem}{more}", fix)
-    return {"n_days": int(days.max()) + 1, "split_weights": split_weights(splits, masks, int(good.sum()))}
+    present = np.unique(days[days >= 0])
+    return {"n_days": int(present.max()) + 1 if present.size else 0, "days": [int(d) for d in present],
+            "split_weights": split_weights(splits, masks, int(good.sum()))}
 
 
 def split_fractions(ctx, splits):
