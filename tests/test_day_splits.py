@@ -148,6 +148,12 @@ def test_days_after_a_gap_are_named():
     assert "day0 .. day2, day150 .. day152" in fix and "partial" not in problem
 
 
+def test_split_shares_count_the_flags():
+    """f_k from unflagged samples: day2 half flagged gives 0.4 / 0.4 / 0.2, not 1/3 each."""
+    f = sp.split_shares([1250, 500, 500, 250], ["full", "day0", "day1", "day2"])
+    assert f == {"full": 1.0, "day0": 0.4, "day1": 0.4, "day2": 0.2}
+
+
 @pytest.mark.parametrize("day_weights", [(1, 1, 1), (1, 1, 0.5)])
 def test_per_day_jackknife_matches_a_monte_carlo_of_the_map_noise(blocks, small_telescope, day_weights):
     """D = 3 days on one sidereal grid (a bright sky that every day sees, plus noise of variance
@@ -230,7 +236,9 @@ def test_each_day_of_noiseless_data_has_the_full_mmodes(three_days):
     g = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")
     mm = g["mmodes"][:]
     assert g.attrs["splits"] == ["full", "day0", "day1", "day2"] and g.attrs["n_days"] == 3
-    assert g.attrs["split_weights"]["day1"] == pytest.approx(1 / 3)
+    assert g.attrs["days"] == [0, 1, 2] and "split_weights" not in g.attrs
+    n = g["n_samples"][:]  # every integration unflagged: 750 and 250 a day on every baseline
+    assert (n[0] == 750).all() and (n[1:] == 250).all()
     scale = np.abs(mm[0]).max()
     for k in (1, 2, 3):
         assert np.abs(mm[k] - mm[0]).max() < 1e-12 * scale
@@ -297,9 +305,13 @@ def test_day_night_map_and_report_line(tmp_path):
     img = summ["images"]["daynight"]
     dn = healpy.read_map(str(tmp_path / "dn" / img["fits"]))
     assert np.isclose(img["rms_observed"], dn[dn != healpy.UNSEEN].std())
-    g = zarr.open_group(str(tmp_path / "dn" / "mmodes.zarr"), mode="r")
-    f_day = g.attrs["split_weights"]["day"]
-    assert 0.3 < f_day < 0.6 and g.attrs["split_weights"]["night"] == pytest.approx(1 - f_day)
+    # the shares from the Sun at the simulation's times, independently of the stage's counts
+    v = zarr.open_group(str(tmp_path / "dn" / "vis.zarr"), mode="r")
+    el = sp.sun_elevation_deg(v["time_jd"][:], v.attrs["lat_deg"], v.attrs["lon_deg"], v.attrs.get("height_m", 0.0))
+    f_day = float(np.mean(el > 0))
+    n = zarr.open_group(str(tmp_path / "dn" / "mmodes.zarr"), mode="r")["n_samples"][:, 0]  # split, baseline
+    assert 0.3 < f_day < 0.6 and n[3].sum() / n[0].sum() == pytest.approx(f_day, rel=1e-12)
+    assert (n[3] + n[4] == n[0]).all() and (n[1] + n[2] == n[0]).all()
     assert summ["table1"]["noise_k_day_night"] == summ["noise"]["by_split"]["day_night"]["kelvin"] > 0
     html = (tmp_path / "dn" / "maps" / "report.html").read_text()
     assert "day/night systematics" in html and "not a noise estimate" in html
@@ -326,3 +338,97 @@ def test_refusals_name_the_splits_field(tmp_path):
     assert err.value.field == "mmode.splits" and "months" in err.value.fix
     assert not (tmp_path / "night" / "mmodes.zarr" / "mmodes").exists()
     shutil.rmtree(tmp_path / "night")
+
+
+def _flagging(rows_flagged):
+    """A ``read_block`` for the mmodes stage that flags the integrations ``rows_flagged(k)`` (bool of the
+    row index): flags as the stage sees them after ingest or calibration (weights 0)."""
+    from mmflow.workflow.stages import mmodes as ms
+
+    read = ms.read_block
+
+    def read_flagged(ctx, rows=slice(None), columns=slice(None), before=None):
+        block = read(ctx, rows, columns, before)
+        k = np.arange(*block.rows.indices(block.rows.stop))
+        block.weights[rows_flagged(k)] = 0.0
+        return block
+
+    return read_flagged
+
+
+def test_a_half_flagged_day_has_the_share_of_its_unflagged_samples(tmp_path):
+    """Day 2 with every other integration flagged (RFI; 83 bins of ~3 integrations: every bin still holds data):
+    the shares f_k come from the flags, 0.4 / 0.4 / 0.2 (the LSTs alone say 1/3 each: on noise alone
+    the jackknife variance would be 1.175x too high), and the clean stage's per-day sigma uses them.
+    (That the estimator with these shares is unbiased is the Monte Carlo test above, weights 1, 1, 0.5.)"""
+    from mmflow.workflow.stages import mmodes as ms
+
+    cfg = small_config(tmp_path / "flag", *DAYS3, "sky.noise=true", "mmode.splits=[full, day0, day1, day2]",
+                       "mmode.n_bins=83", "clean.enabled=true")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ms, "read_block", _flagging(lambda k: (k >= 500) & (k % 2 == 0)))
+        run_workflow(cfg, **QUIET)
+    run_dir = tmp_path / "flag"
+    n = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")["n_samples"][:, 0]
+    assert (n[0] == 625).all() and (n[1] == 250).all() and (n[2] == 250).all() and (n[3] == 125).all()
+    nside = cs.clean_nside(cfg)
+    alm, seen = _alm(run_dir), _seen(run_dir, nside)
+    maps = [healpy.alm2map(healpy_alm(alm[k], LMAX, LMAX), nside, lmax=LMAX) for k in range(4)]
+    sigma = np.sqrt(jackknife.per_day_variance(maps[0], maps[1:], [0.4, 0.4, 0.2], seen))
+    naive = np.sqrt(jackknife.per_day_variance(maps[0], maps[1:], [1 / 3] * 3, seen))
+    noise = float(zarr.open_group(str(run_dir / "clean.zarr"), mode="r")["noise"][0, 0])
+    print("per-day sigma with flag shares / with LST shares", sigma / naive)
+    assert noise == pytest.approx(sigma, rel=1e-9) and noise != pytest.approx(naive, rel=0.01)
+
+
+def test_a_flagged_day_is_refused_not_imaged_as_zero(tmp_path):
+    """Day 1 entirely flagged: its m-modes would be exactly 0 (then sigma^2 is the whole sky and CLEAN
+    stops at once); the mmodes stage refuses it, naming the split and mmode.splits."""
+    from mmflow.errors import CoverageError
+    from mmflow.workflow.stages import mmodes as ms
+
+    cfg = small_config(tmp_path / "gone", *DAYS3, "mmode.splits=[full, day0, day1, day2]")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ms, "read_block", _flagging(lambda k: (k >= 250) & (k < 500)))
+        with pytest.raises(CoverageError) as err:
+            run_workflow(cfg, only=["simulate", "mmodes"], **QUIET)
+    assert err.value.field == "mmode.splits" and "'day1'" in err.value.problem and "0.0%" in err.value.problem
+    assert "remove day1" in err.value.fix
+
+
+def test_split_masks_cache_is_safe_across_threads(monkeypatch):
+    """Two threads asking for different splits: one must not clear the single-entry cache between the
+    other's store and its read (a KeyError without the lock)."""
+    import threading
+    import time
+
+    from mmflow.workflow.stages import mmodes as ms
+
+    class SlowDict(dict):
+        def __setitem__(self, key, value):
+            super().__setitem__(key, value)
+            time.sleep(0.05)  # widen the window between storing an entry and reading it back
+
+    monkeypatch.setattr(ms, "_MASKS", SlowDict())
+    k = np.arange(750)
+    arrays = {"lst": np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), "time_jd": 2457802.0 + k * T_SID / 250 / 86400.0}
+
+    class Vis(dict):
+        attrs = {"lat_deg": 37.2, "lon_deg": -118.3}
+
+    vis = Vis(arrays)
+    errors, out = [], {}
+
+    def work(splits):
+        try:
+            out[tuple(splits)] = ms._time_splits(None, vis, splits)[3]
+        except Exception as e:  # noqa: BLE001  (the test reports any failure)
+            errors.append(e)
+
+    threads = [threading.Thread(target=work, args=(s,)) for s in (["full", "day0"], ["full", "day1"])]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert out[("full", "day0")]["day0"].sum() == 250 and out[("full", "day1")]["day1"][250:500].all()

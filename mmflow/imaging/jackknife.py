@@ -19,7 +19,8 @@ unbiased for independent noise in the two halves: ``odd - all = (odd - even) / 2
 With data of several sidereal days, the ``day<k>`` splits (:mod:`mmflow.mmode.splits`) give a
 per-day jackknife (:func:`per_day_variance`), which also sees errors slower than one
 integration (but faster than a day); the ``day`` / ``night`` splits give a map of day-night
-systematics (:func:`day_night_difference`), not a noise estimate.
+systematics (:func:`day_night_difference`), not a noise estimate. The shares ``f_k`` of the
+per-day jackknife count the unflagged samples of each split (:func:`mmflow.mmode.splits.split_shares`).
 """
 from __future__ import annotations
 
@@ -83,8 +84,9 @@ def per_day_variance(map_all, day_maps, fractions, mask=None):
     ``f_k / (1 - f_k) |day_k - all|^2``; the mean over the listed days (any subset of the data's
     days) is the estimate. For ``D = 2`` equal days it is
     ``(1/2)(|day_0 - all|^2 + |day_1 - all|^2)``, the even/odd formula of :func:`jackknife_variance`.
-    Unequal days (a flagged stretch, a partial day refused by the stage below min_coverage) enter
-    through ``f_k``, the day's share of the integrations; this assumes each day's weight is
+    Unequal days (a flagged stretch) enter through ``f_k``, the day's share of the unflagged
+    samples (:func:`mmflow.mmode.splits.split_shares`; a day below min_coverage is refused by
+    the stage); this assumes each day's weight is
     spread over the sidereal bins like the full data's (a day with a long gap is noisier at
     the LSTs it misses, which one ``f_k`` cannot say).
 
@@ -95,7 +97,7 @@ def per_day_variance(map_all, day_maps, fractions, mask=None):
     day_maps : sequence of ndarray
         The maps of the ``day<k>`` splits (all days of the data or some of them).
     fractions : sequence of float
-        ``f_k``, each day's share of the data's integrations (``0 < f_k < 1``).
+        ``f_k``, each day's share of the data's unflagged samples (``0 < f_k < 1``).
     """
     sel = slice(None) if mask is None else np.asarray(mask, bool)
     f = np.asarray(fractions, float)

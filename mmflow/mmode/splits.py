@@ -19,8 +19,12 @@ all projected by one transfer pass:
 
 A time subset measures the sky only at the LSTs it covers: one day of data splits into a day
 half and a night half that each see only part of the sidereal day, so ``day`` / ``night`` is a
-jackknife only for data spanning months (the Sun's RA moves ~1 deg a day). The stage refuses a
-split covering less than ``mmode.min_coverage`` of the sidereal bins (:func:`bin_coverage`).
+jackknife only for data spanning months (the Sun's RA moves ~1 deg a day). The stage refuses
+(:func:`split_problems`) a ``day`` / ``night`` split covering less than ``mmode.min_coverage`` of
+the sidereal bins (:func:`bin_coverage`) and, with any ``day<k>`` listed, any day of the data
+that does (the per-day jackknife needs whole days); each task checks every time split's
+unflagged bins the same way. Each split's share ``f_k`` of the data is counted from the flags
+(:func:`split_shares` of the mmodes stage's ``n_samples``).
 
 Plain numpy (and astropy for the Sun); no dask, no configuration.
 """
@@ -199,15 +203,16 @@ def bin_coverage(lsts, n_bins):
     return float(len(np.unique(bin_index(lsts, n_bins)[0])) / n_bins)
 
 
-def split_weights(names, masks, n_total):
-    """Share of the integrations in each split: ``{name: n_split / n_total}`` (1 for ``full``, 1/2
-    for ``even`` / ``odd``): the ``f_k`` of the per-day jackknife with unequal days
-    (:func:`mmflow.imaging.jackknife.per_day_variance`)."""
-    out = {}
-    for s in names:
-        kind, _ = split_kind(s)
-        out[s] = 1.0 if kind == "full" else 0.5 if kind == "parity" else float(np.sum(masks[s]) / max(n_total, 1))
-    return out
+def split_shares(counts, names):
+    """Each split's share of the data: ``{name: f_k}``, ``f_k = n_k / n_full`` from the unflagged
+    sample counts ``counts`` (one per split in ``names``, ``full`` among them; the mmodes stage's
+    ``n_samples`` summed over baselines): the ``f_k`` of the per-day jackknife
+    (:func:`mmflow.imaging.jackknife.per_day_variance`) and of the day/night map
+    (:func:`mmflow.imaging.jackknife.day_night_difference`). Flags count: a day half flagged has half
+    the share of a whole one."""
+    counts = np.asarray(counts, float)
+    full = counts[list(names).index("full")]
+    return {s: float(c / full) if full > 0 else 0.0 for s, c in zip(names, counts)}
 
 
 def day_list(days):

@@ -96,7 +96,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
         restored = ck.combine_highpass(in_frame(alms["full"]), in_frame(state.residual_alm), comps, w, lmax)
     products = {"restored": restored, "residual": resid_map,
                 "model": ck.model_map(state.comp_vec, state.comp_flux, nside, rot)}
-    jk = cs.jackknife_splits(ctx)
+    jk = cs.jackknife_splits(ctx, fi)
     if jk[0] is not None:
         products["noise"] = alm_to_map(in_frame(noise_realisation(alms, jk[0], jk[2])), nside, lmax)
     if {"day", "night"} <= set(cfg.mmode.splits):
@@ -122,7 +122,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     noise = dict(zip(NOISE_FIELDS, (float(x) for x in g["noise"][fi])))
     noise["kelvin_map_units"] = p.unit
     noise["estimator"] = jk[0]
-    noise["by_split"] = split_noise(ctx, alms, freq, tables[0])
+    noise["by_split"] = split_noise(ctx, fi, alms, freq, tables[0])
     per_cycle = [int(np.count_nonzero(state.comp_cycle == c)) for c in range(state.cycle)]
     thr = float(g["threshold"][fi])
     info.update({
@@ -136,7 +136,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     return info
 
 
-def split_noise(ctx, alms, freq, table):
+def split_noise(ctx, fi, alms, freq, table):
     """Every jackknife the splits allow, on the clean stage's pixels and mask (frame of date):
     ``{"even_odd": ..., "per_day": ...}`` with :func:`mmflow.imaging.jackknife.beam_noise`'s
     fields, and ``"day_night"``: the rms of the day/night systematics map ``(day - night) / 2``
@@ -152,7 +152,7 @@ def split_noise(ctx, alms, freq, table):
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(lat))
     out = {}
     for kind in ("even_odd", "per_day"):
-        jk = cs.jackknife_splits(ctx, kind)
+        jk = cs.jackknife_splits(ctx, fi, kind)
         if jk[0] is not None:
             out[kind] = beam_noise(cs.jackknife_sigma(alms, jk, lmax, nside, mask), freq, table)
     if {"day", "night"} <= set(alms):
