@@ -154,6 +154,23 @@ def test_split_shares_count_the_flags():
     assert f == {"full": 1.0, "day0": 0.4, "day1": 0.4, "day2": 0.2}
 
 
+def test_day_night_map_has_the_full_maps_noise_for_any_shares():
+    """A sky both halves see plus noise of variance sigma^2 / f per half (inverse-variance weights):
+    sqrt(f_d f_n) (day - night) cancels the sky and has the rms sigma_all for equal and unequal
+    halves; the plain half-difference would be 1.09 sigma_all for 0.3 / 0.7; the mean has the sky."""
+    rng = np.random.default_rng(5)
+    n, sigma = 400_000, 2.0
+    sky = 100 * rng.normal(size=n)
+    for f_d in (0.5, 0.3):
+        f_n = 1 - f_d
+        day, night = sky + sigma / np.sqrt(f_d) * rng.normal(size=n), sky + sigma / np.sqrt(f_n) * rng.normal(size=n)
+        dn = jackknife.day_night_difference(day, night, f_d, f_n)
+        assert jackknife.masked_rms(dn) == pytest.approx(sigma, rel=0.01)
+        assert np.sqrt(np.mean((0.5 * (day - night)) ** 2)) == pytest.approx(sigma / np.sqrt(4 * f_d * f_n), rel=0.01)
+    with pytest.raises(InputError, match="shares"):
+        jackknife.day_night_difference(day, night, 1.0, 0.0)
+
+
 @pytest.mark.parametrize("day_weights", [(1, 1, 1), (1, 1, 0.5)])
 def test_per_day_jackknife_matches_a_monte_carlo_of_the_map_noise(blocks, small_telescope, day_weights):
     """D = 3 days on one sidereal grid (a bright sky that every day sees, plus noise of variance
@@ -312,9 +329,16 @@ def test_day_night_map_and_report_line(tmp_path):
     n = zarr.open_group(str(tmp_path / "dn" / "mmodes.zarr"), mode="r")["n_samples"][:, 0]  # split, baseline
     assert 0.3 < f_day < 0.6 and n[3].sum() / n[0].sum() == pytest.approx(f_day, rel=1e-12)
     assert (n[3] + n[4] == n[0]).all() and (n[1] + n[2] == n[0]).all()
+    # its rms: sqrt(f_d f_n) (day - night) of alm.zarr on the clean stage's pixels and mask
+    alm = _alm(tmp_path / "dn")
+    nside = cs.clean_nside(cfg)
+    diff = np.sqrt(f_day * (1 - f_day)) * (alm[3] - alm[4])
+    rms = np.sqrt(np.mean(healpy.alm2map(healpy_alm(diff, LMAX, LMAX), nside, lmax=LMAX)[_seen(tmp_path / "dn",
+                                                                                                  nside)] ** 2))
+    assert summ["noise"]["by_split"]["day_night"]["jy_per_sr"] == pytest.approx(rms, rel=1e-9)
     assert summ["table1"]["noise_k_day_night"] == summ["noise"]["by_split"]["day_night"]["kelvin"] > 0
     html = (tmp_path / "dn" / "maps" / "report.html").read_text()
-    assert "day/night systematics" in html and "not a noise estimate" in html
+    assert "day/night systematics sqrt(f_d f_n) (day - night)" in html and "not a noise estimate" in html
 
 
 def test_refusals_name_the_splits_field(tmp_path):

@@ -19,8 +19,8 @@ unbiased for independent noise in the two halves: ``odd - all = (odd - even) / 2
 With data of several sidereal days, the ``day<k>`` splits (:mod:`mmflow.mmode.splits`) give a
 per-day jackknife (:func:`per_day_variance`), which also sees errors slower than one
 integration (but faster than a day); the ``day`` / ``night`` splits give a map of day-night
-systematics (:func:`day_night_difference`), not a noise estimate. The shares ``f_k`` of the
-per-day jackknife count the unflagged samples of each split (:func:`mmflow.mmode.splits.split_shares`).
+systematics (:func:`day_night_difference`), not a noise estimate. The shares ``f_k`` of both
+count the unflagged samples of each split (:func:`mmflow.mmode.splits.split_shares`).
 """
 from __future__ import annotations
 
@@ -109,17 +109,25 @@ def per_day_variance(map_all, day_maps, fractions, mask=None):
     return float(np.mean(terms))
 
 
-def day_night_difference(map_day, map_night):
-    """The day/night systematics map ``(day - night) / 2``.
+def day_night_difference(map_day, map_night, f_day, f_night):
+    """The day/night systematics map ``sqrt(f_d f_n) (day - night)``.
 
-    A systematics check, not a noise estimate: the two halves differ by the thermal noise
-    *and* by everything that depends on the time of day (the Sun and its sidelobes, the
-    day-time ionosphere, RFI and the system temperature's daily cycle). With equal halves the
-    noise alone gives it the rms of the full map's noise (``Var = (sigma_d^2 + sigma_n^2) / 4 =
-    sigma_all^2``); an rms well above the jackknife sigma measures day-night systematics. Only
+    ``f_d``, ``f_n``: the day and night halves' shares of the data (:func:`mmflow.mmode.splits.split_shares`,
+    ``f_d + f_n = 1``). A systematics check, not a noise estimate: the two halves differ by the
+    thermal noise *and* by everything that depends on the time of day (the Sun and its
+    sidelobes, the day-time ionosphere, RFI and the system temperature's daily cycle). Each
+    half's noise has variance ``sigma_all^2 / f`` (inverse-variance weights add), so noise alone
+    gives ``Var = f_d f_n (sigma_all^2 / f_d + sigma_all^2 / f_n) = (f_d + f_n) sigma_all^2 =
+    sigma_all^2``, the full map's noise, for any shares (``(day - night) / 2`` for equal halves;
+    that plain half-difference would give ``sigma_all^2 / (4 f_d f_n)``, 1.19 sigma_all^2 for
+    0.3 / 0.7). An rms well above the jackknife sigma measures day-night systematics. Only
     meaningful for data spanning months, where each half covers every LST.
     """
-    return 0.5 * (np.asarray(map_day) - np.asarray(map_night))
+    f_d, f_n = float(f_day), float(f_night)
+    if not (0 < f_d < 1 and 0 < f_n < 1):
+        raise InputError("jackknife", "fractions", f"day / night shares {f_d:g} / {f_n:g}",
+                         "give shares 0 < f < 1 (both halves must hold data)")
+    return np.sqrt(f_d * f_n) * (np.asarray(map_day) - np.asarray(map_night))
 
 
 def masked_rms(hmap, mask=None):
