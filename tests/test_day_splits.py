@@ -219,6 +219,8 @@ def test_two_equal_days_give_the_even_odd_formula():
                                a - full)
     with pytest.raises(InputError, match="share"):
         jackknife.per_day_variance(full, [a], [1.0])
+    with pytest.raises(ValueError, match="unknown jackknife"):
+        jackknife.noise_realisation({"full": full, "day0": a}, "bogus", {"day0": 0.5})
 
 
 # ----------------------------------------------------------------------------- workflow

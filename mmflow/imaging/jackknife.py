@@ -160,6 +160,8 @@ def noise_realisation(maps, kind, fractions=None):
 
     if kind == "even_odd":
         return 0.5 * (np.asarray(maps["odd"]) - np.asarray(maps["even"]))
+    if kind != "per_day":
+        raise ValueError(f"unknown jackknife '{kind}'")
     name = day_splits(maps)[min(day_splits(maps))]
     f = float(fractions[name])
     return np.sqrt(f / (1 - f)) * (np.asarray(maps[name]) - np.asarray(maps["full"]))
