@@ -83,17 +83,92 @@ def test_day_night_masks_follow_the_suns_elevation_at_the_site():
     assert np.abs(fast[::50] - sp.sun_elevation_deg(many[::50], lat, lon, 1222.0)).max() < 0.005
 
 
+@pytest.mark.parametrize("start", [0.0, 0.3, 1.0, 2.0, 5.5, 6.28])
+def test_day_index_splits_a_regular_grid_into_whole_days_for_any_start_lst(start):
+    """Three days of 250 integrations: one LST a whole turn after the first is ``phi_0 + 2 pi`` up to
+    rounding, and must start the next day (not end this one: start 0.3 gave [251, 249, 250]). The
+    times of the simulation (apparent LST, pyuvdata), the config check's sidereal-rate times and
+    the unwrapped LSTs all give the same days."""
+    from types import SimpleNamespace
+
+    from mmflow.simulate.corrupt import utc_at_lsts
+    from mmflow.simulate.scene import drift_scan_lsts
+
+    lst = np.asarray(drift_scan_lsts(start, T_SID / 250, np.arange(750)))
+    site = SimpleNamespace(lat_deg=37.2398, lon_deg=-118.2817, height_m=1222.0)
+    stage = sp.day_index(lst, utc_at_lsts(lst, site, 2457802.0))  # what the mmodes stage sees
+    np.testing.assert_array_equal(stage, np.arange(750) // 250)
+    np.testing.assert_array_equal(sp.day_index(lst, sp.sidereal_times_jd(lst, 2457802.0)), stage)  # config check
+    np.testing.assert_array_equal(sp.day_index(lst), stage)
+    assert [sp.bin_coverage(lst[stage == j], 250) for j in range(3)] == [1.0, 1.0, 1.0]
+
+
+def test_day_index_counts_from_the_earliest_time_whatever_the_row_order():
+    k = np.arange(750)
+    lst, t = np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), 2457802.0 + k * T_SID / 250 / 86400.0
+    perm = np.r_[10:750, 0:10]  # the first rows are not the earliest
+    np.testing.assert_array_equal(sp.day_index(lst[perm], t[perm]), (k // 250)[perm])
+
+
 def test_split_problems_name_the_split_and_the_reason():
     lst = np.mod(2 * np.pi * np.arange(250) / 100, 2 * np.pi)  # 2.5 days of 100 bins
     days = sp.day_index(lst)
     probs = {name: problem for name, problem, _ in sp.split_problems(["full", "day1", "day2", "day3"], lst, days,
                                                                         None, 100, 0.95)}
     assert set(probs) == {"day2", "day3"}
-    assert "partial day" in probs["day2"] and "50.0%" in probs["day2"]
-    assert "3 sidereal days" in probs["day3"]
+    assert "whole days" in probs["day2"] and "50.0%" in probs["day2"]
+    assert "3 sidereal days (day0 .. day2), no day3" in probs["day3"]
     sun = np.where(np.arange(250) % 100 < 50, 10.0, -10.0)  # the Sun up at the same LSTs every day
     (name, problem, fix), = sp.split_problems(["full", "night"], lst, days, sun, 100, 0.95)
     assert name == "night" and "months" in fix
+
+
+def test_a_partial_day_is_refused_even_when_not_listed():
+    """1.5 days: the half day is in the full data, so day0 alone is no whole-day jackknife (a Monte
+    Carlo of [full, day0] here gives sigma ~19 % low); refused naming the partial day, listed or not."""
+    k = np.arange(375)
+    lst, t = np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), 2457802.0 + k * T_SID / 250 / 86400.0
+    days = sp.day_index(lst, t)
+    for names in (["full", "day0"], ["full", "day0", "day1"]):
+        (name, problem, fix), = sp.split_problems(names, lst, days, None, 250, 0.95)
+        assert name == "day1" and "day1 fills 50.0% of the 250 sidereal bins" in problem
+        assert "per-day jackknife needs whole days" in problem and "whole sidereal days" in fix and "even/odd" in fix
+    assert sp.split_problems(["full", "even", "odd"], lst, days, None, 250, 0.95) == []  # no day<k>: no day check
+
+
+def test_days_after_a_gap_are_named():
+    """Days 0-2 and 150-152 (a gap of months): day150 is a day of the data, day3 is named absent, not partial."""
+    k = np.concatenate([np.arange(0, 750), np.arange(150 * 250, 153 * 250)])
+    lst, t = np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), 2457802.0 + k * T_SID / 250 / 86400.0
+    days = sp.day_index(lst, t)
+    assert sorted(set(days)) == [0, 1, 2, 150, 151, 152]
+    assert sp.split_problems(["full", "day0", "day150"], lst, days, None, 250, 0.95) == []
+    (name, problem, fix), = sp.split_problems(["full", "day0", "day3"], lst, days, None, 250, 0.95)
+    assert name == "day3" and "6 sidereal days (day0 .. day2, day150 .. day152), no day3" in problem
+    assert "day0 .. day2, day150 .. day152" in fix and "partial" not in problem
+
+
+def test_split_shares_count_the_flags():
+    """f_k from unflagged samples: day2 half flagged gives 0.4 / 0.4 / 0.2, not 1/3 each."""
+    f = sp.split_shares([1250, 500, 500, 250], ["full", "day0", "day1", "day2"])
+    assert f == {"full": 1.0, "day0": 0.4, "day1": 0.4, "day2": 0.2}
+
+
+def test_day_night_map_has_the_full_maps_noise_for_any_shares():
+    """A sky both halves see plus noise of variance sigma^2 / f per half (inverse-variance weights):
+    sqrt(f_d f_n) (day - night) cancels the sky and has the rms sigma_all for equal and unequal
+    halves; the plain half-difference would be 1.09 sigma_all for 0.3 / 0.7; the mean has the sky."""
+    rng = np.random.default_rng(5)
+    n, sigma = 400_000, 2.0
+    sky = 100 * rng.normal(size=n)
+    for f_d in (0.5, 0.3):
+        f_n = 1 - f_d
+        day, night = sky + sigma / np.sqrt(f_d) * rng.normal(size=n), sky + sigma / np.sqrt(f_n) * rng.normal(size=n)
+        dn = jackknife.day_night_difference(day, night, f_d, f_n)
+        assert jackknife.masked_rms(dn) == pytest.approx(sigma, rel=0.01)
+        assert np.sqrt(np.mean((0.5 * (day - night)) ** 2)) == pytest.approx(sigma / np.sqrt(4 * f_d * f_n), rel=0.01)
+    with pytest.raises(InputError, match="shares"):
+        jackknife.day_night_difference(day, night, 1.0, 0.0)
 
 
 @pytest.mark.parametrize("day_weights", [(1, 1, 1), (1, 1, 0.5)])
@@ -144,6 +219,8 @@ def test_two_equal_days_give_the_even_odd_formula():
                                a - full)
     with pytest.raises(InputError, match="share"):
         jackknife.per_day_variance(full, [a], [1.0])
+    with pytest.raises(ValueError, match="unknown jackknife"):
+        jackknife.noise_realisation({"full": full, "day0": a}, "bogus", {"day0": 0.5})
 
 
 # ----------------------------------------------------------------------------- workflow
@@ -178,7 +255,9 @@ def test_each_day_of_noiseless_data_has_the_full_mmodes(three_days):
     g = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")
     mm = g["mmodes"][:]
     assert g.attrs["splits"] == ["full", "day0", "day1", "day2"] and g.attrs["n_days"] == 3
-    assert g.attrs["split_weights"]["day1"] == pytest.approx(1 / 3)
+    assert g.attrs["days"] == [0, 1, 2] and "split_weights" not in g.attrs
+    n = g["n_samples"][:]  # every integration unflagged: 750 and 250 a day on every baseline
+    assert (n[0] == 750).all() and (n[1:] == 250).all()
     scale = np.abs(mm[0]).max()
     for k in (1, 2, 3):
         assert np.abs(mm[k] - mm[0]).max() < 1e-12 * scale
@@ -245,17 +324,32 @@ def test_day_night_map_and_report_line(tmp_path):
     img = summ["images"]["daynight"]
     dn = healpy.read_map(str(tmp_path / "dn" / img["fits"]))
     assert np.isclose(img["rms_observed"], dn[dn != healpy.UNSEEN].std())
-    g = zarr.open_group(str(tmp_path / "dn" / "mmodes.zarr"), mode="r")
-    f_day = g.attrs["split_weights"]["day"]
-    assert 0.3 < f_day < 0.6 and g.attrs["split_weights"]["night"] == pytest.approx(1 - f_day)
+    # the shares from the Sun at the simulation's times, independently of the stage's counts
+    v = zarr.open_group(str(tmp_path / "dn" / "vis.zarr"), mode="r")
+    el = sp.sun_elevation_deg(v["time_jd"][:], v.attrs["lat_deg"], v.attrs["lon_deg"], v.attrs.get("height_m", 0.0))
+    f_day = float(np.mean(el > 0))
+    n = zarr.open_group(str(tmp_path / "dn" / "mmodes.zarr"), mode="r")["n_samples"][:, 0]  # split, baseline
+    assert 0.3 < f_day < 0.6 and n[3].sum() / n[0].sum() == pytest.approx(f_day, rel=1e-12)
+    assert (n[3] + n[4] == n[0]).all() and (n[1] + n[2] == n[0]).all()
+    # its rms: sqrt(f_d f_n) (day - night) of alm.zarr on the clean stage's pixels and mask
+    alm = _alm(tmp_path / "dn")
+    nside = cs.clean_nside(cfg)
+    diff = np.sqrt(f_day * (1 - f_day)) * (alm[3] - alm[4])
+    rms = np.sqrt(np.mean(healpy.alm2map(healpy_alm(diff, LMAX, LMAX), nside, lmax=LMAX)[_seen(tmp_path / "dn",
+                                                                                                  nside)] ** 2))
+    assert summ["noise"]["by_split"]["day_night"]["jy_per_sr"] == pytest.approx(rms, rel=1e-9)
     assert summ["table1"]["noise_k_day_night"] == summ["noise"]["by_split"]["day_night"]["kelvin"] > 0
     html = (tmp_path / "dn" / "maps" / "report.html").read_text()
-    assert "day/night systematics" in html and "not a noise estimate" in html
+    assert "day/night systematics sqrt(f_d f_n) (day - night)" in html and "not a noise estimate" in html
 
 
 def test_refusals_name_the_splits_field(tmp_path):
     (what, field, problem, fix), _ = refused_problem(SMALL + DAYS3 + ["mmode.splits=[full, day3]"], "mmode.splits")
     assert "3 sidereal days" in problem and "day0 .. day2" in fix
+    # 1.5 days: [full, day0] is refused too, naming the half day (the jackknife needs whole days)
+    (_, _, problem, fix), _ = refused_problem(SMALL + DAYS3 + ["observation.n_integrations=375",
+                                                               "mmode.splits=[full, day0]"], "mmode.splits")
+    assert "day1 fills 50.0%" in problem and "whole days" in problem and "even/odd" in fix
     (_, _, problem, _), _ = refused_problem(["mmode.splits=[full, day-1]"], "mmode.splits")
     assert "unknown split" in problem
     (_, _, problem, _), _ = refused_problem(SMALL + DAYS3 + ["mmode.splits=[full, day0, day0]"], "mmode.splits")
@@ -270,3 +364,97 @@ def test_refusals_name_the_splits_field(tmp_path):
     assert err.value.field == "mmode.splits" and "months" in err.value.fix
     assert not (tmp_path / "night" / "mmodes.zarr" / "mmodes").exists()
     shutil.rmtree(tmp_path / "night")
+
+
+def _flagging(rows_flagged):
+    """A ``read_block`` for the mmodes stage that flags the integrations ``rows_flagged(k)`` (bool of the
+    row index): flags as the stage sees them after ingest or calibration (weights 0)."""
+    from mmflow.workflow.stages import mmodes as ms
+
+    read = ms.read_block
+
+    def read_flagged(ctx, rows=slice(None), columns=slice(None), before=None):
+        block = read(ctx, rows, columns, before)
+        k = np.arange(*block.rows.indices(block.rows.stop))
+        block.weights[rows_flagged(k)] = 0.0
+        return block
+
+    return read_flagged
+
+
+def test_a_half_flagged_day_has_the_share_of_its_unflagged_samples(tmp_path):
+    """Day 2 with every other integration flagged (RFI; 83 bins of ~3 integrations: every bin still holds data):
+    the shares f_k come from the flags, 0.4 / 0.4 / 0.2 (the LSTs alone say 1/3 each: on noise alone
+    the jackknife variance would be 1.175x too high), and the clean stage's per-day sigma uses them.
+    (That the estimator with these shares is unbiased is the Monte Carlo test above, weights 1, 1, 0.5.)"""
+    from mmflow.workflow.stages import mmodes as ms
+
+    cfg = small_config(tmp_path / "flag", *DAYS3, "sky.noise=true", "mmode.splits=[full, day0, day1, day2]",
+                       "mmode.n_bins=83", "clean.enabled=true")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ms, "read_block", _flagging(lambda k: (k >= 500) & (k % 2 == 0)))
+        run_workflow(cfg, **QUIET)
+    run_dir = tmp_path / "flag"
+    n = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")["n_samples"][:, 0]
+    assert (n[0] == 625).all() and (n[1] == 250).all() and (n[2] == 250).all() and (n[3] == 125).all()
+    nside = cs.clean_nside(cfg)
+    alm, seen = _alm(run_dir), _seen(run_dir, nside)
+    maps = [healpy.alm2map(healpy_alm(alm[k], LMAX, LMAX), nside, lmax=LMAX) for k in range(4)]
+    sigma = np.sqrt(jackknife.per_day_variance(maps[0], maps[1:], [0.4, 0.4, 0.2], seen))
+    naive = np.sqrt(jackknife.per_day_variance(maps[0], maps[1:], [1 / 3] * 3, seen))
+    noise = float(zarr.open_group(str(run_dir / "clean.zarr"), mode="r")["noise"][0, 0])
+    print("per-day sigma with flag shares / with LST shares", sigma / naive)
+    assert noise == pytest.approx(sigma, rel=1e-9) and noise != pytest.approx(naive, rel=0.01)
+
+
+def test_a_flagged_day_is_refused_not_imaged_as_zero(tmp_path):
+    """Day 1 entirely flagged: its m-modes would be exactly 0 (then sigma^2 is the whole sky and CLEAN
+    stops at once); the mmodes stage refuses it, naming the split and mmode.splits."""
+    from mmflow.errors import CoverageError
+    from mmflow.workflow.stages import mmodes as ms
+
+    cfg = small_config(tmp_path / "gone", *DAYS3, "mmode.splits=[full, day0, day1, day2]")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(ms, "read_block", _flagging(lambda k: (k >= 250) & (k < 500)))
+        with pytest.raises(CoverageError) as err:
+            run_workflow(cfg, only=["simulate", "mmodes"], **QUIET)
+    assert err.value.field == "mmode.splits" and "'day1'" in err.value.problem and "0.0%" in err.value.problem
+    assert "remove day1" in err.value.fix
+
+
+def test_split_masks_cache_is_safe_across_threads(monkeypatch):
+    """Two threads asking for different splits: one must not clear the single-entry cache between the
+    other's store and its read (a KeyError without the lock)."""
+    import threading
+    import time
+
+    from mmflow.workflow.stages import mmodes as ms
+
+    class SlowDict(dict):
+        def __setitem__(self, key, value):
+            super().__setitem__(key, value)
+            time.sleep(0.05)  # widen the window between storing an entry and reading it back
+
+    monkeypatch.setattr(ms, "_MASKS", SlowDict())
+    k = np.arange(750)
+    arrays = {"lst": np.mod(0.3 + 2 * np.pi * k / 250, 2 * np.pi), "time_jd": 2457802.0 + k * T_SID / 250 / 86400.0}
+
+    class Vis(dict):
+        attrs = {"lat_deg": 37.2, "lon_deg": -118.3}
+
+    vis = Vis(arrays)
+    errors, out = [], {}
+
+    def work(splits):
+        try:
+            out[tuple(splits)] = ms._time_splits(None, vis, splits)[3]
+        except Exception as e:  # noqa: BLE001  (the test reports any failure)
+            errors.append(e)
+
+    threads = [threading.Thread(target=work, args=(s,)) for s in (["full", "day0"], ["full", "day1"])]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
+    assert out[("full", "day0")]["day0"].sum() == 250 and out[("full", "day1")]["day1"][250:500].all()

@@ -19,7 +19,8 @@ unbiased for independent noise in the two halves: ``odd - all = (odd - even) / 2
 With data of several sidereal days, the ``day<k>`` splits (:mod:`mmflow.mmode.splits`) give a
 per-day jackknife (:func:`per_day_variance`), which also sees errors slower than one
 integration (but faster than a day); the ``day`` / ``night`` splits give a map of day-night
-systematics (:func:`day_night_difference`), not a noise estimate.
+systematics (:func:`day_night_difference`), not a noise estimate. The shares ``f_k`` of both
+count the unflagged samples of each split (:func:`mmflow.mmode.splits.split_shares`).
 """
 from __future__ import annotations
 
@@ -83,8 +84,9 @@ def per_day_variance(map_all, day_maps, fractions, mask=None):
     ``f_k / (1 - f_k) |day_k - all|^2``; the mean over the listed days (any subset of the data's
     days) is the estimate. For ``D = 2`` equal days it is
     ``(1/2)(|day_0 - all|^2 + |day_1 - all|^2)``, the even/odd formula of :func:`jackknife_variance`.
-    Unequal days (a flagged stretch, a partial day refused by the stage below min_coverage) enter
-    through ``f_k``, the day's share of the integrations; this assumes each day's weight is
+    Unequal days (a flagged stretch) enter through ``f_k``, the day's share of the unflagged
+    samples (:func:`mmflow.mmode.splits.split_shares`; a day below min_coverage is refused by
+    the stage); this assumes each day's weight is
     spread over the sidereal bins like the full data's (a day with a long gap is noisier at
     the LSTs it misses, which one ``f_k`` cannot say).
 
@@ -95,7 +97,7 @@ def per_day_variance(map_all, day_maps, fractions, mask=None):
     day_maps : sequence of ndarray
         The maps of the ``day<k>`` splits (all days of the data or some of them).
     fractions : sequence of float
-        ``f_k``, each day's share of the data's integrations (``0 < f_k < 1``).
+        ``f_k``, each day's share of the data's unflagged samples (``0 < f_k < 1``).
     """
     sel = slice(None) if mask is None else np.asarray(mask, bool)
     f = np.asarray(fractions, float)
@@ -107,17 +109,25 @@ def per_day_variance(map_all, day_maps, fractions, mask=None):
     return float(np.mean(terms))
 
 
-def day_night_difference(map_day, map_night):
-    """The day/night systematics map ``(day - night) / 2``.
+def day_night_difference(map_day, map_night, f_day, f_night):
+    """The day/night systematics map ``sqrt(f_d f_n) (day - night)``.
 
-    A systematics check, not a noise estimate: the two halves differ by the thermal noise
-    *and* by everything that depends on the time of day (the Sun and its sidelobes, the
-    day-time ionosphere, RFI and the system temperature's daily cycle). With equal halves the
-    noise alone gives it the rms of the full map's noise (``Var = (sigma_d^2 + sigma_n^2) / 4 =
-    sigma_all^2``); an rms well above the jackknife sigma measures day-night systematics. Only
+    ``f_d``, ``f_n``: the day and night halves' shares of the data (:func:`mmflow.mmode.splits.split_shares`,
+    ``f_d + f_n = 1``). A systematics check, not a noise estimate: the two halves differ by the
+    thermal noise *and* by everything that depends on the time of day (the Sun and its
+    sidelobes, the day-time ionosphere, RFI and the system temperature's daily cycle). Each
+    half's noise has variance ``sigma_all^2 / f`` (inverse-variance weights add), so noise alone
+    gives ``Var = f_d f_n (sigma_all^2 / f_d + sigma_all^2 / f_n) = (f_d + f_n) sigma_all^2 =
+    sigma_all^2``, the full map's noise, for any shares (``(day - night) / 2`` for equal halves;
+    that plain half-difference would give ``sigma_all^2 / (4 f_d f_n)``, 1.19 sigma_all^2 for
+    0.3 / 0.7). An rms well above the jackknife sigma measures day-night systematics. Only
     meaningful for data spanning months, where each half covers every LST.
     """
-    return 0.5 * (np.asarray(map_day) - np.asarray(map_night))
+    f_d, f_n = float(f_day), float(f_night)
+    if not (0 < f_d < 1 and 0 < f_n < 1):
+        raise InputError("jackknife", "fractions", f"day / night shares {f_d:g} / {f_n:g}",
+                         "give shares 0 < f < 1 (both halves must hold data)")
+    return np.sqrt(f_d * f_n) * (np.asarray(map_day) - np.asarray(map_night))
 
 
 def masked_rms(hmap, mask=None):
@@ -150,6 +160,8 @@ def noise_realisation(maps, kind, fractions=None):
 
     if kind == "even_odd":
         return 0.5 * (np.asarray(maps["odd"]) - np.asarray(maps["even"]))
+    if kind != "per_day":
+        raise ValueError(f"unknown jackknife '{kind}'")
     name = day_splits(maps)[min(day_splits(maps))]
     f = float(fractions[name])
     return np.sqrt(f / (1 - f)) * (np.asarray(maps[name]) - np.asarray(maps["full"]))

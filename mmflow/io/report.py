@@ -233,9 +233,9 @@ def _image_caption(name, mhz, noise):
     dn = (noise.get("by_split") or {}).get("day_night")
     if name != "daynight" or not dn:
         return f"CLEAN {name} at {mhz}"
-    return (f"day/night systematics (day - night) / 2 at {mhz}: rms {dn['kelvin']:.3g} K over the seen sky, "
-            f"jackknife noise {noise.get('kelvin', float('nan')):.3g} K (a systematics check, not a noise estimate: "
-            "noise alone gives about the jackknife sigma)")
+    return (f"day/night systematics sqrt(f_d f_n) (day - night) at {mhz}: rms {dn['kelvin']:.3g} K over the seen "
+            f"sky, jackknife noise {noise.get('kelvin', float('nan')):.3g} K (a systematics check, not a noise "
+            "estimate: noise alone gives about the jackknife sigma, whatever the day and night shares f_d, f_n)")
 
 
 def _read_json(path):

@@ -7,7 +7,8 @@ vis.zarr        vis, weights (time, baseline, freq, pol); lst, time_jd (time); a
                 (time, antenna, freq, pol; NaN where absent or flagged); freqs_hz, pairs,
                 antenna_enu; attrs ``pols`` name the pol axis (xx, yy | rr, ll | I | one
                 hand). Never rewritten by corrections.
-mmodes.zarr     mmodes (split, freq, m, 2, baseline); inv_var (freq, baseline)
+mmodes.zarr     mmodes (split, freq, m, 2, baseline); inv_var (freq, baseline); n_samples
+                (split, freq, baseline): unflagged integrations of each split (its share f_k)
 partials.zarr   f{F}/gram_b{M0} (group, m, l, l'); f{F}/rhs (group, split, m, l);
                 f{F}/vhv (group, split, m): one partial sum per fixed baseline group
 normal.zarr     f{F}/gram_b{M0} (m, l, l'); rhs (split, freq, m, l); vhv (split, freq, m)
@@ -51,11 +52,15 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
 
 
 def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs):
+    """``n_samples``: each split's unflagged integrations per frequency and baseline (the bins'
+    summed 0/1 weights), from which the jackknives take each split's share ``f_k``
+    (:func:`mmflow.mmode.splits.split_shares`)."""
     ch = min(baseline_chunk, nbl)
     return StoreSpec("mmodes.zarr", (
         ArraySpec("mmodes", ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
                   (n_split, nf, mmax + 1, 2, ch), "complex128"),
         ArraySpec("inv_var", ("freq", "baseline"), (nf, nbl), (nf, ch), "float64"),
+        ArraySpec("n_samples", ("split", "freq", "baseline"), (n_split, nf, nbl), (n_split, nf, ch), "int64"),
     ), attrs)
 
 

@@ -11,7 +11,7 @@ all projected by one transfer pass:
   (:func:`mmflow.mmode.gapfill.chunk_mmodes`):
 
   - ``day<k>`` (``k = 0, 1, ...``): the integrations of the k-th sidereal day counted from the
-    first integration's LST, ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``
+    earliest integration's LST, ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``
     with ``Omega = 2 pi / 86164.0905 s`` (:func:`day_index`): the elapsed sidereal angle less
     the wrapped LST difference is a whole number of turns;
   - ``day`` / ``night``: integrations with the Sun's centre above / below the horizon at the
@@ -19,8 +19,12 @@ all projected by one transfer pass:
 
 A time subset measures the sky only at the LSTs it covers: one day of data splits into a day
 half and a night half that each see only part of the sidereal day, so ``day`` / ``night`` is a
-jackknife only for data spanning months (the Sun's RA moves ~1 deg a day). The stage refuses a
-split covering less than ``mmode.min_coverage`` of the sidereal bins (:func:`bin_coverage`).
+jackknife only for data spanning months (the Sun's RA moves ~1 deg a day). The stage refuses
+(:func:`split_problems`) a ``day`` / ``night`` split covering less than ``mmode.min_coverage`` of
+the sidereal bins (:func:`bin_coverage`) and, with any ``day<k>`` listed, any day of the data
+that does (the per-day jackknife needs whole days); each task checks every time split's
+unflagged bins the same way. Each split's share ``f_k`` of the data is counted from the flags
+(:func:`split_shares` of the mmodes stage's ``n_samples``).
 
 Plain numpy (and astropy for the Sun); no dask, no configuration.
 """
@@ -74,18 +78,21 @@ def jackknife_kind(names):
 
 
 def day_index(lsts, times_jd=None):
-    """Sidereal day of each integration, counted from the first one (0, 1, ...).
+    """Sidereal day of each integration, counted from the earliest one (0, 1, ...).
 
     With UTC times: ``k_n = round((Omega (t_n - t_0) - [(phi_n - phi_0) mod 2 pi]) / 2 pi)``,
-    ``Omega = 2 pi / 86164.0905 s``: exact whatever the gaps, as long as the times are good to
-    a fraction of a day (the day turns over where the LST passes the first integration's).
-    Without times (or where a time is NaN): the turns of the unwrapped LSTs, which holds only
-    for data without gaps longer than half a sidereal day.
+    ``Omega = 2 pi / 86164.0905 s``, ``t_0``, ``phi_0`` the earliest integration's: exact
+    whatever the gaps and the row order, as long as the times are good to a fraction of a day
+    (the day turns over where the LST passes the earliest integration's). The wrapped difference
+    is taken as ``((phi_n - phi_0 + 1e-9) mod 2 pi) - 1e-9``: on a regular grid the LST one turn
+    later is ``phi_0 + 2 pi`` up to rounding, which must give 0 (the next day), not ``2 pi - eps``.
+    Without times (or where a time is NaN): the turns of the unwrapped LSTs (in row order, from
+    row 0), which holds only for data in time order without gaps longer than half a sidereal day.
 
     Parameters
     ----------
     lsts : ndarray (n_time,)
-        Sidereal angle of each integration (rad), in time order.
+        Sidereal angle of each integration (rad).
     times_jd : ndarray (n_time,), optional
         UTC Julian date of each integration.
 
@@ -96,19 +103,32 @@ def day_index(lsts, times_jd=None):
     phi = np.asarray(lsts, float)
     if phi.size == 0:
         return np.zeros(0, int)
-    wrapped = np.mod(phi - phi[0], TWO_PI)
-    unwrapped = np.floor((np.unwrap(phi) - phi[0]) / TWO_PI + 1e-9).astype(int)
+    unwrapped = np.floor((np.unwrap(phi) - phi[0]) / TWO_PI + _TURN_TOL).astype(int)
     if times_jd is None:
         return unwrapped
     t = np.asarray(times_jd, float)
-    turns = (t - t[0]) * 86400.0 * TWO_PI / SIDEREAL_DAY_S
+    if not np.isfinite(t).any():
+        return unwrapped
+    i0 = int(np.nanargmin(t))
+    wrapped = np.mod(phi - phi[i0] + _TURN_TOL, TWO_PI) - _TURN_TOL
+    turns = (t - t[i0]) * 86400.0 * TWO_PI / SIDEREAL_DAY_S
     with np.errstate(invalid="ignore"):
         k = np.round((turns - wrapped) / TWO_PI)
-    good = np.isfinite(k) & np.isfinite(t[0])
-    return np.where(good, np.nan_to_num(k), unwrapped).astype(int)
+    return np.where(np.isfinite(k), np.nan_to_num(k), unwrapped).astype(int)
 
 
-SUN_GRID_S = 300.0  # the Sun's elevation is evaluated on this grid and interpolated (error < 0.01 deg)
+_TURN_TOL = 1e-9  # rad: an LST this close below a whole turn from the first is on the next turn
+
+
+def sidereal_times_jd(lsts, t0_jd=0.0):
+    """Times (JD) of consecutive integrations ``lsts`` (rad, in time order, no gaps) at the sidereal
+    rate: ``t_n = t_0 + (unwrap(phi)_n - phi_0) T_sid / (2 pi 86400 s)``, as a simulation's
+    ``time_jd`` (:func:`mmflow.simulate.corrupt.utc_at_lsts`) up to the apparent LST's wobble."""
+    phi = np.unwrap(np.asarray(lsts, float))
+    return t0_jd + (phi - phi[0]) * SIDEREAL_DAY_S / (TWO_PI * 86400.0)
+
+
+SUN_GRID_S = 300.0  # s: the Sun's elevation is evaluated on this grid and interpolated (error <~ 0.005 deg)
 
 
 def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_S):
@@ -119,7 +139,8 @@ def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_
     where the times outnumber a ``grid_s`` grid over their span the elevation is computed on
     the grid and interpolated linearly: the error is at most ``h^2 / 8`` times the largest
     second derivative, ``A (2 pi / day)^2`` for a daily swing of amplitude ``A <= 90`` deg,
-    i.e. < 0.005 deg for 300 s.
+    i.e. ``90 deg (300 s 2 pi / 86400 s)^2 / 8`` ≈ 0.005 deg for 300 s at most (near culmination;
+    at the horizon crossings, which decide day / night, far less: the elevation is nearly linear there).
     """
     t = np.asarray(times_jd, float)
     good = np.isfinite(t)
@@ -183,51 +204,68 @@ def bin_coverage(lsts, n_bins):
     return float(len(np.unique(bin_index(lsts, n_bins)[0])) / n_bins)
 
 
-def split_weights(names, masks, n_total):
-    """Share of the integrations in each split: ``{name: n_split / n_total}`` (1 for ``full``, 1/2
-    for ``even`` / ``odd``): the ``f_k`` of the per-day jackknife with unequal days
-    (:func:`mmflow.imaging.jackknife.per_day_variance`)."""
-    out = {}
-    for s in names:
-        kind, _ = split_kind(s)
-        out[s] = 1.0 if kind == "full" else 0.5 if kind == "parity" else float(np.sum(masks[s]) / max(n_total, 1))
-    return out
+def split_shares(counts, names):
+    """Each split's share of the data: ``{name: f_k}``, ``f_k = n_k / n_full`` from the unflagged
+    sample counts ``counts`` (one per split in ``names``, ``full`` among them; the mmodes stage's
+    ``n_samples`` summed over baselines): the ``f_k`` of the per-day jackknife
+    (:func:`mmflow.imaging.jackknife.per_day_variance`) and of the day/night map
+    (:func:`mmflow.imaging.jackknife.day_night_difference`). Flags count: a day half flagged has half
+    the share of a whole one."""
+    counts = np.asarray(counts, float)
+    full = counts[list(names).index("full")]
+    return {s: float(c / full) if full > 0 else 0.0 for s, c in zip(names, counts)}
+
+
+def day_list(days):
+    """``"day0 .. day2, day150 .. day152"``: the sidereal days present (runs of consecutive days joined)."""
+    days = sorted(set(int(d) for d in days))
+    runs, start = [], None
+    for i, d in enumerate(days):
+        start = d if start is None else start
+        if i + 1 == len(days) or days[i + 1] != d + 1:
+            runs.append(f"day{start}" if start == d else f"day{start} .. day{d}")
+            start = None
+    return ", ".join(runs)
 
 
 def split_problems(names, lsts, days, sun_elevation, n_bins, min_coverage):
     """What is wrong with the time-subset splits among ``names`` for these data: ``[(name, problem, fix)]``.
 
-    ``day<k>`` beyond the data's days; per-day splits of less than two days; a split whose
-    integrations fill less than ``min_coverage`` of the ``n_bins`` sidereal bins
-    (:func:`bin_coverage`: a partial day, or ``day`` / ``night`` of too few days).
-    ``sun_elevation`` None: the ``day`` / ``night`` splits are not checked.
+    ``day<k>`` for a day the data do not hold (beyond them, or in a gap); per-day splits of less
+    than two days; with any ``day<k>`` listed, EVERY day of the data that fills less than
+    ``min_coverage`` of the ``n_bins`` sidereal bins (:func:`bin_coverage`), listed or not: the
+    per-day jackknife's ``all = sum_k f_k day_k`` holds the partial day too, and a partial day's
+    noise is not spread over the bins like the full data's, so the listed days' estimate is biased
+    (1.5 days, ``[full, day0]``: sigma ~19 % low); ``day`` / ``night`` below ``min_coverage``.
+    ``sun_elevation`` None: the ``day`` / ``night`` splits are not checked. Negative ``days``
+    (integrations without an LST) are in no day.
     """
     lsts = np.asarray(lsts, float)
     days = np.asarray(days, int)
-    n_days = int(days.max()) + 1 if days.size else 0
+    present = sorted(set(np.unique(days[days >= 0]).tolist()))
+    held = f"the data hold {len(present)} sidereal day{'s' if len(present) != 1 else ''} ({day_list(present)})"
     out = []
     listed = day_splits(names)
-    if listed and n_days < 2:
-        out.append((listed[min(listed)], f"per-day splits of data spanning {n_days} sidereal day: the one day is "
-                    "the full data", "observe two or more sidereal days, or use mmode.splits=[full, even, odd]"))
+    if listed and len(present) < 2:
+        out.append((listed[min(listed)], f"per-day splits of data spanning {len(present)} sidereal day: the one "
+                    "day is the full data", "observe two or more sidereal days, or use mmode.splits=[full, even, odd]"))
         listed = {}
-    beyond = [s for k, s in listed.items() if k >= n_days]
-    for s in beyond:
-        out.append((s, f"the data hold {n_days} sidereal days (day0 .. day{n_days - 1}), no {s}",
-                    f"list only day0 .. day{n_days - 1} in mmode.splits"))
-    masks = split_masks([s for s in names if is_time_split(s) and s not in beyond and
-                         (sun_elevation is not None or split_kind(s)[0] == "day")], days, sun_elevation)
-    for s, mask in masks.items():
-        cov = bin_coverage(lsts[mask], n_bins)
-        if cov >= min_coverage:
-            continue
-        if split_kind(s)[0] == "sun":
-            out.append((s, f"the '{s}' integrations fill only {cov:.1%} of the {n_bins} sidereal bins (need "
-                        f"mmode.min_coverage = {min_coverage:g}): over one day, or a few, each half of a day sees "
-                        "only part of the LSTs", "day/night is a jackknife only with months of data (the Sun's RA "
-                        "moves ~1 deg a day); remove day / night from mmode.splits"))
-        else:
-            out.append((s, f"{s} fills only {cov:.1%} of the {n_bins} sidereal bins (need mmode.min_coverage = "
-                        f"{min_coverage:g}): a partial day", f"remove {s} from mmode.splits (or lower "
-                        "mmode.min_coverage)"))
+    for k, s in listed.items():
+        if k not in present:
+            out.append((s, f"{held}, no {s}", f"list only days the data hold in mmode.splits ({day_list(present)})"))
+    if listed:
+        for j in present:
+            cov = bin_coverage(lsts[days == j], n_bins)
+            if cov < min_coverage:
+                out.append((f"day{j}", f"day{j} fills {cov:.1%} of the {n_bins} sidereal bins (need "
+                            f"mmode.min_coverage = {min_coverage:g}): the per-day jackknife needs whole days",
+                            "trim the data to whole sidereal days or use even/odd (mmode.splits=[full, even, odd])"))
+    if sun_elevation is not None:
+        for s, mask in split_masks([s for s in names if split_kind(s)[0] == "sun"], days, sun_elevation).items():
+            cov = bin_coverage(lsts[mask], n_bins)
+            if cov < min_coverage:
+                out.append((s, f"the '{s}' integrations fill only {cov:.1%} of the {n_bins} sidereal bins (need "
+                            f"mmode.min_coverage = {min_coverage:g}): over one day, or a few, each half of a day "
+                            "sees only part of the LSTs", "day/night is a jackknife only with months of data (the "
+                            "Sun's RA moves ~1 deg a day); remove day / night from mmode.splits"))
     return out

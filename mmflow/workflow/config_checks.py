@@ -282,8 +282,10 @@ def _clean_problems(cfg):
 
 def _split_problems(cfg):
     """``day<k>`` splits of a simulation against the days it simulates (the stage checks ingested data,
-    and ``day`` / ``night``, in its prepare: :func:`mmflow.mmode.splits.split_problems`)."""
-    from mmflow.mmode.splits import day_index, day_splits, split_problems
+    and ``day`` / ``night``, in its prepare: :func:`mmflow.mmode.splits.split_problems`). The days are
+    counted as the stage counts them, from LSTs and times (the simulation's times advance at the
+    sidereal rate: :func:`mmflow.mmode.splits.sidereal_times_jd`)."""
+    from mmflow.mmode.splits import day_index, day_splits, sidereal_times_jd, split_problems
     from mmflow.simulate.scene import drift_scan_lsts
 
     mm, ob = cfg.mmode, cfg.observation
@@ -292,8 +294,9 @@ def _split_problems(cfg):
     n = ob.n_integrations or int(round(SIDEREAL_DAY_S / ob.integration_s))
     lsts = drift_scan_lsts(np.deg2rad(ob.start_lst_deg), ob.integration_s, np.arange(n))
     n_bins = mm.n_bins or int(round(SIDEREAL_DAY_S / ob.integration_s))
+    days = day_index(lsts, sidereal_times_jd(lsts))
     return [Problem(("mmode", "splits"), name, problem, fix)
-            for name, problem, fix in split_problems(mm.splits, lsts, day_index(lsts), None, n_bins, mm.min_coverage)]
+            for name, problem, fix in split_problems(mm.splits, lsts, days, None, n_bins, mm.min_coverage)]
 
 
 def _products_problems(cfg):

@@ -259,10 +259,11 @@ def _split_alm(ctx, fi, lmax, mmax):
     return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
 
 
-def jackknife_splits(ctx, kind=None):
-    """``(kind, splits, f_k)`` of the jackknife (:func:`mmflow.mmode.splits.jackknife_kind`: even/odd,
-    else per-day; or the ``kind`` asked for): the splits it images and each split's share of the
-    integrations (:func:`mmflow.workflow.stages.mmodes.split_fractions`); ``(None, (), {})`` without one."""
+def jackknife_splits(ctx, fi, kind=None):
+    """``(kind, splits, f_k)`` of the jackknife at frequency ``fi`` (:func:`mmflow.mmode.splits.jackknife_kind`:
+    even/odd, else per-day; or the ``kind`` asked for): the splits it images and each split's share of
+    the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.stages.mmodes.split_fractions`);
+    ``(None, (), {})`` without one."""
     from mmflow.mmode.splits import day_splits, jackknife_kind
     from mmflow.workflow.stages.mmodes import split_fractions
 
@@ -272,7 +273,7 @@ def jackknife_splits(ctx, kind=None):
         return kind, ("full", "even", "odd"), {}
     if kind == "per_day" and day_splits(splits):
         used = ("full",) + tuple(day_splits(splits).values())
-        return kind, used, split_fractions(ctx, used)
+        return kind, used, split_fractions(ctx, fi)
     return None, (), {}
 
 
@@ -303,8 +304,8 @@ def _setup_tables(ctx, g):
     nside = clean_nside(cfg)
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(np.deg2rad(_lat(ctx))))
     freqs = ctx.read("vis.zarr", "freqs_hz")
-    jk = jackknife_splits(ctx)
     for fi in range(g["threshold"].shape[0]):
+        jk = jackknife_splits(ctx, fi)
         cols = psf_alm_columns(g, fi, lmax, blocks)
         tables = [psf.fit_psf_columns(cols, lmax, decs)]
         tables.append(tables[0] if w is None else psf.fit_psf_columns(psf.apply_l_weights(cols, lmax, w), lmax, decs))
@@ -411,6 +412,6 @@ def _finalize(ctx):
     return out
 
 
-register(Stage("clean", CLEAN_CONFIG, ("vis.zarr", "normal.zarr", "alm.zarr"), ("clean.zarr",), _prepare, _task,
-               _finalize, enabled=lambda cfg: cfg.clean.enabled, kind="iterative", next_cycle=_next_cycle,
+register(Stage("clean", CLEAN_CONFIG, ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"), ("clean.zarr",), _prepare,
+               _task, _finalize, enabled=lambda cfg: cfg.clean.enabled, kind="iterative", next_cycle=_next_cycle,
                description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold"))

@@ -11,7 +11,10 @@ coverage (``docs/mmodes.md``). It writes ``mmodes.zarr``.
 Time-subset splits (``day<k>``, ``day``, ``night``; :mod:`mmflow.mmode.splits`) are binned from
 their own integrations and fitted the same way; their masks are computed once per process from
 ``vis.zarr``'s ``lst`` and ``time_jd``, and the prepare refuses splits the data cannot make
-(:func:`mmflow.mmode.splits.split_problems`) before any task.
+(:func:`mmflow.mmode.splits.split_problems`) before any task; each task refuses a time split
+whose unflagged samples miss ``mmode.min_coverage`` of the bins (a flagged day). Every task
+counts each split's unflagged samples per frequency and baseline (``n_samples``): the jackknives'
+shares ``f_k`` (:func:`split_fractions`).
 
 With ``mmode.prior_run`` the fit of every chunk with flagged time takes as its prior the
 m-modes of an earlier run's map (:func:`mmflow.mmode.gapfill.prior_mmodes` of that run's
@@ -21,6 +24,7 @@ from the map (what the array saw of that sky at other times and on other baselin
 from __future__ import annotations
 
 import hashlib
+import threading
 
 import numpy as np
 
@@ -29,7 +33,7 @@ from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
-from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, split_weights, \
+from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, split_shares, \
     sun_elevation_deg
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
@@ -71,24 +75,27 @@ def _time_splits(ctx, vis, splits):
     sun = any(split_kind(s)[0] == "sun" for s in splits)
     key = (hashlib.sha1(lst.tobytes() + times.tobytes()).hexdigest(), tuple(splits),
            (a["lat_deg"], a["lon_deg"], a.get("height_m", 0.0)) if sun else None)
-    if key not in _MASKS:
-        good = np.isfinite(lst)
-        days = np.full(len(lst), -1)
-        days[good] = day_index(lst[good], times[good])
-        elev = sun_elevation_deg(times, a["lat_deg"], a["lon_deg"], a.get("height_m", 0.0)) if sun else None
-        masks = {s: m & good for s, m in split_masks(splits, days, elev).items()}
-        _MASKS.clear()
-        _MASKS[key] = (lst, days, elev, masks)
-    return _MASKS[key]
+    with _MASKS_LOCK:  # tasks of one process run in threads: one computes, the others wait for it
+        entry = _MASKS.get(key)
+        if entry is None:
+            good = np.isfinite(lst)
+            days = np.full(len(lst), -1)
+            days[good] = day_index(lst[good], times[good])
+            elev = sun_elevation_deg(times, a["lat_deg"], a["lon_deg"], a.get("height_m", 0.0)) if sun else None
+            entry = (lst, days, elev, {s: m & good for s, m in split_masks(splits, days, elev).items()})
+            _MASKS.clear()
+            _MASKS[key] = entry
+    return entry
 
 
-_MASKS = {}
+_MASKS = {}  # one entry: the masks of the latest data and splits
+_MASKS_LOCK = threading.Lock()
 
 
 def _check_time_splits(ctx, vis, splits, n_bins):
     """Refuse time-subset splits the data cannot make (:func:`mmflow.mmode.splits.split_problems`);
-    return the attributes the jackknives need: days in the data, each split's share of the integrations."""
-    lst, days, elev, masks = _time_splits(ctx, vis, splits)
+    return the attributes of the days: how many sidereal days the data span and which hold data."""
+    lst, days, elev, _ = _time_splits(ctx, vis, splits)
     good = np.isfinite(lst)
     problems = split_problems(splits, lst[good], days[good], None if elev is None else elev[good], n_bins,
                               ctx.cfg.mmode.min_coverage)
@@ -96,15 +103,17 @@ def _check_time_splits(ctx, vis, splits, n_bins):
         name, problem, fix = problems[0]
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
         raise InputError(str(ctx.run.store("vis.zarr")), "mmode.splits", f"'{name}': {problem}{more}", fix)
-    return {"n_days": int(days.max()) + 1, "split_weights": split_weights(splits, masks, int(good.sum()))}
+    present = np.unique(days[days >= 0])
+    return {"n_days": int(present.max()) + 1 if present.size else 0, "days": [int(d) for d in present]}
 
 
-def split_fractions(ctx, splits):
-    """Each split's share of the integrations of ``vis.zarr`` (:func:`mmflow.mmode.splits.split_weights`):
-    the ``f_k`` of the per-day jackknife, for any stage that reads ``vis.zarr``."""
-    vis = ctx.open("vis.zarr")
-    lst, _, _, masks = _time_splits(ctx, vis, list(splits))
-    return split_weights(splits, masks, int(np.isfinite(lst).sum()))
+def split_fractions(ctx, fi):
+    """``{split: f_k}`` at frequency ``fi``: each split's share of the unflagged samples, summed over
+    baselines (``mmodes.zarr``'s ``n_samples``, :func:`mmflow.mmode.splits.split_shares`): the ``f_k``
+    of the per-day jackknife and of the day/night map, for any stage that reads ``mmodes.zarr``."""
+    g = ctx.open("mmodes.zarr")
+    counts = ctx.read("mmodes.zarr", "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
+    return split_shares(counts, list(g.attrs["splits"]))
 
 
 def _task(ctx, key):
@@ -129,6 +138,7 @@ def _task(ctx, key):
     n_fit = n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((nf, vis.shape[1]))
+    n_samples = np.zeros((len(splits), nf, vis.shape[1]), np.int64)
     info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
             "downweighted_low_coverage": 0, "max_cg_iterations": 0, "fits_with_prior": 0}
     src = str(ctx.run.store("vis.zarr"))
@@ -139,8 +149,9 @@ def _task(ctx, key):
         for names, sel in [(bin_splits, slice(None))] + [([s], m) for s, m in masks.items()]:
             binned, wsum, offset = sidereal_bins(lst[sel], vis[sel, :, fi], (w[sel, :, fi] > 0).astype(float), n_bins,
                                                  0.0, source=src)
-            if names is bin_splits:
-                _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins)
+            _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins,
+                            None if names is bin_splits else names[0])
+            n_samples[[splits.index(s) for s in names], fi] = [_count(wsum, s) for s in names]
             prior = model.prior(binned, wsum, offset)
             info["fits_with_prior"] += prior is not None
             res = chunk_mmodes(binned, wsum, mmax, offset, band, names if names is bin_splits else ["full"], s2,
@@ -154,7 +165,16 @@ def _task(ctx, key):
                 info["downweighted_low_coverage"] += res.coverage.n_downweighted
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
+    ctx.write(g, "n_samples", (slice(None), slice(None), cols), n_samples)
     return info
+
+
+def _count(bin_weight, split):
+    """Unflagged samples per baseline of ``split`` from the summed 0/1 weights of the bins it was
+    fitted from: all bins, or the even / odd ones for a bin parity."""
+    kind, _ = split_kind(split)
+    sel = slice(None) if kind != "parity" else slice(0 if split == "even" else 1, None, 2)
+    return np.rint(bin_weight[sel].sum(axis=0)).astype(np.int64)
 
 
 class _PriorModel:
@@ -202,13 +222,19 @@ def _radiometer_sigma2(ctx, vg, autos, pairs):
     return stokes_i_variance(np.stack(per_pol, axis=-1)), "radiometer"
 
 
-def _check_coverage(bin_weight, min_coverage, source, n_bins):
-    """A day where most baselines miss ``min_coverage`` is not a day's drift scan: stop, saying so."""
+def _check_coverage(bin_weight, min_coverage, source, n_bins, split=None):
+    """A day where most baselines miss ``min_coverage`` is not a day's drift scan: stop, saying so.
+    ``split``: a time-subset split's unflagged bins (a day flagged away would give m-modes 0)."""
     coverage = float(np.median(np.mean(bin_weight > 0, axis=0)))
-    if coverage < min_coverage:
-        raise CoverageError(str(source), "lst", f"only {coverage:.1%} of {n_bins} sidereal bins hold data for the "
-                            f"median baseline (need {min_coverage:.0%})",
-                            "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
+    if coverage >= min_coverage:
+        return
+    if split is not None:
+        raise CoverageError(str(source), "mmode.splits", f"split '{split}': only {coverage:.1%} of {n_bins} "
+                            f"sidereal bins hold unflagged data for the median baseline (need {min_coverage:.0%})",
+                            f"remove {split} from mmode.splits (its data are flagged), or lower mmode.min_coverage")
+    raise CoverageError(str(source), "lst", f"only {coverage:.1%} of {n_bins} sidereal bins hold data for the "
+                        f"median baseline (need {min_coverage:.0%})",
+                        "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
 
 
 register(Stage("mmodes", ("mmode", "beam"), ("vis.zarr",) + CORRECTION_STORES, ("mmodes.zarr",), _prepare, _task,

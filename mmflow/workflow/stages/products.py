@@ -137,7 +137,7 @@ def _products_finalize(ctx):
 
 register(Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
                             "transfer.noise_weighting", "transfer.m_block", "clean", "peel.enabled"),
-               ("vis.zarr", "normal.zarr", "alm.zarr", "clean.zarr", "peel.zarr"), ("maps",), _products_prepare,
-               _products_task, _products_finalize,
+               ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr", "clean.zarr", "peel.zarr"), ("maps",),
+               _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
                "flux scale, spectral index, astrometry; HTML report"))

@@ -15,8 +15,9 @@ file (``maps/``)                   content
 ``model_<tag>.fits/.png``          the components, flux / pixel solid angle (integral = flux)
 ``noise_<tag>.fits/.png``          a jackknife noise realisation, ``(odd - even) / 2``, else
                                    ``sqrt(f_0 / (1 - f_0)) (day0 - all)``: its rms is the Table-1 noise
-``daynight_<tag>.fits/.png``       the day/night systematics map ``(day - night) / 2`` (splits
-                                   day and night; a systematics check, not noise)
+``daynight_<tag>.fits/.png``       the day/night systematics map ``sqrt(f_d f_n) (day - night)``
+                                   (splits day and night; a systematics check, not noise: noise
+                                   alone gives it the full map's sigma for any shares f_d, f_n)
 ``psf_<tag>_dec+45.fits``          PSF stamps at dec 0, +45, +75 (of date, peak 1, ARC projection)
 ``psf_<tag>.png``                  the three stamps
 =================================  =============================================================
@@ -96,11 +97,11 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
         restored = ck.combine_highpass(in_frame(alms["full"]), in_frame(state.residual_alm), comps, w, lmax)
     products = {"restored": restored, "residual": resid_map,
                 "model": ck.model_map(state.comp_vec, state.comp_flux, nside, rot)}
-    jk = cs.jackknife_splits(ctx)
+    jk = cs.jackknife_splits(ctx, fi)
     if jk[0] is not None:
         products["noise"] = alm_to_map(in_frame(noise_realisation(alms, jk[0], jk[2])), nside, lmax)
     if {"day", "night"} <= set(cfg.mmode.splits):
-        products["daynight"] = alm_to_map(in_frame(day_night_difference(alms["day"], alms["night"])), nside, lmax)
+        products["daynight"] = alm_to_map(in_frame(day_night_alm(ctx, fi, alms)), nside, lmax)
     info = {"images": {}}
     for name, hmap in products.items():
         hmap = np.asarray(units.convert(hmap, "Jy/sr", p.unit, freq))
@@ -122,7 +123,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     noise = dict(zip(NOISE_FIELDS, (float(x) for x in g["noise"][fi])))
     noise["kelvin_map_units"] = p.unit
     noise["estimator"] = jk[0]
-    noise["by_split"] = split_noise(ctx, alms, freq, tables[0])
+    noise["by_split"] = split_noise(ctx, fi, alms, freq, tables[0])
     per_cycle = [int(np.count_nonzero(state.comp_cycle == c)) for c in range(state.cycle)]
     thr = float(g["threshold"][fi])
     info.update({
@@ -136,11 +137,20 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     return info
 
 
-def split_noise(ctx, alms, freq, table):
+def day_night_alm(ctx, fi, alms):
+    """The day/night systematics map's alm ``sqrt(f_d f_n) (day - night)`` of channel ``fi``, the shares
+    from ``mmodes.zarr`` (:func:`mmflow.imaging.jackknife.day_night_difference`)."""
+    from mmflow.workflow.stages.mmodes import split_fractions
+
+    f = split_fractions(ctx, fi)
+    return day_night_difference(alms["day"], alms["night"], f["day"], f["night"])
+
+
+def split_noise(ctx, fi, alms, freq, table):
     """Every jackknife the splits allow, on the clean stage's pixels and mask (frame of date):
     ``{"even_odd": ..., "per_day": ...}`` with :func:`mmflow.imaging.jackknife.beam_noise`'s
-    fields, and ``"day_night"``: the rms of the day/night systematics map ``(day - night) / 2``
-    (:func:`mmflow.imaging.jackknife.day_night_difference`; not a noise estimate)."""
+    fields, and ``"day_night"``: the rms of the day/night systematics map ``sqrt(f_d f_n) (day - night)``
+    (:func:`day_night_alm`; not a noise estimate: noise alone gives it the full map's sigma)."""
     import healpy
 
     from mmflow.imaging.jackknife import beam_noise, masked_rms
@@ -152,11 +162,11 @@ def split_noise(ctx, alms, freq, table):
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(lat))
     out = {}
     for kind in ("even_odd", "per_day"):
-        jk = cs.jackknife_splits(ctx, kind)
+        jk = cs.jackknife_splits(ctx, fi, kind)
         if jk[0] is not None:
             out[kind] = beam_noise(cs.jackknife_sigma(alms, jk, lmax, nside, mask), freq, table)
     if {"day", "night"} <= set(alms):
-        diff = healpy.alm2map(day_night_difference(alms["day"], alms["night"]), nside, lmax=lmax)
+        diff = healpy.alm2map(day_night_alm(ctx, fi, alms), nside, lmax=lmax)
         out["day_night"] = beam_noise(masked_rms(diff, mask), freq, table)
     return out
 

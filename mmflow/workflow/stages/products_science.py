@@ -173,7 +173,7 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
     from mmflow.workflow.stages.products_clean import alm_splits
 
     cfg = ctx.cfg
-    kind, _, fractions = jackknife_splits(ctx)
+    kind, _, fractions = jackknife_splits(ctx, fi)
     if kind is None:
         return
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
