@@ -2,21 +2,26 @@
 
 Model of one integration (one pol), Hermitian antenna matrices::
 
-    V = sum_{s peeled} G_s M_s G_s^H + sum_{s subtracted} a_s M_s + R
+    V = sum_{s peeled} G_s M_s G_s^H + sum_{s subtracted or modelled} a_s M_s + R
 
 ``M_s`` is the source's model coherency (:mod:`mmflow.calibrate.coherency`), ``G_s =
 diag(g_s)`` its DD gains (refraction = a phase gradient, scintillation = amplitude) and
-``a_s`` a real fitted flux scale. The algorithm (after TTCal's ``peel``; paper section 3.5):
+``a_s`` a real fitted flux scale. A *modelled* source (``MODEL``) is fitted like a subtracted
+one, so that its flux does not bias the DD gains and fluxes of the others, and is put back at
+the end: it stays in the data (fainter catalogue sources that are imaged, not removed). The
+algorithm (after TTCal's ``peel``, plus the modelled sources; paper section 3.5):
 
 1. start ``g_s`` at 1 (or warm-start from the previous integration) and ``a_s`` at 1;
    subtract every source: ``R = V - sum_s C_s``;
-2. for ``passes`` passes, for each source in decreasing flux order: put it back
-   (``R += C_s``), re-solve it against ``R`` -- Stefcal for ``g_s`` (:func:`stefcal`, ``K = 1``)
-   or the least-squares scale ``a_s = Re <M_s, R>_w / <M_s, M_s>_w`` -- and subtract it again;
+2. for ``passes`` passes: for each peeled source in decreasing flux order, put it back
+   (``R += C_s``), re-solve its gains against ``R`` (Stefcal, :func:`stefcal`, ``K = 1``) and
+   subtract it again; then put every subtracted and modelled source back, solve their scales
+   jointly by least squares (:func:`fit_scales`) and subtract them again;
 3. guard: with the point-source estimator ``S(X) = Re sum w X conj(F) / sum w``,
    ``F = M / |M|`` (the source's fringe), a peeled source whose removed component has
    ``S(C_s) < guard * S(R + C_s)`` (default guard 0.9: peeling removed less than 90 % of
-   the measured flux, e.g. a wrong model) is put back and subtracted with a fitted scale.
+   the measured flux, e.g. a wrong model) is put back and subtracted with a fitted scale;
+4. the modelled sources are put back: ``R += a_s M_s``.
 
 All integrations of a batch are solved together (independent solutions, vectorised); the
 kernels are numba, split over antenna rows on :func:`mmflow.threads.n_threads` threads.
@@ -32,7 +37,7 @@ from mmflow.calibrate.baselines import check_pairs, from_matrix, to_matrix
 from mmflow.calibrate.stefcal import run_rows, stefcal
 from mmflow.errors import InputError
 
-SKIP, PEEL, SUBTRACT = 0, 1, 2
+SKIP, PEEL, SUBTRACT, MODEL = 0, 1, 2, 3
 
 
 @numba.njit(nogil=True, cache=True, fastmath=True)
@@ -135,7 +140,7 @@ class PeelResult:
     """One batch of independent solutions (S = integrations x pols), n_src sources.
 
     dd_gains (n_src, S, N); scale (n_src, S) fitted flux scale (1 for peeled); mode (n_src, S)
-    as used at the end (SKIP/PEEL/SUBTRACT); guard (n_src, S) True where the guard turned a
+    as used at the end (SKIP/PEEL/SUBTRACT/MODEL); guard (n_src, S) True where the guard turned a
     peel into a subtraction; measured, removed (n_src, S) the guard's estimator S(.) of the
     source in the data and of what peeling removed; iterations (n_src, S) Stefcal iterations
     summed over passes; converged (n_src, S) in the last pass; residual (S, N, N).
@@ -211,7 +216,7 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     coherencies : ndarray (n_src, S, N, N) complex: model coherencies M_s (Jy)
     W : ndarray (S, N, N) real: solve weights (0 = unused; autos and short baselines should be 0).
         Subtraction acts on every baseline whatever its weight.
-    modes : int array (n_src, S): SKIP, PEEL or SUBTRACT per source and solution
+    modes : int array (n_src, S): SKIP, PEEL, SUBTRACT or MODEL per source and solution
     g0 : ndarray (n_src, S, N), optional warm start for the DD gains
     passes, tol, max_iter, damping : outer passes; Stefcal tolerance, iterations, damping
     guard : float or None: the fraction of the measured flux peeling must remove
@@ -243,7 +248,6 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     for _ in range(passes):
         for s in order:
             peel = modes[s] == PEEL
-            sub = modes[s] == SUBTRACT
             if peel.any() and intervals is not None:
                 add_component(R, coherencies[s], g[s], 1.0 * peel, threads)
                 it, cv = _solve_interval_gains(R, coherencies[s], W, peel, p_int[s], amp[s], intervals, tol,
@@ -260,8 +264,7 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
                 iters[s, peel] += res.iterations[peel]
                 conv[s, peel] = res.converged[peel]
                 add_component(R, coherencies[s], g[s], -1.0 * peel, threads)
-            if sub.any():
-                _refit_scale(R, coherencies[s], W, scale[s], sub, threads)
+        fit_scales(R, coherencies, W, scale, (modes == SUBTRACT) | (modes == MODEL), threads)
     # 3. guard
     measured = np.zeros((n_src, S))
     removed = np.zeros((n_src, S))
@@ -283,9 +286,59 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
             modes[s][fired[s]] = SUBTRACT
             scale[s][fired[s]] = 0.0
             _refit_scale(R, coherencies[s], W, scale[s], fired[s], threads, put_back=False)
+    # 4. the modelled sources back into the residual, with the scale fitted jointly with the others
+    for s in order:
+        held = modes[s] == MODEL
+        if held.any():
+            add_component(R, coherencies[s], np.ones(R.shape[:2], complex), scale[s] * held, threads)
     scale[modes == PEEL] = 1.0
     scale[modes == SKIP] = 0.0
     return PeelResult(g, scale, modes, fired, measured, removed, iters, conv, R)
+
+
+def fit_scales(R, coherencies, W, scale, sel, threads=None):
+    """Joint least-squares flux scales of the sources ``sel`` (n_src, S), in place.
+
+    Puts ``sum_s a_s M_s`` back into ``R``, solves per solution the normal equations of the
+    selected sources,
+
+    ``sum_t Re<M_s, M_t>_w a_t = Re<M_s, R>_w``   (``<X, Y>_w = sum_ij w_ij conj(X_ij) Y_ij``),
+
+    and subtracts them again. Solving them together, not one after another, keeps sources whose
+    fringes overlap (low elevations, few baselines) from absorbing each other's flux. The system
+    is solved scaled to unit diagonal (the sources' fringe correlations) by a pseudo-inverse
+    (singular values below 1e-10 dropped: fully correlated fringes share their flux); a source
+    whose model is ~0 there (at the horizon) keeps the scale it had.
+    """
+    idx = np.flatnonzero(sel.any(1))
+    if len(idx) == 0:
+        return
+    S, N = R.shape[0], R.shape[1]
+    n = len(idx)
+    X = np.empty((S, n, N * N), R.dtype)  # the selected models, one row each per solution
+    for a, s in enumerate(idx):
+        X[:, a] = np.asarray(coherencies[s]).reshape(S, N * N)
+    real = X.real.dtype
+    w = np.array(np.reshape(W, (S, N * N)), real)
+    w[:, :: N + 1] = 0.0  # autocorrelations never enter a fit
+    Rf = R.reshape(S, N * N)  # a view: R changes in place
+    start = np.where(sel[idx], scale[idx], 0.0).T.astype(R.dtype)  # (S, n)
+    Rf += np.matmul(start[:, None, :], X)[:, 0]
+    # Re <X_s, Y>_w as real dot products of the (re, im) views: one GEMM per solution
+    XW = (X * w[:, None, :]).view(real)
+    A = np.matmul(XW, np.swapaxes(X.view(real), 1, 2)).astype(float)
+    b = np.matmul(XW, Rf.view(real)[..., None])[..., 0].astype(float)
+    del XW
+    diag = np.einsum("sii->si", A)
+    # fitted in a solution: selected there, with a model that is not ~0 (a source at the horizon)
+    use = sel[idx].T & (diag > 1e-12 * np.max(diag, axis=1, keepdims=True)) & (diag > 0)
+    d = np.where(use, 1 / np.sqrt(np.where(use, diag, 1)), 0.0)  # Jacobi scaling: cond of the correlations
+    An = A * d[:, :, None] * d[:, None, :] + np.eye(n) * ~use[:, :, None]
+    new = d * (np.linalg.pinv(An, rcond=1e-10, hermitian=True) @ (b * d)[..., None])[..., 0]
+    for a, s in enumerate(idx):
+        fitted = use[:, a]
+        scale[s][fitted] = new[fitted, a]
+    Rf -= np.matmul(np.where(sel[idx], scale[idx], 0.0).T.astype(R.dtype)[:, None, :], X)[:, 0]
 
 
 def _refit_scale(R, M, W, scale, sel, threads, put_back=True):
@@ -299,8 +352,8 @@ def _refit_scale(R, M, W, scale, sel, threads, put_back=True):
 
 
 def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=10.0, peel_min_flux_jy=0.0,
-                 subtract_min_flux_jy=0.0):
-    """Per source and integration: PEEL, SUBTRACT or SKIP.
+                 subtract_min_flux_jy=0.0, modelled=None):
+    """Per source and integration: PEEL, SUBTRACT, MODEL or SKIP.
 
     Parameters
     ----------
@@ -309,9 +362,10 @@ def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=1
     peel_min_elevation_deg, peel_min_flux_jy : scalars or (n_src,) arrays: peel only above both
         (e.g. 10 deg for Cyg A/Cas A, higher for Vir A/Tau A: "peeled when high")
     subtract_min_flux_jy : below this apparent flux a source is skipped
+    modelled : bool array (n_src,), optional: sources only modelled (fitted, then left in the data)
 
-    A source below the horizon is skipped; a peelable source outside its peel limits, or a
-    source that is not peelable, is subtracted (fitted flux).
+    A source below the horizon is skipped; a modelled source above it is MODEL; a peelable
+    source outside its peel limits, or a source that is not peelable, is subtracted (fitted flux).
     """
     el_min = np.deg2rad(np.asarray(peel_min_elevation_deg, float))
     el_min = el_min[:, None] if el_min.ndim else el_min
@@ -319,7 +373,10 @@ def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=1
     f_min = f_min[:, None] if f_min.ndim else f_min
     up = (elevation > 0) & (apparent_flux > subtract_min_flux_jy)
     peel = up & np.asarray(peelable, bool)[:, None] & (elevation >= el_min) & (apparent_flux >= f_min)
-    return np.where(peel, PEEL, np.where(up, SUBTRACT, SKIP)).astype(np.int8)
+    held = np.zeros(len(peel), bool) if modelled is None else np.asarray(modelled, bool)
+    peel &= ~held[:, None]
+    kept = np.where(held[:, None], MODEL, SUBTRACT)
+    return np.where(peel, PEEL, np.where(up, kept, SKIP)).astype(np.int8)
 
 
 @dataclass

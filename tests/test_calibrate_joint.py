@@ -1,0 +1,116 @@
+"""Joint scales in peeling, modelled (kept) sources, and interpolated gain tables."""
+import numpy as np
+
+from mmflow.calibrate.gain_tables import gains_at
+from mmflow.calibrate.peel import MODEL, PEEL, SKIP, SUBTRACT, add_component, fit_scales, peel_dense, select_modes
+from tests.test_calibrate_peel import _array, _coherencies, _dirs, _weights
+
+
+def _least_squares_scales(R, comps, W):
+    """Independent: the real least-squares scales of ``R ~ sum_s a_s C_s`` over the weighted cross
+    baselines, one solution at a time, by numpy's lstsq on the stacked real and imaginary parts."""
+    out = []
+    for k in range(R.shape[0]):
+        w = np.sqrt(W[k]).ravel()
+        A = np.stack([c[k].ravel() * w for c in comps], 1)
+        y = R[k].ravel() * w
+        out.append(np.linalg.lstsq(np.concatenate([A.real, A.imag]), np.concatenate([y.real, y.imag]),
+                                   rcond=None)[0])
+    return np.array(out).T
+
+
+def test_joint_scales_equal_least_squares_for_overlapping_fringes_and_skip_a_null_model(rng):
+    """Two sources 2 deg apart on a 200 m array (strongly correlated fringes) and one whose model is
+    0 (at the horizon): the joint fit equals an independent least squares for the two, to 1e-9,
+    and leaves the null one at its old scale; the residual is what the fitted scales leave."""
+    N, S = 20, 3
+    x = _array(rng, N)
+    d0 = _dirs(rng, 1)[0]
+    d1 = d0 + np.deg2rad(2.0) * np.cross(d0, [0, 0, 1]) / np.linalg.norm(np.cross(d0, [0, 0, 1]))
+    dirs = np.array([d0, d1 / np.linalg.norm(d1), d0])
+    M = _coherencies(x, dirs, np.array([500.0, 300.0, 1.0]))
+    M[2] = 0.0  # a model that is exactly zero
+    coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
+    truth = np.array([[0.9, 1.1, 1.0], [1.2, 0.7, 1.0], [0.5, 1.5, 1.0]]).T  # (src, S)
+    noise = 0.5 * (rng.normal(size=(S, N, N)) + 1j * rng.normal(size=(S, N, N)))
+    V = np.einsum("ks,ksij->sij", truth, coh) + noise + np.conj(np.swapaxes(noise, 1, 2))
+    W = _weights(S, N)
+    R = V.copy()
+    scale = np.ones((3, S))
+    scale[2] = 0.25
+    for s in range(3):
+        add_component(R, coh[s], np.ones((S, N), complex), -scale[s])
+    fit_scales(R, coh, W, scale, np.ones((3, S), bool))
+    expect = _least_squares_scales(V, [coh[0], coh[1]], W)
+    np.testing.assert_allclose(scale[:2], expect, rtol=0, atol=1e-9)
+    assert np.all(scale[2] == 0.25)
+    np.testing.assert_allclose(R, V - np.einsum("ks,ksij->sij", scale[:2], coh[:2]), atol=1e-9)
+
+
+def test_modelled_source_is_fitted_with_the_others_and_left_in_the_data(rng):
+    """Noiseless: a peeled source with DD gains, a subtracted one and a modelled one of scale 0.93.
+    The residual is exactly the modelled source's visibilities; its fitted scale is 0.93; the
+    modelled source is never peeled even when it is peelable."""
+    N, S = 24, 4
+    x = _array(rng, N)
+    dirs = _dirs(rng, 3)
+    M = _coherencies(x, dirs, np.array([2000.0, 400.0, 60.0]))
+    coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
+    g = np.exp(0.3j * rng.normal(size=(S, N))) * (1 + 0.1 * rng.normal(size=(S, N)))
+    V = g[:, :, None] * np.conj(g)[:, None, :] * coh[0] + 1.05 * coh[1] + 0.93 * coh[2]
+    modes = np.array([[PEEL] * S, [SUBTRACT] * S, [MODEL] * S])
+    r = peel_dense(V, coh, _weights(S, N), modes, passes=8, tol=1e-12, max_iter=1000)
+    np.testing.assert_allclose(r.scale[1], 1.05, atol=1e-6)
+    np.testing.assert_allclose(r.scale[2], 0.93, atol=1e-6)
+    assert (r.mode == modes).all()
+    off = ~np.eye(N, dtype=bool)
+    assert np.abs(r.residual - 0.93 * coh[2])[:, off].max() < 1e-6 * np.abs(V).max()
+    el = np.deg2rad(np.array([[-5.0, 30.0], [-5.0, 30.0]]))
+    sel = select_modes(np.full((2, 2), 100.0), el, peelable=[True, True], modelled=[False, True])
+    assert sel.tolist() == [[SKIP, PEEL], [SKIP, MODEL]]
+
+
+def test_cold_start_fits_scintillating_sources_exactly(rng):
+    """The peeled source's flux jumps by up to 50 % from one integration to the next (scintillation),
+    next to a subtracted and a modelled source: each integration, started from unit gains (the
+    stage's default, ``peel.warm_start: false``), is fitted to 1e-6 of the data (converged)."""
+    N, S = 24, 6
+    x = _array(rng, N)
+    dirs = _dirs(rng, 3)
+    M = _coherencies(x, dirs, np.array([5000.0, 800.0, 100.0]))
+    coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
+    f = np.array([1.0, 1.5, 0.7, 1.3, 0.8, 1.1])
+    V = f[:, None, None] * coh[0] + coh[1] + coh[2]
+    modes = np.array([[PEEL] * S, [SUBTRACT] * S, [MODEL] * S])
+    r = peel_dense(V, coh, _weights(S, N), modes, passes=8, tol=1e-12, max_iter=1000)
+    off = ~np.eye(N, dtype=bool)
+    assert np.abs(r.residual - coh[2])[:, off].max() < 1e-6 * np.abs(V).max()
+    np.testing.assert_allclose(np.mean(np.abs(r.dd_gains[0]) ** 2, axis=1), f, rtol=1e-6)
+
+
+def test_interpolated_gains_follow_a_linear_drift_and_respect_flags():
+    """Solutions at the centres of 10-integration intervals of a gain whose amplitude and phase drift
+    linearly (the phase across +-pi): interpolation reproduces the drift exactly between the first
+    and last centres and holds the end solutions outside; without it each interval's solution is
+    held; a flagged solution flags the integrations that use it."""
+    rows = np.arange(40)
+    intervals = np.array([[0, 10], [10, 20], [20, 30], [30, 40]])
+    centre = intervals.mean(1) - 0.5
+    amp = lambda t: 1.0 + 0.01 * t  # noqa: E731
+    phase = lambda t: 2.9 + 0.02 * t  # noqa: E731  crosses pi at t = 12
+    true = lambda t: (amp(t) * np.exp(1j * phase(t)))[:, None, None] * np.ones((1, 3, 2))  # noqa: E731
+    sol = true(centre)
+    flags = np.zeros(sol.shape, bool)
+    g, fl = gains_at(rows, sol, flags, intervals, interpolate=True)
+    inside = (rows >= centre[0]) & (rows <= centre[-1])
+    np.testing.assert_allclose(g[inside], true(rows[inside].astype(float)), atol=1e-12)
+    np.testing.assert_allclose(g[rows < centre[0]], sol[0][None].repeat((rows < centre[0]).sum(), 0))
+    g0, _ = gains_at(rows, sol, flags, intervals, interpolate=False)
+    np.testing.assert_array_equal(g0, sol[rows // 10])
+    flags[2, 1, 0] = True
+    g, fl = gains_at(rows, sol, flags, intervals, interpolate=True)
+    uses_2 = (rows > centre[1]) & (rows < centre[3])
+    assert fl[uses_2, 1, 0].all() and not fl[~uses_2, 1, 0].any() and not fl[:, 0].any()
+    assert (g[fl] == 0).all()
+    g, fl = gains_at(np.array([45]), sol, np.zeros(sol.shape, bool), intervals, interpolate=True)
+    assert fl.all() and (g == 0).all()  # outside every interval
