@@ -37,6 +37,9 @@ class CalibrateConfig(Section):
     min_baseline_lambda: float = Field(15.0, ge=0, description="Use baselines longer than this (wavelengths).")
     solint_s: Optional[float] = Field(None, gt=0, description="Solution interval (s); null: one solution on the "
                                       "track where the sources are highest, applied to the whole data set.")
+    interpolate: bool = Field(True, description="With solint_s: gains interpolated linearly in amplitude and "
+                              "phase between the intervals' centres (a slow drift is followed); false: each "
+                              "interval's solution held over it.")
     track_min: float = Field(22.0, gt=0, description="Length of that track (minutes).")
     tol: float = Field(1e-5, gt=0, lt=1, description="Convergence: ||dg|| / ||g|| below this.")
     max_iter: int = Field(100, ge=1, description="Stefcal iterations at most.")
@@ -61,6 +64,10 @@ class PeelConfig(Section):
     peel: list[str] = Field(["Cyg A", "Cas A"], description="Of those, the ones peeled (DD gains) when above "
                             "peel_min_elevation_deg; the others are subtracted with a fitted flux.",
                             json_schema_extra=CATALOG_NAMES)
+    model_sources: list[str] = Field([], description="Fainter catalogue sources fitted per integration (a flux "
+                                     "scale) together with peel.sources and then left in the data: their flux no "
+                                     "longer biases the removed sources' DD gains and fluxes, and the imaged map "
+                                     "keeps them (docs/calibration.md).", json_schema_extra=CATALOG_NAMES)
     peel_min_elevation_deg: float = Field(10.0, ge=0, le=90, description="Peel only above this elevation.")
     min_baseline_lambda: float = Field(15.0, ge=0, description="Solve on baselines longer than this (wavelengths).")
     passes: int = Field(3, ge=1, description="Passes over the sources.")
@@ -68,6 +75,9 @@ class PeelConfig(Section):
     max_iter: int = Field(30, ge=1, description="Stefcal iterations per pass.")
     guard: Optional[float] = Field(0.9, gt=0, le=1, description="Subtract instead when peeling removed less than "
                                    "this fraction of the measured flux; null: off.")
+    warm_start: bool = Field(False, description="Start each batch's DD gains from the previous batch's last "
+                             "solution (fewer iterations) instead of 1; a solution that absorbed part of another "
+                             "source is then carried forward (docs/calibration.md).")
     batch: int = Field(16, ge=1, description="Integrations solved together (memory ~ batch x n_ant^2).")
     solint_s: Optional[float] = Field(None, gt=0, description="DD solution interval (s) of the peeled sources: "
                                       "gains shared over the interval (a phase screen smooth over it), amplitude "

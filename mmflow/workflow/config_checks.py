@@ -173,6 +173,11 @@ def _value_problems(cfg):
         out.extend(_source_problems(cfg.peel.sources, ("peel", "sources")))
         out.extend(_not_among(("peel", "peel"), cfg.peel.peel, cfg.peel.sources, "peel.sources",
                               "list the peeled sources in peel.sources too"))
+        out.extend(_source_problems(cfg.peel.model_sources, ("peel", "model_sources")))
+        both = [n for n in cfg.peel.model_sources if n in cfg.peel.sources]
+        if both:
+            out.append(Problem(("peel", "model_sources"), both, "listed in peel.sources too: a source is either "
+                               "removed or modelled and kept", "remove them from one of the two lists"))
     if mm.noise == "radiometer" and not cfg.telescope.include_autos:
         out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
                            "set telescope.include_autos: true, or mmode.noise: data (or auto)"))

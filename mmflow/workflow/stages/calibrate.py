@@ -11,8 +11,10 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 
 With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
 ``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
-to the whole data set. ``apply`` corrects a block where it is read: autos by ``r_i``, cross
-correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0,
+to the whole data set. With ``calibrate.solint_s`` the gains between the intervals' centres are
+interpolated linearly in amplitude and phase (``calibrate.interpolate``,
+:func:`mmflow.calibrate.gain_tables.gains_at`). ``apply`` corrects a block where it is read: autos
+by ``r_i``, cross correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0,
 and so do the autocorrelations with ``calibrate.flag_autos`` (the default): after calibration
 they hold the receiver power times the residual gain error (a 1e-3 error in a 2e5 Jy receiver
 power is 200 Jy, more than the faint sky), the ripple correction has replaced them by their own
@@ -77,6 +79,7 @@ def _prepare(ctx):
     ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply,
                            {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
                             "ripple": bool(ctx.cfg.calibrate.ripple),
+                            "interpolate": bool(ctx.cfg.calibrate.interpolate),
                             "flag_autos": bool(ctx.cfg.calibrate.flag_autos)}))
     keys = [f"r{fi}" for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [f"g{fi}_{k:05d}" for fi in range(nf) for k in range(len(solve))]
@@ -145,20 +148,20 @@ def _apply(ctx, block):
     from mmflow.calibrate.ripple import apply_ripple
     from mmflow.calibrate.stefcal import apply_gains
 
+    from mmflow.calibrate.gain_tables import gains_at
+
     gains = ctx.read("gains.zarr", "gains")  # (interval, freq, antenna, pol): small
     flags = ctx.read("gains.zarr", "flags")
-    apply_rows = ctx.read("gains.zarr", "apply_rows")
+    apply_rows, solve_rows = ctx.read("gains.zarr", "apply_rows"), ctx.read("gains.zarr", "solve_rows")
+    interpolate = bool(ctx.open("gains.zarr").attrs.get("interpolate", False))
     rows = np.arange(block.rows.start, block.rows.stop)
-    which = np.full(len(rows), -1)
-    for k, (a, b) in enumerate(apply_rows):
-        which[(rows >= a) & (rows < b)] = k
     ratio = ctx.read("gains.zarr", "ripple", (block.rows,)) if ctx.open("gains.zarr").attrs["ripple"] else None
     for fi in range(block.vis.shape[2]):
         v, w = block.vis[:, :, fi], block.weights[:, :, fi]
         if ratio is not None:
             v, w = apply_ripple(v, w, block.pairs, ratio[:, fi])
-        g, fl = gains[which, fi], flags[which, fi] | (which < 0)[:, None, None]
-        block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, np.where(fl, 0, g), fl)
+        g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
+        block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, g, fl)
     if ctx.open("gains.zarr").attrs.get("flag_autos", False):
         block.weights[:, block.pairs[:, 0] == block.pairs[:, 1]] = 0.0
 

@@ -5,7 +5,8 @@ integrations calibrated (the corrections of the stages before it, :func:`read_bl
 the model coherency of every ``peel.sources`` source through the beam at the data's epoch
 (:func:`mmflow.calibrate.coherency.source_coherencies`), chooses per integration whether a
 source is peeled (``peel.peel``, above ``peel.peel_min_elevation_deg``), subtracted with a
-fitted flux, or skipped (below the horizon) (:func:`select_modes`), and peels
+fitted flux, or skipped (below the horizon) (:func:`select_modes`); the ``peel.model_sources``
+are fitted with them (a flux scale per integration) and left in the data. It peels
 (:func:`mmflow.calibrate.peel.peel`: direction-dependent gains by Stefcal per source, in
 flux order, for ``peel.passes`` passes; the guard subtracts instead where peeling removed
 less than ``peel.guard`` of the measured flux). ``peel.solint_s`` shares a peeled source's DD
@@ -41,10 +42,17 @@ def _prepare(ctx):
     n_ant = vg["antenna_enu"].shape[0]
     # with no baseline long enough every fit would be empty: refuse before any task
     check_baselines(ctx.telescope(), vg["pairs"][:], ctx.cfg.peel.min_baseline_lambda, "peel.min_baseline_lambda")
-    ctx.create(peel_store(nt, nf, len(ctx.cfg.peel.sources), n_ant, npol, TIME_CHUNK,
-                          {"sources": list(ctx.cfg.peel.sources), "peeled": list(ctx.cfg.peel.peel),
-                           "modes": {"skip": 0, "peel": 1, "subtract": 2}, "pols": vg.attrs["pols"]}))
+    names = _names(ctx.cfg.peel)
+    ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
+                          {"sources": names, "peeled": list(ctx.cfg.peel.peel),
+                           "modelled": list(ctx.cfg.peel.model_sources),
+                           "modes": {"skip": 0, "peel": 1, "subtract": 2, "model": 3}, "pols": vg.attrs["pols"]}))
     return [f"f{fi}_{t}" for fi in range(nf) for t in time_keys(nt)]
+
+
+def _names(p):
+    """Every source the peel stage fits: the removed ones (``peel.sources``), then the modelled ones."""
+    return list(p.sources) + list(p.model_sources)
 
 
 def _coherencies(ctx, tel, f, lst, pairs, names):
@@ -76,15 +84,17 @@ def _task(ctx, key):
     f = float(tel.freqs_hz[fi])
     lst = block.lst
     good = np.isfinite(lst)
-    coh = _coherencies(ctx, tel, f, lst, block.pairs, p.sources)
-    flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(list(p.sources)),
+    names = _names(p)
+    coh = _coherencies(ctx, tel, f, lst, block.pairs, names)
+    flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(names),
                                float(ctx.vis_attrs()["epoch_jd"]))
-    modes = select_modes(flux, elev, peelable=[n in p.peel for n in p.sources],
-                         peel_min_elevation_deg=p.peel_min_elevation_deg)
+    modes = select_modes(flux, elev, peelable=[n in p.peel for n in names],
+                         peel_min_elevation_deg=p.peel_min_elevation_deg,
+                         modelled=[n in p.model_sources for n in names])
     modes[:, ~good] = SKIP
     keep = baseline_mask(block.pairs, tel.layout.enu, f, p.min_baseline_lambda)
     solint = 1 if p.solint_s is None else max(1, int(round(p.solint_s / float(ctx.vis_attrs()["integration_s"]))))
-    kw = dict(baseline_keep=keep, batch=p.batch, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard,
+    kw = dict(baseline_keep=keep, batch=p.batch, warm_start=p.warm_start, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard,
               solint=solint)
     out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes, **kw)
     h = np.ones(out.dd_gains.shape[:3], complex)  # (src, time, ant): subtracted sources at their positions
@@ -120,7 +130,7 @@ def _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good):
     h = np.ones(out.dd_gains.shape[:3], complex)
     w = block.weights[:, :, fi].min(-1) * keep * (block.pairs[:, 0] != block.pairs[:, 1])
     epoch = float(ctx.vis_attrs()["epoch_jd"])
-    for s, src in enumerate(get_sources(list(ctx.cfg.peel.sources))):
+    for s, src in enumerate(get_sources(_names(ctx.cfg.peel))):
         sub = (out.mode[s] == SUBTRACT).any(-1) & good & (w.sum(1) > 0)  # a flagged integration: no fit
         if not sub.any():
             continue
@@ -129,27 +139,45 @@ def _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good):
     return h
 
 
-def _apply(ctx, block):
-    """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
-    ``peel.zarr``, never the configuration)."""
+def _components(ctx, block, fi, kinds):
+    """``sum_s f_s(t) h_si conj(h_sj) M^s_ij`` (time, bl, pol) of channel ``fi`` over the sources whose
+    mode is in ``kinds``, ``f`` being 1 (peeled) or the fitted scale (subtracted, modelled); only the
+    sources with such a mode somewhere in the block are computed. Reads only ``peel.zarr``."""
     from mmflow.calibrate.baselines import gain_products
-    from mmflow.calibrate.peel import PEEL, SUBTRACT
+    from mmflow.calibrate.peel import PEEL
 
     tel = ctx.telescope()
     names = ctx.open("peel.zarr").attrs["sources"]
-    for fi, f in enumerate(tel.freqs_hz):
-        region = (block.rows, slice(fi, fi + 1))
-        mode = ctx.read("peel.zarr", "mode", region)[:, 0]  # (time, src, pol)
-        scale = ctx.read("peel.zarr", "scale", region)[:, 0]
-        h = ctx.read("peel.zarr", "dd_gains", region)[:, 0]  # (time, src, ant, pol)
-        coh = _coherencies(ctx, tel, float(f), block.lst, block.pairs, names)  # (src, time, bl)
-        removed = np.zeros(block.vis[:, :, fi].shape, complex)
-        for s in range(coh.shape[0]):
-            prod = gain_products(h[:, s], block.pairs)  # (time, bl, pol)
-            factor = np.where((mode[:, s] == PEEL)[:, None], prod,
-                              np.where((mode[:, s] == SUBTRACT)[:, None], scale[:, s][:, None] * prod, 0.0))
-            removed += factor * coh[s][..., None]
-        block.vis[:, :, fi] -= removed
+    region = (block.rows, slice(fi, fi + 1))
+    mode = ctx.read("peel.zarr", "mode", region)[:, 0]  # (time, src, pol)
+    out = np.zeros(block.vis[:, :, fi].shape, complex)
+    used = [s for s in range(len(names)) if np.isin(mode[:, s], kinds).any()]
+    if not used:
+        return out
+    scale = ctx.read("peel.zarr", "scale", region)[:, 0]
+    h = ctx.read("peel.zarr", "dd_gains", region)[:, 0]  # (time, src, ant, pol)
+    coh = _coherencies(ctx, tel, float(tel.freqs_hz[fi]), block.lst, block.pairs, [names[s] for s in used])
+    for k, s in enumerate(used):
+        f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)
+        out += f[:, None] * gain_products(h[:, s], block.pairs) * coh[k][..., None]
+    return out
+
+
+def _apply(ctx, block):
+    """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
+    ``peel.zarr``, never the configuration); the modelled sources stay."""
+    from mmflow.calibrate.peel import PEEL, SUBTRACT
+
+    for fi in range(block.vis.shape[2]):
+        block.vis[:, :, fi] -= _components(ctx, block, fi, (PEEL, SUBTRACT))
+
+
+def modelled_sources(ctx, block):
+    """The fitted ``peel.model_sources`` in a block, ``sum_s a_s(t) M^s_ij`` (time, bl, freq, pol): what
+    a later fit (the terrestrial templates) holds out so that the catalogued sky does not bias it."""
+    from mmflow.calibrate.peel import MODEL
+
+    return np.stack([_components(ctx, block, fi, (MODEL,)) for fi in range(block.vis.shape[2])], axis=2)
 
 
 register(Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",

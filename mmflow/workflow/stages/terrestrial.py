@@ -13,6 +13,10 @@ it, :func:`read_block`):
    ``terrestrial.min_baseline_lambda`` (:func:`fit_amplitudes`) and report how much of the data
    each template sees, ``||B^H v_t|| / (||B|| ||v_t||)`` (:func:`projection_fraction`).
 
+Both phases hold out the fitted ``peel.model_sources`` (:func:`mmflow.workflow.stages.peel.modelled_sources`):
+the catalogued sky left in the data would otherwise leak into the templates and, integration by
+integration, into their amplitudes.
+
 ``apply`` subtracts ``sum_k a_k(t) B_k`` from a block where it is read.
 """
 from __future__ import annotations
@@ -53,6 +57,10 @@ def _task(ctx, key):
     k = int(tkey[1:])
     rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows, before="terrestrial")
+    if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
+        from mmflow.workflow.stages.peel import modelled_sources
+
+        block.vis -= modelled_sources(ctx, block)
     g = ctx.open("terrestrial.zarr", mode="r+")
     w = np.where(np.isfinite(block.lst)[:, None, None, None], block.weights, 0.0)
     if phase == "s":  # phase 1: weighted sums
@@ -78,7 +86,6 @@ def _task(ctx, key):
 
 def _next_cycle(ctx, cycle):
     """After the sums: fit the templates (driver), then the amplitudes (tasks); then done."""
-    from mmflow.calibrate.baselines import baseline_mask
     from mmflow.calibrate.terrestrial import fit_templates
 
     if cycle > 0:
@@ -92,9 +99,8 @@ def _next_cycle(ctx, cycle):
     tel = ctx.telescope()
     pairs = ctx.open("vis.zarr")["pairs"][:]
     patterns = np.zeros(g["patterns"].shape, complex)
-    for fi, f in enumerate(tel.freqs_hz):
-        keep = baseline_mask(pairs, tel.layout.enu, float(f), t.min_baseline_lambda)
-        patterns[fi] = fit_templates(mean[fi], weight[fi], pairs, tel.n_ant, t.components, baseline_keep=keep).patterns
+    for fi in range(len(tel.freqs_hz)):  # every cross baseline: the template is never extrapolated
+        patterns[fi] = fit_templates(mean[fi], weight[fi], pairs, tel.n_ant, t.components).patterns
     ctx.write(g, "patterns", (slice(None),), patterns)
     return [f"a_{t}" for t in _time_keys(ctx)]
 
@@ -108,7 +114,7 @@ def _apply(ctx, block):
         block.vis[:, :, fi] = subtract_templates(block.vis[:, :, fi], _templates(ctx, fi, block.pairs), amps[:, fi])
 
 
-register(Stage("terrestrial", ("terrestrial", "beam"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
+register(Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
                _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
                enabled=lambda cfg: cfg.terrestrial.enabled,
                description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration"))
