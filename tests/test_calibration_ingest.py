@@ -17,9 +17,10 @@ MeasurementSet must be phased to one centre, which ingest rightly refuses (MS da
 zenith-phased per integration), and 1024 one-integration MSs take minutes to write.
 
 Measured (26 stands, 1024 x 84 s, 40 MHz; docs/calibration.md): map difference from the clean
-faint sky 13.9 K through ingest against 13.3 K for the same data through the simulate stage
-(the flagged integrations and antenna remove data); Cyg A -38.3 dB, Cas A -33.2 dB, Vir A
--27.1 dB, Tau A -18.4 dB (simulate stage: -36.2, -33.5, -26.8, -17.7 dB).
+faint sky 2.48 K through ingest against 2.49 K for the same data through the simulate stage
+(the flagged integrations and antenna remove data, the calibration is as good); Cyg A -43.1 dB,
+Cas A -41.8 dB, Vir A -32.8 dB, Tau A -31.1 dB through ingest (simulate stage -43.3, -42.5, -32.8
+and -30.1 dB).
 """
 import healpy
 import numpy as np
@@ -136,7 +137,7 @@ def test_ingested_chain_is_as_good_as_the_simulated_chain(runs):
     diff = {k: float(np.std((runs[k] - truth)[seen])) for k in ("sim", "ingest")}
     print(f"map difference rms from the clean faint sky: through ingest {diff['ingest']:.4g} K, "
           f"through the simulate stage {diff['sim']:.4g} K (faint sky {np.std(truth[seen]):.4g} K)")
-    # measured 13.9 K against 13.3 K: the ten flagged integrations and the flagged antenna remove data
+    # measured 2.48 K against 2.49 K: the ten flagged integrations and the flagged antenna remove data
     assert diff["ingest"] < 1.15 * diff["sim"]
     nside = healpy.npix2nside(len(truth))
     rot = rotation_matrix("icrs", "galactic", JD_2023)
@@ -146,6 +147,6 @@ def test_ingested_chain_is_as_good_as_the_simulated_chain(runs):
         peak = runs["bright"][pix].max()
         db = {k: 10 * np.log10(np.abs((runs[k] - truth)[pix]).max() / peak) for k in ("sim", "ingest")}
         print(f"{src.name}: through ingest {db['ingest']:.1f} dB, simulate stage {db['sim']:.1f} dB")
-        # the thresholds of tests/test_calibration_workflow.py: peeled > 30 dB, subtracted > 15 dB
-        assert db["ingest"] < (-30 if src.name in ("Cyg A", "Cas A") else -15), (src.name, db)
+        # the thresholds of tests/test_calibration_workflow.py: peeled > 30 dB, subtracted > 28 dB
+        assert db["ingest"] < (-30 if src.name in ("Cyg A", "Cas A") else -28), (src.name, db)
         assert db["ingest"] < db["sim"] + 1.0, (src.name, db)

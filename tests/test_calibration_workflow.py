@@ -2,16 +2,16 @@
 
 The simulation carries per-antenna, per-polarisation gains (bandpass, slow drift, the HVAC
 sawtooth), direction-dependent gains on Cyg A and Cas A (ionospheric refraction and
-scintillation), Vir A and Tau A, a constant cross-talk pattern and thermal noise in XX and YY.
-The pipeline undoes them and removes the four bright sources. Measured on this 26-antenna
-array (325 baselines; docs/calibration.md): the peeled Cyg A and Cas A are suppressed by
-more than 30 dB at their positions (-36.1 and -33.7 dB), and the map's difference from the
-clean faint sky is 13.3 K rms against 1235 K uncalibrated: 7.0 x the thermal-noise map rms
-(1.9 K). The issue's target of 1.5 x is NOT met: the same chain on noiseless, uncorrupted data
-leaves 12.7 K, the confusion of per-integration fits on 325 baselines (Tau A's fitted flux is
-1.3 % low on median, biased by 3C 123 two beams away; the DD gains absorb part of the faint sky);
-the corruptions add ~0.6 K. Until the autocorrelations were left out of the imaging after
-calibration (``calibrate.flag_autos``) the difference was 123 K. The test prints every figure.
+scintillation), Vir A, Tau A and seven fainter 3C sources, a constant cross-talk pattern and
+thermal noise in XX and YY. The chain (the calibration demo, ``workflows/demo-calibrate.yaml``)
+calibrates against all eleven sources, peels Cyg A and Cas A, subtracts Vir A and Tau A, fits
+the seven fainter ones with them but keeps them (``peel.model_sources``) and removes the
+cross-talk. Measured on this 26-antenna array (325 baselines; docs/calibration.md): the map's
+difference from the clean faint sky is 2.50 K rms against 1235 K uncalibrated, 1.31 x the
+thermal-noise map rms (1.90 K; the issue's target 1.5 x); the four removed sources are left at
+-43.2, -42.7, -32.6 and -30.1 dB. It was 13.3 K (7.0 x) before the fainter sources were modelled,
+the gains interpolated and each integration's DD gains started from 1. The test prints every
+figure.
 """
 import healpy
 import numpy as np
@@ -70,8 +70,8 @@ def test_corrupted_chain_brings_the_map_close_to_the_clean_sky(maps):
     print(f"map difference rms: chain {diff_rms:.4g} K, uncalibrated {raw_rms:.4g} K; clean faint sky "
           f"{truth_rms:.4g} K; thermal-noise map rms {noise_rms:.4g} K (chain / noise = {diff_rms / noise_rms:.1f})")
     assert noise_rms > 0
-    assert diff_rms < raw_rms / 50  # measured 13.3 K against 1235 K
-    assert diff_rms < 10 * noise_rms  # measured 7.0 x (the issue's target, 1.5 x, is not met)
+    assert diff_rms < raw_rms / 300  # measured 2.50 K against 1235 K
+    assert diff_rms < 1.5 * noise_rms  # measured 1.31 x (the issue's target: 1.5 x)
 
 
 def test_peeled_sources_are_suppressed_by_more_than_30_db(maps):
@@ -89,10 +89,10 @@ def test_peeled_sources_are_suppressed_by_more_than_30_db(maps):
         left = np.abs(resid[pix]).max()
         db = 10 * np.log10(left / peak)
         print(f"{src.name}: peak {peak:.4g} K, left {left:.4g} K, {db:.1f} dB")
-        if src.name in ("Cyg A", "Cas A"):  # peeled; Vir A and Tau A are subtracted with a fitted flux
+        if src.name in ("Cyg A", "Cas A"):  # peeled: measured -43.2 and -42.7 dB
             assert db < -30, (src.name, db)
-        else:
-            assert db < -15, (src.name, db)
+        else:  # subtracted with a fitted flux: measured -32.6 (Vir A) and -30.1 dB (Tau A)
+            assert db < -28, (src.name, db)
 
 
 def test_chain_wrote_solutions_and_never_rewrote_the_data(maps):
@@ -101,7 +101,10 @@ def test_chain_wrote_solutions_and_never_rewrote_the_data(maps):
     assert g["converged"][:].all()
     assert not g["flags"][:].any()
     p = zarr.open_group(str(d / "peel.zarr"), mode="r")
-    assert (p["mode"][:] == 1).any() and (p["mode"][:] == 2).any()  # peeled and subtracted
+    mode = p["mode"][:]  # (time, freq, src, pol)
+    assert (mode == 1).any() and (mode == 2).any()  # peeled and subtracted
+    faint = [p.attrs["sources"].index(n) for n in FAINT]
+    assert set(np.unique(mode[:, :, faint])) <= {0, 3}  # the fainter sources only modelled (or set)
     t = zarr.open_group(str(d / "terrestrial.zarr"), mode="r")
     assert np.abs(t["patterns"][:]).max() > 0
     v = zarr.open_group(str(d / "vis.zarr"), mode="r")
@@ -149,8 +152,7 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
 def test_dd_solution_interval_shares_the_screen_and_keeps_the_map(maps, tmp_path):
     """``peel.solint_s`` of 4 integrations: within each interval the stored DD gains of a peeled
     source are one antenna vector times a real amplitude per integration (the interval model
-    ``sqrt(a(t)) p``), and the map stays as close to the clean sky (measured: 13.16 K against
-    13.32 K per integration, docs/calibration.md)."""
+    ``sqrt(a(t)) p``), and the map stays close to the clean sky (docs/calibration.md)."""
     import shutil
 
     run = tmp_path / "solint"
@@ -175,4 +177,31 @@ def test_dd_solution_interval_shares_the_screen_and_keeps_the_map(maps, tmp_path
     diff = np.std((_map(run) - maps["truth"])[seen])
     base = np.std((maps["chain"] - maps["truth"])[seen])
     print(f"map difference rms: DD interval 4 integrations {diff:.4g} K, per integration {base:.4g} K")
-    assert diff < 1.1 * base
+    assert diff < 1.5 * base
+
+
+def test_terrestrial_stage_without_a_terrestrial_signal_leaves_the_map(maps, tmp_path):
+    """No cross-talk or RFI in the data (noiseless, DD effects only, DD gains warm-started): the
+    template the stage fits to the zenith-phased average is then the residual sky's m = 0 part.
+    Fitted on every cross baseline and subtracted per integration, it changes the map by less than
+    the thermal noise (measured 1.30 K against 1.90 K: what the per-integration amplitude fit takes
+    of the sky). Fitted on baselines > 2 wavelengths only and subtracted on all, it put up to
+    1.7e4 Jy on the short baselines it was never fitted on: 357 K of map change."""
+    import shutil
+
+    run = tmp_path / "noxt"
+    # warm-started DD gains leave more of the peeled sources in the average: a rougher m = 0 part
+    quiet = ["corrupt.crosstalk_jy=0", "corrupt.gains=false", "corrupt.sawtooth_db=0", "sky.noise=false",
+             "peel.warm_start=true"]
+    _run(run, *quiet)
+    with_t = _map(run)
+    off = tmp_path / "noxt_off"
+    shutil.copytree(run, off)
+    cfg = load_config(DEMO, BASE + [f"run.directory={off}", *quiet, "terrestrial.enabled=false"])
+    run_workflow(cfg, force=True, **QUIET)  # simulate, calibrate and peel kept; m-modes onward recomputed
+    seen = maps["truth"] != healpy.UNSEEN
+    change = np.std((with_t - _map(off))[seen])
+    noise_rms = np.std((maps["noisy"] - maps["truth"])[seen])
+    print(f"terrestrial stage on data without a terrestrial signal: map change {change:.4g} K rms, "
+          f"thermal-noise map {noise_rms:.4g} K")
+    assert change < noise_rms
