@@ -114,3 +114,16 @@ def test_interpolated_gains_follow_a_linear_drift_and_respect_flags():
     assert (g[fl] == 0).all()
     g, fl = gains_at(np.array([45]), sol, np.zeros(sol.shape, bool), intervals, interpolate=True)
     assert fl.all() and (g == 0).all()  # outside every interval
+
+
+def test_modelled_sources_are_refused_when_also_removed_or_unknown():
+    """A source is either removed (``peel.sources``) or modelled and kept, never both; names are
+    checked against the catalogue, before any work."""
+    from tests.workflow_helpers import refused_problem
+
+    cal = "workflows/demo-calibrate.yaml"
+    (_, _, problem, fix), _ = refused_problem(["peel.model_sources=[Tau A, 3C 48]"], "peel.model_sources", cal)
+    assert "Tau A" in str(problem) or "peel.sources" in problem
+    assert "one of the two lists" in fix
+    (_, _, problem, fix), _ = refused_problem(["peel.model_sources=[3C 4B]"], "peel.model_sources", cal)
+    assert "catalogue" in problem and "3C 48" in fix
