@@ -90,3 +90,14 @@ def test_blocked_threaded_simulator_matches_direct_sum(small_telescope):
             np.testing.assert_allclose(got[t], ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
         single = simulate_drift_scan(tel, f, lst, SkyPoints(vec, flux), pairs, dtype=np.complex64, threads=1)
         np.testing.assert_allclose(single, got, atol=2e-5 * np.abs(got).max())
+
+
+def test_an_empty_sky_simulates_zero_visibilities(small_telescope):
+    """No sources and no diffuse sky (a noise-only simulation): zeros, not a crash (an empty pixel
+    block once made the block loop's step 0)."""
+    empty = SkyPoints(np.zeros((0, 3)), np.zeros(0))
+    one = SkyPoints(np.array([[0.0, 0.0, 1.0]]), np.array([3.0]))
+    lsts = np.linspace(0, 2 * np.pi, 5, endpoint=False)
+    v0 = simulate_drift_scan(small_telescope, 50e6, lsts, empty)
+    v1 = simulate_drift_scan(small_telescope, 50e6, lsts, one)
+    assert v0.shape == v1.shape and np.all(v0 == 0) and np.abs(v1).max() > 0

@@ -114,7 +114,7 @@ def _simulate_block(telescope, freq_hz, lsts, sky, pairs, rdtype, out):
     i, j = pairs[:, 0], pairs[:, 1]
     lo, hi = np.minimum(i, j), np.maximum(i, j)
     sign = np.where(i <= j, 1.0, -1.0)  # Im V_ij = Q_CS[i, j] - Q_CS[j, i] = sign * (Q[lo, n+hi] - Q[hi, n+lo])
-    cols = min(PIXEL_BLOCK, len(sky.flux_jy))
+    cols = max(1, min(PIXEL_BLOCK, len(sky.flux_jy)))  # an empty sky: no pixel blocks, zero visibilities
     phase_buf = np.empty((n, cols), rdtype)
     p_buf = np.empty((2 * n, cols), rdtype)
     for t, phi in enumerate(lsts):
