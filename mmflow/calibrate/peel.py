@@ -314,6 +314,8 @@ def fit_scales(R, coherencies, W, scale, sel, threads=None):
     if len(idx) == 0:
         return
     S, N = R.shape[0], R.shape[1]
+    if not R.flags.c_contiguous:
+        raise ValueError("fit_scales updates R in place through a flat view: R must be C-contiguous")
     n = len(idx)
     X = np.empty((S, n, N * N), R.dtype)  # the selected models, one row each per solution
     for a, s in enumerate(idx):
