@@ -157,6 +157,9 @@ class SkyConfig(Section):
     sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], description="Catalogue sources.",
                                json_schema_extra={"allowed": "names from mmflow.sky.sources.CATALOG "
                                                   "(Cyg A, Cas A, Vir A, Tau A, Her A, Hya A, 3C 123, 3C 353, ...)"})
+    resolved: bool = Field(False, description="Simulate Cyg A and Cas A resolved (2 and 3 Gaussian components, "
+                           "mmflow.sky.sources.RESOLVED_COMPONENTS); every other stage keeps the catalogue's point "
+                           "models unless the models stage fits them (docs/calibration.md).")
     noise: bool = Field(True, description="Add radiometer-equation thermal noise (needs telescope.include_autos).")
     seed: int = Field(1, ge=0, description="Random seed (diffuse sky and noise).")
     quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")
