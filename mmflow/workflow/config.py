@@ -13,7 +13,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mmflow.errors import InputError
 from mmflow.workflow.config_base import Section, power_of_two
-from mmflow.workflow.config_calibration import CalibrateConfig, CorruptConfig, PeelConfig, TerrestrialConfig
+from mmflow.workflow.config_calibration import (CalibrateConfig, CorruptConfig, ModelsConfig, PeelConfig,
+                                               TerrestrialConfig)
 from mmflow.workflow.config_errors import BadValue, Origins, allowed_text, from_pydantic, report, yaml_error
 
 
@@ -429,6 +430,7 @@ class WorkflowConfig(Section):
     input: InputConfig = InputConfig()
     corrupt: CorruptConfig = CorruptConfig()
     calibrate: CalibrateConfig = CalibrateConfig()
+    models: ModelsConfig = ModelsConfig()
     peel: PeelConfig = PeelConfig()
     terrestrial: TerrestrialConfig = TerrestrialConfig()
     mmode: MmodeConfig = MmodeConfig()
