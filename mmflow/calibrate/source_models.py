@@ -62,6 +62,34 @@ class GaussianComponent:
                 "pa_deg": self.pa_deg}
 
 
+def symmetric_start(n, size_arcmin, total_flux):
+    """A start for :func:`fit_gaussian_components` that knows nothing of the source but its size:
+    ``n`` equal circular components of FWHM ``size / 2`` on a ring of radius ``size / 4`` at
+    position angles ``0, 360 / n, ...`` (one at the centre for ``n = 1``)."""
+    r = 0.0 if n == 1 else size_arcmin / 4
+    pa = np.deg2rad(360.0 * np.arange(n) / n)
+    return [GaussianComponent(r * np.sin(a), r * np.cos(a), total_flux / n, size_arcmin / 2, size_arcmin / 2, 0.0)
+            for a in pa]
+
+
+def flux_moments(components):
+    """Flux-weighted centroid (2,) and second central moments (2, 2) of Gaussian components (arcmin,
+    arcmin^2; axes east, north): ``mu = sum f_c x_c / F``,
+    ``M = sum f_c (x_c x_c^T + R_c diag(s_maj^2, s_min^2) R_c^T) / F - mu mu^T`` with the major axis
+    along ``(sin pa, cos pa)`` and ``s = FWHM / sqrt(8 ln 2)``. At baselines that barely resolve a
+    source these are all its visibilities measure: ``V(u) / V(0) ~ 1 + 2 pi i u.mu - 2 pi^2 u^T (M + mu mu^T) u``."""
+    f = np.array([c.flux_jy for c in components], float)
+    x = np.array([[c.x_arcmin, c.y_arcmin] for c in components], float)
+    mu = f @ x / f.sum()
+    M = -np.outer(mu, mu)
+    for fc, xc, c in zip(f, x, components):
+        pa = np.deg2rad(c.pa_deg)
+        R = np.array([[np.sin(pa), np.cos(pa)], [np.cos(pa), -np.sin(pa)]])  # columns: major, minor axes
+        S = R @ np.diag([c.fwhm_major_arcmin**2, c.fwhm_minor_arcmin**2]) @ R.T / FWHM**2
+        M += fc / f.sum() * (np.outer(xc, xc) + S)
+    return mu, M
+
+
 def gaussian_visibilities(uvw, beam, components):
     """Model visibilities (n_time, n_bl) of Gaussian components (see the module docstring)."""
     u, v, w = uvw[..., 0], uvw[..., 1], uvw[..., 2]
@@ -89,7 +117,7 @@ def _unpack(p, n):
     comps = []
     for k in range(n):
         x, y, f, a, b, pa = p[6 * k: 6 * k + 6]
-        comps.append(GaussianComponent(x, y, f, abs(a), abs(b), pa))
+        comps.append(GaussianComponent(x, y, abs(f), abs(a), abs(b), pa))  # fluxes and widths >= 0
     return comps
 
 
@@ -108,7 +136,7 @@ def _pack(components):
 
 
 def fit_gaussian_components(vis, weights, uvw, beam, start, *, aperture_arcmin=None, step_arcmin=None,
-                            reference_flux=None, maxiter=3000, xatol=1e-3, fatol=1e-9):
+                            reference_flux=None, free_amplitudes=False, maxiter=3000, xatol=1e-3, fatol=1e-9):
     """Fit Gaussian components by minimising the residual variance in an aperture.
 
     Parameters
@@ -121,10 +149,16 @@ def fit_gaussian_components(vis, weights, uvw, beam, start, *, aperture_arcmin=N
         largest starting extent/FWHM)
     reference_flux : float, optional: renormalise the fitted fluxes to this total (the
         published spectrum), keeping the fitted fractions
+    free_amplitudes : bool
+        Scale the model of each integration ``t`` by its weighted least-squares amplitude
+        ``a_t = Re sum_b w m* V / sum_b w |m|^2`` before the residual is formed (scintillation,
+        beam-model errors): only the shape is then fitted, the total flux comes from
+        ``reference_flux``.
 
     Returns
     -------
-    (list of GaussianComponent, scipy OptimizeResult)
+    (list of GaussianComponent, scipy OptimizeResult); the result also holds ``fun_start``,
+    the cost of ``start``.
     """
     ext = max(max(np.hypot(c.x_arcmin, c.y_arcmin) + c.fwhm_major_arcmin for c in start), 1.0)
     pix = aperture_pixels(aperture_arcmin or 2 * ext, step_arcmin or ext / 3)
@@ -139,9 +173,17 @@ def fit_gaussian_components(vis, weights, uvw, beam, start, *, aperture_arcmin=N
     sel_uvw = np.stack([u, v, ww], -1)[None]
     sel_beam = beam[:, None].repeat(vis.shape[1], 1)[w > 0][None]
 
+    tidx = np.nonzero(w > 0)[0]
+    wsel = w[w > 0]
+
     def model(p):
         comps = _unpack(p, len(start))
-        return gaussian_visibilities(sel_uvw, np.ones(1), comps)[0] * sel_beam[0]
+        m = gaussian_visibilities(sel_uvw, np.ones(1), comps)[0] * sel_beam[0]
+        if free_amplitudes:
+            num = np.bincount(tidx, wsel * (np.conj(m) * data).real, minlength=vis.shape[0])
+            den = np.bincount(tidx, wsel * np.abs(m) ** 2, minlength=vis.shape[0])
+            m = m * (num / np.where(den > 0, den, 1.0))[tidx]
+        return m
 
     def cost(p):
         r = data - model(p)
@@ -153,6 +195,7 @@ def fit_gaussian_components(vis, weights, uvw, beam, start, *, aperture_arcmin=N
         res = minimize(cost, _pack(start), method="Nelder-Mead",
                        options={"maxiter": maxiter, "maxfev": 2 * maxiter, "xatol": xatol, "fatol": fatol,
                                 "adaptive": True})
+        res["fun_start"] = cost(_pack(start))
     comps = [_canonical(c) for c in _unpack(res.x, len(start))]
     if reference_flux is not None:
         tot = sum(c.flux_jy for c in comps)

@@ -15,6 +15,8 @@ normal.zarr     f{F}/gram_b{M0} (m, l, l'); rhs (split, freq, m, l); vhv (split,
 alm.zarr        alm (split, freq, m, l); lcurve (freq, m, eps, 2); fraction_above (freq, m);
                 eps_grid (eps)
 transfer.zarr   f{F}/order (baseline); f{F}/B_m{M} (2, baseline, l)   [transfer.mode=store]
+models.zarr     components (freq, source, component, 6); cost (freq, source, 3); iterations,
+                n_integrations (freq, source)   [models stage]
 ==============  ======================================================================
 
 Gram blocks are stored per m block (``m0 <= m < m1``) padded to the block's largest size
@@ -155,6 +157,27 @@ def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs):
         ArraySpec("measured", dims, shape, ch, "float64"),
         ArraySpec("removed", dims, shape, ch, "float64"),
         ArraySpec("converged", dims, shape, ch, "bool"),
+    ), attrs)
+
+
+#: columns of models.zarr's ``components``
+MODEL_COLUMNS = ("x_arcmin", "y_arcmin", "flux_jy", "fwhm_major_arcmin", "fwhm_minor_arcmin", "pa_deg")
+#: columns of models.zarr's ``cost``
+MODEL_COSTS = ("point", "start", "fitted")
+
+
+def models_store(nf, n_src, n_comp, attrs):
+    """``models.zarr`` of the models stage: per frequency and source the fitted Gaussian components
+    (:data:`MODEL_COLUMNS`; offsets east/north of the catalogued position, fluxes renormalised to the
+    published spectrum; flux 0 = no component), the aperture cost of the point model, of the start
+    and of the fit (:data:`MODEL_COSTS`), Nelder-Mead iterations and the integrations used."""
+    return StoreSpec("models.zarr", (
+        ArraySpec("components", ("freq", "source", "component", "column"), (nf, n_src, n_comp, len(MODEL_COLUMNS)),
+                  (1, 1, n_comp, len(MODEL_COLUMNS)), "float64"),
+        ArraySpec("cost", ("freq", "source", "kind"), (nf, n_src, len(MODEL_COSTS)), (1, 1, len(MODEL_COSTS)),
+                  "float64"),
+        ArraySpec("iterations", ("freq", "source"), (nf, n_src), (1, 1), "int64"),
+        ArraySpec("n_integrations", ("freq", "source"), (nf, n_src), (1, 1), "int64"),
     ), attrs)
 
 

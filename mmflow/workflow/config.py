@@ -13,7 +13,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from mmflow.errors import InputError
 from mmflow.workflow.config_base import Section, power_of_two
-from mmflow.workflow.config_calibration import CalibrateConfig, CorruptConfig, PeelConfig, TerrestrialConfig
+from mmflow.workflow.config_calibration import (CalibrateConfig, CorruptConfig, ModelsConfig, PeelConfig,
+                                               TerrestrialConfig)
 from mmflow.workflow.config_errors import BadValue, Origins, allowed_text, from_pydantic, report, yaml_error
 
 
@@ -157,6 +158,9 @@ class SkyConfig(Section):
     sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], description="Catalogue sources.",
                                json_schema_extra={"allowed": "names from mmflow.sky.sources.CATALOG "
                                                   "(Cyg A, Cas A, Vir A, Tau A, Her A, Hya A, 3C 123, 3C 353, ...)"})
+    resolved: bool = Field(False, description="Simulate Cyg A and Cas A resolved (2 and 3 Gaussian components, "
+                           "mmflow.sky.sources.RESOLVED_COMPONENTS); every other stage keeps the catalogue's point "
+                           "models unless the models stage fits them (docs/calibration.md).")
     noise: bool = Field(True, description="Add radiometer-equation thermal noise (needs telescope.include_autos).")
     seed: int = Field(1, ge=0, description="Random seed (diffuse sky and noise).")
     quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")
@@ -426,6 +430,7 @@ class WorkflowConfig(Section):
     input: InputConfig = InputConfig()
     corrupt: CorruptConfig = CorruptConfig()
     calibrate: CalibrateConfig = CalibrateConfig()
+    models: ModelsConfig = ModelsConfig()
     peel: PeelConfig = PeelConfig()
     terrestrial: TerrestrialConfig = TerrestrialConfig()
     mmode: MmodeConfig = MmodeConfig()

@@ -178,6 +178,8 @@ def _value_problems(cfg):
         if both:
             out.append(Problem(("peel", "model_sources"), both, "listed in peel.sources too: a source is either "
                                "removed or modelled and kept", "remove them from one of the two lists"))
+    if cfg.models.enabled:
+        out.extend(_models_problems(cfg))
     if mm.noise == "radiometer" and not cfg.telescope.include_autos:
         out.append(Problem(("mmode", "noise"), "radiometer", "the radiometer equation needs the autocorrelations",
                            "set telescope.include_autos: true, or mmode.noise: data (or auto)"))
@@ -195,6 +197,24 @@ def _value_problems(cfg):
         out.append(Problem(("run", "directory"), cfg.run.directory, "is a file, not a directory",
                            "give a new or existing directory for the run"))
     out.extend(_cluster_problems(cfg.cluster))
+    return out
+
+
+def _models_problems(cfg):
+    """The fitted models are used by peel: each fitted source must be among peel.sources (peel enabled)."""
+    m = cfg.models
+    out = _source_problems(m.sources, ("models", "sources"))
+    if not cfg.peel.enabled:
+        out.append(Problem(("models", "enabled"), True, "the fitted models are used only by the peel stage, "
+                           "which is disabled", "set peel.enabled: true, or models.enabled: false"))
+    out.extend(_not_among(("models", "sources"), m.sources, cfg.peel.sources, "peel.sources",
+                          "fit only sources that peel removes"))
+    bad = {k: v for k, v in m.components.items() if v < 1}
+    if bad:
+        out.append(Problem(("models", "components"), bad, "a source needs at least one component", "use >= 1"))
+    bad = {k: v for k, v in m.size_arcmin.items() if not v > 0}
+    if bad:
+        out.append(Problem(("models", "size_arcmin"), bad, "sizes must be positive", "use sizes > 0 arcmin"))
     return out
 
 

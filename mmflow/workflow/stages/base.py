@@ -47,7 +47,7 @@ class Stage:
 
 
 STAGES: list = []
-ORDER = ("simulate", "ingest", "calibrate", "peel", "terrestrial", "mmodes", "transfer", "normal",
+ORDER = ("simulate", "ingest", "calibrate", "models", "peel", "terrestrial", "mmodes", "transfer", "normal",
          "solve", "clean", "products")
 
 
@@ -82,5 +82,5 @@ def producer_of(store, cfg):
 
 def _load():
     # import order is stage order
-    from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, normal, peel,  # noqa: F401
+    from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel,  # noqa: F401
                                         products, simulate, solve, terrestrial, transfer)

@@ -24,6 +24,11 @@ moves it to its fitted position in that integration)
 
 with the same coherencies (recomputed for the block's baselines), so ``vis.zarr`` is never
 rewritten.
+
+With the ``models`` stage enabled, the sources it fitted are modelled by their fitted Gaussian
+components (``models.zarr``) instead of the catalogue's points, in the solve and in ``apply``
+alike: the peel stage copies them into ``peel.zarr``'s attribute ``fitted_models``, so ``apply``
+(run by every later reader) reads only ``peel.zarr``.
 """
 from __future__ import annotations
 
@@ -31,7 +36,8 @@ import numpy as np
 
 from mmflow.io.run_stores import peel_store
 from mmflow.workflow.blocks import read_block
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.context import _parse
+from mmflow.workflow.stages.base import Stage, producer_of, register
 from mmflow.workflow.stages.calibrate import check_baselines
 from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
@@ -43,9 +49,16 @@ def _prepare(ctx):
     # with no baseline long enough every fit would be empty: refuse before any task
     check_baselines(ctx.telescope(), vg["pairs"][:], ctx.cfg.peel.min_baseline_lambda, "peel.min_baseline_lambda")
     names = _names(ctx.cfg.peel)
+    # the models stage's fits replace the catalogue's point models when it is enabled: an input
+    # whose producer's fingerprint then enters this stage's
+    fitted = {}
+    if producer_of("models.zarr", _parse(ctx.config_json)) is not None:
+        from mmflow.workflow.stages.models import fitted_tables
+
+        fitted = fitted_tables(ctx.open("models.zarr"), names)
     ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
-                           "modelled": list(ctx.cfg.peel.model_sources),
+                           "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
                            "modes": {"skip": 0, "peel": 1, "subtract": 2, "model": 3}, "pols": vg.attrs["pols"]}))
     return [f"f{fi}_{t}" for fi in range(nf) for t in time_keys(nt)]
 
@@ -55,16 +68,17 @@ def _names(p):
     return list(p.sources) + list(p.model_sources)
 
 
-def _coherencies(ctx, tel, f, lst, pairs, names):
-    """(n_src, time, bl) model visibilities of sources ``names`` at the data's epoch; 0 at
-    integrations without an LST (missing)."""
+def _coherencies(ctx, tel, fi, lst, pairs, names):
+    """(n_src, time, bl) model visibilities of sources ``names`` in channel ``fi`` at the data's epoch
+    (the models stage's fitted components for the sources ``peel.zarr`` lists as ``fitted_models``,
+    :func:`mmflow.workflow.stages.models.fitted_sources`); 0 at integrations without an LST (missing)."""
     from mmflow.calibrate.coherency import source_coherencies
-    from mmflow.sky.sources import get_sources
+    from mmflow.workflow.stages.models import fitted_sources
 
     good = np.isfinite(lst)
     out = np.zeros((len(names), len(lst), len(pairs)), complex)
     if good.any():
-        out[:, good] = source_coherencies(tel, f, lst[good], get_sources(list(names)),
+        out[:, good] = source_coherencies(tel, float(tel.freqs_hz[fi]), lst[good], fitted_sources(ctx, fi, names),
                                           float(ctx.vis_attrs()["epoch_jd"]), pairs)
     return out
 
@@ -85,7 +99,7 @@ def _task(ctx, key):
     lst = block.lst
     good = np.isfinite(lst)
     names = _names(p)
-    coh = _coherencies(ctx, tel, f, lst, block.pairs, names)
+    coh = _coherencies(ctx, tel, fi, lst, block.pairs, names)
     flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(names),
                                float(ctx.vis_attrs()["epoch_jd"]))
     modes = select_modes(flux, elev, peelable=[n in p.peel for n in names],
@@ -156,7 +170,7 @@ def _components(ctx, block, fi, kinds):
         return out
     scale = ctx.read("peel.zarr", "scale", region)[:, 0]
     h = ctx.read("peel.zarr", "dd_gains", region)[:, 0]  # (time, src, ant, pol)
-    coh = _coherencies(ctx, tel, float(tel.freqs_hz[fi]), block.lst, block.pairs, [names[s] for s in used])
+    coh = _coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used])
     for k, s in enumerate(used):
         f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)
         out += f[:, None] * gain_products(h[:, s], block.pairs) * coh[k][..., None]
@@ -180,7 +194,7 @@ def modelled_sources(ctx, block):
     return np.stack([_components(ctx, block, fi, (MODEL,)) for fi in range(block.vis.shape[2])], axis=2)
 
 
-register(Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
+register(Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
                counters=("peeled", "guard_fired", "not_converged"),
                description="peel (DD gains) or subtract bright sources per integration (applied on read)"))

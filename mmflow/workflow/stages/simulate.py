@@ -1,5 +1,8 @@
 """The ``simulate`` stage (the demo's drift scan) and the time-chunk helpers it shares with ``ingest``.
 
+With ``sky.resolved`` Cyg A and Cas A are simulated as their Gaussian components
+(:func:`mmflow.sky.sources.resolved`), sampled by Gauss-Hermite quadrature (:meth:`Source.points`).
+
 Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): visibilities per
 polarisation (Stokes I alone for a clean simulation; XX and YY for a corrupted one or as ingested) in
 Jy in mmflow's sign convention, weights (0 = flagged), LSTs and times per integration, and
@@ -68,20 +71,21 @@ def _skies(config_json):
     simulation is corrupted, per frequency the whole day's corruptions and the DD sources."""
     from mmflow.calibrate.coherency import source_points_date, source_vector_date
     from mmflow.simulate.corrupt import day_corruptions
-    from mmflow.sky.sources import get_sources
+    from mmflow.sky.sources import get_sources, resolved
 
     cfg = _parse(config_json)
     tel = build_telescope(cfg)
     s, c, o = cfg.sky, cfg.corrupt, cfg.observation
     dd = list(c.dd_sources) if c.enabled else []
-    plain = tuple(n for n in s.sources if n not in dd)
+    model = resolved if s.resolved else (lambda src: src)  # sky.resolved: Cyg A, Cas A as Gaussian components
+    plain = tuple(model(x) for x in get_sources([n for n in s.sources if n not in dd]))
     skies = [sky_points(tel, float(f), o.epoch_jd, s.diffuse_lmax if s.diffuse else None, s.seed, plain,
                         s.quad_oversample) for f in tel.freqs_hz]
     if not c.enabled:
         return tel, skies, None
     n = _n_integrations(cfg)
     times_s = np.arange(n) * o.integration_s
-    srcs = get_sources(dd)
+    srcs = [model(x) for x in get_sources(dd)]
     vecs = np.array([source_vector_date(x, o.epoch_jd) for x in srcs]).reshape(-1, 3)
     corrupted = []
     for fi, f in enumerate(tel.freqs_hz):
