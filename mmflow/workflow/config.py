@@ -161,6 +161,9 @@ class SkyConfig(Section):
     resolved: bool = Field(False, description="Simulate Cyg A and Cas A resolved (2 and 3 Gaussian components, "
                            "mmflow.sky.sources.RESOLVED_COMPONENTS); every other stage keeps the catalogue's point "
                            "models unless the models stage fits them (docs/calibration.md).")
+    sun: bool = Field(False, description="Add the quiet Sun: a 20' disc of 2e4 Jy at 74 MHz with spectral index "
+                      "+1.8, at its apparent position at each time chunk's mid time "
+                      "(mmflow.simulate.corrupt.sun_points).")
     noise: bool = Field(True, description="Add radiometer-equation thermal noise (needs telescope.include_autos).")
     seed: int = Field(1, ge=0, description="Random seed (diffuse sky and noise).")
     quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")

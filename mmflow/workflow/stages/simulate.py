@@ -106,6 +106,13 @@ def _sim_task(ctx, key):
     tel, skies, corrupted = _skies(ctx.config_json)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
     rng = np.random.default_rng([cfg.sky.seed, int(key[1:])]) if cfg.sky.noise else None  # fixed per chunk
+    # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
+    time_jd = utc_at_lsts(lst, tel.layout, drift_scan_times(o.epoch_jd, o.integration_s, k[:1], n)[0])
+    if cfg.sky.sun:  # the Sun moves ~1 deg a day against the stars: its position at the chunk's mid time
+        from mmflow.simulate.corrupt import sun_points
+
+        mid = float(np.median(time_jd))
+        skies = [sky + sun_points(mid, float(f)) for sky, f in zip(skies, tel.freqs_hz)]
     vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy)
     g = ctx.open("vis.zarr", mode="r+")
     rows = (slice(t0, t1),)
@@ -114,8 +121,7 @@ def _sim_task(ctx, key):
     ctx.write(g, "weights", rows, weights)
     write_autos(ctx, g, rows, vis, weights)
     ctx.write(g, "lst", rows, lst)
-    # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
-    ctx.write(g, "time_jd", rows, utc_at_lsts(lst, tel.layout, drift_scan_times(o.epoch_jd, o.integration_s, k[:1], n)[0]))
+    ctx.write(g, "time_jd", rows, time_jd)
     return {"integrations": int(len(k))}
 
 
