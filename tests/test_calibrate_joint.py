@@ -21,9 +21,11 @@ def _least_squares_scales(R, comps, W):
 
 def test_joint_scales_equal_least_squares_for_overlapping_fringes_and_skip_a_null_model(rng):
     """Two sources 2 deg apart on a 200 m array (strongly correlated fringes) and one whose model is
-    0 (at the horizon): the joint fit equals an independent least squares for the two, to 1e-9,
-    and leaves the null one at its old scale; the residual is what the fitted scales leave."""
-    N, S = 20, 3
+    0 (at the horizon), random baseline weights, 1e5 Jy in the autocorrelations (never fitted) and
+    one solution where nothing is selected (flagged): the joint fit equals an independent weighted
+    least squares over the cross baselines for the two, to 1e-9, leaves the null one and the
+    unselected solution at their old scales, and leaves in the residual what the scales leave."""
+    N, S = 20, 4
     x = _array(rng, N)
     d0 = _dirs(rng, 1)[0]
     d1 = d0 + np.deg2rad(2.0) * np.cross(d0, [0, 0, 1]) / np.linalg.norm(np.cross(d0, [0, 0, 1]))
@@ -31,20 +33,52 @@ def test_joint_scales_equal_least_squares_for_overlapping_fringes_and_skip_a_nul
     M = _coherencies(x, dirs, np.array([500.0, 300.0, 1.0]))
     M[2] = 0.0  # a model that is exactly zero
     coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
-    truth = np.array([[0.9, 1.1, 1.0], [1.2, 0.7, 1.0], [0.5, 1.5, 1.0]]).T  # (src, S)
+    truth = np.array([[0.9, 1.1, 1.0], [1.2, 0.7, 1.0], [0.5, 1.5, 1.0], [1.0, 1.0, 1.0]]).T  # (src, S)
     noise = 0.5 * (rng.normal(size=(S, N, N)) + 1j * rng.normal(size=(S, N, N)))
     V = np.einsum("ks,ksij->sij", truth, coh) + noise + np.conj(np.swapaxes(noise, 1, 2))
-    W = _weights(S, N)
+    V[:, np.arange(N), np.arange(N)] += 1e5  # receiver power in the autocorrelations
+    W = rng.uniform(0.2, 3.0, (S, N, N))
+    W = W + np.swapaxes(W, 1, 2)  # symmetric, autos weighted too: fit_scales must skip them
+    sel = np.ones((3, S), bool)
+    sel[:, 3] = False  # a flagged solution
     R = V.copy()
     scale = np.ones((3, S))
     scale[2] = 0.25
+    scale[:, 3] = 0.6
     for s in range(3):
-        add_component(R, coh[s], np.ones((S, N), complex), -scale[s])
-    fit_scales(R, coh, W, scale, np.ones((3, S), bool))
-    expect = _least_squares_scales(V, [coh[0], coh[1]], W)
-    np.testing.assert_allclose(scale[:2], expect, rtol=0, atol=1e-9)
-    assert np.all(scale[2] == 0.25)
-    np.testing.assert_allclose(R, V - np.einsum("ks,ksij->sij", scale[:2], coh[:2]), atol=1e-9)
+        add_component(R, coh[s], np.ones((S, N), complex), -scale[s] * sel[s])
+    fit_scales(R, coh, W, scale, sel)
+    W_cross = W * ~np.eye(N, dtype=bool)
+    expect = _least_squares_scales(V[:3], [coh[0][:3], coh[1][:3]], W_cross[:3])
+    np.testing.assert_allclose(scale[:2, :3], expect, rtol=0, atol=1e-9)
+    assert np.all(scale[2, :3] == 0.25) and np.all(scale[:, 3] == 0.6)
+    np.testing.assert_allclose(R[:3], V[:3] - np.einsum("ks,ksij->sij", scale[:2, :3], coh[:2, :3]), atol=1e-8)
+    np.testing.assert_array_equal(R[3], V[3])
+
+
+def test_guard_refits_the_other_scales_once_a_peel_is_undone():
+    """A peeled source absent from the data in two solutions (a wrong model): the guard turns it
+    into a subtraction there, and the subtracted and modelled sources' scales, first fitted beside
+    DD gains that absorbed part of them, are refitted: the subtracted source's scale is its true
+    1.05 to the noise in every solution, and the residual is the modelled sources plus noise.
+    (Before the refit the subtracted scale stayed at its start, 1.000, where the guard fired: 20 Jy
+    rms of residual against 2 Jy of noise.)"""
+    rng = np.random.default_rng(5)  # a draw where the DD gains absorb enough for the guard to fire
+    N, S = 24, 4
+    x = _array(rng, N)
+    M = _coherencies(x, _dirs(rng, 4), np.array([2000.0, 400.0, 60.0, 30.0]))
+    coh = np.broadcast_to(M[:, None], (4, S, N, N)).copy()
+    present = np.array([0.0, 0.0, 1.0, 1.0])
+    noise = 2 * (rng.normal(size=(S, N, N)) + 1j * rng.normal(size=(S, N, N)))
+    noise = (noise + np.conj(np.swapaxes(noise, 1, 2))) / 2
+    V = present[:, None, None] * coh[0] + 1.05 * coh[1] + 0.93 * coh[2] + 1.1 * coh[3] + noise
+    modes = np.array([[PEEL] * S, [SUBTRACT] * S, [MODEL] * S, [MODEL] * S])
+    r = peel_dense(V, coh, _weights(S, N), modes, passes=4, tol=1e-10, max_iter=300)
+    assert r.guard[0, :2].all() and not r.guard[0, 2:].any()
+    np.testing.assert_allclose(r.scale[1], 1.05, atol=0.005)
+    off = ~np.eye(N, dtype=bool)
+    left = (r.residual - 0.93 * coh[2] - 1.1 * coh[3] - noise)[:2][:, off]
+    assert np.sqrt(np.mean(np.abs(left) ** 2)) < 0.5 * np.sqrt(np.mean(np.abs(noise[:2][:, off]) ** 2))
 
 
 def test_modelled_source_is_fitted_with_the_others_and_left_in_the_data(rng):
@@ -89,22 +123,34 @@ def test_cold_start_fits_scintillating_sources_exactly(rng):
 
 
 def test_interpolated_gains_follow_a_linear_drift_and_respect_flags():
-    """Solutions at the centres of 10-integration intervals of a gain whose amplitude and phase drift
-    linearly (the phase across +-pi): interpolation reproduces the drift exactly between the first
-    and last centres and holds the end solutions outside; without it each interval's solution is
-    held; a flagged solution flags the integrations that use it."""
+    """Solutions at the centres of 10-integration intervals of gains whose amplitudes and phases
+    drift linearly at a different rate per antenna (one phase crossing +-pi), each interval with
+    its own arbitrary phase reference (Stefcal's reference antenna may change): interpolation
+    reproduces every product ``g_i conj(g_j)`` exactly between the first and last centres and holds
+    the end solutions outside; without it each interval's solution is held; a flagged solution
+    flags the integrations that use it."""
     rows = np.arange(40)
     intervals = np.array([[0, 10], [10, 20], [20, 30], [30, 40]])
     centre = intervals.mean(1) - 0.5
-    amp = lambda t: 1.0 + 0.01 * t  # noqa: E731
-    phase = lambda t: 2.9 + 0.02 * t  # noqa: E731  crosses pi at t = 12
-    true = lambda t: (amp(t) * np.exp(1j * phase(t)))[:, None, None] * np.ones((1, 3, 2))  # noqa: E731
-    sol = true(centre)
+    rate = np.array([0.02, -0.015, 0.035])[:, None]  # rad per integration, per antenna
+    slope = np.array([0.01, -0.004, 0.0])[:, None]
+
+    def true(t):  # (time, antenna, pol)
+        t = np.asarray(t, float)[:, None, None]
+        return (1.0 + slope * t) * np.exp(1j * (np.array([2.9, -1.0, 0.4])[:, None] + rate * t)) * np.ones((1, 3, 2))
+
+    def products(g):
+        i, j = np.triu_indices(3, 1)
+        return g[:, i] * np.conj(g[:, j])
+
+    reference = np.exp(1j * np.array([0.0, 3.0, -0.2, 2.9]))[:, None, None]  # per interval: steps near pi
+    sol = true(centre) * reference
     flags = np.zeros(sol.shape, bool)
     g, fl = gains_at(rows, sol, flags, intervals, interpolate=True)
     inside = (rows >= centre[0]) & (rows <= centre[-1])
-    np.testing.assert_allclose(g[inside], true(rows[inside].astype(float)), atol=1e-12)
-    np.testing.assert_allclose(g[rows < centre[0]], sol[0][None].repeat((rows < centre[0]).sum(), 0))
+    np.testing.assert_allclose(products(g[inside]), products(true(rows[inside])), atol=1e-12)
+    before = rows < centre[0]
+    np.testing.assert_allclose(products(g[before]), products(sol[[0] * before.sum()]), atol=1e-12)
     g0, _ = gains_at(rows, sol, flags, intervals, interpolate=False)
     np.testing.assert_array_equal(g0, sol[rows // 10])
     flags[2, 1, 0] = True
@@ -127,3 +173,14 @@ def test_modelled_sources_are_refused_when_also_removed_or_unknown():
     assert "one of the two lists" in fix
     (_, _, problem, fix), _ = refused_problem(["peel.model_sources=[3C 4B]"], "peel.model_sources", cal)
     assert "catalogue" in problem and "3C 48" in fix
+
+
+def test_duplicate_and_misspelt_source_names_are_refused():
+    from tests.workflow_helpers import refused_problem
+
+    cal = "workflows/demo-calibrate.yaml"
+    (_, _, problem, fix), _ = refused_problem(["peel.model_sources=[3C 48, 3C 48]"], "peel.model_sources", cal)
+    assert "more than once" in problem
+    (_, _, problem, fix), _ = refused_problem(["models.enabled=true", "models.components={Cyg  A: 4}"],
+                                              "models.components", cal)
+    assert "catalogue" in problem and "Cyg A" in fix

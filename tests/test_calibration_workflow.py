@@ -152,7 +152,8 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
 def test_dd_solution_interval_shares_the_screen_and_keeps_the_map(maps, tmp_path):
     """``peel.solint_s`` of 4 integrations: within each interval the stored DD gains of a peeled
     source are one antenna vector times a real amplitude per integration (the interval model
-    ``sqrt(a(t)) p``), and the map stays close to the clean sky (docs/calibration.md)."""
+    ``sqrt(a(t)) p``), and the map stays close to the clean sky (measured 3.18 K against 2.50 K
+    per integration, 1.27x: the simulated refraction varies on 5-20 min; docs/calibration.md)."""
     import shutil
 
     run = tmp_path / "solint"

@@ -39,6 +39,8 @@ def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     assert (comps[0, :2, 2] > 0).all() and comps[0, 2, 2] == 0 and (comps[1, :, 2] > 0).all()
     cost = g["cost"][0]  # point, start, fitted
     print("aperture cost (point, start, fitted):", cost.tolist(), "iterations", g["iterations"][0].tolist())
+    # wiring, not physics: on the demo's 50 m array the fit barely moves the cost (the array does not
+    # resolve the sources; docs/calibration.md); a fit never ends above its start
     assert (cost[:, 2] <= cost[:, 1]).all()
     assert (g["n_integrations"][0] == 16).all()
     # fluxes renormalised to the published spectrum

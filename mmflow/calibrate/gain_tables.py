@@ -8,7 +8,10 @@ polarisation, in amplitude and in phase separately::
     |g(t)| = (1 - x) |g_k| + x |g_{k+1}|
     arg g(t) = arg g_k + x wrap(arg g_{k+1} - arg g_k),    wrap to (-pi, pi]
 
-so a phase that drifts by less than pi between centres is followed, and amplitudes do not
+after ``g_{k+1}`` is turned by the common phase that best aligns it with ``g_k``
+(``exp(-i arg sum_a conj(g_k,a) g_{k+1,a})``: each interval's solution has its own phase
+reference, unobservable in ``g_i conj(g_j)``); so a phase that drifts by less than pi between
+centres is followed, and amplitudes do not
 dip as they would in a linear interpolation of the complex values. Before the first and
 after the last centre the nearest solution holds. An integration whose interpolation uses a
 flagged solution (weight > 0) is flagged; integrations outside every interval are flagged.
@@ -56,6 +59,10 @@ def gains_at(rows, gains, flags, apply_rows, solve_rows=None, interpolate=False)
     k = np.clip(np.searchsorted(centre, t, side="right") - 1, 0, len(centre) - 2)
     x = ((t - centre[k]) / (centre[k + 1] - centre[k]))[:, None, None]
     g0, g1 = gains[k], gains[k + 1]
+    # each interval has its own phase reference (Stefcal's reference antenna may change): turn g1
+    # by the common phase that best aligns it with g0 (unobservable in g_i conj(g_j)) first
+    good = ~(flags[k] | flags[k + 1])
+    g1 = g1 * np.exp(-1j * np.angle(np.sum(np.where(good, np.conj(g0) * g1, 0), axis=1, keepdims=True)))
     amp = (1 - x) * np.abs(g0) + x * np.abs(g1)
     dphi = np.angle(g1 * np.conj(g0))
     g = amp * np.exp(1j * (np.angle(g0) + x * dphi))

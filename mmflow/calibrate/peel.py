@@ -20,7 +20,9 @@ algorithm (after TTCal's ``peel``, plus the modelled sources; paper section 3.5)
 3. guard: with the point-source estimator ``S(X) = Re sum w X conj(F) / sum w``,
    ``F = M / |M|`` (the source's fringe), a peeled source whose removed component has
    ``S(C_s) < guard * S(R + C_s)`` (default guard 0.9: peeling removed less than 90 % of
-   the measured flux, e.g. a wrong model) is put back and subtracted with a fitted scale;
+   the measured flux, e.g. a wrong model) is put back and subtracted with a fitted scale, and
+   then every subtracted and modelled source's scale is refitted jointly (they were fitted
+   beside DD gains that absorbed part of them);
 4. the modelled sources are put back: ``R += a_s M_s``.
 
 All integrations of a batch are solved together (independent solutions, vectorised); the
@@ -285,7 +287,11 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
             add_component(R, coherencies[s], g[s], 1.0 * fired[s], threads)
             modes[s][fired[s]] = SUBTRACT
             scale[s][fired[s]] = 0.0
-            _refit_scale(R, coherencies[s], W, scale[s], fired[s], threads, put_back=False)
+            only = np.zeros((n_src, S), bool)
+            only[s] = fired[s]
+            fit_scales(R, coherencies, W, scale, only, threads)  # before the next source's guard reads R
+    if fired.any():  # the others' scales were fitted beside DD gains that are gone now: refit them all
+        fit_scales(R, coherencies, W, scale, (modes == SUBTRACT) | (modes == MODEL), threads)
     # 4. the modelled sources back into the residual, with the scale fitted jointly with the others
     for s in order:
         held = modes[s] == MODEL
@@ -341,16 +347,6 @@ def fit_scales(R, coherencies, W, scale, sel, threads=None):
         fitted = use[:, a]
         scale[s][fitted] = new[fitted, a]
     Rf -= np.matmul(np.where(sel[idx], scale[idx], 0.0).T.astype(R.dtype)[:, None, :], X)[:, 0]
-
-
-def _refit_scale(R, M, W, scale, sel, threads, put_back=True):
-    """For solutions ``sel``: put ``scale M`` back, refit ``scale`` by least squares, subtract."""
-    if put_back:
-        add_component(R, M, np.ones(R.shape[:2], complex), scale * sel, threads)
-    num, den, _ = projections(R, M, W, threads)
-    new = np.where(den > 0, num / np.maximum(den, 1e-300), 0.0)
-    scale[sel] = new[sel]
-    add_component(R, M, np.ones(R.shape[:2], complex), -scale * sel, threads)
 
 
 def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=10.0, peel_min_flux_jy=0.0,

@@ -174,6 +174,8 @@ def _value_problems(cfg):
         out.extend(_not_among(("peel", "peel"), cfg.peel.peel, cfg.peel.sources, "peel.sources",
                               "list the peeled sources in peel.sources too"))
         out.extend(_source_problems(cfg.peel.model_sources, ("peel", "model_sources")))
+        out.extend(_duplicates(("peel", "sources"), cfg.peel.sources))
+        out.extend(_duplicates(("peel", "model_sources"), cfg.peel.model_sources))
         both = [n for n in cfg.peel.model_sources if n in cfg.peel.sources]
         if both:
             out.append(Problem(("peel", "model_sources"), both, "listed in peel.sources too: a source is either "
@@ -209,6 +211,10 @@ def _models_problems(cfg):
                            "which is disabled", "set peel.enabled: true, or models.enabled: false"))
     out.extend(_not_among(("models", "sources"), m.sources, cfg.peel.sources, "peel.sources",
                           "fit only sources that peel removes"))
+    out.extend(_duplicates(("models", "sources"), m.sources))
+    for key in ("components", "size_arcmin"):  # per-source settings: a misspelt name would be ignored
+        for name in getattr(m, key):
+            out.extend(_source_problems([name], ("models", key)))
     bad = {k: v for k, v in m.components.items() if v < 1}
     if bad:
         out.append(Problem(("models", "components"), bad, "a source needs at least one component", "use >= 1"))
@@ -216,6 +222,14 @@ def _models_problems(cfg):
     if bad:
         out.append(Problem(("models", "size_arcmin"), bad, "sizes must be positive", "use sizes > 0 arcmin"))
     return out
+
+
+def _duplicates(field, names):
+    """A name listed twice (a source fitted twice: two identical columns of one fit)."""
+    twice = sorted({n for n in names if list(names).count(n) > 1})
+    if not twice:
+        return []
+    return [Problem(field, twice, "listed more than once", "list each source once")]
 
 
 def _prior_run_problems(cfg):
