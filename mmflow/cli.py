@@ -170,6 +170,8 @@ def _report(cfg, summaries):
     summary = run / "maps" / "summary.json"
     if not summary.exists():
         return
+    if "products" not in summaries and any(v["tasks_run"] > 0 for v in summaries.values()):
+        print("maps below are STALE: made before the stages this command recomputed (`mmflow run` refreshes them)")
     for m in json.loads(summary.read_text())["maps"]:
         ratio = m.get("chosen_over_corner_eps")
         print(f"{m['freq_hz'] / 1e6:.3f} MHz: {run / m['fits']}"

@@ -105,6 +105,12 @@ def test_chain_wrote_solutions_and_never_rewrote_the_data(maps):
     assert (mode == 1).any() and (mode == 2).any()  # peeled and subtracted
     faint = [p.attrs["sources"].index(n) for n in FAINT]
     assert set(np.unique(mode[:, :, faint])) <= {0, 3}  # the fainter sources only modelled (or set)
+    # the flux scale: the removed sources from their peel solutions, the modelled ones from the map
+    import json
+
+    rows = {r["name"]: r for r in json.loads((d / "maps" / "fluxscale.json").read_text())}
+    assert all(rows[n]["method"].startswith("peel") for n in BRIGHT)
+    assert all(rows[n]["method"] == "map" for n in FAINT if n in rows) and "3C 123" in rows
     t = zarr.open_group(str(d / "terrestrial.zarr"), mode="r")
     assert np.abs(t["patterns"][:]).max() > 0
     v = zarr.open_group(str(d / "vis.zarr"), mode="r")

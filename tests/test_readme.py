@@ -39,6 +39,7 @@ def test_quick_tour_and_python_example_run_verbatim_after_the_demo(tmp_path):
         assert codes[i] == expected, f"{ln!r} exited {codes[i]}:\n{log[-3000:]}"
     assert "imaging.eps: 0.01 -> 0.001" in log and "--force" in log  # the refusal names the change and fixes
     assert "STALE" in log and "products" in log  # the single-stage run says what is now stale
+    assert "maps below are STALE" in log  # ... and does not show the old maps as current
     assert (tmp_path / "my-workflow.yaml").exists()
 
     code = _block("python", "The same engine in Python")

@@ -70,19 +70,23 @@ def psf_at(ctx, fi, vecs_date):
 
 
 def _peel_rows(ctx, fi, freq, epoch_year, wanted):
-    """Flux rows of the sources in ``peel.zarr`` (peeled or subtracted), from the peel solutions."""
+    """Flux rows of the sources ``peel.zarr`` removed (peeled or subtracted), from the peel solutions;
+    the modelled sources (``peel.model_sources``) stay in the data and are measured in the map."""
     from mmflow.analysis.fluxscale import flux_row, peel_flux_factors
     from mmflow.sky.sources import get_sources
 
     g = ctx.open("peel.zarr")
-    names = list(g.attrs["sources"])
+    kept = set(g.attrs.get("modelled", []))
+    index = {n: s for s, n in enumerate(g.attrs["sources"]) if n not in kept}  # store column of each
+    names = list(index)
     mode = ctx.read("peel.zarr", "mode", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, pol)
     scale = ctx.read("peel.zarr", "scale", (slice(None), slice(fi, fi + 1)))[:, 0]
     gains = ctx.read("peel.zarr", "dd_gains", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, ant, pol)
     rows = []
-    for s, src in enumerate(get_sources(names)):
+    for src in get_sources(names):
         if wanted is not None and src.name not in wanted:
             continue
+        s = index[src.name]
         fac = np.stack([peel_flux_factors(mode[:, s, p], scale[:, s, p], gains[:, s, :, p])
                         for p in range(mode.shape[-1])], axis=-1)
         n = np.isfinite(fac).sum(-1)  # the mean over the polarisations that were fitted
