@@ -162,7 +162,7 @@ def test_a_low_coverage_baseline_never_gains_weight(scan, tmp_path, policy):
                              progress=False, log=lines.append)
     counts = summaries["mmodes"]["counts"]
     assert counts == {"dropped_low_coverage": int(policy == "drop"), "downweighted_low_coverage": int(policy != "drop"),
-                      "fits_with_prior": 0}  # no mmode.prior_run
+                      "baselines_without_data": 0, "fits_with_prior": 0}  # no mmode.prior_run
     assert any("low coverage: 1" in ln for ln in lines)
     g = zarr.open_group(str(tmp_path / "r" / "vis.zarr"), mode="r")
     b = [tuple(p) for p in g["pairs"][:]].index((0, 3))

@@ -130,6 +130,11 @@ def test_low_coverage_never_gains_weight():
     np.testing.assert_allclose(new[0] / new[4], 0.17 * 0.17 / 0.3)
     drop = baseline_coverage(w, 0.3, "drop")
     assert drop.n_dropped == 1 and lsq_inverse_variance(s2, w.sum(axis=0), drop)[0] == 0
+    # a baseline without any data (a flagged antenna, calibrated autos) is empty, not low coverage
+    w[:, 3] = 0
+    for policy in ("drop", "downweight"):
+        c = baseline_coverage(w, 0.3, policy)
+        assert c.n_empty == 1 and c.factor[3] == 0 and c.n_dropped + c.n_downweighted == 1
     from mmflow.errors import InputError
 
     with pytest.raises(InputError, match="coverage_policy"):

@@ -138,6 +138,10 @@ class Coverage:
     below : ndarray (n_bl,) bool
         Baselines under ``min_coverage``.
     n_dropped, n_downweighted : int
+        Baselines with some data under ``min_coverage``, dropped or down-weighted.
+    n_empty : int
+        Baselines without any unflagged sample (a flagged antenna, or autocorrelations given
+        weight 0 by calibration): factor 0, not counted as low coverage.
     """
 
     fraction: np.ndarray
@@ -145,6 +149,7 @@ class Coverage:
     below: np.ndarray
     n_dropped: int
     n_downweighted: int
+    n_empty: int = 0
 
 
 COVERAGE_POLICIES = ("drop", "downweight")
@@ -171,9 +176,11 @@ def baseline_coverage(bin_weight, min_coverage, policy="drop"):
         factor = np.where(below, 0.0, 1.0)
     else:
         factor = np.where(below, frac / min_coverage if min_coverage > 0 else 1.0, 1.0)
-    n_below = int(below.sum())
+    empty = frac == 0
+    factor = np.where(empty, 0.0, factor)
+    n_below = int((below & ~empty).sum())
     return Coverage(frac, factor, below, n_below if policy == "drop" else 0,
-                    n_below if policy == "downweight" else 0)
+                    n_below if policy == "downweight" else 0, int(empty.sum()))
 
 
 def lsq_inverse_variance(sigma2, weight_sum, coverage=None):

@@ -140,7 +140,8 @@ def _task(ctx, key):
     inv_var = np.zeros((nf, vis.shape[1]))
     n_samples = np.zeros((len(splits), nf, vis.shape[1]), np.int64)
     info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
-            "downweighted_low_coverage": 0, "max_cg_iterations": 0, "fits_with_prior": 0}
+            "downweighted_low_coverage": 0, "baselines_without_data": 0, "max_cg_iterations": 0,
+            "fits_with_prior": 0}
     src = str(ctx.run.store("vis.zarr"))
     for fi in range(nf):
         band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
@@ -163,6 +164,7 @@ def _task(ctx, key):
                 inv_var[fi] = res.inv_var
                 info["dropped_low_coverage"] += res.coverage.n_dropped
                 info["downweighted_low_coverage"] += res.coverage.n_downweighted
+                info["baselines_without_data"] += res.coverage.n_empty
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
     ctx.write(g, "n_samples", (slice(None), slice(None), cols), n_samples)
@@ -238,5 +240,6 @@ def _check_coverage(bin_weight, min_coverage, source, n_bins, split=None):
 
 
 register(Stage("mmodes", ("mmode", "beam"), ("vis.zarr",) + CORRECTION_STORES, ("mmodes.zarr",), _prepare, _task,
-               counters=("dropped_low_coverage", "downweighted_low_coverage", "fits_with_prior"), files=prior_files,
+               counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
+                         "fits_with_prior"), files=prior_files,
                description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk"))
