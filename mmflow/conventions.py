@@ -23,12 +23,17 @@ Row layout of an m block
     rows ``0..Nb-1`` are ``V_m`` of baselines ``0..Nb-1``; for ``m > 0`` rows ``Nb..2Nb-1``
     are ``conj(V_{-m})`` of the same baselines. Columns are ``l = m..lmax``.
 
+Sidereal day
+    ``SIDEREAL_DAY_S`` = 86164.0905 s of UTC: the sidereal angle advances by ``2 pi`` in it.
+
 Units
     Visibilities in Jy; beams are power responses, 1 at zenith; transfer matrices map
     brightness in Jy/sr to Jy (units of sr). Maps are converted to K (default) only by
     :mod:`mmflow.sky.units`.
 """
 import numpy as np
+
+SIDEREAL_DAY_S = 86164.0905  # s: one turn of the sidereal angle
 
 
 def enu_to_equatorial_matrix(lat_rad, phi=0.0):

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-SIDEREAL_DAY_S = 86164.0905
+from mmflow.conventions import SIDEREAL_DAY_S
 
 
 def _scan(n_ant, n_freq, n_time, seed=0):

@@ -34,7 +34,8 @@ import re
 
 import numpy as np
 
-SIDEREAL_DAY_S = 86164.0905
+from mmflow.conventions import SIDEREAL_DAY_S
+
 TWO_PI = 2 * np.pi
 PARITY_SPLITS = ("full", "even", "odd")  # splits of the sidereal bins (every integration used)
 SUN_SPLITS = ("day", "night")

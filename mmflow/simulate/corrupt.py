@@ -32,6 +32,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import gain_products
 from mmflow.calibrate.coherency import source_enu, tangent_basis
+from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.simulate.visibilities import thermal_noise
 from mmflow.telescope.array import C_LIGHT
 
@@ -279,7 +280,7 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
     from pyuvdata.utils import get_lst_for_time
 
     phi = np.unwrap(np.asarray(lsts, float))
-    rate = 2 * np.pi / (86164.0905 / 86400.0)  # rad per (UTC) day
+    rate = 2 * np.pi / (SIDEREAL_DAY_S / 86400.0)  # rad per (UTC) day
 
     def lst(jd):
         return get_lst_for_time(np.atleast_1d(jd), latitude=layout.lat_deg, longitude=layout.lon_deg,

@@ -7,9 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.errors import InputError
+from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.simulate.visibilities import SkyPoints, gauss_legendre_points, simulate_drift_scan, thermal_noise
-
-SIDEREAL_DAY_S = 86164.0905
 
 
 def drift_scan_lsts(start_lst_rad, integration_s, index):

@@ -15,10 +15,9 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
+from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import InputError
 from mmflow.workflow.config_errors import Problem, from_pydantic, show
-
-SIDEREAL_DAY_S = 86164.0905
 
 
 def beam_problems(beam):
@@ -326,13 +325,14 @@ def _split_problems(cfg):
     sidereal rate: :func:`mmflow.mmode.splits.sidereal_times_jd`)."""
     from mmflow.mmode.splits import day_index, day_splits, sidereal_times_jd, split_problems
     from mmflow.simulate.scene import drift_scan_lsts
+    from mmflow.workflow.stages.mmodes import n_bins_of
+    from mmflow.workflow.stages.simulate import n_integrations
 
     mm, ob = cfg.mmode, cfg.observation
     if cfg.source != "simulate" or not day_splits(mm.splits):
         return []
-    n = ob.n_integrations or int(round(SIDEREAL_DAY_S / ob.integration_s))
-    lsts = drift_scan_lsts(np.deg2rad(ob.start_lst_deg), ob.integration_s, np.arange(n))
-    n_bins = mm.n_bins or int(round(SIDEREAL_DAY_S / ob.integration_s))
+    lsts = drift_scan_lsts(np.deg2rad(ob.start_lst_deg), ob.integration_s, np.arange(n_integrations(cfg)))
+    n_bins = n_bins_of(cfg, ob.integration_s)
     days = day_index(lsts, sidereal_times_jd(lsts))
     return [Problem(("mmode", "splits"), name, problem, fix)
             for name, problem, fix in split_problems(mm.splits, lsts, days, None, n_bins, mm.min_coverage)]

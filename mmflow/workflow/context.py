@@ -22,8 +22,6 @@ from mmflow.workflow.config import WorkflowConfig
 from mmflow.workflow.fingerprint import ConfigView
 from mmflow.workflow.rundir import RunDir
 
-SIDEREAL_DAY_S = 86164.0905
-
 
 class NonFiniteOutputError(MmflowError):
     """A stage was about to write NaN or inf."""

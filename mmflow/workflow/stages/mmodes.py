@@ -28,6 +28,7 @@ import threading
 
 import numpy as np
 
+from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import CoverageError, InputError
 from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
@@ -37,7 +38,6 @@ from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_mask
     sun_elevation_deg
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
-from mmflow.workflow.context import SIDEREAL_DAY_S
 from mmflow.workflow.prior_run import check_prior_run, prior_files, read_prior_alm
 from mmflow.workflow.stages.base import Stage, register
 

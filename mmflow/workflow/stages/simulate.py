@@ -14,10 +14,11 @@ from functools import lru_cache
 
 import numpy as np
 
+from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import utc_at_lsts
 from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
-from mmflow.workflow.context import SIDEREAL_DAY_S, _parse, build_telescope
+from mmflow.workflow.context import _parse, build_telescope
 from mmflow.workflow.stages.base import Stage, register
 
 TIME_CHUNK = 256
@@ -45,7 +46,7 @@ def layout_attrs(layout):
                 height_m=layout.height_m, layout_provenance=layout.provenance)
 
 
-def _n_integrations(cfg):
+def n_integrations(cfg):
     o = cfg.observation
     return o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
 
@@ -53,7 +54,7 @@ def _n_integrations(cfg):
 def _sim_prepare(ctx):
     cfg = ctx.cfg
     tel = build_telescope(cfg)
-    n = _n_integrations(cfg)
+    n = n_integrations(cfg)
     o = cfg.observation
     attrs = dict(layout_attrs(tel.layout), source="simulate", epoch_jd=o.epoch_jd, sky=cfg.sky.model_dump(),
                  integration_s=o.integration_s, channel_width_hz=o.channel_width_khz * 1e3,
@@ -83,7 +84,7 @@ def _skies(config_json):
                         s.quad_oversample) for f in tel.freqs_hz]
     if not c.enabled:
         return tel, skies, None
-    n = _n_integrations(cfg)
+    n = n_integrations(cfg)
     times_s = np.arange(n) * o.integration_s
     srcs = [model(x) for x in get_sources(dd)]
     vecs = np.array([source_vector_date(x, o.epoch_jd) for x in srcs]).reshape(-1, 3)
@@ -100,7 +101,7 @@ def _skies(config_json):
 def _sim_task(ctx, key):
     cfg = ctx.cfg
     o = cfg.observation
-    n = _n_integrations(cfg)
+    n = n_integrations(cfg)
     t0, t1 = chunk_rows(key, n)
     k = np.arange(t0, t1)
     tel, skies, corrupted = _skies(ctx.config_json)
