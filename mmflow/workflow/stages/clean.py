@@ -253,7 +253,7 @@ def psf_alm_columns(g, fi, lmax, blocks):
     return out
 
 
-def _split_alm(ctx, fi, lmax, mmax):
+def split_alm(ctx, fi, lmax, mmax):
     """``{split name: healpy alm}`` of the solved maps of one frequency."""
     alm = ctx.read("alm.zarr", "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
     return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
@@ -313,7 +313,7 @@ def _setup_tables(ctx, g):
                   allow_nan=True)
         noise, sigma_clean = np.full(len(NOISE_FIELDS), np.nan), None
         if jk[0] is not None:
-            alms = _split_alm(ctx, fi, lmax, mmax)
+            alms = split_alm(ctx, fi, lmax, mmax)
             sigma_clean = jackknife_sigma(alms, jk, lmax, nside, mask)
             nz = beam_noise(sigma_clean, float(freqs[fi]), tables[0])
             noise = np.array([nz[k] for k in NOISE_FIELDS])
@@ -401,7 +401,7 @@ def _finalize(ctx):
             restored = ck.restore_map(healpy.alm2map(state.residual_alm, nside, lmax=lmax), state.comp_vec,
                                       state.comp_flux, table)
         else:
-            restored = ck.restore_highpass(_split_alm(ctx, fi, lmax, mmax)["full"], state, table, w, lmax, nside)
+            restored = ck.restore_highpass(split_alm(ctx, fi, lmax, mmax)["full"], state, table, w, lmax, nside)
         ctx.write(g, "restored", (slice(fi, fi + 1),), restored[None])
         ctx.write(g, "n_cycles", (slice(fi, fi + 1),), np.array([state.cycle]))
         ctx.write(g, "stop", (slice(fi, fi + 1),), np.array([CLEAN_STOPS.index(reason) if reason else -1]))

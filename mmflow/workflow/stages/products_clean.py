@@ -46,13 +46,6 @@ def _rotate_to(frame, epoch):
     return None if frame == "date" else rotation_matrix("date", frame, epoch)
 
 
-def alm_splits(ctx, fi, lmax, mmax):
-    from mmflow.workflow.stages.products import healpy_alm
-
-    alm = ctx.read("alm.zarr", "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
-    return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
-
-
 def psf_stamp(cols, lmax, dec_rad, half_width_rad, n=STAMP_PIXELS):
     """``image[y, x]`` of a PSF column (source at RA 0, ``dec``), azimuthal-equidistant, x east
     to the left, normalised to the PSF at its source; returns ``(image, peak)``."""
@@ -82,7 +75,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     state, reason = cs.clean_result(g, fi, cs.clean_options(cfg.clean), int(g["n_cycles"][fi]))
     state.residual_alm = cs.residual_alm(g, fi, state.cycle, lmax, blocks)
     tables = [psf.table_from_array(g["psf_table"][fi, k]) for k in (0, 1)]
-    alms = alm_splits(ctx, fi, lmax, mmax)
+    alms = cs.split_alm(ctx, fi, lmax, mmax)
     w = cs.highpass(cfg)
 
     def in_frame(alm):

@@ -172,16 +172,15 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
     declination); none without even and odd or day<k> splits."""
     from mmflow.conventions import m_slice
     from mmflow.imaging.jackknife import noise_realisation
-    from mmflow.workflow.stages.clean import jackknife_splits
+    from mmflow.workflow.stages.clean import jackknife_splits, split_alm
     from mmflow.workflow.stages.mmodes import mmax_of
-    from mmflow.workflow.stages.products_clean import alm_splits
 
     cfg = ctx.cfg
     kind, _, fractions = jackknife_splits(ctx, fi)
     if kind is None:
         return
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    noise = noise_realisation(alm_splits(ctx, fi, lmax, mmax), kind, fractions)
+    noise = noise_realisation(split_alm(ctx, fi, lmax, mmax), kind, fractions)
     for k in range(n_rot):
         turned = noise.copy()
         for m in range(mmax + 1):
