@@ -246,7 +246,9 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     if intervals is not None:  # interval gains p and amplitudes a with g = sqrt(a) p
         p_int = g.copy()
         amp = np.ones((n_src, S))
-    # 2. passes
+    # 2. passes (the scaled sources' normal equations are the same in every pass)
+    scaled = (modes == SUBTRACT) | (modes == MODEL)
+    system = scale_system(coherencies, W, scaled, R.dtype)
     for _ in range(passes):
         for s in order:
             peel = modes[s] == PEEL
@@ -266,7 +268,8 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
                 iters[s, peel] += res.iterations[peel]
                 conv[s, peel] = res.converged[peel]
                 add_component(R, coherencies[s], g[s], -1.0 * peel, threads)
-        fit_scales(R, coherencies, W, scale, (modes == SUBTRACT) | (modes == MODEL), threads)
+        fit_scales(R, coherencies, W, scale, scaled, system=system)
+    del system  # two arrays of the scaled sources' models
     # 3. guard
     measured = np.zeros((n_src, S))
     removed = np.zeros((n_src, S))
@@ -289,9 +292,9 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
             scale[s][fired[s]] = 0.0
             only = np.zeros((n_src, S), bool)
             only[s] = fired[s]
-            fit_scales(R, coherencies, W, scale, only, threads)  # before the next source's guard reads R
+            fit_scales(R, coherencies, W, scale, only)  # before the next source's guard reads R
     if fired.any():  # the others' scales were fitted beside DD gains that are gone now: refit them all
-        fit_scales(R, coherencies, W, scale, (modes == SUBTRACT) | (modes == MODEL), threads)
+        fit_scales(R, coherencies, W, scale, (modes == SUBTRACT) | (modes == MODEL))
     # 4. the modelled sources back into the residual, with the scale fitted jointly with the others
     for s in order:
         held = modes[s] == MODEL
@@ -302,7 +305,47 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     return PeelResult(g, scale, modes, fired, measured, removed, iters, conv, R)
 
 
-def fit_scales(R, coherencies, W, scale, sel, threads=None):
+@dataclass
+class ScaleSystem:
+    """The normal equations of :func:`fit_scales` for fixed models, weights and selection: the
+    selected sources ``idx``, their models as rows ``X`` (S, n, N^2) and weighted rows ``XW``
+    (real views), the Jacobi scaling ``d``, the fitted entries ``use`` (S, n) and the
+    pseudo-inverse ``P`` of the scaled matrix. Only the right-hand side changes between passes."""
+
+    idx: np.ndarray
+    sel: np.ndarray
+    X: np.ndarray
+    XW: np.ndarray
+    d: np.ndarray
+    use: np.ndarray
+    P: np.ndarray
+
+
+def scale_system(coherencies, W, sel, dtype):
+    """:class:`ScaleSystem` of the sources selected in ``sel`` (n_src, S) (None when none is)."""
+    idx = np.flatnonzero(sel.any(1))
+    if len(idx) == 0:
+        return None
+    S, N = W.shape[0], W.shape[1]
+    n = len(idx)
+    X = np.empty((S, n, N * N), dtype)  # the selected models, one row each per solution
+    for a, s in enumerate(idx):
+        X[:, a] = np.asarray(coherencies[s]).reshape(S, N * N)
+    real = X.real.dtype
+    w = np.array(np.reshape(W, (S, N * N)), real)
+    w[:, :: N + 1] = 0.0  # autocorrelations never enter a fit
+    # Re <X_s, Y>_w as real dot products of the (re, im) views: one GEMM per solution
+    XW = (X * w[:, None, :]).view(real)
+    A = np.matmul(XW, np.swapaxes(X.view(real), 1, 2)).astype(float)
+    diag = np.einsum("sii->si", A)
+    # fitted in a solution: selected there, with a model that is not ~0 (a source at the horizon)
+    use = sel[idx].T & (diag > 1e-12 * np.max(diag, axis=1, keepdims=True)) & (diag > 0)
+    d = np.where(use, 1 / np.sqrt(np.where(use, diag, 1)), 0.0)  # Jacobi scaling: cond of the correlations
+    An = A * d[:, :, None] * d[:, None, :] + np.eye(n) * ~use[:, :, None]
+    return ScaleSystem(idx, np.asarray(sel, bool), X, XW, d, use, np.linalg.pinv(An, rcond=1e-10, hermitian=True))
+
+
+def fit_scales(R, coherencies, W, scale, sel, system=None):
     """Joint least-squares flux scales of the sources ``sel`` (n_src, S), in place.
 
     Puts ``sum_s a_s M_s`` back into ``R``, solves per solution the normal equations of the
@@ -314,35 +357,23 @@ def fit_scales(R, coherencies, W, scale, sel, threads=None):
     fringes overlap (low elevations, few baselines) from absorbing each other's flux. The system
     is solved scaled to unit diagonal (the sources' fringe correlations) by a pseudo-inverse
     (singular values below 1e-10 dropped: fully correlated fringes share their flux); a source
-    whose model is ~0 there (at the horizon) keeps the scale it had.
+    whose model is ~0 there (at the horizon) keeps the scale it had. ``system``: the
+    :func:`scale_system` of these models, weights and ``sel``, built once for several passes.
     """
-    idx = np.flatnonzero(sel.any(1))
-    if len(idx) == 0:
-        return
-    S, N = R.shape[0], R.shape[1]
     if not R.flags.c_contiguous:
         raise ValueError("fit_scales updates R in place through a flat view: R must be C-contiguous")
-    n = len(idx)
-    X = np.empty((S, n, N * N), R.dtype)  # the selected models, one row each per solution
-    for a, s in enumerate(idx):
-        X[:, a] = np.asarray(coherencies[s]).reshape(S, N * N)
-    real = X.real.dtype
-    w = np.array(np.reshape(W, (S, N * N)), real)
-    w[:, :: N + 1] = 0.0  # autocorrelations never enter a fit
-    Rf = R.reshape(S, N * N)  # a view: R changes in place
+    sys_ = scale_system(coherencies, W, sel, R.dtype) if system is None else system
+    if sys_ is None:
+        return
+    if not np.array_equal(sys_.sel, sel):
+        raise ValueError("fit_scales: the system was built for another selection")
+    idx, X, d, use = sys_.idx, sys_.X, sys_.d, sys_.use
+    S = R.shape[0]
+    Rf = R.reshape(S, -1)  # a view: R changes in place
     start = np.where(sel[idx], scale[idx], 0.0).T.astype(R.dtype)  # (S, n)
     Rf += np.matmul(start[:, None, :], X)[:, 0]
-    # Re <X_s, Y>_w as real dot products of the (re, im) views: one GEMM per solution
-    XW = (X * w[:, None, :]).view(real)
-    A = np.matmul(XW, np.swapaxes(X.view(real), 1, 2)).astype(float)
-    b = np.matmul(XW, Rf.view(real)[..., None])[..., 0].astype(float)
-    del XW
-    diag = np.einsum("sii->si", A)
-    # fitted in a solution: selected there, with a model that is not ~0 (a source at the horizon)
-    use = sel[idx].T & (diag > 1e-12 * np.max(diag, axis=1, keepdims=True)) & (diag > 0)
-    d = np.where(use, 1 / np.sqrt(np.where(use, diag, 1)), 0.0)  # Jacobi scaling: cond of the correlations
-    An = A * d[:, :, None] * d[:, None, :] + np.eye(n) * ~use[:, :, None]
-    new = d * (np.linalg.pinv(An, rcond=1e-10, hermitian=True) @ (b * d)[..., None])[..., 0]
+    b = np.matmul(sys_.XW, Rf.view(Rf.real.dtype)[..., None])[..., 0].astype(float)
+    new = d * (sys_.P @ (b * d)[..., None])[..., 0]
     for a, s in enumerate(idx):
         fitted = use[:, a]
         scale[s][fitted] = new[fitted, a]
