@@ -93,8 +93,9 @@ def _read_rows(ctx, rows):
 def _task(ctx, key):
     from mmflow.calibrate.baselines import baseline_mask
     from mmflow.calibrate.coherency import epoch_year, source_coherencies, source_vector_date
-    from mmflow.calibrate.source_models import (ARCMIN, _pack, fit_fluxes, fit_gaussian_components,
-                                                fit_point_position, source_uvw, symmetric_start)
+    from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, _pack, fit_fluxes,
+                                                fit_gaussian_components, fit_point_position, source_uvw,
+                                                symmetric_start)
     from mmflow.sky.sources import get_sources
     from mmflow.telescope.array import C_LIGHT
 
@@ -128,7 +129,7 @@ def _task(ctx, key):
     longest = np.linalg.norm(tel.baselines_enu(pairs)[keep], axis=1).max() * f / C_LIGHT
     aperture = m.aperture_arcmin or max(2 / longest / ARCMIN, 2 * 0.75 * size)
     step = m.step_arcmin or aperture / 8
-    point = [type(start[0])(0.0, 0.0, total, 0.0, 0.0, 0.0)]
+    point = [GaussianComponent(0.0, 0.0, total, 0.0, 0.0, 0.0)]
     _, res_point = fit_gaussian_components(data, w, uvw, beam, point, aperture_arcmin=aperture, step_arcmin=step,
                                            free_amplitudes=True, maxiter=1)
     comps, res = fit_gaussian_components(data, w, uvw, beam, start, aperture_arcmin=aperture, step_arcmin=step,
