@@ -260,3 +260,27 @@ def test_changing_the_beam_type_alone_names_the_leftover_parameter():
 def test_splits_and_groups(override, fix):
     err = pytest.raises(InputError, load_config, DEMO, [override]).value
     assert err.field == override.split("=")[0] and fix in err.fix
+
+
+def test_options_and_overrides_in_any_order(tmp_path, capsys):
+    """`mmflow run wf.yaml --no-progress key=value`: the override after the option is applied (here a bad
+    value, refused by validation with exit 2 and the field named), not rejected by the argument parser."""
+    from mmflow.cli import main
+
+    run_dir = tmp_path / "never"
+    assert main(["run", DEMO, "--no-progress", f"run.directory={run_dir}", "mmode.lmax=0"]) == 2
+    assert "mmode.lmax" in capsys.readouterr().err and not run_dir.exists()
+    with pytest.raises(SystemExit):  # an unknown option is still an error
+        main(["run", DEMO, "--no-progress", "--bogus"])
+    with pytest.raises(SystemExit):  # and so are stray words for a command without overrides
+        main(["status", str(tmp_path), "extra=1"])
+
+
+def test_clean_brings_the_splits_it_needs():
+    """clean.enabled alone gets mmode.splits [full, even, odd] (its jackknife threshold); splits the user
+    gives are kept, and without even/odd or a threshold they are still refused."""
+    assert load_config(DEMO, ["clean.enabled=true"]).mmode.splits == ["full", "even", "odd"]
+    assert load_config(DEMO).mmode.splits == ["full"]
+    assert load_config(DEMO, ["clean.enabled=true", "mmode.splits=[full, odd, even]"]).mmode.splits[1] == "odd"
+    err = pytest.raises(InputError, load_config, DEMO, ["clean.enabled=true", "mmode.splits=[full]"]).value
+    assert "clean.threshold" in str(err)

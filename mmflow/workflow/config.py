@@ -195,7 +195,7 @@ class MmodeConfig(Section):
     baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
     splits: list[str] = Field(
         ["full"], description="Data splits carried through m-modes, right-hand sides and alm (one transfer pass "
-        "for all; docs/mmodes.md): 'full' first, then 'even' / 'odd' sidereal bins (jackknife halves), 'day<k>' "
+        "for all; docs/mmodes.md; not given: [full], or [full, even, odd] when clean.enabled): 'full' first, then 'even' / 'odd' sidereal bins (jackknife halves), 'day<k>' "
         "the k-th sidereal day of the data (k = 0, 1, ...; per-day jackknife), 'day' / 'night' the integrations "
         "with the Sun above / below the horizon (a systematics check for data spanning months).",
         json_schema_extra={"allowed": "'full' first, then each of even | odd | day<k> (k = 0, 1, ...) | day | "
@@ -523,6 +523,9 @@ def load_config(path=None, overrides=()):
     t = cfg.telescope
     if t.layout_file is not None and "preset" not in data.get("telescope", {}):
         cfg.telescope = t.model_copy(update={"preset": None})  # the default preset gives way to a layout file
+    if cfg.clean.enabled and "splits" not in (data.get("mmode") or {}):
+        # CLEAN's threshold is a multiple of the jackknife noise: the splits it needs come with it
+        cfg.mmode = cfg.mmode.model_copy(update={"splits": ["full", "even", "odd"]})
     report(check_config(cfg), origins)
     return cfg
 
