@@ -30,6 +30,13 @@ def build_parser():
     _common(sub.add_parser("run", help="run every enabled stage of a workflow"))
     for st in all_stages():  # the one stage registry drives the subcommands
         _common(sub.add_parser(st.name, help=f"run only the '{st.name}' stage: {st.description}"))
+    pl = sub.add_parser("plan", help="before a run: tasks, memory per task, disk and time of every stage")
+    pl.add_argument("workflow", help="workflow YAML (see workflows/)")
+    pl.add_argument("overrides", nargs="*", help="section.key=value overrides")
+    pl.add_argument("--json", action="store_true", help="print the plan as JSON")
+    pl.add_argument("--fit", nargs="+", metavar="RUN_DIR",
+                    help="fit the cost constants to finished runs and write them to --costs (no plan printed)")
+    pl.add_argument("--costs", help="constants file to read (or write with --fit); default: the package's")
     st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
     vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and XXH3 checksum)")
@@ -148,8 +155,29 @@ def _bench(args):
     return 0
 
 
+def _plan(args):
+    from mmflow.workflow import plan as planmod
+
+    if args.fit:
+        from mmflow.bench.engine import gemm_gflops
+        from mmflow.workflow.plan_fit import fit_costs, write_costs
+
+        import numpy as np
+
+        path = args.costs or planmod.COSTS_FILE
+        write_costs(fit_costs(args.fit, gemm_gflops(np.float32, n=768)), path)
+        print(f"wrote {path}")
+        return 0
+    from mmflow.workflow.config import load_config
+
+    cfg = load_config(args.workflow, args.overrides)
+    res = planmod.plan(cfg, planmod.load_costs(args.costs) if args.costs else None)
+    print(json.dumps(res, indent=2, default=float) if args.json else planmod.format_plan(res))
+    return 0
+
+
 def _dispatch(args):
-    handlers = {"status": _status, "verify": _verify, "config": _config, "bench": _bench}
+    handlers = {"status": _status, "verify": _verify, "config": _config, "bench": _bench, "plan": _plan}
     if args.cmd in handlers:
         return handlers[args.cmd](args)
     from mmflow.workflow.cluster import open_cluster

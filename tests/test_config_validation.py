@@ -284,3 +284,10 @@ def test_clean_brings_the_splits_it_needs():
     assert load_config(DEMO, ["clean.enabled=true", "mmode.splits=[full, odd, even]"]).mmode.splits[1] == "odd"
     err = pytest.raises(InputError, load_config, DEMO, ["clean.enabled=true", "mmode.splits=[full]"]).value
     assert "clean.threshold" in str(err)
+
+
+def test_even_odd_splits_with_an_odd_number_of_bins_are_refused_before_work():
+    """Found at the m-mode stage after simulate and calibrate had run; now refused by the configuration."""
+    err = pytest.raises(InputError, load_config, DEMO, ["mmode.splits=[full, even, odd]", "mmode.n_bins=829"]).value
+    assert "mmode.n_bins" in str(err) and "830" in str(err)
+    assert load_config(DEMO, ["mmode.splits=[full, even, odd]", "mmode.n_bins=830"]).mmode.n_bins == 830

@@ -66,6 +66,11 @@ class StoreSpec:
     arrays: tuple
     attrs: dict = field(default_factory=dict)
 
+    @property
+    def nbytes(self):
+        """Uncompressed bytes of every array: an upper bound of the store's size on disk."""
+        return int(sum(np.prod(a.shape, dtype=float) * np.dtype(a.dtype).itemsize for a in self.arrays))
+
     def create(self, root):
         """Create the store, or validate what exists; returns the open group (``r+``)."""
         location = Path(root) / self.path

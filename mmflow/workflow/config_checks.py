@@ -329,10 +329,16 @@ def _split_problems(cfg):
     from mmflow.workflow.stages.simulate import n_integrations
 
     mm, ob = cfg.mmode, cfg.observation
-    if cfg.source != "simulate" or not day_splits(mm.splits):
+    if cfg.source != "simulate":
+        return []
+    n_bins = n_bins_of(cfg, ob.integration_s)
+    if {"even", "odd"} & set(mm.splits) and n_bins % 2:
+        return [Problem(("mmode", "n_bins"), mm.n_bins, f"even/odd splits need an even number of sidereal bins; "
+                        f"{'this gives' if mm.n_bins else f'observation.integration_s = {ob.integration_s:g} s gives'}"
+                        f" {n_bins}", f"set mmode.n_bins={n_bins + 1} (or {n_bins - 1})")]
+    if not day_splits(mm.splits):
         return []
     lsts = drift_scan_lsts(np.deg2rad(ob.start_lst_deg), ob.integration_s, np.arange(n_integrations(cfg)))
-    n_bins = n_bins_of(cfg, ob.integration_s)
     days = day_index(lsts, sidereal_times_jd(lsts))
     return [Problem(("mmode", "splits"), name, problem, fix)
             for name, problem, fix in split_problems(mm.splits, lsts, days, None, n_bins, mm.min_coverage)]

@@ -25,6 +25,7 @@ from mmflow.errors import MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.context import Context
 from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
+from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
 from mmflow.workflow.rundir import RunDir
 from mmflow.workflow.stages.base import all_stages, get_stage, producer_of
 
@@ -55,11 +56,14 @@ def run_task(ctx, stage_name, key):
     delay = float(os.environ.get("MMFLOW_TASK_DELAY_S", "0") or 0)
     if delay:  # a knob to slow tasks down: watch the dashboard, or test kills mid-stage
         time.sleep(delay)
+    reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.resources)
+    rss_start = current_rss_bytes()
     t0 = time.time()
     tctx = ctx.for_stage(get_stage(stage_name)).for_task()
     info = get_stage(stage_name).task(tctx, key) or {}
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
-                guard_s=round(tctx.ledger.guard_seconds, 4))
+                guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
+                rss_start_gb=gb(rss_start))
     run.check_holder(ctx.token)
     run.mark_done(stage_name, key, info, tctx.ledger.entries)
     return {"key": key, "skipped": False, **info}
@@ -227,6 +231,13 @@ def _counts(run, st):
     return {c: sum(int(i.get(c, 0) or 0) for i in infos) for c in st.counters}
 
 
+def _worker_peak(results):
+    """The largest peak resident memory (GB) of a worker process while one of this run's tasks ran
+    (None when every task was already done)."""
+    peaks = [r["peak_rss_gb"] for r in results if r.get("peak_rss_gb") is not None]
+    return max(peaks) if peaks else None
+
+
 def _stale_stages(run, fps, names):
     return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
@@ -260,6 +271,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
     if stale and not force:  # refuse before any work, naming what changed
         st = stale[0]
         raise _stale_error(run, st, fps[st], stale)
+    _check_resources(cfg, run, client, stages)
     (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
     (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions()}, indent=2))
     ctx = Context(cfg.model_dump_json(), str(run.path), token)
@@ -271,6 +283,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
                 log(f"[{st.name}] skipped: disabled ({st.description})")
             continue
         t0 = time.time()
+        reset_peak_rss()
         fp = fps[st.name]
         if force and run.is_stale(st.name, fp.digest):
             log(f"[{st.name}] recomputing (--force): {fp.explain(run.manifest(st.name))}")
@@ -300,7 +313,9 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
                    "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
                    "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),
                    "guard_s": round(sum(r.get("guard_s", 0) for r in results), 3),
-                   "bytes_written": run.bytes_of(st.outputs), "finalize": fin}
+                   "bytes_written": run.bytes_of(st.outputs), "finalize": fin,
+                   "worker_peak_rss_gb": _worker_peak(results),
+                   "driver_peak_rss_gb": gb(peak_rss_bytes())}
         run.finish_stage(st.name, summary)
         summaries[st.name] = summary
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
@@ -315,6 +330,30 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
     merged.update(summaries)
     summary_path.write_text(json.dumps(merged, indent=2))
     return summaries
+
+
+def _worker_limit_gb(client):
+    """The smallest memory limit (GB) of the cluster's workers; the machine's memory in process
+    (no client); None when no worker has joined yet or none has a limit."""
+    import os
+
+    if client is None:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
+    limits = [w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()]
+    limits = [x for x in limits if x > 0]
+    return min(limits) / 1e9 if limits else None
+
+
+def _check_resources(cfg, run, client, stages):
+    """Before any work: the largest task of each stage still to run against a worker's memory, and
+    the stores against the free disk (:func:`mmflow.workflow.plan.check_fits`)."""
+    from mmflow.workflow.plan import check_fits
+
+    todo = [st for st in stages if st.enabled(cfg) and st.task is not None
+            and not (run.stage_status(st.name) or {}).get("complete")]
+    if todo:
+        check_fits(cfg, _worker_limit_gb(client), [st.name for st in todo],
+                   existing_bytes=run.bytes_of([o for st in todo for o in st.outputs]))
 
 
 def _stale_error(run, stage, fp, stale):

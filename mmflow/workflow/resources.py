@@ -1,0 +1,69 @@
+"""What a stage costs a process: its peak resident memory, measured per task and per stage.
+
+Linux keeps a high-water mark of each process's resident set (``VmHWM`` in
+``/proc/self/status``) and resets it to the current resident set when ``5`` is written to
+``/proc/self/clear_refs`` (Linux >= 4.0). A task resets it when it starts and reads it when
+it ends, so ``peak_rss`` of a task is the most its worker process held while the task ran
+(with one thread per worker, the default, that is the task's own peak plus the worker's
+baseline). The driver does the same around each stage.
+
+Where the counter cannot be reset (another OS, a locked-down ``/proc``), the reading falls back
+to ``ru_maxrss``, the process's lifetime peak, and :func:`peak_rss_is_resettable` says so, so a
+summary never passes a lifetime peak off as a stage's.
+"""
+from __future__ import annotations
+
+import resource
+import sys
+
+_STATUS = "/proc/self/status"
+_CLEAR = "/proc/self/clear_refs"
+
+
+def _status_kib(field):
+    try:
+        with open(_STATUS) as fh:
+            for line in fh:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def reset_peak_rss():
+    """Reset this process's resident-set high-water mark to its current resident set.
+
+    Returns
+    -------
+    bool
+        True if the mark was reset (later :func:`peak_rss_bytes` readings cover only what
+        followed), False where the OS does not allow it.
+    """
+    try:
+        with open(_CLEAR, "w") as fh:
+            fh.write("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_bytes():
+    """This process's peak resident memory in bytes since the last :func:`reset_peak_rss`
+    (``VmHWM``), or its lifetime peak (``ru_maxrss``) where ``/proc`` has no ``VmHWM``."""
+    kib = _status_kib("VmHWM")
+    if kib is not None:
+        return kib * 1024
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak if sys.platform == "darwin" else peak * 1024  # bytes on macOS, KiB on Linux
+
+
+def current_rss_bytes():
+    """This process's resident memory now (``VmRSS``), or None where ``/proc`` has none."""
+    kib = _status_kib("VmRSS")
+    return None if kib is None else kib * 1024
+
+
+def gb(n_bytes):
+    """Bytes as GB (1e9), rounded to the MB, for summaries."""
+    return None if n_bytes is None else round(n_bytes / 1e9, 3)

@@ -1,0 +1,115 @@
+"""``mmflow plan``: per-stage tasks, memory, stores and time before a run, and the refusals it drives.
+
+The memory and time predictions are checked against a run measured in the test itself (the
+packaged constants were fitted on other runs: ``docs/performance.md``).
+"""
+import json
+
+import numpy as np
+import pytest
+import zarr
+
+from mmflow.errors import InputError
+from mmflow.workflow.plan import check_fits, geometry, plan, stage_work
+from mmflow.workflow.resources import current_rss_bytes, peak_rss_bytes, reset_peak_rss
+from mmflow.workflow.runner import run_workflow
+from tests.workflow_helpers import small_config
+
+
+def test_peak_rss_is_reset_and_follows_an_allocation():
+    """The high-water mark drops to the current resident set when reset, then rises by what is allocated."""
+    big = np.ones(300_000_000 // 8)
+    before = peak_rss_bytes()
+    del big
+    if not reset_peak_rss():
+        pytest.skip("this OS cannot reset the high-water mark")
+    base = peak_rss_bytes()
+    assert base < before - 250e6 and abs(base - current_rss_bytes()) < 20e6
+    block = np.ones(120_000_000 // 8)
+    assert 100e6 < peak_rss_bytes() - base < 160e6
+    del block
+
+
+@pytest.fixture(scope="module")
+def measured_run(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("plan") / "r"
+    cfg = small_config(run_dir)
+    run_workflow(cfg, progress=False, log=lambda *a: None)
+    return cfg, run_dir
+
+
+def test_store_sizes_are_the_declared_stores(measured_run):
+    """The plan's store bytes are the uncompressed size of exactly the arrays the stages created."""
+    cfg, run_dir = measured_run
+    g = geometry(cfg)
+    for stage, store in (("simulate", "vis.zarr"), ("mmodes", "mmodes.zarr"), ("normal", "normal.zarr"),
+                         ("solve", "alm.zarr")):
+        _, _, _, specs = stage_work(stage, g, cfg)
+        created = zarr.open_group(str(run_dir / store), mode="r")
+        arrays = list(created.arrays()) + [a for _, sub in created.groups() for a in sub.arrays()]
+        assert specs[0].nbytes == sum(a.nbytes for _, a in arrays), store
+        assert sorted(a.shape for a in specs[0].arrays) == sorted(a.shape for _, a in arrays), store
+
+
+def test_tasks_match_the_run(measured_run):
+    """Planned task counts equal the keys each stage's prepare listed."""
+    cfg, run_dir = measured_run
+    summary = json.loads((run_dir / "summary.json").read_text())
+    res = plan(cfg, peak_gflops=100.0)
+    for e in res["stages"]:
+        assert e["tasks"] == summary[e["stage"]]["tasks"], e["stage"]
+
+
+def test_every_stage_records_its_cost(measured_run):
+    """Each stage's summary has wall time, tasks, worker and driver peak memory and bytes written."""
+    _, run_dir = measured_run
+    summary = json.loads((run_dir / "summary.json").read_text())
+    for name, s in summary.items():
+        assert s["wall_s"] > 0 and s["tasks"] > 0 and s["bytes_written"] > 0, name
+        assert 0.05 < s["worker_peak_rss_gb"] < 8 and 0.05 < s["driver_peak_rss_gb"] < 8, name
+
+
+def test_a_task_larger_than_a_worker_is_refused_before_work(tmp_path):
+    """Named: the stage, its estimate, the limit and the setting that shrinks it; nothing written."""
+    cfg = small_config(tmp_path / "r")
+    with pytest.raises(InputError) as info:
+        check_fits(cfg, 0.05, ["simulate", "mmodes", "transfer"])
+    msg = str(info.value)
+    assert "stage simulate" in msg and "0.05 GB" in msg and "cluster.n_workers" in msg
+    with pytest.raises(InputError) as info:
+        check_fits(cfg, 64.0, ["simulate", "mmodes", "transfer"], free_disk=1e-6)
+    assert "run.directory" in str(info.value) and "GB free" in str(info.value)
+    assert not (tmp_path / "r").exists()
+    check_fits(cfg, 64.0, ["simulate", "mmodes", "transfer"])  # fits: no error
+
+
+def test_the_paper_channel_needs_its_gram(tmp_path):
+    """At lmax 1000 in float32 the transfer task holds sum_m (lmax - m + 1)^2 complex64 (2.69 GB)."""
+    from mmflow.workflow.config import load_config
+
+    cfg = load_config("workflows/paper-scale.yaml", [f"run.directory={tmp_path}"])
+    g = geometry(cfg)
+    assert g.n_bl == 32896 and g.n_time == 6628 and g.lmax == 1000
+    _, w, _, _ = stage_work("transfer", g, cfg)
+    assert w - g.transfer_workspace == pytest.approx(8 * 1001 * 1002 * 2003 / 6, rel=1e-12)
+    assert 1e9 < g.transfer_workspace < 4e9  # grid tables + ring-Fourier buffers (~3 GB measured with the Gram)
+
+
+def test_memory_prediction_against_a_measured_run(measured_run):
+    """Each stage's largest task (memory above its worker's baseline) within 50 % of the measured one, or
+    within 100 MB where tasks hold less than ~200 MB (caches, allocator arenas and the simulator's sky
+    synthesis are not in the working-set model). A guard against gross errors: issue 21's 25 % target
+    holds on the runs the constants were fitted to (docs/performance.md), not yet on a run like this."""
+    from mmflow.workflow.plan_fit import samples
+
+    cfg, run_dir = measured_run
+    meas = samples(run_dir)
+    res = plan(cfg, peak_gflops=100.0)
+    checked = 0
+    for e in res["stages"]:
+        if e["stage"] not in meas:
+            continue
+        got = meas[e["stage"]][2]
+        assert abs(e["task_bytes"] - got) <= max(0.5 * got, 100e6), (e["stage"], e["task_bytes"], got)
+        checked += 1
+    assert checked >= 5
