@@ -9,7 +9,10 @@ of the run's own configuration) the constants of
 
     memory = a W + b,     seconds = c U + d
 
-are least-squares fits over the runs (``b, d >= 0``; one run, or runs of one size: ``b = d = 0``).
+are fitted over the runs: ``a = 1`` (a task holds its working set; small runs cannot tell a slope
+from their overheads, and a fitted slope extrapolated 20x to the paper's channel would refuse runs
+that fit), ``b`` the median measured excess over ``W`` (>= 0); ``c, d`` a least-squares line
+(``d >= 0``; runs of one size: ``d = 0``).
 The SGEMM peak measured at fit time is kept with them, and the plan scales its times by it.
 """
 from __future__ import annotations
@@ -72,7 +75,7 @@ def fit_costs(run_dirs, sgemm_gflops):
     stages = {}
     for stage, ss in per_stage.items():
         w, u, mem, sec = (np.array(v, float) for v in zip(*ss))
-        a, b = _fit(w, mem)
+        a, b = 1.0, max(0.0, float(np.median(mem - w)))  # the working set itself, plus the stage's overhead
         c, d = _fit(u, sec)
         stages[stage] = {"a": a, "b": b, "c": c, "d": d, "runs": len(ss)}
     return {"sgemm_gflops": sgemm_gflops, "fitted_on": [str(d) for d in run_dirs], "stages": stages}
