@@ -32,9 +32,14 @@ def test_peak_rss_is_reset_and_follows_an_allocation():
 
 @pytest.fixture(scope="module")
 def measured_run(tmp_path_factory):
+    """A small run on a local cluster, as the constants were fitted: fresh worker processes, whose
+    first tasks bear the imports they trigger (astropy frames, healpy) like every real run's."""
+    from mmflow.workflow.cluster import open_cluster
+
     run_dir = tmp_path_factory.mktemp("plan") / "r"
-    cfg = small_config(run_dir)
-    run_workflow(cfg, progress=False, log=lambda *a: None)
+    cfg = small_config(run_dir, "cluster.kind=local", "cluster.n_workers=1", "cluster.dashboard_address=:0")
+    with open_cluster(cfg, log=lambda *a: None) as client:
+        run_workflow(cfg, client, progress=False, log=lambda *a: None)
     return cfg, run_dir
 
 
