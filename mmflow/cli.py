@@ -7,7 +7,8 @@ import sys
 
 import yaml
 
-BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel", "table1")
+BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel", "table1",
+              "paper")
 
 
 def _common(p):
@@ -61,6 +62,12 @@ def build_parser():
     ch.add_argument("--engine-only", action="store_true", help="only the engine (the default; overrides --workflow)")
     ch.add_argument("--workers", type=int, default=1, help="local worker processes for --workflow")
     ch.add_argument("--solve-stride", type=int, default=1, help="solve every N-th m (the rest projected by n^3)")
+    pp = b.add_argument_group("paper", "options of `mmflow bench paper` (workflows/paper-scale.yaml)")
+    pp.add_argument("--paper-scale", choices=("full", "reduced", "small"),
+                    help="full: the paper's channel (default); reduced: 64 antennas, 1/8 of the integrations, "
+                    "lmax 200 (--quick); small: 32 antennas, 1/16, lmax 100")
+    pp.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="further workflow overrides, e.g. observation.freqs_mhz=[62.688,73.152]")
     return ap
 
 
@@ -146,6 +153,8 @@ def _bench(args):
                        scales=[float(x) for x in args.scale.split(",")] if args.scale else None,
                        workflow=args.workflow and not args.engine_only, workers=args.workers,
                        solve_stride=args.solve_stride)
+    elif args.what == "paper":
+        options = dict(scale=args.paper_scale, overrides=args.set)
     res = bench.run(args.what, quick=args.quick, **options)
     text = json.dumps(res, indent=2)
     print(text)

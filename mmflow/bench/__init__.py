@@ -5,7 +5,8 @@ workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.cal
 (Stefcal and peeling), :mod:`.ingest` (ingest vs pyuvdata's read rate), :mod:`.gaps`
 (least-squares m-modes of flagged data), :mod:`.clean` (PSF and CLEAN cycles), :mod:`.channel`
 (one real channel through transfer, Gram and solve, per phase, beside the model's projection),
-:mod:`.table1` (the paper array's resolution at the paper's fraction of modes).
+:mod:`.table1` (the paper array's resolution at the paper's fraction of modes), :mod:`.paper` (the
+paper's channel end to end through the workflow, per stage, beside ``mmflow plan``).
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
            "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps",
-           "clean": "clean", "channel": "channel", "table1": "table1"}
+           "clean": "clean", "channel": "channel", "table1": "table1", "paper": "paper"}
 
 
 def run(what, quick=False, **options):
