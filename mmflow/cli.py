@@ -191,12 +191,12 @@ def _dispatch(args):
         return handlers[args.cmd](args)
     from mmflow.workflow.cluster import open_cluster
     from mmflow.workflow.config import load_config
-    from mmflow.workflow.runner import run_workflow
+    from mmflow.workflow.passes import run_with_passes
 
     cfg = load_config(args.workflow, args.overrides)
     only = None if args.cmd == "run" else [args.cmd]
     with open_cluster(cfg, args.scheduler, args.cluster) as client:
-        summaries = run_workflow(cfg, client, only=only, force=args.force, progress=not args.no_progress)
+        summaries = run_with_passes(cfg, client, only=only, force=args.force, progress=not args.no_progress)
     _report(cfg, summaries)
     return 0
 

@@ -182,6 +182,56 @@ def test_prior_run_refused_before_any_work(scene, tmp_path):
     assert (tmp_path / "p1" / "vis.zarr").exists() and not (tmp_path / "p1" / "mmodes.zarr").exists()
 
 
+class Crash(BaseException):
+    """Stands for a kill (nothing after it runs; the run's lock goes with the exception)."""
+
+
+def test_prior_pass_inside_one_run_equals_the_two_run_recipe_and_resumes_bit_identical(scene, block_passes,
+                                                                                      tmp_path, monkeypatch):
+    """``mmode.prior_passes=1``: one run gives the second run's map of the two-run recipe bit for bit (and so
+    meets the 0.05 FWHM the recipe meets); a run killed inside the pass's transfer stage resumes to it."""
+    from mmflow.workflow.passes import run_with_passes
+    from mmflow.workflow.rundir import RunDir
+
+    root, data = scene["root"], scene["files"]["blocks20"]
+    one = tmp_path / "one"
+    summary = run_with_passes(_cfg(one, data, "mmode.prior_passes=1"), **QUIET)
+    assert summary["mmodes"]["counts"]["fits_with_prior"] == 1 and "prior0/solve" in summary
+    assert (one / "prior0" / "vis.zarr").is_symlink() and not (one / "prior0" / "_status" / "ingest").resolve() \
+        .is_relative_to(one / "prior0")  # the calibration stages' stores and records are shared, not redone
+    np.testing.assert_array_equal(_map(one), _map(root / "blocks-p1"))
+    shift, _ = _compare(scene, _map(one))
+    assert shift.max() < 0.05
+
+    killed = tmp_path / "killed"
+    real = RunDir.mark_done
+    count = {"n": 0}
+
+    def die_in_the_pass(self, stage, key, info, chunks):
+        real(self, stage, key, info, chunks)
+        if stage == "transfer" and self.path.name == "prior0" and not key.startswith("_"):
+            count["n"] += 1
+            if count["n"] == 2:
+                raise Crash()
+
+    monkeypatch.setattr(RunDir, "mark_done", die_in_the_pass)
+    with pytest.raises(Crash):
+        run_with_passes(_cfg(killed, data, "mmode.prior_passes=1"), **QUIET)
+    monkeypatch.undo()
+    assert not (killed / "alm.zarr").exists()
+    run_with_passes(_cfg(killed, data, "mmode.prior_passes=1"), **QUIET)
+    np.testing.assert_array_equal(_map(killed), _map(one))
+    for store in ("alm.zarr", "prior0/alm.zarr"):
+        a = zarr.open_group(str(killed / store), mode="r")["alm"][:]
+        np.testing.assert_array_equal(a, zarr.open_group(str(one / store), mode="r")["alm"][:])
+
+
+def test_prior_passes_and_prior_run_together_are_refused(scene, tmp_path):
+    with pytest.raises(InputError, match="prior_passes and mmode.prior_run"):
+        _cfg(tmp_path / "x", scene["files"]["blocks20"], "mmode.prior_passes=1",
+             f"mmode.prior_run={scene['root'] / 'ref'}")
+
+
 def test_recomputed_prior_run_makes_the_pass_stale(scene, block_passes):
     """Runs last: it changes the block passes' runs."""
     root, data = scene["root"], scene["files"]["blocks20"]

@@ -213,6 +213,19 @@ class MmodeConfig(Section):
         "flagged time leaves unmeasured (a second pass; docs/mmodes.md). Run it in a new run.directory. "
         "null: no prior (gaps held at 0).", json_schema_extra={"allowed": "null or a run directory"})
 
+    prior_passes: int = Field(
+        0, ge=0, le=3, description="Automatic prior passes inside one run (docs/mmodes.md): after the "
+        "calibration stages, m-modes -> solve run in RUN/prior0 (least squares alone), and each later pass, "
+        "the run's own m-modes among them, fits flagged time with the map before it as its prior "
+        "(mmode.prior_run done for you; each pass resumable). 0: none.")
+
+    @model_validator(mode="after")
+    def _one_prior(self):
+        if self.prior_passes and self.prior_run is not None:
+            raise BadValue("mmode.prior_passes and mmode.prior_run both give a prior",
+                           "use prior_passes (passes inside this run) or prior_run (an earlier run), not both")
+        return self
+
     @field_validator("prior_run")
     @classmethod
     def _prior_path(cls, v):

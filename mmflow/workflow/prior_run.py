@@ -47,12 +47,34 @@ def resolve(path):
     return Path(os.path.expanduser(os.path.expandvars(str(path)))).absolute()
 
 
+def pass_directory(run_directory, k):
+    """Where prior pass ``k`` of a run with ``mmode.prior_passes`` lives: ``RUN/prior<k>``."""
+    return resolve(run_directory) / f"prior{k}"
+
+
+def effective_prior(mm, run_directory):
+    """The run whose map is a run's prior: ``mmode.prior_run``, or with ``mmode.prior_passes = n`` the
+    run's last automatic pass ``RUN/prior<n-1>`` (:mod:`mmflow.workflow.passes`); None: no prior.
+
+    ``mm``: the ``mmode`` section; ``run_directory``: the run's directory (where its passes live)."""
+    if mm.prior_run is not None:
+        return mm.prior_run
+    if mm.prior_passes:
+        return str(pass_directory(run_directory, mm.prior_passes - 1))
+    return None
+
+
 def prior_files(cfg):
     """The earlier run's solved alm array, ``alm.zarr/alm`` (digested into the ``mmodes`` stage's
     fingerprint), or none. The array only: the group's attributes are restamped whenever that run
     passes its solve stage, and a setting that leaves the alm alone must not make this run stale."""
-    p = cfg.mmode.prior_run
-    return [str(resolve(p) / ALM / "alm")] if p else []
+    p = effective_prior(cfg.mmode, cfg.run.directory)
+    if not p:
+        return []
+    alm = resolve(p) / ALM / "alm"
+    if cfg.mmode.prior_passes and not alm.exists():
+        return []  # the run's own pass, not made yet: the stages before it run first (mmflow.workflow.passes)
+    return [str(alm)]
 
 
 def _describe(path):

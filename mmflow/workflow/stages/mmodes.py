@@ -38,7 +38,7 @@ from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_mask
     sun_elevation_deg
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
-from mmflow.workflow.prior_run import check_prior_run, prior_files, read_prior_alm
+from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
 from mmflow.workflow.stages.base import Stage, register
 
 
@@ -56,8 +56,9 @@ def _prepare(ctx):
     nt, nbl, nf = vis["vis"].shape[:3]
     mmax, n_bins = mmax_of(cfg), n_bins_of(cfg, vis.attrs["integration_s"])
     splits = list(cfg.mmode.splits)
-    if cfg.mmode.prior_run is not None:  # channels and epoch of ingested data are known only now
-        check_prior_run(cfg.mmode.prior_run, cfg.mmode.lmax, mmax, ctx.run.path, vis["freqs_hz"][:],
+    prior = effective_prior(cfg.mmode, ctx.run.path)
+    if prior is not None:  # channels and epoch of ingested data are known only now
+        check_prior_run(prior, cfg.mmode.lmax, mmax, ctx.run.path, vis["freqs_hz"][:],
                         float(vis.attrs["epoch_jd"]))
     attrs = {"mmax": mmax, "n_bins": n_bins, "splits": splits}
     if any(is_time_split(s) for s in splits):
@@ -195,7 +196,7 @@ class _PriorModel:
         self.model = None
 
     def prior(self, binned, bin_weight, offset):
-        prior_run = self.ctx.cfg.mmode.prior_run
+        prior_run = effective_prior(self.ctx.cfg.mmode, self.ctx.run.path)
         if prior_run is None or np.all(bin_weight > 0):
             return None
         if self.model is None:
