@@ -72,6 +72,13 @@ def test_every_stage_records_its_cost(measured_run):
     for name, s in summary.items():
         assert s["wall_s"] > 0 and s["tasks"] > 0 and s["bytes_written"] > 0, name
         assert 0.05 < s["worker_peak_rss_gb"] < 8 and 0.05 < s["driver_peak_rss_gb"] < 8, name
+    # the map's summary keeps every stage before products, as recorded when each finished
+    kept = json.loads((run_dir / "maps" / "summary.json").read_text())["stages"]
+    assert list(kept) == [n for n in summary if n != "products"]
+    for name, s in kept.items():
+        assert {k: s[k] for k in ("wall_s", "tasks", "worker_peak_rss_gb", "bytes_written")} == \
+            {k: summary[name][k] for k in ("wall_s", "tasks", "worker_peak_rss_gb", "bytes_written")}, name
+    assert "worker_peak_rss_gb" in (run_dir / "maps" / "report.html").read_text()
 
 
 def test_a_task_larger_than_a_worker_is_refused_before_work(tmp_path):

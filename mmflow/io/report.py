@@ -152,6 +152,10 @@ class ReportSummary:
         return cls(**d)
 
 
+#: the stage table's columns (peak resident memory of the workers and the driver in GB)
+STAGE_COLUMNS = ("wall_s", "tasks", "tasks_run", "task_s", "worker_peak_rss_gb", "driver_peak_rss_gb")
+
+
 def summary_from_run(run_dir):
     """A :class:`ReportSummary` of everything a run recorded.
 
@@ -166,9 +170,10 @@ def summary_from_run(run_dir):
     s = ReportSummary()
     meta = _read_json(run / "run.json") or {}
     s.run_name, s.versions = meta.get("name", run.name) or run.name, meta.get("versions", {})
-    for name, st in (_read_json(run / "summary.json") or {}).items():
-        s.stage_times.append({"stage": name, **{k: st.get(k) for k in ("wall_s", "tasks", "tasks_run", "task_s")}})
     top = _read_json(run / "maps" / "summary.json") or {}
+    stages = top.get("stages") or _read_json(run / "summary.json") or {}  # the products stage's copy, or the run's
+    for name, st in stages.items():
+        s.stage_times.append({"stage": name, **{k: st.get(k) for k in STAGE_COLUMNS}})
     for info in top.get("maps", []):
         s.channels.append(_channel(run, info, s))
     t1 = top.get("table1") or {}

@@ -218,6 +218,12 @@ class RunDir:
         _atomic_write(self.status_dir(stage) / "chunks.json", json.dumps(chunks))
         _atomic_write(self.status_dir(stage) / "complete.json", json.dumps(summary, default=str))
 
+    def stage_summaries(self):
+        """``{stage: summary}`` of every stage finished in this run directory, in the order they finished
+        (what each recorded when it completed: wall time, tasks, bytes written, peak memory, ...)."""
+        done = sorted((p.stat().st_mtime_ns, p.parent.name, p) for p in (self.path / "_status").glob("*/complete.json"))
+        return {name: _read_json(p) for _, name, p in done}
+
     def chunk_index(self, stage):
         """``{relative chunk path: [size, crc]}`` of a complete stage (cached per process)."""
         p = self.status_dir(stage) / "chunks.json"

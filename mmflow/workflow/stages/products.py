@@ -107,6 +107,10 @@ def _resolution_deg(vis, freq_hz, lmax):
     return float(max(180.0 / lmax, np.degrees(299792458.0 / freq_hz / b_max) if b_max > 0 else 0.0))
 
 
+#: per stage in maps/summary.json's ``stages``: what the stage cost
+COST_KEYS = ("wall_s", "tasks", "tasks_run", "task_s", "worker_peak_rss_gb", "driver_peak_rss_gb", "bytes_written")
+
+
 def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
     tags = frequency_tags(ctx.open("vis.zarr")["freqs_hz"][:])
@@ -126,6 +130,8 @@ def _products_finalize(ctx):
     from mmflow.workflow.stages.products_science import finalize_science
 
     out.update(finalize_science(ctx, parts, tags))
+    # what each stage before this one cost (issue 21): the run records it, the map's summary keeps it
+    out["stages"] = {name: {k: st.get(k) for k in COST_KEYS} for name, st in ctx.run.stage_summaries().items()}
     (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
     from mmflow.io.report import summary_from_run, write_report
