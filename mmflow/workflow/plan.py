@@ -8,7 +8,7 @@ its work units ``U`` (visibility-samples x sources, baselines x sum_m (lmax_b - 
 and from per-stage constants fitted to measured runs (:mod:`mmflow.workflow.plan_fit`, kept in
 ``plan_costs.json`` beside this module)::
 
-    task memory  = a_s W + b_s                      (bytes above the worker's baseline)
+    task memory  = W + b_s                          (bytes above the worker's baseline)
     task seconds = (c_s U + d_s) * peak_ref / peak  (peak: this machine's SGEMM GFLOP/s now)
 
 Store sizes are the declared stores' uncompressed bytes (:attr:`mmflow.io.stores.StoreSpec.nbytes`
@@ -53,11 +53,19 @@ class Geometry:
     m_block: int
     n_split: int
     mmode_chunk: int
-    groups: int
     gram_itemsize: int
     transfer_units: tuple  # per channel, per baseline group: sum_b sum_m (lmax_b - m + 1)^2 (Gram work)
     transfer_workspace: float  # bytes of one transfer task's grid tables and ring-Fourier workspace
     n_sky_points: int = 0  # points the simulator sums (diffuse quadrature grid + sources)
+
+    @property
+    def n_groups(self):
+        """Baseline groups of the transfer stage (partial normal equations per channel)."""
+        return max(len(u) for u in self.transfer_units)
+
+    @property
+    def gram_dtype(self):
+        return "complex64" if self.gram_itemsize == 8 else "complex128"
     n_cal_sources: int = 0
     n_peel_sources: int = 0
     cal_interval: int = 0  # integrations per calibration solution
@@ -151,20 +159,17 @@ def stage_work(stage, g, cfg):
     if stage == "transfer":
         gram = _gram_bytes(g.lmax, g.mmax, g.gram_itemsize) + g.transfer_workspace
         per_group = max(max(u) for u in g.transfer_units)
-        spec = rs.partials_store(g.n_freq, max(len(u) for u in g.transfer_units), g.lmax, g.mmax, g.m_block, g.n_split,
-                                 "complex64" if g.gram_itemsize == 8 else "complex128")
+        spec = rs.partials_store(g.n_freq, g.n_groups, g.lmax, g.mmax, g.m_block, g.n_split, g.gram_dtype)
         out = [spec]
         if cfg.transfer.mode == "store":
             out.append(rs.transfer_store(g.n_freq, g.n_bl, g.lmax, g.mmax, cfg.transfer.baseline_chunk,
-                                         "complex64" if g.gram_itemsize == 8 else "complex128",
-                                         [np.zeros(g.n_bl, int)] * g.n_freq))
+                                         g.gram_dtype, [np.zeros(g.n_bl, int)] * g.n_freq))
         return sum(len(u) for u in g.transfer_units), gram, per_group, out
     n_mb = len(rs.m_blocks(g.mmax, g.m_block))
     blk2 = _block_sum(g.lmax, g.mmax, g.m_block, 2)
     if stage == "normal":
-        spec = rs.normal_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split,
-                               "complex64" if g.gram_itemsize == 8 else "complex128")
-        return g.n_freq * n_mb, blk2 * 16.0, blk2 * g.groups, [spec]
+        spec = rs.normal_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split, g.gram_dtype)
+        return g.n_freq * n_mb, blk2 * 16.0, blk2 * g.n_groups, [spec]
     if stage == "solve":
         spec = rs.alm_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split, np.zeros(LCURVE_POINTS))
         return g.n_freq * n_mb, blk2 * 16.0, _block_sum(g.lmax, g.mmax, g.m_block, 3), [spec]
@@ -238,7 +243,7 @@ def geometry(cfg):
                 else n_time)
     return Geometry(n_time=n_time, n_ant=tel.n_ant, n_bl=n_bl, n_freq=len(freqs), n_pol=n_pol, lmax=mm.lmax,
                     mmax=mmax, m_block=cfg.transfer.m_block, n_split=len(mm.splits), mmode_chunk=mm.baseline_chunk,
-                    groups=cfg.transfer.groups, gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
+                    gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
                     transfer_workspace=max(p[1] for p in tplans), n_sky_points=pts,
                     n_cal_sources=len(cal.sources) if cal.enabled else 0,
                     n_peel_sources=len(cfg.peel.sources) + len(cfg.peel.model_sources) if cfg.peel.enabled else 0,
