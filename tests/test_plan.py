@@ -125,3 +125,20 @@ def test_memory_prediction_against_a_measured_run(measured_run):
         assert abs(e["task_bytes"] - got) <= max(0.5 * got, 100e6), (e["stage"], e["task_bytes"], got)
         checked += 1
     assert checked >= 5
+
+
+def test_progress_says_how_long_the_stage_has_left():
+    """Elapsed time per finished task times the tasks left: 10 s for 2 of 10 tasks -> ~40 s left."""
+    import io
+
+    from mmflow.workflow.runner import _Progress
+
+    now = [100.0]
+    out = io.StringIO()
+    bar = _Progress("transfer", 10, True, out, clock=lambda: now[0])
+    now[0] += 10.0
+    bar.update(2)
+    assert out.getvalue() == "[transfer] 2/10 tasks, ~40 s left\n"
+    now[0] += 590.0  # 600 s for 3 of 10: 1400 s left
+    assert bar.text(3) == "[transfer] 3/10 tasks, ~23.3 min left"
+    assert bar.text(10) == "[transfer] 10/10 tasks"
