@@ -43,9 +43,10 @@ FWHM_PER_SIGMA = np.sqrt(8 * np.log(2))
 def map_blocks(fn, items, threads=None):
     """``[fn(i) for i in items]`` on ``n_threads()`` threads, each with single-threaded BLAS.
 
-    m blocks are independent and LAPACK releases the GIL: on a loaded 2-core machine this is
-    ~10x faster than one multi-threaded LAPACK call per block (OpenBLAS threads stall at
-    every synchronisation when a core is taken away).
+    m blocks are independent and LAPACK releases the GIL: threads over blocks, each with one
+    BLAS thread, never wait on each other, where one multi-threaded LAPACK call per block has
+    its OpenBLAS threads stall at every synchronisation when a core is taken away
+    (``docs/performance.md``).
     """
     items = list(items)
     threads = n_threads() if threads is None else threads

@@ -428,9 +428,8 @@ def refit_prior_m0(prior, binned, bin_weight, offset=None):
 
     A map's model ``B_0 a_0`` is no model of a baseline's ``m = 0``: the imaging solve drops
     ``m = 0`` (``imaging.filter_m0``, the paper's default) and zeroes the monopole. Left so, the
-    prior would put ``-V_0`` into every gap. Measured in the workflow
-    (``tests/test_gap_prior_workflow.py`` scene, two 10 % gaps): the fixed point of the passes goes
-    from 0.088 to ~0.05 FWHM (faint-source peak shift), the first pass from 0.126 to 0.105.
+    prior would put ``-V_0`` into every gap (its effect on the faint-source peak shift of
+    ``tests/test_gap_prior_workflow.py``: ``docs/performance.md``).
 
     Parameters
     ----------

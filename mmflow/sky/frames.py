@@ -84,8 +84,8 @@ def rotate_alm(alm, matrix, lmax):
 
     Equivalently: coefficients given in frame S become coefficients in frame D for
     ``matrix = rotation_matrix(S, D)``. With ZYZ Euler angles ``R = R_z(phi) R_y(theta) R_z(psi)``
-    this is ducc0's Wigner-d rotation (56x faster than healpy's at lmax 1000 and equal to it
-    to ~1e-15: ``tests/test_numerics.py``). Verified by a point-source test.
+    this is ducc0's Wigner-d rotation, equal to healpy's to ~1e-15 (``tests/test_numerics.py``;
+    its speed: ``docs/performance.md``). Verified by a point-source test.
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # gimbal lock (theta = 0 or pi) is handled
