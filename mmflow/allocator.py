@@ -6,10 +6,8 @@ learn from such frees and serve the next array from memory the process already h
 ``distributed`` starts its worker processes with ``MALLOC_TRIM_THRESHOLD_=65536``
 (``distributed.nanny.pre-spawn-environ``), which fixes the trim threshold at 64 kB and
 switches the dynamic adjustment off: every array above 128 kB is then a fresh ``mmap`` whose
-pages fault in on first touch and go back to the kernel on free. Measured on the paper's
-channel (two lmax-900 baseline chunks, 2 threads): 1.37 million minor page faults in a dask
-worker against 0.65 million in a plain process, and the worker took 1.5-2.2x the process's
-time for the same work (README, "Performance").
+pages fault in on first touch and go back to the kernel on free, and a worker takes longer than
+a plain process for the same work (figures: ``docs/performance.md``).
 
 :func:`keep_freed_memory` sets both thresholds explicitly (``mallopt``), once per process:
 arrays up to ``mmap_mb`` come from the heap, and up to ``trim_mb`` of freed heap stays

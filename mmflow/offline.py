@@ -6,12 +6,12 @@ we use the bundled ``astropy-iers-data`` tables and degrade gracefully beyond th
 """
 import warnings
 
+from astropy.utils import iers
+from astropy.utils.data import conf as data_conf
+
 
 def configure_astropy():
     """Set astropy's IERS and data-download options to offline mode (idempotent)."""
-    from astropy.utils import iers
-    from astropy.utils.data import conf as data_conf
-
     iers.conf.auto_download = False
     iers.conf.auto_max_age = None
     iers.conf.iers_degraded_accuracy = "warn"

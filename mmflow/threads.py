@@ -9,6 +9,9 @@ import os
 from contextlib import contextmanager
 from functools import lru_cache
 
+import scipy.linalg  # noqa: F401  -- load scipy's own BLAS first, so the threadpoolctl controller sees it
+from threadpoolctl import ThreadpoolController
+
 
 def usable_cores():
     """Cores this process may run on: its CPU affinity, capped by a cgroup CPU quota."""
@@ -38,7 +41,7 @@ def n_threads():
     if env:
         return max(1, int(env))
     try:
-        from distributed import get_worker
+        from distributed import get_worker  # deferred: the base layer imports no dask (0.3 s); only inside a worker
 
         w = get_worker()
         share = max(1, w.state.nthreads) * max(1, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
@@ -74,7 +77,4 @@ def _blas_threads():
 def _controller():
     """One threadpoolctl controller per process: scanning the loaded libraries costs ~0.3 ms,
     a limit on a known controller ~15 us (transfer matrices enter one per few m)."""
-    import scipy.linalg  # noqa: F401  -- load scipy's own BLAS first, so the controller sees it
-    from threadpoolctl import ThreadpoolController
-
     return ThreadpoolController()

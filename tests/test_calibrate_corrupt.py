@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from mmflow.calibrate.baselines import gain_products
-from mmflow.calibrate.coherency import source_coherencies, source_points_date, source_vector_date
+from mmflow.calibrate.coherency import source_coherencies, source_vector_date
 from mmflow.simulate.corrupt import (ARCMIN, antenna_gains, corrupt, crosstalk_pattern, dd_visibilities,
-                                     direction_dependent_gains, flag_weights, ionospheric_offsets,
+                                     direction_dependent_gains, flag_weights, gain_products, ionospheric_offsets,
                                      near_field_rfi, rank1_visibilities, sawtooth_db, scintillation)
+from mmflow.simulate.scene import source_points_date
 from mmflow.simulate.visibilities import simulate_drift_scan
 from mmflow.sky.sources import CATALOG
 

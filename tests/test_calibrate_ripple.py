@@ -2,8 +2,7 @@
 import numpy as np
 
 from mmflow.calibrate.ripple import apply_ripple, autocorrelations, ripple_ratio
-from mmflow.calibrate.baselines import gain_products
-from mmflow.simulate.corrupt import antenna_gains
+from mmflow.simulate.corrupt import antenna_gains, gain_products
 
 DT = 13.0
 

@@ -2,9 +2,10 @@
 import numpy as np
 import pytest
 
-from mmflow.calibrate.coherency import coherencies_at_offsets, source_points_date, source_vector_date
+from mmflow.calibrate.coherency import coherencies_at_offsets, source_vector_date
 from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
                                             fit_point_position, gaussian_visibilities, source_uvw)
+from mmflow.simulate.scene import source_points_date
 from mmflow.simulate.visibilities import simulate_drift_scan
 from mmflow.sky.sources import Source, Spectrum
 from mmflow.telescope import Telescope
@@ -123,7 +124,7 @@ def test_sun_disc_fitted_by_shapelets(tel):
 def test_position_gains_move_the_model_to_the_fitted_position(tel):
     """``position_gains``: the fitted offsets as DD phase gradients; ``h_i conj(h_j) M`` equals the
     simulator's source at the true offset to the fit's precision (offsets within 0.5')."""
-    from mmflow.calibrate.baselines import gain_products
+    from mmflow.simulate.corrupt import gain_products
     from mmflow.calibrate.source_models import position_gains
 
     rng = np.random.default_rng(8)

@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from mmflow.calibrate.baselines import baseline_mask, gain_products, to_matrix
+from mmflow.calibrate.baselines import baseline_mask, to_matrix
 from mmflow.calibrate.stefcal import apply_gains, solve_gains, stefcal, sweep
+from mmflow.simulate.corrupt import gain_products
 
 
 def _pairs(n):

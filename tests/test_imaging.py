@@ -6,7 +6,8 @@ from mmflow.analysis.peaks import measure_peak
 from mmflow.conventions import m_slice, radec_to_vec
 from mmflow.imaging import lcurve, solvers
 from mmflow.imaging.filters import apply_filters, filter_mask
-from mmflow.mmode.engine import accumulate_normal_equations, solve_alm
+from mmflow.imaging.solvers import solve_alm
+from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.transform import mmode_transform, sidereal_bins
 from mmflow.simulate.visibilities import SkyPoints, gauss_legendre_points, simulate_drift_scan
 from mmflow.sky.diffuse import alm_to_map, band_limited_random_alm

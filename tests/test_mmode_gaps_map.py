@@ -11,7 +11,8 @@ import pytest
 
 from mmflow.analysis.peaks import measure_peak
 from mmflow.conventions import radec_to_vec
-from mmflow.mmode.engine import accumulate_normal_equations, solve_alm
+from mmflow.imaging.solvers import solve_alm
+from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.gapfill import lsq_mmodes, prior_mmodes
 from mmflow.mmode.transform import mmode_transform
 from mmflow.simulate.visibilities import SkyPoints, simulate_drift_scan

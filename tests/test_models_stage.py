@@ -45,7 +45,7 @@ def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     assert (g["n_integrations"][0] == 16).all()
     # fluxes renormalised to the published spectrum
     src = get_sources(["Cyg A", "Cas A"])
-    from mmflow.calibrate.coherency import epoch_year
+    from mmflow.sky.sources import epoch_year
     for s in range(2):
         assert comps[s, :, 2].sum() == pytest.approx(float(src[s].flux(40e6, epoch_year(2457802.0))), rel=1e-9)
     # peel copied the fits and models Cyg A and Cas A with them, in its task and its apply alike
@@ -87,7 +87,8 @@ def test_models_without_peel_are_refused_by_the_config_check(tmp_path):
 def test_free_amplitudes_fit_a_scintillating_source(tmp_path):
     """The kernel with per-integration amplitudes (scintillation up to +-40 %): a 2-Gaussian source's flux
     moments recovered on a 32-antenna array of 1 km (the test of the fixed-amplitude fit, made harder)."""
-    from mmflow.calibrate.coherency import source_points_date, source_vector_date
+    from mmflow.calibrate.coherency import source_vector_date
+    from mmflow.simulate.scene import source_points_date
     from mmflow.simulate.visibilities import simulate_drift_scan
     from mmflow.sky.sources import Source, Spectrum
     from mmflow.telescope import Telescope

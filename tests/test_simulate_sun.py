@@ -2,7 +2,7 @@
 import numpy as np
 import zarr
 
-from mmflow.calibrate.coherency import source_enu
+from mmflow.sky.frames import source_enu
 from mmflow.simulate.corrupt import _sun_vector_date, sun_points
 from mmflow.workflow.context import build_telescope
 from mmflow.workflow.runner import run_workflow

@@ -12,6 +12,10 @@ from __future__ import annotations
 import healpy
 import numpy as np
 
+from mmflow.imaging.psf import psf_alm
+from mmflow.sky.frames import rotate_alm
+from mmflow.sky.harmonics import synthesize_at
+
 
 def disc_minus_annulus(hmap, vec, radius_rad, annulus_rad, nside=None):
     """``sum_disc map - n_disc median(map over the annulus r_in < d < r_out)``.
@@ -38,8 +42,6 @@ def alm_sampler(alm, lmax, nside, map_to_alm=None, scale=1.0):
     ``map_to_alm`` (3x3) takes the map's frame to the alm's (None: the same frame); ``scale``
     converts the alm's unit to the map's. Equals ``alm2map`` of the rotated alm at those pixels.
     """
-    from mmflow.sky.harmonics import synthesize_at
-
     def values(pix):
         vecs = np.array(healpy.pix2vec(nside, np.asarray(pix))).T
         return scale * synthesize_at(alm, vecs if map_to_alm is None else vecs @ np.asarray(map_to_alm).T, lmax)
@@ -133,9 +135,6 @@ def psf_map_function(ops, lmax, nside, map_to_date=None, scale=1.0):
     ``scale`` converts Jy/sr to the map's unit (e.g. K per Jy/sr at the channel's frequency),
     though :func:`source_flux` is a ratio and needs it only when the maps' units differ.
     """
-    from mmflow.imaging.psf import psf_alm
-    from mmflow.sky.frames import rotate_alm
-
     def psf_map_at(vec):
         v = np.asarray(vec, float)
         v_date = v if map_to_date is None else map_to_date @ v

@@ -18,7 +18,7 @@ import numpy as np
 
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
 from mmflow.calibrate.stefcal import stefcal, sweep, sweep_numpy
-from mmflow.bench.engine import _best
+from mmflow.bench.engine import best_time
 from mmflow.threads import n_threads
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
@@ -68,7 +68,7 @@ def memory_bandwidth_gbs(n=2**25):
     a = np.ones(n, np.float32)
     b = np.empty_like(a)
     np.copyto(b, a)
-    return 2 * a.nbytes / _best(lambda: np.copyto(b, a), 5) / 1e9
+    return 2 * a.nbytes / best_time(lambda: np.copyto(b, a), 5) / 1e9
 
 
 def stefcal_rates(n_ant=256, n_int=16, reps=5, rng=None):
@@ -77,8 +77,8 @@ def stefcal_rates(n_ant=256, n_int=16, reps=5, rng=None):
     Vk, Mk, Wk = V[:, None], M[0][:, None], W[:, None]
     g0 = np.ones((n_int, n_ant), complex)
     sweep(Vk, Mk, Wk, g0)  # compile
-    t_numba = _best(lambda: sweep(Vk, Mk, Wk, g0), reps)
-    t_numpy = _best(lambda: sweep_numpy(Vk, Mk, Wk, g0), max(1, reps // 2))
+    t_numba = best_time(lambda: sweep(Vk, Mk, Wk, g0), reps)
+    t_numpy = best_time(lambda: sweep_numpy(Vk, Mk, Wk, g0), max(1, reps // 2))
     diff = np.abs(sweep(Vk, Mk, Wk, g0) - sweep_numpy(Vk, Mk, Wk, g0)).max()
     t0 = time.perf_counter()
     res = stefcal(Vk, Mk, Wk, tol=1e-5, max_iter=100, diagnostics=False)
@@ -103,17 +103,17 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None, modes=None):
     kw = dict(passes=passes, tol=1e-4, max_iter=30)
     peel_dense(V[:2], M[:, :2], W[:2], modes[:, :2], **kw)  # compile
     out = {}
-    t_cold = _best(lambda: out.update(cold=peel_dense(V, M, W, modes, **kw)), 2)
+    t_cold = best_time(lambda: out.update(cold=peel_dense(V, M, W, modes, **kw)), 2)
     cold = out["cold"]
     # warm start: the previous integration's solution (here the cold one, perturbed as by 13 s)
     warm0 = cold.dd_gains * np.exp(0.05j * rng.normal(size=cold.dd_gains.shape))
-    t_warm = _best(lambda: out.update(warm=peel_dense(V, M, W, modes, warm0, **kw)), 3)
+    t_warm = best_time(lambda: out.update(warm=peel_dense(V, M, W, modes, warm0, **kw)), 3)
     warm = out["warm"]
     # numpy put-back/subtract of one source beside the numba kernel
     R = V.copy()
     ones = np.ones(n_int)
-    t_add = _best(lambda: add_component(R, M[0], cold.dd_gains[0], ones))
-    t_add_np = _best(lambda: np.add(R, cold.dd_gains[0][:, :, None] * M[0] * np.conj(cold.dd_gains[0])[:, None, :], out=R))
+    t_add = best_time(lambda: add_component(R, M[0], cold.dd_gains[0], ones))
+    t_add_np = best_time(lambda: np.add(R, cold.dd_gains[0][:, :, None] * M[0] * np.conj(cold.dd_gains[0])[:, None, :], out=R))
     resid = float(np.linalg.norm(cold.residual * W) / np.linalg.norm(V * W))
     per_cold, per_warm = t_cold / n_int, t_warm / n_int
     return {"n_ant": n_ant, "layout": name, "sources": n_src, "passes": passes, "integrations_per_call": n_int,

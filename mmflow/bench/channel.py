@@ -137,7 +137,7 @@ def plan_work(tel, freq_hz, lmax, chunks):
 
 def calibrate(dtype, lmaxes, nb=64):
     """Kernel rates (work units per second) on synthetic chunks whose baselines all need ``L``."""
-    from mmflow.bench.engine import _full_lmax_baselines, BEAM, LAT
+    from mmflow.bench.engine import full_lmax_baselines, BEAM, LAT
     from mmflow.mmode.normal import NormalAccumulator
     from mmflow.mmode.transfer import fringe_bandlimit, make_grid, transfer_pass
 
@@ -149,7 +149,7 @@ def calibrate(dtype, lmaxes, nb=64):
     del fresh
     for lmax in lmaxes:
         n = nb
-        b = _full_lmax_baselines(lmax, n, seed=lmax)
+        b = full_lmax_baselines(lmax, n, seed=lmax)
         fringe = fringe_bandlimit(np.linalg.norm(b, axis=1), BEAM.lmax_hint)
         lg, fr = _grid_key(lmax, fringe, lmax)
         t0 = time.perf_counter()
@@ -279,7 +279,7 @@ def measure_engine(tel, freq_hz, lmax, chunks, lmax_b, dtype, solve_stride=1, ep
 
 def measure_solve(acc, lmax, eps, stride=1):
     """Tikhonov solve + fraction of singular values above sqrt(eps) for every ``stride``-th m."""
-    from mmflow.mmode.engine import solve_alm
+    from mmflow.imaging.solvers import solve_alm
 
     ms = list(range(0, lmax + 1, stride))
     sizes = np.array([lmax - m + 1.0 for m in ms])

@@ -26,7 +26,8 @@ LAT = np.deg2rad(37.24)
 BEAM = SinElevationBeam(1.5)
 
 
-def _best(fn, reps=3):
+def best_time(fn, reps=3):
+    """The shortest wall time (s) of ``reps`` calls of ``fn()``."""
     best = np.inf
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -39,10 +40,10 @@ def gemm_gflops(dtype, n=1536):
     a = np.random.default_rng(0).random((n, n)).astype(dtype)
     b = np.random.default_rng(1).random((n, n)).astype(dtype)
     a @ b
-    return 2.0 * n**3 / _best(lambda: a @ b) / 1e9
+    return 2.0 * n**3 / best_time(lambda: a @ b) / 1e9
 
 
-def _full_lmax_baselines(lmax, nb, seed=0):
+def full_lmax_baselines(lmax, nb, seed=0):
     """Baselines (wavelengths, sky frame) long enough that their per-baseline lmax is ``lmax``."""
     rng = np.random.default_rng(seed)
     kb = max(lmax - BEAM.lmax_hint, 1) / 1.1
@@ -53,14 +54,14 @@ def _full_lmax_baselines(lmax, nb, seed=0):
 
 def transfer_rate(lmax, dtype, nb=64, chunks=3):
     """Baselines/s for baselines that need the full lmax (the worst case), steady state."""
-    b = _full_lmax_baselines(lmax, nb)
+    b = full_lmax_baselines(lmax, nb)
     grid = make_grid(LAT, BEAM, 50e6, lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), BEAM.lmax_hint))
     for _ in iter_transfer_blocks(grid, b, dtype=dtype):  # warm: tables, workspace, FFT plans
         pass
     tim = {}
     t0 = time.perf_counter()
     for c in range(chunks):
-        for _ in iter_transfer_blocks(grid, _full_lmax_baselines(lmax, nb, seed=c + 1), dtype=dtype, timings=tim):
+        for _ in iter_transfer_blocks(grid, full_lmax_baselines(lmax, nb, seed=c + 1), dtype=dtype, timings=tim):
             pass
     el = time.perf_counter() - t0
     return {"lmax": lmax, "dtype": np.dtype(dtype).name, "baselines_per_s": nb * chunks / el,
@@ -75,7 +76,7 @@ def healpy_rate(lmax, nside, n=2):
 
     vec = np.array(healpy.pix2vec(nside, np.arange(healpy.nside2npix(nside)))).T
     a = BEAM.power_enu(vec @ enu_to_equatorial_matrix(LAT), 50e6)
-    bs = _full_lmax_baselines(lmax, n)
+    bs = full_lmax_baselines(lmax, n)
 
     def one(b):
         f = a * np.exp(2j * np.pi * (vec @ b))
@@ -95,8 +96,8 @@ def herk_rate(lmax, nb=64, dtype=np.complex64):
     rng = np.random.default_rng(0)
     blk = (rng.normal(size=(2 * nb, lmax + 1)) + 1j * rng.normal(size=(2 * nb, lmax + 1))).astype(dtype)
     c = herk_upper(blk)
-    t = _best(lambda: herk_upper(blk, c))
-    t_gemm = _best(lambda: blk.conj().T @ blk)
+    t = best_time(lambda: herk_upper(blk, c))
+    t_gemm = best_time(lambda: blk.conj().T @ blk)
     flops = 4.0 * 2 * nb * (lmax + 1) ** 2  # complex herk: ~4 n k^2
     return {"lmax": lmax, "rows": 2 * nb, "dtype": np.dtype(dtype).name, "herk_gflops": flops / t / 1e9,
             "speedup_over_BhB": t_gemm / t}
@@ -112,7 +113,7 @@ def solve_rate(lmax, eps=0.01):
         x = rng.normal(size=(n + 16, n)) + 1j * rng.normal(size=(n + 16, n))
         g = x.conj().T @ x
         r = rng.normal(size=n) + 0j
-        out[n] = _best(lambda g=g, r=r: tikhonov(g, r, eps), reps=2)
+        out[n] = best_time(lambda g=g, r=r: tikhonov(g, r, eps), reps=2)
     n_max = lmax + 1
     per_l3 = out[n_max] / n_max**3
     total = sum(per_l3 * (lmax - m + 1) ** 3 for m in range(lmax + 1))

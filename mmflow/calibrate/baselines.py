@@ -46,22 +46,6 @@ def from_matrix(mat, pairs):
     return mat[..., pairs[:, 0], pairs[:, 1]]
 
 
-def gain_products(gains, pairs):
-    """``g_i conj(g_j)`` for every baseline.
-
-    Parameters
-    ----------
-    gains : ndarray (..., n_ant, n_pol)
-    pairs : ndarray (n_bl, 2)
-
-    Returns
-    -------
-    ndarray (..., n_bl, n_pol)
-    """
-    pairs = np.asarray(pairs)
-    return gains[..., pairs[:, 0], :] * np.conj(gains[..., pairs[:, 1], :])
-
-
 def baseline_mask(pairs, enu, freq_hz, min_lambda=15.0, autos=False):
     """Baselines used by a solve: ``|x_j - x_i| / lambda >= min_lambda`` (3-D length).
 

@@ -9,38 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import enu_to_equatorial_matrix, radec_to_vec
+from mmflow.conventions import radec_to_vec
+from mmflow.simulate.scene import source_points_date
 from mmflow.simulate.visibilities import SkyPoints, simulate_drift_scan
-from mmflow.sky.frames import rotation_matrix
-
-
-def epoch_year(epoch_jd):
-    return 2000.0 + (float(epoch_jd) - 2451545.0) / 365.25
-
-
-def tangent_basis(vec):
-    """East and north unit vectors on the sky at direction ``vec`` (..., 3) (frame of the input)."""
-    vec = np.asarray(vec, float)
-    z = np.array([0.0, 0.0, 1.0])
-    east = np.cross(z, vec)
-    east /= np.maximum(np.linalg.norm(east, axis=-1, keepdims=True), 1e-300)
-    north = np.cross(vec, east)
-    return east, north
-
-
-def source_points_date(source, freq_hz, epoch_jd, offset_rad=(0.0, 0.0), flux_scale=1.0):
-    """A catalogue source as :class:`SkyPoints` in the frame of date, optionally shifted.
-
-    ``offset_rad`` = (east, north) tangent-plane shift of every point (a refractive offset or
-    a fitted position), ``flux_scale`` multiplies the published flux.
-    """
-    vec, flux = source.points(freq_hz, epoch_year(epoch_jd))
-    vec = vec @ rotation_matrix("icrs", "date", epoch_jd).T
-    if np.any(np.asarray(offset_rad) != 0):
-        e, n = tangent_basis(vec)
-        vec = vec + offset_rad[0] * e + offset_rad[1] * n
-        vec /= np.linalg.norm(vec, axis=1)[:, None]
-    return SkyPoints(vec, flux * flux_scale)
+from mmflow.sky.frames import rotation_matrix, source_enu
+from mmflow.sky.sources import epoch_year
 
 
 def source_coherencies(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, dtype=np.complex128):
@@ -64,12 +37,6 @@ def source_coherencies(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, 
         pts = src if isinstance(src, SkyPoints) else source_points_date(src, freq_hz, epoch_jd)
         out.append(simulate_drift_scan(telescope, freq_hz, lsts, pts, pairs=pairs, dtype=dtype))
     return np.stack(out)
-
-
-def source_enu(telescope, lsts, vec_date):
-    """ENU unit vectors (..., n_time, 3) of frame-of-date directions ``vec_date`` (..., 3)."""
-    rots = np.stack([enu_to_equatorial_matrix(telescope.lat_rad, p) for p in np.atleast_1d(lsts)])
-    return np.einsum("...k,tkl->...tl", np.asarray(vec_date, float), rots)
 
 
 def source_vector_date(source, epoch_jd):

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from mmflow.calibrate.coherency import source_enu, tangent_basis
+from mmflow.simulate.corrupt import direction_dependent_gains
+from mmflow.sky.frames import source_enu, tangent_basis
 from mmflow.telescope.array import C_LIGHT
 from mmflow.threads import single_threaded_blas
 
@@ -241,8 +242,6 @@ def position_gains(telescope, freq_hz, lsts, pairs, vec_date, vis, weights, *, r
     model ``M`` moved by ``dr``, so a subtracted source with a fitted position is stored and
     applied like a peeled one.
     """
-    from mmflow.simulate.corrupt import direction_dependent_gains
-
     uvw, _ = source_uvw(telescope, freq_hz, lsts, pairs, vec_date)
     off, _ = fit_point_position(vis, weights, uvw, radius_arcmin=radius_arcmin)
     return off, direction_dependent_gains(telescope, freq_hz, lsts, vec_date, off[None])[0]

@@ -32,6 +32,7 @@ import numpy as np
 from mmflow.conventions import alm_index, n_alm
 from mmflow.imaging import psf as psf_mod
 from mmflow.imaging.maps import default_nside
+from mmflow.imaging.solvers import solve_alm
 from mmflow.sky.harmonics import point_sources_alm
 
 
@@ -383,13 +384,13 @@ def north_rotation(vecs, matrix):
 
     A direction at position angle ``p`` (north through east) at ``r`` in A has position angle
     ``p + psi`` at ``matrix r`` in B: ``psi = atan2(R n_A . e_B, R n_A . n_B)``, with ``(e, n)``
-    the east and north unit vectors (:func:`psf.tangent_basis`).
+    the east and north unit vectors (:func:`psf.tangent_frame`).
     """
     rmat = np.asarray(matrix, float)
     out = np.zeros(len(vecs))
     for i, v in enumerate(np.asarray(vecs, float).reshape(-1, 3)):
-        _, _, n_a = psf_mod.tangent_basis(v)
-        _, e_b, n_b = psf_mod.tangent_basis(rmat @ v)
+        _, _, n_a = psf_mod.tangent_frame(v)
+        _, e_b, n_b = psf_mod.tangent_frame(rmat @ v)
         rn = rmat @ n_a
         out[i] = np.arctan2(rn @ e_b, rn @ n_b)
     return out
@@ -442,7 +443,7 @@ def clean_normal_equations(acc, eps, lat_rad, filters=None, noise=None, opts=Non
     """The engine path: dirty map, PSF table and CLEAN from one frequency's normal equations.
 
     ``acc``: :class:`~mmflow.mmode.normal.NormalAccumulator` (Grams and right-hand sides);
-    ``eps`` and ``filters`` as for :func:`mmflow.mmode.engine.solve_alm`. The PSF table runs
+    ``eps`` and ``filters`` as for :func:`mmflow.imaging.solvers.solve_alm`. The PSF table runs
     from the lowest declination seen to the pole in ``dec_step_deg`` steps.
 
     Returns
@@ -450,8 +451,6 @@ def clean_normal_equations(acc, eps, lat_rad, filters=None, noise=None, opts=Non
     dict: ``dirty_alm``, ``state`` (:class:`CleanState`), ``reason``, ``table``, ``nside``,
     ``residual_map`` and ``restored_map`` (Jy/sr, frame of date).
     """
-    from mmflow.mmode.engine import solve_alm
-
     lmax = acc.lmax
     dirty = solve_alm(acc, eps, filters=filters)
     ops = psf_mod.block_operators(acc, eps, filters)

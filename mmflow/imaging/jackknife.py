@@ -27,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.errors import InputError
+from mmflow.imaging.psf import gaussian_solid_angle, interp_table
+from mmflow.mmode.splits import day_splits
 from mmflow.mmode.transform import mmode_transform
 from mmflow.sky import units
 
@@ -142,8 +144,6 @@ def split_variance(maps, kind, fractions=None, mask=None):
     ``kind``: ``"even_odd"`` (:func:`jackknife_variance` of ``full``, ``even``, ``odd``) or
     ``"per_day"`` (:func:`per_day_variance` over every ``day<k>`` map, ``fractions[name]`` its ``f_k``).
     """
-    from mmflow.mmode.splits import day_splits
-
     if kind == "even_odd":
         return jackknife_variance(maps["full"], maps["even"], maps["odd"], mask)
     if kind == "per_day":
@@ -156,8 +156,6 @@ def noise_realisation(maps, kind, fractions=None):
     """One realisation of the full map's noise from the splits (alm or maps, linear):
     ``(odd - even) / 2`` (even/odd), else ``sqrt(f_k / (1 - f_k)) (day_k - all)`` of the first
     listed day (per-day): each has the variance the jackknife estimates."""
-    from mmflow.mmode.splits import day_splits
-
     if kind == "even_odd":
         return 0.5 * (np.asarray(maps["odd"]) - np.asarray(maps["even"]))
     if kind != "per_day":
@@ -184,8 +182,6 @@ def jackknife_noise(map_all, map_even, map_odd, mask, freq_hz, psf_table, beam_d
 def beam_noise(sigma, freq_hz, psf_table, beam_dec_deg=45.0):
     """:func:`noise_summary` of ``sigma`` (Jy/sr) with the fitted PSF main lobe at ``beam_dec_deg`` as
     the beam, and that beam's solid angle."""
-    from mmflow.imaging.psf import gaussian_solid_angle, interp_table
-
     dec = np.deg2rad(beam_dec_deg)
     omega = gaussian_solid_angle(interp_table(psf_table, dec, "major"), interp_table(psf_table, dec, "minor"))
     return {**noise_summary(sigma, freq_hz, omega), "beam_solid_angle_sr": float(omega)}

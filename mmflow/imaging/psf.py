@@ -21,14 +21,17 @@ and the operator is diagonal in m, so the PSF rotates rigidly.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import healpy
 import numpy as np
 import scipy.linalg as sla
 
 from mmflow.conventions import alm_index, radec_to_vec
 from mmflow.imaging.filters import filter_mask
 from mmflow.errors import InputError
+from mmflow.sky.frames import tangent_basis
 from mmflow.sky.harmonics import point_sources_alm, synthesize_at
 from mmflow.threads import n_threads, single_threaded_blas
 
@@ -40,16 +43,16 @@ FWHM_PER_SIGMA = np.sqrt(8 * np.log(2))
 def map_blocks(fn, items, threads=None):
     """``[fn(i) for i in items]`` on ``n_threads()`` threads, each with single-threaded BLAS.
 
-    m blocks are independent and LAPACK releases the GIL: on a loaded 2-core machine this is
-    ~10x faster than one multi-threaded LAPACK call per block (OpenBLAS threads stall at
-    every synchronisation when a core is taken away).
+    m blocks are independent and LAPACK releases the GIL: threads over blocks, each with one
+    BLAS thread, never wait on each other, where one multi-threaded LAPACK call per block has
+    its OpenBLAS threads stall at every synchronisation when a core is taken away
+    (``docs/performance.md``).
     """
     items = list(items)
     threads = n_threads() if threads is None else threads
     with single_threaded_blas():
         if threads <= 1 or len(items) <= 1:
             return [fn(i) for i in items]
-        from concurrent.futures import ThreadPoolExecutor
 
         with ThreadPoolExecutor(threads) as ex:
             return list(ex.map(fn, items))
@@ -225,19 +228,16 @@ def value_at(alm, lmax, vec):
 
 # ----------------------------------------------------------------------------- beam fitting
 
-def tangent_basis(vec):
-    """East and north unit vectors at ``vec`` (east = increasing RA; at the poles: +y, -x)."""
+def tangent_frame(vec):
+    """``(c, e, n)``: the unit vector ``c = vec / |vec|`` and the east and north unit vectors
+    there (:func:`mmflow.sky.frames.tangent_basis`; at the poles e = +y)."""
     c = np.asarray(vec, float) / np.linalg.norm(vec)
-    east = np.cross([0.0, 0.0, 1.0], c)
-    ne = np.linalg.norm(east)
-    east = np.array([0.0, 1.0, 0.0]) if ne < 1e-12 else east / ne
-    north = np.cross(c, east)
-    return c, east, north
+    return (c, *tangent_basis(c))
 
 
 def to_tangent(vecs, center):
     """Azimuthal-equidistant (x east, y north) coordinates in radians of ``vecs`` about ``center``."""
-    c, e, n = tangent_basis(center)
+    c, e, n = tangent_frame(center)
     v = np.atleast_2d(vecs)
     xe, yn, z = v @ e, v @ n, v @ c
     rho = np.arctan2(np.hypot(xe, yn), z)
@@ -248,7 +248,7 @@ def to_tangent(vecs, center):
 
 def from_tangent(x, y, center):
     """Unit vectors at azimuthal-equidistant offsets ``(x, y)`` (radians) from ``center``."""
-    c, e, n = tangent_basis(center)
+    c, e, n = tangent_frame(center)
     x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
     rho = np.hypot(x, y)
     sinc = np.where(rho > 0, np.sin(rho) / np.where(rho > 0, rho, 1), 1.0)
@@ -340,8 +340,6 @@ def highpass_weights(lmax, l_cut, l_width):
 
 def apply_l_weights(alm, lmax, weights):
     """``w_l a_lm`` for a healpy-layout alm (``alm`` may have trailing columns)."""
-    import healpy
-
     ell = healpy.Alm.getlm(lmax)[0]
     w = np.asarray(weights)[ell]
     return alm * (w if np.ndim(alm) == 1 else w[:, None])

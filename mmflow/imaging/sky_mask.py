@@ -13,6 +13,7 @@ regulariser sets it), so maps show it as masked rather than as smooth zeros.
 """
 from __future__ import annotations
 
+import healpy
 import numpy as np
 
 
@@ -53,8 +54,6 @@ def observed_sky_mask(nside, lat_deg, map_to_date=None, min_elevation_deg=0.0):
     mask : ndarray of bool, shape (12 nside^2,)
         ``lat - (90 - h_min) < dec_date < lat + (90 - h_min)``.
     """
-    import healpy
-
     vec = np.array(healpy.pix2vec(nside, np.arange(12 * nside * nside)))
     if map_to_date is not None:
         vec = np.asarray(map_to_date, float) @ vec

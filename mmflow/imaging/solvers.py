@@ -12,15 +12,19 @@ All solvers take the (full, Hermitian) Gram ``G = B^H N^-1 B`` and ``r = B^H N^-
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
 import scipy.linalg as sla
+from scipy.linalg import lapack
 
+from mmflow.conventions import m_slice, n_alm
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.lcurve import lcurve_block
+from mmflow.threads import n_threads, single_threaded_blas
 
 
 def tikhonov(gram, rhs, eps):
@@ -71,8 +75,6 @@ def count_eigenvalues_above(gram, eps):
     negative, else two or none by the sign of its trace. About a Cholesky's cost, versus ~10x
     for ``eigvalsh``; exact except for eigenvalues within rounding of ``eps`` (float64 here).
     """
-    from scipy.linalg import lapack
-
     g = np.asarray(gram)
     n = len(g)
     if n == 0:
@@ -170,3 +172,31 @@ def solve_m(gram, rhs, m, lmax, method="tikhonov", eps=0.01, filters=None, a_pri
         if want_lc:
             lc[:, 0], lc[:, 1] = lcurve_block(g, r[0], vhv, lcurve_eps, eig)
     return MSolution(alm, frac, lc)
+
+
+def solve_alm(acc, eps, method="tikhonov", filters=None, lmax=None, a_prior=None, split=0, ms=None):
+    """Solve every m block and assemble a healpy-layout alm vector (Jy/sr, frame of date).
+
+    ``filters``: keyword arguments of :func:`mmflow.imaging.filters.filter_mask`; None applies
+    the paper's defaults. Each m goes through :func:`solve_m`, the same
+    code as the workflow's ``solve`` stage. ``split`` picks the data split (0: full); ``ms``
+    restricts the solve to some m (default all of ``acc.ms``). Blocks are solved concurrently
+    on :func:`mmflow.threads.n_threads` threads, one BLAS thread each (the same bits for any
+    thread budget).
+    """
+    lmax = acc.lmax if lmax is None else lmax
+    alm = np.zeros(n_alm(lmax), np.complex128)
+    ms = acc.ms if ms is None else ms
+
+    def one(m):
+        prior = None if a_prior is None else a_prior[m_slice(lmax, m)]
+        # full_gram is complex128 (hermitian_full), as in the workflow's solve
+        return solve_m(acc.full_gram(m), acc.rhs[m].astype(np.complex128), m, lmax,
+                       method, eps, filters, prior)
+
+    # largest blocks first so that the pool stays balanced
+    order = sorted(ms)
+    with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:
+        for m, sol in zip(order, pool.map(one, order)):
+            alm[m_slice(lmax, m)] = sol.alm[split]
+    return alm

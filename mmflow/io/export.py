@@ -12,17 +12,21 @@ import os
 import warnings
 from pathlib import Path
 
+import healpy
 import numpy as np
+from astropy.io import fits
+
+from mmflow.analysis import table1
+from mmflow.imaging.lcurve import lcurve_corner
 
 
-def _tmp(path):
+def tmp_sibling(path):
+    """A hidden per-process temporary file beside ``path``: written there, then renamed onto ``path``."""
     path = Path(path)
     return path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
 
 
 def _masked(hmap, mask):
-    import healpy
-
     out = np.array(hmap, np.float64, copy=True)
     if mask is not None:
         out[~np.asarray(mask, bool)] = healpy.UNSEEN
@@ -37,9 +41,7 @@ def write_healpix_fits(path, hmap, meta, mask=None):
     mask : ndarray of bool, optional
         True where the sky was observed (:func:`mmflow.imaging.sky_mask.observed_sky_mask`).
     """
-    import healpy
-
-    tmp = _tmp(path)
+    tmp = tmp_sibling(path)
     healpy.write_map(str(tmp), _masked(hmap, mask), overwrite=True, coord=meta.get("COORDSYS", "C"),
                      column_units=meta.get("BUNIT", ""), extra_header=[(k[:8], v) for k, v in meta.items()
                                                                       if k not in ("COORDSYS",)], dtype=np.float64)
@@ -127,7 +129,7 @@ def write_mollweide_png(path, hmap, title, unit, mask=None, lmax=None, eps=None,
         ``vmin, vmax, linthresh`` of the colour scale, ``colorbar_label``, ``caption`` and
         ``masked_fraction``.
     """
-    import matplotlib
+    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -149,7 +151,7 @@ def write_mollweide_png(path, hmap, title, unit, mask=None, lmax=None, eps=None,
                  cbar_ticks=symlog_ticks(vmin, vmax, lin), format="%.2g", hold=True)
     fig.text(0.5, 0.01, caption, ha="center", va="bottom", fontsize=9)
     drawn = [t for ax in fig.axes for t in (ax.get_xlabel(), ax.get_ylabel()) if "scale" in t]
-    tmp = _tmp(path)
+    tmp = tmp_sibling(path)
     fig.savefig(tmp, dpi=100, bbox_inches="tight")
     plt.close(fig)
     os.replace(tmp, path)
@@ -184,12 +186,10 @@ def write_lcurve_png(path, lc, eps, chosen, corner=None, freq_hz=None, weighted=
     float
         ``chosen / corner``: how far (as a factor) the chosen eps is from the corner.
     """
-    import matplotlib
+    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from mmflow.imaging.lcurve import lcurve_corner
 
     lc = np.asarray(lc, float)
     eps = np.asarray(eps, float)
@@ -209,7 +209,7 @@ def write_lcurve_png(path, lc, eps, chosen, corner=None, freq_hz=None, weighted=
     ax.legend(fontsize=8)
     ax.grid(True, which="both", alpha=0.2)
     fig.tight_layout()
-    tmp = _tmp(path)
+    tmp = tmp_sibling(path)
     fig.savefig(tmp, dpi=100)
     plt.close(fig)
     os.replace(tmp, path)
@@ -218,12 +218,10 @@ def write_lcurve_png(path, lc, eps, chosen, corner=None, freq_hz=None, weighted=
 
 def write_image_fits(path, image, header):
     """A 2-D image (``image[y, x]``) with header keywords (WCS included) from ``header``."""
-    from astropy.io import fits
-
     hdu = fits.PrimaryHDU(np.asarray(image, np.float64))
     for k, v in header.items():
         hdu.header[k[:8]] = v
-    tmp = _tmp(path)
+    tmp = tmp_sibling(path)
     hdu.writeto(tmp, overwrite=True)
     os.replace(tmp, path)
 
@@ -243,7 +241,7 @@ def write_psf_png(path, stamps, titles, half_width_deg, caption=""):
     ``stamps``: list of ``image[y, x]`` (x east to the left, as on the sky), each ``2
     half_width_deg`` across.
     """
-    import matplotlib
+    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -260,7 +258,7 @@ def write_psf_png(path, stamps, titles, half_width_deg, caption=""):
     fig.colorbar(im, ax=axes[0].tolist(), shrink=0.8, label="PSF / peak")
     if caption:
         fig.text(0.5, 0.005, caption, ha="center", va="bottom", fontsize=8)
-    tmp = _tmp(path)
+    tmp = tmp_sibling(path)
     fig.savefig(tmp, dpi=90, bbox_inches="tight")
     plt.close(fig)
     os.replace(tmp, path)
@@ -268,13 +266,11 @@ def write_psf_png(path, stamps, titles, half_width_deg, caption=""):
 
 def write_table1(directory, rows):
     """Table 1 as ``table1.md``, ``table1.csv`` and ``table1.json`` in ``directory``; returns the paths."""
-    from mmflow.analysis import table1
-
     out = []
     for name, text in (("table1.md", table1.to_markdown(rows)), ("table1.csv", table1.to_csv(rows)),
                        ("table1.json", table1.to_json(rows))):
         path = Path(directory) / name
-        tmp = _tmp(path)
+        tmp = tmp_sibling(path)
         tmp.write_text(text)
         os.replace(tmp, path)
         out.append(path)

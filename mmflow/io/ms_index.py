@@ -45,7 +45,7 @@ class MSIndex:
 
 def read_index(path):
     """The columns the plan needs from one MS (python-casacore; no data)."""
-    from casacore.tables import table
+    from casacore.tables import table  # deferred: python-casacore is optional (extra "ms")
 
     p = str(path).rstrip("/")
     with table(p, ack=False, readonly=True) as t:
@@ -71,7 +71,7 @@ def read_index(path):
 def ms_time_to_jd(time_mjd_s, scale):
     """An MS ``TIME`` column (MJD seconds in the column's ``MEASINFO`` scale) as UTC JD, as pyuvdata
     converts it: ``Time(TIME / 86400, format="mjd", scale=scale).utc.jd``."""
-    from astropy.time import Time
+    from astropy.time import Time  # deferred: astropy.time/coordinates cost ~0.4 s, Measurement Sets only
 
     return Time(np.asarray(time_mjd_s) / 86400.0, format="mjd", scale=str(scale).lower()).utc.jd
 
@@ -122,7 +122,7 @@ def check_against(indices, ref, ref_uv, info):
 def _check_zenith(indices, ref_uv):
     """Each file's phase centre(s) within ``checks.ZENITH_TOL_DEG`` of the zenith at its first and
     last integration (ICRS, the MS's J2000/ICRS frame; one astropy transform for all files)."""
-    from astropy import units as u
+    from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s, Measurement Sets only
     from astropy.coordinates import AltAz, SkyCoord
     from astropy.time import Time
 

@@ -14,11 +14,13 @@ import textwrap
 import healpy
 import numpy as np
 
-from mmflow.io.export import _tmp
+from mmflow.analysis.spectral_index import three_colour
+from mmflow.io.export import tmp_sibling
+from mmflow.sky.sources import CATALOG
 
 
 def _pyplot():
-    import matplotlib
+    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -27,7 +29,7 @@ def _pyplot():
 
 
 def _save(fig, path, plt, **kw):
-    tmp = _tmp(path)
+    tmp = tmp_sibling(path)
     fig.savefig(tmp, dpi=100, **kw)
     plt.close(fig)
     os.replace(tmp, path)
@@ -52,8 +54,6 @@ def write_flux_scale_png(path, rows, epoch_year=None, catalog=None, ncols=4):
     dict with ``panels`` (source names in order), ``points`` (measured points drawn) and
     ``median_ratio`` per source (measured / spectrum).
     """
-    from mmflow.sky.sources import CATALOG
-
     catalog = CATALOG if catalog is None else catalog
     names = list(dict.fromkeys(r["name"] for r in rows))
     if not names:
@@ -174,8 +174,6 @@ def write_three_colour_png(path, maps, freqs_hz, mask=None, index=2.5, title=Non
     -------
     dict with ``rgb`` (the projected image, (ysize, xsize, 3) floats) and ``freqs_mhz``.
     """
-    from mmflow.analysis.spectral_index import three_colour
-
     freqs = np.asarray(freqs_hz, float)
     if len(maps) != 3 or len(freqs) != 3:
         raise ValueError("a three-colour image needs exactly three maps and three frequencies")

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import base64
 import html
+import io
 import json
 import os
 from dataclasses import asdict, dataclass, field, fields
@@ -31,6 +32,7 @@ from datetime import datetime, timezone
 from html.parser import HTMLParser
 from pathlib import Path, PurePosixPath
 
+from mmflow.analysis.table1 import split_columns
 from mmflow.errors import InputError
 
 
@@ -335,8 +337,6 @@ def table1_html(rows):
     """Table 1 as the paper lays it out (FWHM as ``major' x minor'`` per declination), then the
     noise of each jackknife the splits allow and the day/night rms
     (:func:`mmflow.analysis.table1.split_columns`)."""
-    from mmflow.analysis.table1 import split_columns
-
     if not rows:
         return "<p>none</p>"
     decs = [k[len("fwhm_major_arcmin_dec"):] for k in rows[0] if k.startswith("fwhm_major_arcmin_dec")]
@@ -490,9 +490,7 @@ class _Scan(HTMLParser):
 
 def png_size(data):
     """``(width, height)`` of PNG bytes after a full decode (Pillow); raises ValueError if not a PNG."""
-    import io
-
-    from PIL import Image
+    from PIL import Image  # deferred: Pillow comes with matplotlib (not a direct dependency), for PNG checks only
 
     if not data.startswith(b"\x89PNG\r\n\x1a\n"):
         raise ValueError("not a PNG (bad signature)")

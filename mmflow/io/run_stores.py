@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.conventions import alm_index
 from mmflow.io.stores import ArraySpec, StoreSpec
 
 
@@ -204,8 +205,6 @@ NOISE_FIELDS = ("jy_per_sr", "kelvin", "mjy_per_beam", "beam_solid_angle_sr")  #
 
 def alm_block_len(lmax, m0, m1):
     """Number of healpy-layout ``a_lm`` with ``m0 <= m < m1`` (a contiguous run of the vector)."""
-    from mmflow.conventions import alm_index
-
     stop = (lmax + 1) * (lmax + 2) // 2 if m1 > lmax else alm_index(lmax, m1, m1)
     return stop - alm_index(lmax, m0, m0)
 

@@ -43,7 +43,7 @@ def _str(x):
 
 def read_index(path):
     """The header datasets the plan needs from one UVH5 file (h5py; no data)."""
-    import h5py
+    import h5py  # deferred: h5py comes with pyuvdata (not a direct dependency), uvh5 files only
 
     with h5py.File(str(path), "r") as f:
         h = f["Header"]
@@ -63,7 +63,7 @@ def convert_times(indices):
 
 
 def _ecef(lat_lon_alt):
-    from pyuvdata.utils import XYZ_from_LatLonAlt
+    from pyuvdata.utils import XYZ_from_LatLonAlt  # deferred: pyuvdata costs ~1.5 s to import
 
     lla = np.atleast_2d(lat_lon_alt)
     return np.atleast_2d(XYZ_from_LatLonAlt(np.deg2rad(lla[:, 0]), np.deg2rad(lla[:, 1]), lla[:, 2]))

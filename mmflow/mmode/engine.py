@@ -1,4 +1,6 @@
-"""In-memory engine for one frequency: plan baseline chunks, build normal equations, solve.
+"""In-memory engine for one frequency: plan baseline chunks, build normal equations.
+
+The solve of those equations is :func:`mmflow.imaging.solvers.solve_alm`.
 
 These are the kernels the dask stages map over chunks (see :mod:`mmflow.workflow.stages`);
 they are also usable directly on a laptop for small arrays.
@@ -10,8 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmflow.conventions import m_slice, n_alm
-from mmflow.imaging.solvers import solve_m
 from mmflow.mmode.normal import NormalAccumulator
 from mmflow.mmode.transfer import (baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks, make_grid,
                                    transfer_pass)
@@ -101,7 +101,9 @@ class GridCache:
         return self._grids[key]
 
 
-def _chunk_grid(telescope, freq_hz, chunk, lmax, cache):
+def chunk_grid(telescope, freq_hz, chunk, lmax, cache):
+    """A chunk's baselines in wavelengths (n, 3) and its quadrature grid from ``cache`` (band limit
+    ``chunk.lmax``, fringe band limit of its longest baseline)."""
     b = baselines_in_wavelengths(telescope, telescope.antenna_pairs()[chunk.index], freq_hz)
     grid = cache.get(chunk.lmax, fringe_bandlimit(np.linalg.norm(b, axis=1), telescope.beam.lmax_hint), lmax)
     return b, grid
@@ -113,7 +115,7 @@ def chunk_blocks(telescope, freq_hz, chunk, lmax, lmax_b, dtype=np.float64, cach
     Blocks stop at ``m = chunk.lmax``: a chunk's coefficients vanish for larger m.
     """
     cache = cache or GridCache(telescope, freq_hz)
-    b, grid = _chunk_grid(telescope, freq_hz, chunk, lmax, cache)
+    b, grid = chunk_grid(telescope, freq_hz, chunk, lmax, cache)
     mmax = lmax if mmax is None else mmax
     for m, blk in iter_transfer_blocks(grid, b, lmax_b[chunk.index], min(mmax, chunk.lmax), dtype,
                                        lmax_rows=chunk.lmax):
@@ -135,7 +137,7 @@ def add_chunk(acc, telescope, freq_hz, chunk, lmax_b, mmodes, inv_var, dtype, ca
     """
     t0 = time.perf_counter()
     built = cache.build_s
-    b, grid = _chunk_grid(telescope, freq_hz, chunk, acc.lmax, cache)
+    b, grid = chunk_grid(telescope, freq_hz, chunk, acc.lmax, cache)
     if timings is not None:
         timings["grid_s"] = timings.get("grid_s", 0.0) + cache.build_s - built
     nb = len(chunk.index)
@@ -214,35 +216,3 @@ def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, 
     w = np.ones(mm4.shape[3]) if inv_var is None else np.asarray(inv_var, float)
     return accumulate_chunks(acc, telescope, freq_hz, chunks, lmax_b, lambda c: mm4[..., c.index], w, dtype,
                              timings=timings)
-
-
-def solve_alm(acc, eps, method="tikhonov", filters=None, lmax=None, a_prior=None, split=0, ms=None):
-    """Solve every m block and assemble a healpy-layout alm vector (Jy/sr, frame of date).
-
-    ``filters``: keyword arguments of :func:`mmflow.imaging.filters.filter_mask`; None applies
-    the paper's defaults. Each m goes through :func:`mmflow.imaging.solvers.solve_m`, the same
-    code as the workflow's ``solve`` stage. ``split`` picks the data split (0: full); ``ms``
-    restricts the solve to some m (default all of ``acc.ms``). Blocks are solved concurrently
-    on :func:`mmflow.threads.n_threads` threads, one BLAS thread each (the same bits for any
-    thread budget).
-    """
-    from concurrent.futures import ThreadPoolExecutor
-
-    from mmflow.threads import n_threads, single_threaded_blas
-
-    lmax = acc.lmax if lmax is None else lmax
-    alm = np.zeros(n_alm(lmax), np.complex128)
-    ms = acc.ms if ms is None else ms
-
-    def one(m):
-        prior = None if a_prior is None else a_prior[m_slice(lmax, m)]
-        # full_gram is complex128 (hermitian_full), as in the workflow's solve
-        return solve_m(acc.full_gram(m), acc.rhs[m].astype(np.complex128), m, lmax,
-                       method, eps, filters, prior)
-
-    # largest blocks first so that the pool stays balanced
-    order = sorted(ms)
-    with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:
-        for m, sol in zip(order, pool.map(one, order)):
-            alm[m_slice(lmax, m)] = sol.alm[split]
-    return alm

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 from functools import lru_cache
 
+import numba
 import numpy as np
 
 
@@ -27,8 +28,6 @@ def _taylor(odd, n_terms):
 @lru_cache(maxsize=None)
 def _kernels(real_name):
     """Compile :func:`fringe_folds` for float32 or float64 working precision."""
-    import numba
-
     real = np.dtype(real_name).type
     cplx = np.complex64 if real is np.float32 else np.complex128
     n_terms = 6 if real is np.float32 else 9  # |y| <= pi/4: y^13/13! ~ 2e-11, y^19/19! ~ 1e-19

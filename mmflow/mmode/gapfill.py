@@ -37,11 +37,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import ducc0
 import numpy as np
 import scipy.fft
 
+from mmflow.conventions import m_slice
 from mmflow.errors import InputError
+from mmflow.mmode.engine import BaselineChunk, GridCache, chunk_grid
 from mmflow.mmode.noise import baseline_coverage, lsq_inverse_variance, residual_variance
+from mmflow.mmode.transfer import transfer_pass
+from mmflow.mmode.transform import mmode_transform, split_bins, split_mmode_transform
 from mmflow.threads import n_threads
 
 TWO_PI = 2 * np.pi
@@ -96,7 +101,6 @@ def _phase_sums(values, k_max, offset, n):
     if offset is None:
         spec = scipy.fft.fft(values, axis=-1, workers=n_threads())
         return spec[:, np.arange(-k_max, k_max + 1) % n]
-    import ducc0
 
     phi = TWO_PI * np.arange(n) / n + offset
     out = np.empty((values.shape[0], 2 * k_max + 1), np.complex128)
@@ -112,7 +116,6 @@ def _synthesis(x, offset, n):
         grid = np.zeros((x.shape[0], n), np.complex128)
         grid[:, np.arange(-k_max, k_max + 1) % n] = x
         return scipy.fft.ifft(grid, axis=-1, workers=n_threads()) * n
-    import ducc0
 
     phi = TWO_PI * np.arange(n) / n + offset
     out = np.empty((x.shape[0], n), np.complex128)
@@ -319,8 +322,6 @@ def zero_filled_error(binned, bin_weight, mmax, reference, offset=None):
     ``||T(V 1_{w>0}) - reference|| / ||reference||`` with ``T`` the plain transform: the error
     that flagged time makes when it is treated as zeros (for reports and benchmarks).
     """
-    from mmflow.mmode.transform import mmode_transform
-
     zf = mmode_transform(np.where(np.asarray(bin_weight) > 0, binned, 0), mmax, offset)
     return relative_rms(zf, reference)
 
@@ -340,23 +341,8 @@ def split_lsq_mmodes(binned, bin_weight, mmax, offset=None, splits=("full",), ba
     one :class:`LsqMmodes` per split (the ``full`` one carries the residuals for the noise).
     Keyword arguments go to :func:`lsq_mmodes`.
     """
-    n = binned.shape[0]
-    offset = np.zeros(n) if offset is None else np.asarray(offset, float)
-    results = []
-    for s in splits:
-        if s == "full":
-            results.append(lsq_mmodes(binned, bin_weight, mmax, band_limit, offset, **kw))
-        elif s in ("even", "odd"):
-            start = 0 if s == "even" else 1
-            if n % 2:
-                raise InputError("m-mode transform", "mmode.splits", f"even/odd splits need an even number of "
-                                 f"sidereal bins, not {n}", "set mmode.n_bins to an even number")
-            results.append(lsq_mmodes(binned[start::2], bin_weight[start::2], mmax, band_limit,
-                                      offset[start::2] + start * TWO_PI / n, **kw))
-        else:
-            raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
-                             "use ('full', 'even', 'odd') (time subsets day<k> / day / night are binned on their "
-                             "own: mmflow.mmode.splits)")
+    results = [lsq_mmodes(binned[rows], bin_weight[rows], mmax, band_limit, phase, **kw)
+               for rows, phase in split_bins(binned.shape[0], offset, splits)]
     return np.stack([r.mmodes for r in results]), results
 
 
@@ -413,7 +399,6 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     if sigma2 is not None and prior is None and _uniform_on_grid(w, offset):
         # every bin filled with equal weight on the bin grid: the least-squares fit is the plain
         # transform (to 1e-12, tests/test_mmode_gaps.py) -- take it directly (one FFT per split)
-        from mmflow.mmode.transform import split_mmode_transform
 
         sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
         mm = split_mmode_transform(binned, mmax, None, splits)
@@ -443,9 +428,8 @@ def refit_prior_m0(prior, binned, bin_weight, offset=None):
 
     A map's model ``B_0 a_0`` is no model of a baseline's ``m = 0``: the imaging solve drops
     ``m = 0`` (``imaging.filter_m0``, the paper's default) and zeroes the monopole. Left so, the
-    prior would put ``-V_0`` into every gap. Measured in the workflow
-    (``tests/test_gap_prior_workflow.py`` scene, two 10 % gaps): the fixed point of the passes goes
-    from 0.088 to ~0.05 FWHM (faint-source peak shift), the first pass from 0.126 to 0.105.
+    prior would put ``-V_0`` into every gap (its effect on the faint-source peak shift of
+    ``tests/test_gap_prior_workflow.py``: ``docs/performance.md``).
 
     Parameters
     ----------
@@ -494,10 +478,6 @@ def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.f
     -------
     ndarray (mmax + 1, 2, n_bl) complex, the layout of :func:`lsq_mmodes`.
     """
-    from mmflow.conventions import m_slice
-    from mmflow.mmode.engine import BaselineChunk, GridCache, _chunk_grid
-    from mmflow.mmode.transfer import transfer_pass
-
     mmax = lmax if mmax is None else mmax
     index = np.asarray(baselines, int)
     lmax_b = telescope.baseline_lmax(freq_hz, lmax)
@@ -508,7 +488,7 @@ def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.f
     for start in range(0, len(index), step):
         cols = order[start:start + step]
         chunk = BaselineChunk(index[cols], int(lmax_b[index[cols]].max()))
-        b, grid = _chunk_grid(telescope, freq_hz, chunk, lmax, cache)
+        b, grid = chunk_grid(telescope, freq_hz, chunk, lmax, cache)
 
         def model(m, blk, tim):  # blk[l - m, c]: B_m's column c (+m rows, then -m rows), l <= chunk.lmax
             return alm[m_slice(lmax, m)][:blk.shape[0]] @ blk

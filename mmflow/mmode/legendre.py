@@ -22,6 +22,7 @@ poles and the equator; ``docs/numerics.md``).
 """
 from functools import lru_cache
 
+import numba
 import numpy as np
 from scipy.special import gammaln
 
@@ -67,8 +68,6 @@ def weighted_legendre_table(m, lmax, theta, weights=None, dtype=np.float64, l_bl
 @lru_cache(maxsize=1)
 def _kernel():
     """Compile the scaled recurrence (numba) on first use."""
-    import numba
-
     big = 2.0 ** _SHIFT
     small = 2.0 ** -_SHIFT
     # 2^(256 s) for s = 0, -1, -2, -3, -4 (2^-1024 is subnormal); 0 below

@@ -10,7 +10,7 @@ import time
 from functools import lru_cache
 
 import numpy as np
-from scipy.linalg import blas
+from scipy.linalg import blas, cython_blas
 
 
 def herk_upper(a, c=None, alpha=1.0):
@@ -33,8 +33,6 @@ def _herk_fn(prefix):
     Called directly so that a leading sub-block ``C[:n, :n]`` of a Fortran-ordered Gram is
     updated in place through ``ldc`` (scipy's Python wrapper would copy a non-contiguous C).
     """
-    from scipy.linalg import cython_blas
-
     api = ctypes.pythonapi
     api.PyCapsule_GetName.restype, api.PyCapsule_GetName.argtypes = ctypes.c_char_p, [ctypes.py_object]
     api.PyCapsule_GetPointer.restype = ctypes.c_void_p

@@ -35,6 +35,7 @@ import re
 import numpy as np
 
 from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.mmode.transform import bin_index
 
 TWO_PI = 2 * np.pi
 PARITY_SPLITS = ("full", "even", "odd")  # splits of the sidereal bins (every integration used)
@@ -157,8 +158,7 @@ def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_
 
 def _sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m):
     """:func:`sun_elevation_deg` by astropy at every time."""
-    import mmflow  # noqa: F401  (astropy offline before any astropy use)
-    from astropy import units as u
+    from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s to import, used by day/night only
     from astropy.coordinates import AltAz, EarthLocation, get_body
     from astropy.time import Time
 
@@ -196,8 +196,6 @@ def split_masks(names, days=None, sun_elevation=None):
 def bin_coverage(lsts, n_bins):
     """Fraction of the ``n_bins`` sidereal bins that hold at least one of the integrations ``lsts``
     (the bins of :func:`mmflow.mmode.transform.bin_index`)."""
-    from mmflow.mmode.transform import bin_index
-
     lsts = np.asarray(lsts, float)
     lsts = lsts[np.isfinite(lsts)]
     if lsts.size == 0:

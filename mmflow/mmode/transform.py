@@ -144,20 +144,31 @@ def split_mmode_transform(binned, mmax, offset, splits=("full",)):
     m-dependent phase of its one-bin offset, ``exp(-i m 2 pi / N)``. Every split estimates the
     same ``V_m`` (for ``mmax < N/4``) with its own noise, so one transfer pass projects them all.
     """
-    n = binned.shape[0]
-    offset = np.zeros(n) if offset is None else np.asarray(offset, float)
+    return np.stack([mmode_transform(binned[rows], mmax, phase)
+                     for rows, phase in split_bins(binned.shape[0], offset, splits)])
+
+
+def split_bins(n_bins, offset, splits):
+    """The sidereal bins of each split and their phase offsets: ``(rows, offset)`` per split.
+
+    ``full``: every bin, ``offset`` (zeros when None); ``even`` / ``odd``: bins ``2k + s``
+    (``s = 0, 1``) at phase offsets ``offset[2k + s] + s 2 pi / N`` relative to the grid
+    ``2 pi k / (N / 2)`` of the half. Time subsets (``day<k>``, ``day``, ``night``) are binned on
+    their own (:mod:`mmflow.mmode.splits`).
+    """
+    offset = np.zeros(n_bins) if offset is None else np.asarray(offset, float)
     out = []
     for s in splits:
         if s == "full":
-            out.append(mmode_transform(binned, mmax, offset))
+            out.append((slice(None), offset))
         elif s in ("even", "odd"):
             start = 0 if s == "even" else 1
-            if n % 2:
+            if n_bins % 2:
                 raise InputError("m-mode transform", "mmode.splits", f"even/odd splits need an even number of "
-                                 f"sidereal bins, not {n}", "set mmode.n_bins to an even number")
-            out.append(mmode_transform(binned[start::2], mmax, offset[start::2] + start * TWO_PI / n))
+                                 f"sidereal bins, not {n_bins}", "set mmode.n_bins to an even number")
+            out.append((slice(start, None, 2), offset[start::2] + start * TWO_PI / n_bins))
         else:
             raise InputError("m-mode transform", "mmode.splits", f"unknown split '{s}'",
                              f"use {SPLITS} (time subsets day<k> / day / night are binned on their own: "
                              "mmflow.mmode.splits)")
-    return np.stack(out)
+    return out

@@ -30,13 +30,28 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mmflow.calibrate.baselines import gain_products
-from mmflow.calibrate.coherency import source_enu, tangent_basis
 from mmflow.conventions import SIDEREAL_DAY_S
-from mmflow.simulate.visibilities import thermal_noise
+from mmflow.simulate.visibilities import SkyPoints, thermal_noise
+from mmflow.sky.frames import source_enu, tangent_basis
 from mmflow.telescope.array import C_LIGHT
 
 ARCMIN = np.pi / 180 / 60
+
+
+def gain_products(gains, pairs):
+    """``g_i conj(g_j)`` for every baseline.
+
+    Parameters
+    ----------
+    gains : ndarray (..., n_ant, n_pol)
+    pairs : ndarray (n_bl, 2)
+
+    Returns
+    -------
+    ndarray (..., n_bl, n_pol)
+    """
+    pairs = np.asarray(pairs)
+    return gains[..., pairs[:, 0], :] * np.conj(gains[..., pairs[:, 1], :])
 
 
 def sawtooth_db(times_s, rng, amplitude_db=0.1, period_s=(900.0, 1020.0), wander_s=3 * 3600.0):
@@ -163,9 +178,6 @@ def sun_points(jd, freq_hz, flux_jy=2e4, ref_freq_hz=74e6, alpha=1.8, radius_arc
     ``n_ring`` rings of points with equal area. The position is the apparent Sun at ``jd``
     (astropy, offline); it moves ~1 deg/day, so call once per chunk of integrations.
     """
-    from mmflow.calibrate.coherency import tangent_basis
-    from mmflow.simulate.visibilities import SkyPoints
-
     c = _sun_vector_date(float(jd))
     e, n = tangent_basis(c)
     rad = radius_arcmin * ARCMIN
@@ -183,8 +195,7 @@ def sun_points(jd, freq_hz, flux_jy=2e4, ref_freq_hz=74e6, alpha=1.8, radius_arc
 
 
 def _sun_vector_date(jd):
-    import mmflow  # noqa: F401  (astropy offline)
-    from astropy.coordinates import TETE, get_sun
+    from astropy.coordinates import TETE, get_sun  # deferred: astropy.coordinates costs ~0.4 s, for the Sun only
     from astropy.time import Time
 
     t = Time(jd, format="jd", scale="utc")
@@ -277,7 +288,7 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
     ``LST(t) = phi`` by Newton steps with ``dLST/dt = 2 pi / 86164.0905 s``: the first
     integration's time is found first, the rest follow from the unwrapped LSTs.
     """
-    from pyuvdata.utils import get_lst_for_time
+    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata costs ~1.5 s to import, for files only
 
     phi = np.unwrap(np.asarray(lsts, float))
     rate = 2 * np.pi / (SIDEREAL_DAY_S / 86400.0)  # rad per (UTC) day
@@ -305,7 +316,7 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     ``x_orientation="east"`` labels linear polarisations as pyuvdata does for such feeds:
     ``pols=("ee", "nn")`` are then XX and YY (the same polarisation numbers, -5 and -6).
     """
-    from astropy import units as u
+    from astropy import units as u  # deferred: pyuvdata and astropy.coordinates cost ~2 s, for files only
     from astropy.coordinates import EarthLocation
     from pyuvdata import Telescope as UVTelescope
     from pyuvdata import UVData

@@ -6,9 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.errors import InputError
 from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.errors import InputError
+from mmflow.mmode.transfer import fringe_bandlimit
+from mmflow.simulate.corrupt import corrupted_visibilities
 from mmflow.simulate.visibilities import SkyPoints, gauss_legendre_points, simulate_drift_scan, thermal_noise
+from mmflow.sky.frames import rotation_matrix, tangent_basis
+from mmflow.sky.diffuse import synthetic_sky_kelvin
+from mmflow.sky.sources import epoch_year, get_sources
+from mmflow.sky.units import kelvin_to_jy_per_sr
 
 
 def drift_scan_lsts(start_lst_rad, integration_s, index):
@@ -31,12 +37,6 @@ def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=
     sources (their spectra at ``freq_hz``, Cas A's secular decrease at the epoch's year) are
     rotated from ICRS to the frame of date.
     """
-    from mmflow.calibrate.coherency import source_points_date
-    from mmflow.mmode.transfer import fringe_bandlimit
-    from mmflow.sky.diffuse import synthetic_sky_kelvin
-    from mmflow.sky.sources import get_sources
-    from mmflow.sky.units import kelvin_to_jy_per_sr
-
     pts = SkyPoints(np.zeros((0, 3)), np.zeros(0))
     if diffuse_lmax:
         alm = kelvin_to_jy_per_sr(synthetic_sky_kelvin(freq_hz, diffuse_lmax, epoch_jd, seed=seed), freq_hz)
@@ -46,6 +46,21 @@ def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=
     for src in get_sources(list(sources)):
         pts = pts + source_points_date(src, freq_hz, epoch_jd)
     return pts
+
+
+def source_points_date(source, freq_hz, epoch_jd, offset_rad=(0.0, 0.0), flux_scale=1.0):
+    """A catalogue source as :class:`SkyPoints` in the frame of date, optionally shifted.
+
+    ``offset_rad`` = (east, north) tangent-plane shift of every point (a refractive offset or
+    a fitted position), ``flux_scale`` multiplies the published flux.
+    """
+    vec, flux = source.points(freq_hz, epoch_year(epoch_jd))
+    vec = vec @ rotation_matrix("icrs", "date", epoch_jd).T
+    if np.any(np.asarray(offset_rad) != 0):
+        e, n = tangent_basis(vec)
+        vec = vec + offset_rad[0] * e + offset_rad[1] * n
+        vec /= np.linalg.norm(vec, axis=1)[:, None]
+    return SkyPoints(vec, flux * flux_scale)
 
 
 def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, corrupted=None, rows=None,
@@ -62,8 +77,6 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
     :func:`mmflow.simulate.corrupt.corrupted_visibilities`; ``rows`` are the chunk's
     integrations in the day; ``system_jy`` the receiver power of the corrupted autocorrelations.
     """
-    from mmflow.simulate.corrupt import corrupted_visibilities
-
     pairs = telescope.antenna_pairs()
     n_pol = 1 if corrupted is None else 2
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), n_pol), np.complex64)

@@ -16,6 +16,8 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
+import ducc0
+import healpy
 import numpy as np
 from scipy.linalg import blas
 
@@ -41,8 +43,6 @@ class SkyPoints:
 
 def healpix_points(hpx_map_jy_sr):
     """Pixels of a HEALPix map (Jy/sr, frame of date) as weighted directions (pixel quadrature)."""
-    import healpy
-
     npix = len(hpx_map_jy_sr)
     nside = healpy.npix2nside(npix)
     vec = np.array(healpy.pix2vec(nside, np.arange(npix))).T
@@ -55,8 +55,6 @@ def gauss_legendre_points(alm_jy_sr, lmax, quad_lmax):
     The quadrature ``sum_p w_p I(r_p) f(r_p)`` is exact for integrands of total band
     limit ``<= quad_lmax`` (``ntheta = quad_lmax // 2 + 1``, ``nphi = quad_lmax + 1``).
     """
-    import ducc0
-
     ntheta = quad_lmax // 2 + 2
     nphi = quad_lmax + 2
     sky = ducc0.sht.synthesis_2d(alm=np.asarray(alm_jy_sr, np.complex128)[None], spin=0, lmax=lmax,

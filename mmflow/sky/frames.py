@@ -4,16 +4,20 @@ The transfer matrices and the m-mode transform live in the frame of date, where 
 sidereal angle is the apparent local sidereal time. Maps are rotated to ICRS (default)
 or Galactic on output; sources given in ICRS are rotated into the frame of date.
 """
+import warnings
 from functools import lru_cache
 
+import ducc0
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-import mmflow  # noqa: F401  (configures astropy offline)
+from mmflow.conventions import enu_to_equatorial_matrix
+from mmflow.threads import n_threads
 
 
 @lru_cache(maxsize=32)
 def _matrix(src, dst, epoch_jd):
-    from astropy import units as u
+    from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s to import, used once per epoch
     from astropy.coordinates import ICRS, TETE, Galactic, SkyCoord
     from astropy.time import Time
 
@@ -50,21 +54,39 @@ def rotation_matrix(src, dst, epoch_jd):
 _FIT_ORDER = ("date", "icrs", "galactic")
 
 
+def tangent_basis(vec):
+    """East and north unit vectors on the sky at unit directions ``vec`` (..., 3), in their frame.
+
+    ``e = z x r / |z x r|`` (towards increasing RA) and ``n = r x e``; at the poles, where
+    ``z x r`` vanishes (``|z x r| < 1e-12``), ``e = +y`` and ``n = r x e``.
+    """
+    vec = np.asarray(vec, float)
+    east = np.cross([0.0, 0.0, 1.0], vec)
+    norm = np.linalg.norm(east, axis=-1, keepdims=True)
+    pole = norm < 1e-12
+    east = np.where(pole, [0.0, 1.0, 0.0], east / np.where(pole, 1.0, norm))
+    return east, np.cross(vec, east)
+
+
+def source_enu(telescope, lsts, vec_date):
+    """ENU unit vectors (..., n_time, 3) of frame-of-date directions ``vec_date`` (..., 3).
+
+    ``r_enu(t) = vec_date . R(lat, phi_t)`` with ``R`` of
+    :func:`mmflow.conventions.enu_to_equatorial_matrix` (ENU -> frame of date) at the site's
+    latitude ``telescope.lat_rad`` and each sidereal angle ``lsts`` (rad).
+    """
+    rots = np.stack([enu_to_equatorial_matrix(telescope.lat_rad, p) for p in np.atleast_1d(lsts)])
+    return np.einsum("...k,tkl->...tl", np.asarray(vec_date, float), rots)
+
+
 def rotate_alm(alm, matrix, lmax):
     """Rotate real-sky ``a_lm`` (healpy layout) so the map ``f(r)`` becomes ``f(R^T r)``.
 
     Equivalently: coefficients given in frame S become coefficients in frame D for
     ``matrix = rotation_matrix(S, D)``. With ZYZ Euler angles ``R = R_z(phi) R_y(theta) R_z(psi)``
-    this is ducc0's Wigner-d rotation (56x faster than healpy's at lmax 1000 and equal to it
-    to ~1e-15: ``tests/test_numerics.py``). Verified by a point-source test.
+    this is ducc0's Wigner-d rotation, equal to healpy's to ~1e-15 (``tests/test_numerics.py``;
+    its speed: ``docs/performance.md``). Verified by a point-source test.
     """
-    import warnings
-
-    import ducc0
-    from scipy.spatial.transform import Rotation
-
-    from mmflow.threads import n_threads
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # gimbal lock (theta = 0 or pi) is handled
         phi, theta, psi = Rotation.from_matrix(np.asarray(matrix, float)).as_euler("ZYZ")

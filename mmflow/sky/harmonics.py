@@ -25,6 +25,7 @@ Cost: ``O(n_points * n_alm)`` (about 0.04 s for 256 points at lmax 1000 on one c
 """
 from __future__ import annotations
 
+import ducc0
 import numpy as np
 
 from mmflow.threads import n_threads
@@ -88,8 +89,6 @@ def point_sources_alm(vecs, fluxes, lmax, mmax=None):
 
 def _conj_ylm_sum(theta, phi, weights, lmax, mmax):
     """``sum_k weights_k conj(Y_lm(theta_k, phi_k))`` in healpy layout (ducc0 ``leg2alm``)."""
-    import ducc0
-
     mval, mstart, size = _layout(lmax, mmax)
     alm = np.zeros((1, size), np.complex128)
     m = np.arange(mmax + 1)
@@ -114,8 +113,6 @@ def synthesize_at(alm, vecs, lmax, mmax=None):
     -------
     ndarray, float64, shape (n,)
     """
-    import ducc0
-
     mmax = _mmax(lmax, mmax)
     theta, phi = _angles(vecs)
     mval, mstart, size = _layout(lmax, mmax)

@@ -23,6 +23,11 @@ from mmflow.conventions import radec_to_vec
 from mmflow.errors import InputError
 
 
+def epoch_year(epoch_jd):
+    """Julian year of a UTC Julian date (2000.0 at J2000): the ``epoch_year`` of the flux models."""
+    return 2000.0 + (float(epoch_jd) - 2451545.0) / 365.25
+
+
 def _hms(h, m, s):
     return 15.0 * (h + m / 60 + s / 3600)
 

@@ -92,7 +92,8 @@ def _read_rows(ctx, rows):
 
 def _task(ctx, key):
     from mmflow.calibrate.baselines import baseline_mask
-    from mmflow.calibrate.coherency import epoch_year, source_coherencies, source_vector_date
+    from mmflow.calibrate.coherency import source_coherencies, source_vector_date
+    from mmflow.sky.sources import epoch_year
     from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, _pack, fit_fluxes,
                                                 fit_gaussian_components, fit_point_position, source_uvw,
                                                 symmetric_start)

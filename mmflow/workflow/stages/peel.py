@@ -84,7 +84,8 @@ def _coherencies(ctx, tel, fi, lst, pairs, names):
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.baselines import baseline_mask, gain_products
+    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.simulate.corrupt import gain_products
     from mmflow.calibrate.coherency import apparent_flux
     from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, select_modes
     from mmflow.sky.sources import get_sources
@@ -157,7 +158,7 @@ def _components(ctx, block, fi, kinds):
     """``sum_s f_s(t) h_si conj(h_sj) M^s_ij`` (time, bl, pol) of channel ``fi`` over the sources whose
     mode is in ``kinds``, ``f`` being 1 (peeled) or the fitted scale (subtracted, modelled); only the
     sources with such a mode somewhere in the block are computed. Reads only ``peel.zarr``."""
-    from mmflow.calibrate.baselines import gain_products
+    from mmflow.simulate.corrupt import gain_products
     from mmflow.calibrate.peel import PEEL
 
     tel = ctx.telescope()

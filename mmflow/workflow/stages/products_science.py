@@ -106,7 +106,7 @@ def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
     """Flux scale and astrometry of one channel; returns the summary info to merge."""
     from mmflow.analysis.astrometry import register, registration_rows
     from mmflow.analysis.fluxscale import alm_sampler, disc_minus_annulus, flux_deviations, flux_row, source_flux
-    from mmflow.calibrate.coherency import epoch_year
+    from mmflow.sky.sources import epoch_year
     from mmflow.imaging.clean import never_seen_dec_min
     from mmflow.sky import units
     from mmflow.sky.frames import rotation_matrix
@@ -226,7 +226,7 @@ def finalize_science(ctx, parts, tags):
         (maps / "fluxscale.csv").write_text(flux_csv(rows))
         out["flux_scale"] = {"rows": rows, "files": {"JSON": record("fluxscale.json"), "CSV": record("fluxscale.csv")}}
         if p.png:
-            from mmflow.calibrate.coherency import epoch_year
+            from mmflow.sky.sources import epoch_year
             from mmflow.io.plots import write_flux_scale_png
 
             drawn = write_flux_scale_png(maps / "fluxscale.png", rows, epoch_year(parts[0]["epoch_jd"]))

@@ -70,7 +70,8 @@ def _sim_prepare(ctx):
 def _skies(config_json):
     """The telescope, the sky per frequency (without the DD-corrupted sources) and, when the
     simulation is corrupted, per frequency the whole day's corruptions and the DD sources."""
-    from mmflow.calibrate.coherency import source_points_date, source_vector_date
+    from mmflow.calibrate.coherency import source_vector_date
+    from mmflow.simulate.scene import source_points_date
     from mmflow.simulate.corrupt import day_corruptions
     from mmflow.sky.sources import get_sources, resolved
 

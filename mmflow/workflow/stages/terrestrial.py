@@ -44,7 +44,7 @@ def _prepare(ctx):
 
 def _templates(ctx, fi, pairs):
     """(K, bl, pol) templates ``u_i conj(u_j)`` of channel ``fi`` for ``pairs``."""
-    from mmflow.calibrate.baselines import gain_products
+    from mmflow.simulate.corrupt import gain_products
 
     return gain_products(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
 
