@@ -168,7 +168,7 @@ def _plan(args):
     from mmflow.workflow import plan as planmod
 
     if args.fit:
-        from mmflow.bench.engine import gemm_gflops
+        from mmflow.machine import gemm_gflops
         from mmflow.workflow.plan_fit import fit_costs, write_costs
 
         import numpy as np

@@ -3,7 +3,7 @@
 The layers, lowest first (docs/architecture.md):
 
 0. ``base``: ``mmflow/__init__.py``, ``conventions``, ``errors``, ``offline``, ``threads``,
-   ``allocator`` -- numbers, exceptions and process settings every layer shares; numpy only.
+   ``allocator``, ``machine`` -- numbers, exceptions and process settings every layer shares; numpy only.
 1. ``kernels``: ``telescope``, ``sky``, ``mmode``, ``imaging``, ``calibrate``, ``simulate``,
    ``analysis`` -- numpy/scipy, no dask, no configuration, no files of a run.
 2. ``io``: reading and writing data, stores, reports.
@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parent.parent / "mmflow"
 
 LAYERS = {"base": 0, "kernels": 1, "io": 2, "workflow": 3, "bench": 4, "cli": 5}
 BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.offline", "mmflow.threads",
-                "mmflow.allocator"}
+                "mmflow.allocator", "mmflow.machine"}
 KERNEL_PACKAGES = ("telescope", "sky", "mmode", "imaging", "calibrate", "simulate", "analysis")
 
 WORKFLOW_PENDING = pytest.mark.xfail(strict=False, reason="workflow half of issue 23, branch layers")

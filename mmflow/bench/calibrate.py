@@ -18,7 +18,7 @@ import numpy as np
 
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
 from mmflow.calibrate.stefcal import stefcal, sweep, sweep_numpy
-from mmflow.bench.engine import best_time
+from mmflow.machine import best_time
 from mmflow.threads import n_threads
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
@@ -133,7 +133,7 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None, modes=None):
 
 def run(what="calibrate", quick=False):
     """All figures as a dict (JSON-able)."""
-    from mmflow.bench.engine import gemm_gflops, machine
+    from mmflow.machine import gemm_gflops, machine
 
     n_ant = 64 if quick else 256
     res = {"machine": machine(), "threads": n_threads(), "sgemm_gflops_peak": gemm_gflops(np.float32),

@@ -33,7 +33,7 @@ import time
 
 import numpy as np
 
-from mmflow.bench.engine import gemm_gflops, machine
+from mmflow.machine import gemm_gflops, machine
 from mmflow.threads import n_threads
 
 POOL_PHASES = ("tables_s", "legendre_s", "scale_s", "herk_s", "rhs_s")

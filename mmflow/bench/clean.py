@@ -25,7 +25,7 @@ import time
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.bench.engine import gemm_gflops, machine
+from mmflow.machine import gemm_gflops, machine
 from mmflow.conventions import m_slice, radec_to_vec
 from mmflow.imaging import clean, psf
 from mmflow.imaging.filters import filter_mask

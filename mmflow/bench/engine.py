@@ -8,8 +8,6 @@ scaling, and a projection for the reference paper's channel from the measured ra
 from __future__ import annotations
 
 import json
-import os
-import platform
 import resource
 import subprocess
 import sys
@@ -20,27 +18,10 @@ import numpy as np
 from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.mmode.transfer import fringe_bandlimit, iter_transfer_blocks, make_grid
 from mmflow.telescope.beams import SinElevationBeam
-from mmflow.threads import n_threads
+from mmflow.machine import best_time, gemm_gflops, machine
 
 LAT = np.deg2rad(37.24)
 BEAM = SinElevationBeam(1.5)
-
-
-def best_time(fn, reps=3):
-    """The shortest wall time (s) of ``reps`` calls of ``fn()``."""
-    best = np.inf
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
-
-
-def gemm_gflops(dtype, n=1536):
-    a = np.random.default_rng(0).random((n, n)).astype(dtype)
-    b = np.random.default_rng(1).random((n, n)).astype(dtype)
-    a @ b
-    return 2.0 * n**3 / best_time(lambda: a @ b) / 1e9
 
 
 def full_lmax_baselines(lmax, nb, seed=0):
@@ -185,11 +166,6 @@ def simulate_rate(n_ant=64, nside=64, n_time=6628, freq_hz=50e6):
     el = time.perf_counter() - t0
     return {"n_ant": n_ant, "n_baselines": int(vis.shape[1]), "nside": nside, "integrations": n_time,
             "seconds": el, "seconds_per_sidereal_day": el * 6628 / n_time}
-
-
-def machine():
-    return {"python": platform.python_version(), "cpus": os.cpu_count(), "threads": n_threads(),
-            "numpy": np.__version__}
 
 
 def run(what, quick=False):

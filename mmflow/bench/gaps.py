@@ -81,7 +81,7 @@ def case(band, pattern, nb, tol=1e-10, snr=None, seed=0):
 
 
 def run(what="gaps", quick=False):
-    from mmflow.bench.engine import machine
+    from mmflow.machine import machine
 
     nb = 4 if quick else 16
     bands = (100, 500) if quick else (100, 500, 1000)

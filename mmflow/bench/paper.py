@@ -28,7 +28,7 @@ SCALES = {
 
 
 def run(what="paper", quick=False, scale=None, overrides=(), directory=None):
-    from mmflow.bench.engine import gemm_gflops, machine
+    from mmflow.machine import gemm_gflops, machine
     from mmflow.workflow.cluster import open_cluster
     from mmflow.workflow.config import load_config
     from mmflow.workflow.plan import plan

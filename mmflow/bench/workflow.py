@@ -61,7 +61,7 @@ def checksum_rate(n_bytes=256 << 20):
 
 
 def run(what="workflow", quick=False):
-    from mmflow.bench.engine import gemm_gflops, machine
+    from mmflow.machine import gemm_gflops, machine
 
     res = {"machine": machine(), "sgemm_gflops": gemm_gflops(np.float32), "checksum_gb_per_s": checksum_rate()}
     with tempfile.TemporaryDirectory(prefix="mmflow-bench-") as root:

@@ -278,7 +278,7 @@ def plan(cfg, costs=None, peak_gflops=None):
     """
     costs = costs or load_costs()
     if peak_gflops is None:
-        from mmflow.bench.engine import gemm_gflops
+        from mmflow.machine import gemm_gflops
 
         peak_gflops = gemm_gflops(np.float32, n=768)
     g = geometry(cfg)
