@@ -245,6 +245,23 @@ def test_no_upward_import(region):
     assert not bad, "\n" + "\n".join(bad)
 
 
+#: what kernels never import: the graph library, the stores, the configuration
+NOT_IN_KERNELS = ("dask", "distributed", "zarr", "yaml", "pydantic")
+
+
+def test_kernels_import_no_dask_stores_or_configuration():
+    """Kernels are numpy/scipy (deferred ``distributed.get_worker`` in ``threads`` aside: base layer)."""
+    bad = []
+    for name, path in MODULES.items():
+        if layer_of(name)[0] != "kernels":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            mods = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                    else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
+            bad += [f"{name} imports {m} (line {node.lineno})" for m in mods if m.split(".")[0] in NOT_IN_KERNELS]
+    assert not bad, "\n" + "\n".join(bad)
+
+
 @pytest.mark.parametrize("region", _region_params())
 def test_no_private_name_imported_across_modules(region):
     bad = private_imports(_edges_in(region))

@@ -131,7 +131,9 @@ def _canonical(c):
     return c
 
 
-def _pack(components):
+def pack_components(components):
+    """Components as one flat vector: per component ``x, y`` (arcmin), flux (Jy), FWHM major and minor
+    (arcmin), position angle (deg)."""
     return np.array([[c.x_arcmin, c.y_arcmin, c.flux_jy, c.fwhm_major_arcmin, c.fwhm_minor_arcmin, c.pa_deg]
                      for c in components], float).ravel()
 
@@ -193,10 +195,10 @@ def fit_gaussian_components(vis, weights, uvw, beam, start, *, aperture_arcmin=N
 
     # thousands of small products: one BLAS thread each is fastest (and shares the cores)
     with single_threaded_blas():
-        res = minimize(cost, _pack(start), method="Nelder-Mead",
+        res = minimize(cost, pack_components(start), method="Nelder-Mead",
                        options={"maxiter": maxiter, "maxfev": 2 * maxiter, "xatol": xatol, "fatol": fatol,
                                 "adaptive": True})
-        res["fun_start"] = cost(_pack(start))
+        res["fun_start"] = cost(pack_components(start))
     comps = [_canonical(c) for c in _unpack(res.x, len(start))]
     if reference_flux is not None:
         tot = sum(c.flux_jy for c in comps)

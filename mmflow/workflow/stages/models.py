@@ -93,11 +93,9 @@ def _read_rows(ctx, rows):
 def _task(ctx, key):
     from mmflow.calibrate.baselines import baseline_mask
     from mmflow.calibrate.coherency import source_coherencies, source_vector_date
-    from mmflow.sky.sources import epoch_year
-    from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, _pack, fit_fluxes,
-                                                fit_gaussian_components, fit_point_position, source_uvw,
-                                                symmetric_start)
-    from mmflow.sky.sources import get_sources
+    from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
+                                                fit_point_position, pack_components, source_uvw, symmetric_start)
+    from mmflow.sky.sources import epoch_year, get_sources
     from mmflow.telescope.array import C_LIGHT
 
     m, p = ctx.cfg.models, ctx.cfg.peel
@@ -138,7 +136,7 @@ def _task(ctx, key):
     g = ctx.open("models.zarr", mode="r+")
     n_max = g["components"].shape[2]
     table = np.zeros((n_max, len(MODEL_COLUMNS)))
-    table[:len(comps)] = _pack(comps).reshape(len(comps), -1)
+    table[:len(comps)] = pack_components(comps).reshape(len(comps), -1)
     region = (slice(fi, fi + 1), slice(si, si + 1))
     ctx.write(g, "components", region, table[None, None])
     ctx.write(g, "cost", region, np.array([[[res_point["fun_start"], res["fun_start"], res.fun]]]))
