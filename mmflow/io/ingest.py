@@ -61,7 +61,10 @@ class IngestPlan:
 
 
 def plan_ingest(cfg):
-    return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file)
+    """The ingest plan of ``cfg.input`` (cached: the stage's check and its prepare share it).
+    Units other than Jy / K sr are accepted only when ``calibrate.enabled``."""
+    calibrated_here = bool(getattr(getattr(cfg, "calibrate", None), "enabled", False))
+    return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file, calibrated_here)
 
 
 def _files(pattern):
@@ -89,7 +92,7 @@ def _unreadable(f, exc, on_bad, skipped):
     skipped.append(msg)
 
 
-def _metadata_pyuvdata(files, fmt, on_bad):
+def _metadata_pyuvdata(files, fmt, on_bad, calibrated_here=False):
     """Every file's metadata with pyuvdata (read concurrently), each checked against the first."""
     with ThreadPoolExecutor(max(1, min(n_threads(), len(files)))) as ex:
         results = list(ex.map(lambda f: _try_metadata(f, fmt), files))
@@ -109,11 +112,11 @@ def _metadata_pyuvdata(files, fmt, on_bad):
             raise InputError(f, "freq_array", f"frequencies differ from {good[0]}",
                              "ingest one spectral setup per run (select channels first)")
         checks.compare_telescope(uv, ref, f, good[0])
-    infos = [checks.file_info(uv, f) for f, uv in zip(good, metas)]
+    infos = [checks.file_info(uv, f, calibrated_here) for f, uv in zip(good, metas)]
     return metas, good, skipped, infos
 
 
-def _metadata_indexed(files, fmt, on_bad, kind):
+def _metadata_indexed(files, fmt, on_bad, kind, calibrated_here=False):
     """Many files of one kind: pyuvdata for the first, a cheap read of the columns the plan needs
     for the rest (``mmflow.io.ms_index`` with python-casacore, ``mmflow.io.uvh5_index`` with h5py),
     each checked against the first. None where that does not apply (then pyuvdata reads them all):
@@ -126,7 +129,7 @@ def _metadata_indexed(files, fmt, on_bad, kind):
             from mmflow.io import uvh5_index as indexer
     except ImportError:
         return None
-    phase = {"ms": "zenith", "uvh5": "drift"}[kind]
+    phase = {"ms": "phased", "uvh5": "drift"}[kind]
     skipped, indices, ref_uv = [], [], None
     for f in files:
         try:
@@ -145,7 +148,7 @@ def _metadata_indexed(files, fmt, on_bad, kind):
         log.warning("%s index of %s disagrees with pyuvdata's read: reading every file's metadata with pyuvdata",
                     kind, ref_file)
         return None
-    info = checks.file_info(ref_uv, ref_file)
+    info = checks.file_info(ref_uv, ref_file, calibrated_here)
     if info["phase"] != phase:
         return None
     indexer.check_against(indices[1:], indices[0], ref_uv, info)
@@ -162,13 +165,13 @@ def index_agrees(ix, uv):
 
 
 @lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad):
+def _plan(pattern, fmt, on_bad, calibrated_here=False):
     files = _files(pattern)
     fast = None
     kinds = {file_kind(f, fmt) for f in files}
     if len(files) > 2 and len(kinds) == 1 and kinds <= {"ms", "uvh5"}:
-        fast = _metadata_indexed(files, fmt, on_bad, kinds.pop())
-    metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
+        fast = _metadata_indexed(files, fmt, on_bad, kinds.pop(), calibrated_here)
+    metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad, calibrated_here)
     ref = metas[0]
     for f, info in zip(good, infos):
         if info["pols"] != infos[0]["pols"]:
@@ -187,6 +190,12 @@ def _plan(pattern, fmt, on_bad):
                              "ingest files from one array configuration per run")
         found.append(np.sort(np.stack([index[a1], index[a2]], 1), 1))
     pairs = np.unique(np.concatenate(found), axis=0)
+    # the antennas with data: an antenna table may list many more (the OVRO-LWA's MS lists 256
+    # stands for 20 with data); the layout and every per-antenna array keep only these
+    used = np.unique(pairs)
+    renumber = np.full(len(ants), -1, int)
+    renumber[used] = np.arange(len(used))
+    pairs, ants = renumber[pairs], ants[used]
     seen = {}
     all_t = []
     for fi, uv in enumerate(metas):
@@ -198,10 +207,10 @@ def _plan(pattern, fmt, on_bad):
             seen[key] = fi
             all_t.append((float(t), fi))
     all_t.sort()
-    enu = _antenna_enu(ref)
+    enu = _antenna_enu(ref)[used]
     lat, lon, alt = ref.telescope.location_lat_lon_alt_degrees
-    layout = Layout([str(n) for n in ref.telescope.antenna_names], enu, float(lat), float(lon), float(alt),
-                    provenance=f"ingested from {good[0]}")
+    names = [str(ref.telescope.antenna_names[k]) for k in used]
+    layout = Layout(names, enu, float(lat), float(lon), float(alt), provenance=f"ingested from {good[0]}")
     tint = float(np.median(np.asarray(ref.integration_time)))
     times = np.array([t for t, _ in all_t])
     return IngestPlan(good, times, np.array([fi for _, fi in all_t]), len(all_t), freqs, pairs, ants, layout,
@@ -301,3 +310,18 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     flagged = int(np.sum(np.all(wts == 0, axis=(1, 2, 3))))
     return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
             "nonfinite_flagged": int(n_nonfinite)}
+
+
+def sidereal_coverage(plan, n_bins):
+    """Fraction of ``n_bins`` sidereal bins that hold at least one of the plan's integrations (the
+    most any baseline can cover: :func:`mmflow.mmode.transform.sidereal_bins` of every row's LST
+    at the site, as the m-mode stage bins them)."""
+    from pyuvdata.utils import get_lst_for_time
+
+    from mmflow.mmode.transform import sidereal_bins
+
+    lay = plan.layout
+    lst = get_lst_for_time(np.asarray(plan.row_time), latitude=lay.lat_deg, longitude=lay.lon_deg,
+                           altitude=lay.height_m)
+    _, wsum, _ = sidereal_bins(lst, np.ones(len(lst)), None, n_bins, 0.0)
+    return float(np.mean(wsum > 0))

@@ -1,8 +1,15 @@
-"""The ``ingest`` stage: UVH5 / uvfits / MeasurementSet files read with pyuvdata into ``vis.zarr``."""
+"""The ``ingest`` stage: UVH5 / uvfits / MeasurementSet files read with pyuvdata into ``vis.zarr``.
+
+Its ``check`` runs the plan (every file's metadata and checks, :func:`mmflow.io.ingest.plan_ingest`)
+before the run does any work, and, when the run goes on to the m-mode stage, refuses an
+observation whose integrations cannot cover ``mmode.min_coverage`` of the sidereal bins (a single
+13 s snapshot, say): m-modes need a drift scan over (most of) a sidereal day.
+"""
 from __future__ import annotations
 
 import glob
 
+from mmflow.errors import CoverageError
 from mmflow.io.run_stores import vis_store
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.simulate import TIME_CHUNK, VIS_ARRAYS, layout_attrs, chunk_rows, time_keys, write_autos
@@ -13,6 +20,26 @@ def input_files(cfg):
     if not pattern:
         return []
     return sorted(glob.glob(pattern)) or ([pattern] if "*" not in pattern else [])
+
+
+def _ingest_check(cfg, running):
+    from mmflow.io.ingest import plan_ingest, sidereal_coverage
+    from mmflow.workflow.stages.mmodes import n_bins_of
+
+    plan = plan_ingest(cfg)
+    if "mmodes" not in running:
+        return
+    n_bins = n_bins_of(cfg, plan.integration_s)
+    covered = sidereal_coverage(plan, n_bins)
+    if covered < cfg.mmode.min_coverage:
+        span = plan.n_time * plan.integration_s
+        raise CoverageError(cfg.input.path, "input.path",
+                         f"{len(plan.files)} file(s) hold {plan.n_time} integration(s) of {plan.integration_s:g} s "
+                         f"({span / 60:.1f} min): {covered:.2%} of the {n_bins} sidereal bins, where m-modes need "
+                         f"mmode.min_coverage={cfg.mmode.min_coverage:g} of a sidereal day",
+                         "point input.path at a drift scan over a sidereal day (e.g. a directory of one file per "
+                         "integration: input.path='/data/day/*.ms'), or run only the stages before the m-modes "
+                         "(`mmflow ingest`, `mmflow calibrate`)")
 
 
 def _ingest_prepare(ctx):
@@ -42,7 +69,8 @@ def _ingest_task(ctx, key):
     return info
 
 
-register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz"), (), ("vis.zarr",),
-               _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files,
+register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "calibrate.enabled"), (),
+               ("vis.zarr",),
+               _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
                counters=("fully_flagged_integrations", "nonfinite_flagged"),
                description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files"))
