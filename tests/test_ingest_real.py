@@ -14,11 +14,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zarr
 
 from mmflow.cli import main
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from tests.rawfile_helpers import ingest, pyuvdata_reference
 
 DATA = Path(__file__).parent / "data"
 OVRO = "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"
@@ -49,38 +47,6 @@ def offline(monkeypatch):
     monkeypatch.setattr(socket, "create_connection", refuse)
     monkeypatch.setattr(astropy.utils.data, "download_file", refuse)
     monkeypatch.setattr(EarthLocation, "_site_registry", None)
-
-
-def ingest(path, run_dir, *extra):
-    cfg = load_config("workflows/uvh5-image.yaml", [f"run.directory={run_dir}", f"input.path={path}",
-                                                      "cluster.kind=synchronous", "calibrate.enabled=true", *extra])
-    run_workflow(cfg, only=["ingest"], progress=False, log=lambda *a: None)
-    return zarr.open_group(str(run_dir / "vis.zarr"), mode="r")
-
-
-def pyuvdata_reference(path):
-    """pyuvdata's read, unprojected, xx and yy, in the store's layout (integrations ascending, baselines
-    as (i <= j) pairs of the antennas with data); flagged or non-finite samples weigh 0."""
-    from pyuvdata import UVData
-
-    uv = UVData.from_file(str(path), run_check=False)
-    if not uv._check_for_cat_type("unprojected").all():
-        uv.unproject_phase()
-    uv.select(polarizations=[-5, -6])
-    ants = np.unique(np.concatenate([uv.ant_1_array, uv.ant_2_array]))
-    i, j = np.searchsorted(ants, uv.ant_1_array), np.searchsorted(ants, uv.ant_2_array)
-    lo, hi = np.minimum(i, j), np.maximum(i, j)
-    pairs = np.unique(np.stack([lo, hi], 1), axis=0)
-    times = np.unique(uv.time_array)
-    t = np.searchsorted(times, uv.time_array)
-    b = np.array([np.flatnonzero((pairs[:, 0] == x) & (pairs[:, 1] == y))[0] for x, y in zip(lo, hi)])
-    v = np.where((i > j)[:, None, None], np.conj(uv.data_array), uv.data_array)
-    vis = np.zeros((len(times), len(pairs), uv.Nfreqs, 2), complex)
-    w = np.zeros(vis.shape)
-    good = np.isfinite(v) & ~uv.flag_array
-    vis[t, b] = np.where(good, v, 0)
-    w[t, b] = np.where(good, uv.nsample_array, 0)
-    return uv, ants, pairs, vis, w
 
 
 @pytest.mark.parametrize("name", ["ovro", "lwasv", "hera"])

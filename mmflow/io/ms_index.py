@@ -6,8 +6,9 @@ MS files with it would read every file twice. The plan therefore reads the first
 pyuvdata (every check of ``mmflow.io.checks``) and, for every other MS, only the columns the
 plan needs, with python-casacore: the main table's ``TIME``, ``ANTENNA1``, ``ANTENNA2``,
 ``DATA_DESC_ID`` and the ``DATA`` unit, and the ``SPECTRAL_WINDOW``, ``ANTENNA`` and
-``POLARIZATION`` subtables. Each file is then checked against the first:
-same frequencies, same antenna table (absolute positions within ``checks.POSITION_TOL_M``),
+``POLARIZATION`` subtables. Each file is then checked against the first (frequencies may
+differ: subbands, grouped by the plan, :mod:`mmflow.io.channels`):
+same antenna table (absolute positions within ``checks.POSITION_TOL_M``),
 same correlation types (so pyuvdata gives it the same polarisation axis and Stokes-I recipe),
 same units, one spectral window, no duplicated (time, baseline) row. Its phase centre, whatever
 it is, is undone from the file's own ``UVW`` (:mod:`mmflow.io.ms_read`), as pyuvdata's
@@ -92,9 +93,6 @@ def check_against(indices, ref, ref_uv, info):
         if ix.n_ddid != 1:
             raise InputError(ix.path, "DATA_DESC_ID", f"{ix.n_ddid} spectral windows / polarisation setups",
                              "split the MS by spectral window (one setup per run)")
-        if ix.freqs.shape != ref.freqs.shape or not np.allclose(ix.freqs, ref.freqs):
-            raise InputError(ix.path, "freq_array", f"frequencies differ from {ref.path}",
-                             "ingest one spectral setup per run (select channels first)")
         if not np.array_equal(ix.corr_type, ref.corr_type):
             raise InputError(ix.path, "POLARIZATION.CORR_TYPE", f"correlation types {ix.corr_type.ravel().tolist()} "
                              f"differ from {ref.path}'s {ref.corr_type.ravel().tolist()}",

@@ -69,7 +69,8 @@ def _ingest_task(ctx, key):
     return info
 
 
-register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "calibrate.enabled"), (),
+register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz",
+                          "calibrate.enabled"), (),
                ("vis.zarr",),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
                counters=("fully_flagged_integrations", "nonfinite_flagged"),
