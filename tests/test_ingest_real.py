@@ -65,6 +65,18 @@ def test_real_file_ingested_offline_equals_pyuvdata_read_and_unprojection(files,
     lat, lon, _ = uv.telescope.location_lat_lon_alt_degrees
     assert abs(g.attrs["lat_deg"] - lat) < 1e-9 and abs(g.attrs["lon_deg"] - lon) < 1e-9
     np.testing.assert_allclose(g["lst"][:], np.unique(uv.lst_array), rtol=0, atol=1e-9)
+    if name == "hera":
+        assert "vis_cross" not in g and g.attrs["cross_pols"] == []
+    else:  # xy and yx carried beside xx and yy
+        assert g.attrs["cross_pols"] == ["xy", "yx"]
+        _, _, _, xvis, xw = pyuvdata_reference(files[name], pols=(-7, -8))
+        np.testing.assert_array_equal(g["weights_cross"][:], xw)
+        np.testing.assert_allclose(g["vis_cross"][:], xvis, rtol=0, atol=4 * np.finfo(np.float32).eps * scale)
+        assert np.abs(xvis).max() > 0 and np.abs(xvis.imag).max() > 0
+        parallel_only = ingest(files[name], tmp_path / "no_cross", "input.nonfinite=flag", "input.cross_hands=false")
+        assert "vis_cross" not in parallel_only  # what every stage reads is the same, bit for bit
+        for key in ("vis", "weights", "autos", "lst"):
+            np.testing.assert_array_equal(parallel_only[key][:], g[key][:], err_msg=key)
 
 
 def test_layouts_of_the_real_files(files, offline):

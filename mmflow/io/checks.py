@@ -12,7 +12,7 @@ import logging
 import numpy as np
 
 from mmflow.errors import InputError
-from mmflow.io.polarization import stokes_i_recipe, stored_names
+from mmflow.io.polarization import cross_recipe, stokes_i_recipe, stored_names
 from mmflow.sky.units import jy_per_sr_per_kelvin
 
 log = logging.getLogger("mmflow.ingest")
@@ -128,13 +128,18 @@ def nonfinite(vis, flagged, what, mode):
 def file_info(uv, what, calibrated_here=False):
     """Check one file's metadata; return what a task needs to make Stokes I in Jy from it:
     ``{"phase": "drift"|"phased", "vis_units": ..., "pol_indices": [...], "pol_numbers": [-5, -6],
-    "pols": ['xx', 'yy']}`` (indices along pyuvdata's polarisation axis, and their pyuvdata numbers)
+    "pols": ['xx', 'yy'], "cross_indices", "cross_numbers", "cross_pols": ['xy', 'yx']}`` (indices along
+    pyuvdata's polarisation axis, and their pyuvdata numbers; the cross hands of a parallel pair,
+    :func:`mmflow.io.polarization.cross_recipe`)
     (``calibrated_here``: see :func:`unit_scale`)."""
     indices, single = stokes_i_recipe(uv.polarization_array, what)
     if single:
         log.info("%s: one parallel-hand polarisation stands in for Stokes I", what)
     unit_scale(uv.vis_units, uv.freq_array, what, calibrated_here)
     duplicate_rows(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array), what)
+    cross = cross_recipe(uv.polarization_array, indices)
     return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices],
             "pol_numbers": [int(uv.polarization_array[i]) for i in indices],
-            "pols": stored_names(uv.polarization_array, indices)}
+            "pols": stored_names(uv.polarization_array, indices), "cross_indices": [int(i) for i in cross],
+            "cross_numbers": [int(uv.polarization_array[i]) for i in cross],
+            "cross_pols": stored_names(uv.polarization_array, cross)}

@@ -61,6 +61,11 @@ class IngestPlan:
         """The polarisations kept (``vis.zarr``'s ``pol`` axis): the same for every file."""
         return self.file_info[0]["pols"]
 
+    @property
+    def cross_pols(self):
+        """The cross hands carried beside them (``vis.zarr``'s ``vis_cross``; ``[]`` when none)."""
+        return self.file_info[0].get("cross_pols", [])
+
 
 def plan_ingest(cfg):
     """The ingest plan of ``cfg.input`` (cached: the stage's check and its prepare share it).
@@ -68,7 +73,8 @@ def plan_ingest(cfg):
     calibrated_here = bool(getattr(getattr(cfg, "calibrate", None), "enabled", False))
     want = getattr(getattr(cfg, "observation", None), "freqs_mhz", None)
     return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file, calibrated_here,
-                 None if want is None else tuple(want), int(getattr(cfg.input, "average_channels", 1)))
+                 None if want is None else tuple(want), int(getattr(cfg.input, "average_channels", 1)),
+                 bool(getattr(cfg.input, "cross_hands", True)))
 
 
 def _files(pattern):
@@ -188,7 +194,7 @@ def _channel_plan(good, metas, want_mhz, n_avg):
 
 
 @lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1):
+def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, cross_hands=True):
     files = _files(pattern)
     fast = None
     kinds = {file_kind(f, fmt) for f in files}
@@ -196,10 +202,13 @@ def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1):
         fast = _metadata_indexed(files, fmt, on_bad, kinds.pop(), calibrated_here)
     metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad, calibrated_here)
     ref = metas[0]
+    if not cross_hands:  # input.cross_hands=false: the Stokes-I hands only
+        infos = [{**info, "cross_indices": [], "cross_numbers": [], "cross_pols": []} for info in infos]
     for f, info in zip(good, infos):
-        if info["pols"] != infos[0]["pols"]:
-            raise InputError(f, "polarization_array", f"keeps polarisations {info['pols']} where {good[0]} keeps "
-                             f"{infos[0]['pols']}", "ingest files with the same polarisations in one run")
+        kept, ref_kept = info["pols"] + info["cross_pols"], infos[0]["pols"] + infos[0]["cross_pols"]
+        if kept != ref_kept:
+            raise InputError(f, "polarization_array", f"keeps polarisations {kept} where {good[0]} keeps "
+                             f"{ref_kept}", "ingest files with the same polarisations in one run")
     freqs, width, chans, set_of = _channel_plan(good, metas, want_mhz, n_avg)
     infos = [{**info, **ch} for info, ch in zip(infos, chans)]
     keep = [k for k, ch in enumerate(chans) if ch["out"]]  # files holding no kept channel are not read
@@ -290,6 +299,8 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
     freqs = g["freqs_hz"][:]
     n, nbl, nf, npol = len(row_time), len(pairs), len(freqs), g["vis"].shape[3]
+    npar = npol
+    npol += g["vis_cross"].shape[3] if "vis_cross" in g else 0  # the cross hands follow the Stokes-I hands
     mode = getattr(cfg.input, "nonfinite", "error")
     chunk_keys = _time_key(row_time)
     index = _index_lookup(ant_numbers)
@@ -327,16 +338,25 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
             v = np.where(finite, v, 0)
         if swap.any():
             v[swap] = np.conj(v[swap])
+            if npol - npar == 2:  # V_xy(i, j) = conj(V_yx(j, i)): the cross hands trade places
+                perm = list(range(npar)) + [npar + 1, npar]
+                for x in (v, fl, ns, finite):
+                    x[swap] = x[swap][:, :, perm]
+            elif npol > npar:  # the other cross hand is not in the file
+                fl[swap, :, npar:] = True
         if cfg.input.conjugate:
             v = np.conj(v)
         vis[r[:, None], b[:, None], out[None, :]] = v
         wts[r[:, None], b[:, None], out[None, :]] = np.where(fl | ~finite, 0.0, ns)
         lst[r] = p.lst[mine]
-    g["vis"][row0:row0 + n] = vis
-    g["weights"][row0:row0 + n] = wts
+    g["vis"][row0:row0 + n] = vis[..., :npar]
+    g["weights"][row0:row0 + n] = wts[..., :npar]
+    if npol > npar:
+        g["vis_cross"][row0:row0 + n] = vis[..., npar:]
+        g["weights_cross"][row0:row0 + n] = wts[..., npar:]
     g["lst"][row0:row0 + n] = lst
     g["time_jd"][row0:row0 + n] = row_time
-    flagged = int(np.sum(np.all(wts == 0, axis=(1, 2, 3))))
+    flagged = int(np.sum(np.all(wts[..., :npar] == 0, axis=(1, 2, 3))))
     return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
             "nonfinite_flagged": int(n_nonfinite)}
 

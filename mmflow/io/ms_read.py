@@ -16,7 +16,7 @@ docs, "MeasurementSet"; ``tests/test_ingest_formats.py`` compares the stores to 
 * phased rows (any phase centre) unprojected to a drift scan as ``unproject_phase`` does: new w = 0,
   ``V *= exp(-2 pi i (0 - w) nu / c)`` with ``w`` pyuvdata's (sign-flipped) ``UVW[:, 2]``,
   in the same order of operations, in the column's precision;
-* autocorrelations' parallel hands made real, as the UVH5 reader does.
+* autocorrelations' parallel hands made real, as the UVH5 reader does (cross hands stay complex).
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ import numpy as np
 SPEED_OF_LIGHT = 299792458.0  # m/s (astropy.constants.c)
 
 
-def read_ms_direct(path, pol_numbers, phased, site, lock=None):
+def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):
     """A :class:`mmflow.io.file_data.FileData` of one MS's kept polarisations.
 
     Parameters
@@ -42,6 +42,9 @@ def read_ms_direct(path, pol_numbers, phased, site, lock=None):
         Where the LSTs are computed (the plan's checked layout).
     lock : threading.Lock, optional
         Held while casacore reads (its table cache is not thread-safe).
+    n_parallel : int, optional
+        How many of ``pol_numbers`` (the first) are parallel hands, made real in autocorrelations
+        (default: all).
     """
     from casacore.tables import table
     from pyuvdata.utils import get_lst_for_time
@@ -86,5 +89,5 @@ def read_ms_direct(path, pol_numbers, phased, site, lock=None):
     vis, flg, ns = select_pols(data, flags, np.asarray(nsample, float), [corr.index(int(n)) for n in pol_numbers])
     auto = ant1 == ant2
     if auto.any():
-        vis[auto] = vis[auto].real
+        vis[auto, :, :n_parallel] = vis[auto, :, :n_parallel].real
     return FileData(time_jd, ant1, ant2, lst, vis, flg, ns, freqs)

@@ -71,14 +71,16 @@ def read_metadata(path, fmt=None):
 
 
 def read_file(path, fmt=None, info=None, site=None):
-    """The kept polarisations (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
-    here from the file when None); ``site`` = ``(lat_deg, lon_deg, height_m)`` of the checked layout lets a
-    MeasurementSet be read directly (its LSTs computed from its times there)."""
+    """The kept polarisations (Jy) of one file: the Stokes-I hands, then their cross hands (``FileData.vis``'s
+    last axis: ``info["pols"] + info["cross_pols"]``). ``info`` is the plan's ``checks.file_info`` for it
+    (computed here from the file when None); ``site`` = ``(lat_deg, lon_deg, height_m)`` of the checked layout
+    lets a MeasurementSet be read directly (its LSTs computed from its times there)."""
     kind = file_kind(path, fmt)
     if info is not None and info["phase"] == "drift" and kind == "uvh5":
-        out = _read_uvh5_direct(path, info["pol_indices"])
+        out = _read_uvh5_direct(path, _wanted(info, "indices"), len(info["pol_indices"]))
     elif info is not None and site is not None and kind == "ms":
-        out = read_ms_direct(path, info["pol_numbers"], info["phase"] == "phased", site, _CASACORE_LOCK)
+        out = read_ms_direct(path, _wanted(info, "numbers"), info["phase"] == "phased", site, _CASACORE_LOCK,
+                             len(info["pol_numbers"]))
     else:
         out, info = _read_pyuvdata(path, fmt, info)
     # the plan (or file_info in _read_pyuvdata) has checked the unit against calibrate.enabled
@@ -86,6 +88,12 @@ def read_file(path, fmt=None, info=None, site=None):
     if np.any(scale != 1.0):
         out.vis = out.vis * scale[None, :, None]
     return out
+
+
+def _wanted(info, what):
+    """The polarisations to read: the Stokes-I hands, then the cross hands (``what``: "indices" along
+    pyuvdata's axis or pyuvdata "numbers")."""
+    return list(info[f"pol_{what}"]) + list(info.get(f"cross_{what}", []))
 
 
 def _read_pyuvdata(path, fmt, info):
@@ -104,16 +112,17 @@ def _read_pyuvdata(path, fmt, info):
     if info["phase"] == "phased":
         uv.unproject_phase()
     vis, flags, nsample = select_pols(np.asarray(uv.data_array), np.asarray(uv.flag_array),
-                                      np.asarray(uv.nsample_array), info["pol_indices"])
+                                      np.asarray(uv.nsample_array), _wanted(info, "indices"))
     raw = FileData(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array),
                np.asarray(uv.lst_array), vis, flags, nsample, np.asarray(uv.freq_array, float).ravel())
     return raw, info
 
 
-def _read_uvh5_direct(path, pol_indices):
+def _read_uvh5_direct(path, pol_indices, n_parallel):
     """The UVH5 datasets themselves (format: pyuvdata docs, "UVH5 file format"): rows in file
     order, ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex or an integer ``r``/``i`` compound.
-    Autocorrelations' parallel hands are made real, as pyuvdata's ``fix_autos`` does on read."""
+    Autocorrelations' parallel hands (the first ``n_parallel`` of ``pol_indices``) are made real,
+    as pyuvdata's ``fix_autos`` does on read."""
     import h5py
 
     with h5py.File(str(path), "r") as f:
@@ -135,5 +144,5 @@ def _read_uvh5_direct(path, pol_indices):
     vis, flags, nsample = select_pols(vis, flags, nsample, idx)
     auto = ant1 == ant2
     if auto.any():
-        vis[auto] = vis[auto].real
+        vis[auto, :, :n_parallel] = vis[auto, :, :n_parallel].real
     return FileData(time_jd, ant1, ant2, lst, vis, flags, nsample, freqs)

@@ -187,6 +187,8 @@ class InputConfig(Section):
     nonfinite: Literal["error", "flag"] = Field(
         "error", description="Unflagged NaN/inf samples in input files: refuse the file, or flag them "
         "(counted and logged).")
+    cross_hands: bool = Field(True, description="Carry the cross hands (xy, yx / rl, lr) of files that hold them "
+                              "in vis.zarr's vis_cross (calibration and Stokes I use the parallel hands).")
     average_channels: int = Field(1, ge=1, description="Average this many file channels into each ingested "
                                   "channel: around each of observation.freqs_mhz, or consecutive blocks when it is "
                                   "null (flags and nsample weights respected, as pyuvdata's frequency_average).")

@@ -14,6 +14,9 @@ from mmflow.io.run_stores import vis_store
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.simulate import TIME_CHUNK, VIS_ARRAYS, layout_attrs, chunk_rows, time_keys, write_autos
 
+CROSS_ARRAYS = ("vis_cross", "weights_cross")
+
+
 def input_files(cfg):
     """The files ``input.path`` names (a glob or one path), as the ingest plan sees them."""
     pattern = cfg.input.path
@@ -48,6 +51,7 @@ def _ingest_prepare(ctx):
     plan = plan_ingest(ctx.cfg)
     width = getattr(plan, "channel_width_hz", None)
     attrs = dict(layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files), pols=plan.pols,
+                 cross_pols=plan.cross_pols,
                  skipped_files=list(plan.skipped), integration_s=plan.integration_s,
                  channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3)
     g = ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,
@@ -63,7 +67,7 @@ def _ingest_task(ctx, key):
     t0, t1 = chunk_rows(key, g["lst"].shape[0])
     info = ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), t0, t1)
     rows = (slice(t0, t1),)
-    for name in VIS_ARRAYS:  # ingest writes the rows itself; record what it wrote
+    for name in VIS_ARRAYS + tuple(CROSS_ARRAYS if "vis_cross" in g else ()):  # ingest writes the rows itself
         ctx.ledger.record(g[name], rows)
     write_autos(ctx, g, rows, g["vis"][t0:t1], g["weights"][t0:t1])
     return info
