@@ -1,8 +1,15 @@
-"""Keep astropy from touching the network (the one place where this is set).
+"""Keep astropy (and pyuvdata through it) from touching the network (the one place where this is set).
 
 The machines mmflow runs on (and HPC compute nodes in general) often have no internet.
 astropy would otherwise try to download IERS-A tables for UT1-UTC and polar motion;
 we use the bundled ``astropy-iers-data`` tables and degrade gracefully beyond them.
+
+astropy also downloads its observatory list (``coordinates/sites.json``) the first time anyone
+asks for site names, and pyuvdata asks whenever it reads a MeasurementSet that does not store
+its telescope location (``pyuvdata.telescopes.known_telescopes``): a telescope name astropy does
+not know (``LWASV``, ``OVRO_MMA``) then failed with a URL error. :func:`offline_site_registry`
+gives astropy a registry with no named site when the list is not in astropy's cache, so pyuvdata
+takes such a telescope's location from the file itself (its antenna positions).
 """
 import warnings
 
@@ -17,3 +24,27 @@ def configure_astropy():
     iers.conf.iers_degraded_accuracy = "warn"
     data_conf.allow_internet = False
     warnings.filterwarnings("ignore", module="astropy.utils.iers")
+
+
+def offline_site_registry():
+    """Make astropy's site registry available without a download (idempotent; call before pyuvdata reads).
+
+    astropy's ``sites.json`` is read from astropy's cache when it is there (no download is tried);
+    otherwise the registry holds one site with an empty name (``EarthLocation.get_site_names`` is
+    then non-empty, so astropy never tries again, and pyuvdata drops empty names, so no telescope
+    is matched by it). Returns the number of named sites known.
+    """
+    from astropy.coordinates import EarthLocation
+    from astropy.coordinates.sites import SiteRegistry
+    from astropy.utils.data import conf, is_url_in_cache
+
+    configure_astropy()
+    if not EarthLocation._site_registry:
+        urls = [base + "coordinates/sites.json" for base in (conf.dataurl, conf.dataurl_mirror)]
+        if any(is_url_in_cache(u) for u in urls):
+            EarthLocation._get_site_registry()  # read from astropy's cache
+        else:
+            reg = SiteRegistry()
+            reg.add_site([""], EarthLocation.from_geocentric(0.0, 0.0, 0.0, unit="m"))
+            EarthLocation._site_registry = reg
+    return len([n for n in EarthLocation._site_registry.names if n])

@@ -83,9 +83,9 @@ def test_mixed_frequencies_and_duplicate_times_are_rejected(scan, tmp_path):
     mixed = tmp_path / "uvh5"
     shutil.copytree(d, mixed)
     uv = UVData.from_file(str(mixed / "scan_004.uvh5"))
-    uv.freq_array = uv.freq_array + 1e5
+    uv.freq_array = uv.freq_array + 0.25 * uv.channel_width  # overlapping, not equal: not a subband either
     uv.write_uvh5(str(mixed / "scan_004.uvh5"), clobber=True)
-    with pytest.raises(InputError, match=r"scan_004.uvh5.*freq_array"):
+    with pytest.raises(InputError, match=r"scan_004.uvh5.*freq_array.*overlap"):
         run_workflow(_cfg(tmp_path / "r1", str(mixed / "*.uvh5")), progress=False, log=lambda *a: None)
     dup = tmp_path / "dup" / "uvh5"
     shutil.copytree(d, dup)

@@ -127,13 +127,16 @@ def test_cross_hands_alone_are_refused(uv, tmp_path):
         ingest(tmp_path / "run1", str(p))
 
 
-def test_phased_data_refused_but_zenith_snapshots_unprojected(uv, reference, tmp_path):
+def test_phased_data_unprojected_exactly_any_phase_centre(uv, reference, tmp_path):
+    """A file phased to a fixed sidereal centre (many integrations) and one file per integration phased
+    to its own zenith (as MeasurementSets are) are unprojected as pyuvdata's unproject_phase does:
+    the store equals the drift scan's."""
     phased = uv.copy()
     phased.phase(ra=1.0, dec=0.5, cat_name="tracked")
-    p = write(phased, tmp_path / "ph" / "tracked.uvh5")
-    with pytest.raises(InputError, match=r"tracked.uvh5.*phase_center_catalog \(cat_type=sidereal\).*unproject_phase"):
-        ingest(tmp_path / "run", str(p))
-    # one file per integration, each phased to its own zenith (as MeasurementSets are): exact unprojection
+    g = ingest(tmp_path / "run", str(write(phased, tmp_path / "ph" / "tracked.uvh5")))
+    ref = reference["vis"][:]
+    np.testing.assert_array_equal(g["weights"][:], reference["weights"][:])
+    assert np.max(np.abs(g["vis"][:] - ref)) <= 4 * np.finfo(np.float32).eps * np.max(np.abs(ref))
     d = tmp_path / "snap"
     for k, t in enumerate(np.unique(uv.time_array)):
         part = uv.select(times=[t], inplace=False)
@@ -141,15 +144,16 @@ def test_phased_data_refused_but_zenith_snapshots_unprojected(uv, reference, tmp
         write(part, d / f"snap_{k}.uvh5")
     g = ingest(tmp_path / "run_snap", str(d / "*.uvh5"))
     np.testing.assert_array_equal(g["weights"][:], reference["weights"][:])
-    ref = reference["vis"][:]
     assert np.max(np.abs(g["vis"][:] - ref)) <= 4 * np.finfo(np.float32).eps * np.max(np.abs(ref))
 
 
 def test_units_uncalibrated_refused_kelvin_steradian_converted(uv, reference, tmp_path):
     bad = uv.copy()
     bad.vis_units = "uncalib"
-    with pytest.raises(InputError, match=r"raw.uvh5.*vis_units.*uncalibrated.*calibrate first"):
+    with pytest.raises(InputError, match=r"raw.uvh5.*vis_units.*uncalibrated.*calibrate.enabled=true"):
         ingest(tmp_path / "run", str(write(bad, tmp_path / "u" / "raw.uvh5")))
+    g = ingest(tmp_path / "run_u", str(write(bad, tmp_path / "u" / "raw.uvh5")), "calibrate.enabled=true")
+    np.testing.assert_array_equal(g["vis"][:], reference["vis"][:])  # kept as they are: the gains set the scale
     ksr = uv.copy()
     ksr.vis_units = "K str"
     g = ingest(tmp_path / "run_k", str(write(ksr, tmp_path / "k" / "ksr.uvh5")))

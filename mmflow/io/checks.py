@@ -12,52 +12,47 @@ import logging
 import numpy as np
 
 from mmflow.errors import InputError
-from mmflow.io.polarization import stokes_i_recipe, stored_names
+from mmflow.io.polarization import cross_recipe, stokes_i_recipe, stored_names
 from mmflow.sky.units import jy_per_sr_per_kelvin
 
 log = logging.getLogger("mmflow.ingest")
 
-#: a phase centre within this angle of the zenith of every integration of a file is a
-#: snapshot phased to zenith (one MeasurementSet per integration, as the OVRO-LWA writes):
-#: it is unprojected exactly (pyuvdata ``unproject_phase``) rather than refused.
-ZENITH_TOL_DEG = 0.5
 #: antenna positions (absolute ECEF) and the telescope location must agree across files to this.
 POSITION_TOL_M = 0.01
+#: phase-centre types pyuvdata's ``unproject_phase`` undoes exactly (it uses only each row's ``w``).
+PROJECTED = ("sidereal", "ephem", "driftscan")
 
 
 def phase_state(uv, what):
-    """``"drift"`` for unprojected data, ``"zenith"`` for data phased to the zenith of each
-    integration (exactly undone with pyuvdata's ``unproject_phase``); otherwise an error.
+    """``"drift"`` for unprojected data, ``"phased"`` for data phased to any sidereal (or ephemeris,
+    or fixed az/el) phase centre, one or many integrations per file; otherwise an error.
 
-    The zenith test compares each row's apparent phase centre (``phase_center_app_ra/dec``)
-    with the apparent zenith (RA = the row's LST, Dec = the site's latitude).
+    Phased rows are unprojected exactly as pyuvdata's ``UVData.unproject_phase`` does:
+    ``V_drift = V exp(-2 pi i (0 - w) nu / c)`` with ``w`` the row's ``uvw_array[:, 2]`` (the
+    projection towards the phase centre), whatever the centre: the phase centre itself is not
+    needed, only the file's ``w``.
     """
     cat = uv.phase_center_catalog or {}
     ids = np.unique(np.asarray(uv.phase_center_id_array)) if uv.phase_center_id_array is not None else []
     types = {int(i): cat[int(i)]["cat_type"] for i in ids if int(i) in cat}
     if all(t == "unprojected" for t in types.values()):
         return "drift"
-    lat = uv.telescope.location.lat.rad
-    ra = np.asarray(uv.phase_center_app_ra, float)
-    dec = np.asarray(uv.phase_center_app_dec, float)
-    lst = np.asarray(uv.lst_array, float)
-    cos_sep = np.sin(dec) * np.sin(lat) + np.cos(dec) * np.cos(lat) * np.cos(ra - lst)
-    sep = float(np.rad2deg(np.arccos(np.clip(np.min(cos_sep), -1.0, 1.0))))
-    if sep <= ZENITH_TOL_DEG:
-        return "zenith"
-    kinds = sorted(set(types.values()))
-    raise InputError(what, f"phase_center_catalog (cat_type={','.join(kinds)})",
-                     f"the data are phased to a fixed phase centre up to {sep:.2f} deg from the zenith, not a "
-                     "drift scan (mmflow images drift scans; phased data would be imaged with wrong phases)",
-                     "unproject to drift with pyuvdata 3.x: uv = UVData.from_file(f); uv.unproject_phase(); "
-                     "uv.write_uvh5(out)")
+    other = sorted({t for t in types.values() if t not in PROJECTED + ("unprojected",)})
+    if other:
+        raise InputError(what, f"phase_center_catalog (cat_type={','.join(other)})",
+                         f"phase centres of type {other} are not undone by a w projection alone",
+                         "unproject to drift with pyuvdata 3.x: uv = UVData.from_file(f); uv.unproject_phase(); "
+                         "uv.write_uvh5(out)")
+    return "phased"
 
 
-def unit_scale(units, freqs, what):
+def unit_scale(units, freqs, what, calibrated_here=False):
     """Factor per frequency that takes visibilities in ``units`` (pyuvdata ``vis_units``) to Jy.
 
     ``Jy``: 1. ``K str`` (Rayleigh-Jeans brightness temperature times solid angle):
-    ``2 k nu^2 / c^2 / 1e-26`` Jy per K sr, exact. ``uncalib`` and anything else: an error.
+    ``2 k nu^2 / c^2 / 1e-26`` Jy per K sr, exact. ``uncalib`` or any other unit: 1 (kept as
+    they are) when ``calibrated_here`` (``calibrate.enabled``: the gains solved against the
+    calibration sky model in Jy set the flux scale), else an error naming ``calibrate.enabled``.
     """
     units = str(units)
     freqs = np.asarray(freqs, float).ravel()
@@ -65,12 +60,12 @@ def unit_scale(units, freqs, what):
         return np.ones_like(freqs)
     if units == "K str":
         return jy_per_sr_per_kelvin(freqs)
-    if units == "uncalib":
-        raise InputError(what, "vis_units", "the visibilities are uncalibrated ('uncalib'); mmflow needs Jy",
-                         "calibrate first (e.g. with a sky model in CASA or pyuvdata's uvcalibrate), then set "
-                         "vis_units='Jy'")
-    raise InputError(what, "vis_units", f"unknown visibility unit {units!r}",
-                     "write the data in Jy (or 'K str', converted exactly at ingest)")
+    if calibrated_here:
+        return np.ones_like(freqs)
+    what_units = "uncalibrated ('uncalib')" if units == "uncalib" else f"in an unknown unit ({units!r})"
+    raise InputError(what, "vis_units", f"the visibilities are {what_units}; without calibration mmflow needs Jy "
+                     "(or 'K str')", "set calibrate.enabled=true (the gains, solved against calibrate.sources, set "
+                     "the flux scale), or give data calibrated to Jy")
 
 
 def antenna_ecef(uv):
@@ -130,13 +125,21 @@ def nonfinite(vis, flagged, what, mode):
     return bad, n
 
 
-def file_info(uv, what):
+def file_info(uv, what, calibrated_here=False):
     """Check one file's metadata; return what a task needs to make Stokes I in Jy from it:
-    ``{"phase": "drift"|"zenith", "vis_units": ..., "pol_indices": [...], "pols": ['xx', 'yy']}``."""
+    ``{"phase": "drift"|"phased", "vis_units": ..., "pol_indices": [...], "pol_numbers": [-5, -6],
+    "pols": ['xx', 'yy'], "cross_indices", "cross_numbers", "cross_pols": ['xy', 'yx']}`` (indices along
+    pyuvdata's polarisation axis, and their pyuvdata numbers; the cross hands of a parallel pair,
+    :func:`mmflow.io.polarization.cross_recipe`)
+    (``calibrated_here``: see :func:`unit_scale`)."""
     indices, single = stokes_i_recipe(uv.polarization_array, what)
     if single:
         log.info("%s: one parallel-hand polarisation stands in for Stokes I", what)
-    unit_scale(uv.vis_units, uv.freq_array, what)
+    unit_scale(uv.vis_units, uv.freq_array, what, calibrated_here)
     duplicate_rows(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array), what)
+    cross = cross_recipe(uv.polarization_array, indices)
     return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices],
-            "pols": stored_names(uv.polarization_array, indices)}
+            "pol_numbers": [int(uv.polarization_array[i]) for i in indices],
+            "pols": stored_names(uv.polarization_array, indices), "cross_indices": [int(i) for i in cross],
+            "cross_numbers": [int(uv.polarization_array[i]) for i in cross],
+            "cross_pols": stored_names(uv.polarization_array, cross)}

@@ -32,6 +32,7 @@ import numpy as np
 
 from mmflow.errors import InputError
 from mmflow.io import checks
+from mmflow.io.channels import average_channels
 from mmflow.io.readers import file_kind, read_file, read_metadata
 from mmflow.telescope.layout import Layout
 from mmflow.threads import n_threads
@@ -43,25 +44,37 @@ log = logging.getLogger("mmflow.ingest")
 class IngestPlan:
     files: list
     row_time: np.ndarray  # (n_time,) UTC JD of each row, ascending
-    row_file: np.ndarray  # (n_time,) index into ``files`` of the file holding each row
+    file_rows: np.ndarray  # (n_file, 2) first and last row (inclusive) of each file's integrations
     n_time: int
-    freqs_hz: np.ndarray
+    freqs_hz: np.ndarray  # (n_out,) the kept (averaged) channels' frequencies
+    channel_width_hz: float  # the kept channels' width (file channel width x input.average_channels)
     pairs: np.ndarray
     ant_numbers: np.ndarray
     layout: Layout
     epoch_jd: float
     integration_s: float
     skipped: list = field(default_factory=list)
-    file_info: list = field(default_factory=list)  # per file: {"phase", "vis_units", "pol_indices", "pols"}
+    file_info: list = field(default_factory=list)  # per file: checks.file_info + "out" / "blocks" (its channels)
 
     @property
     def pols(self):
         """The polarisations kept (``vis.zarr``'s ``pol`` axis): the same for every file."""
         return self.file_info[0]["pols"]
 
+    @property
+    def cross_pols(self):
+        """The cross hands carried beside them (``vis.zarr``'s ``vis_cross``; ``[]`` when none)."""
+        return self.file_info[0].get("cross_pols", [])
+
 
 def plan_ingest(cfg):
-    return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file)
+    """The ingest plan of ``cfg.input`` (cached: the stage's check and its prepare share it).
+    Units other than Jy / K sr are accepted only when ``calibrate.enabled``."""
+    calibrated_here = bool(getattr(getattr(cfg, "calibrate", None), "enabled", False))
+    want = getattr(getattr(cfg, "observation", None), "freqs_mhz", None)
+    return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file, calibrated_here,
+                 None if want is None else tuple(want), int(getattr(cfg.input, "average_channels", 1)),
+                 bool(getattr(cfg.input, "cross_hands", True)))
 
 
 def _files(pattern):
@@ -89,7 +102,7 @@ def _unreadable(f, exc, on_bad, skipped):
     skipped.append(msg)
 
 
-def _metadata_pyuvdata(files, fmt, on_bad):
+def _metadata_pyuvdata(files, fmt, on_bad, calibrated_here=False):
     """Every file's metadata with pyuvdata (read concurrently), each checked against the first."""
     with ThreadPoolExecutor(max(1, min(n_threads(), len(files)))) as ex:
         results = list(ex.map(lambda f: _try_metadata(f, fmt), files))
@@ -103,17 +116,13 @@ def _metadata_pyuvdata(files, fmt, on_bad):
     if not metas:
         raise InputError(files[0], "input.path", "no readable file", "check the files (see the skipped list)")
     ref = metas[0]
-    freqs = np.asarray(ref.freq_array).ravel()
-    for f, uv in zip(good[1:], metas[1:]):
-        if not np.allclose(np.asarray(uv.freq_array).ravel(), freqs):
-            raise InputError(f, "freq_array", f"frequencies differ from {good[0]}",
-                             "ingest one spectral setup per run (select channels first)")
+    for f, uv in zip(good[1:], metas[1:]):  # frequencies may differ: subbands, grouped by the plan
         checks.compare_telescope(uv, ref, f, good[0])
-    infos = [checks.file_info(uv, f) for f, uv in zip(good, metas)]
+    infos = [checks.file_info(uv, f, calibrated_here) for f, uv in zip(good, metas)]
     return metas, good, skipped, infos
 
 
-def _metadata_indexed(files, fmt, on_bad, kind):
+def _metadata_indexed(files, fmt, on_bad, kind, calibrated_here=False):
     """Many files of one kind: pyuvdata for the first, a cheap read of the columns the plan needs
     for the rest (``mmflow.io.ms_index`` with python-casacore, ``mmflow.io.uvh5_index`` with h5py),
     each checked against the first. None where that does not apply (then pyuvdata reads them all):
@@ -126,7 +135,7 @@ def _metadata_indexed(files, fmt, on_bad, kind):
             from mmflow.io import uvh5_index as indexer
     except ImportError:
         return None
-    phase = {"ms": "zenith", "uvh5": "drift"}[kind]
+    phase = {"ms": "phased", "uvh5": "drift"}[kind]
     skipped, indices, ref_uv = [], [], None
     for f in files:
         try:
@@ -145,7 +154,7 @@ def _metadata_indexed(files, fmt, on_bad, kind):
         log.warning("%s index of %s disagrees with pyuvdata's read: reading every file's metadata with pyuvdata",
                     kind, ref_file)
         return None
-    info = checks.file_info(ref_uv, ref_file)
+    info = checks.file_info(ref_uv, ref_file, calibrated_here)
     if info["phase"] != phase:
         return None
     indexer.check_against(indices[1:], indices[0], ref_uv, info)
@@ -161,20 +170,49 @@ def index_agrees(ix, uv):
             and np.array_equal(ix.ant_1_array, uv.ant_1_array) and np.array_equal(ix.ant_2_array, uv.ant_2_array))
 
 
+def _file_freqs(meta):
+    """A file's channel frequencies (Hz) from its pyuvdata metadata or cheap index."""
+    return np.asarray(meta.freq_array if hasattr(meta, "freq_array") else meta.freqs, float).ravel()
+
+
+def _channel_plan(good, metas, want_mhz, n_avg):
+    """``(freqs_hz, width_hz, per-file {"out", "blocks"}, set_of_file)``: the kept channels
+    (:mod:`mmflow.io.channels`) and, for every file, which output channels it holds and the blocks of
+    its own channels that make them."""
+    from mmflow.io.channels import frequency_sets, select_channels
+
+    sets, set_of = frequency_sets([_file_freqs(m) for m in metas])
+    width = float(np.median(np.abs(np.asarray(metas[0].channel_width, float)))) \
+        if getattr(metas[0], "channel_width", None) is not None else float(np.median(np.diff(sets[0]))) \
+        if len(sets[0]) > 1 else 0.0
+    outs = select_channels(sets, width, want_mhz, n_avg, good[0] if len(good) == 1 else f"{len(good)} input files",
+                           [good[set_of.index(k)] for k in range(len(sets))])
+    freqs = np.array([sets[k][b].mean() for k, b in outs])
+    per_set = [{"out": [o for o, (k, _) in enumerate(outs) if k == s],
+                "blocks": [[int(c) for c in b] for k, b in outs if k == s]} for s in range(len(sets))]
+    return freqs, width * n_avg, [per_set[k] for k in set_of], set_of
+
+
 @lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad):
+def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, cross_hands=True):
     files = _files(pattern)
     fast = None
     kinds = {file_kind(f, fmt) for f in files}
     if len(files) > 2 and len(kinds) == 1 and kinds <= {"ms", "uvh5"}:
-        fast = _metadata_indexed(files, fmt, on_bad, kinds.pop())
-    metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad)
+        fast = _metadata_indexed(files, fmt, on_bad, kinds.pop(), calibrated_here)
+    metas, good, skipped, infos = fast or _metadata_pyuvdata(files, fmt, on_bad, calibrated_here)
     ref = metas[0]
+    if not cross_hands:  # input.cross_hands=false: the Stokes-I hands only
+        infos = [{**info, "cross_indices": [], "cross_numbers": [], "cross_pols": []} for info in infos]
     for f, info in zip(good, infos):
-        if info["pols"] != infos[0]["pols"]:
-            raise InputError(f, "polarization_array", f"keeps polarisations {info['pols']} where {good[0]} keeps "
-                             f"{infos[0]['pols']}", "ingest files with the same polarisations in one run")
-    freqs = np.asarray(ref.freq_array).ravel()
+        kept, ref_kept = info["pols"] + info["cross_pols"], infos[0]["pols"] + infos[0]["cross_pols"]
+        if kept != ref_kept:
+            raise InputError(f, "polarization_array", f"keeps polarisations {kept} where {good[0]} keeps "
+                             f"{ref_kept}", "ingest files with the same polarisations in one run")
+    freqs, width, chans, set_of = _channel_plan(good, metas, want_mhz, n_avg)
+    infos = [{**info, **ch} for info, ch in zip(infos, chans)]
+    keep = [k for k, ch in enumerate(chans) if ch["out"]]  # files holding no kept channel are not read
+    good, metas, infos, set_of = ([x[k] for k in keep] for x in (good, metas, infos, set_of))
     ants = np.asarray(ref.telescope.antenna_numbers)
     # baselines: the union over files as (i, j) antenna-index pairs with i <= j; a baseline a
     # file lacks is simply unmeasured (weight 0) in that file's integrations
@@ -187,24 +225,31 @@ def _plan(pattern, fmt, on_bad):
                              "ingest files from one array configuration per run")
         found.append(np.sort(np.stack([index[a1], index[a2]], 1), 1))
     pairs = np.unique(np.concatenate(found), axis=0)
-    seen = {}
-    all_t = []
-    for fi, uv in enumerate(metas):
+    # the antennas with data: an antenna table may list many more (the OVRO-LWA's MS lists 256
+    # stands for 20 with data); the layout and every per-antenna array keep only these
+    used = np.unique(pairs)
+    renumber = np.full(len(ants), -1, int)
+    renumber[used] = np.arange(len(used))
+    pairs, ants = renumber[pairs], ants[used]
+    seen, all_t = {}, {}
+    for fi, uv in enumerate(metas):  # an integration once per subband (frequency set)
         for t in np.unique(np.asarray(uv.time_array)):
             key = round(float(t) * 86400.0, 3)
-            if key in seen:
-                raise InputError(good[fi], "time_array", f"integration at JD {t:.6f} also in {good[seen[key]]}",
-                                 "remove duplicated files or integrations")
-            seen[key] = fi
-            all_t.append((float(t), fi))
-    all_t.sort()
-    enu = _antenna_enu(ref)
+            if (key, set_of[fi]) in seen:
+                raise InputError(good[fi], "time_array", f"integration at JD {t:.6f} also in "
+                                 f"{good[seen[key, set_of[fi]]]}", "remove duplicated files or integrations")
+            seen[key, set_of[fi]] = fi
+            all_t.setdefault(key, float(t))
+    times = np.array(sorted(all_t.values()))
+    keys = _time_key(times)
+    file_rows = np.array([[np.searchsorted(keys, _time_key(np.min(uv.time_array))),
+                           np.searchsorted(keys, _time_key(np.max(uv.time_array)))] for uv in metas], np.int64)
+    enu = _antenna_enu(ref)[used]
     lat, lon, alt = ref.telescope.location_lat_lon_alt_degrees
-    layout = Layout([str(n) for n in ref.telescope.antenna_names], enu, float(lat), float(lon), float(alt),
-                    provenance=f"ingested from {good[0]}")
+    names = [str(ref.telescope.antenna_names[k]) for k in used]
+    layout = Layout(names, enu, float(lat), float(lon), float(alt), provenance=f"ingested from {good[0]}")
     tint = float(np.median(np.asarray(ref.integration_time)))
-    times = np.array([t for t, _ in all_t])
-    return IngestPlan(good, times, np.array([fi for _, fi in all_t]), len(all_t), freqs, pairs, ants, layout,
+    return IngestPlan(good, times, file_rows, len(times), freqs, width, pairs, ants, layout,
                       float(np.median(times)), tint, skipped, infos)
 
 
@@ -213,7 +258,7 @@ def write_plan(group, plan):
     units and Stokes-I recipe) so no worker rescans or re-checks files."""
     if "plan_time_jd" not in group:
         group.create_array("plan_time_jd", data=plan.row_time)
-        group.create_array("plan_file", data=plan.row_file.astype("int32"))
+        group.create_array("plan_file_rows", data=plan.file_rows)
         group.create_array("antenna_numbers", data=np.asarray(plan.ant_numbers, "int64"))
         group.attrs["ingest_file_info"] = plan.file_info
 
@@ -250,17 +295,19 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     files = g.attrs["files"]
     infos = g.attrs.get("ingest_file_info")
     row_time = g["plan_time_jd"][row0:row1]
-    row_file = g["plan_file"][row0:row1]
+    file_rows = g["plan_file_rows"][:]
     pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
     freqs = g["freqs_hz"][:]
     n, nbl, nf, npol = len(row_time), len(pairs), len(freqs), g["vis"].shape[3]
+    npar = npol
+    npol += g["vis_cross"].shape[3] if "vis_cross" in g else 0  # the cross hands follow the Stokes-I hands
     mode = getattr(cfg.input, "nonfinite", "error")
     chunk_keys = _time_key(row_time)
     index = _index_lookup(ant_numbers)
     na = len(ant_numbers)
     pair_lut = np.full((na, na), -1, int)
     pair_lut[pairs[:, 0], pairs[:, 1]] = np.arange(nbl)
-    fis = [int(f) for f in np.unique(row_file)]
+    fis = [int(f) for f in np.flatnonzero((file_rows[:, 0] < row0 + len(row_time)) & (file_rows[:, 1] >= row0))]
 
     site = (g.attrs["lat_deg"], g.attrs["lon_deg"], g.attrs["height_m"]) if "lat_deg" in g.attrs else None
 
@@ -276,6 +323,8 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     for fi, p in zip(fis, parts):
         bad, nbad = checks.nonfinite(p.vis, p.flags, files[fi], mode)  # raises before anything is written
         n_nonfinite += nbad
+        out = np.asarray(infos[fi]["out"], int)
+        v, fl, ns = average_channels(p.vis, p.flags | bad, p.nsample, [np.asarray(b) for b in infos[fi]["blocks"]])
         keys = _time_key(p.time_jd)
         pos = np.searchsorted(chunk_keys, keys)
         mine = (pos < n) & (chunk_keys[np.minimum(pos, n - 1)] == keys)  # rows of other chunks are skipped
@@ -283,21 +332,45 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
         i, j = index[p.ant1[mine]], index[p.ant2[mine]]
         swap = i > j  # V(j, i) = conj(V(i, j))
         b = pair_lut[np.minimum(i, j), np.maximum(i, j)]
-        v = p.vis[mine]
+        v, fl, ns = v[mine], fl[mine], ns[mine]
         finite = np.isfinite(v)
         if not finite.all():  # flagged (or, with nonfinite=flag, newly flagged) NaN/inf are stored as 0
             v = np.where(finite, v, 0)
         if swap.any():
             v[swap] = np.conj(v[swap])
+            if npol - npar == 2:  # V_xy(i, j) = conj(V_yx(j, i)): the cross hands trade places
+                perm = list(range(npar)) + [npar + 1, npar]
+                for x in (v, fl, ns, finite):
+                    x[swap] = x[swap][:, :, perm]
+            elif npol > npar:  # the other cross hand is not in the file
+                fl[swap, :, npar:] = True
         if cfg.input.conjugate:
             v = np.conj(v)
-        vis[r, b] = v
-        wts[r, b] = np.where(p.flags[mine] | bad[mine], 0.0, p.nsample[mine])
+        vis[r[:, None], b[:, None], out[None, :]] = v
+        wts[r[:, None], b[:, None], out[None, :]] = np.where(fl | ~finite, 0.0, ns)
         lst[r] = p.lst[mine]
-    g["vis"][row0:row0 + n] = vis
-    g["weights"][row0:row0 + n] = wts
+    g["vis"][row0:row0 + n] = vis[..., :npar]
+    g["weights"][row0:row0 + n] = wts[..., :npar]
+    if npol > npar:
+        g["vis_cross"][row0:row0 + n] = vis[..., npar:]
+        g["weights_cross"][row0:row0 + n] = wts[..., npar:]
     g["lst"][row0:row0 + n] = lst
     g["time_jd"][row0:row0 + n] = row_time
-    flagged = int(np.sum(np.all(wts == 0, axis=(1, 2, 3))))
+    flagged = int(np.sum(np.all(wts[..., :npar] == 0, axis=(1, 2, 3))))
     return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
             "nonfinite_flagged": int(n_nonfinite)}
+
+
+def sidereal_coverage(plan, n_bins):
+    """Fraction of ``n_bins`` sidereal bins that hold at least one of the plan's integrations (the
+    most any baseline can cover: :func:`mmflow.mmode.transform.sidereal_bins` of every row's LST
+    at the site, as the m-mode stage bins them)."""
+    from pyuvdata.utils import get_lst_for_time
+
+    from mmflow.mmode.transform import sidereal_bins
+
+    lay = plan.layout
+    lst = get_lst_for_time(np.asarray(plan.row_time), latitude=lay.lat_deg, longitude=lay.lon_deg,
+                           altitude=lay.height_m)
+    _, wsum, _ = sidereal_bins(lst, np.ones(len(lst)), None, n_bins, 0.0)
+    return float(np.mean(wsum > 0))

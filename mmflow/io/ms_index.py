@@ -5,12 +5,14 @@ subtable several times and computes apparent coordinates), so planning 768 singl
 MS files with it would read every file twice. The plan therefore reads the first MS fully with
 pyuvdata (every check of ``mmflow.io.checks``) and, for every other MS, only the columns the
 plan needs, with python-casacore: the main table's ``TIME``, ``ANTENNA1``, ``ANTENNA2``,
-``DATA_DESC_ID`` and the ``DATA`` unit, and the ``SPECTRAL_WINDOW``, ``ANTENNA``,
-``POLARIZATION`` and ``FIELD`` subtables. Each file is then checked against the first:
-same frequencies, same antenna table (absolute positions within ``checks.POSITION_TOL_M``),
+``DATA_DESC_ID`` and the ``DATA`` unit, and the ``SPECTRAL_WINDOW``, ``ANTENNA`` and
+``POLARIZATION`` subtables. Each file is then checked against the first (frequencies may
+differ: subbands, grouped by the plan, :mod:`mmflow.io.channels`):
+same antenna table (absolute positions within ``checks.POSITION_TOL_M``),
 same correlation types (so pyuvdata gives it the same polarisation axis and Stokes-I recipe),
-same units, one spectral window, no duplicated (time, baseline) row, and its phase centre at the
-zenith of its integrations (one vectorised astropy call for all files). Times are converted as
+same units, one spectral window, no duplicated (time, baseline) row. Its phase centre, whatever
+it is, is undone from the file's own ``UVW`` (:mod:`mmflow.io.ms_read`), as pyuvdata's
+``unproject_phase`` does; a MeasurementSet is always phased. Times are converted as
 pyuvdata converts them (``Time(TIME / 86400, format="mjd", scale=<the column's MEASINFO>).utc.jd``);
 antenna numbers are ``ANTENNA1``/``ANTENNA2`` (pyuvdata's convention for MS).
 ``mmflow.io.ingest.index_agrees`` verifies both on the first file, and the plan falls back to
@@ -38,14 +40,12 @@ class MSIndex:
     freqs: np.ndarray
     antenna_positions: np.ndarray  # absolute ITRF (m), every row of the ANTENNA table
     corr_type: np.ndarray
-    phase_dir: np.ndarray  # (nfield, 2) rad
-    phase_frame: str
     time_array: np.ndarray = None  # UTC JD, set by :func:`convert_times`
 
 
 def read_index(path):
     """The columns the plan needs from one MS (python-casacore; no data)."""
-    from casacore.tables import table  # deferred: python-casacore is optional (extra "ms")
+    from casacore.tables import table
 
     p = str(path).rstrip("/")
     with table(p, ack=False, readonly=True) as t:
@@ -61,17 +61,14 @@ def read_index(path):
         pos = np.asarray(t.getcol("POSITION"), float)
     with table(p + "/POLARIZATION", ack=False, readonly=True) as t:
         corr = np.asarray(t.getcol("CORR_TYPE"))
-    with table(p + "/FIELD", ack=False, readonly=True) as t:
-        phase_dir = np.asarray(t.getcol("PHASE_DIR"), float)[:, 0, :]
-        frame = str(t.getcolkeyword("PHASE_DIR", "MEASINFO").get("Ref", "J2000"))
     return MSIndex(p, np.asarray(time, float), scale, np.asarray(a1), np.asarray(a2), n_ddid, str(units), freqs,
-                   pos, corr, phase_dir, frame)
+                   pos, corr)
 
 
 def ms_time_to_jd(time_mjd_s, scale):
     """An MS ``TIME`` column (MJD seconds in the column's ``MEASINFO`` scale) as UTC JD, as pyuvdata
     converts it: ``Time(TIME / 86400, format="mjd", scale=scale).utc.jd``."""
-    from astropy.time import Time  # deferred: astropy.time/coordinates cost ~0.4 s, Measurement Sets only
+    from astropy.time import Time
 
     return Time(np.asarray(time_mjd_s) / 86400.0, format="mjd", scale=str(scale).lower()).utc.jd
 
@@ -89,16 +86,13 @@ def convert_times(indices):
 
 def check_against(indices, ref, ref_uv, info):
     """Check every MS index against the first file (``ref``, read and checked with pyuvdata)."""
-    if info["phase"] != "zenith":
-        raise InputError(ref.path, "FIELD.PHASE_DIR", "the first MeasurementSet is not phased to its zenith",
-                         "write one MS per integration phased to its zenith, or convert to UVH5 drift scans")
+    if info["phase"] != "phased":
+        raise InputError(ref.path, "FIELD.PHASE_DIR", "pyuvdata reads the first MeasurementSet as unphased",
+                         "ingest MeasurementSets with a phase centre (as every MS writer writes them)")
     for ix in indices:
         if ix.n_ddid != 1:
             raise InputError(ix.path, "DATA_DESC_ID", f"{ix.n_ddid} spectral windows / polarisation setups",
                              "split the MS by spectral window (one setup per run)")
-        if ix.freqs.shape != ref.freqs.shape or not np.allclose(ix.freqs, ref.freqs):
-            raise InputError(ix.path, "freq_array", f"frequencies differ from {ref.path}",
-                             "ingest one spectral setup per run (select channels first)")
         if not np.array_equal(ix.corr_type, ref.corr_type):
             raise InputError(ix.path, "POLARIZATION.CORR_TYPE", f"correlation types {ix.corr_type.ravel().tolist()} "
                              f"differ from {ref.path}'s {ref.corr_type.ravel().tolist()}",
@@ -116,30 +110,3 @@ def check_against(indices, ref, ref_uv, info):
                              f"{ref.path} (tolerance {checks.POSITION_TOL_M} m)",
                              "ingest files from one array survey per run (fix the antenna table)")
         checks.duplicate_rows(ix.time_array, ix.ant_1_array, ix.ant_2_array, ix.path)
-    _check_zenith(indices, ref_uv)
-
-
-def _check_zenith(indices, ref_uv):
-    """Each file's phase centre(s) within ``checks.ZENITH_TOL_DEG`` of the zenith at its first and
-    last integration (ICRS, the MS's J2000/ICRS frame; one astropy transform for all files)."""
-    from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s, Measurement Sets only
-    from astropy.coordinates import AltAz, SkyCoord
-    from astropy.time import Time
-
-    t = np.concatenate([[ix.time_array.min(), ix.time_array.max()] for ix in indices])
-    loc = ref_uv.telescope.location
-    frame = AltAz(obstime=Time(t, format="jd", scale="utc"), location=loc)
-    zen = SkyCoord(alt=np.full(len(t), 90.0) * u.deg, az=np.zeros(len(t)) * u.deg, frame=frame).icrs
-    zra, zdec = zen.ra.rad.reshape(-1, 2), zen.dec.rad.reshape(-1, 2)
-    for k, ix in enumerate(indices):
-        if ix.phase_frame.upper() not in ("J2000", "ICRS"):
-            raise InputError(ix.path, "FIELD.PHASE_DIR", f"phase-centre frame {ix.phase_frame}",
-                             "write the MS with a J2000 or ICRS phase centre")
-        ra, dec = ix.phase_dir[:, :1], ix.phase_dir[:, 1:]
-        cos = np.sin(dec) * np.sin(zdec[k]) + np.cos(dec) * np.cos(zdec[k]) * np.cos(ra - zra[k])
-        sep = float(np.rad2deg(np.arccos(np.clip(cos.min(), -1, 1))))
-        if sep > checks.ZENITH_TOL_DEG:
-            raise InputError(ix.path, "phase_center_catalog (FIELD.PHASE_DIR)",
-                             f"the data are phased to a fixed phase centre {sep:.2f} deg from the zenith, not a drift "
-                             "scan", "unproject to drift with pyuvdata 3.x: uv = UVData.from_file(f); "
-                             "uv.unproject_phase(); uv.write_uvh5(out)")

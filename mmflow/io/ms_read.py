@@ -1,8 +1,8 @@
 """Read one MeasurementSet's rows directly with python-casacore (an ingest task's step).
 
 The plan has read and checked every file's metadata (``mmflow.io.ms_index``: one spectral
-window, the antenna table, correlation types, units, the phase centre at the zenith of each
-integration), so a task needs only the main table's columns. pyuvdata's MS reader re-reads
+window, the antenna table, correlation types, units, sidereal phase centres), so a task needs
+only the main table's columns. pyuvdata's MS reader re-reads
 every subtable and computes apparent coordinates per file, which costs as much as the data.
 This reader reproduces what ``UVData.read`` followed by ``unproject_phase`` gives (pyuvdata
 docs, "MeasurementSet"; ``tests/test_ingest_formats.py`` compares the stores to the UVH5 path):
@@ -13,10 +13,10 @@ docs, "MeasurementSet"; ``tests/test_ingest_formats.py`` compares the stores to 
 * times as the plan converts them (:func:`mmflow.io.ms_index.ms_time_to_jd`); LSTs the
   site's apparent sidereal time at those times (``pyuvdata.utils.get_lst_for_time``);
 * weights ``WEIGHT_SPECTRUM``, else ``WEIGHT`` repeated over channels;
-* zenith-phased rows unprojected to a drift scan as ``unproject_phase`` does: new w = 0,
+* phased rows (any phase centre) unprojected to a drift scan as ``unproject_phase`` does: new w = 0,
   ``V *= exp(-2 pi i (0 - w) nu / c)`` with ``w`` pyuvdata's (sign-flipped) ``UVW[:, 2]``,
   in the same order of operations, in the column's precision;
-* autocorrelations' parallel hands made real, as the UVH5 reader does.
+* autocorrelations' parallel hands made real, as the UVH5 reader does (cross hands stay complex).
 """
 from __future__ import annotations
 
@@ -27,24 +27,32 @@ import numpy as np
 SPEED_OF_LIGHT = 299792458.0  # m/s (astropy.constants.c)
 
 
-def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
-    """A :class:`mmflow.io.readers.FileData` of one MS's kept polarisations ``pol_indices``.
+def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):
+    """A :class:`mmflow.io.file_data.FileData` of one MS's kept polarisations.
 
     Parameters
     ----------
-    zenith_phased : bool
-        The plan found the file phased to the zenith of its integrations: unproject it.
+    pol_numbers : list of int
+        pyuvdata (AIPS) numbers of the polarisations to keep, in order; found in the MS's own
+        ``POLARIZATION.CORR_TYPE`` order (pyuvdata reorders it, e.g. CASA's XX, XY, YX, YY to
+        XX, YY, XY, YX).
+    phased : bool
+        The plan found the file phased (to any phase centre): unproject it.
     site : (lat_deg, lon_deg, height_m)
         Where the LSTs are computed (the plan's checked layout).
     lock : threading.Lock, optional
         Held while casacore reads (its table cache is not thread-safe).
+    n_parallel : int, optional
+        How many of ``pol_numbers`` (the first) are parallel hands, made real in autocorrelations
+        (default: all).
     """
     from casacore.tables import table
     from pyuvdata.utils import get_lst_for_time
+    from pyuvdata.utils.io.ms import POL_CASA2AIPS_DICT
 
+    from mmflow.io.file_data import FileData
     from mmflow.io.ms_index import ms_time_to_jd
     from mmflow.io.polarization import select_pols
-    from mmflow.io.readers import FileData
 
     p = str(path).rstrip("/")
     with lock or nullcontext():
@@ -62,6 +70,8 @@ def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
                 nsample = np.repeat(t.getcol("WEIGHT")[:, None, :], data.shape[1], axis=1)
         with table(p + "/SPECTRAL_WINDOW", ack=False, readonly=True) as t:
             freqs = np.asarray(t.getcol("CHAN_FREQ"), float).ravel()
+        with table(p + "/POLARIZATION", ack=False, readonly=True) as t:
+            corr = [POL_CASA2AIPS_DICT[int(c)] for c in np.ravel(t.getcol("CORR_TYPE")[0])]
         if flip is None:
             with table(p + "/HISTORY", ack=False, readonly=True) as t:
                 apps = t.getcol("APPLICATION") if t.nrows() > 0 else []
@@ -69,15 +79,15 @@ def read_ms_direct(path, pol_indices, zenith_phased, site, lock=None):
     if flip:
         data = np.conj(data)
         uvw = -uvw
-    if zenith_phased:
+    if phased:
         delta_w = (0.0 - np.asarray(uvw[:, 2], np.float64)).reshape(-1, 1)
         delta_w_lambda = delta_w * (1.0 / SPEED_OF_LIGHT) * freqs.reshape(1, -1)
         data *= np.exp((-1j * 2 * np.pi) * delta_w_lambda[:, :, None])
     time_jd = ms_time_to_jd(time_s, scale)
     lat, lon, height = site
     lst = get_lst_for_time(time_jd, latitude=lat, longitude=lon, altitude=height)
-    vis, flg, ns = select_pols(data, flags, np.asarray(nsample, float), list(pol_indices))
+    vis, flg, ns = select_pols(data, flags, np.asarray(nsample, float), [corr.index(int(n)) for n in pol_numbers])
     auto = ant1 == ant2
     if auto.any():
-        vis[auto] = vis[auto].real
+        vis[auto, :, :n_parallel] = vis[auto, :, :n_parallel].real
     return FileData(time_jd, ant1, ant2, lst, vis, flg, ns, freqs)

@@ -23,6 +23,12 @@ named by :func:`stored_names`: ``xx, yy``, ``rr, ll``, ``I`` or one parallel han
 are per antenna *and* polarisation, so calibration and peeling act on each hand before
 :func:`stokes_i` combines them where the data are next read. A Stokes-I sample is flagged
 when any polarisation it uses is flagged; its sample count is the smallest of theirs.
+
+The cross hands of a parallel pair (XY and YX beside XX and YY; RL and LR beside RR and LL;
+:func:`cross_recipe`) are carried too, on their own polarisation axis (``vis.zarr``'s
+``vis_cross`` / ``weights_cross``, named by ``attrs["cross_pols"]``), so that the arrays every
+stage reads (``vis``, ``weights``: the hands calibration solves and Stokes I averages) are the
+same whether a file holds two polarisations or four.
 """
 from __future__ import annotations
 
@@ -76,7 +82,17 @@ def stokes_i_recipe(pol_numbers, what="input"):
                      "provide XX and YY (pyuvdata also calls them ee/nn), RR and LL, or pseudo-Stokes pI")
 
 
-_STORED = {1: "I", -1: "rr", -2: "ll", -5: "xx", -6: "yy"}
+_STORED = {1: "I", -1: "rr", -2: "ll", -5: "xx", -6: "yy", -3: "rl", -4: "lr", -7: "xy", -8: "yx"}
+CROSS = {(-5, -6): (-7, -8), (-1, -2): (-3, -4)}  # (XX, YY): (XY, YX); (RR, LL): (RL, LR)
+
+
+def cross_recipe(pol_numbers, indices):
+    """Positions of the cross hands that go with the parallel pair at ``indices`` (``()`` when the
+    Stokes-I recipe is not a parallel pair, or the file holds no cross hand), in the order XY, YX
+    (RL, LR)."""
+    pols = [int(p) for p in np.ravel(pol_numbers)]
+    pair = tuple(pols[i] for i in indices)
+    return tuple(pols.index(c) for c in CROSS.get(pair, ()) if c in pols)
 
 
 def stored_names(pol_numbers, indices):

@@ -9,33 +9,27 @@ read and checked is read directly with h5py (its ``Data/visdata``, ``Data/flags`
 metadata are not parsed a second time. A MeasurementSet whose metadata the plan has checked is
 read directly with python-casacore (:mod:`mmflow.io.ms_read`: the main table's columns,
 pyuvdata's conjugation and unprojection reproduced bit for bit). Every other file (uvfits, files
-read without a plan) goes through ``pyuvdata.UVData.read``, and zenith-phased data are
-unprojected exactly with ``UVData.unproject_phase``. The paths give the same numbers
-(``tests/test_ingest_formats.py``).
+read without a plan) goes through ``pyuvdata.UVData.read``, and phased data (any phase centre)
+are unprojected exactly with ``UVData.unproject_phase``. The paths give the same numbers
+(``tests/test_ingest_formats.py``). pyuvdata reads with astropy's site list kept offline
+(:func:`mmflow.offline.offline_site_registry`): a telescope astropy does not know is placed
+where the file's antennas are, never looked up on the network.
 """
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 
 import numpy as np
 
 from mmflow.io import checks
+from mmflow.io.file_data import FileData
+from mmflow.io.ms_read import read_ms_direct
 from mmflow.io.polarization import select_pols
+from mmflow.offline import offline_site_registry
 
 _CASACORE_LOCK = threading.Lock()  # casacore's table cache is not thread-safe
 
-
-@dataclass
-class FileData:
-    time_jd: np.ndarray  # (nblt,)
-    ant1: np.ndarray  # (nblt,) antenna numbers
-    ant2: np.ndarray
-    lst: np.ndarray  # (nblt,) rad
-    vis: np.ndarray  # (nblt, nfreq, npol) complex, the kept polarisations, Jy
-    flags: np.ndarray  # (nblt, nfreq, npol) bool
-    nsample: np.ndarray  # (nblt, nfreq, npol) float
-    freqs: np.ndarray  # (nfreq,) Hz
+__all__ = ["FileData", "file_kind", "read_file", "read_metadata"]
 
 
 def file_kind(path, fmt=None):
@@ -65,6 +59,7 @@ def read_metadata(path, fmt=None):
     mmflow checks what it uses (``mmflow.io.checks``)."""
     from pyuvdata import UVData
 
+    offline_site_registry()
     kw, kind = _kwargs(path, fmt)
     uv = UVData()
     if kind == "ms":
@@ -76,27 +71,35 @@ def read_metadata(path, fmt=None):
 
 
 def read_file(path, fmt=None, info=None, site=None):
-    """The kept polarisations (Jy) of one file. ``info`` is the plan's ``checks.file_info`` for it (computed
-    here from the file when None); ``site`` = ``(lat_deg, lon_deg, height_m)`` of the checked layout lets a
-    MeasurementSet be read directly (its LSTs computed from its times there)."""
+    """The kept polarisations (Jy) of one file: the Stokes-I hands, then their cross hands (``FileData.vis``'s
+    last axis: ``info["pols"] + info["cross_pols"]``). ``info`` is the plan's ``checks.file_info`` for it
+    (computed here from the file when None); ``site`` = ``(lat_deg, lon_deg, height_m)`` of the checked layout
+    lets a MeasurementSet be read directly (its LSTs computed from its times there)."""
     kind = file_kind(path, fmt)
     if info is not None and info["phase"] == "drift" and kind == "uvh5":
-        out = _read_uvh5_direct(path, info["pol_indices"])
+        out = _read_uvh5_direct(path, _wanted(info, "indices"), len(info["pol_indices"]))
     elif info is not None and site is not None and kind == "ms":
-        from mmflow.io.ms_read import read_ms_direct
-
-        out = read_ms_direct(path, info["pol_indices"], info["phase"] == "zenith", site, _CASACORE_LOCK)
+        out = read_ms_direct(path, _wanted(info, "numbers"), info["phase"] == "phased", site, _CASACORE_LOCK,
+                             len(info["pol_numbers"]))
     else:
         out, info = _read_pyuvdata(path, fmt, info)
-    scale = checks.unit_scale(info["vis_units"], out.freqs, path)
+    # the plan (or file_info in _read_pyuvdata) has checked the unit against calibrate.enabled
+    scale = checks.unit_scale(info["vis_units"], out.freqs, path, calibrated_here=True)
     if np.any(scale != 1.0):
         out.vis = out.vis * scale[None, :, None]
     return out
 
 
+def _wanted(info, what):
+    """The polarisations to read: the Stokes-I hands, then the cross hands (``what``: "indices" along
+    pyuvdata's axis or pyuvdata "numbers")."""
+    return list(info[f"pol_{what}"]) + list(info.get(f"cross_{what}", []))
+
+
 def _read_pyuvdata(path, fmt, info):
     from pyuvdata import UVData
 
+    offline_site_registry()
     kw, kind = _kwargs(path, fmt)
     uv = UVData()
     if kind == "ms":
@@ -106,19 +109,20 @@ def _read_pyuvdata(path, fmt, info):
         uv.read(str(path), run_check=False, **kw)
     if info is None:
         info = checks.file_info(uv, str(path))
-    if info["phase"] == "zenith":
+    if info["phase"] == "phased":
         uv.unproject_phase()
     vis, flags, nsample = select_pols(np.asarray(uv.data_array), np.asarray(uv.flag_array),
-                                      np.asarray(uv.nsample_array), info["pol_indices"])
+                                      np.asarray(uv.nsample_array), _wanted(info, "indices"))
     raw = FileData(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array),
                np.asarray(uv.lst_array), vis, flags, nsample, np.asarray(uv.freq_array, float).ravel())
     return raw, info
 
 
-def _read_uvh5_direct(path, pol_indices):
+def _read_uvh5_direct(path, pol_indices, n_parallel):
     """The UVH5 datasets themselves (format: pyuvdata docs, "UVH5 file format"): rows in file
     order, ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex or an integer ``r``/``i`` compound.
-    Autocorrelations' parallel hands are made real, as pyuvdata's ``fix_autos`` does on read."""
+    Autocorrelations' parallel hands (the first ``n_parallel`` of ``pol_indices``) are made real,
+    as pyuvdata's ``fix_autos`` does on read."""
     import h5py
 
     with h5py.File(str(path), "r") as f:
@@ -140,5 +144,5 @@ def _read_uvh5_direct(path, pol_indices):
     vis, flags, nsample = select_pols(vis, flags, nsample, idx)
     auto = ant1 == ant2
     if auto.any():
-        vis[auto] = vis[auto].real
+        vis[auto, :, :n_parallel] = vis[auto, :, :n_parallel].real
     return FileData(time_jd, ant1, ant2, lst, vis, flags, nsample, freqs)

@@ -6,7 +6,9 @@ store           arrays (dimensions)
 vis.zarr        vis, weights (time, baseline, freq, pol); lst, time_jd (time); autos |V_ii|
                 (time, antenna, freq, pol; NaN where absent or flagged); freqs_hz, pairs,
                 antenna_enu; attrs ``pols`` name the pol axis (xx, yy | rr, ll | I | one
-                hand). Never rewritten by corrections.
+                hand); vis_cross, weights_cross (time, baseline, freq, cross_pol) where
+                ingested files hold the cross hands, named by attrs ``cross_pols`` (xy, yx |
+                rl, lr). Never rewritten by corrections.
 mmodes.zarr     mmodes (split, freq, m, 2, baseline); inv_var (freq, baseline); n_samples
                 (split, freq, baseline): unflagged integrations of each split (its share f_k)
 partials.zarr   f{F}/gram_b{M0} (group, m, l, l'); f{F}/rhs (group, split, m, l);
@@ -36,10 +38,15 @@ def m_blocks(mmax, m_block):
 
 
 def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk):
-    """``attrs["pols"]`` names the polarisation axis."""
+    """``attrs["pols"]`` names the polarisation axis, ``attrs["cross_pols"]`` (optional) the cross hands' axis."""
     nbl, nf, n_ant, npol = len(pairs), len(freqs_hz), len(antenna_enu), len(attrs["pols"])
     ch = (time_chunk, min(baseline_chunk, nbl), nf, npol)
     dims = ("time", "baseline", "freq", "pol")
+    ncross = len(attrs.get("cross_pols") or [])
+    cross = () if not ncross else (
+        ArraySpec("vis_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,), "complex64"),
+        ArraySpec("weights_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
+                  "float32"))
     return StoreSpec("vis.zarr", (
         ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64"),
         ArraySpec("weights", dims, (n_time, nbl, nf, npol), ch, "float32"),
@@ -51,7 +58,7 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
         ArraySpec("pairs", ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs),
         ArraySpec("antenna_enu", ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
                   data=antenna_enu),
-    ), attrs)
+    ) + cross, attrs)
 
 
 def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs):

@@ -6,8 +6,8 @@ with pyuvdata (every check of ``mmflow.io.checks``) and, for every other file, o
 datasets it needs with h5py (the UVH5 format's ``Header``: ``time_array``, ``ant_1_array``,
 ``ant_2_array``, ``freq_array``, ``polarization_array``, ``vis_units``, ``antenna_numbers``,
 ``antenna_positions``, ``latitude``/``longitude``/``altitude`` and the ``phase_center_catalog``'s
-``cat_type``), then checks each against the first: same frequencies, polarisations (so the same
-Stokes-I recipe), units and antenna numbers; absolute antenna positions and site within
+``cat_type``), then checks each against the first (frequencies may differ: subbands, grouped
+by the plan): polarisations (so the same Stokes-I recipe), units and antenna numbers; absolute antenna positions and site within
 ``checks.POSITION_TOL_M``; drift-scan (``unprojected``) data only; no duplicated (time, baseline)
 row. Times and antenna numbers are the header's own (pyuvdata reads them as they are);
 ``mmflow.io.ingest.index_agrees`` verifies that on the first file.
@@ -77,9 +77,6 @@ def check_against(indices, ref, ref_uv, info):
     sites = _ecef(np.array([ix.lat_lon_alt for ix in indices])) if indices else np.zeros((0, 3))
     ref_site = _ecef(ref.lat_lon_alt)[0]
     for ix, site in zip(indices, sites):
-        if ix.freqs.shape != ref.freqs.shape or not np.allclose(ix.freqs, ref.freqs):
-            raise InputError(ix.path, "freq_array", f"frequencies differ from {ref.path}",
-                             "ingest one spectral setup per run (select channels first)")
         if not np.array_equal(ix.pols, ref.pols):
             raise InputError(ix.path, "polarization_array", f"polarisations {ix.pols.tolist()} differ from "
                              f"{ref.path}'s {ref.pols.tolist()}", "ingest files with one polarisation setup per run")

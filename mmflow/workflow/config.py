@@ -132,8 +132,11 @@ class BeamConfig(Section):
 class ObservationConfig(Section):
     """Frequencies and the drift scan that is simulated or expected."""
 
-    freqs_mhz: list[float] = Field([40.0], min_length=1, description="Channel centre frequencies in MHz.",
-                                   json_schema_extra={"allowed": "a non-empty list of numbers > 0"})
+    freqs_mhz: Optional[list[float]] = Field(
+        None, min_length=1, description="Channel centre frequencies in MHz. Simulated data: these channels "
+        "(null: [40.0]). Ingested data: the file channel nearest each (refused beyond half a channel width; "
+        "input.average_channels averages around it); null: every channel of the files.",
+        json_schema_extra={"allowed": "null or a non-empty list of numbers > 0"})
     channel_width_khz: float = Field(24.0, gt=0, description="Channel width (radiometer noise).")
     integration_s: float = Field(13.0, gt=0, description="Integration time in seconds.")
     n_integrations: Optional[int] = Field(None, ge=1,
@@ -141,9 +144,15 @@ class ObservationConfig(Section):
     start_lst_deg: float = Field(0.0, description="LST of the first simulated integration.")
     epoch_jd: float = Field(2457802.0, gt=0, description="Epoch (UTC JD) of the frame of date (default 2017-02-18).")
 
+    def simulated_freqs_mhz(self):
+        """The channels a simulation makes: ``freqs_mhz``, or 40 MHz when it is null."""
+        return list(self.freqs_mhz) if self.freqs_mhz is not None else [40.0]
+
     @field_validator("freqs_mhz")
     @classmethod
     def _positive(cls, v):
+        if v is None:
+            return v
         bad = [f for f in v if f <= 0]
         if bad:
             raise BadValue(f"non-positive frequencies {bad}", "give channel centre frequencies in MHz, all > 0")
@@ -178,6 +187,11 @@ class InputConfig(Section):
     nonfinite: Literal["error", "flag"] = Field(
         "error", description="Unflagged NaN/inf samples in input files: refuse the file, or flag them "
         "(counted and logged).")
+    cross_hands: bool = Field(True, description="Carry the cross hands (xy, yx / rl, lr) of files that hold them "
+                              "in vis.zarr's vis_cross (calibration and Stokes I use the parallel hands).")
+    average_channels: int = Field(1, ge=1, description="Average this many file channels into each ingested "
+                                  "channel: around each of observation.freqs_mhz, or consecutive blocks when it is "
+                                  "null (flags and nsample weights respected, as pyuvdata's frequency_average).")
     conjugate: bool = Field(False, description="Conjugate the data on ingest. pyuvdata data (as written by "
                             "matvis / hera_sim) already follow mmflow's exp(+2 pi i b.r), b = x_2 - x_1; set true "
                             "only for data in the opposite sign convention.")

@@ -122,7 +122,7 @@ def _beam_build_problems(cfg):
                         "give the path of a beam file pyuvdata reads")]
     try:
         beam = make_beam(spec)
-        for f in cfg.observation.freqs_mhz:
+        for f in (cfg.observation.simulated_freqs_mhz() if cfg.source == "simulate" else cfg.observation.freqs_mhz or []):
             beam.check_frequency(f * 1e6)
     except InputError as exc:
         loc = ("observation", "freqs_mhz") if exc.field in ("frequency", "freq_array") else ("beam",)
@@ -239,7 +239,7 @@ def _prior_run_problems(cfg):
     mm, ob = cfg.mmode, cfg.observation
     sim = cfg.source == "simulate"
     found = prior_run_problems(mm.prior_run, mm.lmax, mm.lmax if mm.mmax is None else mm.mmax, cfg.run.directory,
-                               np.asarray(ob.freqs_mhz) * 1e6 if sim else None, ob.epoch_jd if sim else None)
+                               np.asarray(ob.simulated_freqs_mhz()) * 1e6 if sim else None, ob.epoch_jd if sim else None)
     return [Problem(("mmode", "prior_run"), mm.prior_run, problem, fix) for problem, fix in found]
 
 

@@ -167,5 +167,5 @@ def build_telescope(cfg, layout=None):
                 raise InputError("workflow", "telescope.layout_file", "no layout given",
                                  "set telescope.preset, or layout_file with lat_deg and lon_deg")
             layout = load_layout(t.layout_file, t.lat_deg, t.lon_deg).select(t.stands, t.radius_m)
-    return Telescope(layout, make_beam(cfg.beam.model_dump()), np.asarray(cfg.observation.freqs_mhz) * 1e6,
+    return Telescope(layout, make_beam(cfg.beam.model_dump()), np.asarray(cfg.observation.simulated_freqs_mhz()) * 1e6,
                      cfg.observation.integration_s, t.include_autos, cfg.observation.channel_width_khz * 1e3)

@@ -280,6 +280,10 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
     if stale and not force:  # refuse before any work, naming what changed
         st = stale[0]
         raise _stale_error(run, st, fps[st], stale)
+    running = [st.name for st in stages if st.enabled(cfg)]
+    for st in stages:  # refuse inputs the run cannot use before any work
+        if st.check is not None and st.enabled(cfg):
+            st.check(cfg, running)
     _check_resources(cfg, run, client, stages)
     (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
     (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions()}, indent=2))

@@ -11,6 +11,9 @@ A stage declares what it reads and writes; the runner derives everything else fr
 * ``prepare(ctx) -> keys`` runs once on the driver (create-or-validate its stores, list its
   work keys; the keys may depend on the data and the configuration, never on the cluster);
   ``task(ctx, key)`` runs per key on the workers; ``finalize(ctx)`` runs on the driver at the end.
+* ``check(cfg, stage_names)``, optional, runs on the driver before the run does any work (before
+  any stage's prepare), knowing which stages the run will execute: it refuses inputs the run
+  cannot use (an ingested observation too short to make m-modes) instead of failing stages later.
 
 Kinds (``kind``): ``map`` (independent tasks over keys: time chunks, baseline groups,
 m blocks); ``reduce`` (each task sums its inputs in a fixed order with
@@ -44,6 +47,7 @@ class Stage:
     apply: Optional[Callable] = None
     next_cycle: Optional[Callable] = None
     counters: tuple = ()  # numeric fields of the tasks' infos summed, stored and logged per stage
+    check: Optional[Callable] = None  # check(cfg, names of the stages this run executes), before any work
 
 
 STAGES: list = []
