@@ -34,7 +34,6 @@ BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.offline
 KERNEL_PACKAGES = ("telescope", "sky", "mmode", "imaging", "calibrate", "simulate", "analysis")
 
 WORKFLOW_PENDING = pytest.mark.xfail(strict=False, reason="workflow half of issue 23, branch layers")
-RAWIO_PENDING = pytest.mark.xfail(strict=False, reason="raw-data helper, branch rawio")
 
 
 # --- the graph -------------------------------------------------------------------------------
@@ -200,8 +199,6 @@ def _describe(comps, edges):
 # --- the cases -------------------------------------------------------------------------------
 
 REGIONS = ["base", *(f"kernels:{p}" for p in KERNEL_PACKAGES), "io", "workflow", "bench", "cli"]
-#: the one cycle of the io layer, moved by the raw-data helper (issue 23)
-RAWIO_CYCLE = ["mmflow.io.ms_read", "mmflow.io.readers"]
 
 
 def _region_params(workflow_pending=True):
@@ -216,15 +213,9 @@ def test_every_module_has_a_layer():
 
 @pytest.mark.parametrize("region", _region_params())
 def test_no_import_cycle(region):
-    """No cycle among the modules a region's modules import (the io reader pair apart)."""
+    """No cycle among the modules a region's modules import."""
     comps = [c for c in cycles(MODULES, [(a, b) for a, b, _, _ in EDGES])
-             if any(e[0] in c for e in _edges_in(region)) and c != RAWIO_CYCLE]
-    assert not comps, "\n" + _describe(comps, EDGES)
-
-
-@pytest.mark.parametrize("pair", [pytest.param(RAWIO_CYCLE, marks=RAWIO_PENDING, id="io.readers-io.ms_read")])
-def test_no_import_cycle_pending(pair):
-    comps = [c for c in cycles(MODULES, [(a, b) for a, b, _, _ in EDGES]) if c == pair]
+             if any(e[0] in c for e in _edges_in(region))]
     assert not comps, "\n" + _describe(comps, EDGES)
 
 
