@@ -160,12 +160,21 @@ def test_config_schema_overrides_and_errors(tmp_path, capsys):
 
 
 def test_shipped_workflows_validate():
-    for name in ("demo", "uvh5-image", "ovro-lwa-2017", "hpc-slurm"):
+    import glob
+
+    names = sorted(os.path.basename(p)[:-5] for p in glob.glob(os.path.join(ROOT, "workflows", "*.yaml")))
+    assert {"demo", "uvh5-image", "ovro-lwa-2017", "ovro-lwa-stage3", "paper-scale", "hpc-slurm"} <= set(names)
+    for name in names:
         cfg = load_config(os.path.join(ROOT, "workflows", f"{name}.yaml"))
-        assert cfg.run.name
+        assert cfg.run.name, name
     paper = load_config(os.path.join(ROOT, "workflows", "ovro-lwa-2017.yaml"))
     assert paper.mmode.lmax == 1000 and paper.imaging.eps == 0.01 and len(paper.observation.freqs_mhz) == 8
     assert paper.imaging.filter_m1_lmin == 100
+    # the paper's recipe on raw files: calibration on the 22-min Cyg A / Cas A track, peel, terrestrial
+    assert paper.source == "ingest" and paper.calibrate.enabled and paper.calibrate.track_min == 22.0
+    assert paper.calibrate.sources == ["Cyg A", "Cas A"] and paper.peel.enabled and paper.terrestrial.enabled
+    stage3 = load_config(os.path.join(ROOT, "workflows", "ovro-lwa-stage3.yaml"))
+    assert stage3.telescope.preset == "full" and stage3.calibrate.enabled
 
 
 def test_docs_configuration_page_matches_schema():
