@@ -21,7 +21,9 @@ CASES = [
     (["clean.nside=48"], "clean.nside", "power of two", "use 32 or 64"),
     (["clean.gian=0.1"], "clean.gian", "not an option of clean", "did you mean 'clean.gain'?"),
     # cross-field rules (only when CLEAN runs)
-    (["clean.enabled=true"], "clean.threshold", "no even and odd halves", "mmode.splits=[full, even, odd]"),
+    # splits given without the jackknife halves (not given, clean.enabled brings [full, even, odd])
+    (["clean.enabled=true", "mmode.splits=[full]"], "clean.threshold", "no even and odd halves",
+     "mmode.splits=[full, even, odd]"),
     (ON + ["clean.min_separation_deg=2"], "clean.min_separation_deg", "closer than the resolution 180 / lmax = 2.5",
      "clean.min_separation_deg >= 2.5"),
     (ON + ["clean.highpass_lmin=72"], "clean.highpass_lmin", "not below mmode.lmax = 72", "highpass_lmin < 72"),
@@ -41,6 +43,7 @@ def test_bad_clean_setting_is_refused_naming_field_value_and_fix(overrides, fiel
 
 @pytest.mark.parametrize("overrides", [
     ON,
+    ["clean.enabled=true"],  # brings mmode.splits [full, even, odd] for the jackknife threshold
     ["clean.enabled=true", "clean.threshold=500"],  # an explicit threshold needs no jackknife
     ["clean.enabled=true", "clean.rel_threshold=1e-3"],
     ["clean.min_separation_deg=0.1"],  # CLEAN off: its settings are not checked against the rest
