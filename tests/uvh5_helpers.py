@@ -67,6 +67,7 @@ def matvis_uvdata(beam, n_times=60, radius_m=12.0, freq_hz=40e6,
                     antpairs=antpairs, do_blt_outer=True, data_array=data, flag_array=flags,
                     integration_time=dt, channel_width=24e3, vis_units="Jy", time_axis_faster_than_bls=False)
     uv._fix_autos()
+    uv.pol_convention = "sum"  # matvis: an unpolarised source of S Jy gives XX = S B / 2
     return uv, lay
 
 

@@ -53,6 +53,7 @@ def _scan(n_ant, n_freq, n_time, seed=0):
                     antpairs=antpairs, do_blt_outer=True, data_array=data.astype(np.complex128),
                     integration_time=dt, channel_width=24e3, vis_units="Jy", time_axis_faster_than_bls=False)
     uv._fix_autos()
+    uv.pol_convention = "avg"  # XX = I, as CASA writes (docs/conventions.md)
     return uv
 
 

@@ -138,7 +138,9 @@ def file_info(uv, what, calibrated_here=False):
     unit_scale(uv.vis_units, uv.freq_array, what, calibrated_here)
     duplicate_rows(np.asarray(uv.time_array), np.asarray(uv.ant_1_array), np.asarray(uv.ant_2_array), what)
     cross = cross_recipe(uv.polarization_array, indices)
+    conv = getattr(uv, "pol_convention", None)
     return {"phase": phase_state(uv, what), "vis_units": str(uv.vis_units), "pol_indices": [int(i) for i in indices],
+            "pol_convention": None if conv is None else str(conv),
             "pol_numbers": [int(uv.polarization_array[i]) for i in indices],
             "pols": stored_names(uv.polarization_array, indices), "cross_indices": [int(i) for i in cross],
             "cross_numbers": [int(uv.polarization_array[i]) for i in cross],

@@ -33,6 +33,7 @@ import numpy as np
 from mmflow.errors import InputError
 from mmflow.io import checks
 from mmflow.io.channels import average_channels
+from mmflow.io.polarization import pol_factor
 from mmflow.io.readers import file_kind, read_file, read_metadata
 from mmflow.telescope.layout import Layout
 from mmflow.threads import n_threads
@@ -74,7 +75,7 @@ def plan_ingest(cfg):
     want = getattr(getattr(cfg, "observation", None), "freqs_mhz", None)
     return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file, calibrated_here,
                  None if want is None else tuple(want), int(getattr(cfg.input, "average_channels", 1)),
-                 bool(getattr(cfg.input, "cross_hands", True)))
+                 bool(getattr(cfg.input, "cross_hands", True)), str(getattr(cfg.input, "pol_convention", "auto")))
 
 
 def _files(pattern):
@@ -194,7 +195,8 @@ def _channel_plan(good, metas, want_mhz, n_avg):
 
 
 @lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, cross_hands=True):
+def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, cross_hands=True,
+          pol_convention="auto"):
     files = _files(pattern)
     fast = None
     kinds = {file_kind(f, fmt) for f in files}
@@ -209,6 +211,9 @@ def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, c
         if kept != ref_kept:
             raise InputError(f, "polarization_array", f"keeps polarisations {kept} where {good[0]} keeps "
                              f"{ref_kept}", "ingest files with the same polarisations in one run")
+    # the hands in mmflow's convention (XX = I for an unpolarised source): pyuvdata's "sum" data doubled
+    factor, convention = pol_factor(infos[0]["pol_convention"], pol_convention, calibrated_here, good[0])
+    infos = [{**info, "pol_factor": factor, "pol_convention_used": convention} for info in infos]
     freqs, width, chans, set_of = _channel_plan(good, metas, want_mhz, n_avg)
     infos = [{**info, **ch} for info, ch in zip(infos, chans)]
     keep = [k for k, ch in enumerate(chans) if ch["out"]]  # files holding no kept channel are not read

@@ -123,3 +123,37 @@ def stokes_i_variance(variances):
     (``(..., npol)``): two hands halve the single-hand variance."""
     n = variances.shape[-1]
     return variances.sum(axis=-1) / n**2
+
+
+#: pyuvdata's ``pol_convention`` values: how the parallel hands relate to Stokes I
+POL_CONVENTIONS = {"sum": "I = XX + YY (an unpolarised source of flux S gives XX = YY = S/2: matvis, "
+                          "pyuvsim, hera_sim, FHD)",
+                   "avg": "I = (XX + YY) / 2 (XX = YY = S: CASA, AIPS, mmflow's own simulator)"}
+
+
+def pol_factor(file_convention, requested, calibrated_here, what):
+    """The factor that takes a file's parallel (and cross) hands to mmflow's convention, and the
+    convention it assumed: ``(factor, convention)``.
+
+    mmflow stores and models visibilities in the ``avg`` convention, XX = YY = S for an unpolarised
+    source of flux S (``I = (XX + YY) / 2``, docs/conventions.md). Data in the ``sum`` convention
+    (XX = S/2) are doubled on ingest. ``requested`` is ``input.pol_convention``: ``sum`` / ``avg``
+    as the user says, or ``auto``: the file's own ``pol_convention`` (pyuvdata writes it in UVH5,
+    uvfits, MS and Miriad files). When neither says, a calibrated run (``calibrated_here``) needs none
+    (the gains, solved against a sky model in mmflow's convention, absorb any factor: ``avg`` is
+    assumed and stated), and an uncalibrated one is refused: halving the flux silently is never an
+    option.
+    """
+    convention = file_convention if requested == "auto" else requested
+    if convention is None:
+        if calibrated_here:
+            return 1.0, "avg"
+        raise InputError(what, "pol_convention", "the file does not say how its XX / YY relate to Stokes I "
+                         "(pyuvdata's pol_convention is unset) and no calibration sets the flux scale",
+                         "set input.pol_convention=sum for pyuvdata-family simulations (matvis, pyuvsim, "
+                         "hera_sim: XX = I/2) or input.pol_convention=avg for CASA-style data (XX = I), or "
+                         "calibrate.enabled=true")
+    if convention not in POL_CONVENTIONS:
+        raise InputError(what, "pol_convention", f"unknown polarisation convention {convention!r}",
+                         "set input.pol_convention to sum or avg")
+    return (2.0 if convention == "sum" else 1.0), convention

@@ -84,7 +84,7 @@ def read_file(path, fmt=None, info=None, site=None):
     else:
         out, info = _read_pyuvdata(path, fmt, info)
     # the plan (or file_info in _read_pyuvdata) has checked the unit against calibrate.enabled
-    scale = checks.unit_scale(info["vis_units"], out.freqs, path, calibrated_here=True)
+    scale = checks.unit_scale(info["vis_units"], out.freqs, path, calibrated_here=True) * info.get("pol_factor", 1.0)
     if np.any(scale != 1.0):
         out.vis = out.vis * scale[None, :, None]
     return out

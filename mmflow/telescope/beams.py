@@ -179,10 +179,13 @@ class ZernikeBeam(Beam):
 class PyUVDataBeam(Beam):
     """Any pyuvdata beam (``AnalyticBeam`` objects or ``UVBeam`` files) through ``BeamInterface``.
 
-    The Stokes-I power response is ``(XX + YY) / 2`` (or the single polarisation present),
-    with the beam's own normalisation (a beam file says what zenith is: pyuvdata's
-    unpolarised power beams have XX = YY = 0.5 there, matching visibilities simulated with
-    them); ``normalize=True`` rescales to 1 at zenith.
+    The Stokes-I power response is ``A_I = (XX + YY) / 2`` (or the single polarisation present),
+    with the beam's own normalisation (a beam file says what zenith is; pyuvdata's power beams,
+    e.g. of a short dipole, are ``XX = |J_x|^2 = 1`` there); ``normalize=True`` rescales to 1 at
+    zenith. It is the response of visibilities in mmflow's ``avg`` convention,
+    ``V_pp = int |J_p|^2 I e^{2 pi i b.r} dOmega`` and ``V_I = (V_xx + V_yy) / 2 = int A_I I ...``:
+    data simulated through the same beam by matvis or pyuvsim carry ``V_pp / 2`` (pyuvdata's
+    ``pol_convention = "sum"``) and are doubled on ingest (:func:`mmflow.io.polarization.pol_factor`).
 
     Parameters
     ----------

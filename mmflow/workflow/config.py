@@ -187,6 +187,12 @@ class InputConfig(Section):
     nonfinite: Literal["error", "flag"] = Field(
         "error", description="Unflagged NaN/inf samples in input files: refuse the file, or flag them "
         "(counted and logged).")
+    pol_convention: Literal["auto", "sum", "avg"] = Field(
+        "auto", description="How the files' XX / YY relate to Stokes I (pyuvdata's pol_convention): 'sum' "
+        "I = XX + YY (matvis, pyuvsim, hera_sim: an unpolarised source of S Jy gives XX = S/2), 'avg' "
+        "I = (XX + YY) / 2 (CASA-style, XX = S); data are stored in mmflow's avg convention ('sum' data "
+        "doubled). 'auto': what the file says; when it says nothing, calibration sets the scale, or the run is "
+        "refused before any work (docs/conventions.md).")
     cross_hands: bool = Field(True, description="Carry the cross hands (xy, yx / rl, lr) of files that hold them "
                               "in vis.zarr's vis_cross (calibration and Stokes I use the parallel hands).")
     average_channels: int = Field(1, ge=1, description="Average this many file channels into each ingested "

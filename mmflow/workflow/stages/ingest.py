@@ -51,7 +51,8 @@ def _ingest_prepare(ctx):
     plan = plan_ingest(ctx.cfg)
     width = getattr(plan, "channel_width_hz", None)
     attrs = dict(layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files), pols=plan.pols,
-                 cross_pols=plan.cross_pols,
+                 cross_pols=plan.cross_pols, pol_convention=plan.file_info[0]["pol_convention_used"],
+                 pol_factor=plan.file_info[0]["pol_factor"],
                  skipped_files=list(plan.skipped), integration_s=plan.integration_s,
                  channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3)
     g = ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,

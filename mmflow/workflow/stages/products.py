@@ -67,7 +67,9 @@ def _products_task(ctx, key):
     tag = frequency_tags(freqs)[fi]
     maps = ctx.run.path / "maps"
     meta = {"FREQ": f, "LMAX": lmax, "EPS": cfg.imaging.eps, "METHOD": cfg.imaging.method, "BUNIT": p.unit,
-            "COORDSYS": {"icrs": "C", "galactic": "G", "date": "C"}[p.frame], "EPOCHJD": epoch}
+            "COORDSYS": {"icrs": "C", "galactic": "G", "date": "C"}[p.frame], "EPOCHJD": epoch,
+            # Stokes I with I = (XX + YY) / 2 (pyuvdata's 'avg'); POLIN: the input's convention (docs/conventions.md)
+            "STOKES": "I", "POLCONV": "avg", "POLIN": str(vis.attrs.get("pol_convention", "avg"))}
     write_healpix_fits(maps / f"map_{tag}.fits", hmap, meta, mask=mask)
     ctx.ledger.record_file(maps / f"map_{tag}.fits")
     seen = hmap[mask]
