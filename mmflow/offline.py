@@ -41,7 +41,10 @@ def offline_site_registry():
     configure_astropy()
     if not EarthLocation._site_registry:
         urls = [base + "coordinates/sites.json" for base in (conf.dataurl, conf.dataurl_mirror)]
-        if any(is_url_in_cache(u) for u in urls):
+        with warnings.catch_warnings():  # no cache folder yet: astropy warns while answering "not cached"
+            warnings.simplefilter("ignore")
+            cached = any(is_url_in_cache(u) for u in urls)
+        if cached:
             EarthLocation._get_site_registry()  # read from astropy's cache
         else:
             reg = SiteRegistry()

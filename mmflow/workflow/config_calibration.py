@@ -2,11 +2,35 @@
 peeling and terrestrial removal (``docs/calibration.md``)."""
 from __future__ import annotations
 
-from typing import Literal, Optional
+import math
+from typing import Annotated, Literal, Optional, Union
 
-from pydantic import Field
+from pydantic import BeforeValidator, Field
 
 from mmflow.workflow.config_base import CATALOG_NAMES, Section
+from mmflow.workflow.config_errors import BadValue
+
+
+
+
+def _baseline_cut(v):
+    """``auto`` or a number of wavelengths >= 0."""
+    if v == "auto":
+        return v
+    try:
+        x = float(v) if not isinstance(v, bool) else math.nan
+    except (TypeError, ValueError):
+        x = math.nan
+    if not (math.isfinite(x) and x >= 0):
+        raise BadValue("not auto or a number >= 0", "use auto, or a baseline length in wavelengths >= 0")
+    return x
+
+
+#: a baseline cut (wavelengths) or ``auto`` (:func:`mmflow.calibrate.baselines.auto_min_lambda`)
+BaselineCut = Annotated[Union[Literal["auto"], float], BeforeValidator(_baseline_cut)]
+CUT_ALLOWED = {"allowed": "auto, or a number >= 0"}
+AUTO_CUT = ("'auto' (the default): 15, lowered per channel until every antenna keeps at least half of its "
+            "baselines (docs/calibration.md); a cut that leaves an antenna fewer than 3 is refused before work.")
 
 
 class CorruptConfig(Section):
@@ -34,7 +58,8 @@ class CalibrateConfig(Section):
     enabled: bool = Field(False, description="Run this stage.")
     sources: list[str] = Field(["Cyg A", "Cas A"], min_length=1, description="Sky model (catalogue sources "
                                "through the beam).", json_schema_extra=CATALOG_NAMES)
-    min_baseline_lambda: float = Field(15.0, ge=0, description="Use baselines longer than this (wavelengths).")
+    min_baseline_lambda: BaselineCut = Field("auto", description="Use baselines longer than this (wavelengths); "
+                                             + AUTO_CUT, json_schema_extra=CUT_ALLOWED)
     solint_s: Optional[float] = Field(None, gt=0, description="Solution interval (s); null: one solution on the "
                                       "track where the sources are highest, applied to the whole data set.")
     interpolate: bool = Field(True, description="With solint_s: gains interpolated linearly in amplitude and "
@@ -46,6 +71,9 @@ class CalibrateConfig(Section):
     damping: Literal["half", "rk4", "none"] = Field("half", description="Stefcal damping of the update.")
     outlier_sigma: Optional[float] = Field(5.0, gt=0, description="Flag antennas whose corrected residuals are "
                                            "outliers at this many sigma (one at a time); null: off.")
+    max_flagged_fraction: float = Field(0.2, ge=0, le=1, description="Stop, naming the antennas and why, when a "
+                                        "solution flags more than this fraction of the antennas that have data "
+                                        "(a model that does not describe the data, not bad antennas).")
     ripple: bool = Field(True, description="Correct the autocorrelation ripple (HVAC sawtooth) first.")
     ripple_smooth_min: float = Field(45.0, gt=0, description="FWHM of the ripple smoothing kernel (minutes).")
     flag_autos: bool = Field(True, description="After calibration, give the autocorrelations weight 0 in every "
@@ -69,7 +97,8 @@ class PeelConfig(Section):
                                      "longer biases the removed sources' DD gains and fluxes, and the imaged map "
                                      "keeps them (docs/calibration.md).", json_schema_extra=CATALOG_NAMES)
     peel_min_elevation_deg: float = Field(10.0, ge=0, le=90, description="Peel only above this elevation.")
-    min_baseline_lambda: float = Field(15.0, ge=0, description="Solve on baselines longer than this (wavelengths).")
+    min_baseline_lambda: BaselineCut = Field("auto", description="Solve on baselines longer than this "
+                                             "(wavelengths); " + AUTO_CUT, json_schema_extra=CUT_ALLOWED)
     passes: int = Field(3, ge=1, description="Passes over the sources.")
     tol: float = Field(1e-4, gt=0, lt=1, description="Stefcal tolerance of the DD gains.")
     max_iter: int = Field(30, ge=1, description="Stefcal iterations per pass.")
@@ -121,4 +150,5 @@ class TerrestrialConfig(Section):
 
     enabled: bool = Field(False, description="Run this stage.")
     components: int = Field(2, ge=1, description="Rank-1 templates fitted to the zenith-phased average.")
-    min_baseline_lambda: float = Field(15.0, ge=0, description="Fit amplitudes on baselines longer than this.")
+    min_baseline_lambda: BaselineCut = Field("auto", description="Fit amplitudes on baselines longer than this "
+                                             "(wavelengths); " + AUTO_CUT, json_schema_extra=CUT_ALLOWED)

@@ -7,7 +7,10 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 * ``g{F}_{K}``: Stefcal gains of channel F on interval K against the model
   ``calibrate.sources`` through the beam at the data's epoch
   (:func:`mmflow.calibrate.stefcal.solve_gains`), on ripple-corrected data and on baselines
-  longer than ``calibrate.min_baseline_lambda``; outlier antennas are flagged one at a time.
+  longer than ``calibrate.min_baseline_lambda`` (``auto``: 15 lambda, lowered until every antenna keeps
+  half of its baselines, :mod:`mmflow.workflow.baseline_cuts`); outlier antennas are flagged one at a
+  time, and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with
+  data stops the run naming them (the model, not the array, is then wrong).
 
 With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
 ``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
@@ -28,6 +31,7 @@ import numpy as np
 
 from mmflow.errors import InputError
 from mmflow.io.run_stores import gains_store
+from mmflow.workflow.baseline_cuts import check_baselines, resolved_cuts, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage, register
 
@@ -54,17 +58,6 @@ def _intervals(ctx, tel, lst, integration_s):
     return np.array([[track.start, track.stop]], np.int64), np.array([[0, n]], np.int64)
 
 
-def check_baselines(tel, pairs, min_lambda, field="calibrate.min_baseline_lambda"):
-    """Refuse, before any solve, a channel with no baseline longer than ``min_lambda`` (the
-    ``field`` that sets it: calibrate's or peel's)."""
-    from mmflow.calibrate.baselines import baseline_mask
-
-    for f in tel.freqs_hz:
-        if not baseline_mask(pairs, tel.layout.enu, float(f), min_lambda).any():
-            raise InputError("workflow", field, f"no baseline is longer than {min_lambda:g} wavelengths at "
-                             f"{f / 1e6:.3f} MHz", f"lower {field} (the sky model must dominate those baselines)")
-
-
 def _prepare(ctx):
     vg = ctx.open("vis.zarr")
     nt, _, nf, npol = vg["vis"].shape
@@ -74,13 +67,14 @@ def _prepare(ctx):
         raise InputError(str(ctx.run.store("vis.zarr")), "autos", "no autocorrelations: the ripple correction "
                          "needs them", "ingest autocorrelations (telescope.include_autos), or set "
                          "calibrate.ripple=false")
-    check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)
+    check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda, "calibrate.min_baseline_lambda")
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
     ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply,
                            {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
                             "ripple": bool(ctx.cfg.calibrate.ripple),
                             "interpolate": bool(ctx.cfg.calibrate.interpolate),
-                            "flag_autos": bool(ctx.cfg.calibrate.flag_autos)}))
+                            "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
+                            "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)}))
     keys = [f"r{fi}" for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [f"g{fi}_{k:05d}" for fi in range(nf) for k in range(len(solve))]
 
@@ -110,7 +104,7 @@ def _task(ctx, key):
         fi = int(key[1:])
         ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
         return {"ripple_channels": 1}
-    from mmflow.calibrate.baselines import baseline_mask
+    from mmflow.calibrate.baselines import antennas_with_data
     from mmflow.calibrate.coherency import source_coherencies
     from mmflow.calibrate.ripple import apply_ripple
     from mmflow.calibrate.stefcal import solve_gains
@@ -127,9 +121,11 @@ def _task(ctx, key):
     if c.ripple:
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
     model = source_coherencies(tel, f, block.lst[good], get_sources(c.sources), _epoch(ctx), block.pairs).sum(0)
-    keep = baseline_mask(block.pairs, tel.layout.enu, f, c.min_baseline_lambda)
+    keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)
     sol = solve_gains(vis, model[..., None], w, block.pairs, tel.n_ant, baseline_keep=keep, tol=c.tol,
                       max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma)
+    has_data = antennas_with_data(w, block.pairs, tel.n_ant, keep)
+    _stop_if_too_many_flagged(ctx, sol, has_data, f, (t0, t1), c)
     region = (slice(k, k + 1), slice(fi, fi + 1))
     ctx.write(g, "gains", region, np.where(sol.flags, 0, np.nan_to_num(sol.gains))[:, None])  # flagged: 0
     ctx.write(g, "flags", region, sol.flags[:, None])
@@ -137,7 +133,34 @@ def _task(ctx, key):
     ctx.write(g, "iterations", region, sol.iterations[:, None].astype(np.int32))
     ctx.write(g, "converged", region, sol.converged[:, None])
     return {"solutions": int(sol.converged.size), "not_converged": int((~sol.converged).sum()),
-            "flagged_antennas": int(sol.flags.any(axis=-1).sum())}
+            "flagged_antennas": int((sol.flags[0] & has_data).any(axis=-1).sum()),
+            "antennas_without_data": int((~has_data).all(axis=-1).sum())}
+
+
+def _stop_if_too_many_flagged(ctx, sol, has_data, f, rows, c):
+    """Refuse a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with
+    data: that is a sky model which does not describe the data on the baselines used (missing bright
+    sources, a wrong beam, a cut that keeps the diffuse sky), not bad antennas, and the later stages
+    would fail on the coverage it leaves with a misleading message."""
+    flagged = (sol.flags[0] & has_data).any(axis=-1)
+    n_data = int(has_data.any(axis=-1).sum())
+    if n_data == 0 or flagged.sum() <= c.max_flagged_fraction * n_data:
+        return
+    names = ctx.telescope().layout.names
+    chi2 = sol.chi2[0]
+    ok = ~sol.flags[0] & has_data
+    med_ok = float(np.median(chi2[ok])) if ok.any() else float("nan")
+    listed = ", ".join(str(names[a]) for a in np.flatnonzero(flagged)[:20])
+    more = f" and {int(flagged.sum()) - 20} more" if flagged.sum() > 20 else ""
+    raise InputError(str(ctx.run.store("gains.zarr")), "calibrate",
+                     f"the gain solution at {f / 1e6:.3f} MHz (integrations {rows[0]}-{rows[1] - 1}) flagged "
+                     f"{int(flagged.sum())} of the {n_data} antennas with data ({listed}{more}) as outliers or "
+                     f"unconverged, more than calibrate.max_flagged_fraction={c.max_flagged_fraction:g} (the "
+                     f"others' residual chi2 median {med_ok:.3g}): the sky model calibrate.sources="
+                     f"{list(c.sources)} does not describe the data on the baselines used",
+                     "add the bright sources the track sees to calibrate.sources, set calibrate.min_baseline_lambda"
+                     "=auto (or raise it past the diffuse sky's baselines), check the beam; or raise "
+                     "calibrate.outlier_sigma / calibrate.max_flagged_fraction if those antennas are truly bad")
 
 
 def _apply(ctx, block):
@@ -168,5 +191,5 @@ def _apply(ctx, block):
 
 register(Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.calibrate.enabled,
-               counters=("not_converged", "flagged_antennas"),
+               counters=("not_converged", "flagged_antennas", "antennas_without_data"),
                description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)"))

@@ -36,6 +36,7 @@ import numpy as np
 
 from mmflow.errors import InputError
 from mmflow.io.run_stores import MODEL_COLUMNS, models_store
+from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.simulate import TIME_CHUNK
@@ -91,7 +92,6 @@ def _read_rows(ctx, rows):
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.baselines import baseline_mask
     from mmflow.calibrate.coherency import source_coherencies, source_vector_date
     from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
                                                 fit_point_position, pack_components, source_uvw, symmetric_start)
@@ -107,7 +107,7 @@ def _task(ctx, key):
     rows, _ = _track(ctx, tel, ctx.open("vis.zarr")["lst"][:], name)
     rows = rows[np.unique(np.linspace(0, len(rows) - 1, min(len(rows), m.max_integrations)).round().astype(int))]
     vis, weights, lst, pairs = _read_rows(ctx, rows)
-    keep = baseline_mask(pairs, tel.layout.enu, f, p.min_baseline_lambda) & (pairs[:, 0] != pairs[:, 1])
+    keep = solve_mask(tel, pairs, p.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
     w = weights[:, :, fi].min(-1) * keep
     data = vis[:, :, fi].mean(-1)  # unpolarised: the mean of the polarisations
     # every removed and modelled source with a flux per integration; all but this one subtracted

@@ -35,10 +35,10 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.io.run_stores import peel_store
+from mmflow.workflow.baseline_cuts import check_baselines, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.context import _parse
 from mmflow.workflow.stages.base import Stage, producer_of, register
-from mmflow.workflow.stages.calibrate import check_baselines
 from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
@@ -84,7 +84,6 @@ def _coherencies(ctx, tel, fi, lst, pairs, names):
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.baselines import baseline_mask
     from mmflow.simulate.corrupt import gain_products
     from mmflow.calibrate.coherency import apparent_flux
     from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, select_modes
@@ -107,7 +106,7 @@ def _task(ctx, key):
                          peel_min_elevation_deg=p.peel_min_elevation_deg,
                          modelled=[n in p.model_sources for n in names])
     modes[:, ~good] = SKIP
-    keep = baseline_mask(block.pairs, tel.layout.enu, f, p.min_baseline_lambda)
+    keep = solve_mask(tel, block.pairs, p.min_baseline_lambda, f)
     solint = 1 if p.solint_s is None else max(1, int(round(p.solint_s / float(ctx.vis_attrs()["integration_s"]))))
     kw = dict(baseline_keep=keep, batch=p.batch, warm_start=p.warm_start, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard,
               solint=solint)

@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.io.run_stores import terrestrial_store
+from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.stages.base import Stage, register
@@ -50,7 +51,6 @@ def _templates(ctx, fi, pairs):
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.baselines import baseline_mask
     from mmflow.calibrate.terrestrial import fit_amplitudes, projection_fraction
 
     phase, tkey = key.rpartition("-")[2].split("_")  # phase-2 keys carry their cycle's prefix
@@ -73,7 +73,7 @@ def _task(ctx, key):
     seen = []
     for fi, f in enumerate(tel.freqs_hz):
         B = _templates(ctx, fi, block.pairs)
-        keep = baseline_mask(block.pairs, tel.layout.enu, float(f), ctx.cfg.terrestrial.min_baseline_lambda)
+        keep = solve_mask(tel, block.pairs, ctx.cfg.terrestrial.min_baseline_lambda, f)
         amps[:, fi] = fit_amplitudes(block.vis[:, :, fi], w[:, :, fi], B, keep)
         for c in range(B.shape[0]):
             for p in range(B.shape[-1]):
