@@ -40,10 +40,12 @@ def write(uv, path, **kw):
 
 
 def expected_stokes_i(uv):
-    """(XX + YY) / 2 per (time, baseline) in the store's order (times ascending, baselines i <= j)."""
+    """(XX + YY) / 2 per (time, baseline) in the store's order (times ascending, baselines i <= j), in
+    mmflow's 'avg' convention: a file in pyuvdata's 'sum' convention (matvis) counts twice."""
     xx = uv.data_array[:, 0, 0].reshape(uv.Ntimes, uv.Nbls)
     flags = np.any(uv.flag_array[:, 0, :], axis=-1).reshape(uv.Ntimes, uv.Nbls)
-    return (1 + YY_GAIN) / 2 * xx, flags
+    factor = 2.0 if uv.pol_convention == "sum" else 1.0
+    return factor * (1 + YY_GAIN) / 2 * xx, flags
 
 
 @pytest.fixture(scope="module")
@@ -149,11 +151,12 @@ def test_phased_data_unprojected_exactly_any_phase_centre(uv, reference, tmp_pat
 
 def test_units_uncalibrated_refused_kelvin_steradian_converted(uv, reference, tmp_path):
     bad = uv.copy()
-    bad.vis_units = "uncalib"
+    bad.vis_units, bad.pol_convention = "uncalib", None  # pyuvdata: uncalibrated data have no convention
     with pytest.raises(InputError, match=r"raw.uvh5.*vis_units.*uncalibrated.*calibrate.enabled=true"):
         ingest(tmp_path / "run", str(write(bad, tmp_path / "u" / "raw.uvh5")))
     g = ingest(tmp_path / "run_u", str(write(bad, tmp_path / "u" / "raw.uvh5")), "calibrate.enabled=true")
-    np.testing.assert_array_equal(g["vis"][:], reference["vis"][:])  # kept as they are: the gains set the scale
+    # kept as they are (the gains set the scale), where the reference, in matvis's 'sum' convention, was doubled
+    np.testing.assert_array_equal(g["vis"][:], reference["vis"][:] / 2)
     ksr = uv.copy()
     ksr.vis_units = "K str"
     g = ingest(tmp_path / "run_k", str(write(ksr, tmp_path / "k" / "ksr.uvh5")))
