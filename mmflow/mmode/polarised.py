@@ -120,7 +120,11 @@ def stokes_kernels(jn, je, corr):
 
 
 def make_polarised_grid(lat_rad, jones, freq_hz, lmax, fringe_lmax):
-    """Grid exact to ``lmax + fringe_lmax`` (the Stokes-I path's rings and ``n_phi``) with the feeds on it."""
+    """Grid exact to ``lmax + fringe_lmax`` with the feeds on it.
+
+    The rings and ``n_phi`` are those of :func:`mmflow.mmode.transfer.make_grid` (the same
+    quadrature as the Stokes-I path), with ``n_phi >= 2 lmax + 2`` for the transforms.
+    """
     quad = lmax + fringe_lmax
     n_theta = quad // 2 + 2
     n_theta += n_theta % 2
