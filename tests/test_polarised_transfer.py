@@ -11,6 +11,7 @@ import pytest
 from scipy.special import sph_harm_y
 
 from mmflow.conventions import enu_to_equatorial_matrix
+from mmflow.errors import InputError
 from mmflow.mmode.polarised import (CORRELATIONS, feed_projections, make_polarised_grid, polarised_coefficients,
                                     polarised_transfer_blocks, stokes_kernels)
 from mmflow.mmode.transfer import fringe_bandlimit, make_grid, transfer_blocks
@@ -59,6 +60,14 @@ def test_uvbeam_efield_wrapper_interpolates_the_dipole():
     rng = np.random.default_rng(1)
     az, za = rng.uniform(0, 2 * np.pi, 100), rng.uniform(0, 1.4, 100)
     np.testing.assert_allclose(wrapped.jones(az, za, FREQ), ShortDipoleJones().jones(az, za, FREQ), atol=2e-4)
+    # an analytic pyuvdata beam is evaluated, not interpolated
+    np.testing.assert_allclose(PyUVDataJones(ShortDipoleBeam()).jones(az, za, FREQ),
+                               ShortDipoleJones().jones(az, za, FREQ), atol=1e-12)
+    power = ShortDipoleBeam().to_uvbeam(freq_array=np.array([FREQ]), beam_type="power",
+                                        axis1_array=np.deg2rad(np.arange(0, 360, 10.0)),
+                                        axis2_array=np.deg2rad(np.arange(0, 91, 10.0)))
+    with pytest.raises(InputError, match="E-field"):
+        PyUVDataJones(power)
 
 
 def test_iau_convention_at_zenith():
