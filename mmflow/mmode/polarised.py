@@ -1,0 +1,244 @@
+"""Full-Stokes transfer coefficients: the four linear correlations' response to T, E, B and V.
+
+Sky (IAU convention). At each direction the polarisation basis is ``(e_N, e_E) =
+(-e_theta, e_phi)`` of the celestial frame (north, east on the sky); Stokes Q is positive
+for an electric field along north-south and the polarisation angle is measured from north
+through east. The sky's coherency on that basis, normalised as mmflow's ``avg`` convention
+(an unpolarised sky gives ``V_xx = V_yy = I`` through unit feeds), is::
+
+    S = <E E^H> = [[I + Q, U + iV],
+                   [U - iV, I - Q]]       (Hamaker & Bregman 1996; XY = U + iV for X north)
+
+Correlation pq of baseline ``b = x_j - x_i`` (wavelengths, sky frame at ``phi = 0``), feed p
+of antenna i and q of antenna j, with ``J_p = (J_pN, J_pE)`` the feed's response on that basis
+(:mod:`mmflow.telescope.jones`) and ``f_b = exp(2 pi i b . r)``::
+
+    V_pq = int f_b J_p S J_q^H dOmega = int f_b (K_I I + K_Q Q + K_U U + K_V V) dOmega,
+    K_I = J_pN J_qN^* + J_pE J_qE^*,    K_Q = J_pN J_qN^* - J_pE J_qE^*,
+    K_U = J_pN J_qE^* + J_pE J_qN^*,    K_V = i (J_pN J_qE^* - J_pE J_qN^*).
+
+Harmonics. I and V are spin 0: ``I = sum T_lm Y_lm``, ``V = sum V_lm Y_lm``. Q and U go
+through healpy's spin-2 convention, which is the COSMO one (``U_h = -U``):
+``Q + i U_h = sum a_{2,lm} 2Y_lm``, ``Q - i U_h = sum a_{-2,lm} -2Y_lm``,
+``a_{+-2} = -(E_lm +- i B_lm)``. With ``h_+- = f_b (K_Q +- i K_U) / 2`` (so that
+``K_Q Q + K_U U = h_+ (Q + iU_h) + h_- (Q - iU_h)`` up to ``f_b``)::
+
+    b^T_lm = int f_b K_I Y_lm,      b^V_lm = int f_b K_V Y_lm,
+    b^E_lm = -(int h_+ 2Y_lm + int h_- -2Y_lm),   b^B_lm = -i (int h_+ 2Y_lm - int h_- -2Y_lm),
+
+(harmonics *not* conjugated, as in :mod:`mmflow.mmode.transfer`) and, for every m,
+``V_pq,m = sum_X sum_l b^X_lm X_lm`` with ``X_{l,-m} = (-1)^m conj(X_lm)`` (real fields), the
+sky rotating under the array as in the Stokes-I path (z rotations keep ``(e_N, e_E)``, so
+Q and U rotate as scalars). The stored ``-m`` row (``conj(V_{-m})``, the layout of
+:mod:`mmflow.conventions`) is ``c^X_lm = (-1)^m conj(b^X_{l,-m})``; it equals the ``+m`` row
+of correlation qp of the reversed baseline. For an unpolarised sky and the Stokes-I power
+beam ``A_I = (|J_x|^2 + |J_y|^2) / 2``, ``(b^{xx,T} + b^{yy,T}) / 2`` is the Stokes-I ``B_lm``.
+
+Quadrature. The integrals are exact weighted sums on a Gauss-Legendre grid exact to
+``lmax + L_f`` (as the Stokes-I path), taken by ducc0's adjoint spin-0 / spin-2 transforms
+of the weighted kernel maps: for a complex map g, ``int g sY_lm = conj(int g^* sY_lm^*)``,
+and the transforms of real maps give every m through the reality relations.
+These are reference kernels (one transform per map): the ring-FFT + per-m GEMM fast path
+for full Stokes is not built yet (docs/stokes.md).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import ducc0
+import numpy as np
+
+from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+
+#: Stokes parameters of the transfer coefficients, in the order of their axis.
+STOKES = ("T", "E", "B", "V")
+#: Correlations, in the order of their axis by default.
+CORRELATIONS = ("xx", "yy", "xy", "yx")
+_FEED = {"x": 0, "y": 1}
+
+
+@dataclass
+class PolarisedGrid:
+    """Gauss-Legendre grid (sky frame at ``phi = 0``) with the feeds' responses on ``(e_N, e_E)``.
+
+    Attributes
+    ----------
+    lmax, quad_lmax : int
+    theta, weights : ndarray (n_theta,); ``weights`` include ``2 pi / n_phi``
+    n_phi : int
+    vectors : ndarray (n_theta, n_phi, 3) directions
+    jn, je : ndarray complex (2, n_theta, n_phi): ``J_p . e_N`` and ``J_p . e_E`` for feeds x, y
+    """
+
+    lmax: int
+    quad_lmax: int
+    theta: np.ndarray
+    weights: np.ndarray
+    n_phi: int
+    vectors: np.ndarray
+    jn: np.ndarray
+    je: np.ndarray
+
+
+def sky_basis(theta, phi):
+    """Celestial north and east unit vectors ``e_N = -e_theta``, ``e_E = e_phi`` (last axis xyz)."""
+    theta, phi = np.broadcast_arrays(np.asarray(theta, float), np.asarray(phi, float))
+    ct, st, cp, sp = np.cos(theta), np.sin(theta), np.cos(phi), np.sin(phi)
+    e_n = -np.stack([ct * cp, ct * sp, -st], axis=-1)
+    e_e = np.stack([-sp, cp, np.zeros_like(phi)], axis=-1)
+    return e_n, e_e
+
+
+def feed_projections(jones, lat_rad, vectors, freq_hz, phi=0.0):
+    """``(J_pN, J_pE)``: the feeds' responses on the sky basis at directions ``vectors``.
+
+    ``J_p`` (ENU, :meth:`mmflow.telescope.jones.JonesBeam.jones_enu`) is rotated to the
+    celestial frame with the array at sidereal angle ``phi`` and projected on ``e_N, e_E``.
+
+    Returns
+    -------
+    jn, je : complex (2,) + vectors.shape[:-1]
+    """
+    mat = enu_to_equatorial_matrix(lat_rad, phi)
+    vectors = np.asarray(vectors, float)
+    j_eq = np.einsum("ik,pk...->pi...", mat, jones.jones_enu(vectors @ mat, freq_hz))
+    theta = np.arccos(np.clip(vectors[..., 2], -1, 1))
+    e_n, e_e = sky_basis(theta, np.arctan2(vectors[..., 1], vectors[..., 0]))
+    jn = np.einsum("pi...,...i->p...", j_eq, e_n)
+    je = np.einsum("pi...,...i->p...", j_eq, e_e)
+    return jn, je
+
+
+def stokes_kernels(jn, je, corr):
+    """``(K_I, K_Q, K_U, K_V)`` of correlation ``corr`` (e.g. ``"xy"``): ``J_p S J_q^H`` per Stokes."""
+    p, q = _FEED[corr[0]], _FEED[corr[1]]
+    nn = jn[p] * np.conj(jn[q])
+    ee = je[p] * np.conj(je[q])
+    ne = jn[p] * np.conj(je[q])
+    en = je[p] * np.conj(jn[q])
+    return nn + ee, nn - ee, ne + en, 1j * (ne - en)
+
+
+def make_polarised_grid(lat_rad, jones, freq_hz, lmax, fringe_lmax):
+    """Grid exact to ``lmax + fringe_lmax`` with the feeds on it.
+
+    The rings and ``n_phi`` are those of :func:`mmflow.mmode.transfer.make_grid` (the same
+    quadrature as the Stokes-I path), with ``n_phi >= 2 lmax + 2`` for the transforms.
+    """
+    quad = lmax + fringe_lmax
+    n_theta = quad // 2 + 2
+    n_theta += n_theta % 2
+    n_phi = ducc0.fft.good_size(max(quad + 2, 2 * lmax + 2))
+    theta = ducc0.misc.GL_thetas(n_theta)
+    weights = ducc0.misc.GL_weights(n_theta, n_phi)
+    phi = 2 * np.pi * np.arange(n_phi) / n_phi
+    vec = unit_vectors(theta[:, None], phi[None, :])
+    jn, je = feed_projections(jones, lat_rad, vec, freq_hz)
+    return PolarisedGrid(lmax, quad, theta, weights, n_phi, vec, jn, je)
+
+
+def _adjoint(grid, maps, spin):
+    """``sum_k w_k maps_k sY_lm^*`` (healpy layout, m >= 0) of real maps ``(ncomp, n_theta, n_phi)``."""
+    weighted = np.ascontiguousarray(maps * grid.weights[None, :, None])
+    return ducc0.sht.experimental.adjoint_synthesis_2d(map=weighted, spin=spin, lmax=grid.lmax, geometry="GL")
+
+
+def _unpack(grid, alm):
+    """healpy-layout ``alm`` (m >= 0) as ``(lmax + 1, lmax + 1)`` ``[l, m]`` (zero for m > l)."""
+    L = grid.lmax
+    out = np.zeros((L + 1, L + 1), complex)
+    i = 0
+    for m in range(L + 1):
+        out[m:, m] = alm[i:i + L + 1 - m]
+        i += L + 1 - m
+    return out
+
+
+def _all_m(pos, neg_source):
+    """Assemble ``[l, lmax + m]`` for ``m = -lmax..lmax`` from ``pos[l, m]`` (m >= 0) and
+    ``neg[l, k]`` giving the ``m = -k`` entries (``k >= 1``)."""
+    L = pos.shape[0] - 1
+    out = np.zeros((L + 1, 2 * L + 1), complex)
+    out[:, L:] = pos
+    out[:, :L] = neg_source[:, 1:][:, ::-1]
+    return out
+
+
+def _sign_m(L):
+    return (-1.0) ** np.arange(L + 1)[None, :]
+
+
+def spin0_integrals(grid, g):
+    """``int g Y_lm dOmega`` for a complex map g, ``[l, lmax + m]``, ``m = -lmax..lmax``.
+
+    For real ``h``, ``A_lm = int h Y_lm^*`` gives ``int h Y_lm = conj(A_lm)`` and
+    ``int h Y_{l,-m} = (-1)^m A_lm``; ``g = h_r + i h_i`` by linearity.
+    """
+    a = [_unpack(grid, _adjoint(grid, part[None], 0)[0]) for part in (g.real, g.imag)]
+    pos = np.conj(a[0]) + 1j * np.conj(a[1])
+    neg = _sign_m(grid.lmax) * (a[0] + 1j * a[1])
+    return _all_m(pos, neg)
+
+
+def spin2_integrals(grid, g, spin):
+    """``int g sY_lm dOmega`` for ``spin = +2`` or ``-2`` and a complex map g, ``[l, lmax + m]``.
+
+    For real (Q, U) the spin-2 transform gives ``(E, B)`` with ``a_{+-2,lm} = int (Q +- iU)
+    +-2Y_lm^* = -(E +- i B)`` and ``a_{+-2,l,-m} = (-1)^m conj(a_{-+2,lm})``. Then
+    ``int g 2Y_lm = conj(a_2[Q = Re g, U = -Im g])`` and ``int g -2Y_lm = conj(a_{-2}[Re g, Im g])``.
+    """
+    u = -g.imag if spin == 2 else g.imag
+    e, b = (_unpack(grid, x) for x in _adjoint(grid, np.stack([g.real, u]), 2))
+    a_plus, a_minus = -(e + 1j * b), -(e - 1j * b)
+    sgn = _sign_m(grid.lmax)
+    if spin == 2:
+        full = _all_m(a_plus, sgn * np.conj(a_minus))
+    else:
+        full = _all_m(a_minus, sgn * np.conj(a_plus))
+    return np.conj(full)
+
+
+def polarised_coefficients(grid, b_wavelengths, corr):
+    """``b^X_lm`` of one baseline and correlation for X in (T, E, B, V), every m.
+
+    Parameters
+    ----------
+    grid : PolarisedGrid
+    b_wavelengths : (3,) baseline in the sky frame at ``phi = 0``, in wavelengths
+    corr : str, one of :data:`CORRELATIONS`
+
+    Returns
+    -------
+    ndarray complex ``(4, lmax + 1, 2 lmax + 1)``: ``[X, l, lmax + m]`` (zero for ``|m| > l``,
+    and for E, B at ``l < 2``).
+    """
+    fringe = np.exp(2j * np.pi * (grid.vectors @ np.asarray(b_wavelengths, float)))
+    k_i, k_q, k_u, k_v = stokes_kernels(grid.jn, grid.je, corr)
+    s_plus = spin2_integrals(grid, fringe * (k_q + 1j * k_u) / 2, 2)
+    s_minus = spin2_integrals(grid, fringe * (k_q - 1j * k_u) / 2, -2)
+    return np.stack([spin0_integrals(grid, fringe * k_i), -(s_plus + s_minus),
+                     -1j * (s_plus - s_minus), spin0_integrals(grid, fringe * k_v)])
+
+
+def polarised_transfer_blocks(grid, b_wavelengths, correlations=CORRELATIONS):
+    """Full-Stokes transfer blocks in the Stokes-I path's row layout, one per m.
+
+    Returns
+    -------
+    list over ``m = 0..lmax`` of complex arrays ``(n_corr, 4, rows, lmax - m + 1)``: axis 1 is
+    :data:`STOKES`; rows ``0..n_b-1`` are ``V_m`` (coefficients ``b^X_lm``) and, for ``m > 0``,
+    rows ``n_b..2n_b-1`` are ``conj(V_{-m})`` (``(-1)^m conj(b^X_{l,-m})``); columns ``l = m..lmax``.
+    """
+    b = np.asarray(b_wavelengths, float).reshape(-1, 3)
+    L = grid.lmax
+    coef = np.stack([np.stack([polarised_coefficients(grid, bb, c) for bb in b], axis=1)
+                     for c in correlations])  # (corr, X, nb, l, lmax + m)
+    blocks = []
+    for m in range(L + 1):
+        plus = coef[:, :, :, m:, L + m]
+        if m == 0:
+            blocks.append(np.ascontiguousarray(plus))
+        else:
+            minus = (-1) ** m * np.conj(coef[:, :, :, m:, L - m])
+            blocks.append(np.concatenate([plus, minus], axis=2))
+    return blocks
