@@ -79,12 +79,14 @@ def test_ms_per_integration_ingests_to_the_uvh5_store_and_map(scan, tmp_path):
 
     uv = scan["uv"]
     assert ms.attrs["pols"] == ["xx", "yy"]
+    # the MeasurementSets carry matvis's 'sum' convention through pyuvdata: doubled on ingest, as the UVH5
+    assert ms.attrs["pol_convention"] == uvh5.attrs["pol_convention"] == "sum" and ms.attrs["pol_factor"] == 2.0
     for p in range(2):
-        vp = uv.data_array[:, 0, p].reshape(uv.Ntimes, uv.Nbls)
+        vp = 2.0 * uv.data_array[:, 0, p].reshape(uv.Ntimes, uv.Nbls)
         fp = uv.flag_array[:, 0, p].reshape(uv.Ntimes, uv.Nbls)
         np.testing.assert_array_equal(ms["weights"][:, :, 0, p] == 0, fp)
         np.testing.assert_allclose(ms["vis"][:, :, 0, p][~fp], vp[~fp], rtol=0, atol=4 * F32 * np.abs(vp).max())
-    xx = uv.data_array[:, 0, 0].reshape(uv.Ntimes, uv.Nbls)
+    xx = 2.0 * uv.data_array[:, 0, 0].reshape(uv.Ntimes, uv.Nbls)
     flags = np.any(uv.flag_array[:, 0, :], axis=-1).reshape(uv.Ntimes, uv.Nbls)
     vi, wi = stokes_i(ms["vis"][:, :, 0].astype(complex), ms["weights"][:, :, 0])
     np.testing.assert_array_equal(wi == 0, flags)  # Stokes I is flagged where either hand is

@@ -70,20 +70,22 @@ def test_changed_settings_refuse_stale_outputs_then_force_recomputes(tmp_path):
 
 
 def test_calibration_without_long_enough_baselines_stops_before_solving(tmp_path):
-    """The small array's baselines are all < 15 wavelengths: calibrate refuses before any solve,
-    naming the field and the fix, and writes no solution."""
-    cfg = small_config(tmp_path / "run", "calibrate.enabled=true")
-    with pytest.raises(InputError, match="calibrate.min_baseline_lambda.*no baseline is longer than 15 wave"
-                                         ".*lower calibrate.min_baseline_lambda"):
+    """An explicit cut of 15 wavelengths leaves the small array's antennas without baselines:
+    calibrate refuses before any solve, naming the field, the antennas and the fix (``auto``),
+    and writes no solution."""
+    cfg = small_config(tmp_path / "run", "calibrate.enabled=true", "calibrate.min_baseline_lambda=15")
+    with pytest.raises(InputError, match="calibrate.min_baseline_lambda.*antennas keep too few baselines longer "
+                                         "than 15 wave.*set calibrate.min_baseline_lambda=auto"):
         run_workflow(cfg, progress=False, log=lambda *a: None)
     assert not (tmp_path / "run" / "gains.zarr").exists()
 
 
 def test_peeling_without_long_enough_baselines_stops_before_any_fit(tmp_path):
     """Peel's own minimum baseline: without it every fit would be empty (scale 0) and pass silently."""
-    cfg = small_config(tmp_path / "run", "peel.enabled=true", "peel.sources=[Cyg A]", "peel.peel=[Cyg A]")
-    with pytest.raises(InputError, match="peel.min_baseline_lambda.*no baseline is longer than"
-                                         ".*lower peel.min_baseline_lambda"):
+    cfg = small_config(tmp_path / "run", "peel.enabled=true", "peel.sources=[Cyg A]", "peel.peel=[Cyg A]",
+                       "peel.min_baseline_lambda=15")
+    with pytest.raises(InputError, match="peel.min_baseline_lambda.*antennas keep too few baselines"
+                                         ".*set peel.min_baseline_lambda=auto"):
         run_workflow(cfg, progress=False, log=lambda *a: None)
     assert not (tmp_path / "run" / "peel.zarr").exists()
 
