@@ -29,8 +29,9 @@ algorithm (after TTCal's ``peel``, plus the modelled sources; paper section 3.5)
    subtract every source: ``R = V - sum_s C_s``;
 2. for ``passes`` passes: for each peeled source in decreasing flux order, put it back
    (``R += C_s``), re-solve its gains against ``R`` (the screen's offset and amplitude, or
-   Stefcal, :func:`stefcal`, ``K = 1``) and subtract it again; then put every subtracted and modelled source back, solve their scales
-   jointly by least squares (:func:`fit_scales`) and subtract them again;
+   Stefcal, :func:`stefcal`, ``K = 1``) and subtract it again; then put every subtracted and
+   modelled source back, solve their scales jointly by least squares (:func:`fit_scales`) and
+   subtract them again;
 3. guard: with the point-source estimator ``S(X) = Re sum w X conj(F) / sum w``,
    ``F = M / |M|`` (the source's fringe), a peeled source whose removed component has
    ``S(C_s) < guard * S(R + C_s)`` (default guard 0.9: peeling removed less than 90 % of
@@ -571,7 +572,8 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
         md = per_solution(np.asarray(modes)[:, t0:t1])
         start = None
         if last is not None:
-            start = np.broadcast_to(last[:, None], (n_src, nb) + last.shape[1:]).reshape((n_src, nb * P) + last.shape[2:])
+            start = np.broadcast_to(last[:, None], (n_src, nb) + last.shape[1:])
+            start = start.reshape((n_src, nb * P) + last.shape[2:])
         intervals = interval_index(nb, P, solint) if solint > 1 else None
         kw = dict(passes=passes, tol=tol, max_iter=max_iter, guard=guard, damping=damping, threads=threads,
                   intervals=intervals)
