@@ -3,6 +3,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import baseline_mask
 from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source_vector_date
+from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.peel import PEEL, guard_fluxes, peel, select_modes
 from mmflow.calibrate.stefcal import apply_gains, gains_per_integration, solve_gains
 from mmflow.calibrate.baselines import to_matrix
@@ -48,11 +49,12 @@ def test_corrupted_cyg_cas_are_calibrated_and_peeled_below_minus_30_db():
     assert np.abs(np.abs(ratio) - 1).max() < 0.1
     cal, wc = apply_gains(vis, w, pairs, gt)
 
-    # peel both per integration, starting from unit DD gains
+    # peel both per integration (refractive offset + amplitude, the default), starting from no offset
     flux, elev = apparent_flux(tel, FREQ, lsts, srcs, EPOCH)
     modes = select_modes(flux, elev, peelable=[True, True])
     assert (modes == PEEL).all()
-    out = peel(cal, wc, coh, pairs, n, modes, baseline_keep=keep, passes=4, tol=1e-6, max_iter=200)
+    basis = screen_basis(tel.layout.enu, FREQ, sky_tangents_enu(tel, lsts, vec))
+    out = peel(cal, wc, coh, pairs, n, modes, screen_basis=basis, baseline_keep=keep, passes=4, tol=1e-6, max_iter=200)
     assert not out.guard.any()
     # what is left at each source position, against the source's apparent flux
     clean = cal - out.residual  # what peeling removed

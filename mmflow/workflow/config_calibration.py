@@ -96,7 +96,19 @@ class PeelConfig(Section):
                                      "scale) together with peel.sources and then left in the data: their flux no "
                                      "longer biases the removed sources' DD gains and fluxes, and the imaged map "
                                      "keeps them (docs/calibration.md).", json_schema_extra=CATALOG_NAMES)
+    dd_model: Literal["screen", "antenna"] = Field("screen", description="Direction-dependent gains of a peeled "
+                                                  "source per solution. screen: a refractive offset (a phase "
+                                                  "gradient across the array) and a scintillation amplitude, 3 "
+                                                  "real parameters that absorb little of the sky that is not "
+                                                  "modelled. antenna: a free complex gain per antenna (Stefcal), "
+                                                  "2 N_ant - 1 parameters, for phase structure that is not a "
+                                                  "gradient (arrays larger than the ionospheric patch); on a "
+                                                  "compact array they absorb 13-25 % of the unmodelled sky "
+                                                  "(docs/calibration.md).")
     peel_min_elevation_deg: float = Field(10.0, ge=0, le=90, description="Peel only above this elevation.")
+    peel_min_flux_jy: float = Field(0.0, ge=0, description="Peel only where the source's apparent flux (published "
+                                    "flux through the beam) is at least this (Jy); below, it is subtracted with a "
+                                    "fitted flux.")
     min_baseline_lambda: BaselineCut = Field("auto", description="Solve on baselines longer than this "
                                              "(wavelengths); " + AUTO_CUT, json_schema_extra=CUT_ALLOWED)
     passes: int = Field(3, ge=1, description="Passes over the sources.")
@@ -109,9 +121,10 @@ class PeelConfig(Section):
                              "source is then carried forward (docs/calibration.md).")
     batch: int = Field(16, ge=1, description="Integrations solved together (memory ~ batch x n_ant^2).")
     solint_s: Optional[float] = Field(None, gt=0, description="DD solution interval (s) of the peeled sources: "
-                                      "gains shared over the interval (a phase screen smooth over it), amplitude "
-                                      "per integration (scintillation); rounded to whole integrations, counted "
-                                      "from each time chunk's start. null: DD gains per integration.")
+                                      "the refractive offset (screen) or the per-antenna gains (antenna) shared "
+                                      "over the interval, amplitude per integration (scintillation); rounded to "
+                                      "whole integrations, counted from each time chunk's start. null: per "
+                                      "integration.")
     fit_positions: bool = Field(False, description="Fit the subtracted sources' positions per integration (matched "
                                 "filter within 30 arcmin, on the peeled data with the source put back), then peel "
                                 "again with them (stored as DD phase gradients).")

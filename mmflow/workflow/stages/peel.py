@@ -7,10 +7,14 @@ the model coherency of every ``peel.sources`` source through the beam at the dat
 source is peeled (``peel.peel``, above ``peel.peel_min_elevation_deg``), subtracted with a
 fitted flux, or skipped (below the horizon) (:func:`select_modes`); the ``peel.model_sources``
 are fitted with them (a flux scale per integration) and left in the data. It peels
-(:func:`mmflow.calibrate.peel.peel`: direction-dependent gains by Stefcal per source, in
-flux order, for ``peel.passes`` passes; the guard subtracts instead where peeling removed
-less than ``peel.guard`` of the measured flux). ``peel.solint_s`` shares a peeled source's DD
-gains over an interval (amplitude still per integration); ``peel.fit_positions`` fits the
+(:func:`mmflow.calibrate.peel.peel`: direction-dependent gains per source, in flux order, for
+``peel.passes`` passes; the guard subtracts instead where peeling removed less than
+``peel.guard`` of the measured flux). ``peel.dd_model`` chooses the DD gains: ``screen`` (the
+default) a refractive offset and a scintillation amplitude per source and integration
+(:mod:`mmflow.calibrate.dd_screen`, the offset's phase per antenna from the source's sky
+tangent plane at the data's epoch), ``antenna`` a free gain per antenna (Stefcal).
+``peel.solint_s`` shares a peeled source's offset (or DD gains) over an interval (amplitude
+still per integration); ``peel.fit_positions`` fits the
 subtracted sources' positions per integration and peels again with the moved models.
 ``peel.zarr`` keeps per integration the DD gains (for a subtracted source: 1, or the phase
 gradient of its fitted position), flux scales, modes, the guard's fluxes and convergence.
@@ -85,7 +89,8 @@ def _coherencies(ctx, tel, fi, lst, pairs, names):
 
 def _task(ctx, key):
     from mmflow.simulate.corrupt import gain_products
-    from mmflow.calibrate.coherency import apparent_flux
+    from mmflow.calibrate.coherency import apparent_flux, source_vector_date
+    from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
     from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, select_modes
     from mmflow.sky.sources import get_sources
 
@@ -100,16 +105,20 @@ def _task(ctx, key):
     good = np.isfinite(lst)
     names = _names(p)
     coh = _coherencies(ctx, tel, fi, lst, block.pairs, names)
-    flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(names),
-                               float(ctx.vis_attrs()["epoch_jd"]))
+    epoch = float(ctx.vis_attrs()["epoch_jd"])
+    flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(names), epoch)
     modes = select_modes(flux, elev, peelable=[n in p.peel for n in names],
-                         peel_min_elevation_deg=p.peel_min_elevation_deg,
+                         peel_min_elevation_deg=p.peel_min_elevation_deg, peel_min_flux_jy=p.peel_min_flux_jy,
                          modelled=[n in p.model_sources for n in names])
     modes[:, ~good] = SKIP
     keep = solve_mask(tel, block.pairs, p.min_baseline_lambda, f)
     solint = 1 if p.solint_s is None else max(1, int(round(p.solint_s / float(ctx.vis_attrs()["integration_s"]))))
-    kw = dict(baseline_keep=keep, batch=p.batch, warm_start=p.warm_start, passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard,
-              solint=solint)
+    basis = None
+    if p.dd_model == "screen":  # the phase per unit refractive offset of each source, per integration
+        vec = np.stack([source_vector_date(s, epoch) for s in get_sources(names)])
+        basis = screen_basis(tel.layout.enu, f, sky_tangents_enu(tel, np.where(good, lst, 0.0), vec))
+    kw = dict(dd_model=p.dd_model, screen_basis=basis, baseline_keep=keep, batch=p.batch, warm_start=p.warm_start,
+              passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard, solint=solint)
     out = peel(block.vis[:, :, fi], block.weights[:, :, fi], coh, block.pairs, tel.n_ant, modes, **kw)
     h = np.ones(out.dd_gains.shape[:3], complex)  # (src, time, ant): subtracted sources at their positions
     if p.fit_positions:
