@@ -1,0 +1,210 @@
+"""Full-Stokes m-mode imaging: normal equations over ``[T, E, B, V]`` and Tikhonov per Stokes.
+
+For each m the four correlations' m-modes of every baseline are stacked against the four
+Stokes harmonics (:mod:`mmflow.mmode.polarised`, IAU sky, healpy E/B)::
+
+    v_m = [v_m^xx; v_m^yy; v_m^xy; v_m^yx],     v_m^pq = sum_X B_m^{pq,X} x_m^X,
+    B_m = [[B^{xx,T} B^{xx,E} B^{xx,B} B^{xx,V}],
+           [   ...                            ],
+           [B^{yx,T} B^{yx,E} B^{yx,B} B^{yx,V}]],   x_m = [T_m; E_m; B_m; V_m],
+
+each ``v_m^pq`` in the Stokes-I row layout (``V_m`` rows, then ``conj(V_{-m})`` rows for
+``m > 0``) and each ``x_m^X`` the harmonics ``l = m..lmax``. Normal equations
+``G_m = B_m^H W B_m``, ``r_m = B_m^H W v_m`` (``W`` diagonal, one inverse variance per
+correlation and baseline) are accumulated over baseline chunks, never storing ``B``, and solved
+with a Tikhonov penalty per Stokes parameter::
+
+    x_m = (G_m + D)^-1 r_m,    D = diag(eps_T 1_L, eps_E 1_L, eps_B 1_L, eps_V 1_L),
+
+(:func:`mmflow.imaging.solvers.generalized`); usually ``eps_E = eps_B = eps_pol``. E and B
+harmonics with ``l < 2`` do not exist: their columns are zero and the penalty keeps them zero.
+The noiseless image of a true sky ``x`` through the same operator is ``(G_m + D)^-1 G_m x_m``
+(the resolution matrix, :func:`expected_alm`): comparing a map with it is exact in the
+noiseless limit.
+
+Maps. ``I`` and ``V`` from ``T`` and ``V``; ``Q`` and ``U`` from ``E``, ``B`` through healpy's
+spin-2 synthesis, which is the COSMO convention: ``U_IAU = -U_healpy`` (:func:`stokes_maps`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import ducc0
+import healpy
+import numpy as np
+
+from mmflow.conventions import m_slice, n_alm
+from mmflow.errors import InputError
+from mmflow.imaging.solvers import generalized
+from mmflow.mmode.polarised import CORRELATIONS, STOKES, polarised_transfer_blocks
+from mmflow.sky.harmonics import point_sources_alm
+
+
+@dataclass
+class PolarisedNormal:
+    """Per-m normal equations of the full-Stokes problem.
+
+    Attributes
+    ----------
+    lmax : int
+    gram : list over m of complex128 ``(4 L_m, 4 L_m)`` (full Hermitian), ``L_m = lmax - m + 1``
+    rhs : list over m of complex128 ``(n_vec, 4 L_m)``: one row per data vector
+    vhv : ndarray ``(n_vec, lmax + 1)``: ``v^H W v`` per m
+    """
+
+    lmax: int
+    gram: list
+    rhs: list
+    vhv: np.ndarray
+
+
+def stack_block(block):
+    """One m block of :func:`mmflow.mmode.polarised.polarised_transfer_blocks` as the matrix ``B_m``.
+
+    ``(n_corr, 4, rows, L)`` -> ``(n_corr rows, 4 L)``: row ``c rows + k`` is row k of
+    correlation c, column ``X L + (l - m)`` the harmonic ``l`` of Stokes X.
+    """
+    n_corr, n_x, rows, n_l = block.shape
+    return block.transpose(0, 2, 1, 3).reshape(n_corr * rows, n_x * n_l)
+
+
+def _data_rows(mmodes, m, index):
+    """``(n_vec, n_corr rows)`` data of block m for baselines ``index``: per correlation ``V_m``
+    then (``m > 0``) ``conj(V_{-m})``, from m-modes ``(n_vec, mmax + 1, 2, n_corr, n_bl)``."""
+    v = mmodes[:, m, :1] if m == 0 else mmodes[:, m]  # (n_vec, 1 or 2, n_corr, n_bl)
+    v = v[..., index].transpose(0, 2, 1, 3)  # (n_vec, n_corr, 1 or 2, nb)
+    return v.reshape(v.shape[0], -1)
+
+
+def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, correlations=CORRELATIONS,
+                                chunk_size=32):
+    """Stream over baseline chunks: ``G_m += B_m^H W B_m``, ``r_m += B_m^H W v_m``.
+
+    Parameters
+    ----------
+    grid : mmflow.mmode.polarised.PolarisedGrid
+        Exact to ``lmax + `` the fringe band limit of the longest baseline.
+    b_wavelengths : ndarray (n_bl, 3)
+        Baselines ``x_j - x_i`` in the sky frame at ``phi = 0``, in wavelengths
+        (:func:`mmflow.mmode.transfer.baselines_in_wavelengths`).
+    mmodes : ndarray ``([n_vec,] mmax + 1, 2, n_corr, n_bl)``, optional
+        m-modes of the correlations (:func:`mmflow.mmode.transform.mmode_transform` of data
+        binned as ``(n_bins, n_corr, n_bl)``), ``mmax >= grid.lmax``; None: the Gram only.
+    inv_var : ndarray ``(n_corr, n_bl)``, optional
+        Inverse noise variance of each correlation's m-modes (default 1).
+    correlations : sequence of str
+        The correlations on the m-modes' correlation axis.
+
+    Returns
+    -------
+    PolarisedNormal
+    """
+    b = np.asarray(b_wavelengths, float).reshape(-1, 3)
+    lmax, n_corr, nb = grid.lmax, len(correlations), len(b)
+    mm = None
+    if mmodes is not None:
+        mm = np.asarray(mmodes)
+        mm = mm if mm.ndim == 5 else mm[None]
+        if mm.shape[1] <= lmax or mm.shape[3:] != (n_corr, nb):
+            raise InputError("polarised imaging", "mmodes", f"shape {mm.shape[1:]} for lmax {lmax}, "
+                             f"{n_corr} correlations and {nb} baselines",
+                             "give m-modes (mmax + 1, 2, n_corr, n_bl) with mmax >= lmax")
+    n_vec = 0 if mm is None else mm.shape[0]
+    w = np.ones((n_corr, nb)) if inv_var is None else np.broadcast_to(np.asarray(inv_var, float), (n_corr, nb))
+    gram = [np.zeros((4 * (lmax - m + 1),) * 2, np.complex128) for m in range(lmax + 1)]
+    rhs = [np.zeros((n_vec, 4 * (lmax - m + 1)), np.complex128) for m in range(lmax + 1)]
+    vhv = np.zeros((n_vec, lmax + 1))
+    for start in range(0, nb, chunk_size):
+        index = np.arange(start, min(start + chunk_size, nb))
+        blocks = polarised_transfer_blocks(grid, b[index], correlations)
+        for m, block in enumerate(blocks):
+            mat = stack_block(block)
+            wr = np.tile(w[:, index], (1, 1 if m == 0 else 2)).reshape(-1)  # rows: corr, (+m, -m), baseline
+            gram[m] += mat.conj().T @ (wr[:, None] * mat)
+            if mm is not None:
+                v = _data_rows(mm, m, index)
+                rhs[m] += (v * wr) @ mat.conj()
+                vhv[:, m] += np.sum(wr * np.abs(v) ** 2, axis=1)
+    return PolarisedNormal(lmax, gram, rhs, vhv)
+
+
+def penalty(eps, n_l):
+    """Diagonal of ``D`` for one m block: ``eps`` per Stokes (T, E, B, V), each repeated ``n_l`` times.
+
+    ``eps``: a dict ``{"T": .., "E": .., "B": .., "V": ..}``, a 4-sequence, or a pair
+    ``(eps_I, eps_pol)`` (``eps_pol`` for E, B and V).
+    """
+    if isinstance(eps, dict):
+        vals = [float(eps[x]) for x in STOKES]
+    else:
+        vals = [float(e) for e in np.atleast_1d(eps)]
+        if len(vals) == 2:
+            vals = [vals[0], vals[1], vals[1], vals[1]]
+    if len(vals) != 4 or min(vals) <= 0:
+        raise InputError("polarised imaging", "eps", f"{eps}",
+                         "give four positive values (T, E, B, V) or (eps_I, eps_pol)")
+    return np.repeat(vals, n_l)
+
+
+def _pack(alm, m, lmax):
+    """``[T_m; E_m; B_m; V_m]`` (l = m..lmax each) of a ``(4, n_alm)`` alm array."""
+    return np.concatenate([alm[x, m_slice(lmax, m)] for x in range(4)])
+
+
+def _solve(normal, eps, rhs_of_m):
+    lmax = normal.lmax
+    n_vec = rhs_of_m(0).shape[0]
+    out = np.zeros((n_vec, 4, n_alm(lmax)), np.complex128)
+    for m in range(lmax + 1):
+        n_l = lmax - m + 1
+        x = generalized(normal.gram[m], rhs_of_m(m).T, 1.0, penalty(eps, n_l)).T  # (n_vec, 4 n_l)
+        out[:, :, m_slice(lmax, m)] = x.reshape(n_vec, 4, n_l)
+    return out
+
+
+def solve_polarised(normal, eps):
+    """``x_m = (G_m + D)^-1 r_m`` for every m and data vector: alm ``(n_vec, 4 [T, E, B, V], n_alm)``.
+
+    Parameters
+    ----------
+    normal : PolarisedNormal
+    eps : see :func:`penalty`
+    """
+    return _solve(normal, eps, lambda m: normal.rhs[m])
+
+
+def expected_alm(normal, true_alm, eps):
+    """The noiseless image of a true sky through the same solve: ``(G_m + D)^-1 G_m x_m``.
+
+    ``true_alm``: ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` T, E, B, V band-limited to ``lmax``.
+    Returns ``(n_vec, 4, n_alm)``.
+    """
+    x = np.asarray(true_alm)
+    x = x if x.ndim == 3 else x[None]
+    return _solve(normal, eps, lambda m: np.stack([normal.gram[m] @ _pack(xx, m, normal.lmax) for xx in x]))
+
+
+def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):
+    """``(T, E, B, V)`` harmonics (Jy/sr, healpy layout) of IAU point sources ``sum_s S_s delta(r - r_s)``.
+
+    ``T_lm = sum I_s conj(Y_lm(r_s))``, ``V_lm`` likewise; E and B are the adjoint spin-2 synthesis
+    of the point values ``(Q, U_healpy = -U)`` (the spin-2 analysis of delta functions), by ducc0
+    to relative accuracy ``epsilon``.
+    """
+    vec = np.asarray(vectors, float).reshape(-1, 3)
+    st = np.asarray(stokes_jy, float).reshape(-1, 4)
+    theta = np.arccos(np.clip(vec[:, 2] / np.linalg.norm(vec, axis=1), -1, 1))
+    phi = np.mod(np.arctan2(vec[:, 1], vec[:, 0]), 2 * np.pi)
+    eb = ducc0.sht.adjoint_synthesis_general(map=np.stack([st[:, 1], -st[:, 2]]), spin=2, lmax=lmax,
+                                             loc=np.stack([theta, phi], axis=1), epsilon=epsilon)
+    return np.stack([point_sources_alm(vec, st[:, 0], lmax), eb[0], eb[1], point_sources_alm(vec, st[:, 3], lmax)])
+
+
+def stokes_maps(alm, nside, lmax):
+    """HEALPix ``(I, Q, U, V)`` maps (IAU) from ``(T, E, B, V)`` alm ``(4, n_alm)``.
+
+    ``I, Q, U_healpy = alm2map([T, E, B], pol=True)``, ``U = -U_healpy``, ``V = alm2map(V)``.
+    """
+    alm = np.asarray(alm, np.complex128)
+    i, q, u_h = healpy.alm2map(alm[:3], nside, lmax=lmax, pol=True)
+    return np.stack([i, q, -u_h, healpy.alm2map(alm[3], nside, lmax=lmax)])

@@ -1,0 +1,129 @@
+"""Drift-scan visibilities of all four linear correlations from polarised point sources.
+
+Direct sum of the measurement equation, per sidereal angle ``phi`` (no harmonics): for the
+pair ``(i, j)`` (baseline ``b = x_j - x_i``, ENU, metres) and feeds ``p`` of antenna ``i``,
+``q`` of antenna ``j``::
+
+    V_pq(phi) = sum_s J_p(r_s) S_s J_q(r_s)^H exp(2 pi i b . r_s / lambda),
+
+    S_s = [[I + Q, U + iV],
+           [U - iV, I - Q]]     on the sky basis (e_N, e_E) of source s,
+
+in mmflow's ``avg`` normalisation (an unpolarised source of flux I gives ``V_xx = |J_x|^2 I``)
+and the IAU convention: Q > 0 is a north-south electric field, the polarisation angle
+``chi = atan2(U, Q) / 2`` runs from north through east (Hamaker & Bregman 1996, XY = U + iV
+for X north). ``e_N`` is the unit tangent towards the celestial pole of date and
+``e_E = e_N x r`` (towards increasing RA); both are derived here from their definition.
+
+This module is the independent check of :mod:`mmflow.mmode.polarised`: it shares only the
+Jones beam evaluation (:meth:`mmflow.telescope.jones.JonesBeam.jones_enu`, ENU vectors) and
+the sidereal geometry of :mod:`mmflow.conventions` with it, none of its harmonic code.
+
+Evaluation. With the antenna phasors ``z_as = exp(2 pi i x_a . r_s / lambda)`` and
+``A[(a, p), (s, c)] = conj(z_as) J_pc(r_s)`` (``c`` in N, E), all baselines and feed pairs of
+one integration are one product ``V = (A S) A^H`` with ``S`` block-diagonal over sources:
+``V[(i, p), (j, q)] = sum_s conj(z_is) z_js J_p S_s J_q^H``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mmflow.conventions import enu_to_equatorial_matrix
+from mmflow.errors import InputError
+from mmflow.telescope.array import C_LIGHT
+
+#: Correlations in the default order of the output's correlation axis (x east, y north).
+CORRELATIONS = ("xx", "yy", "xy", "yx")
+_FEED = {"x": 0, "y": 1}
+
+
+@dataclass
+class PolarisedPoints:
+    """Point sources in the celestial frame of date with IAU Stokes ``(I, Q, U, V)`` in Jy.
+
+    Attributes
+    ----------
+    vectors : ndarray (n, 3) unit vectors
+    stokes_jy : ndarray (n, 4) columns I, Q, U, V
+    """
+
+    vectors: np.ndarray
+    stokes_jy: np.ndarray
+
+    def __post_init__(self):
+        self.vectors = np.asarray(self.vectors, float).reshape(-1, 3)
+        self.stokes_jy = np.asarray(self.stokes_jy, float).reshape(-1, 4)
+        if len(self.vectors) != len(self.stokes_jy):
+            raise InputError("polarised sky", "stokes_jy", f"{len(self.stokes_jy)} Stokes rows for "
+                             f"{len(self.vectors)} directions", "give one (I, Q, U, V) row per source")
+
+
+def north_east(vectors):
+    """Celestial north ``e_N`` (towards the pole, tangent) and east ``e_E = e_N x r`` at ``vectors``.
+
+    Undefined at the poles themselves (returns NaN there).
+    """
+    r = np.asarray(vectors, float)
+    pole = np.array([0.0, 0.0, 1.0])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = pole - r[..., 2:3] * r
+        n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    return n, np.cross(n, r)
+
+
+def coherency(stokes_jy):
+    """``S = [[I + Q, U + iV], [U - iV, I - Q]]`` of each source, shape ``(n, 2, 2)`` on (N, E)."""
+    i, q, u, v = np.asarray(stokes_jy, float).T
+    return np.stack([np.stack([i + q, u + 1j * v], -1), np.stack([u - 1j * v, i - q], -1)], -2)
+
+
+def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=None, correlations=CORRELATIONS):
+    """Noise-free ``V_pq`` of every pair and correlation for each sidereal angle in ``lsts``.
+
+    Parameters
+    ----------
+    telescope : mmflow.telescope.Telescope
+        Antenna positions (``layout.enu``) and latitude; its scalar beam is not used.
+    jones : mmflow.telescope.jones.JonesBeam
+        Feeds x (east) and y (north) of every antenna.
+    freq_hz : float
+    lsts : array_like (n_time,)
+        Sidereal angles in radians (:mod:`mmflow.conventions`).
+    sky : PolarisedPoints
+    pairs : ndarray (n_bl, 2), optional
+        Antenna pairs ``(i, j)``; default ``telescope.antenna_pairs()``.
+    correlations : sequence of str
+        Feed pairs ``"pq"`` of the output's correlation axis.
+
+    Returns
+    -------
+    ndarray complex128 ``(n_time, n_corr, n_bl)`` in Jy.
+    """
+    pairs = telescope.antenna_pairs() if pairs is None else np.asarray(pairs)
+    lsts = np.atleast_1d(np.asarray(lsts, float))
+    x_wl = telescope.layout.enu * (freq_hz / C_LIGHT)  # (n_ant, 3) wavelengths
+    e_n, e_e = north_east(sky.vectors)  # celestial frame, (n_src, 3)
+    s_mat = coherency(sky.stokes_jy)  # (n_src, 2, 2)
+    p_idx = np.array([_FEED[c[0]] for c in correlations])
+    q_idx = np.array([_FEED[c[1]] for c in correlations])
+    out = np.zeros((len(lsts), len(correlations), len(pairs)), np.complex128)
+    n_ant = len(x_wl)
+    for t, phi in enumerate(lsts):
+        rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
+        r_enu = sky.vectors @ rot
+        up = r_enu[:, 2] > 0
+        if not np.any(up):
+            continue
+        j_enu = jones.jones_enu(r_enu[up], freq_hz)  # (feed, 3, n_up)
+        basis = np.stack([e_n[up] @ rot, e_e[up] @ rot], axis=1)  # (n_up, [N, E], 3) in ENU
+        j_ne = np.einsum("pis,sci->psc", j_enu, basis)  # (feed, n_up, [N, E])
+        z = np.exp(2j * np.pi * (x_wl @ r_enu[up].T))  # (n_ant, n_up)
+        a = np.conj(z)[:, None, :, None] * j_ne[None]  # (ant, feed, src, c)
+        a_s = np.einsum("apsc,scd->apsd", a, s_mat[up])
+        n_up = int(up.sum())
+        vis = a_s.reshape(2 * n_ant, 2 * n_up) @ a.reshape(2 * n_ant, 2 * n_up).conj().T
+        vis = vis.reshape(n_ant, 2, n_ant, 2)  # [i, p, j, q]
+        out[t] = vis[pairs[None, :, 0], p_idx[:, None], pairs[None, :, 1], q_idx[:, None]]
+    return out
