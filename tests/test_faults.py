@@ -154,11 +154,28 @@ def test_second_run_in_a_directory_is_refused_naming_the_holder(tmp_path):
 
 
 def test_lock_of_a_killed_driver_does_not_block(tmp_path):
+    """A driver killed while holding the lock leaves its name in the lock file but no lock: the next
+    run takes the directory over (and then holds it against a third)."""
+    import json
+    import signal
+
     code = ("import os; from mmflow.workflow.rundir import RunDir; "
             f"RunDir({str(tmp_path / 'run')!r}).acquire_lock(); os.kill(os.getpid(), 9)")
-    subprocess.run([sys.executable, "-c", code], cwd=ROOT)
-    fh, _ = RunDir(tmp_path / "run").acquire_lock()
-    fh.close()
+    child = subprocess.run([sys.executable, "-c", code], cwd=ROOT)
+    assert child.returncode == -signal.SIGKILL  # killed while holding it
+    run = RunDir(tmp_path / "run")
+    dead = json.loads(run.lock_path.read_text())
+    assert dead["pid"] != os.getpid()  # the dead child wrote it
+    fh, token = run.acquire_lock()
+    try:
+        now = json.loads(run.lock_path.read_text())
+        assert (now["pid"], now["token"]) == (os.getpid(), token) and token != dead["token"]
+        third = subprocess.run([sys.executable, "-c", "from mmflow.workflow.rundir import RunDir; "
+                                f"RunDir({str(tmp_path / 'run')!r}).acquire_lock()"], cwd=ROOT,
+                               capture_output=True, text=True)
+        assert third.returncode != 0 and f"pid {os.getpid()}" in third.stderr
+    finally:
+        fh.close()
 
 
 def test_task_of_a_superseded_driver_stops_before_writing(ref, tmp_path):
