@@ -18,3 +18,11 @@ def small_telescope():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="module")
+def blocks(small_telescope):
+    """Transfer blocks B_m of the 8-stand array (``tests/imaging_helpers.py``)."""
+    from tests.imaging_helpers import transfer_blocks
+
+    return transfer_blocks(small_telescope)

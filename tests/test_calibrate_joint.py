@@ -3,7 +3,7 @@ import numpy as np
 
 from mmflow.calibrate.gain_tables import gains_at
 from mmflow.calibrate.peel import MODEL, PEEL, SKIP, SUBTRACT, add_component, fit_scales, peel_dense, select_modes
-from tests.test_calibrate_peel import _array, _coherencies, _dirs, _weights
+from tests.peel_helpers import cross_weights, point_coherencies, random_array, random_directions
 
 
 def _least_squares_scales(R, comps, W):
@@ -26,11 +26,11 @@ def test_joint_scales_equal_least_squares_for_overlapping_fringes_and_skip_a_nul
     least squares over the cross baselines for the two, to 1e-9, leaves the null one and the
     unselected solution at their old scales, and leaves in the residual what the scales leave."""
     N, S = 20, 4
-    x = _array(rng, N)
-    d0 = _dirs(rng, 1)[0]
+    x = random_array(rng, N)
+    d0 = random_directions(rng, 1)[0]
     d1 = d0 + np.deg2rad(2.0) * np.cross(d0, [0, 0, 1]) / np.linalg.norm(np.cross(d0, [0, 0, 1]))
     dirs = np.array([d0, d1 / np.linalg.norm(d1), d0])
-    M = _coherencies(x, dirs, np.array([500.0, 300.0, 1.0]))
+    M = point_coherencies(x, dirs, np.array([500.0, 300.0, 1.0]))
     M[2] = 0.0  # a model that is exactly zero
     coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
     truth = np.array([[0.9, 1.1, 1.0], [1.2, 0.7, 1.0], [0.5, 1.5, 1.0], [1.0, 1.0, 1.0]]).T  # (src, S)
@@ -65,15 +65,15 @@ def test_guard_refits_the_other_scales_once_a_peel_is_undone():
     rms of residual against 2 Jy of noise.)"""
     rng = np.random.default_rng(5)  # a draw where the DD gains absorb enough for the guard to fire
     N, S = 24, 4
-    x = _array(rng, N)
-    M = _coherencies(x, _dirs(rng, 4), np.array([2000.0, 400.0, 60.0, 30.0]))
+    x = random_array(rng, N)
+    M = point_coherencies(x, random_directions(rng, 4), np.array([2000.0, 400.0, 60.0, 30.0]))
     coh = np.broadcast_to(M[:, None], (4, S, N, N)).copy()
     present = np.array([0.0, 0.0, 1.0, 1.0])
     noise = 2 * (rng.normal(size=(S, N, N)) + 1j * rng.normal(size=(S, N, N)))
     noise = (noise + np.conj(np.swapaxes(noise, 1, 2))) / 2
     V = present[:, None, None] * coh[0] + 1.05 * coh[1] + 0.93 * coh[2] + 1.1 * coh[3] + noise
     modes = np.array([[PEEL] * S, [SUBTRACT] * S, [MODEL] * S, [MODEL] * S])
-    r = peel_dense(V, coh, _weights(S, N), modes, passes=4, tol=1e-10, max_iter=300)
+    r = peel_dense(V, coh, cross_weights(S, N), modes, passes=4, tol=1e-10, max_iter=300)
     assert r.guard[0, :2].all() and not r.guard[0, 2:].any()
     np.testing.assert_allclose(r.scale[1], 1.05, atol=0.005)
     off = ~np.eye(N, dtype=bool)
@@ -86,14 +86,14 @@ def test_modelled_source_is_fitted_with_the_others_and_left_in_the_data(rng):
     The residual is exactly the modelled source's visibilities; its fitted scale is 0.93; the
     modelled source is never peeled even when it is peelable."""
     N, S = 24, 4
-    x = _array(rng, N)
-    dirs = _dirs(rng, 3)
-    M = _coherencies(x, dirs, np.array([2000.0, 400.0, 60.0]))
+    x = random_array(rng, N)
+    dirs = random_directions(rng, 3)
+    M = point_coherencies(x, dirs, np.array([2000.0, 400.0, 60.0]))
     coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
     g = np.exp(0.3j * rng.normal(size=(S, N))) * (1 + 0.1 * rng.normal(size=(S, N)))
     V = g[:, :, None] * np.conj(g)[:, None, :] * coh[0] + 1.05 * coh[1] + 0.93 * coh[2]
     modes = np.array([[PEEL] * S, [SUBTRACT] * S, [MODEL] * S])
-    r = peel_dense(V, coh, _weights(S, N), modes, passes=8, tol=1e-12, max_iter=1000)
+    r = peel_dense(V, coh, cross_weights(S, N), modes, passes=8, tol=1e-12, max_iter=1000)
     np.testing.assert_allclose(r.scale[1], 1.05, atol=1e-6)
     np.testing.assert_allclose(r.scale[2], 0.93, atol=1e-6)
     assert (r.mode == modes).all()
@@ -109,14 +109,14 @@ def test_cold_start_fits_scintillating_sources_exactly(rng):
     next to a subtracted and a modelled source: each integration, started from unit gains (the
     stage's default, ``peel.warm_start: false``), is fitted to 1e-6 of the data (converged)."""
     N, S = 24, 6
-    x = _array(rng, N)
-    dirs = _dirs(rng, 3)
-    M = _coherencies(x, dirs, np.array([5000.0, 800.0, 100.0]))
+    x = random_array(rng, N)
+    dirs = random_directions(rng, 3)
+    M = point_coherencies(x, dirs, np.array([5000.0, 800.0, 100.0]))
     coh = np.broadcast_to(M[:, None], (3, S, N, N)).copy()
     f = np.array([1.0, 1.5, 0.7, 1.3, 0.8, 1.1])
     V = f[:, None, None] * coh[0] + coh[1] + coh[2]
     modes = np.array([[PEEL] * S, [SUBTRACT] * S, [MODEL] * S])
-    r = peel_dense(V, coh, _weights(S, N), modes, passes=8, tol=1e-12, max_iter=1000)
+    r = peel_dense(V, coh, cross_weights(S, N), modes, passes=8, tol=1e-12, max_iter=1000)
     off = ~np.eye(N, dtype=bool)
     assert np.abs(r.residual - coh[2])[:, off].max() < 1e-6 * np.abs(V).max()
     np.testing.assert_allclose(np.mean(np.abs(r.dd_gains[0]) ** 2, axis=1), f, rtol=1e-6)

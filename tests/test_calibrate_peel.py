@@ -3,37 +3,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import from_matrix
 from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, peel_dense, select_modes
-
-LAM = 7.5  # 40 MHz
-
-
-def _array(rng, n):
-    x = rng.uniform(-100, 100, (n, 3))
-    x[:, 2] *= 0.02
-    return x
-
-
-def _coherencies(x, dirs, flux, sigma_rad=None):
-    """``M_ij = S exp(2 pi i (x_j - x_i).r / lambda)``, optionally a Gaussian of width sigma."""
-    b = (x[None, :, :] - x[:, None, :]) / LAM
-    m = flux[:, None, None] * np.exp(2j * np.pi * np.einsum("ijk,sk->sij", b, dirs))
-    if sigma_rad is not None:
-        bperp2 = np.einsum("ijk,ijk->ij", b, b)[None] - np.einsum("ijk,sk->sij", b, dirs) ** 2
-        m *= np.exp(-2 * np.pi**2 * np.asarray(sigma_rad)[:, None, None] ** 2 * bperp2)
-    return m
-
-
-def _dirs(rng, n):
-    d = rng.normal(size=(n, 3))
-    d[:, 2] = np.abs(d[:, 2]) + 0.5
-    return d / np.linalg.norm(d, axis=1)[:, None]
-
-
-def _weights(S, N):
-    W = np.ones((S, N, N))
-    W[:, np.arange(N), np.arange(N)] = 0
-    return W
-
+from tests.peel_helpers import LAM, cross_weights, point_coherencies, random_array, random_directions
 
 def test_noiseless_multi_source_peel_fits_exactly_and_recovers_dd_gains(rng):
     """Four point sources with random DD gains (+-20 % amplitude, +-0.3 pi phase per antenna).
@@ -44,13 +14,13 @@ def test_noiseless_multi_source_peel_fits_exactly_and_recovers_dd_gains(rng):
     that the recovered responses equal the truth up to a unitary Q.
     """
     N, S, n_src = 48, 3, 4
-    x = _array(rng, N)
-    dirs = _dirs(rng, n_src)
+    x = random_array(rng, N)
+    dirs = random_directions(rng, n_src)
     flux = np.array([1000.0, 600, 300, 150])
-    M = np.broadcast_to(_coherencies(x, dirs, flux)[:, None], (n_src, S, N, N)).copy()
+    M = np.broadcast_to(point_coherencies(x, dirs, flux)[:, None], (n_src, S, N, N)).copy()
     g = (1 + 0.2 * rng.uniform(-1, 1, (n_src, S, N))) * np.exp(0.3j * np.pi * rng.uniform(-1, 1, (n_src, S, N)))
     V = np.einsum("tsi,tsij,tsj->sij", g, M, np.conj(g))
-    W = _weights(S, N)
+    W = cross_weights(S, N)
     r = peel_dense(V, M, W, np.full((n_src, S), PEEL), passes=10, tol=1e-12, max_iter=1000)
     assert not r.guard.any() and (r.mode == PEEL).all()
     assert np.linalg.norm(r.residual * W) < 1e-6 * np.linalg.norm(V * W)
@@ -66,17 +36,17 @@ def test_noiseless_multi_source_peel_fits_exactly_and_recovers_dd_gains(rng):
 def test_peeled_source_dd_gains_recovered_up_to_a_phase_with_subtracted_neighbours(rng):
     """One peeled source, three subtracted ones with unknown flux scales: no degeneracy."""
     N, S, n_src = 48, 3, 4
-    x = _array(rng, N)
-    dirs = _dirs(rng, n_src)
+    x = random_array(rng, N)
+    dirs = random_directions(rng, n_src)
     flux = np.array([1000.0, 300, 200, 100])
-    M = np.broadcast_to(_coherencies(x, dirs, flux)[:, None], (n_src, S, N, N)).copy()
+    M = np.broadcast_to(point_coherencies(x, dirs, flux)[:, None], (n_src, S, N, N)).copy()
     g = np.ones((n_src, S, N), complex)
     g[0] = (1 + 0.3 * rng.uniform(-1, 1, (S, N))) * np.exp(0.5j * np.pi * rng.uniform(-1, 1, (S, N)))
     a = 1 + 0.5 * rng.uniform(-1, 1, (n_src, S))  # scintillating fluxes of the subtracted ones
     a[0] = 1
     V = np.einsum("tsi,tsij,tsj->sij", g * np.sqrt(a)[..., None], M, np.conj(g * np.sqrt(a)[..., None]))
     modes = np.array([PEEL, SUBTRACT, SUBTRACT, SUBTRACT])[:, None].repeat(S, 1)
-    W = _weights(S, N)
+    W = cross_weights(S, N)
     r = peel_dense(V, M, W, modes, passes=12, tol=1e-13, max_iter=2000)
     assert np.linalg.norm(r.residual * W) < 1e-6 * np.linalg.norm(V * W)
     ph = np.angle(np.sum(g[0] * np.conj(r.dd_gains[0]), axis=1))
@@ -88,13 +58,13 @@ def test_guard_turns_a_wrong_model_into_a_subtraction(rng):
     """Data: a point source. Model: the same source as a 3 deg Gaussian (resolved on most
     baselines): peeling can remove only part of it, the guard fires; the right model passes."""
     N, S = 32, 2
-    x = _array(rng, N)
-    d = _dirs(rng, 1)
-    point = np.broadcast_to(_coherencies(x, d, np.array([1000.0]))[:, None], (1, S, N, N)).copy()
-    wrong = np.broadcast_to(_coherencies(x, d, np.array([1000.0]), [np.deg2rad(3.0)])[:, None], (1, S, N, N)).copy()
+    x = random_array(rng, N)
+    d = random_directions(rng, 1)
+    point = np.broadcast_to(point_coherencies(x, d, np.array([1000.0]))[:, None], (1, S, N, N)).copy()
+    wrong = np.broadcast_to(point_coherencies(x, d, np.array([1000.0]), [np.deg2rad(3.0)])[:, None], (1, S, N, N)).copy()
     g = np.exp(0.2j * rng.normal(size=(S, N)))
     V = g[:, :, None] * point[0] * np.conj(g)[:, None, :]
-    W = _weights(S, N)
+    W = cross_weights(S, N)
     ok = peel_dense(V, point, W, np.full((1, S), PEEL), passes=3, tol=1e-10, max_iter=500)
     assert not ok.guard.any() and (ok.mode == PEEL).all()
     np.testing.assert_allclose(ok.removed / ok.measured, 1, atol=1e-6)
@@ -110,12 +80,12 @@ def test_guard_turns_a_wrong_model_into_a_subtraction(rng):
 
 def test_baseline_layout_wrapper_matches_dense_and_warm_starts(rng):
     N, T, n_src = 24, 5, 2
-    x = _array(rng, N)
-    dirs = _dirs(rng, n_src)
+    x = random_array(rng, N)
+    dirs = random_directions(rng, n_src)
     flux = np.array([800.0, 300])
     i, j = np.triu_indices(N)
     pairs = np.stack([i, j], 1)
-    M = _coherencies(x, dirs, flux)
+    M = point_coherencies(x, dirs, flux)
     coh = np.broadcast_to(from_matrix(M, pairs)[:, None], (n_src, T, len(pairs))).copy()
     g = np.exp(0.3j * rng.normal(size=(n_src, T, N, 2))) * (1 + 0.1 * rng.normal(size=(n_src, T, N, 2)))
     vis = np.einsum("stbp,stb->tbp", g[:, :, i] * np.conj(g[:, :, j]), coh)
@@ -160,7 +130,7 @@ def test_paper_scale_256_antennas_8_sources_5_passes():
     g = np.exp(-2j * np.pi * np.einsum("stk,ik->sti", shift, enu) / lam)
     g *= np.sqrt(1 + 0.1 * rng.normal(size=(n_src, S)))[..., None]
     V = np.einsum("sti,stij,stj->tij", g, M, np.conj(g))
-    W = _weights(S, N)
+    W = cross_weights(S, N)
     r = peel_dense(V, M, W, np.full((n_src, S), PEEL), passes=5, tol=1e-10, max_iter=300)
     assert not r.guard.any()
     assert np.linalg.norm(r.residual * W) < 1e-6 * np.linalg.norm(V * W)
@@ -184,17 +154,17 @@ def test_interval_dd_gains_fit_a_screen_shared_over_the_interval_with_amplitude_
     from mmflow.calibrate.peel import interval_index
 
     N, T = 32, 8
-    x = _array(rng, N)
-    d0 = _dirs(rng, 1)[0]
+    x = random_array(rng, N)
+    d0 = random_directions(rng, 1)[0]
     drift = np.cross(d0, [0, 0, 1.0])
     dirs = np.array([d0 + 0.02 * k * drift for k in range(T)])
     dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-    M = np.stack([_coherencies(x, dirs[k:k + 1], np.array([1000.0]))[0] for k in range(T)])[None]  # (1, T, N, N)
+    M = np.stack([point_coherencies(x, dirs[k:k + 1], np.array([1000.0]))[0] for k in range(T)])[None]  # (1, T, N, N)
     p = (1 + 0.2 * rng.uniform(-1, 1, (2, N))) * np.exp(0.4j * np.pi * rng.uniform(-1, 1, (2, N)))
     a = 1 + 0.4 * rng.uniform(-1, 1, T)
     h = np.sqrt(a)[:, None] * p[np.arange(T) // 4]  # intervals of 4 integrations
     V = np.einsum("ti,tij,tj->tij", h, M[0], np.conj(h))
-    W = _weights(T, N)
+    W = cross_weights(T, N)
     intervals = interval_index(T, 1, 4)
     assert [i.tolist() for i in intervals] == [[[0, 1, 2, 3], [4, 5, 6, 7]]]
     r = peel_dense(V, M, W, np.full((1, T), PEEL), passes=20, tol=1e-13, max_iter=3000, intervals=intervals)
@@ -205,7 +175,7 @@ def test_interval_dd_gains_fit_a_screen_shared_over_the_interval_with_amplitude_
         assert np.abs(q - q[0, 0]).max() < 1e-6 and abs(abs(q[0, 0]) - 1) < 1e-6
 
     # an unmodelled faint source (20 Jy) elsewhere: the fitted DD gains absorb part of it
-    faint = np.stack([_coherencies(x, _dirs(np.random.default_rng(5), 1), np.array([20.0]))[0]] * T)
+    faint = np.stack([point_coherencies(x, random_directions(np.random.default_rng(5), 1), np.array([20.0]))[0]] * T)
     fringe = faint / np.abs(faint)
 
     def kept(res):  # the faint source's flux along its fringe in the residual
@@ -248,12 +218,12 @@ def test_screen_model_shared_offset_over_intervals_with_amplitude_per_integratio
     from mmflow.calibrate.peel import interval_index
 
     N, T = 32, 8
-    x = _array(rng, N)
-    d0 = _dirs(rng, 1)[0]
+    x = random_array(rng, N)
+    d0 = random_directions(rng, 1)[0]
     drift = np.cross(d0, [0, 0, 1.0])
     dirs = np.array([d0 + 0.02 * k * drift for k in range(T)])
     dirs /= np.linalg.norm(dirs, axis=1)[:, None]
-    M = np.stack([_coherencies(x, dirs[k:k + 1], np.array([1000.0]))[0] for k in range(T)])[None]
+    M = np.stack([point_coherencies(x, dirs[k:k + 1], np.array([1000.0]))[0] for k in range(T)])[None]
     east = np.cross([0, 0, 1.0], dirs)
     east /= np.linalg.norm(east, axis=1)[:, None]
     basis = screen_basis(x, 299792458.0 / LAM, np.stack([east, np.cross(dirs, east)], 1))[None]  # (1, T, N, 2)
@@ -261,7 +231,7 @@ def test_screen_model_shared_offset_over_intervals_with_amplitude_per_integratio
     a = 1 + 0.4 * rng.uniform(-1, 1, T)
     h = screen_gains(basis[0], theta, a)
     V = np.einsum("ti,tij,tj->tij", h, M[0], np.conj(h))
-    W = _weights(T, N)
+    W = cross_weights(T, N)
     print(f"largest phase across the array: {np.abs(np.einsum('tak,tk->ta', basis[0], theta)).max():.2f} rad")
     for intervals in (interval_index(T, 1, 4), None):
         r = peel_dense(V, M, W, np.full((1, T), PEEL), passes=3, tol=1e-12, max_iter=100, intervals=intervals,

@@ -23,7 +23,7 @@ from mmflow.mmode import splits as sp
 from mmflow.workflow.runner import run_workflow
 from mmflow.workflow.stages import clean as cs
 from mmflow.workflow.stages.products import healpy_alm
-from tests.test_products import Imager, blocks  # noqa: F401  (the transfer blocks fixture)
+from tests.imaging_helpers import Imager
 from tests.workflow_helpers import SMALL, refused_problem, small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -178,7 +178,7 @@ def test_per_day_jackknife_matches_a_monte_carlo_of_the_map_noise(blocks, small_
     per-day jackknife with ``f_k = w_k / sum w`` against 60 Monte Carlo maps of the full data's noise."""
     from mmflow.mmode.transform import mmode_transform
     from mmflow.sky.diffuse import band_limited_random_alm
-    from tests.test_products import _to_time
+    from tests.imaging_helpers import to_time
 
     eps = 1e-3 * max(np.linalg.eigvalsh(b.conj().T @ b)[-1] for b in blocks.values())
     imager, mask = Imager(blocks, eps), ck.observed_mask(16, ck.never_seen_dec_min(small_telescope.lat_rad))
@@ -194,7 +194,7 @@ def test_per_day_jackknife_matches_a_monte_carlo_of_the_map_noise(blocks, small_
     mc = np.array([imager.map(mmode_transform(sum(fk * n for fk, n in zip(f, day_noise())), LMAX))
                    for _ in range(60)])
     var_mc = np.mean(np.var(mc, axis=0, ddof=1)[mask])
-    signal = _to_time(blocks, 50 * band_limited_random_alm(LMAX, seed=2), n_bins)
+    signal = to_time(blocks, 50 * band_limited_random_alm(LMAX, seed=2), n_bins)
     jk = []
     for _ in range(20):
         days = [signal + n for n in day_noise()]

@@ -22,7 +22,7 @@ from mmflow.workflow.rundir import RunDir, RunLockedError
 from mmflow.workflow.runner import run_task, run_workflow, stage_fingerprints, verify
 from mmflow.workflow.stages.base import all_stages
 from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
-from tests.test_workflow import ROOT, _interrupt_run
+from tests.workflow_helpers import ROOT, interrupt_run
 
 QUIET = dict(progress=False, log=lambda *a: None)
 
@@ -121,7 +121,7 @@ def test_resume_on_another_cluster_size_is_bit_identical(tmp_path):
 
     assert cli(tmp_path / "ref", "cluster.n_workers=3") == 0
     run_dir = tmp_path / "run"
-    _interrupt_run(run_dir, "transfer", signal.SIGKILL, extra=local + ["cluster.n_workers=2"])
+    interrupt_run(run_dir, "transfer", signal.SIGKILL, extra=local + ["cluster.n_workers=2"])
     assert cli(run_dir, "cluster.n_workers=1") == 0
     assert_identical(read_outputs(tmp_path / "ref"), read_outputs(run_dir))
 

@@ -2,67 +2,18 @@
 import healpy
 import numpy as np
 import pytest
-import scipy.linalg as sla
 
-from mmflow.conventions import m_slice, n_alm
 from mmflow.imaging import jackknife, psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
-from mmflow.imaging.filters import filter_mask
-from mmflow.mmode.engine import chunk_blocks, plan_chunks
 from mmflow.mmode.transform import mmode_transform
 from mmflow.sky.diffuse import band_limited_random_alm
 
-LMAX, FREQ = 24, 40e6
-
-
-@pytest.fixture(scope="module")
-def blocks(small_telescope):
-    """Transfer blocks B_m of the 8-stand array (one chunk: rows follow the pair list)."""
-    chunks, lmax_b = plan_chunks(small_telescope, FREQ, LMAX, chunk_size=10**6, per_baseline_lmax=False)
-    assert len(chunks) == 1 and np.all(chunks[0].index == np.arange(len(chunks[0].index)))
-    return dict(chunk_blocks(small_telescope, FREQ, chunks[0], LMAX, lmax_b))
-
-
-def _to_time(blocks, alm, n_bins):
-    """Band-limited drift scan V(phi_n) = sum_m V_m exp(i m phi_n) of a sky alm, shape (N, n_bl)."""
-    nb = blocks[0].shape[0]
-    phi = 2 * np.pi * np.arange(n_bins) / n_bins
-    v = np.zeros((n_bins, nb), complex)
-    for m, b in blocks.items():
-        vm = b @ alm[m_slice(LMAX, m)]
-        v += np.exp(1j * m * phi)[:, None] * vm[None, :nb]
-        if m > 0:
-            v += np.exp(-1j * m * phi)[:, None] * np.conj(vm[None, nb:])
-    return v
-
-
-class Imager:
-    """Tikhonov maps from m-modes through the block operators (the same for every split)."""
-
-    def __init__(self, blocks, eps):
-        self.blocks = blocks
-        self.ops = {m: psf.block_operator(m, b.conj().T @ b, eps, filter_mask(m, LMAX)) for m, b in blocks.items()}
-
-    def alm(self, mm):
-        out = np.zeros(n_alm(LMAX), complex)
-        nb = self.blocks[0].shape[0]
-        for m, b in self.blocks.items():
-            op = self.ops[m]
-            if op.cho is None:
-                continue
-            v = mm[m, 0, :nb] if m == 0 else np.concatenate([mm[m, 0], mm[m, 1]])
-            blk = np.zeros(LMAX - m + 1, complex)
-            blk[op.keep] = sla.cho_solve(op.cho, (b.conj().T @ v)[op.keep])
-            out[m_slice(LMAX, m)] = blk
-        return out
-
-    def map(self, mm, nside=16):
-        return healpy.alm2map(self.alm(mm), nside, lmax=LMAX)
+from tests.imaging_helpers import LMAX, Imager, to_time
 
 
 def test_half_grids_measure_the_same_mmodes_with_the_half_bin_phase(blocks):
     n_bins = 4 * LMAX + 8
-    v = _to_time(blocks, band_limited_random_alm(LMAX, seed=1), n_bins)
+    v = to_time(blocks, band_limited_random_alm(LMAX, seed=1), n_bins)
     split = jackknife.split_mmodes(v, LMAX)
     scale = np.abs(split["all"]).max()
     for half in ("even", "odd"):
@@ -86,7 +37,7 @@ def test_jackknife_noise_matches_a_monte_carlo_of_the_map_noise(blocks, small_te
 
     mc = np.array([imager.map(mmode_transform(noise(), LMAX)) for _ in range(60)])
     var_mc = np.mean(np.var(mc, axis=0, ddof=1)[mask])
-    signal = _to_time(blocks, 50 * band_limited_random_alm(LMAX, seed=2), n_bins)  # a bright sky cancels
+    signal = to_time(blocks, 50 * band_limited_random_alm(LMAX, seed=2), n_bins)  # a bright sky cancels
     jk = []
     for _ in range(20):
         sp = jackknife.split_mmodes(signal + noise(), LMAX)

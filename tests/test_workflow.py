@@ -15,9 +15,8 @@ from mmflow.cli import main
 from mmflow.errors import InputError, StaleOutputError
 from mmflow.workflow.config import load_config, schema_yaml
 from mmflow.workflow.runner import run_workflow, status
-from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
+from tests.workflow_helpers import ROOT, SMALL, assert_identical, interrupt_run, read_outputs, small_config
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 @pytest.fixture(scope="module")
@@ -90,21 +89,6 @@ def test_peeling_without_long_enough_baselines_stops_before_any_fit(tmp_path):
     assert not (tmp_path / "run" / "peel.zarr").exists()
 
 
-def _interrupt_run(run_dir, stage, sig, extra=()):
-    """Start a CLI run in a subprocess and send ``sig`` once ``stage`` has finished its first chunk."""
-    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, *extra,
-            f"run.directory={run_dir}", "--no-progress"]
-    env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
-    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    marker_dir = run_dir / "_status" / stage
-    deadline = time.time() + 120
-    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("[!_]*.done"))):
-        time.sleep(0.05)
-    proc.send_signal(sig)
-    proc.wait(timeout=60)
-    assert not (run_dir / "_status" / "products" / "complete.json").exists()
-
-
 @pytest.fixture(scope="module")
 def cli_reference(tmp_path_factory):
     """An uninterrupted run by the CLI in a subprocess: the same executor as the interrupted runs
@@ -119,7 +103,7 @@ def cli_reference(tmp_path_factory):
 def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_path, stage, sig):
     ref_dir = cli_reference
     run_dir = tmp_path / "interrupted"
-    _interrupt_run(run_dir, stage, sig)
+    interrupt_run(run_dir, stage, sig)
     subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
                     f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))

@@ -1,5 +1,8 @@
 """Small workflow configurations shared by the workflow tests."""
 import os
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
@@ -8,7 +11,9 @@ import zarr
 from mmflow.errors import InputError
 from mmflow.workflow.config import load_config
 
-DEMO = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "workflows", "demo.yaml")
+#: the repository root
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEMO = os.path.join(ROOT, "workflows", "demo.yaml")
 
 SMALL = [
     "telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.integration_s=344.6563620",
@@ -56,3 +61,18 @@ def assert_identical(a, b):
     assert a.keys() == b.keys()
     for k in a:
         assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+def interrupt_run(run_dir, stage, sig, extra=()):
+    """Start a CLI run in a subprocess and send ``sig`` once ``stage`` has finished its first chunk."""
+    args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, *extra,
+            f"run.directory={run_dir}", "--no-progress"]
+    env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    marker_dir = run_dir / "_status" / stage
+    deadline = time.time() + 120
+    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("[!_]*.done"))):
+        time.sleep(0.05)
+    proc.send_signal(sig)
+    proc.wait(timeout=60)
+    assert not (run_dir / "_status" / "products" / "complete.json").exists()
