@@ -37,8 +37,8 @@ import numpy as np
 from mmflow.errors import InputError
 from mmflow.io.run_stores import MODEL_COLUMNS, models_store
 from mmflow.workflow.blocks import read_block
+from mmflow.workflow.chunking import TIME_CHUNK
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK
 
 DEFAULT_SIZE_ARCMIN = 3.0
 

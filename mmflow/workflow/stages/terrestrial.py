@@ -26,8 +26,8 @@ import numpy as np
 from mmflow.io.run_stores import terrestrial_store
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.reduce import ordered_tree_sum
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
 def _time_keys(ctx):
