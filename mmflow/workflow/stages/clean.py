@@ -29,10 +29,10 @@ from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, gram_name, m_blocks
+from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.mmodes import mmax_of
 from mmflow.workflow.stages.products import healpy_alm
-from mmflow.workflow.stages.solve import _filters
 
 CLEAN_CONFIG = ("mmode.lmax", "mmode.mmax", "mmode.splits", "transfer.m_block", "imaging", "clean")
 TABLE_DECS_DEG = (0.0, 45.0, 75.0)  # always in the PSF table (Table 1's declinations)
@@ -89,7 +89,7 @@ def _prepare(ctx):
 
 
 def _keeps(cfg, m0, m1):
-    return {m: filter_mask(m, cfg.mmode.lmax, **_filters(cfg.imaging)) for m in range(m0, m1)}
+    return {m: filter_mask(m, cfg.mmode.lmax, **m_filters(cfg.imaging)) for m in range(m0, m1)}
 
 
 def block_operators_from_gram(ctx, fi, m0, m1):
