@@ -14,18 +14,10 @@ import json
 
 import numpy as np
 
-from mmflow.conventions import m_slice, n_alm
+from mmflow.conventions import healpy_alm
 from mmflow.imaging.lcurve import lcurve_corner
 from mmflow.workflow.stages.base import Stage, register
 from mmflow.workflow.stages.mmodes import mmax_of
-
-
-def healpy_alm(alm_ml, lmax, mmax):
-    """(m, l) padded array -> healpy-layout vector."""
-    out = np.zeros(n_alm(lmax), np.complex128)
-    for m in range(mmax + 1):
-        out[m_slice(lmax, m)] = alm_ml[m, m:]
-    return out
 
 
 def frequency_tags(freqs_hz):
