@@ -34,6 +34,7 @@ Units
 import numpy as np
 
 SIDEREAL_DAY_S = 86164.0905  # s: one turn of the sidereal angle
+TWO_PI = 2 * np.pi  # rad: one turn (of the sidereal angle, of an m-mode phase)
 
 
 def enu_to_equatorial_matrix(lat_rad, phi=0.0):
