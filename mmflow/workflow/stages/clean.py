@@ -30,9 +30,9 @@ from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, gram_name, m_blocks
+from mmflow.workflow.geometry import mmax_of, split_fractions
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 CLEAN_CONFIG = ("mmode.lmax", "mmode.mmax", "mmode.splits", "transfer.m_block", "imaging", "clean")
 TABLE_DECS_DEG = (0.0, 45.0, 75.0)  # always in the PSF table (Table 1's declinations)
@@ -258,10 +258,9 @@ def split_alm(ctx, fi, lmax, mmax):
 def jackknife_splits(ctx, fi, kind=None):
     """``(kind, splits, f_k)`` of the jackknife at frequency ``fi`` (:func:`mmflow.mmode.splits.jackknife_kind`:
     even/odd, else per-day; or the ``kind`` asked for): the splits it images and each split's share of
-    the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.stages.mmodes.split_fractions`);
+    the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.geometry.split_fractions`);
     ``(None, (), {})`` without one."""
     from mmflow.mmode.splits import day_splits, jackknife_kind
-    from mmflow.workflow.stages.mmodes import split_fractions
 
     splits = ctx.cfg.mmode.splits
     kind = jackknife_kind(splits) if kind is None else kind

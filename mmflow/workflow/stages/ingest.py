@@ -28,7 +28,7 @@ def input_files(cfg):
 
 def _ingest_check(cfg, running):
     from mmflow.io.ingest import plan_ingest, sidereal_coverage
-    from mmflow.workflow.stages.mmodes import n_bins_of
+    from mmflow.workflow.geometry import n_bins_of
 
     plan = plan_ingest(cfg)
     if "mmodes" not in running:

@@ -16,8 +16,8 @@ import numpy as np
 
 from mmflow.conventions import healpy_alm
 from mmflow.imaging.lcurve import lcurve_corner
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 
 def frequency_tags(freqs_hz):

@@ -14,12 +14,12 @@ from functools import lru_cache
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import utc_at_lsts
 from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import _parse, build_telescope
+from mmflow.workflow.geometry import n_integrations
 from mmflow.workflow.stages.base import Stage, register
 
 VIS_ARRAYS = ("vis", "weights", "lst", "time_jd")
@@ -35,11 +35,6 @@ def write_autos(ctx, g, rows, vis, weights):
 def layout_attrs(layout):
     return dict(antenna_names=list(layout.names), lat_deg=layout.lat_deg, lon_deg=layout.lon_deg,
                 height_m=layout.height_m, layout_provenance=layout.provenance)
-
-
-def n_integrations(cfg):
-    o = cfg.observation
-    return o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
 
 
 def _sim_prepare(ctx):

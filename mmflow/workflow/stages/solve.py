@@ -17,8 +17,8 @@ from mmflow.io.run_stores import alm_store, gram_name, m_blocks
 from mmflow.mmode.normal import hermitian_full
 from mmflow.threads import n_threads, single_threaded_blas
 from mmflow.workflow.kernel_args import m_filters
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 N_EPS = 200
 SOLVE_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer.m_block", "imaging", "products.frame")

@@ -18,8 +18,8 @@ from mmflow.io.run_stores import gram_name, m_blocks, partials_store, transfer_s
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 TRANSFER_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer", "beam")
 
