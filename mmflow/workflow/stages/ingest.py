@@ -12,8 +12,8 @@ import glob
 from mmflow.errors import CoverageError
 from mmflow.io.run_stores import vis_store
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
+from mmflow.workflow.data_stage import VIS_ARRAYS, layout_attrs, write_autos
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import VIS_ARRAYS, layout_attrs, write_autos
 
 CROSS_ARRAYS = ("vis_cross", "weights_cross")
 

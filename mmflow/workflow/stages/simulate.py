@@ -1,4 +1,4 @@
-"""The ``simulate`` stage (the demo's drift scan) and the visibility-store helpers it shares with ``ingest``.
+"""The ``simulate`` stage: the demo's drift scan (what it shares with ``ingest``: :mod:`mmflow.workflow.data_stage`).
 
 With ``sky.resolved`` Cyg A and Cas A are simulated as their Gaussian components
 (:func:`mmflow.sky.sources.resolved`), sampled by Gauss-Hermite quadrature (:meth:`Source.points`).
@@ -19,23 +19,9 @@ from mmflow.simulate.corrupt import utc_at_lsts
 from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import _parse, build_telescope
+from mmflow.workflow.data_stage import layout_attrs, write_autos
 from mmflow.workflow.geometry import n_integrations
 from mmflow.workflow.stages.base import Stage, register
-
-VIS_ARRAYS = ("vis", "weights", "lst", "time_jd")
-
-
-def write_autos(ctx, g, rows, vis, weights):
-    from mmflow.mmode.noise import autocorrelation_rows
-
-    n_ant = g["autos"].shape[1]
-    ctx.write(g, "autos", rows, autocorrelation_rows(vis, weights, g["pairs"][:], n_ant), allow_nan=True)
-
-
-def layout_attrs(layout):
-    return dict(antenna_names=list(layout.names), lat_deg=layout.lat_deg, lon_deg=layout.lon_deg,
-                height_m=layout.height_m, layout_provenance=layout.provenance)
-
 
 def _sim_prepare(ctx):
     cfg = ctx.cfg
