@@ -34,6 +34,7 @@ Units
 import numpy as np
 
 SIDEREAL_DAY_S = 86164.0905  # s: one turn of the sidereal angle
+TWO_PI = 2 * np.pi  # rad: one turn (of the sidereal angle, of an m-mode phase)
 
 
 def enu_to_equatorial_matrix(lat_rad, phi=0.0):
@@ -91,3 +92,30 @@ def m_slice(lmax, m):
     """Slice of the healpy alm vector holding ``a_lm`` for ``l = m..lmax``."""
     start = alm_index(lmax, m, m)
     return slice(start, start + lmax - m + 1)
+
+
+def healpy_alm(alm_ml, lmax, mmax=None):
+    """An ``(m, l)`` padded alm array (as ``alm.zarr`` stores it) as a healpy-layout vector.
+
+    ``out[alm_index(lmax, l, m)] = alm_ml[m, l]`` for ``0 <= m <= mmax``, ``m <= l <= lmax``;
+    coefficients with ``m > mmax`` are zero (healpy's vector always has ``mmax = lmax``).
+
+    Parameters
+    ----------
+    alm_ml : array_like, shape (M, L)
+        ``alm_ml[m, l]``; entries with ``l < m`` are padding and ignored, columns beyond ``lmax``
+        dropped.
+    lmax : int
+        Band limit of the output vector.
+    mmax : int, optional
+        Largest m copied; default ``min(M - 1, lmax)`` (every row the array has).
+
+    Returns
+    -------
+    numpy.ndarray, complex128, shape (n_alm(lmax),)
+    """
+    mmax = min(len(alm_ml) - 1, lmax) if mmax is None else mmax
+    out = np.zeros(n_alm(lmax), np.complex128)
+    for m in range(mmax + 1):
+        out[m_slice(lmax, m)] = alm_ml[m, m:lmax + 1]
+    return out

@@ -117,7 +117,7 @@ def test_workflow_clean_is_the_kernels_called_directly(noiseless):
             n = LMAX - m + 1
             keep = filter_mask(m, LMAX, **filters)
             ops[m] = psf.block_operator(m, hermitian_full(grams[m - m0, :n, :n]), im.eps, keep)
-    from mmflow.workflow.stages.products import healpy_alm
+    from mmflow.conventions import healpy_alm
 
     dirty = healpy_alm(zarr.open_group(str(run_dir / "alm.zarr"), mode="r")["alm"][0, 0], LMAX, LMAX)
     lat = np.deg2rad(zarr.open_group(str(run_dir / "vis.zarr"), mode="r").attrs["lat_deg"])
@@ -214,8 +214,8 @@ def verify(run_dir):
 def test_jackknife_noise_is_the_noise_of_the_map_and_sets_the_threshold(noisy, noiseless):
     """The data differ only by the thermal noise (uniform weights: the operator is the same), so
     ``noisy - noiseless`` is the full map's true noise: the jackknife estimates its rms."""
+    from mmflow.conventions import healpy_alm
     from mmflow.imaging.jackknife import jackknife_variance
-    from mmflow.workflow.stages.products import healpy_alm
 
     (nd, ncfg, nsum), (qd, _, _) = noisy, noiseless
     g = zarr.open_group(str(nd / "clean.zarr"), mode="r")

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 import zarr
 
+from mmflow.conventions import healpy_alm
 from mmflow.errors import InputError
 from mmflow.imaging import clean as ck
 from mmflow.imaging import jackknife
 from mmflow.mmode import splits as sp
 from mmflow.workflow.runner import run_workflow
 from mmflow.workflow.stages import clean as cs
-from mmflow.workflow.stages.products import healpy_alm
 from tests.imaging_helpers import Imager
 from tests.workflow_helpers import SMALL, refused_problem, small_config
 

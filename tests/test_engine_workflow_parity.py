@@ -8,9 +8,9 @@ from mmflow.conventions import m_slice
 from mmflow.io.run_stores import gram_name
 from mmflow.imaging.solvers import solve_alm
 from mmflow.mmode.engine import accumulate_normal_equations
+from mmflow.mmode.noise import relative_weights
 from mmflow.workflow.context import _telescope
 from mmflow.workflow.runner import run_workflow
-from mmflow.workflow.stages.transfer import relative_weights
 from tests.workflow_helpers import small_config
 
 

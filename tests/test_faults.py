@@ -364,11 +364,11 @@ def test_workflow_alm_equals_engine_alm_and_splits_share_one_transfer_pass(tmp_p
     """The solve stage and engine.solve_alm are one per-m loop; even/odd halves average to the full data."""
     import zarr
 
+    from mmflow.conventions import healpy_alm
     from mmflow.imaging.solvers import solve_alm
     from mmflow.mmode.engine import accumulate_normal_equations
+    from mmflow.mmode.noise import relative_weights
     from mmflow.workflow.stages.base import get_stage
-    from mmflow.workflow.stages.products import healpy_alm
-    from mmflow.workflow.stages.transfer import relative_weights
 
     run_dir = tmp_path / "run"
     cfg = small_config(run_dir, "mmode.splits=[full, even, odd]", "observation.integration_s=172.3281810",

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.special import gammaln, sph_harm_y
 
-from mmflow.conventions import unit_vectors
+from mmflow.conventions import healpy_alm, unit_vectors
 from mmflow.imaging.solvers import tikhonov
 from mmflow.mmode.legendre import legendre_table
 from mmflow.sky.diffuse import band_limited_random_alm, point_source_alm
@@ -296,3 +296,19 @@ def test_rotate_alm_equals_healpy_and_moves_a_point_source():
     out = rotate_alm(point_sources_alm(v[None], np.ones(1), lmax), mat, lmax)
     here, elsewhere = synthesize_at(out, np.stack([mat @ v, v]), lmax)
     assert np.isclose(here, ((lmax + 1) ** 2) / (4 * np.pi), rtol=1e-9) and abs(elsewhere) < 1e-3 * here
+
+
+def test_ml_array_to_healpy_layout_uses_healpys_index_and_pads_unmeasured_m_with_zero():
+    """``healpy_alm`` puts ``a[m, l]`` at ``healpy.Alm.getidx(lmax, l, m)``; rows beyond mmax and
+    columns beyond lmax (a wider array) are not copied; padding below the diagonal is ignored."""
+    lmax, mmax = 6, 3
+    m, ell = np.meshgrid(np.arange(lmax + 3), np.arange(lmax + 3), indexing="ij")
+    a = (100 * m + ell + 1j * ell).astype(np.complex128)  # a[m, l] names its (l, m); padding l < m too
+    out = healpy_alm(a, lmax, mmax)
+    assert out.shape == (healpy.Alm.getsize(lmax),) and out.dtype == np.complex128
+    for mm in range(lmax + 1):
+        for ll in range(mm, lmax + 1):
+            assert out[healpy.Alm.getidx(lmax, ll, mm)] == (a[mm, ll] if mm <= mmax else 0)
+    # without mmax every row the array has (up to lmax) is copied
+    assert np.array_equal(healpy_alm(a[:mmax + 1, :lmax + 1], lmax), out)
+    assert np.array_equal(healpy_alm(a, lmax)[healpy.Alm.getidx(lmax, lmax, lmax)], a[lmax, lmax])

@@ -91,8 +91,8 @@ def _ingest_s(pattern, store):
     from mmflow.io import ingest
     from mmflow.io.run_stores import vis_store
     from mmflow.threads import n_threads
-    from mmflow.workflow.stages.ingest import TIME_CHUNK
-    from mmflow.workflow.stages.simulate import layout_attrs
+    from mmflow.workflow.chunking import TIME_CHUNK
+    from mmflow.workflow.data_stage import layout_attrs
 
     cfg = SimpleNamespace(input=SimpleNamespace(path=pattern, format=None, on_bad_file="error", conjugate=False,
                                                 nonfinite="error"))

@@ -41,7 +41,7 @@ import ducc0
 import numpy as np
 import scipy.fft
 
-from mmflow.conventions import m_slice
+from mmflow.conventions import TWO_PI, m_slice
 from mmflow.errors import InputError
 from mmflow.mmode.engine import BaselineChunk, GridCache, chunk_grid
 from mmflow.mmode.noise import baseline_coverage, lsq_inverse_variance, residual_variance
@@ -49,7 +49,6 @@ from mmflow.mmode.transfer import transfer_pass
 from mmflow.mmode.transform import mmode_transform, split_bins, split_mmode_transform
 from mmflow.threads import n_threads
 
-TWO_PI = 2 * np.pi
 NUFFT_EPS = 1e-13  # ducc0's finest double-precision accuracy (off-grid phases)
 # ducc0's NUFFTs run on one thread: with several, the spreading sums in a thread-dependent order,
 # and a run resumed with another thread budget (another cluster size) must give the same bits.

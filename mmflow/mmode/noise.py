@@ -189,3 +189,26 @@ def lsq_inverse_variance(sigma2, weight_sum, coverage=None):
     factor = 1.0 if coverage is None else coverage.factor
     ok = np.isfinite(var) & (var > 0)
     return np.where(ok, factor / np.where(ok, var, 1), 0.0)
+
+
+def relative_weights(inv_var):
+    """Noise weights scaled to unit mean over the measured baselines.
+
+    ``w_b = N_b^-1 / <N^-1>_{b: N_b^-1 > 0}``: minimum-variance weighting changes the relative
+    weights of baselines, not the scale of ``B^H N^-1 B``, so eps keeps the meaning it has for
+    unweighted data (the paper's eps = 0.01).
+
+    Parameters
+    ----------
+    inv_var : array_like
+        Inverse noise variances, any shape; 0 marks a baseline without data.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``inv_var`` (as float) divided by the mean of its positive entries; returned unscaled
+        when no entry is positive.
+    """
+    inv_var = np.asarray(inv_var, float)
+    good = inv_var > 0
+    return inv_var / inv_var[good].mean() if good.any() else inv_var

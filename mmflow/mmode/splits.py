@@ -34,10 +34,9 @@ import re
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.conventions import SIDEREAL_DAY_S, TWO_PI
 from mmflow.mmode.transform import bin_index
 
-TWO_PI = 2 * np.pi
 PARITY_SPLITS = ("full", "even", "odd")  # splits of the sidereal bins (every integration used)
 SUN_SPLITS = ("day", "night")
 _DAY = re.compile(r"^day(0|[1-9][0-9]*)$")

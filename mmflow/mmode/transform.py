@@ -7,9 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.conventions import TWO_PI
 from mmflow.errors import CoverageError, InputError
-
-TWO_PI = 2 * np.pi
 
 
 def sidereal_bins(lsts, vis, weights=None, n_bins=None, min_coverage=1.0, source="visibilities"):

@@ -325,8 +325,7 @@ def _split_problems(cfg):
     sidereal rate: :func:`mmflow.mmode.splits.sidereal_times_jd`)."""
     from mmflow.mmode.splits import day_index, day_splits, sidereal_times_jd, split_problems
     from mmflow.simulate.scene import drift_scan_lsts
-    from mmflow.workflow.stages.mmodes import n_bins_of
-    from mmflow.workflow.stages.simulate import n_integrations
+    from mmflow.workflow.geometry import n_bins_of, n_integrations
 
     mm, ob = cfg.mmode, cfg.observation
     if cfg.source != "simulate":

@@ -27,12 +27,12 @@ import numpy as np
 
 from mmflow.imaging.maps import default_nside
 from mmflow.io import run_stores as rs
+from mmflow.workflow.chunking import TIME_CHUNK
 from mmflow.workflow.stages.base import all_stages
 
 COSTS_FILE = Path(__file__).with_name("plan_costs.json")
 #: A worker process's resident memory before any task (interpreter, numpy, dask, zarr, pyuvdata).
 WORKER_BASE_BYTES = 0.35e9
-TIME_CHUNK = 256  # integrations per time-chunk task (mmflow.workflow.stages.simulate)
 LCURVE_POINTS = 200  # eps values of an L-curve (alm.zarr eps_grid)
 PSF_DECLINATIONS = 16  # declinations of CLEAN's PSF table
 #: CLEAN's major cycles are data-dependent (until the threshold): the plan assumes this many

@@ -155,14 +155,10 @@ def read_prior_alm(prior_run, fi, lmax):
 
     Chunks are checked against the earlier run's ``solve`` records as they are read.
     """
-    from mmflow.conventions import m_slice, n_alm
+    from mmflow.conventions import healpy_alm
     from mmflow.io.stores import open_checked
     from mmflow.workflow.rundir import RunDir
 
     path = resolve(prior_run)
     g = open_checked(str(path), ALM, "r", RunDir(path).chunk_index("solve"), "solve")
-    alm_ml = g["alm"][0, fi]
-    out = np.zeros(n_alm(lmax), np.complex128)
-    for m in range(min(alm_ml.shape[0] - 1, lmax) + 1):
-        out[m_slice(lmax, m)] = alm_ml[m, m:lmax + 1]
-    return out
+    return healpy_alm(g["alm"][0, fi], lmax)

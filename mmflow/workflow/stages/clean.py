@@ -24,15 +24,15 @@ import time
 
 import numpy as np
 
+from mmflow.conventions import healpy_alm, n_alm
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, gram_name, m_blocks
+from mmflow.workflow.geometry import mmax_of, split_fractions
+from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
-from mmflow.workflow.stages.products import healpy_alm
-from mmflow.workflow.stages.solve import _filters
 
 CLEAN_CONFIG = ("mmode.lmax", "mmode.mmax", "mmode.splits", "transfer.m_block", "imaging", "clean")
 TABLE_DECS_DEG = (0.0, 45.0, 75.0)  # always in the PSF table (Table 1's declinations)
@@ -89,7 +89,7 @@ def _prepare(ctx):
 
 
 def _keeps(cfg, m0, m1):
-    return {m: filter_mask(m, cfg.mmode.lmax, **_filters(cfg.imaging)) for m in range(m0, m1)}
+    return {m: filter_mask(m, cfg.mmode.lmax, **m_filters(cfg.imaging)) for m in range(m0, m1)}
 
 
 def block_operators_from_gram(ctx, fi, m0, m1):
@@ -234,8 +234,6 @@ def cycle_components(rows):
 
 def residual_alm(g, fi, cycle, lmax, blocks):
     """The full healpy-layout residual alm at the start of ``cycle`` (zero for m beyond mmax)."""
-    from mmflow.conventions import n_alm
-
     out = np.zeros(n_alm(lmax), np.complex128)
     for m0, m1 in blocks:
         out[psf.block_range(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
@@ -244,8 +242,6 @@ def residual_alm(g, fi, cycle, lmax, blocks):
 
 def psf_alm_columns(g, fi, lmax, blocks):
     """The PSF columns ``(n_alm, n_dec)`` of the declination grid, assembled from the blocks."""
-    from mmflow.conventions import n_alm
-
     parts = {m0: g[f"f{fi}/psf_b{m0:05d}"][...] for m0, _ in blocks}
     out = np.zeros((n_alm(lmax), next(iter(parts.values())).shape[1]), np.complex128)
     for m0, m1 in blocks:
@@ -262,10 +258,9 @@ def split_alm(ctx, fi, lmax, mmax):
 def jackknife_splits(ctx, fi, kind=None):
     """``(kind, splits, f_k)`` of the jackknife at frequency ``fi`` (:func:`mmflow.mmode.splits.jackknife_kind`:
     even/odd, else per-day; or the ``kind`` asked for): the splits it images and each split's share of
-    the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.stages.mmodes.split_fractions`);
+    the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.geometry.split_fractions`);
     ``(None, (), {})`` without one."""
     from mmflow.mmode.splits import day_splits, jackknife_kind
-    from mmflow.workflow.stages.mmodes import split_fractions
 
     splits = ctx.cfg.mmode.splits
     kind = jackknife_kind(splits) if kind is None else kind

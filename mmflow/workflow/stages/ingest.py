@@ -11,8 +11,9 @@ import glob
 
 from mmflow.errors import CoverageError
 from mmflow.io.run_stores import vis_store
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
+from mmflow.workflow.data_stage import VIS_ARRAYS, layout_attrs, write_autos
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK, VIS_ARRAYS, layout_attrs, chunk_rows, time_keys, write_autos
 
 CROSS_ARRAYS = ("vis_cross", "weights_cross")
 
@@ -27,7 +28,7 @@ def input_files(cfg):
 
 def _ingest_check(cfg, running):
     from mmflow.io.ingest import plan_ingest, sidereal_coverage
-    from mmflow.workflow.stages.mmodes import n_bins_of
+    from mmflow.workflow.geometry import n_bins_of
 
     plan = plan_ingest(cfg)
     if "mmodes" not in running:

@@ -14,7 +14,7 @@ their own integrations and fitted the same way; their masks are computed once pe
 (:func:`mmflow.mmode.splits.split_problems`) before any task; each task refuses a time split
 whose unflagged samples miss ``mmode.min_coverage`` of the bins (a flagged day). Every task
 counts each split's unflagged samples per frequency and baseline (``n_samples``): the jackknives'
-shares ``f_k`` (:func:`split_fractions`).
+shares ``f_k`` (:func:`mmflow.workflow.geometry.split_fractions`).
 
 With ``mmode.prior_run`` the fit of every chunk with flagged time takes as its prior the
 m-modes of an earlier run's map (:func:`mmflow.mmode.gapfill.prior_mmodes` of that run's
@@ -28,26 +28,18 @@ import threading
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import CoverageError, InputError
 from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
-from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, split_shares, \
+from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, \
     sun_elevation_deg
 from mmflow.mmode.transform import sidereal_bins
 from mmflow.workflow.blocks import CORRECTION_STORES, read_block
+from mmflow.workflow.geometry import mmax_of, n_bins_of
 from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
 from mmflow.workflow.stages.base import Stage, register
-
-
-def mmax_of(cfg):
-    return cfg.mmode.mmax if cfg.mmode.mmax is not None else cfg.mmode.lmax
-
-
-def n_bins_of(cfg, integration_s):
-    return cfg.mmode.n_bins or int(round(SIDEREAL_DAY_S / integration_s))
 
 
 def _prepare(ctx):
@@ -106,15 +98,6 @@ def _check_time_splits(ctx, vis, splits, n_bins):
         raise InputError(str(ctx.run.store("vis.zarr")), "mmode.splits", f"'{name}': {problem}{more}", fix)
     present = np.unique(days[days >= 0])
     return {"n_days": int(present.max()) + 1 if present.size else 0, "days": [int(d) for d in present]}
-
-
-def split_fractions(ctx, fi):
-    """``{split: f_k}`` at frequency ``fi``: each split's share of the unflagged samples, summed over
-    baselines (``mmodes.zarr``'s ``n_samples``, :func:`mmflow.mmode.splits.split_shares`): the ``f_k``
-    of the per-day jackknife and of the day/night map, for any stage that reads ``mmodes.zarr``."""
-    g = ctx.open("mmodes.zarr")
-    counts = ctx.read("mmodes.zarr", "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
-    return split_shares(counts, list(g.attrs["splits"]))
 
 
 def _task(ctx, key):

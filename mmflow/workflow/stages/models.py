@@ -38,8 +38,8 @@ from mmflow.errors import InputError
 from mmflow.io.run_stores import MODEL_COLUMNS, models_store
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
+from mmflow.workflow.chunking import TIME_CHUNK
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK
 
 DEFAULT_SIZE_ARCMIN = 3.0
 

@@ -8,8 +8,8 @@ import numpy as np
 
 from mmflow.io.run_stores import gram_name, m_blocks, normal_store
 from mmflow.workflow.reduce import ordered_tree_sum
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 
 def _normal_prepare(ctx):

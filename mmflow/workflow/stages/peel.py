@@ -42,8 +42,8 @@ from mmflow.io.run_stores import peel_store
 from mmflow.workflow.baseline_cuts import check_baselines, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.context import _parse
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.stages.base import Stage, producer_of, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
 def _prepare(ctx):

@@ -3,8 +3,8 @@
 It rotates the solved alm to ``products.frame`` at the *data's* epoch (stored with the
 visibilities) and writes ``maps/map_<MHz>MHz.fits`` (never-seen sky UNSEEN), PNGs and
 summaries; with ``clean.enabled`` also the restored, residual, model and noise maps, PSF
-stamps and Table 1 (:mod:`mmflow.workflow.stages.products_clean`); the flux scale, astrometric
-registration and spectral-index products (:mod:`mmflow.workflow.stages.products_science`). ``summary_<tag>.json``
+stamps and Table 1 (:mod:`mmflow.workflow.products.clean`); the flux scale, astrometric
+registration and spectral-index products (:mod:`mmflow.workflow.products.science`). ``summary_<tag>.json``
 and ``summary.json`` hold what a report needs (paths, PSF FWHMs, noise, CLEAN history,
 Table-1 rows). Only the files it lists are ever removed.
 """
@@ -14,18 +14,10 @@ import json
 
 import numpy as np
 
-from mmflow.conventions import m_slice, n_alm
+from mmflow.conventions import healpy_alm
 from mmflow.imaging.lcurve import lcurve_corner
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
-
-
-def healpy_alm(alm_ml, lmax, mmax):
-    """(m, l) padded array -> healpy-layout vector."""
-    out = np.zeros(n_alm(lmax), np.complex128)
-    for m in range(mmax + 1):
-        out[m_slice(lmax, m)] = alm_ml[m, m:]
-    return out
 
 
 def frequency_tags(freqs_hz):
@@ -90,11 +82,11 @@ def _products_task(ctx, key):
                 weighted=cfg.transfer.noise_weighting)
             ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
     if cfg.clean.enabled:
-        from mmflow.workflow.stages.products_clean import clean_products, table1_row
+        from mmflow.workflow.products.clean import clean_products, table1_row
 
         info.update(clean_products(ctx, fi, tag, f, epoch, nside, mask, meta, p.png))
         info["table1"] = table1_row(ctx, fi, f, info)
-    from mmflow.workflow.stages.products_science import channel_science
+    from mmflow.workflow.products.science import channel_science
 
     info.update(channel_science(ctx, fi, tag, f, epoch, hmap, nside))
     (maps / f"summary_{tag}.json").write_text(json.dumps(info, indent=2))
@@ -126,10 +118,10 @@ def _products_finalize(ctx):
         for q in out["table1"]["files"]:
             ctx.ledger.record_file(ctx.run.path / q)
         if ctx.cfg.products.png:
-            from mmflow.workflow.stages.products_clean import clean_history_figure
+            from mmflow.workflow.products.clean import clean_history_figure
 
             out["clean_figure"] = clean_history_figure(ctx, parts, tags)
-    from mmflow.workflow.stages.products_science import finalize_science
+    from mmflow.workflow.products.science import finalize_science
 
     out.update(finalize_science(ctx, parts, tags))
     # what each stage before this one cost (issue 21): the run records it, the map's summary keeps it

@@ -1,4 +1,4 @@
-"""The ``simulate`` stage (the demo's drift scan) and the time-chunk helpers it shares with ``ingest``.
+"""The ``simulate`` stage: the demo's drift scan (what it shares with ``ingest``: :mod:`mmflow.workflow.data_stage`).
 
 With ``sky.resolved`` Cyg A and Cas A are simulated as their Gaussian components
 (:func:`mmflow.sky.sources.resolved`), sampled by Gauss-Hermite quadrature (:meth:`Source.points`).
@@ -14,42 +14,14 @@ from functools import lru_cache
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import utc_at_lsts
 from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import _parse, build_telescope
+from mmflow.workflow.data_stage import layout_attrs, write_autos
+from mmflow.workflow.geometry import n_integrations
 from mmflow.workflow.stages.base import Stage, register
-
-TIME_CHUNK = 256
-VIS_ARRAYS = ("vis", "weights", "lst", "time_jd")
-
-
-def write_autos(ctx, g, rows, vis, weights):
-    from mmflow.mmode.noise import autocorrelation_rows
-
-    n_ant = g["autos"].shape[1]
-    ctx.write(g, "autos", rows, autocorrelation_rows(vis, weights, g["pairs"][:], n_ant), allow_nan=True)
-
-
-def time_keys(n):
-    return [f"t{i:05d}" for i in range(-(-n // TIME_CHUNK))]
-
-
-def chunk_rows(key, n):
-    i = int(key[1:])
-    return i * TIME_CHUNK, min(n, (i + 1) * TIME_CHUNK)
-
-
-def layout_attrs(layout):
-    return dict(antenna_names=list(layout.names), lat_deg=layout.lat_deg, lon_deg=layout.lon_deg,
-                height_m=layout.height_m, layout_provenance=layout.provenance)
-
-
-def n_integrations(cfg):
-    o = cfg.observation
-    return o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
-
 
 def _sim_prepare(ctx):
     cfg = ctx.cfg

@@ -16,8 +16,9 @@ from mmflow.imaging.solvers import solve_m
 from mmflow.io.run_stores import alm_store, gram_name, m_blocks
 from mmflow.mmode.normal import hermitian_full
 from mmflow.threads import n_threads, single_threaded_blas
+from mmflow.workflow.kernel_args import m_filters
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 N_EPS = 200
 SOLVE_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer.m_block", "imaging", "products.frame")
@@ -45,10 +46,6 @@ def _prior_alm(ctx, lmax):
     return rotate_alm(map_to_alm(hmap, lmax), rotation_matrix(cfg.products.frame, "date", epoch), lmax)
 
 
-def _filters(im):
-    return dict(zero_monopole=im.zero_monopole, filter_m0=im.filter_m0, filter_m1_lmin=im.filter_m1_lmin)
-
-
 def _solve_task(ctx, key):
     cfg = ctx.cfg
     im = cfg.imaging
@@ -68,7 +65,7 @@ def _solve_task(ctx, key):
     def one(m):
         n = lmax - m + 1
         return solve_m(hermitian_full(grams[m - m0, :n, :n]), rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps,
-                       _filters(im), None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
+                       m_filters(im), None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
 
     # the m blocks of the task on the task's thread budget, one BLAS thread each (same bits on any cluster)
     with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:

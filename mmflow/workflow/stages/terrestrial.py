@@ -27,8 +27,8 @@ from mmflow.io.run_stores import terrestrial_store
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.reduce import ordered_tree_sum
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.simulate import TIME_CHUNK, chunk_rows, time_keys
 
 
 def _time_keys(ctx):

@@ -16,9 +16,10 @@ import numpy as np
 
 from mmflow.io.run_stores import gram_name, m_blocks, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
+from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
+from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage, register
-from mmflow.workflow.stages.mmodes import mmax_of
 
 TRANSFER_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer", "beam")
 
@@ -29,17 +30,6 @@ def _plan(ctx, fi):
     chunks, lmax_b = plan_chunks(tel, tel.freqs_hz[fi], cfg.mmode.lmax, cfg.transfer.baseline_chunk,
                                  cfg.transfer.per_baseline_lmax)
     return tel, chunks, lmax_b, plan_groups(chunks, cfg.transfer.groups)
-
-
-def relative_weights(inv_var):
-    """Noise weights scaled to unit mean over measured baselines.
-
-    Minimum-variance weighting changes the relative weights of baselines, not the scale of
-    ``B^H B``: eps keeps the meaning it has for unweighted data (the paper's eps = 0.01).
-    """
-    inv_var = np.asarray(inv_var, float)
-    good = inv_var > 0
-    return inv_var / inv_var[good].mean() if good.any() else inv_var
 
 
 def _acc_dtype(cfg):

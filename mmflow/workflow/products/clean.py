@@ -34,7 +34,7 @@ from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, m_blocks
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map
 from mmflow.sky.frames import rotate_alm
-from mmflow.workflow.stages.mmodes import mmax_of
+from mmflow.workflow.geometry import mmax_of
 
 STAMP_DECS = table1.TABLE1_DECS_DEG
 STAMP_PIXELS = 65
@@ -133,7 +133,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
 def day_night_alm(ctx, fi, alms):
     """The day/night systematics map's alm ``sqrt(f_d f_n) (day - night)`` of channel ``fi``, the shares
     from ``mmodes.zarr`` (:func:`mmflow.imaging.jackknife.day_night_difference`)."""
-    from mmflow.workflow.stages.mmodes import split_fractions
+    from mmflow.workflow.geometry import split_fractions
 
     f = split_fractions(ctx, fi)
     return day_night_difference(alms["day"], alms["night"], f["day"], f["night"])

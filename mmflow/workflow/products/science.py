@@ -57,7 +57,7 @@ def psf_at(ctx, fi, vecs_date):
     from mmflow.conventions import n_alm
     from mmflow.io.run_stores import m_blocks
     from mmflow.workflow.stages import clean as cs
-    from mmflow.workflow.stages.mmodes import mmax_of
+    from mmflow.workflow.geometry import mmax_of
 
     cfg = ctx.cfg
     lmax = cfg.mmode.lmax
@@ -173,7 +173,7 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
     from mmflow.conventions import m_slice
     from mmflow.imaging.jackknife import noise_realisation
     from mmflow.workflow.stages.clean import jackknife_splits, split_alm
-    from mmflow.workflow.stages.mmodes import mmax_of
+    from mmflow.workflow.geometry import mmax_of
 
     cfg = ctx.cfg
     kind, _, fractions = jackknife_splits(ctx, fi)
