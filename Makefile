@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed
 
-.PHONY: demo test bench docs install clean
+.PHONY: demo test test-fast bench docs install clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,9 +23,13 @@ demo: $(STAMP)
 	$(VENV)/bin/mmflow run workflows/demo-calibrate.yaml calibrate.enabled=false peel.enabled=false \
 	    terrestrial.enabled=false run.directory=runs/demo-calibrate-before --no-progress
 
-## Run the test suite
+## Run the test suite: every tier (tests/unit, tests/workflow, tests/acceptance)
 test: $(STAMP)
 	$(PY) -m pytest -q
+
+## The unit tier only (kernels on in-memory arrays)
+test-fast: $(STAMP)
+	$(PY) -m pytest -q tests/unit
 
 ## Benchmarks (JSON figures on stdout)
 bench: $(STAMP)

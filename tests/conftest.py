@@ -6,6 +6,16 @@ import pytest
 os.environ.setdefault("MMFLOW_THREADS", "2")
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests in three tiers: ``tests/unit`` (kernels on in-memory arrays, ``make test-fast``),
+    ``tests/workflow`` (stages and runs at small scale) and ``tests/acceptance`` (the README tour, the
+    demos, faults, clusters, real files and matvis scans at scale), marked ``slow``
+    (``pytest -m "not slow"`` leaves them out)."""
+    for item in items:
+        if "acceptance" in item.path.parts:
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture(scope="session")
 def small_telescope():
     """Eight real OVRO-LWA core stands within 15 m, a beam smooth at the horizon, 40 MHz."""

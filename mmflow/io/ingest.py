@@ -16,7 +16,7 @@ LL; or one parallel hand), chosen by pyuvdata polarisation number so that ``ee``
 labels are XX/YY, as ``vis.zarr``'s ``pol`` axis: calibration acts per hand, and Stokes I is
 formed where the corrected data are next read.
 pyuvdata's data (``V_12 = <E_1 E_2*>``, ``b = x_2 - x_1``, as simulated by matvis and hera_sim)
-follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/test_ingest.py`` checks by
+follow the same ``exp(+2 pi i b.r)`` sign as mmflow, which ``tests/workflow/test_ingest.py`` checks by
 imaging a matvis drift scan: sources land at their ICRS positions. ``input.conjugate``
 flips the sign for data written in the opposite convention.
 """

@@ -5,7 +5,7 @@ window, the antenna table, correlation types, units, sidereal phase centres), so
 only the main table's columns. pyuvdata's MS reader re-reads
 every subtable and computes apparent coordinates per file, which costs as much as the data.
 This reader reproduces what ``UVData.read`` followed by ``unproject_phase`` gives (pyuvdata
-docs, "MeasurementSet"; ``tests/test_ingest_formats.py`` compares the stores to the UVH5 path):
+docs, "MeasurementSet"; ``tests/workflow/test_ingest_formats.py`` compares the stores to the UVH5 path):
 
 * conjugation: an MS stores ``V_21`` where pyuvdata stores ``V_12``; pyuvdata conjugates
   ``DATA`` and negates ``UVW`` unless the file says it was written in pyuvdata's convention

@@ -11,7 +11,7 @@ read directly with python-casacore (:mod:`mmflow.io.ms_read`: the main table's c
 pyuvdata's conjugation and unprojection reproduced bit for bit). Every other file (uvfits, files
 read without a plan) goes through ``pyuvdata.UVData.read``, and phased data (any phase centre)
 are unprojected exactly with ``UVData.unproject_phase``. The paths give the same numbers
-(``tests/test_ingest_formats.py``). pyuvdata reads with astropy's site list kept offline
+(``tests/workflow/test_ingest_formats.py``). pyuvdata reads with astropy's site list kept offline
 (:func:`mmflow.offline.offline_site_registry`): a telescope astropy does not know is placed
 where the file's antennas are, never looked up on the network.
 """

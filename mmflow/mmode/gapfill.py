@@ -397,7 +397,7 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     w = np.asarray(bin_weight, float)
     if sigma2 is not None and prior is None and _uniform_on_grid(w, offset):
         # every bin filled with equal weight on the bin grid: the least-squares fit is the plain
-        # transform (to 1e-12, tests/test_mmode_gaps.py) -- take it directly (one FFT per split)
+        # transform (to 1e-12, tests/unit/test_mmode_gaps.py) -- take it directly (one FFT per split)
 
         sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
         mm = split_mmode_transform(binned, mmax, None, splits)
@@ -428,7 +428,7 @@ def refit_prior_m0(prior, binned, bin_weight, offset=None):
     A map's model ``B_0 a_0`` is no model of a baseline's ``m = 0``: the imaging solve drops
     ``m = 0`` (``imaging.filter_m0``, the paper's default) and zeroes the monopole. Left so, the
     prior would put ``-V_0`` into every gap (its effect on the faint-source peak shift of
-    ``tests/test_gap_prior_workflow.py``: ``docs/performance.md``).
+    ``tests/workflow/test_gap_prior_workflow.py``: ``docs/performance.md``).
 
     Parameters
     ----------
@@ -459,7 +459,7 @@ def prior_mmodes(telescope, freq_hz, alm, lmax, baselines, mmax=None, dtype=np.f
     Iterating map -> ``prior_mmodes`` -> ``lsq_mmodes(..., prior=...)`` -> map fills the
     directions a baseline's gaps leave open with what the other baselines saw (on simulated
     20 % block flags the peaks settle within 0.02 FWHM of the unflagged map's in 1-3 passes,
-    see ``tests/test_mmode_gaps_map.py``).
+    see ``tests/workflow/test_mmode_gaps_map.py``).
 
     Parameters
     ----------

@@ -16,7 +16,7 @@ logarithms (``gammaln``) and split into ``p in (2^-256, 1]`` and ``s <= 0``; whe
 ``|p| > 2^256`` while ``s < 0`` both recurrence values are multiplied by ``2^-256`` and ``s``
 grows by one. Values are written as ``p * 2^(256 s)`` (exactly 0 where that is below
 float64's range, i.e. below 1e-308 -- negligible). Nothing can overflow or underflow to a
-wrong value at any lmax; tested to lmax 2000 (``tests/test_numerics.py``: orthonormality by
+wrong value at any lmax; tested to lmax 2000 (``tests/unit/test_numerics.py``: orthonormality by
 Gauss-Legendre quadrature, agreement with ducc0's independent recursion, closed forms at the
 poles and the equator; ``docs/numerics.md``).
 """

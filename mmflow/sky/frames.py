@@ -84,7 +84,7 @@ def rotate_alm(alm, matrix, lmax):
 
     Equivalently: coefficients given in frame S become coefficients in frame D for
     ``matrix = rotation_matrix(S, D)``. With ZYZ Euler angles ``R = R_z(phi) R_y(theta) R_z(psi)``
-    this is ducc0's Wigner-d rotation, equal to healpy's to ~1e-15 (``tests/test_numerics.py``;
+    this is ducc0's Wigner-d rotation, equal to healpy's to ~1e-15 (``tests/unit/test_numerics.py``;
     its speed: ``docs/performance.md``). Verified by a point-source test.
     """
     with warnings.catch_warnings():

@@ -9,7 +9,7 @@ Method
 ducc0's Legendre transforms (``ducc0.sht.leg2alm`` and ``alm2leg``) evaluate the normalised
 associated Legendre functions ``lambda_lm(theta) = Y_lm(theta, 0)`` by a three-term recursion
 in l with dynamic rescaling (no overflow or underflow at any l; tested here to l = 2000 and at
-the poles, see ``tests/test_numerics.py`` and ``docs/numerics.md``). The results are exact to
+the poles, see ``tests/unit/test_numerics.py`` and ``docs/numerics.md``). The results are exact to
 rounding (no NUFFT approximation): for a set of points ``k`` with colatitude ``theta_k`` and
 longitude ``phi_k``,
 

@@ -1,6 +1,6 @@
 """Run stages in order on a dask client, resumably, under the run directory's lock.
 
-What a run guarantees (each covered by ``tests/test_faults.py``):
+What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
 
 * one driver per run directory (an exclusive lock naming its holder; a killed holder's lock
   is released by the kernel);

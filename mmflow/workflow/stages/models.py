@@ -24,11 +24,11 @@ The aperture radius defaults to twice the fringe spacing of the longest baseline
 least twice the start's extent): an aperture much smaller than the synthesised beam measures one
 number, the residual at the centre, and leaves the shape unconstrained.
 
-Offsets are east/north on the tangent plane of the frame of date; :func:`fitted_sources` turns
+Offsets are east/north on the tangent plane of the frame of date; :func:`mmflow.workflow.peel_models.fitted_sources` turns
 them into :class:`mmflow.sky.sources.Source` components (east/north of the ICRS position: the
 frames' north differ by < 0.1 deg, < 0.01' on these offsets). ``models.zarr`` (see
 :func:`mmflow.io.run_stores.models_store`) is read by the peel stage, which copies the fits into
-``peel.zarr``'s attributes (:func:`fitted_tables`) for its tasks and its ``apply`` alike.
+``peel.zarr``'s attributes (:func:`mmflow.workflow.peel_models.fitted_tables`) for its tasks and its ``apply`` alike.
 """
 from __future__ import annotations
 
@@ -143,35 +143,6 @@ def _task(ctx, key):
     ctx.write(g, "iterations", region, np.array([[int(res.nit)]]))
     ctx.write(g, "n_integrations", region, np.array([[len(rows)]]))
     return {"fits": 1, "iterations": int(res.nit), "improvement_db": float(10 * np.log10(res.fun / res_point["fun_start"]))}
-
-
-def fitted_tables(g, names):
-    """``{source: per channel a list of component rows (MODEL_COLUMNS)}`` of ``models.zarr`` (group ``g``)
-    for the fitted sources among ``names``: what the peel stage copies into ``peel.zarr``'s attributes,
-    so that its ``apply`` (run by any later reader) needs no other store."""
-    order = list(g.attrs["sources"])
-    table = g["components"][:]  # (freq, source, component, column): small
-    return {n: [[[float(x) for x in row] for row in table[fi, order.index(n)] if row[2] != 0]
-                for fi in range(table.shape[0])] for n in order if n in names}
-
-
-def fitted_sources(ctx, fi, names):
-    """Catalogue sources ``names`` for channel ``fi``, those the models stage fitted (``peel.zarr``'s
-    attribute ``fitted_models``) with their fitted components. Reads only ``peel.zarr``."""
-    from mmflow.calibrate.source_models import GaussianComponent
-    from mmflow.sky.sources import Source, get_sources
-
-    srcs = get_sources(list(names))
-    fitted = ctx.open("peel.zarr").attrs.get("fitted_models", {})
-    out = []
-    for s in srcs:
-        if s.name not in fitted:
-            out.append(s)
-            continue
-        comps = [GaussianComponent(*row) for row in fitted[s.name][fi]]
-        tot = sum(c.flux_jy for c in comps)
-        out.append(Source(s.name, s.ra_deg, s.dec_deg, s.spectrum, [c.as_source_component(tot) for c in comps]))
-    return out
 
 
 register(Stage("models", ("models", "peel.sources", "peel.model_sources", "peel.min_baseline_lambda", "beam"),

@@ -41,8 +41,9 @@ import numpy as np
 from mmflow.io.run_stores import peel_store
 from mmflow.workflow.baseline_cuts import check_baselines, solve_mask
 from mmflow.workflow.blocks import read_block
-from mmflow.workflow.context import _parse
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
+from mmflow.workflow.context import _parse
+from mmflow.workflow.peel_models import fitted_tables, peel_coherencies, peel_components
 from mmflow.workflow.stages.base import Stage, producer_of, register
 
 
@@ -57,8 +58,6 @@ def _prepare(ctx):
     # whose producer's fingerprint then enters this stage's
     fitted = {}
     if producer_of("models.zarr", _parse(ctx.config_json)) is not None:
-        from mmflow.workflow.stages.models import fitted_tables
-
         fitted = fitted_tables(ctx.open("models.zarr"), names)
     ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
@@ -70,21 +69,6 @@ def _prepare(ctx):
 def _names(p):
     """Every source the peel stage fits: the removed ones (``peel.sources``), then the modelled ones."""
     return list(p.sources) + list(p.model_sources)
-
-
-def _coherencies(ctx, tel, fi, lst, pairs, names):
-    """(n_src, time, bl) model visibilities of sources ``names`` in channel ``fi`` at the data's epoch
-    (the models stage's fitted components for the sources ``peel.zarr`` lists as ``fitted_models``,
-    :func:`mmflow.workflow.stages.models.fitted_sources`); 0 at integrations without an LST (missing)."""
-    from mmflow.calibrate.coherency import source_coherencies
-    from mmflow.workflow.stages.models import fitted_sources
-
-    good = np.isfinite(lst)
-    out = np.zeros((len(names), len(lst), len(pairs)), complex)
-    if good.any():
-        out[:, good] = source_coherencies(tel, float(tel.freqs_hz[fi]), lst[good], fitted_sources(ctx, fi, names),
-                                          float(ctx.vis_attrs()["epoch_jd"]), pairs)
-    return out
 
 
 def _task(ctx, key):
@@ -104,7 +88,7 @@ def _task(ctx, key):
     lst = block.lst
     good = np.isfinite(lst)
     names = _names(p)
-    coh = _coherencies(ctx, tel, fi, lst, block.pairs, names)
+    coh = peel_coherencies(ctx, tel, fi, lst, block.pairs, names)
     epoch = float(ctx.vis_attrs()["epoch_jd"])
     flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), get_sources(names), epoch)
     modes = select_modes(flux, elev, peelable=[n in p.peel for n in names],
@@ -162,45 +146,13 @@ def _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good):
     return h
 
 
-def _components(ctx, block, fi, kinds):
-    """``sum_s f_s(t) h_si conj(h_sj) M^s_ij`` (time, bl, pol) of channel ``fi`` over the sources whose
-    mode is in ``kinds``, ``f`` being 1 (peeled) or the fitted scale (subtracted, modelled); only the
-    sources with such a mode somewhere in the block are computed. Reads only ``peel.zarr``."""
-    from mmflow.simulate.corrupt import gain_products
-    from mmflow.calibrate.peel import PEEL
-
-    tel = ctx.telescope()
-    names = ctx.open("peel.zarr").attrs["sources"]
-    region = (block.rows, slice(fi, fi + 1))
-    mode = ctx.read("peel.zarr", "mode", region)[:, 0]  # (time, src, pol)
-    out = np.zeros(block.vis[:, :, fi].shape, complex)
-    used = [s for s in range(len(names)) if np.isin(mode[:, s], kinds).any()]
-    if not used:
-        return out
-    scale = ctx.read("peel.zarr", "scale", region)[:, 0]
-    h = ctx.read("peel.zarr", "dd_gains", region)[:, 0]  # (time, src, ant, pol)
-    coh = _coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used])
-    for k, s in enumerate(used):
-        f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)
-        out += f[:, None] * gain_products(h[:, s], block.pairs) * coh[k][..., None]
-    return out
-
-
 def _apply(ctx, block):
     """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
     ``peel.zarr``, never the configuration); the modelled sources stay."""
     from mmflow.calibrate.peel import PEEL, SUBTRACT
 
     for fi in range(block.vis.shape[2]):
-        block.vis[:, :, fi] -= _components(ctx, block, fi, (PEEL, SUBTRACT))
-
-
-def modelled_sources(ctx, block):
-    """The fitted ``peel.model_sources`` in a block, ``sum_s a_s(t) M^s_ij`` (time, bl, freq, pol): what
-    a later fit (the terrestrial templates) holds out so that the catalogued sky does not bias it."""
-    from mmflow.calibrate.peel import MODEL
-
-    return np.stack([_components(ctx, block, fi, (MODEL,)) for fi in range(block.vis.shape[2])], axis=2)
+        block.vis[:, :, fi] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
 
 
 register(Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",

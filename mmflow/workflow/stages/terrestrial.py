@@ -13,7 +13,7 @@ it, :func:`read_block`):
    ``terrestrial.min_baseline_lambda`` (:func:`fit_amplitudes`) and report how much of the data
    each template sees, ``||B^H v_t|| / (||B|| ||v_t||)`` (:func:`projection_fraction`).
 
-Both phases hold out the fitted ``peel.model_sources`` (:func:`mmflow.workflow.stages.peel.modelled_sources`):
+Both phases hold out the fitted ``peel.model_sources`` (:func:`mmflow.workflow.peel_models.modelled_sources`):
 the catalogued sky left in the data would otherwise leak into the templates and, integration by
 integration, into their amplitudes.
 
@@ -26,6 +26,7 @@ import numpy as np
 from mmflow.io.run_stores import terrestrial_store
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
+from mmflow.workflow.peel_models import modelled_sources
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.stages.base import Stage, register
@@ -58,8 +59,6 @@ def _task(ctx, key):
     rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows, before="terrestrial")
     if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
-        from mmflow.workflow.stages.peel import modelled_sources
-
         block.vis -= modelled_sources(ctx, block)
     g = ctx.open("terrestrial.zarr", mode="r+")
     w = np.where(np.isfinite(block.lst)[:, None, None, None], block.weights, 0.0)

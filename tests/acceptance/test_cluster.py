@@ -10,7 +10,7 @@ import pytest
 
 from mmflow.workflow.config import load_config
 from mmflow.workflow.runner import run_workflow
-from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
+from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
 
 BIN = os.path.dirname(sys.executable)
 
@@ -127,7 +127,7 @@ def test_relative_run_directory_with_workers_in_another_cwd(loopback_cluster, re
     elsewhere.mkdir()
     client.run(os.chdir, str(elsewhere))
     monkeypatch.chdir(tmp_path)
-    cfg = load_config(os.path.join(os.path.dirname(os.path.dirname(__file__)), "workflows", "demo.yaml"),
+    cfg = load_config(os.path.join(ROOT, "workflows", "demo.yaml"),
                       SMALL + ["run.directory=rel/run"])
     run_workflow(cfg, client=client, progress=False, log=lambda *a: None)
     assert not (elsewhere / "rel").exists()

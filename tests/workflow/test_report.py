@@ -10,7 +10,7 @@ import pytest
 
 from mmflow.io.report import ChannelProducts, Figure, ReportSummary, check_report, summary_from_run, write_report
 
-from .headless_chromium import Chromium, find_chromium
+from tests.headless_chromium import Chromium, find_chromium
 
 HOSTILE = '<script>console.error("injected")</script><img src="http://example.invalid/x.png">'
 

@@ -9,8 +9,9 @@ import pytest
 
 from mmflow.errors import InputError
 from tests.rawfile_helpers import ingest, pyuvdata_reference
+from tests.workflow_helpers import ROOT
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(ROOT) / "tests" / "data"
 OVRO = "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"
 HERA = DATA / "zen.2458661.23480.HH.uvh5"
 EPS = 4 * np.finfo(np.float32).eps

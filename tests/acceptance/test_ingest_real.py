@@ -17,8 +17,9 @@ import pytest
 
 from mmflow.cli import main
 from tests.rawfile_helpers import ingest, pyuvdata_reference
+from tests.workflow_helpers import ROOT
 
-DATA = Path(__file__).parent / "data"
+DATA = Path(ROOT) / "tests" / "data"
 OVRO = "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"
 LWASV = "test_adp4_0_00300673800807520000_58342_05_00_14.ms"
 HERA = "zen.2458661.23480.HH.uvh5"

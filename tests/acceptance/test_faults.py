@@ -1,7 +1,7 @@
 """Fault injection: every fault ends bit-identical to an uninterrupted run, or stops naming file and fix.
 
 Kills of the driver at every stage boundary and inside ``prepare`` (crashes injected in
-process; real SIGKILLs in tests/test_workflow.py), a resume on another cluster size, two
+process; real SIGKILLs in tests/workflow/test_workflow.py), a resume on another cluster size, two
 runs in one directory, deleted / truncated / altered chunks, changed input files, files a
 user put among the outputs, and stages without workers.
 """

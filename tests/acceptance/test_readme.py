@@ -4,8 +4,8 @@ import re
 import shutil
 import subprocess
 import sys
+from tests.workflow_helpers import ROOT
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _block(lang, after):

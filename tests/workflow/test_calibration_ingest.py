@@ -147,6 +147,6 @@ def test_ingested_chain_is_as_good_as_the_simulated_chain(runs):
         peak = runs["bright"][pix].max()
         db = {k: 10 * np.log10(np.abs((runs[k] - truth)[pix]).max() / peak) for k in ("sim", "ingest")}
         print(f"{src.name}: through ingest {db['ingest']:.1f} dB, simulate stage {db['sim']:.1f} dB")
-        # the thresholds of tests/test_calibration_workflow.py: peeled > 30 dB, subtracted > 28 dB
+        # the thresholds of tests/acceptance/test_calibration_workflow.py: peeled > 30 dB, subtracted > 28 dB
         assert db["ingest"] < (-30 if src.name in ("Cyg A", "Cas A") else -28), (src.name, db)
         assert db["ingest"] < db["sim"] + 1.0, (src.name, db)

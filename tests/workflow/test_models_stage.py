@@ -28,7 +28,7 @@ def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     from mmflow.calibrate.coherency import source_coherencies
     from mmflow.workflow.context import Context
     from mmflow.workflow.stages.base import get_stage
-    from mmflow.workflow.stages.peel import _coherencies
+    from mmflow.workflow.peel_models import peel_coherencies
     from mmflow.sky.sources import Source, get_sources
 
     cfg = _cfg(tmp_path / "run")
@@ -57,7 +57,7 @@ def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     tel = ctx.telescope()
     lst = np.deg2rad(np.array([300.0, 350.0]))
     pairs = tel.antenna_pairs()[:50]
-    got = _coherencies(ctx, tel, 0, lst, pairs, ["Cas A"])[0]
+    got = peel_coherencies(ctx, tel, 0, lst, pairs, ["Cas A"])[0]
     total = comps[1, :, 2].sum()
     model = Source("Cas A", src[1].ra_deg, src[1].dec_deg, src[1].spectrum,
                    [GaussianComponent(*row).as_source_component(total) for row in comps[1]])

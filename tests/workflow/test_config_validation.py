@@ -12,9 +12,8 @@ import yaml
 from mmflow.errors import InputError
 from mmflow.workflow.config import BEAM_PARAMS, WorkflowConfig, load_config, schema_yaml
 from mmflow.workflow.config_errors import ConfigError
-from tests.workflow_helpers import refused_problem
+from tests.workflow_helpers import ROOT, refused_problem
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEMO = os.path.join(ROOT, "workflows", "demo.yaml")
 
 # (override, field, text in the problem, text in the fix)
