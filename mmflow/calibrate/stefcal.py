@@ -459,5 +459,32 @@ def apply_gains(vis, weights, pairs, gains, flags=None):
     return out.astype(np.result_type(vis), copy=False), w
 
 
-__all__ = ["stefcal", "sweep", "solve_gains", "apply_gains", "gains_per_integration", "best_track",
-           "flag_outlier_antennas", "dense_problem", "StefcalResult", "GainSolution"]
+def apply_gains_autos(autos, gains, flags=None):
+    """Autocorrelation powers in the units of the corrected data: ``|V_ii| / |g_i|^2``.
+
+    The radiometer noise of a corrected visibility, ``sigma_ij^2 = <V_ii> <V_jj> / (dnu tau)``,
+    needs the autocorrelations corrected as the visibilities are (:func:`apply_gains` divides
+    ``V_ij`` by ``g_i conj(g_j)``); uncorrected, raw data in correlator units would weigh baseline
+    ``ij`` by ``|g_i g_j|^2`` and scale every variance by the mean ``|g|^4``.
+
+    Parameters
+    ----------
+    autos : ndarray (time, n_ant, pol)
+        ``|V_ii|`` (NaN where an antenna has none).
+    gains, flags
+        As :func:`apply_gains`. Antennas flagged or with gain 0 keep their values: their
+        baselines already weigh 0.
+
+    Returns
+    -------
+    ndarray like ``autos`` (the input is not modified).
+    """
+    amp2 = np.abs(np.broadcast_to(gains, np.shape(autos))) ** 2
+    bad = amp2 == 0
+    if flags is not None:
+        bad = bad | np.broadcast_to(flags, np.shape(autos))
+    return np.where(bad, autos, autos / np.where(bad, 1.0, amp2))
+
+
+__all__ = ["stefcal", "sweep", "solve_gains", "apply_gains", "apply_gains_autos", "gains_per_integration",
+           "best_track", "flag_outlier_antennas", "dense_problem", "StefcalResult", "GainSolution"]

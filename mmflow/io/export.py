@@ -277,21 +277,28 @@ def write_table1(directory, rows):
     return out
 
 
-def write_per_integration(uv, directory, fmt="ms", times=None):
+def write_per_integration(uv, directory, fmt="ms", times=None, phase_frame="icrs"):
     """Write a pyuvdata ``UVData`` as one file per integration, as the OVRO-LWA writes
     MeasurementSets (``int_0000.<fmt>``, ...; ``times``: those integrations only).
 
     MS and uvfits cannot hold unprojected data: each file is phased to the zenith of its
     integration (``phase_to_time``, as ``write_ms(force_phase=True)`` does), as the OVRO-LWA's
-    own files are; UVH5 keeps the drift scan as it is. Returns the paths.
+    own files are (they use ``phase_frame="fk5"``, J2000); UVH5 keeps the drift scan as it is.
+    Each file's rows are selected from a metadata-only copy and given their slice of the data
+    (``select(inplace=False)`` would deep-copy every integration's data for each file).
+    Returns the paths.
     """
     times = np.unique(uv.time_array) if times is None else times
+    meta = uv.copy(metadata_only=True)
     paths = []
     for k, t in enumerate(times):
-        part = uv.select(times=[t], inplace=False)
+        rows = np.flatnonzero(np.isclose(uv.time_array, t, rtol=0, atol=uv._time_array.tols[1]))
+        part = meta.select(blt_inds=rows, inplace=False)
+        part.data_array, part.flag_array, part.nsample_array = (uv.data_array[rows], uv.flag_array[rows],
+                                                                uv.nsample_array[rows])
         path = Path(directory) / f"int_{k:04d}.{fmt}"
         if fmt in ("ms", "uvfits"):
-            part.phase_to_time(float(t))
+            part.phase_to_time(float(t), phase_frame=phase_frame)
         if fmt == "ms":
             part.write_ms(str(path), clobber=True)
         elif fmt == "uvfits":

@@ -28,7 +28,7 @@ class DataBlock:
     pairs: np.ndarray  # (baseline, 2) antenna indices
     rows: slice  # the block's integrations in vis.zarr
     columns: slice  # the block's baselines in vis.zarr
-    autos: np.ndarray  # (time, antenna, freq, pol) |V_ii| of the block's integrations
+    autos: np.ndarray  # (time, antenna, freq, pol) |V_ii| of the block's integrations (calibrated by apply)
     lst: np.ndarray  # (time,) rad
 
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mmflow.calibrate.baselines import baseline_mask, to_matrix
-from mmflow.calibrate.stefcal import apply_gains, solve_gains, stefcal, sweep
+from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, solve_gains, stefcal, sweep
 from mmflow.simulate.corrupt import gain_products
 
 
@@ -84,6 +84,22 @@ def test_a_flagged_antenna_gets_a_flagged_solution_and_the_rest_are_exact(rng):
         assert np.abs(sol.gains[0, good, p] - _referenced(g[:, p], sol.ref_ant[0, p])[good]).max() < 1e-10
     corrected, w_out = apply_gains(vis, w, pairs, sol.gains[0], sol.flags[0])
     assert (w_out[:, (pairs[:, 0] == bad)] == 0).all()
+
+
+def test_autocorrelation_powers_are_corrected_as_the_visibilities(rng):
+    """The autos that set the radiometer noise are in the corrected data's units: the autos of the
+    corrected data, ``|V_ii| / |g_i|^2`` (a flagged antenna's are kept: its baselines weigh 0)."""
+    pairs, model, g, vis = _problem(rng, 6, 4)
+    auto = pairs[:, 0] == pairs[:, 1]
+    raw = np.abs(vis[:, auto])  # (time, antenna, pol): the autos of antennas 0..5 in order
+    flags = np.zeros(g.shape, bool)
+    flags[2, 1] = True
+    out = apply_gains_autos(raw, 1e-3 * g, flags)
+    corrected, _ = apply_gains(vis, np.ones(vis.shape), pairs, 1e-3 * g, flags)
+    ok = ~np.broadcast_to(flags, raw.shape)
+    np.testing.assert_allclose(out[ok], np.abs(corrected[:, auto])[ok], rtol=1e-12)
+    np.testing.assert_allclose(out[ok], 1e6 * np.abs(model[:, auto])[ok], rtol=1e-12)
+    np.testing.assert_array_equal(out[:, 2, 1], raw[:, 2, 1])
 
 
 def test_outlier_antenna_is_flagged_one_at_a_time(rng):

@@ -164,14 +164,15 @@ def _stop_if_too_many_flagged(ctx, sol, has_data, f, rows, c):
 
 
 def _apply(ctx, block):
-    """Ripple and gains of every channel on a block (time, baseline, freq, pol), in place.
+    """Ripple and gains of every channel on a block (time, baseline, freq, pol), in place, and on
+    its autocorrelation powers (the ``mmodes`` stage's radiometer noise: in raw correlator units
+    they would weigh each baseline by ``|g_i g_j|^2``).
 
     Reads only ``gains.zarr`` (never the configuration: the reading stage's fingerprint covers
     the store)."""
     from mmflow.calibrate.ripple import apply_ripple
-    from mmflow.calibrate.stefcal import apply_gains
-
     from mmflow.calibrate.gain_tables import gains_at
+    from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos
 
     gains = ctx.read("gains.zarr", "gains")  # (interval, freq, antenna, pol): small
     flags = ctx.read("gains.zarr", "flags")
@@ -180,11 +181,13 @@ def _apply(ctx, block):
     rows = np.arange(block.rows.start, block.rows.stop)
     ratio = ctx.read("gains.zarr", "ripple", (block.rows,)) if ctx.open("gains.zarr").attrs["ripple"] else None
     for fi in range(block.vis.shape[2]):
-        v, w = block.vis[:, :, fi], block.weights[:, :, fi]
+        v, w, autos = block.vis[:, :, fi], block.weights[:, :, fi], block.autos[:, :, fi]
         if ratio is not None:
             v, w = apply_ripple(v, w, block.pairs, ratio[:, fi])
+            autos = apply_gains_autos(autos, np.sqrt(ratio[:, fi]))
         g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
         block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, g, fl)
+        block.autos[:, :, fi] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
     if ctx.open("gains.zarr").attrs.get("flag_autos", False):
         block.weights[:, block.pairs[:, 0] == block.pairs[:, 1]] = 0.0
 
