@@ -39,9 +39,10 @@ from mmflow.io.export import write_per_integration
 from mmflow.sky.sources import CATALOG, get_sources
 from mmflow.workflow.config import load_config
 from mmflow.workflow.runner import run_workflow
+from tests.workflow_helpers import ROOT
 
 pytest.importorskip("casacore")
-DATA = Path(__file__).parent / "data"
+DATA = Path(ROOT) / "tests" / "data"
 OVRO = "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"
 QUIET = dict(progress=False, log=lambda *a: None)
 N_TIMES, LMAX, CHANNEL, NOISE_JY = 288, 80, 54, 10.0
