@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.conventions import enu_to_azza
 from mmflow.errors import InputError
 from mmflow.telescope.beams import Beam
 
@@ -86,9 +87,7 @@ class JonesBeam:
         -------
         ndarray, complex, shape ``(2, 3) + enu.shape[:-1]``: ``[feed, east/north/up]``.
         """
-        enu = np.asarray(enu, float)
-        az = np.arctan2(enu[..., 0], enu[..., 1])
-        za = np.arccos(np.clip(enu[..., 2], -1, 1))
+        az, za = enu_to_azza(np.asarray(enu, float))
         comp = self.jones(az, za, freq_hz)  # (2 feeds, 2 comps, ...)
         basis = local_basis(az, za)  # (2 comps, 3, ...)
         return np.einsum("pc...,ci...->pi...", comp, basis)
