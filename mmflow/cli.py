@@ -23,13 +23,13 @@ def _common(p):
 
 def build_parser():
     from mmflow import __version__
-    from mmflow.workflow.stages.base import all_stages
+    from mmflow.workflow.pipeline import PIPELINE
 
     ap = argparse.ArgumentParser(prog="mmflow", description=__doc__)
     ap.add_argument("--version", action="version", version=f"mmflow {__version__}")
     sub = ap.add_subparsers(dest="cmd")
     _common(sub.add_parser("run", help="run every enabled stage of a workflow"))
-    for st in all_stages():  # the one stage registry drives the subcommands
+    for st in PIPELINE:  # the one list of stages drives the subcommands
         _common(sub.add_parser(st.name, help=f"run only the '{st.name}' stage: {st.description}"))
     pl = sub.add_parser("plan", help="before a run: tasks, memory per task, disk and time of every stage")
     pl.add_argument("workflow", help="workflow YAML (see workflows/)")

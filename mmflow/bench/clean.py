@@ -136,7 +136,7 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
     import zarr
 
     from mmflow.io.run_stores import m_blocks
-    from mmflow.workflow.stages import clean as clean_stage
+    from mmflow.workflow import clean_state as clean_stage
 
     blocks = m_blocks(lmax, m_block)
     keeps = {m: op.keep for m, op in ops.items()}

@@ -13,11 +13,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmflow.workflow.context import _parse
-from mmflow.workflow.stages.base import ORDER, all_stages
-
-CORRECTION_STORES = ("gains.zarr", "peel.zarr", "terrestrial.zarr")
-
 
 @dataclass
 class DataBlock:
@@ -32,15 +27,9 @@ class DataBlock:
     lst: np.ndarray  # (time,) rad
 
 
-def corrections(cfg, before=None):
-    """The enabled solve-then-apply stages in pipeline order (those before stage ``before``)."""
-    last = len(ORDER) if before is None else ORDER.index(before)
-    return [s for s in all_stages() if s.kind == "solve" and s.enabled(cfg) and s.apply is not None
-            and ORDER.index(s.name) < last]
-
-
-def read_block(ctx, rows=slice(None), columns=slice(None), before=None):
-    """Read a block of ``vis.zarr`` and apply the corrections of the stages before ``before``."""
+def read_block(ctx, rows=slice(None), columns=slice(None)):
+    """Read a block of ``vis.zarr`` and apply, in pipeline order, the corrections of the enabled
+    solve-then-apply stages before the reading stage (``ctx.corrections()``)."""
     vg = ctx.open("vis.zarr")
     nt, nbl = vg["vis"].shape[:2]
     rows, columns = slice(*rows.indices(nt)), slice(*columns.indices(nbl))
@@ -48,6 +37,6 @@ def read_block(ctx, rows=slice(None), columns=slice(None), before=None):
                       ctx.read("vis.zarr", "weights", (rows, columns)).astype(float),
                       vg["pairs"][columns], rows, columns, ctx.read("vis.zarr", "autos", (rows,)),
                       ctx.read("vis.zarr", "lst", (rows,)))
-    for stage in corrections(_parse(ctx.config_json), before):
+    for stage in ctx.corrections():
         stage.apply(ctx, block)
     return block

@@ -17,13 +17,12 @@ from pydantic import ValidationError
 
 from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import InputError
+from mmflow.workflow.config_beam import BEAM_PARAMS
 from mmflow.workflow.config_errors import Problem, from_pydantic, show
 
 
 def beam_problems(beam):
     """Validate the raw ``beam`` mapping's parameters against the model of its type."""
-    from mmflow.workflow.config import BEAM_PARAMS
-
     if not isinstance(beam, dict) or beam.get("type", "sin_elevation") not in BEAM_PARAMS:
         return []  # the schema reports a wrong section or type
     model = BEAM_PARAMS[beam.get("type", "sin_elevation")]

@@ -71,14 +71,21 @@ class TaskContext(Context):
                     self.ledger.record(g[a.name], ())
         return g
 
+    def producer(self, store):
+        """The enabled earlier stage of the pipeline that wrote the input ``store`` (None if none)."""
+        return self.stage.producer_of(store, _parse(self.config_json))
+
+    def corrections(self):
+        """The enabled solve-then-apply stages before this stage, in pipeline order (their ``apply``
+        corrects the visibilities this stage reads: :func:`mmflow.workflow.blocks.read_block`)."""
+        return self.stage.corrections(_parse(self.config_json))
+
     def open(self, store, mode="r"):
         """A declared store, through a :class:`~mmflow.io.stores.CheckedStore`: writes are checksummed
         as they pass; reads of an input store are checked against its producer's chunk records."""
-        from mmflow.workflow.stages.base import producer_of
-
         if store not in self.stage.inputs and store not in self.stage.outputs:
             raise MmflowError(f"stage '{self.stage.name}' opens {store}, which it does not declare")
-        producer = producer_of(store, _parse(self.config_json)) if store in self.stage.inputs else None
+        producer = self.producer(store) if store in self.stage.inputs else None
         expected = None
         if producer is not None and producer.name != self.stage.name and mode == "r":
             expected = self.run.chunk_index(producer.name)

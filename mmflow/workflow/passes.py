@@ -23,16 +23,15 @@ import os
 
 from mmflow.workflow.prior_run import pass_directory
 from mmflow.workflow.runner import run_workflow
-from mmflow.workflow.stages.base import all_stages
+from mmflow.workflow.pipeline import PIPELINE
 
 #: the stages of a prior pass: from the m-modes to the solved map
 PASS_STAGES = ("mmodes", "transfer", "normal", "solve")
 
 
-def _upstream(cfg):
+def _upstream(cfg, pipeline):
     """The enabled stages before ``mmodes`` (their stores and records are shared with the passes)."""
-    names = [st.name for st in all_stages()]
-    return [st for st in all_stages()[:names.index("mmodes")] if st.enabled(cfg)]
+    return [st for st in pipeline.stage("mmodes").upstream if st.enabled(cfg)]
 
 
 def _link(target, link):
@@ -55,14 +54,14 @@ def pass_config(cfg, k):
     return cfg.model_copy(update={"mmode": mm, "run": run})
 
 
-def run_with_passes(cfg, client=None, only=None, force=False, progress=True, log=print):
+def run_with_passes(cfg, client=None, only=None, force=False, progress=True, log=print, pipeline=PIPELINE):
     """:func:`mmflow.workflow.runner.run_workflow`, with ``mmode.prior_passes`` passes before the
     stages from ``mmodes`` on; returns the run's summaries (each pass's under ``prior<k>/<stage>``)."""
     n = cfg.mmode.prior_passes
     if not n or only:
-        return run_workflow(cfg, client, only, force, progress, log)
-    up = _upstream(cfg)
-    summaries = run_workflow(cfg, client, [st.name for st in up], force, progress, log) if up else {}
+        return run_workflow(cfg, client, only, force, progress, log, pipeline)
+    up = _upstream(cfg, pipeline)
+    summaries = run_workflow(cfg, client, [st.name for st in up], force, progress, log, pipeline) if up else {}
     root = pass_directory(cfg.run.directory, 0).parent
     for k in range(n):
         pcfg = pass_config(cfg, k)
@@ -73,8 +72,8 @@ def run_with_passes(cfg, client=None, only=None, force=False, progress=True, log
             _link(root / "_status" / st.name, pdir / "_status" / st.name)
         log(f"[prior pass {k}] {' -> '.join(PASS_STAGES)} in {pdir}"
             + (f" with pass {k - 1}'s map as the prior" if k else " (least squares alone)"))
-        done = run_workflow(pcfg, client, list(PASS_STAGES), force, progress, log)
+        done = run_workflow(pcfg, client, list(PASS_STAGES), force, progress, log, pipeline)
         summaries.update({f"prior{k}/{name}": s for name, s in done.items()})
-    rest = [st.name for st in all_stages() if st.enabled(cfg) and st not in up]
-    summaries.update(run_workflow(cfg, client, rest, force, progress, log))
+    rest = [st.name for st in pipeline if st.enabled(cfg) and st.name not in {u.name for u in up}]
+    summaries.update(run_workflow(cfg, client, rest, force, progress, log, pipeline))
     return summaries

@@ -28,7 +28,7 @@ import numpy as np
 from mmflow.imaging.maps import default_nside
 from mmflow.io import run_stores as rs
 from mmflow.workflow.chunking import TIME_CHUNK
-from mmflow.workflow.stages.base import all_stages
+from mmflow.workflow.pipeline import PIPELINE
 
 COSTS_FILE = Path(__file__).with_name("plan_costs.json")
 #: A worker process's resident memory before any task (interpreter, numpy, dask, zarr, pyuvdata).
@@ -283,7 +283,7 @@ def plan(cfg, costs=None, peak_gflops=None):
         peak_gflops = gemm_gflops(np.float32, n=768)
     g = geometry(cfg)
     workers = cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous" else 1
-    ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in all_stages()
+    ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
     return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops,

@@ -48,9 +48,9 @@ def samples(run_dir):
 
 
 def _finished_stages(run):
-    from mmflow.workflow.stages.base import all_stages
+    from mmflow.workflow.pipeline import PIPELINE
 
-    return [st.name for st in all_stages() if (run.status_dir(st.name) / "complete.json").exists()]
+    return [st.name for st in PIPELINE if (run.status_dir(st.name) / "complete.json").exists()]
 
 
 def _fit(x, y):

@@ -27,7 +27,7 @@ from mmflow.workflow.context import Context
 from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
 from mmflow.workflow.rundir import RunDir
-from mmflow.workflow.stages.base import all_stages, get_stage, producer_of
+from mmflow.workflow.pipeline import PIPELINE
 
 PACKAGES = ("mmflow", "numpy", "scipy", "dask", "distributed", "zarr", "healpy", "astropy", "ducc0", "pyuvdata")
 
@@ -42,7 +42,7 @@ def versions():
     return out
 
 
-def run_task(ctx, stage_name, key):
+def run_task(ctx, pipeline, stage_name, key):
     """Worker side: skip if marked done, else compute, write, then mark (atomically)."""
     import os
 
@@ -59,8 +59,9 @@ def run_task(ctx, stage_name, key):
     reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.resources)
     rss_start = current_rss_bytes()
     t0 = time.time()
-    tctx = ctx.for_stage(get_stage(stage_name)).for_task()
-    info = get_stage(stage_name).task(tctx, key) or {}
+    stage = pipeline.stage(stage_name)
+    tctx = ctx.for_stage(stage).for_task()
+    info = stage.task(tctx, key) or {}
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start))
@@ -69,16 +70,16 @@ def run_task(ctx, stage_name, key):
     return {"key": key, "skipped": False, **info}
 
 
-def stage_fingerprints(cfg, run=None):
+def stage_fingerprints(cfg, run=None, pipeline=PIPELINE):
     """``{stage: StageFingerprint}`` of every enabled stage (None for disabled ones)."""
     fps = {}
-    for st in all_stages():
+    for st in pipeline:
         if not st.enabled(cfg):
             fps[st.name] = None
             continue
         upstream = {}
         for store in st.inputs:
-            prod = producer_of(store, cfg)
+            prod = pipeline.producer_of(store, cfg)
             if prod is not None and prod.name != st.name:
                 upstream[prod.name] = fps[prod.name].digest
         files = st.files(cfg)
@@ -121,20 +122,20 @@ class _Progress:
             self.stream.write("\n")
 
 
-def _execute(client, ctx, name, todo, progress, worker_wait_s):
+def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
     if not todo:
         return []
     bar = _Progress(name, len(todo), progress)
     if client is None:
         out = []
         for k in todo:
-            out.append(run_task(ctx, name, k))
+            out.append(run_task(ctx, pipeline, name, k))
             bar.update(len(out))
         bar.close()
         return out
     from distributed import wait
 
-    futures = client.map(run_task, [ctx] * len(todo), [name] * len(todo), todo, pure=False,
+    futures = client.map(run_task, [ctx] * len(todo), [pipeline] * len(todo), [name] * len(todo), todo, pure=False,
                          key=[f"{name}-{k}-{ctx.token}" for k in todo], retries=2)
     no_worker_since = None
     try:
@@ -165,10 +166,10 @@ def _execute(client, ctx, name, todo, progress, worker_wait_s):
     return client.gather(futures)
 
 
-def _check_inputs(run, st, cfg):
+def _check_inputs(run, st, cfg, pipeline):
     """Every input store's producer is complete and its recorded chunks exist with their sizes."""
     for store in st.inputs:
-        prod = producer_of(store, cfg)
+        prod = pipeline.producer_of(store, cfg)
         if prod is None or prod.name == st.name:
             continue
         s = run.stage_status(prod.name)
@@ -206,7 +207,7 @@ def _repair_or_refuse(run, st, force, log):
         run.forget_keys(stage, list(damaged))
 
 
-def _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log):
+def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log):
     """Cycles of an iterative stage, each a map over the keys ``next_cycle`` returns, then a checkpoint.
 
     ``next_cycle(ctx, cycle)`` runs on the driver, reads the state the previous cycles left in
@@ -228,7 +229,7 @@ def _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log):
             return results
         ckeys = [f"c{cycle:04d}-{k}" for k in keys]
         run.add_keys(st.name, ckeys + [mark])
-        results += _execute(client, ctx, st.name, [k for k in ckeys if not run.is_done(st.name, k)], progress,
+        results += _execute(client, ctx, pipeline, st.name, [k for k in ckeys if not run.is_done(st.name, k)], progress,
                             worker_wait_s)
         run.mark_done(st.name, mark, {"cycle": cycle, "tasks": len(keys)}, cctx.ledger.entries)
         cycle += 1
@@ -251,8 +252,11 @@ def _stale_stages(run, fps, names):
     return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
 
-def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print):
-    """Run every enabled stage (or just ``only``) of a workflow; return the per-stage summaries."""
+def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print, pipeline=PIPELINE):
+    """Run every enabled stage (or just ``only``) of a workflow; return the per-stage summaries.
+
+    ``pipeline``: the stages in order (:data:`mmflow.workflow.pipeline.PIPELINE`; tests pass their own).
+    """
     run = RunDir(cfg.run.directory)
     run.path.mkdir(parents=True, exist_ok=True)
     lock, token = run.acquire_lock()
@@ -264,7 +268,7 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         log(msg)
 
     try:
-        return _run_locked(cfg, run, token, client, only, force, progress, log_both)
+        return _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline)
     except BaseException as exc:
         logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} stopped: {type(exc).__name__}: {exc}\n")
         raise
@@ -273,9 +277,9 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         lock.close()
 
 
-def _run_locked(cfg, run, token, client, only, force, progress, log):
-    stages = [st for st in all_stages() if not only or st.name in only]
-    fps = stage_fingerprints(cfg, run)
+def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
+    stages = [st for st in pipeline if not only or st.name in only]
+    fps = stage_fingerprints(cfg, run, pipeline)
     stale = _stale_stages(run, fps, [st.name for st in stages if st.task is not None])
     if stale and not force:  # refuse before any work, naming what changed
         st = stale[0]
@@ -302,7 +306,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
             log(f"[{st.name}] recomputing (--force): {fp.explain(run.manifest(st.name))}")
             run.reset_stage(st.name)
         _repair_or_refuse(run, st, force, log)
-        _check_inputs(run, st, cfg)
+        _check_inputs(run, st, cfg, pipeline)
         sctx = ctx.for_stage(st)
         pctx = sctx.for_task()
         keys = st.prepare(pctx)
@@ -310,9 +314,9 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
         _stamp_stores(run, st, cfg, fp.digest)
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
-        results = _execute(client, ctx, st.name, todo, progress, worker_wait_s)
+        results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
         if st.next_cycle is not None:  # iterative stages, and solve stages with a second phase
-            results += _iterate(client, ctx, run, st, sctx, progress, worker_wait_s, log)
+            results += _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         fin = None
         if st.finalize:
             fctx = sctx.for_task()
@@ -334,7 +338,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log):
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
             f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
     if only:
-        later = _stale_stages(run, stage_fingerprints(cfg, run), [s.name for s in all_stages()])
+        later = _stale_stages(run, stage_fingerprints(cfg, run, pipeline), list(pipeline.names))
         if later:
             log(f"stages now made from older inputs (STALE): {', '.join(later)}. Refresh them with "
                 f"`mmflow run WORKFLOW ... --force` (the same settings; up-to-date stages are kept)")
@@ -404,7 +408,7 @@ def status(run_path):
     except InputError:  # no config.yaml, or one from another mmflow version: staleness unknown
         fps = None
     out = {}
-    for st in all_stages():
+    for st in PIPELINE:
         s = run.stage_status(st.name)
         if s is not None:
             s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
@@ -419,4 +423,4 @@ def verify(run_path, full=True):
     run = RunDir(run_path)
     if not run.path.is_dir():
         raise InputError(str(run.path), "run directory", "does not exist", "give an existing run directory")
-    return run.verify([st.name for st in all_stages()], full)
+    return run.verify(list(PIPELINE.names), full)

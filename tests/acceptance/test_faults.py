@@ -20,7 +20,7 @@ from mmflow.io.stores import DamagedStoreError
 from mmflow.workflow.context import Context
 from mmflow.workflow.rundir import RunDir, RunLockedError
 from mmflow.workflow.runner import run_task, run_workflow, stage_fingerprints, verify
-from mmflow.workflow.stages.base import all_stages
+from mmflow.workflow.pipeline import PIPELINE
 from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
 from tests.workflow_helpers import ROOT, interrupt_run
 
@@ -127,7 +127,7 @@ def test_resume_on_another_cluster_size_is_bit_identical(tmp_path):
 
 
 def test_work_decomposition_never_reads_cluster_settings():
-    for st in all_stages():
+    for st in PIPELINE:
         assert not any(c == "cluster" or c.startswith("cluster.") for c in st.config), st.name
 
 
@@ -368,7 +368,7 @@ def test_workflow_alm_equals_engine_alm_and_splits_share_one_transfer_pass(tmp_p
     from mmflow.imaging.solvers import solve_alm
     from mmflow.mmode.engine import accumulate_normal_equations
     from mmflow.mmode.noise import relative_weights
-    from mmflow.workflow.stages.base import get_stage
+    from mmflow.workflow.pipeline import PIPELINE
 
     run_dir = tmp_path / "run"
     cfg = small_config(run_dir, "mmode.splits=[full, even, odd]", "observation.integration_s=172.3281810",
@@ -377,7 +377,7 @@ def test_workflow_alm_equals_engine_alm_and_splits_share_one_transfer_pass(tmp_p
     assert s["transfer"]["tasks"] == len(RunDir(run_dir).manifest("transfer")["keys"])  # one pass for 3 splits
     mg = zarr.open_group(str(run_dir / "mmodes.zarr"))
     alm_wf = zarr.open_group(str(run_dir / "alm.zarr"))["alm"][:, 0]  # (split, m, l)
-    tel = Context(cfg.model_dump_json(), str(run_dir)).for_stage(get_stage("transfer")).telescope()
+    tel = Context(cfg.model_dump_json(), str(run_dir)).for_stage(PIPELINE.stage("transfer")).telescope()
     acc = accumulate_normal_equations(tel, 40e6, mg["mmodes"][:, 0], 24, relative_weights(mg["inv_var"][0]),
                                       chunk_size=32)
     im = cfg.imaging

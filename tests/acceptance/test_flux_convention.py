@@ -75,7 +75,7 @@ def test_matvis_scan_cleaned_without_calibration_gives_the_simulated_fluxes(matv
     source within 2 % of the flux matvis simulated (it was ~0.5 before)."""
     from mmflow.conventions import radec_to_vec
     from mmflow.imaging import psf
-    from mmflow.workflow.stages import clean as cs
+    from mmflow.workflow import clean_state as cs
 
     root, sources = matvis_scan
     run_dir = tmp_path / "sum"

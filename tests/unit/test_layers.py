@@ -14,9 +14,6 @@ The layers, lowest first (docs/architecture.md):
 A module may import only from its own layer or one below. The graph is read with :mod:`ast`
 (every ``import`` statement anywhere in a module, function bodies included, relative imports
 resolved), never by importing the package, so deferred imports cannot hide a cycle.
-
-Known violations that other branches of issue 23 remove are single parametrized cases marked
-``xfail(strict=False)``; every other case passes strictly.
 """
 from __future__ import annotations
 
@@ -32,9 +29,6 @@ LAYERS = {"base": 0, "kernels": 1, "io": 2, "workflow": 3, "bench": 4, "cli": 5}
 BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.offline", "mmflow.threads",
                 "mmflow.allocator", "mmflow.machine"}
 KERNEL_PACKAGES = ("telescope", "sky", "mmode", "imaging", "calibrate", "simulate", "analysis")
-
-WORKFLOW_PENDING = pytest.mark.xfail(strict=False, reason="workflow half of issue 23, branch layers")
-
 
 # --- the graph -------------------------------------------------------------------------------
 
@@ -201,17 +195,12 @@ def _describe(comps, edges):
 REGIONS = ["base", *(f"kernels:{p}" for p in KERNEL_PACKAGES), "io", "workflow", "bench", "cli"]
 
 
-def _region_params(workflow_pending=True):
-    return [pytest.param(r, marks=WORKFLOW_PENDING) if r == "workflow" and workflow_pending else r
-            for r in REGIONS]
-
-
 def test_every_module_has_a_layer():
     for m in MODULES:
         layer_of(m)
 
 
-@pytest.mark.parametrize("region", _region_params())
+@pytest.mark.parametrize("region", REGIONS)
 def test_no_import_cycle(region):
     """No cycle among the modules a region's modules import."""
     comps = [c for c in cycles(MODULES, [(a, b) for a, b, _, _ in EDGES])
@@ -230,7 +219,7 @@ def test_no_cycle_between_kernel_packages():
     assert not comps, f"package cycles {comps}:\n" + "\n".join(sorted(detail))
 
 
-@pytest.mark.parametrize("region", _region_params(workflow_pending=False))
+@pytest.mark.parametrize("region", REGIONS)
 def test_no_upward_import(region):
     bad = upward(_edges_in(region))
     assert not bad, "\n" + "\n".join(bad)
@@ -253,7 +242,7 @@ def test_kernels_import_no_dask_stores_or_configuration():
     assert not bad, "\n" + "\n".join(bad)
 
 
-@pytest.mark.parametrize("region", _region_params())
+@pytest.mark.parametrize("region", REGIONS)
 def test_no_private_name_imported_across_modules(region):
     bad = private_imports(_edges_in(region))
     assert not bad, "\n" + "\n".join(bad)

@@ -22,7 +22,7 @@ from mmflow.imaging import clean as ck
 from mmflow.imaging import jackknife
 from mmflow.mmode import splits as sp
 from mmflow.workflow.runner import run_workflow
-from mmflow.workflow.stages import clean as cs
+from mmflow.workflow import clean_state as cs
 from tests.imaging_helpers import Imager
 from tests.workflow_helpers import SMALL, refused_problem, small_config
 

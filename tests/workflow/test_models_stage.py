@@ -27,7 +27,7 @@ def _cfg(path, *extra):
 def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     from mmflow.calibrate.coherency import source_coherencies
     from mmflow.workflow.context import Context
-    from mmflow.workflow.stages.base import get_stage
+    from mmflow.workflow.pipeline import PIPELINE
     from mmflow.workflow.peel_models import peel_coherencies
     from mmflow.sky.sources import Source, get_sources
 
@@ -53,7 +53,7 @@ def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     fitted = p.attrs["fitted_models"]
     assert sorted(fitted) == ["Cas A", "Cyg A"]
     assert np.allclose(np.array(fitted["Cas A"][0]), comps[1])
-    ctx = Context(cfg.model_dump_json(), str(tmp_path / "run")).for_stage(get_stage("terrestrial")).for_task()
+    ctx = Context(cfg.model_dump_json(), str(tmp_path / "run")).for_stage(PIPELINE.stage("terrestrial")).for_task()
     tel = ctx.telescope()
     lst = np.deg2rad(np.array([300.0, 350.0]))
     pairs = tel.antenna_pairs()[:50]

@@ -11,7 +11,7 @@ import zarr
 
 from mmflow.io.stores import ArraySpec, StoreSpec
 from mmflow.workflow.runner import run_workflow
-from mmflow.workflow.stages import base
+from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.stages.base import Stage
 from tests.workflow_helpers import small_config
 
@@ -51,18 +51,15 @@ def _toy_calibrate():
 
 
 @pytest.fixture
-def toy_stages(monkeypatch):
-    stages = [s for s in base.all_stages() if s.name not in ("calibrate", "clean")]
-    stages += [_toy_calibrate(), _toy_clean()]
-    stages.sort(key=lambda s: base.ORDER.index(s.name))
-    monkeypatch.setattr(base, "STAGES", stages)
-    monkeypatch.setattr(base, "_load", lambda: None)
+def toy_stages():
+    """The run's keywords with mmflow's pipeline, its calibrate and clean stages replaced by toys."""
+    return dict(QUIET, pipeline=PIPELINE.replace(_toy_calibrate(), _toy_clean()))
 
 
 def test_correction_is_applied_once_on_read_and_never_written_back(toy_stages, tmp_path):
     plain, cal = tmp_path / "plain", tmp_path / "cal"
-    run_workflow(small_config(plain), only=["simulate", "mmodes"], **QUIET)
-    run_workflow(small_config(cal, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **QUIET)
+    run_workflow(small_config(plain), only=["simulate", "mmodes"], **toy_stages)
+    run_workflow(small_config(cal, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **toy_stages)
     v_plain = zarr.open_group(str(plain / "vis.zarr"))["vis"][:]
     assert np.array_equal(v_plain, zarr.open_group(str(cal / "vis.zarr"))["vis"][:])  # vis.zarr untouched
     # the corrected m-modes are the m-modes of vis / gain: check one baseline against a direct transform
@@ -78,7 +75,7 @@ def test_correction_is_applied_once_on_read_and_never_written_back(toy_stages, t
     np.testing.assert_allclose(mg["mmodes"][0, 0, :, :, 5], expect, rtol=1e-12, atol=1e-12 * np.abs(expect).max())
     # recomputing the m-modes (another setting) reads and corrects again: still applied once
     run_workflow(small_config(cal, "calibrate.enabled=true", "mmode.min_coverage=0.9"), only=["mmodes"],
-                 force=True, **QUIET)
+                 force=True, **toy_stages)
     np.testing.assert_allclose(zarr.open_group(str(cal / "mmodes.zarr"))["mmodes"][0, 0, :, :, 5], expect,
                                rtol=1e-12, atol=1e-12 * np.abs(expect).max())
 
@@ -87,9 +84,9 @@ class Crash(BaseException):
     pass
 
 
-def test_killed_solve_stage_resumes_bit_identical(toy_stages, tmp_path, monkeypatch):
+def test_killed_solve_stage_resumes_bit_identical(toy_stages, tmp_path):
     ref, run = tmp_path / "ref", tmp_path / "run"
-    run_workflow(small_config(ref, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **QUIET)
+    run_workflow(small_config(ref, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **toy_stages)
     calls = {"n": 0}
 
     def dying(ctx, key):
@@ -98,12 +95,12 @@ def test_killed_solve_stage_resumes_bit_identical(toy_stages, tmp_path, monkeypa
             raise Crash()
         return _cal_task(ctx, key)
 
-    stages = [s if s.name != "calibrate" else Stage(**{**s.__dict__, "task": dying}) for s in base.STAGES]
-    monkeypatch.setattr(base, "STAGES", stages)
+    toy = toy_stages["pipeline"]
+    dying_pipeline = toy.replace(Stage(**{**vars(toy.stage("calibrate")), "task": dying}))
     with pytest.raises(Crash):
-        run_workflow(small_config(run, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **QUIET)
-    monkeypatch.setattr(base, "STAGES", [s if s.name != "calibrate" else _toy_calibrate() for s in stages])
-    run_workflow(small_config(run, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **QUIET)
+        run_workflow(small_config(run, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"],
+                     **dict(toy_stages, pipeline=dying_pipeline))
+    run_workflow(small_config(run, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **toy_stages)
     for store, arr in (("gains.zarr", "gain"), ("mmodes.zarr", "mmodes")):
         assert np.array_equal(zarr.open_group(str(ref / store))[arr][:], zarr.open_group(str(run / store))[arr][:])
 
@@ -151,7 +148,7 @@ def test_iterative_stage_checkpoints_each_cycle_and_resumes_bit_identical(toy_st
 
     ref, run = tmp_path / "ref", tmp_path / "run"
     run_workflow(small_config(ref, "clean.enabled=true", "clean.rel_threshold=0.5", "clean.min_separation_deg=10"),
-                     only=UP_TO_CLEAN, **QUIET)
+                     only=UP_TO_CLEAN, **toy_stages)
     level = zarr.open_group(str(ref / "clean.zarr"))["level"][:]
     n_cycles = sum(1 for k in RunDir(ref).manifest("clean")["keys"] if k.startswith("cycle"))
     assert 3 <= n_cycles < MAX_CYCLES and level[n_cycles].max() < THRESHOLD * level[0].max()
@@ -165,10 +162,10 @@ def test_iterative_stage_checkpoints_each_cycle_and_resumes_bit_identical(toy_st
     monkeypatch.setattr(RunDir, "mark_done", die_at_cycle_3)
     with pytest.raises(Crash):
         run_workflow(small_config(run, "clean.enabled=true", "clean.rel_threshold=0.5", "clean.min_separation_deg=10"),
-                     only=UP_TO_CLEAN, **QUIET)
+                     only=UP_TO_CLEAN, **toy_stages)
     monkeypatch.setattr(RunDir, "mark_done", real)
     s = run_workflow(small_config(run, "clean.enabled=true", "clean.rel_threshold=0.5", "clean.min_separation_deg=10"),
-                     only=UP_TO_CLEAN, **QUIET)
+                     only=UP_TO_CLEAN, **toy_stages)
     assert s["clean"]["tasks_run"] == sum(1 for k in RunDir(run).manifest("clean")["keys"]
                                           if k.startswith("c0") and int(k[1:5]) >= 3)
     assert np.array_equal(level, zarr.open_group(str(run / "clean.zarr"))["level"][:])

@@ -218,9 +218,9 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
                  progress=False, log=lambda *a: None)
     iv = zarr.open_group(str(tmp_path / "run3" / "mmodes.zarr"), mode="r")["inv_var"][0][cross]
     assert iv.max() / iv.min() - 1 < 0.01
-    from mmflow.workflow.stages.base import get_stage
+    from mmflow.workflow.pipeline import PIPELINE
 
-    tel = Context(cfg.model_dump_json(), str(run_dir)).for_stage(get_stage("transfer")).telescope()
+    tel = Context(cfg.model_dump_json(), str(run_dir)).for_stage(PIPELINE.stage("transfer")).telescope()
     chunks, lmax_b = plan_chunks(tel, 40e6, 24, 32)
     assert len(chunks) >= 1
     tg = zarr.open_group(str(run_dir / "transfer.zarr" / "f0"), mode="r")

@@ -64,7 +64,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     history, PSF FWHMs, noise, Table-1 row)."""
     from mmflow.io.export import psf_stamp_header, write_healpix_fits, write_image_fits, write_mollweide_png, \
         write_psf_png
-    from mmflow.workflow.stages import clean as cs
+    from mmflow.workflow import clean_state as cs
 
     cfg = ctx.cfg
     p, lmax, mmax = cfg.products, cfg.mmode.lmax, mmax_of(cfg)
@@ -147,7 +147,7 @@ def split_noise(ctx, fi, alms, freq, table):
     import healpy
 
     from mmflow.imaging.jackknife import beam_noise, masked_rms
-    from mmflow.workflow.stages import clean as cs
+    from mmflow.workflow import clean_state as cs
 
     cfg = ctx.cfg
     lmax, nside = cfg.mmode.lmax, cs.clean_nside(cfg)
@@ -177,7 +177,7 @@ def _psf_summary(table):
 
 
 def _write_stamps(ctx, g, fi, tag, freq, table, lmax, blocks, png, header, write_fits, write_png):
-    from mmflow.workflow.stages import clean as cs
+    from mmflow.workflow import clean_state as cs
 
     cols = cs.psf_alm_columns(g, fi, lmax, blocks)
     decs = table["dec"]

@@ -56,7 +56,7 @@ def psf_at(ctx, fi, vecs_date):
     one m block at a time (one block's operators in memory)."""
     from mmflow.conventions import n_alm
     from mmflow.io.run_stores import m_blocks
-    from mmflow.workflow.stages import clean as cs
+    from mmflow.workflow import clean_state as cs
     from mmflow.workflow.geometry import mmax_of
 
     cfg = ctx.cfg
@@ -172,7 +172,7 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
     declination); none without even and odd or day<k> splits."""
     from mmflow.conventions import m_slice
     from mmflow.imaging.jackknife import noise_realisation
-    from mmflow.workflow.stages.clean import jackknife_splits, split_alm
+    from mmflow.workflow.clean_state import jackknife_splits, split_alm
     from mmflow.workflow.geometry import mmax_of
 
     cfg = ctx.cfg
@@ -191,7 +191,7 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
 
 def _clean_components(ctx, fi):
     """CLEAN's components of one channel (frame of date): ``(vecs, fluxes)``."""
-    from mmflow.workflow.stages import clean as cs
+    from mmflow.workflow import clean_state as cs
 
     g = ctx.open("clean.zarr")
     state, _ = cs.clean_result(g, fi, cs.clean_options(ctx.cfg.clean), int(g["n_cycles"][fi]))

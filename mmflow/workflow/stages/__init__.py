@@ -1,4 +1,7 @@
-"""Workflow stages. Each reads zarr and writes zarr, mapped over chunks (see base.Stage)."""
-from mmflow.workflow.stages.base import STAGES, Stage, get_stage
+"""Workflow stages: one module per stage, each defining one ``STAGE`` (a :class:`base.Stage`).
 
-__all__ = ["STAGES", "Stage", "get_stage"]
+Their order is :data:`mmflow.workflow.pipeline.PIPELINE`; no stage module imports another.
+"""
+from mmflow.workflow.stages.base import Stage
+
+__all__ = ["Stage"]

@@ -1,4 +1,7 @@
-"""The stage abstraction and the one ordered registry of stages (it also drives the CLI).
+"""The stage record: what one step of the pipeline reads, writes and runs.
+
+The stages in order live in :mod:`mmflow.workflow.pipeline` (the one list; the runner, the CLI
+and the corrections on read derive from it). Each stage module defines one ``STAGE``.
 
 A stage declares what it reads and writes; the runner derives everything else from that:
 
@@ -30,9 +33,20 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, Optional
 
+#: what a stage can be (see above)
+KINDS = ("map", "reduce", "solve", "iterative")
 
-@dataclass
+
+@dataclass(eq=False)
 class Stage:
+    """One step of the pipeline (compared and hashed by identity).
+
+    ``reads_corrected``: the stage reads ``vis.zarr`` through every correction before it (the
+    pipeline adds those solve stages' outputs to its ``inputs``). ``upstream``: the stages before
+    it in its pipeline, set by :class:`mmflow.workflow.pipeline.Pipeline`; tasks find the
+    producers of their inputs and the corrections to apply there.
+    """
+
     name: str
     config: tuple
     inputs: tuple
@@ -48,43 +62,20 @@ class Stage:
     next_cycle: Optional[Callable] = None
     counters: tuple = ()  # numeric fields of the tasks' infos summed, stored and logged per stage
     check: Optional[Callable] = None  # check(cfg, names of the stages this run executes), before any work
+    reads_corrected: bool = False
+    upstream: tuple = field(default=(), repr=False)
 
+    def __post_init__(self):
+        if self.kind not in KINDS:
+            raise ValueError(f"stage {self.name}: unknown kind {self.kind}")
 
-STAGES: list = []
-ORDER = ("simulate", "ingest", "calibrate", "models", "peel", "terrestrial", "mmodes", "transfer", "normal",
-         "solve", "clean", "products")
+    def producer_of(self, store, cfg):
+        """The enabled earlier stage that writes ``store`` (None if none is enabled)."""
+        for s in self.upstream:
+            if store in s.outputs and s.enabled(cfg):
+                return s
+        return None
 
-
-def register(stage):
-    if stage.kind not in ("map", "reduce", "solve", "iterative"):
-        raise ValueError(f"stage {stage.name}: unknown kind {stage.kind}")
-    STAGES.append(stage)
-    STAGES.sort(key=lambda s: ORDER.index(s.name))
-    return stage
-
-
-def all_stages():
-    _load()
-    return list(STAGES)
-
-
-def get_stage(name):
-    _load()
-    for s in STAGES:
-        if s.name == name:
-            return s
-    raise KeyError(name)
-
-
-def producer_of(store, cfg):
-    """The enabled stage that writes ``store`` (None if none is enabled)."""
-    for s in all_stages():
-        if store in s.outputs and s.enabled(cfg):
-            return s
-    return None
-
-
-def _load():
-    # import order is stage order
-    from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel,  # noqa: F401
-                                        products, simulate, solve, terrestrial, transfer)
+    def corrections(self, cfg):
+        """The enabled solve-then-apply stages before this one, in pipeline order."""
+        return [s for s in self.upstream if s.kind == "solve" and s.apply is not None and s.enabled(cfg)]

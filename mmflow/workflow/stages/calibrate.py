@@ -33,7 +33,7 @@ from mmflow.errors import InputError
 from mmflow.io.run_stores import gains_store
 from mmflow.workflow.baseline_cuts import check_baselines, resolved_cuts, solve_mask
 from mmflow.workflow.blocks import read_block
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 
 def _epoch(ctx):
@@ -113,7 +113,7 @@ def _task(ctx, key):
     c = ctx.cfg.calibrate
     fi, k = (int(x) for x in key[1:].split("_"))
     t0, t1 = (int(x) for x in g["solve_rows"][k])
-    block = read_block(ctx, slice(t0, t1), before="calibrate")
+    block = read_block(ctx, slice(t0, t1))
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
     good = np.isfinite(block.lst)
@@ -192,7 +192,7 @@ def _apply(ctx, block):
         block.weights[:, block.pairs[:, 0] == block.pairs[:, 1]] = 0.0
 
 
-register(Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
+STAGE = Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.calibrate.enabled,
                counters=("not_converged", "flagged_antennas", "antennas_without_data"),
-               description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)"))
+               description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)")

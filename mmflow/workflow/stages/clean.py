@@ -24,46 +24,17 @@ import time
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm, n_alm
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
-from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.maps import default_nside
-from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, gram_name, m_blocks
-from mmflow.workflow.geometry import mmax_of, split_fractions
-from mmflow.workflow.kernel_args import m_filters
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, m_blocks
+from mmflow.workflow.clean_state import (active, block_operators_from_gram, clean_nside, clean_options, clean_result,
+                                         clean_table, cycle_block, factors_of, highpass, jackknife_sigma,
+                                         jackknife_splits, psf_alm_columns, psf_decs_deg, residual_alm, split_alm,
+                                         stored_operators)
+from mmflow.workflow.geometry import mmax_of
+from mmflow.workflow.stages.base import Stage
 
 CLEAN_CONFIG = ("mmode.lmax", "mmode.mmax", "mmode.splits", "transfer.m_block", "imaging", "clean")
-TABLE_DECS_DEG = (0.0, 45.0, 75.0)  # always in the PSF table (Table 1's declinations)
-
-
-# ----------------------------------------------------------------------------- settings
-
-def clean_options(c):
-    """:class:`clean.CleanOptions` from the ``clean`` configuration section."""
-    return ck.CleanOptions(n_peaks=c.peaks_per_cycle, min_sep_deg=c.min_separation_deg, gain=c.gain,
-                           k_sigma=c.threshold_sigma, absolute=c.absolute, peak_frac=c.peak_fraction,
-                           max_cycles=c.max_cycles, rel_threshold=c.rel_threshold, stall_cycles=c.stall_cycles,
-                           stall_frac=c.stall_fraction)
-
-
-def highpass(cfg):
-    """``w_l`` of a high-pass CLEAN (:func:`psf.highpass_weights`), or None."""
-    c = cfg.clean
-    return None if c.highpass_lmin is None else psf.highpass_weights(cfg.mmode.lmax, c.highpass_lmin, c.highpass_width)
-
-
-def clean_nside(cfg):
-    return cfg.clean.nside or 2 * default_nside(cfg.mmode.lmax)
-
-
-def psf_decs_deg(lat_deg, step_deg):
-    """The PSF table's declinations: the lowest seen declination (rounded up to ``step``) to
-    the pole in ``step`` steps, plus Table 1's 0, +45, +75."""
-    lo = np.rad2deg(ck.never_seen_dec_min(np.deg2rad(lat_deg)))
-    grid = np.arange(step_deg * np.ceil(lo / step_deg), 90.0 + 1e-9, step_deg)
-    return np.unique(np.round(np.concatenate([grid, TABLE_DECS_DEG]), 9))
 
 
 def _lat(ctx):
@@ -86,72 +57,6 @@ def _prepare(ctx):
     ctx.create(clean_store(nf, lmax, mmax, cfg.transfer.m_block, n_dec, cfg.clean.max_cycles,
                            cfg.clean.peaks_per_cycle, 12 * clean_nside(cfg) ** 2, cfg.clean.keep_factors))
     return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in blocks]
-
-
-def _keeps(cfg, m0, m1):
-    return {m: filter_mask(m, cfg.mmode.lmax, **m_filters(cfg.imaging)) for m in range(m0, m1)}
-
-
-def block_operators_from_gram(ctx, fi, m0, m1):
-    """:class:`psf.BlockOperator` of each m of a block, factorised from ``normal.zarr``'s Gram."""
-    from mmflow.mmode.normal import hermitian_full
-
-    cfg = ctx.cfg
-    lmax, eps, keeps = cfg.mmode.lmax, cfg.imaging.eps, _keeps(cfg, m0, m1)
-    grams = ctx.read("normal.zarr", gram_name(fi, m0))
-
-    def one(m):
-        n = lmax - m + 1
-        return psf.block_operator(m, hermitian_full(grams[m - m0, :n, :n]), eps, keeps[m])
-
-    return dict(zip(range(m0, m1), psf.map_blocks(one, range(m0, m1))))
-
-
-def stored_operators(ctx, fi, m0, m1):
-    """The block's operators from the stored factors (the Gram is read only where a filter
-    leaves a coupling ``G_kf``: m = 1)."""
-    from mmflow.mmode.normal import hermitian_full
-
-    cfg = ctx.cfg
-    lmax, keeps = cfg.mmode.lmax, _keeps(cfg, m0, m1)
-    chol = ctx.read("clean.zarr", f"f{fi}/chol_b{m0:05d}")
-    partial = [m for m in range(m0, m1) if keeps[m].any() and not keeps[m].all()]
-    grams = ctx.read("normal.zarr", gram_name(fi, m0)) if partial else None
-    return operators_from_factors(chol, keeps, cfg.imaging.eps, lmax, m0, m1,
-                                  lambda m: hermitian_full(grams[m - m0, :lmax - m + 1, :lmax - m + 1]))
-
-
-def operators_from_factors(chol, keeps, eps, lmax, m0, m1, full_gram=None):
-    """:class:`psf.BlockOperator` per m of a block from its stored upper Cholesky factors.
-
-    ``chol`` (m1 - m0, n0, n0): the factor ``U`` of ``G_kk + eps I`` of each m in the top-left
-    ``n_kept x n_kept`` corner; ``keeps[m]`` the kept coefficients; ``full_gram(m)`` the full
-    Gram of m, called only where a filter leaves a coupling ``G_kf`` (m = 1).
-    """
-    ops = {}
-    for m in range(m0, m1):
-        keep = keeps[m]
-        nk = int(keep.sum())
-        if nk == 0:
-            ops[m] = psf.BlockOperator(m, keep, None, eps)
-            continue
-        coupling = None
-        if not keep.all():
-            coupling = np.ascontiguousarray(full_gram(m)[np.ix_(keep, ~keep)])
-        ops[m] = psf.BlockOperator(m, keep, (chol[m - m0, :nk, :nk], False), eps, coupling)
-    return ops
-
-
-def factors_of(ops, lmax, m0, m1):
-    """The block's factors as stored (``chol_b`` layout of :func:`operators_from_factors`)."""
-    n0 = lmax - m0 + 1
-    chol = np.zeros((m1 - m0, n0, n0), np.complex128)
-    for m in range(m0, m1):
-        op = ops[m]
-        if op.cho is not None:
-            nk = len(op.cho[0])
-            chol[m - m0, :nk, :nk] = op.cho[0]
-    return chol
 
 
 def _ml_to_block(alm_ml, lmax, m0, m1):
@@ -208,82 +113,7 @@ def _cycle_task(ctx, key):
             "observe_s": round(t["observe"], 4)}
 
 
-def cycle_block(residual_block, rows, ops, lmax, m0, m1, weights=None):
-    """One m block's part of a major cycle: ``r_new = r - H observe(sum_i c_i conj(Y_lm(r_i)))``.
-
-    ``rows``: the cycle's ``components`` rows (x, y, z, flux; flux 0 = unused); ``weights``:
-    high-pass CLEAN's ``w_l`` or None. Returns the new residual block and the seconds spent
-    on the ``components`` alm and on ``observe`` (:func:`clean.observe_and_subtract`).
-    """
-    vecs, flux = cycle_components(rows)
-    t0 = time.perf_counter()
-    x = ck.component_alm(vecs, flux, lmax, m1)[psf.block_range(lmax, m0, m1)]
-    t1 = time.perf_counter()
-    new = ck.observe_and_subtract(residual_block, x, ops, lmax, m0, m1, weights)
-    return new, {"components": t1 - t0, "observe": time.perf_counter() - t1}
-
-
-def cycle_components(rows):
-    """``(vecs, fluxes)`` of one cycle's ``components`` rows (x, y, z, flux; flux 0 = unused)."""
-    rows = np.asarray(rows, float)
-    used = rows[:, 3] != 0
-    return rows[used, :3], rows[used, 3]
-
-
 # ----------------------------------------------------------------------------- the driver
-
-def residual_alm(g, fi, cycle, lmax, blocks):
-    """The full healpy-layout residual alm at the start of ``cycle`` (zero for m beyond mmax)."""
-    out = np.zeros(n_alm(lmax), np.complex128)
-    for m0, m1 in blocks:
-        out[psf.block_range(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
-    return out
-
-
-def psf_alm_columns(g, fi, lmax, blocks):
-    """The PSF columns ``(n_alm, n_dec)`` of the declination grid, assembled from the blocks."""
-    parts = {m0: g[f"f{fi}/psf_b{m0:05d}"][...] for m0, _ in blocks}
-    out = np.zeros((n_alm(lmax), next(iter(parts.values())).shape[1]), np.complex128)
-    for m0, m1 in blocks:
-        out[psf.block_range(lmax, m0, m1)] = parts[m0]
-    return out
-
-
-def split_alm(ctx, fi, lmax, mmax):
-    """``{split name: healpy alm}`` of the solved maps of one frequency."""
-    alm = ctx.read("alm.zarr", "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
-    return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
-
-
-def jackknife_splits(ctx, fi, kind=None):
-    """``(kind, splits, f_k)`` of the jackknife at frequency ``fi`` (:func:`mmflow.mmode.splits.jackknife_kind`:
-    even/odd, else per-day; or the ``kind`` asked for): the splits it images and each split's share of
-    the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.geometry.split_fractions`);
-    ``(None, (), {})`` without one."""
-    from mmflow.mmode.splits import day_splits, jackknife_kind
-
-    splits = ctx.cfg.mmode.splits
-    kind = jackknife_kind(splits) if kind is None else kind
-    if kind == "even_odd" and {"even", "odd"} <= set(splits):
-        return kind, ("full", "even", "odd"), {}
-    if kind == "per_day" and day_splits(splits):
-        used = ("full",) + tuple(day_splits(splits).values())
-        return kind, used, split_fractions(ctx, fi)
-    return None, (), {}
-
-
-def jackknife_sigma(alms, jackknife, lmax, nside, mask, l_weights=None):
-    """The full map's jackknife sigma (Jy/sr) over ``mask`` (frame of date) from the split alm
-    ``{name: healpy alm}`` (:func:`mmflow.imaging.jackknife.split_variance`); ``jackknife`` from
-    :func:`jackknife_splits`; ``l_weights``: of high-pass CLEAN's ``H`` maps (None: the maps)."""
-    import healpy
-
-    from mmflow.imaging.jackknife import split_variance
-
-    kind, used, fractions = jackknife
-    maps = {s: healpy.alm2map(alms[s] if l_weights is None else psf.apply_l_weights(alms[s], lmax, l_weights),
-                              nside, lmax=lmax) for s in used}
-    return float(np.sqrt(split_variance(maps, kind, fractions, mask)))
 
 
 def _setup_tables(ctx, g):
@@ -322,20 +152,6 @@ def _setup_tables(ctx, g):
         ctx.write(g, "threshold", (slice(fi, fi + 1),), np.array([thr]))
 
 
-def clean_table(g, fi):
-    """The PSF table CLEAN uses (of ``H PSF`` for a high-pass CLEAN)."""
-    return psf.table_from_array(g["psf_table"][fi, 1])
-
-
-def active(peaks, threshold, opts):
-    """Whether a frequency whose cycles so far started from ``peaks`` runs another cycle
-    (a NaN peak: it stopped before that cycle)."""
-    peaks = np.asarray(peaks, float)
-    if len(peaks) and not np.isfinite(peaks[-1]):
-        return False
-    return opts.stop(peaks, threshold) is None
-
-
 def _next_cycle(ctx, cycle):
     cfg = ctx.cfg
     lmax, _, blocks = _geometry(ctx)
@@ -357,27 +173,6 @@ def _next_cycle(ctx, cycle):
         ctx.write(g, "peaks", (slice(fi, fi + 1), slice(cycle, cycle + 1)), np.array([[peak]]))
         keys += [f"f{fi}-m{m0:05d}" for m0, _ in blocks]
     return keys or None
-
-
-def clean_result(g, fi, opts, n=None):
-    """``(state, reason)``: the :class:`clean.CleanState` (no residual) of one frequency after
-    its ``n`` cycles (default: every cycle with a peak; readers of a finished stage pass
-    ``n_cycles``, so that no unwritten chunk is read)."""
-    thr = float(g["threshold"][fi])
-    if n is None:
-        peaks = g["peaks"][fi]
-        n = int(np.argmin(np.isfinite(peaks))) if not np.isfinite(peaks).all() else len(peaks)
-    peaks = g["peaks"][fi, :n]
-    comps = g["components"][fi, :n]
-    vecs, flux, cyc = [], [], []
-    for c in range(n):
-        v, f = cycle_components(comps[c])
-        vecs.append(v)
-        flux.append(f)
-        cyc.append(np.full(len(f), c, int))
-    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))
-    return (ck.CleanState(None, cat(vecs, (0, 3)), cat(flux, (0,)), cat(cyc, (0,)).astype(int), peaks[:n], n),
-            opts.stop(peaks[:n], thr))
 
 
 def _finalize(ctx):
@@ -407,6 +202,6 @@ def _finalize(ctx):
     return out
 
 
-register(Stage("clean", CLEAN_CONFIG, ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"), ("clean.zarr",), _prepare,
+STAGE = Stage("clean", CLEAN_CONFIG, ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"), ("clean.zarr",), _prepare,
                _task, _finalize, enabled=lambda cfg: cfg.clean.enabled, kind="iterative", next_cycle=_next_cycle,
-               description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold"))
+               description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold")

@@ -13,7 +13,7 @@ from mmflow.errors import CoverageError
 from mmflow.io.run_stores import vis_store
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.data_stage import VIS_ARRAYS, layout_attrs, write_autos
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 CROSS_ARRAYS = ("vis_cross", "weights_cross")
 
@@ -75,9 +75,9 @@ def _ingest_task(ctx, key):
     return info
 
 
-register(Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz",
+STAGE = Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz",
                           "calibrate.enabled"), (),
                ("vis.zarr",),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
                counters=("fully_flagged_integrations", "nonfinite_flagged"),
-               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files"))
+               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files")

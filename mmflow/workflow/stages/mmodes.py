@@ -36,10 +36,10 @@ from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, \
     sun_elevation_deg
 from mmflow.mmode.transform import sidereal_bins
-from mmflow.workflow.blocks import CORRECTION_STORES, read_block
+from mmflow.workflow.blocks import read_block
 from mmflow.workflow.geometry import mmax_of, n_bins_of
 from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 
 def _prepare(ctx):
@@ -223,7 +223,7 @@ def _check_coverage(bin_weight, min_coverage, source, n_bins, split=None):
                         "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
 
 
-register(Stage("mmodes", ("mmode", "beam"), ("vis.zarr",) + CORRECTION_STORES, ("mmodes.zarr",), _prepare, _task,
-               counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
+STAGE = Stage("mmodes", ("mmode", "beam"), ("vis.zarr",), ("mmodes.zarr",), _prepare, _task,
+               reads_corrected=True, counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
                          "fits_with_prior"), files=prior_files,
-               description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk"))
+               description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk")

@@ -39,7 +39,7 @@ from mmflow.io.run_stores import MODEL_COLUMNS, models_store
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 DEFAULT_SIZE_ARCMIN = 3.0
 
@@ -84,7 +84,7 @@ def _read_rows(ctx, rows):
     parts = []
     for c in np.unique(rows // TIME_CHUNK):
         sel = rows[rows // TIME_CHUNK == c]
-        block = read_block(ctx, slice(int(sel[0]), int(sel[-1]) + 1), before="models")
+        block = read_block(ctx, slice(int(sel[0]), int(sel[-1]) + 1))
         k = sel - sel[0]
         parts.append((block.vis[k], block.weights[k], block.lst[k]))
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
@@ -145,7 +145,7 @@ def _task(ctx, key):
     return {"fits": 1, "iterations": int(res.nit), "improvement_db": float(10 * np.log10(res.fun / res_point["fun_start"]))}
 
 
-register(Stage("models", ("models", "peel.sources", "peel.model_sources", "peel.min_baseline_lambda", "beam"),
+STAGE = Stage("models", ("models", "peel.sources", "peel.model_sources", "peel.min_baseline_lambda", "beam"),
                ("vis.zarr", "gains.zarr"), ("models.zarr",), _prepare, _task, kind="solve",
                enabled=lambda cfg: cfg.models.enabled, counters=("fits",),
-               description="resolved source models (Gaussian components) fitted to the calibrated data"))
+               description="resolved source models (Gaussian components) fitted to the calibrated data")

@@ -9,7 +9,7 @@ import numpy as np
 from mmflow.io.run_stores import gram_name, m_blocks, normal_store
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.geometry import mmax_of
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 
 def _normal_prepare(ctx):
@@ -42,6 +42,6 @@ def _normal_task(ctx, key):
     return {"m": [m0, m1]}
 
 
-register(Stage("normal", ("mmode.lmax", "mmode.mmax", "transfer.m_block"), ("partials.zarr",), ("normal.zarr",),
+STAGE = Stage("normal", ("mmode.lmax", "mmode.mmax", "transfer.m_block"), ("partials.zarr",), ("normal.zarr",),
                _normal_prepare, _normal_task, kind="reduce",
-               description="sum partial normal equations over baseline groups (fixed-order tree), per m block"))
+               description="sum partial normal equations over baseline groups (fixed-order tree), per m block")

@@ -42,9 +42,8 @@ from mmflow.io.run_stores import peel_store
 from mmflow.workflow.baseline_cuts import check_baselines, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
-from mmflow.workflow.context import _parse
 from mmflow.workflow.peel_models import fitted_tables, peel_coherencies, peel_components
-from mmflow.workflow.stages.base import Stage, producer_of, register
+from mmflow.workflow.stages.base import Stage
 
 
 def _prepare(ctx):
@@ -57,7 +56,7 @@ def _prepare(ctx):
     # the models stage's fits replace the catalogue's point models when it is enabled: an input
     # whose producer's fingerprint then enters this stage's
     fitted = {}
-    if producer_of("models.zarr", _parse(ctx.config_json)) is not None:
+    if ctx.producer("models.zarr") is not None:
         fitted = fitted_tables(ctx.open("models.zarr"), names)
     ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
@@ -82,7 +81,7 @@ def _task(ctx, key):
     fkey, tkey = key.split("_")
     fi = int(fkey[1:])
     rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
-    block = read_block(ctx, rows, before="peel")
+    block = read_block(ctx, rows)
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
     lst = block.lst
@@ -155,7 +154,7 @@ def _apply(ctx, block):
         block.vis[:, :, fi] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
 
 
-register(Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
+STAGE = Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
                counters=("peeled", "guard_fired", "not_converged"),
-               description="peel (DD gains) or subtract bright sources per integration (applied on read)"))
+               description="peel (DD gains) or subtract bright sources per integration (applied on read)")

@@ -17,7 +17,7 @@ import numpy as np
 from mmflow.conventions import healpy_alm
 from mmflow.imaging.lcurve import lcurve_corner
 from mmflow.workflow.geometry import mmax_of
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 
 def frequency_tags(freqs_hz):
@@ -135,9 +135,9 @@ def _products_finalize(ctx):
     return {"maps": len(parts), "report": "maps/report.html", "report_missing": missing}
 
 
-register(Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
+STAGE = Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
                             "transfer.noise_weighting", "transfer.m_block", "clean", "peel.enabled"),
                ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr", "clean.zarr", "peel.zarr"), ("maps",),
                _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
-               "flux scale, spectral index, astrometry; HTML report"))
+               "flux scale, spectral index, astrometry; HTML report")

@@ -18,10 +18,10 @@ from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import utc_at_lsts
 from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
-from mmflow.workflow.context import _parse, build_telescope
+from mmflow.workflow.context import build_telescope
 from mmflow.workflow.data_stage import layout_attrs, write_autos
 from mmflow.workflow.geometry import n_integrations
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 def _sim_prepare(ctx):
     cfg = ctx.cfg
@@ -39,7 +39,7 @@ def _sim_prepare(ctx):
 
 
 @lru_cache(maxsize=2)
-def _skies(config_json):
+def _skies(ctx):
     """The telescope, the sky per frequency (without the DD-corrupted sources) and, when the
     simulation is corrupted, per frequency the whole day's corruptions and the DD sources."""
     from mmflow.calibrate.coherency import source_vector_date
@@ -47,7 +47,7 @@ def _skies(config_json):
     from mmflow.simulate.corrupt import day_corruptions
     from mmflow.sky.sources import get_sources, resolved
 
-    cfg = _parse(config_json)
+    cfg = ctx.cfg
     tel = build_telescope(cfg)
     s, c, o = cfg.sky, cfg.corrupt, cfg.observation
     dd = list(c.dd_sources) if c.enabled else []
@@ -77,7 +77,7 @@ def _sim_task(ctx, key):
     n = n_integrations(cfg)
     t0, t1 = chunk_rows(key, n)
     k = np.arange(t0, t1)
-    tel, skies, corrupted = _skies(ctx.config_json)
+    tel, skies, corrupted = _skies(ctx.for_stage(ctx.stage))  # cached per configuration (no ledger)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
     rng = np.random.default_rng([cfg.sky.seed, int(key[1:])]) if cfg.sky.noise else None  # fixed per chunk
     # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
@@ -99,7 +99,7 @@ def _sim_task(ctx, key):
     return {"integrations": int(len(k))}
 
 
-register(Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk"), (),
+STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk"), (),
                ("vis.zarr",), _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
                description="time-domain drift-scan simulation (independent of transfer matrices), "
-               "optionally corrupted (gains, DD effects, terrestrial signals)"))
+               "optionally corrupted (gains, DD effects, terrestrial signals)")

@@ -18,7 +18,7 @@ from mmflow.mmode.normal import hermitian_full
 from mmflow.threads import n_threads, single_threaded_blas
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.geometry import mmax_of
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 N_EPS = 200
 SOLVE_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer.m_block", "imaging", "products.frame")
@@ -86,5 +86,5 @@ def _prior_files(cfg):
     return [cfg.imaging.prior_map] if cfg.imaging.method == "prior" and cfg.imaging.prior_map else []
 
 
-register(Stage("solve", SOLVE_CONFIG, ("vis.zarr", "normal.zarr"), ("alm.zarr",), _solve_prepare, _solve_task,
-               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block"))
+STAGE = Stage("solve", SOLVE_CONFIG, ("vis.zarr", "normal.zarr"), ("alm.zarr",), _solve_prepare, _solve_task,
+               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block")

@@ -29,7 +29,7 @@ from mmflow.workflow.blocks import read_block
 from mmflow.workflow.peel_models import modelled_sources
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 
 def _time_keys(ctx):
@@ -57,7 +57,7 @@ def _task(ctx, key):
     phase, tkey = key.rpartition("-")[2].split("_")  # phase-2 keys carry their cycle's prefix
     k = int(tkey[1:])
     rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
-    block = read_block(ctx, rows, before="terrestrial")
+    block = read_block(ctx, rows)
     if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
         block.vis -= modelled_sources(ctx, block)
     g = ctx.open("terrestrial.zarr", mode="r+")
@@ -113,7 +113,7 @@ def _apply(ctx, block):
         block.vis[:, :, fi] = subtract_templates(block.vis[:, :, fi], _templates(ctx, fi, block.pairs), amps[:, fi])
 
 
-register(Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
+STAGE = Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
                _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
                enabled=lambda cfg: cfg.terrestrial.enabled,
-               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration"))
+               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration")

@@ -19,7 +19,7 @@ from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
 from mmflow.workflow.geometry import mmax_of
-from mmflow.workflow.stages.base import Stage, register
+from mmflow.workflow.stages.base import Stage
 
 TRANSFER_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer", "beam")
 
@@ -115,6 +115,6 @@ def _block_writer(ctx, fi, chunks, bc):
     return write
 
 
-register(Stage("transfer", TRANSFER_CONFIG, ("vis.zarr", "mmodes.zarr"), ("partials.zarr", "transfer.zarr"),
+STAGE = Stage("transfer", TRANSFER_CONFIG, ("vis.zarr", "mmodes.zarr"), ("partials.zarr", "transfer.zarr"),
                _transfer_prepare, _transfer_task,
-               description="transfer blocks + herk into partial normal equations per fixed baseline group"))
+               description="transfer blocks + herk into partial normal equations per fixed baseline group")

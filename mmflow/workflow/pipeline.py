@@ -1,0 +1,104 @@
+"""The pipeline: the stages of a run, in order, in one list.
+
+Everything that depends on the order derives from :data:`PIPELINE`: the runner's loop, the
+``mmflow <stage>`` subcommands, the planner, the corrections a stage's reads apply
+(:meth:`mmflow.workflow.stages.base.Stage.corrections`: the enabled solve-then-apply stages
+before it) and the correction stores a ``reads_corrected`` stage declares as inputs. Tests
+build their own :class:`Pipeline` (a toy stage in place of one) and pass it to
+:func:`mmflow.workflow.runner.run_workflow`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel, products, simulate,
+                                    solve, terrestrial, transfer)
+
+_NAMED = {}
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """Stages in run order, each knowing the stages before it (``Stage.upstream``).
+
+    Build with :meth:`of`; a pipeline registered under a name (:func:`register`) pickles as that
+    name, so dask tasks carry a reference rather than every stage's functions.
+    """
+
+    stages: tuple
+    name: str = None
+
+    @classmethod
+    def of(cls, *stages, name=None):
+        """The pipeline of ``stages`` in this order: each gets its ``upstream`` (the stages before it),
+        and a ``reads_corrected`` stage the outputs of the solve-then-apply stages before it as inputs."""
+        names = [s.name for s in stages]
+        if len(set(names)) != len(names):
+            raise ValueError(f"a stage appears twice in the pipeline {names}")
+        built = []
+        for s in stages:
+            up = tuple(built)
+            inputs = s.inputs
+            if s.reads_corrected:
+                inputs += tuple(o for u in up if u.kind == "solve" and u.apply is not None for o in u.outputs
+                                if o not in inputs)
+            built.append(replace(s, upstream=up, inputs=inputs))
+        return cls(tuple(built), name)
+
+    def replace(self, *stages):
+        """A new (unnamed) pipeline with ``stages`` in place of the stages of the same names."""
+        new = {s.name: s for s in stages}
+        unknown = set(new) - set(self.names)
+        if unknown:
+            raise KeyError(f"no stage {sorted(unknown)} in the pipeline")
+        return Pipeline.of(*(new.get(s.name, s) for s in self.stages))
+
+    @property
+    def names(self):
+        return tuple(s.name for s in self.stages)
+
+    def __iter__(self):
+        return iter(self.stages)
+
+    def __len__(self):
+        return len(self.stages)
+
+    def stage(self, name):
+        """The stage called ``name``."""
+        for s in self.stages:
+            if s.name == name:
+                return s
+        raise KeyError(f"no stage '{name}' in the pipeline (stages: {', '.join(self.names)})")
+
+    def producer_of(self, store, cfg):
+        """The enabled stage that writes ``store`` (None if none is enabled)."""
+        for s in self.stages:
+            if store in s.outputs and s.enabled(cfg):
+                return s
+        return None
+
+    def __reduce__(self):
+        if self.name is not None and _NAMED.get(self.name) is self:
+            return named, (self.name,)
+        return Pipeline, (self.stages, None)
+
+
+def register(pipeline, name):
+    """Register ``pipeline`` under ``name`` (it then pickles as a reference to the name)."""
+    p = Pipeline(pipeline.stages, name)
+    _NAMED[name] = p
+    return p
+
+
+def named(name):
+    """The pipeline registered under ``name``."""
+    return _NAMED[name]
+
+
+#: the stages of an mmflow run, in order
+PIPELINE = register(Pipeline.of(simulate.STAGE, ingest.STAGE, calibrate.STAGE, models.STAGE, peel.STAGE,
+                                terrestrial.STAGE, mmodes.STAGE, transfer.STAGE, normal.STAGE, solve.STAGE,
+                                clean.STAGE, products.STAGE), "mmflow")
+
+#: the stage names in run order
+ORDER = PIPELINE.names
