@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import zarr
 
+from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
@@ -69,7 +70,7 @@ def _truth(cfg):
 def _state(run_dir, cfg):
     g = zarr.open_group(str(run_dir / "clean.zarr"), mode="r")
     state, reason = cs.clean_result(g, 0, cs.clean_options(cfg.clean), int(g["n_cycles"][0]))
-    blocks = cs.m_blocks(LMAX, cfg.transfer.m_block)
+    blocks = m_blocks(LMAX, cfg.transfer.m_block)
     state.residual_alm = cs.residual_alm(g, 0, state.cycle, LMAX, blocks)
     return g, state, reason, blocks
 
@@ -149,7 +150,7 @@ def test_stored_factors_and_refactorising_give_the_same_bits(noiseless, tmp_path
     assert n == int(b["n_cycles"][0]) > 3
     for name in ("components", "peaks"):
         np.testing.assert_array_equal(a[name][0, :n], b[name][0, :n])
-    for m0, _ in cs.m_blocks(LMAX, cfg.transfer.m_block):
+    for m0, _ in m_blocks(LMAX, cfg.transfer.m_block):
         np.testing.assert_array_equal(a[f"f0/residual_b{m0:05d}"][: n + 1], b[f"f0/residual_b{m0:05d}"][: n + 1])
 
 

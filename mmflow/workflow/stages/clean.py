@@ -24,12 +24,12 @@ import time
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm, n_alm
+from mmflow.conventions import healpy_alm, m_block_slice, m_blocks, n_alm
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
-from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, gram_name, m_blocks
+from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, gram_name
 from mmflow.workflow.geometry import mmax_of, split_fractions
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage, register
@@ -217,7 +217,7 @@ def cycle_block(residual_block, rows, ops, lmax, m0, m1, weights=None):
     """
     vecs, flux = cycle_components(rows)
     t0 = time.perf_counter()
-    x = ck.component_alm(vecs, flux, lmax, m1)[psf.block_range(lmax, m0, m1)]
+    x = ck.component_alm(vecs, flux, lmax, m1)[m_block_slice(lmax, m0, m1)]
     t1 = time.perf_counter()
     new = ck.observe_and_subtract(residual_block, x, ops, lmax, m0, m1, weights)
     return new, {"components": t1 - t0, "observe": time.perf_counter() - t1}
@@ -236,7 +236,7 @@ def residual_alm(g, fi, cycle, lmax, blocks):
     """The full healpy-layout residual alm at the start of ``cycle`` (zero for m beyond mmax)."""
     out = np.zeros(n_alm(lmax), np.complex128)
     for m0, m1 in blocks:
-        out[psf.block_range(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
+        out[m_block_slice(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
     return out
 
 
@@ -245,7 +245,7 @@ def psf_alm_columns(g, fi, lmax, blocks):
     parts = {m0: g[f"f{fi}/psf_b{m0:05d}"][...] for m0, _ in blocks}
     out = np.zeros((n_alm(lmax), next(iter(parts.values())).shape[1]), np.complex128)
     for m0, m1 in blocks:
-        out[psf.block_range(lmax, m0, m1)] = parts[m0]
+        out[m_block_slice(lmax, m0, m1)] = parts[m0]
     return out
 
 
