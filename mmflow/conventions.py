@@ -89,9 +89,26 @@ def n_alm(lmax):
 
 
 def m_slice(lmax, m):
-    """Slice of the healpy alm vector holding ``a_lm`` for ``l = m..lmax``."""
-    start = alm_index(lmax, m, m)
-    return slice(start, start + lmax - m + 1)
+    """Slice of the healpy alm vector holding ``a_lm`` for ``l = m..lmax``: the one-m block
+    :func:`m_block_slice` ``(lmax, m, m + 1)``."""
+    return m_block_slice(lmax, m, m + 1)
+
+
+def m_blocks(mmax, m_block):
+    """The m blocks ``[(m0, m1), ...]`` covering ``m = 0..mmax``: ``m0 = 0, b, 2b, ... <= mmax``,
+    ``m1 = min(m0 + b, mmax + 1)`` with ``b = m_block`` (the last block may be shorter)."""
+    return [(m0, min(mmax + 1, m0 + m_block)) for m0 in range(0, mmax + 1, m_block)]
+
+
+def m_block_slice(lmax, m_start, m_stop):
+    """Slice of the healpy alm vector holding every ``a_lm`` with ``m_start <= m < m_stop``.
+
+    The layout is m-major, so a block of m is contiguous:
+    ``[alm_index(lmax, m_start, m_start), alm_index(lmax, m_stop, m_stop))``, the stop clipped to
+    ``n_alm(lmax)`` for ``m_stop > lmax``. Its length is the block's number of ``a_lm``.
+    """
+    stop = n_alm(lmax) if m_stop > lmax else alm_index(lmax, m_stop, m_stop)
+    return slice(alm_index(lmax, m_start, m_start), stop)
 
 
 def healpy_alm(alm_ml, lmax, mmax=None):

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from mmflow.machine import gemm_gflops, machine
-from mmflow.conventions import m_slice, radec_to_vec
+from mmflow.conventions import m_block_slice, m_blocks, m_slice, radec_to_vec
 from mmflow.imaging import clean, psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
@@ -61,8 +61,8 @@ def build_operators(lmax, eps, l_scale):
 
     ops, secs, cpu, flops = {}, 0.0, 0.0, 0.0
     batch = 2 * n_threads()
-    for m0 in range(0, lmax + 1, batch):  # Grams made outside the timing, a few at a time
-        ms = range(m0, min(m0 + batch, lmax + 1))
+    for m0, m1 in m_blocks(lmax, batch):  # Grams made outside the timing, a few at a time
+        ms = range(m0, m1)
         grams.update({m: synthetic_gram(m, lmax, l_scale) for m in ms})
         t0, c0 = time.perf_counter(), time.process_time()
         ops.update(zip(ms, psf.map_blocks(one, ms)))
@@ -135,7 +135,7 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
 
     import zarr
 
-    from mmflow.io.run_stores import m_blocks
+    from mmflow.conventions import m_blocks
     from mmflow.workflow import clean_state as clean_stage
 
     blocks = m_blocks(lmax, m_block)
@@ -163,7 +163,7 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
             bops = clean_stage.operators_from_factors(chol, keeps, ops[m0].eps, lmax, m0, m1,
                                                       full_gram)
             t_c = time.perf_counter()
-            new, tb = clean_stage.cycle_block(dirty[psf.block_range(lmax, m0, m1)], rows, bops, lmax, m0, m1)
+            new, tb = clean_stage.cycle_block(dirty[m_block_slice(lmax, m0, m1)], rows, bops, lmax, m0, m1)
             return new, {"read_factors": t_b - t_a, "operators": t_c - t_b, **tb}
 
         t0 = time.perf_counter()

@@ -177,7 +177,7 @@ class PeelResult:
     offsets: np.ndarray
 
 
-def interval_index(n_time, n_pol, solint):
+def solution_intervals(n_time, n_pol, solint):
     """Solution indices ``t * n_pol + p`` of each DD solution interval, grouped by interval length.
 
     Interval ``k`` holds integrations ``k solint .. (k + 1) solint - 1`` of one polarisation (the
@@ -227,7 +227,7 @@ def _solve_interval_gains(R, M, W, peel, p, amp, intervals, tol, max_iter, dampi
 
 
 def _interval_groups(intervals, S):
-    """Group id per solution (S,) of :func:`interval_index`'s intervals (None: each its own)."""
+    """Group id per solution (S,) of :func:`solution_intervals`'s intervals (None: each its own)."""
     groups = np.arange(S)
     for idx in intervals or ():
         groups[idx] = idx[:, :1]
@@ -248,7 +248,7 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     g0 : ndarray (n_src, S, N), optional warm start for the DD gains
     passes, tol, max_iter, damping : outer passes; Stefcal tolerance, iterations, damping
     guard : float or None: the fraction of the measured flux peeling must remove
-    intervals : list of int arrays (n_interval, K), optional (:func:`interval_index`)
+    intervals : list of int arrays (n_interval, K), optional (:func:`solution_intervals`)
         DD solution intervals: the peeled sources' gains are ``sqrt(a_s(t)) p_s`` with ``p_s``
         shared by the solutions of an interval and a real amplitude ``a_s(t)`` per solution
         (:func:`_solve_interval_gains`). Default: every solution its own gains (K = 1).
@@ -574,7 +574,7 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
         if last is not None:
             start = np.broadcast_to(last[:, None], (n_src, nb) + last.shape[1:])
             start = start.reshape((n_src, nb * P) + last.shape[2:])
-        intervals = interval_index(nb, P, solint) if solint > 1 else None
+        intervals = solution_intervals(nb, P, solint) if solint > 1 else None
         kw = dict(passes=passes, tol=tol, max_iter=max_iter, guard=guard, damping=damping, threads=threads,
                   intervals=intervals)
         if screen:

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import healpy
 import numpy as np
 
-from mmflow.conventions import alm_index, n_alm
+from mmflow.conventions import m_block_slice, m_blocks, n_alm
 from mmflow.imaging import psf as psf_mod
 from mmflow.imaging.maps import default_nside
 from mmflow.imaging.solvers import solve_alm
@@ -152,18 +152,13 @@ def component_fluxes(vecs, values, table, gain):
     return gain * values / psf_mod.interp_table(table, dec, "peak")
 
 
-def m_block_slice(lmax, m_start, m_stop):
-    """Slice of the healpy alm vector holding every ``a_lm`` with ``m_start <= m < m_stop``."""
-    return psf_mod.block_range(lmax, m_start, m_stop)
-
-
 def observe_and_subtract(residual_block, component_block, ops, lmax, m_start, m_stop, weights=None):
     """The per-m-block kernel: ``residual_m - observe_m(x_m)`` for ``m_start <= m < m_stop``.
 
-    ``residual_block`` and ``component_block`` are the :func:`m_block_slice` of the residual
-    alm and of the components' alm; ``ops`` maps m to :class:`psf.BlockOperator` (m without
-    an operator are left unchanged: no data constrain them). ``weights`` (over l = 0..lmax):
-    subtract ``w_l observe(x)`` instead (a high-pass CLEAN). Returns a new array.
+    ``residual_block`` and ``component_block`` are the :func:`mmflow.conventions.m_block_slice`
+    of the residual alm and of the components' alm; ``ops`` maps m to :class:`psf.BlockOperator`
+    (m without an operator are left unchanged: no data constrain them). ``weights`` (over
+    l = 0..lmax): subtract ``w_l observe(x)`` instead (a high-pass CLEAN). Returns a new array.
     """
     return np.asarray(residual_block, np.complex128) - psf_mod.observe_range(ops, component_block, lmax, m_start,
                                                                              m_stop, weights)
@@ -306,7 +301,7 @@ def component_alm(vecs, fluxes, lmax, m_stop=None):
     """``x = sum_i c_i conj(Y_lm(r_i))`` for ``m < m_stop`` (default all m; healpy layout up to it)."""
     mmax = lmax if m_stop is None else min(lmax, m_stop - 1)
     if len(fluxes) == 0:
-        return np.zeros(n_alm(lmax) if mmax == lmax else alm_index(lmax, mmax + 1, mmax + 1), np.complex128)
+        return np.zeros(m_block_slice(lmax, 0, mmax + 1).stop, np.complex128)
     return point_sources_alm(vecs, fluxes, lmax, mmax)
 
 
@@ -324,10 +319,9 @@ def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, 
     t["components"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     resid = state.residual_alm.copy()
-    step = m_block or lmax + 1
-    for m0 in range(0, lmax + 1, step):
-        sl = m_block_slice(lmax, m0, m0 + step)
-        resid[sl] = observe_and_subtract(resid[sl], x[sl], ops, lmax, m0, m0 + step, weights)
+    for m0, m1 in m_blocks(lmax, m_block or lmax + 1):
+        sl = m_block_slice(lmax, m0, m1)
+        resid[sl] = observe_and_subtract(resid[sl], x[sl], ops, lmax, m0, m1, weights)
     t["observe"] = time.perf_counter() - t0
     return state.advance(resid, vecs, flux, peak), t
 

@@ -4,7 +4,7 @@ Split the sidereal grid ``phi_n = 2 pi n / N`` into its even (``n = 2k``) and od
 (``n = 2k + 1``) bins. Each half is an ``N/2``-bin grid; the odd half sits half a bin of the
 new grid away from ``2 pi k / (N/2)``, so its m-modes carry the phase
 ``exp(-i m 2 pi / N)``: they are transformed at their true angles
-(``phi = 2 pi (2k + p) / N + offset``, :func:`half_mmodes`), never as if they sat on the
+(``phi = 2 pi (2k + p) / N + offset``, :func:`mmflow.mmode.transform.split_bins`), never as if they sat on the
 half grid. With the true angles every half measures the same sky m-modes (for
 ``m < N/2 - mmax_sky``), and ``V_m(all) = (V_m(even) + V_m(odd)) / 2`` exactly.
 
@@ -29,37 +29,33 @@ import numpy as np
 from mmflow.errors import InputError
 from mmflow.imaging.psf import gaussian_solid_angle, interp_table
 from mmflow.mmode.splits import day_splits
-from mmflow.mmode.transform import mmode_transform
+from mmflow.mmode.transform import split_mmode_transform
 from mmflow.sky import units
 
 
-def half_mmodes(binned, mmax, parity, offset=None):
-    """m-modes of the even (``parity = 0``) or odd (1) bins of an N-bin sidereal grid.
+def split_mmodes(binned, mmax, offset=None):
+    """``{"all", "even", "odd"}`` m-modes of one sidereal grid (the data-split axis).
+
+    The ``full``, ``even`` and ``odd`` splits of :func:`mmflow.mmode.transform.split_mmode_transform`:
+    the even / odd bins ``n = 2k + p`` transformed at their true angles
+    ``phi = 2 pi (2k + p) / N + offset_n``.
 
     Parameters
     ----------
     binned : ndarray (N, ...)
-        Sidereally binned data on ``phi_n = 2 pi n / N (+ offset_n)``.
+        Sidereally binned data on ``phi_n = 2 pi n / N (+ offset_n)``; N even, ``N / 2 >= 2 mmax + 1``.
     offset : ndarray (N,), optional
         Per-bin offsets from :func:`mmflow.mmode.transform.sidereal_bins`.
 
     Returns
     -------
-    ndarray (mmax + 1, 2, ...), as :func:`mmflow.mmode.transform.mmode_transform`.
+    dict of ndarray (mmax + 1, 2, ...), as :func:`mmflow.mmode.transform.mmode_transform`.
     """
     n = binned.shape[0]
     if n % 2 or n // 2 < 2 * mmax + 1:
         raise InputError("jackknife", "n_bins", f"{n} sidereal bins cannot be halved for mmax={mmax}",
                          f"use an even number of bins >= {2 * (2 * mmax + 1)}")
-    off = np.zeros(n) if offset is None else np.asarray(offset, float)
-    shift = 2 * np.pi * parity / n + off[parity::2]
-    return mmode_transform(binned[parity::2], mmax, offset=shift)
-
-
-def split_mmodes(binned, mmax, offset=None):
-    """``{"all", "even", "odd"}`` m-modes of one sidereal grid (the data-split axis)."""
-    return {"all": mmode_transform(binned, mmax, offset=offset),
-            "even": half_mmodes(binned, mmax, 0, offset), "odd": half_mmodes(binned, mmax, 1, offset)}
+    return dict(zip(("all", "even", "odd"), split_mmode_transform(binned, mmax, offset, ("full", "even", "odd"))))
 
 
 def jackknife_variance(map_all, map_even, map_odd, mask=None):

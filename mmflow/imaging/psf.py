@@ -28,7 +28,7 @@ import healpy
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.conventions import alm_index, radec_to_vec
+from mmflow.conventions import alm_index, m_block_slice, radec_to_vec
 from mmflow.imaging.filters import filter_mask
 from mmflow.errors import InputError
 from mmflow.sky.frames import tangent_basis
@@ -156,15 +156,8 @@ def observe_alm(ops, alm, lmax):
     return observe_range(ops, alm, lmax, 0, lmax + 1)
 
 
-def block_range(lmax, m_start, m_stop):
-    """Slice of the healpy alm vector holding every ``a_lm`` with ``m_start <= m < m_stop``
-    (the layout is m-major, so a block of m is contiguous)."""
-    stop = (lmax + 1) * (lmax + 2) // 2 if m_stop > lmax else alm_index(lmax, m_stop, m_stop)
-    return slice(alm_index(lmax, m_start, m_start), stop)
-
-
 def observe_range(ops, x_block, lmax, m_start, m_stop, weights=None):
-    """Observe the ``m_start <= m < m_stop`` part of an alm (:func:`block_range` of it).
+    """Observe the ``m_start <= m < m_stop`` part of an alm (:func:`mmflow.conventions.m_block_slice` of it).
 
     ``x_block`` (n,) or (n, k) columns; m without an operator observe to zero (no data
     constrain them); ``weights`` (over l = 0..lmax) multiply the result (a high-pass CLEAN's
@@ -205,7 +198,8 @@ def psf_alm(ops, lmax, vecs):
 
 
 def psf_columns(ops, lmax, vecs, m_start=0, m_stop=None, weights=None, batch=16):
-    """The ``m_start <= m < m_stop`` part (:func:`block_range`) of the PSFs at ``vecs``, ``(n, k)``.
+    """The ``m_start <= m < m_stop`` part of the PSFs at ``vecs``, ``(n, k)`` (rows: the
+    :func:`mmflow.conventions.m_block_slice` of the healpy alm vector).
 
     Observed ``batch`` columns at a time; ``weights``: the PSF of a high-pass CLEAN,
     ``H observe(a_PS)``. The workflow's m-block tasks call this per block; :func:`psf_table`
@@ -213,7 +207,7 @@ def psf_columns(ops, lmax, vecs, m_start=0, m_stop=None, weights=None, batch=16)
     """
     m_stop = lmax + 1 if m_stop is None else m_stop
     vecs = np.atleast_2d(np.asarray(vecs, float))
-    sl = block_range(lmax, m_start, m_stop)
+    sl = m_block_slice(lmax, m_start, m_stop)
     out = np.zeros((sl.stop - sl.start, len(vecs)), np.complex128)
     for s in range(0, len(vecs), batch):
         cols = point_columns(vecs[s:s + batch], lmax, m_stop)[sl]

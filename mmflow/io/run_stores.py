@@ -28,13 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import alm_index
+from mmflow.conventions import m_block_slice, m_blocks
 from mmflow.io.stores import ArraySpec, StoreSpec
-
-
-def m_blocks(mmax, m_block):
-    """``[(m0, m1), ...]`` covering ``0..mmax`` in blocks of ``m_block``."""
-    return [(m0, min(mmax + 1, m0 + m_block)) for m0 in range(0, mmax + 1, m_block)]
 
 
 def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk):
@@ -210,12 +205,6 @@ CLEAN_STOPS = ("threshold", "rel_threshold", "stall", "max_cycles")  # codes of 
 NOISE_FIELDS = ("jy_per_sr", "kelvin", "mjy_per_beam", "beam_solid_angle_sr")  # columns of clean.zarr's ``noise``
 
 
-def alm_block_len(lmax, m0, m1):
-    """Number of healpy-layout ``a_lm`` with ``m0 <= m < m1`` (a contiguous run of the vector)."""
-    stop = (lmax + 1) * (lmax + 2) // 2 if m1 > lmax else alm_index(lmax, m1, m1)
-    return stop - alm_index(lmax, m0, m0)
-
-
 def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_factors):
     """``clean.zarr``: the CLEAN stage's factors, PSFs, per-cycle state and results.
 
@@ -234,7 +223,8 @@ def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
-            n, k = lmax - m0 + 1, alm_block_len(lmax, m0, m1)
+            sl = m_block_slice(lmax, m0, m1)
+            n, k = lmax - m0 + 1, sl.stop - sl.start
             if keep_factors:
                 arrays.append(ArraySpec(f"f{fi}/chol_b{m0:05d}", ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
                                         "complex128"))

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import ducc0
 import numpy as np
 
-from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.conventions import enu_to_equatorial_matrix, m_blocks, unit_vectors
 from mmflow.mmode.fringe_kernels import fringe_folds
 from mmflow.mmode.legendre import weighted_legendre_table
 from mmflow.threads import n_threads, single_threaded_blas
@@ -212,7 +212,7 @@ def transfer_pass(grid, b_wavelengths, consume, lmax_b=None, mmax=None, dtype=np
     threads = n_threads()
     # consecutive m per task: small blocks in larger tasks keep the hand-over small next to the work
     per_task = max(1, 2048 // (lrows + 1))
-    tasks = [range(m0, min(m0 + per_task, mmax + 1)) for m0 in range(0, mmax + 1, per_task)]
+    tasks = [range(m0, m1) for m0, m1 in m_blocks(mmax, per_task)]
 
     def run(ms):
         tim = {}

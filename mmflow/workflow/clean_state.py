@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm, n_alm
+from mmflow.conventions import healpy_alm, m_block_slice, n_alm
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
@@ -127,7 +127,7 @@ def cycle_block(residual_block, rows, ops, lmax, m0, m1, weights=None):
     """
     vecs, flux = cycle_components(rows)
     t0 = time.perf_counter()
-    x = ck.component_alm(vecs, flux, lmax, m1)[psf.block_range(lmax, m0, m1)]
+    x = ck.component_alm(vecs, flux, lmax, m1)[m_block_slice(lmax, m0, m1)]
     t1 = time.perf_counter()
     new = ck.observe_and_subtract(residual_block, x, ops, lmax, m0, m1, weights)
     return new, {"components": t1 - t0, "observe": time.perf_counter() - t1}
@@ -144,7 +144,7 @@ def residual_alm(g, fi, cycle, lmax, blocks):
     """The full healpy-layout residual alm at the start of ``cycle`` (zero for m beyond mmax)."""
     out = np.zeros(n_alm(lmax), np.complex128)
     for m0, m1 in blocks:
-        out[psf.block_range(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
+        out[m_block_slice(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
     return out
 
 
@@ -153,7 +153,7 @@ def psf_alm_columns(g, fi, lmax, blocks):
     parts = {m0: g[f"f{fi}/psf_b{m0:05d}"][...] for m0, _ in blocks}
     out = np.zeros((n_alm(lmax), next(iter(parts.values())).shape[1]), np.complex128)
     for m0, m1 in blocks:
-        out[psf.block_range(lmax, m0, m1)] = parts[m0]
+        out[m_block_slice(lmax, m0, m1)] = parts[m0]
     return out
 
 

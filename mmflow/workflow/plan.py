@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mmflow.conventions import m_blocks
 from mmflow.imaging.maps import default_nside
 from mmflow.io import run_stores as rs
 from mmflow.workflow.chunking import TIME_CHUNK
@@ -119,7 +120,7 @@ def _gram_work(lmax_c, mmax):
 
 def _block_sum(lmax, mmax, m_block, power):
     """Largest ``sum_{m in block} (lmax - m + 1)^power`` over the m blocks (the first block)."""
-    return max(float(sum((lmax - m + 1) ** power for m in range(m0, m1))) for m0, m1 in rs.m_blocks(mmax, m_block))
+    return max(float(sum((lmax - m + 1) ** power for m in range(m0, m1))) for m0, m1 in m_blocks(mmax, m_block))
 
 
 def stage_work(stage, g, cfg):
@@ -165,7 +166,7 @@ def stage_work(stage, g, cfg):
             out.append(rs.transfer_store(g.n_freq, g.n_bl, g.lmax, g.mmax, cfg.transfer.baseline_chunk,
                                          g.gram_dtype, [np.zeros(g.n_bl, int)] * g.n_freq))
         return sum(len(u) for u in g.transfer_units), gram, per_group, out
-    n_mb = len(rs.m_blocks(g.mmax, g.m_block))
+    n_mb = len(m_blocks(g.mmax, g.m_block))
     blk2 = _block_sum(g.lmax, g.mmax, g.m_block, 2)
     if stage == "normal":
         spec = rs.normal_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split, g.gram_dtype)

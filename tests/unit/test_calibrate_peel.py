@@ -151,7 +151,7 @@ def test_interval_dd_gains_fit_a_screen_shared_over_the_interval_with_amplitude_
     phase and ``a(t)``; the per-integration fit is exact too but spends 4x the parameters, so it
     absorbs more of an unmodelled faint source (measured here: the faint source's flux removed
     along its own fringe)."""
-    from mmflow.calibrate.peel import interval_index
+    from mmflow.calibrate.peel import solution_intervals
 
     N, T = 32, 8
     x = random_array(rng, N)
@@ -165,7 +165,7 @@ def test_interval_dd_gains_fit_a_screen_shared_over_the_interval_with_amplitude_
     h = np.sqrt(a)[:, None] * p[np.arange(T) // 4]  # intervals of 4 integrations
     V = np.einsum("ti,tij,tj->tij", h, M[0], np.conj(h))
     W = cross_weights(T, N)
-    intervals = interval_index(T, 1, 4)
+    intervals = solution_intervals(T, 1, 4)
     assert [i.tolist() for i in intervals] == [[[0, 1, 2, 3], [4, 5, 6, 7]]]
     r = peel_dense(V, M, W, np.full((1, T), PEEL), passes=20, tol=1e-13, max_iter=3000, intervals=intervals)
     assert np.linalg.norm(r.residual * W) < 1e-6 * np.linalg.norm(V * W)
@@ -215,7 +215,7 @@ def test_screen_model_shared_offset_over_intervals_with_amplitude_per_integratio
     the amplitude per integration; the fit is exact and recovers both, and the per-integration
     screen recovers them too."""
     from mmflow.calibrate.dd_screen import screen_basis, screen_gains
-    from mmflow.calibrate.peel import interval_index
+    from mmflow.calibrate.peel import solution_intervals
 
     N, T = 32, 8
     x = random_array(rng, N)
@@ -233,7 +233,7 @@ def test_screen_model_shared_offset_over_intervals_with_amplitude_per_integratio
     V = np.einsum("ti,tij,tj->tij", h, M[0], np.conj(h))
     W = cross_weights(T, N)
     print(f"largest phase across the array: {np.abs(np.einsum('tak,tk->ta', basis[0], theta)).max():.2f} rad")
-    for intervals in (interval_index(T, 1, 4), None):
+    for intervals in (solution_intervals(T, 1, 4), None):
         r = peel_dense(V, M, W, np.full((1, T), PEEL), passes=3, tol=1e-12, max_iter=100, intervals=intervals,
                        screen_basis=basis)
         assert np.linalg.norm(r.residual * W) < 1e-9 * np.linalg.norm(V * W)

@@ -21,7 +21,7 @@ def test_half_grids_measure_the_same_mmodes_with_the_half_bin_phase(blocks):
     naive = mmode_transform(v[1::2], LMAX)  # the odd half as if it sat on the half grid: wrong
     assert np.abs(naive - split["all"]).max() > 0.1 * scale
     with pytest.raises(ValueError, match="cannot be halved"):
-        jackknife.half_mmodes(v[:2 * LMAX], LMAX, 1)
+        jackknife.split_mmodes(v[:2 * LMAX], LMAX)
 
 
 def test_jackknife_noise_matches_a_monte_carlo_of_the_map_noise(blocks, small_telescope):

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 import zarr
 
+from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
-from mmflow.io.run_stores import m_blocks
 from mmflow.mmode.normal import hermitian_full
 from mmflow.workflow import clean_state as cs
 from mmflow.workflow.context import build_telescope

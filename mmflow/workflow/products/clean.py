@@ -27,10 +27,11 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.analysis import table1
+from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.jackknife import day_night_difference, noise_realisation
-from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, m_blocks
+from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map
 from mmflow.sky.frames import rotate_alm

@@ -54,8 +54,7 @@ def seen_sources(names, icrs_to_date, dec_min_rad, exclude=()):
 def psf_at(ctx, fi, vecs_date):
     """PSF alm columns ``(n_alm, n_src)`` (frame of date, Jy/sr per Jy) of sources at ``vecs_date``,
     one m block at a time (one block's operators in memory)."""
-    from mmflow.conventions import n_alm
-    from mmflow.io.run_stores import m_blocks
+    from mmflow.conventions import m_block_slice, m_blocks, n_alm
     from mmflow.workflow import clean_state as cs
     from mmflow.workflow.geometry import mmax_of
 
@@ -65,7 +64,7 @@ def psf_at(ctx, fi, vecs_date):
     out = np.zeros((n_alm(lmax), len(vecs_date)), np.complex128)
     for m0, m1 in m_blocks(mmax_of(cfg), cfg.transfer.m_block):
         ops = cs.stored_operators(ctx, fi, m0, m1) if stored else cs.block_operators_from_gram(ctx, fi, m0, m1)
-        out[psf.block_range(lmax, m0, m1)] = psf.psf_columns(ops, lmax, vecs_date, m0, m1)
+        out[m_block_slice(lmax, m0, m1)] = psf.psf_columns(ops, lmax, vecs_date, m0, m1)
     return out
 
 

@@ -24,9 +24,10 @@ import time
 
 import numpy as np
 
+from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
-from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store, m_blocks
+from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store
 from mmflow.workflow.clean_state import (active, block_operators_from_gram, clean_nside, clean_options, clean_result,
                                          clean_table, cycle_block, factors_of, highpass, jackknife_sigma,
                                          jackknife_splits, psf_alm_columns, psf_decs_deg, residual_alm, split_alm,

@@ -35,7 +35,7 @@ from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, \
     sun_elevation_deg
-from mmflow.mmode.transform import sidereal_bins
+from mmflow.mmode.transform import sidereal_bins, split_bins
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.geometry import mmax_of, n_bins_of
 from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
@@ -157,10 +157,10 @@ def _task(ctx, key):
 
 def _count(bin_weight, split):
     """Unflagged samples per baseline of ``split`` from the summed 0/1 weights of the bins it was
-    fitted from: all bins, or the even / odd ones for a bin parity."""
-    kind, _ = split_kind(split)
-    sel = slice(None) if kind != "parity" else slice(0 if split == "even" else 1, None, 2)
-    return np.rint(bin_weight[sel].sum(axis=0)).astype(np.int64)
+    fitted from: all bins, or the even / odd ones for a bin parity (the rows of
+    :func:`mmflow.mmode.transform.split_bins`)."""
+    rows = slice(None) if is_time_split(split) else split_bins(len(bin_weight), None, [split])[0][0]
+    return np.rint(bin_weight[rows].sum(axis=0)).astype(np.int64)
 
 
 class _PriorModel:

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.io.run_stores import gram_name, m_blocks, normal_store
+from mmflow.conventions import m_blocks
+from mmflow.io.run_stores import gram_name, normal_store
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage

@@ -10,10 +10,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from mmflow.conventions import m_slice
+from mmflow.conventions import m_blocks, m_slice
 from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
-from mmflow.io.run_stores import alm_store, gram_name, m_blocks
+from mmflow.io.run_stores import alm_store, gram_name
 from mmflow.mmode.normal import hermitian_full
 from mmflow.threads import n_threads, single_threaded_blas
 from mmflow.workflow.kernel_args import m_filters

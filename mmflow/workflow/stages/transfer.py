@@ -14,7 +14,8 @@ import time
 
 import numpy as np
 
-from mmflow.io.run_stores import gram_name, m_blocks, partials_store, transfer_store
+from mmflow.conventions import m_blocks
+from mmflow.io.run_stores import gram_name, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
