@@ -36,11 +36,12 @@ bench: $(STAMP)
 	$(VENV)/bin/mmflow bench transfer
 	$(VENV)/bin/mmflow bench solve
 
-## Regenerate docs/configuration.md from the schema
+## Regenerate docs/configuration.md from the schema and docs/stores.md from the declared stores
 docs: $(STAMP)
 	{ echo '# Configuration reference'; echo; \
 	  echo 'Every workflow YAML is validated against one schema. This page is `mmflow config show` (regenerate with `make docs`; a test keeps it in sync). Override any key on the command line with `section.key=value` (YAML syntax for the value; `beam={type: pyuvdata, file: beam.fits}` replaces a whole section).'; \
 	  echo; echo '```yaml'; $(VENV)/bin/mmflow config show; echo '```'; } > docs/configuration.md
+	$(VENV)/bin/mmflow stores show > docs/stores.md
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -1,4 +1,4 @@
-"""``mmflow`` command line: run workflows, single stages, status, verify, config and benchmarks."""
+"""``mmflow`` command line: run workflows, single stages, status, verify, config, stores and benchmarks."""
 from __future__ import annotations
 
 import argparse
@@ -46,6 +46,8 @@ def build_parser():
     cf = sub.add_parser("config", help="show the schema or write a starting workflow")
     cf.add_argument("action", choices=("show", "init"))
     cf.add_argument("path", nargs="?", help="for init: where to write the YAML")
+    so = sub.add_parser("stores", help="the zarr stores of a run directory as markdown (docs/stores.md)")
+    so.add_argument("action", choices=("show",))
     b = sub.add_parser("bench", help="benchmarks that print JSON figures")
     b.add_argument("what", choices=BENCHMARKS)
     b.add_argument("--quick", action="store_true", help="smaller sizes (for CI smoke runs)")
@@ -144,6 +146,13 @@ def _config(args):
     return 0
 
 
+def _stores(args):
+    from mmflow.io.store_docs import stores_markdown
+
+    print(stores_markdown(), end="")
+    return 0
+
+
 def _bench(args):
     from mmflow import bench
 
@@ -186,7 +195,8 @@ def _plan(args):
 
 
 def _dispatch(args):
-    handlers = {"status": _status, "verify": _verify, "config": _config, "bench": _bench, "plan": _plan}
+    handlers = {"status": _status, "verify": _verify, "config": _config, "stores": _stores, "bench": _bench,
+                "plan": _plan}
     if args.cmd in handlers:
         return handlers[args.cmd](args)
     from mmflow.workflow.cluster import open_cluster

@@ -41,7 +41,7 @@ def n_threads():
     if env:
         return max(1, int(env))
     try:
-        from distributed import get_worker  # deferred: the base layer imports no dask (0.3 s); only inside a worker
+        from distributed import get_worker  # deferred: the base layer imports no dask; only inside a worker
 
         w = get_worker()
         share = max(1, w.state.nthreads) * max(1, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
@@ -69,12 +69,12 @@ def single_threaded_blas(active=True):
 
 @lru_cache(maxsize=1)
 def _blas_threads():
-    """BLAS threads at the process's first use (querying costs ~4 ms: once per process)."""
+    """BLAS threads at the process's first use (queried once per process; cost: docs/performance.md)."""
     return min((lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers), default=1)
 
 
 @lru_cache(maxsize=1)
 def _controller():
-    """One threadpoolctl controller per process: scanning the loaded libraries costs ~0.3 ms,
-    a limit on a known controller ~15 us (transfer matrices enter one per few m)."""
+    """One threadpoolctl controller per process: the libraries are scanned once, a limit on a known
+    controller is cheap (transfer matrices enter one per few m; costs: docs/performance.md)."""
     return ThreadpoolController()

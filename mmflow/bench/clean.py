@@ -11,8 +11,9 @@ Measured in one run, beside this machine's DGEMM/ZGEMM-class peak (``gemm_gflops
   factors, the component alm and observe-and-subtract, the blocks on ``n_threads()`` threads;
 * a projection for the paper's channel to the threshold, stated as a projection.
 
-The Grams are synthetic (the paper array's real ones at lmax 1000 take ~4 min and 5 GB more,
-``mmflow bench table1``; these keep this bench quick and self-contained): ``G_m = D K D`` with ``D = diag(exp(-l^2 / 2 L^2))`` and ``K`` a Gaussian
+The Grams are synthetic (the paper array's real ones at lmax 1000 take minutes and gigabytes
+more (docs/performance.md), ``mmflow bench table1``; these keep this bench quick and
+self-contained): ``G_m = D K D`` with ``D = diag(exp(-l^2 / 2 L^2))`` and ``K`` a Gaussian
 Toeplitz kernel in l (positive definite, Hermitian). Factorising and observing cost the same
 for any Gram of that size; the PSF's shape is not the paper's.
 """
@@ -42,7 +43,7 @@ def synthetic_gram(m, lmax, l_scale, corr=3.0):
     ell = np.arange(m, lmax + 1)
     d = np.exp(-0.5 * (ell / l_scale) ** 2)
     row = np.exp(-0.5 * (np.arange(len(ell)) / corr) ** 2)
-    row[row < 1e-30] = 0.0  # no subnormal numbers: they slow LAPACK down 20x and mean nothing
+    row[row < 1e-30] = 0.0  # no subnormal numbers: they slow LAPACK down (docs/performance.md) and mean nothing
     k = sla.toeplitz(row)
     return (d[:, None] * k * d[None, :]).astype(np.complex128)
 

@@ -97,7 +97,7 @@ def _ingest_s(pattern, store):
     cfg = SimpleNamespace(input=SimpleNamespace(path=pattern, format=None, on_bad_file="error", conjugate=False,
                                                 nonfinite="error"))
     ingest._plan.cache_clear()
-    n_threads()  # its first call imports distributed (0.5 s): a worker has it loaded already
+    n_threads()  # its first call imports distributed (docs/performance.md): a worker has it loaded already
     t0 = time.perf_counter()
     plan = ingest.plan_ingest(cfg)
     spec = vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu,

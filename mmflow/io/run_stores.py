@@ -1,25 +1,9 @@
 """The stores of a run directory, each declared once (see :mod:`mmflow.io.stores`).
 
-==============  ======================================================================
-store           arrays (dimensions)
-==============  ======================================================================
-vis.zarr        vis, weights (time, baseline, freq, pol); lst, time_jd (time); autos |V_ii|
-                (time, antenna, freq, pol; NaN where absent or flagged); freqs_hz, pairs,
-                antenna_enu; attrs ``pols`` name the pol axis (xx, yy | rr, ll | I | one
-                hand); vis_cross, weights_cross (time, baseline, freq, cross_pol) where
-                ingested files hold the cross hands, named by attrs ``cross_pols`` (xy, yx |
-                rl, lr). Never rewritten by corrections.
-mmodes.zarr     mmodes (split, freq, m, 2, baseline); inv_var (freq, baseline); n_samples
-                (split, freq, baseline): unflagged integrations of each split (its share f_k)
-partials.zarr   f{F}/gram_b{M0} (group, m, l, l'); f{F}/rhs (group, split, m, l);
-                f{F}/vhv (group, split, m): one partial sum per fixed baseline group
-normal.zarr     f{F}/gram_b{M0} (m, l, l'); rhs (split, freq, m, l); vhv (split, freq, m)
-alm.zarr        alm (split, freq, m, l); lcurve (freq, m, eps, 2); fraction_above (freq, m);
-                eps_grid (eps)
-transfer.zarr   f{F}/order (baseline); f{F}/B_m{M} (2, baseline, l)   [transfer.mode=store]
-models.zarr     components (freq, source, component, 6); cost (freq, source, 3); iterations,
-                n_integrations (freq, source)   [models stage]
-==============  ======================================================================
+One builder per store (``*_store``) returns its :class:`StoreSpec`: arrays, dimensions, dtypes,
+chunks, and what each store and array holds (their ``doc``). ``docs/stores.md`` is generated
+from these declarations for a small reference configuration (:mod:`mmflow.io.store_docs`,
+``mmflow stores show``, ``make docs``; a test keeps it in sync): read the layout there.
 
 Gram blocks are stored per m block (``m0 <= m < m1``) padded to the block's largest size
 ``lmax - m0 + 1``: a few hundred arrays at lmax 1000 instead of one per m.
@@ -31,6 +15,40 @@ import numpy as np
 from mmflow.conventions import m_block_slice, m_blocks
 from mmflow.io.stores import ArraySpec, StoreSpec
 
+#: what each dimension name of the stores below counts
+DIMENSIONS = {
+    "time": "integrations, in time order",
+    "baseline": "antenna pairs (i, j), i <= j, autocorrelations included (``pairs``)",
+    "freq": "channels (``freqs_hz``)",
+    "pol": "polarisations, named by vis.zarr's attribute ``pols``",
+    "cross_pol": "cross hands, named by vis.zarr's attribute ``cross_pols``",
+    "antenna": "antennas",
+    "ant": "the two antennas of a baseline",
+    "enu": "east, north, up",
+    "split": "data splits: 0 the full data, then ``mmode.splits`` (even / odd sidereal bins, ...)",
+    "m": "azimuthal orders 0..mmax (within an array of an m block: ``m0 <= m < m1``)",
+    "pm": "0: +m, 1: -m (the m-modes' and the transfer blocks' common order)",
+    "l": "degrees ``m..lmax`` (block of one m) or 0..lmax",
+    "l2": "the second degree index of a Gram matrix",
+    "group": "fixed baseline groups of the transfer reduction (``transfer.groups``)",
+    "eps": "trial regularisation values of the L-curve",
+    "norm": "0: solution norm squared, 1: residual norm squared",
+    "interval": "calibration solution intervals",
+    "edge": "first and one-past-last integration",
+    "source": "sources, in the order of the stage's source list",
+    "component": "components of a model (Gaussian components; rank-1 terrestrial templates)",
+    "column": "columns of a table, named in the array's description",
+    "kind": "variants of a quantity, named in the array's description",
+    "chunk": "time chunks of vis.zarr",
+    "alm": "healpy-layout a_lm of the m block (``m0 <= m < m1``)",
+    "dec": "declinations of the PSF grid",
+    "cycle": "CLEAN major cycles",
+    "peak": "peaks removed per cycle",
+    "quantity": "noise quantities (:data:`NOISE_FIELDS`)",
+    "xyzf": "x, y, z of the unit vector (frame of date), flux in Jy",
+    "pixel": "HEALPix pixels (RING)",
+}
+
 
 def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk):
     """``attrs["pols"]`` names the polarisation axis, ``attrs["cross_pols"]`` (optional) the cross hands' axis."""
@@ -39,34 +57,48 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
     dims = ("time", "baseline", "freq", "pol")
     ncross = len(attrs.get("cross_pols") or [])
     cross = () if not ncross else (
-        ArraySpec("vis_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,), "complex64"),
+        ArraySpec("vis_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,), "complex64",
+                  doc="cross-hand visibilities (xy, yx | rl, lr), Jy; only where the ingested files hold them"),
         ArraySpec("weights_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
-                  "float32"))
+                  "float32", doc="their weights, 0 = flagged"))
     return StoreSpec("vis.zarr", (
-        ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64"),
-        ArraySpec("weights", dims, (n_time, nbl, nf, npol), ch, "float32"),
-        ArraySpec("lst", ("time",), (n_time,), (time_chunk,), "float64", np.nan),
-        ArraySpec("time_jd", ("time",), (n_time,), (time_chunk,), "float64", np.nan),
+        ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64",
+                  doc="visibilities, Jy, mmflow's sign convention (docs/conventions.md)"),
+        ArraySpec("weights", dims, (n_time, nbl, nf, npol), ch, "float32", doc="weights, 0 = flagged"),
+        ArraySpec("lst", ("time",), (n_time,), (time_chunk,), "float64", np.nan, doc="apparent LST, radians"),
+        ArraySpec("time_jd", ("time",), (n_time,), (time_chunk,), "float64", np.nan, doc="UTC Julian date"),
         ArraySpec("autos", ("time", "antenna", "freq", "pol"), (n_time, n_ant, nf, npol),
-                  (time_chunk, n_ant, nf, npol), "float32", np.nan),
-        ArraySpec("freqs_hz", ("freq",), (nf,), (nf,), "float64", data=freqs_hz),
-        ArraySpec("pairs", ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs),
+                  (time_chunk, n_ant, nf, npol), "float32", np.nan,
+                  doc="autocorrelations |V_ii| (radiometer noise, ripple); NaN where absent or flagged"),
+        ArraySpec("freqs_hz", ("freq",), (nf,), (nf,), "float64", data=freqs_hz, doc="channel frequencies, Hz"),
+        ArraySpec("pairs", ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs,
+                  doc="antenna indices (i, j) of each baseline, i <= j"),
         ArraySpec("antenna_enu", ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
-                  data=antenna_enu),
-    ) + cross, attrs)
+                  data=antenna_enu, doc="antenna positions east, north, up of the array centre, metres"),
+    ) + cross, attrs, doc=(
+        "Visibilities, written by the simulate or ingest stage and never rewritten: corrections are "
+        "applied where the data are read. Attributes: ``pols`` names the pol axis ([I] a clean "
+        "simulation or pseudo-Stokes files, [xx, yy] linear feeds (ee/nn alike), [rr, ll], or one hand; "
+        "Stokes I is formed after the corrections, where the mmodes stage reads the data), "
+        "``cross_pols`` the cross_pol axis; site (lat_deg, lon_deg, height_m), antenna_names, epoch_jd "
+        "(the data's epoch: every frame rotation and header uses it), integration_s, channel_width_hz, "
+        "source, files. Ingest adds plan_time_jd, plan_file_rows and antenna_numbers "
+        "(:func:`mmflow.io.ingest.write_plan`) and the attribute ingest_file_info."))
 
 
 def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs):
-    """``n_samples``: each split's unflagged integrations per frequency and baseline (the bins'
-    summed 0/1 weights), from which the jackknives take each split's share ``f_k``
-    (:func:`mmflow.mmode.splits.split_shares`)."""
+    """The mmodes stage's store (baseline chunks as vis.zarr's)."""
     ch = min(baseline_chunk, nbl)
     return StoreSpec("mmodes.zarr", (
         ArraySpec("mmodes", ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
-                  (n_split, nf, mmax + 1, 2, ch), "complex128"),
-        ArraySpec("inv_var", ("freq", "baseline"), (nf, nbl), (nf, ch), "float64"),
-        ArraySpec("n_samples", ("split", "freq", "baseline"), (n_split, nf, nbl), (n_split, nf, ch), "int64"),
-    ), attrs)
+                  (n_split, nf, mmax + 1, 2, ch), "complex128",
+                  doc="m-modes: ``[..., 0, b] = V_m``, ``[..., 1, b] = conj(V_-m)``"),
+        ArraySpec("inv_var", ("freq", "baseline"), (nf, nbl), (nf, ch), "float64",
+                  doc="inverse noise variance of each baseline's m-modes"),
+        ArraySpec("n_samples", ("split", "freq", "baseline"), (n_split, nf, nbl), (n_split, nf, ch), "int64",
+                  doc="each split's unflagged integrations (the bins' summed 0/1 weights), from which the "
+                      "jackknives take each split's share ``f_k`` (:func:`mmflow.mmode.splits.split_shares`)"),
+    ), attrs, doc="m-modes of the (corrected) visibilities, per data split: the mmodes stage.")
 
 
 def gram_name(fi, m0):
@@ -74,93 +106,128 @@ def gram_name(fi, m0):
 
 
 def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
+    """The transfer stage's partial normal equations, one per fixed baseline group."""
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
             arrays.append(ArraySpec(gram_name(fi, m0), ("group", "m", "l", "l2"), (n_groups, m1 - m0, n, n),
-                                    (1, m1 - m0, n, n), dtype))
+                                    (1, m1 - m0, n, n), dtype,
+                                    doc="the group's part of ``G_m = B^H N^-1 B`` for the m of block M0, "
+                                        "padded to ``lmax - m0 + 1``"))
         arrays.append(ArraySpec(f"f{fi}/rhs", ("group", "split", "m", "l"), (n_groups, n_split, mmax + 1, lmax + 1),
-                                (1, n_split, mmax + 1, lmax + 1), dtype))
+                                (1, n_split, mmax + 1, lmax + 1), dtype,
+                                doc="the group's part of ``r_m = B^H N^-1 v``"))
         arrays.append(ArraySpec(f"f{fi}/vhv", ("group", "split", "m"), (n_groups, n_split, mmax + 1),
-                                (1, n_split, mmax + 1), "float64"))
-    return StoreSpec("partials.zarr", tuple(arrays))
+                                (1, n_split, mmax + 1), "float64", doc="the group's part of ``v^H N^-1 v``"))
+    return StoreSpec("partials.zarr", tuple(arrays), doc=(
+        "Partial normal equations of the transfer stage, per frequency F: one partial sum per fixed "
+        "baseline group (``transfer.groups``), in the transfer precision (complex64 for "
+        "``transfer.dtype`` float32)."))
 
 
 def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
-    """Reduced normal equations. Grams keep the partials' precision (``gram_dtype``: complex64
-    for float32 transfer, half the bytes to write and read; summed in complex128 and rounded
-    once, so one group's Gram is the engine's bit for bit); right-hand sides are complex128."""
+    """The normal stage's reduced normal equations (``gram_dtype``: the partials')."""
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
             arrays.append(ArraySpec(gram_name(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
-                                    gram_dtype))
+                                    gram_dtype,
+                                    doc="upper triangles of ``G_m = B^H N^-1 B`` for the m of block M0, padded "
+                                        "to ``lmax - m0 + 1``; the partials' precision (complex64 for float32 "
+                                        "transfer: half the bytes; summed in complex128 and rounded once, so "
+                                        "one group's Gram is the engine's bit for bit)"))
     arrays += [
         ArraySpec("rhs", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
-                  (n_split, 1, m_block, lmax + 1), "complex128"),
-        ArraySpec("vhv", ("split", "freq", "m"), (n_split, nf, mmax + 1), (n_split, 1, m_block), "float64"),
+                  (n_split, 1, m_block, lmax + 1), "complex128", doc="``r_m = B^H N^-1 v``"),
+        ArraySpec("vhv", ("split", "freq", "m"), (n_split, nf, mmax + 1), (n_split, 1, m_block), "float64",
+                  doc="``v^H N^-1 v`` (the L-curve's residual norm)"),
     ]
-    return StoreSpec("normal.zarr", tuple(arrays))
+    return StoreSpec("normal.zarr", tuple(arrays), doc=(
+        "Reduced normal equations: the normal stage sums the partials in a fixed pairwise tree "
+        "(:mod:`mmflow.workflow.reduce`), so the bits do not depend on the cluster."))
 
 
 def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
+    """The solve stage's store."""
     n_eps = len(eps_grid)
     return StoreSpec("alm.zarr", (
         ArraySpec("alm", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
-                  (n_split, 1, m_block, lmax + 1), "complex128"),
+                  (n_split, 1, m_block, lmax + 1), "complex128", doc="spherical-harmonic coefficients, Jy/sr, "
+                  "frame of date"),
         ArraySpec("lcurve", ("freq", "m", "eps", "norm"), (nf, mmax + 1, n_eps, 2), (1, m_block, n_eps, 2),
-                  "float64"),
-        ArraySpec("fraction_above", ("freq", "m"), (nf, mmax + 1), (1, m_block), "float64"),
-        ArraySpec("eps_grid", ("eps",), (n_eps,), (n_eps,), "float64", data=eps_grid),
-    ))
+                  "float64", doc="L-curve of the first split (zero unless ``imaging.lcurve``)"),
+        ArraySpec("fraction_above", ("freq", "m"), (nf, mmax + 1), (1, m_block), "float64",
+                  doc="fraction of singular values of ``B_m`` above ``sqrt(eps)``"),
+        ArraySpec("eps_grid", ("eps",), (n_eps,), (n_eps,), "float64", data=eps_grid,
+                  doc="the L-curve's trial eps"),
+    ), doc="The solve stage's sky: a_lm per data split.")
 
 
 def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
+    """The transfer blocks, kept only with ``transfer.mode=store``."""
     arrays = []
     for fi in range(nf):
-        arrays.append(ArraySpec(f"f{fi}/order", ("baseline",), (nbl,), (nbl,), "int64", data=orders[fi]))
+        arrays.append(ArraySpec(f"f{fi}/order", ("baseline",), (nbl,), (nbl,), "int64", data=orders[fi],
+                                doc="the rows' baselines: sorted by per-baseline lmax"))
         for m in range(mmax + 1):
             arrays.append(ArraySpec(f"f{fi}/B_m{m:05d}", ("pm", "baseline", "l"), (2, nbl, lmax - m + 1),
-                                    (2, min(baseline_chunk, nbl), lmax - m + 1), dtype))
-    return StoreSpec("transfer.zarr", tuple(arrays))
+                                    (2, min(baseline_chunk, nbl), lmax - m + 1), dtype,
+                                    doc="transfer block ``B_m`` in the order ``f{F}/order`` (the -m rows 0 at m = 0)"))
+    return StoreSpec("transfer.zarr", tuple(arrays), doc=(
+        "Transfer matrices, per frequency F and order M: written by the transfer stage only with "
+        "``transfer.mode=store``."))
 
 
 def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, attrs):
-    """``gains.zarr`` of the calibrate stage: per solution interval (``solve_rows``: the
-    integrations it was solved on; ``apply_rows``: those it corrects) and frequency the gains,
-    flags and diagnostics; ``ripple`` r(t) per integration (1 where not corrected)."""
+    """The calibrate stage's store."""
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
     return StoreSpec("gains.zarr", (
-        ArraySpec("gains", sol, (n_interval, nf, n_ant, npol), per, "complex128"),
-        ArraySpec("flags", sol, (n_interval, nf, n_ant, npol), per, "bool"),
-        ArraySpec("chi2", sol, (n_interval, nf, n_ant, npol), per, "float64"),
-        ArraySpec("iterations", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "int32"),
-        ArraySpec("converged", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "bool"),
+        ArraySpec("gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"),
+        ArraySpec("flags", sol, (n_interval, nf, n_ant, npol), per, "bool",
+                  doc="no data, not finite, or not converged"),
+        ArraySpec("chi2", sol, (n_interval, nf, n_ant, npol), per, "float64",
+                  doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)"),
+        ArraySpec("iterations", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "int32",
+                  doc="Stefcal iterations"),
+        ArraySpec("converged", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "bool",
+                  doc="Stefcal converged"),
         ArraySpec("ripple", ("time", "freq", "antenna", "pol"), (n_time, nf, n_ant, npol), (n_time, 1, n_ant, npol),
-                  "float64"),
-        ArraySpec("solve_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=solve_rows),
-        ArraySpec("apply_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=apply_rows),
-    ), attrs)
+                  "float64", doc="autocorrelation ripple ratio ``r(t)`` per integration (1 where not corrected)"),
+        ArraySpec("solve_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=solve_rows,
+                  doc="the integrations each interval was solved on"),
+        ArraySpec("apply_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=apply_rows,
+                  doc="the integrations each interval's gains correct"),
+    ), attrs, doc="Direction-independent calibration of the calibrate stage: gains per solution interval.")
+
+
+#: names of the codes of peel.zarr's ``mode`` (the values of :mod:`mmflow.calibrate.peel`'s SKIP ... MODEL)
+PEEL_MODES = ("skip", "peel", "subtract", "model")
 
 
 def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs):
-    """``peel.zarr``: per integration, frequency and source the DD gains, the fitted flux scale,
-    the mode used (0 skip, 1 peel, 2 subtract), the guard's verdict and fluxes, and convergence."""
+    """The peel stage's store."""
     dims = ("time", "freq", "source", "pol")
     shape, ch = (n_time, nf, n_src, npol), (time_chunk, 1, n_src, npol)
+    codes = ", ".join(f"{i} {name}" for i, name in enumerate(PEEL_MODES))
     return StoreSpec("peel.zarr", (
         ArraySpec("dd_gains", ("time", "freq", "source", "antenna", "pol"), (n_time, nf, n_src, n_ant, npol),
-                  (time_chunk, 1, n_src, n_ant, npol), "complex128"),
-        ArraySpec("scale", dims, shape, ch, "float64"),
-        ArraySpec("mode", dims, shape, ch, "int8"),
-        ArraySpec("guard", dims, shape, ch, "bool"),
-        ArraySpec("measured", dims, shape, ch, "float64"),
-        ArraySpec("removed", dims, shape, ch, "float64"),
-        ArraySpec("converged", dims, shape, ch, "bool"),
-    ), attrs)
+                  (time_chunk, 1, n_src, n_ant, npol), "complex128",
+                  doc="direction-dependent gains (a subtracted source: 1, or the phase gradient of its fitted "
+                      "position)"),
+        ArraySpec("scale", dims, shape, ch, "float64", doc="fitted flux scale (1 peeled, 0 skipped)"),
+        ArraySpec("mode", dims, shape, ch, "int8", doc=f"mode used at the end: {codes} (:data:`PEEL_MODES`)"),
+        ArraySpec("guard", dims, shape, ch, "bool", doc="the guard turned a peel into a subtraction"),
+        ArraySpec("measured", dims, shape, ch, "float64",
+                  doc="the guard's point-source estimate of the source in the data"),
+        ArraySpec("removed", dims, shape, ch, "float64", doc="the guard's estimate of what peeling removed"),
+        ArraySpec("converged", dims, shape, ch, "bool", doc="converged in the last pass"),
+    ), attrs, doc=(
+        "Bright sources peeled, subtracted or modelled per integration: the peel stage. Attributes: "
+        "``sources``, ``peeled``, ``modelled``, ``modes`` (name -> code of ``mode``), ``fitted_models`` "
+        "(the models stage's components, when it is enabled), ``pols``."))
 
 
 #: columns of models.zarr's ``components``
@@ -170,33 +237,33 @@ MODEL_COSTS = ("point", "start", "fitted")
 
 
 def models_store(nf, n_src, n_comp, attrs):
-    """``models.zarr`` of the models stage: per frequency and source the fitted Gaussian components
-    (:data:`MODEL_COLUMNS`; offsets east/north of the catalogued position, fluxes renormalised to the
-    published spectrum; flux 0 = no component), the aperture cost of the point model, of the start
-    and of the fit (:data:`MODEL_COSTS`), Nelder-Mead iterations and the integrations used."""
+    """The models stage's store."""
     return StoreSpec("models.zarr", (
         ArraySpec("components", ("freq", "source", "component", "column"), (nf, n_src, n_comp, len(MODEL_COLUMNS)),
-                  (1, 1, n_comp, len(MODEL_COLUMNS)), "float64"),
+                  (1, 1, n_comp, len(MODEL_COLUMNS)), "float64",
+                  doc=f"fitted Gaussian components, columns {', '.join(MODEL_COLUMNS)} (offsets east/north of "
+                      "the catalogued position; fluxes renormalised to the published spectrum; flux 0 = no "
+                      "component)"),
         ArraySpec("cost", ("freq", "source", "kind"), (nf, n_src, len(MODEL_COSTS)), (1, 1, len(MODEL_COSTS)),
-                  "float64"),
-        ArraySpec("iterations", ("freq", "source"), (nf, n_src), (1, 1), "int64"),
-        ArraySpec("n_integrations", ("freq", "source"), (nf, n_src), (1, 1), "int64"),
-    ), attrs)
+                  "float64", doc=f"aperture cost of the {', '.join(MODEL_COSTS)} model"),
+        ArraySpec("iterations", ("freq", "source"), (nf, n_src), (1, 1), "int64", doc="Nelder-Mead iterations"),
+        ArraySpec("n_integrations", ("freq", "source"), (nf, n_src), (1, 1), "int64", doc="integrations used"),
+    ), attrs, doc="Resolved source models fitted per frequency and source: the models stage.")
 
 
 def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk):
-    """``terrestrial.zarr``: per time chunk the weighted sums of the (calibrated, peeled) data,
-    the rank-1 patterns fitted to their average, and per integration the templates' amplitudes."""
+    """The terrestrial stage's store."""
     return StoreSpec("terrestrial.zarr", (
         ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, nf, nbl, npol),
-                  "complex128"),
+                  "complex128", doc="weighted sum of the calibrated, peeled visibilities of each time chunk"),
         ArraySpec("sum_weight", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, nf, nbl, npol),
-                  "float64"),
+                  "float64", doc="sum of their weights"),
         ArraySpec("patterns", ("freq", "component", "antenna", "pol"), (nf, n_comp, n_ant, npol),
-                  (nf, n_comp, n_ant, npol), "complex128"),
+                  (nf, n_comp, n_ant, npol), "complex128",
+                  doc="``u_k`` of the rank-1 templates ``B_k = u_k u_k^H`` fitted to the average"),
         ArraySpec("amplitudes", ("time", "freq", "component", "pol"), (n_time, nf, n_comp, npol),
-                  (time_chunk, nf, n_comp, npol), "float64"),
-    ))
+                  (time_chunk, nf, n_comp, npol), "float64", doc="real amplitude ``a_k(t)`` of each template"),
+    ), doc="Signals that do not move with the sky: the terrestrial stage.")
 
 
 # ----------------------------------------------------------------------------- clean.zarr
@@ -206,20 +273,7 @@ NOISE_FIELDS = ("jy_per_sr", "kelvin", "mjy_per_beam", "beam_solid_angle_sr")  #
 
 
 def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_factors):
-    """``clean.zarr``: the CLEAN stage's factors, PSFs, per-cycle state and results.
-
-    Per frequency ``F`` and m block ``M0`` (healpy layout within the block):
-    ``f{F}/chol_b{M0}`` (m, l, l2) Cholesky factors of ``G_kk + eps I`` [keep_factors];
-    ``f{F}/psf_b{M0}`` (alm, dec) PSF columns of the declination grid;
-    ``f{F}/residual_b{M0}`` (cycle, alm) the residual alm at the start of each cycle (one chunk
-    per cycle, never rewritten: a killed cycle is redone from the one before).
-    Per frequency: ``psf_table`` (freq, kind, dec, 5: dec, peak, major, minor, pa; kind 0 the
-    PSF, kind 1 the PSF CLEAN uses, ``H PSF`` for a high-pass CLEAN); ``noise``
-    (freq, 4: :data:`NOISE_FIELDS`); ``threshold`` (freq) Jy/sr; ``peaks`` (freq, cycle) the
-    residual peak each cycle started from; ``components`` (freq, cycle, peak, 4: x, y, z, flux
-    in Jy; flux 0 = none); ``restored`` (freq, pixel) the restored map (frame of date, Jy/sr);
-    ``n_cycles`` and ``stop`` (:data:`CLEAN_STOPS` index) per frequency.
-    """
+    """The CLEAN stage's store (``keep_factors``: keep the Cholesky factors)."""
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
@@ -227,20 +281,30 @@ def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_
             n, k = lmax - m0 + 1, sl.stop - sl.start
             if keep_factors:
                 arrays.append(ArraySpec(f"f{fi}/chol_b{m0:05d}", ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
-                                        "complex128"))
-            arrays.append(ArraySpec(f"f{fi}/psf_b{m0:05d}", ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128"))
+                                        "complex128", doc="Cholesky factors of ``G_kk + eps I`` [keep_factors]"))
+            arrays.append(ArraySpec(f"f{fi}/psf_b{m0:05d}", ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128",
+                                    doc="PSF columns of the declination grid"))
             arrays.append(ArraySpec(f"f{fi}/residual_b{m0:05d}", ("cycle", "alm"), (max_cycles + 1, k), (1, k),
-                                    "complex128"))
+                                    "complex128", doc="the residual a_lm at the start of each cycle (one chunk per "
+                                    "cycle, never rewritten: a killed cycle is redone from the one before)"))
     arrays += [
         ArraySpec("psf_table", ("freq", "kind", "dec", "column"), (nf, 2, n_dec, 5), (1, 2, n_dec, 5), "float64",
-                  np.nan),
-        ArraySpec("noise", ("freq", "quantity"), (nf, len(NOISE_FIELDS)), (1, len(NOISE_FIELDS)), "float64", np.nan),
-        ArraySpec("threshold", ("freq",), (nf,), (1,), "float64", np.nan),
-        ArraySpec("peaks", ("freq", "cycle"), (nf, max_cycles), (1, 1), "float64", np.nan),
+                  np.nan, doc="columns dec, peak, major, minor, pa; kind 0 the PSF, 1 the PSF CLEAN uses "
+                  "(``H PSF`` for a high-pass CLEAN)"),
+        ArraySpec("noise", ("freq", "quantity"), (nf, len(NOISE_FIELDS)), (1, len(NOISE_FIELDS)), "float64", np.nan,
+                  doc=f"noise: {', '.join(NOISE_FIELDS)}"),
+        ArraySpec("threshold", ("freq",), (nf,), (1,), "float64", np.nan, doc="CLEAN threshold, Jy/sr"),
+        ArraySpec("peaks", ("freq", "cycle"), (nf, max_cycles), (1, 1), "float64", np.nan,
+                  doc="the residual peak each cycle started from"),
         ArraySpec("components", ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4), (1, 1, n_peaks, 4),
-                  "float64"),
-        ArraySpec("restored", ("freq", "pixel"), (nf, npix), (1, npix), "float64"),
-        ArraySpec("n_cycles", ("freq",), (nf,), (1,), "int64"),
-        ArraySpec("stop", ("freq",), (nf,), (1,), "int64", -1),
+                  "float64", doc="CLEAN components (flux 0 = none)"),
+        ArraySpec("restored", ("freq", "pixel"), (nf, npix), (1, npix), "float64",
+                  doc="the restored map, frame of date, Jy/sr"),
+        ArraySpec("n_cycles", ("freq",), (nf,), (1,), "int64", doc="cycles run"),
+        ArraySpec("stop", ("freq",), (nf,), (1,), "int64", -1,
+                  doc=f"why CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "
+                      "(-1: none)"),
     ]
-    return StoreSpec("clean.zarr", tuple(arrays))
+    return StoreSpec("clean.zarr", tuple(arrays), doc=(
+        "The CLEAN stage's factors, PSFs, per-cycle state and results, per frequency F and m block M0 "
+        "(healpy layout within the block)."))

@@ -15,9 +15,9 @@ file, never a silent fill value, and no chunk is read twice. Every written chunk
 materialised on disk (``write_empty_chunks``), so a missing chunk file always means damage;
 :func:`verify_chunks` checks files at rest (``mmflow verify``).
 
-Dimensions used below: ``freq`` channels, ``time`` integrations, ``baseline`` pairs,
-``m`` orders 0..mmax, ``l`` degrees 0..lmax, ``split`` data splits (full, even, odd, ...),
-``group`` fixed baseline groups of the transfer reduction.
+The stores themselves, their dimensions (:data:`mmflow.io.run_stores.DIMENSIONS`) and the
+meaning of every array (each spec's ``doc``) are declared in :mod:`mmflow.io.run_stores`;
+``docs/stores.md`` is generated from them (``mmflow stores show``).
 """
 from __future__ import annotations
 
@@ -43,7 +43,8 @@ class DamagedStoreError(MmflowError):
 
 @dataclass(frozen=True, eq=False)
 class ArraySpec:
-    """One array: its name in the store, dimension names, shape, chunk shape, dtype."""
+    """One array: its name in the store, dimension names, shape, chunk shape, dtype, and ``doc``:
+    what it holds (units, conventions), rendered into ``docs/stores.md``."""
 
     name: str
     dims: tuple
@@ -52,6 +53,7 @@ class ArraySpec:
     dtype: str
     fill_value: object = 0
     data: object = None  # small constant arrays are written at creation
+    doc: str = ""
 
     def __post_init__(self):
         if len(self.dims) != len(self.shape) or len(self.chunks) != len(self.shape):
@@ -60,11 +62,13 @@ class ArraySpec:
 
 @dataclass(frozen=True, eq=False)
 class StoreSpec:
-    """A zarr group of a run directory: its path and its arrays."""
+    """A zarr group of a run directory: its path, its arrays, its attributes and ``doc``: which
+    stage writes it and what it holds, rendered into ``docs/stores.md``."""
 
     path: str
     arrays: tuple
     attrs: dict = field(default_factory=dict)
+    doc: str = ""
 
     @property
     def nbytes(self):
@@ -144,7 +148,7 @@ def _full_region(arr, region):
 
 
 def checksum(data):
-    """64-bit XXH3 of a bytes-like object (~17 GB/s here, 7x XXH3 checksum: cheap next to the work that wrote it)."""
+    """64-bit XXH3 of a bytes-like object: cheap next to the work that wrote it (rate: docs/performance.md)."""
     return xxhash.xxh3_64_intdigest(data)
 
 

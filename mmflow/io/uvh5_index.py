@@ -1,6 +1,6 @@
 """The plan's cheap pass over many UVH5 files (one per integration, or per block of integrations).
 
-pyuvdata's metadata read of a UVH5 file parses and validates its whole header (~10-40 ms a file),
+pyuvdata's metadata read of a UVH5 file parses and validates its whole header (docs/performance.md),
 as much as the data read of a single-integration file. The plan therefore reads the first file
 with pyuvdata (every check of ``mmflow.io.checks``) and, for every other file, only the header
 datasets it needs with h5py (the UVH5 format's ``Header``: ``time_array``, ``ant_1_array``,
@@ -63,7 +63,7 @@ def convert_times(indices):
 
 
 def _ecef(lat_lon_alt):
-    from pyuvdata.utils import XYZ_from_LatLonAlt  # deferred: pyuvdata costs ~1.5 s to import
+    from pyuvdata.utils import XYZ_from_LatLonAlt  # deferred (import cost: docs/performance.md)
 
     lla = np.atleast_2d(lat_lon_alt)
     return np.atleast_2d(XYZ_from_LatLonAlt(np.deg2rad(lla[:, 0]), np.deg2rad(lla[:, 1]), lla[:, 2]))

@@ -136,7 +136,7 @@ def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_
     """Geometric elevation (deg, no refraction) of the Sun's centre at the site at each UTC time.
 
     astropy's ``get_body("sun")`` (apparent, geocentric) to ``AltAz`` at the site; offline
-    (:mod:`mmflow.offline`, set up by ``import mmflow``). astropy takes ~0.5 ms a time, so
+    (:mod:`mmflow.offline`, set up by ``import mmflow``). astropy is slow per time (docs/performance.md), so
     where the times outnumber a ``grid_s`` grid over their span the elevation is computed on
     the grid and interpolated linearly: the error is at most ``h^2 / 8`` times the largest
     second derivative, ``A (2 pi / day)^2`` for a daily swing of amplitude ``A <= 90`` deg,
@@ -157,7 +157,7 @@ def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_
 
 def _sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m):
     """:func:`sun_elevation_deg` by astropy at every time."""
-    from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s to import, used by day/night only
+    from astropy import units as u  # deferred (import cost: docs/performance.md): day/night only
     from astropy.coordinates import AltAz, EarthLocation, get_body
     from astropy.time import Time
 

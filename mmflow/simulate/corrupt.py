@@ -195,7 +195,7 @@ def sun_points(jd, freq_hz, flux_jy=2e4, ref_freq_hz=74e6, alpha=1.8, radius_arc
 
 
 def _sun_vector_date(jd):
-    from astropy.coordinates import TETE, get_sun  # deferred: astropy.coordinates costs ~0.4 s, for the Sun only
+    from astropy.coordinates import TETE, get_sun  # deferred (import cost: docs/performance.md): the Sun only
     from astropy.time import Time
 
     t = Time(jd, format="jd", scale="utc")
@@ -288,7 +288,7 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
     ``LST(t) = phi`` by Newton steps with ``dLST/dt = 2 pi / 86164.0905 s``: the first
     integration's time is found first, the rest follow from the unwrapped LSTs.
     """
-    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata costs ~1.5 s to import, for files only
+    from pyuvdata.utils import get_lst_for_time  # deferred (import cost: docs/performance.md): files only
 
     phi = np.unwrap(np.asarray(lsts, float))
     rate = 2 * np.pi / (SIDEREAL_DAY_S / 86400.0)  # rad per (UTC) day
@@ -316,7 +316,7 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     ``x_orientation="east"`` labels linear polarisations as pyuvdata does for such feeds:
     ``pols=("ee", "nn")`` are then XX and YY (the same polarisation numbers, -5 and -6).
     """
-    from astropy import units as u  # deferred: pyuvdata and astropy.coordinates cost ~2 s, for files only
+    from astropy import units as u  # deferred (import cost: docs/performance.md): files only
     from astropy.coordinates import EarthLocation
     from pyuvdata import Telescope as UVTelescope
     from pyuvdata import UVData

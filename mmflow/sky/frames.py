@@ -17,7 +17,7 @@ from mmflow.threads import n_threads
 
 @lru_cache(maxsize=32)
 def _matrix(src, dst, epoch_jd):
-    from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s to import, used once per epoch
+    from astropy import units as u  # deferred (import cost: docs/performance.md): once per epoch
     from astropy.coordinates import ICRS, TETE, Galactic, SkyCoord
     from astropy.time import Time
 

@@ -54,7 +54,7 @@ class Telescope:
     @property
     def location(self):
         """The array centre as an astropy ``EarthLocation``."""
-        from astropy import units as u  # deferred: astropy.coordinates costs ~0.4 s, for site positions only
+        from astropy import units as u  # deferred (import cost: docs/performance.md): site positions only
         from astropy.coordinates import EarthLocation
 
         return EarthLocation.from_geodetic(self.layout.lon_deg * u.deg, self.layout.lat_deg * u.deg,

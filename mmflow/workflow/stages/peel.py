@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.io.run_stores import peel_store
+from mmflow.io.run_stores import PEEL_MODES, peel_store
 from mmflow.workflow.baseline_cuts import check_baselines, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
@@ -61,7 +61,7 @@ def _prepare(ctx):
     ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
                            "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
-                           "modes": {"skip": 0, "peel": 1, "subtract": 2, "model": 3}, "pols": vg.attrs["pols"]}))
+                           "modes": {n: i for i, n in enumerate(PEEL_MODES)}, "pols": vg.attrs["pols"]}))
     return [f"f{fi}_{t}" for fi in range(nf) for t in time_keys(nt)]
 
 
