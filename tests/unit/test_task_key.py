@@ -5,6 +5,7 @@ directories are named by them, so a change here would make old runs unresumable.
 """
 import pytest
 
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.task_key import TaskKey
 
 LEGACY = [  # (key, the string earlier versions wrote), one per kind of task
@@ -67,3 +68,11 @@ def test_a_key_without_a_layout_or_with_bad_values_is_refused(fields, match):
     with pytest.raises(ValueError, match=match):
         TaskKey(**fields)
 
+
+def test_time_keys_cover_the_integrations_once():
+    n = 2 * TIME_CHUNK + 5
+    keys = time_keys(n)
+    assert [k.format() for k in keys] == ["t00000", "t00001", "t00002"]
+    assert [k.format() for k in time_keys(n, freq=1)] == ["f1_t00000", "f1_t00001", "f1_t00002"]
+    rows = [chunk_rows(k, n) for k in keys]
+    assert rows == [(0, TIME_CHUNK), (TIME_CHUNK, 2 * TIME_CHUNK), (2 * TIME_CHUNK, n)]

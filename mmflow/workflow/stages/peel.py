@@ -63,7 +63,7 @@ def _prepare(ctx):
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
                            "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
                            "modes": {"skip": 0, "peel": 1, "subtract": 2, "model": 3}, "pols": vg.attrs["pols"]}))
-    return [f"f{fi}_{t}" for fi in range(nf) for t in time_keys(nt)]
+    return [k for fi in range(nf) for k in time_keys(nt, freq=fi)]
 
 
 def _names(p):
@@ -79,9 +79,8 @@ def _task(ctx, key):
     from mmflow.sky.sources import get_sources
 
     p = ctx.cfg.peel
-    fkey, tkey = key.split("_")
-    fi = int(fkey[1:])
-    rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
+    fi = key.freq
+    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows, before="peel")
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
