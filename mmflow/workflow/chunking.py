@@ -8,16 +8,33 @@ of ``models``) and the resource plan (:mod:`mmflow.workflow.plan`) share these.
 """
 from __future__ import annotations
 
+from mmflow.workflow.task_key import TaskKey
+
 #: integrations per time-chunk task (and per chunk of the stores written along time)
 TIME_CHUNK = 256
 
 
-def time_keys(n):
-    """Task keys ``t00000, t00001, ...`` of the :math:`\\lceil n / T \\rceil` time chunks of ``n`` integrations."""
-    return [f"t{i:05d}" for i in range(-(-n // TIME_CHUNK))]
+def time_keys(n, **fields):
+    """Task keys of the :math:`\\lceil n / T \\rceil` time chunks of ``n`` integrations.
+
+    Parameters
+    ----------
+    n : int
+        Integrations in the scan.
+    **fields
+        Other fields of every key (``freq``, ``phase``): ``time_keys(n, freq=1)`` gives
+        ``f1_t00000, f1_t00001, ...``.
+
+    Returns
+    -------
+    list of TaskKey
+        ``TaskKey(time=i, **fields)`` for :math:`i = 0 \\ldots \\lceil n / T \\rceil - 1`.
+    """
+    return [TaskKey(time=i, **fields) for i in range(-(-n // TIME_CHUNK))]
 
 
 def chunk_rows(key, n):
-    """Rows ``(t0, t1)`` of time chunk ``key`` (``"t<i>"``): :math:`[iT, \\min(n, (i+1)T))`."""
-    i = int(key[1:])
+    """Rows ``(t0, t1)`` of the time chunk of ``key`` (a :class:`TaskKey` with ``time = i``):
+    :math:`[iT, \\min(n, (i+1)T))`."""
+    i = key.time
     return i * TIME_CHUNK, min(n, (i + 1) * TIME_CHUNK)

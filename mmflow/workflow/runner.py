@@ -8,7 +8,8 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
   input files); stale outputs are refused before any work starts, with the settings that
   changed, unless ``--force`` recomputes them;
 * work keys come from the data and the settings, never from the cluster, and a stage is
-  complete only when every key has its marker;
+  complete only when every key has its marker (named by :meth:`TaskKey.format`, the task
+  handed :meth:`TaskKey.parse` of that name);
 * inputs are checked against their producers' chunk records before they are read;
 * a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage.
 """
@@ -17,6 +18,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+from dataclasses import replace
 from importlib.metadata import PackageNotFoundError, version
 
 import yaml
@@ -26,8 +28,9 @@ from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.context import Context
 from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
-from mmflow.workflow.rundir import RunDir
 from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.rundir import RunDir
+from mmflow.workflow.task_key import TaskKey
 
 PACKAGES = ("mmflow", "numpy", "scipy", "dask", "distributed", "zarr", "healpy", "astropy", "ducc0", "pyuvdata")
 
@@ -43,7 +46,10 @@ def versions():
 
 
 def run_task(ctx, pipeline, stage_name, key):
-    """Worker side: skip if marked done, else compute, write, then mark (atomically)."""
+    """Worker side: skip if marked done, else compute, write, then mark (atomically).
+
+    ``key`` is the task's marker name (:meth:`TaskKey.format`); the stage's task gets the :class:`TaskKey`.
+    """
     import os
 
     from mmflow.allocator import keep_freed_memory
@@ -61,7 +67,7 @@ def run_task(ctx, pipeline, stage_name, key):
     t0 = time.time()
     stage = pipeline.stage(stage_name)
     tctx = ctx.for_stage(stage).for_task()
-    info = stage.task(tctx, key) or {}
+    info = stage.task(tctx, TaskKey.parse(key)) or {}
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start))
@@ -212,7 +218,8 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
 
     ``next_cycle(ctx, cycle)`` runs on the driver, reads the state the previous cycles left in
     the stage's stores, may write this cycle's plan (recorded in the cycle's checkpoint marker)
-    and returns the cycle's keys, or None when the loop has converged. A cycle whose checkpoint
+    and returns the cycle's keys (:class:`TaskKey` values; the runner sets their ``cycle``), or None
+    when the loop has converged. A cycle whose checkpoint
     exists is not run again, so a killed loop resumes at the first unfinished cycle; because
     ``next_cycle`` is deterministic, a cycle interrupted half-way is planned identically again.
     """
@@ -227,10 +234,10 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         if keys is None:
             log(f"[{st.name}] converged after {cycle} cycles")
             return results
-        ckeys = [f"c{cycle:04d}-{k}" for k in keys]
+        ckeys = [replace(k, cycle=cycle).format() for k in keys]
         run.add_keys(st.name, ckeys + [mark])
-        results += _execute(client, ctx, pipeline, st.name, [k for k in ckeys if not run.is_done(st.name, k)], progress,
-                            worker_wait_s)
+        todo = [k for k in ckeys if not run.is_done(st.name, k)]
+        results += _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
         run.mark_done(st.name, mark, {"cycle": cycle, "tasks": len(keys)}, cctx.ledger.entries)
         cycle += 1
 
@@ -309,7 +316,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
         _check_inputs(run, st, cfg, pipeline)
         sctx = ctx.for_stage(st)
         pctx = sctx.for_task()
-        keys = st.prepare(pctx)
+        keys = [k.format() for k in st.prepare(pctx)]
         todo = run.begin_stage(st.name, fp, keys, st.outputs)
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
         _stamp_stores(run, st, cfg, fp.digest)

@@ -13,6 +13,7 @@ from mmflow.io.stores import ArraySpec, StoreSpec
 from mmflow.workflow.runner import run_workflow
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 from tests.workflow_helpers import small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -27,11 +28,11 @@ def _cal_prepare(ctx):
     n_time = ctx.open("vis.zarr")["lst"].shape[0]
     n_int = -(-n_time // INTERVAL)
     ctx.create(StoreSpec("gains.zarr", (ArraySpec("gain", ("interval",), (n_int,), (1,), "float64"),)))
-    return [f"i{k:05d}" for k in range(n_int)]
+    return [TaskKey(phase="g", freq=0, interval=k) for k in range(n_int)]
 
 
 def _cal_task(ctx, key):
-    k = int(key[1:])
+    k = key.interval
     rows = slice(k * INTERVAL, (k + 1) * INTERVAL)
     vis = ctx.read("vis.zarr", "vis", (rows,))  # reads the chunks the interval touches, verified
     assert vis.shape[0] >= 1
@@ -125,11 +126,11 @@ def _clean_next(ctx, cycle):
     level = g["level"][cycle]
     if level.max() < THRESHOLD * g["level"][0].max() or cycle == MAX_CYCLES:
         return None
-    return [f"b{b}" for b in range(N_BLOCKS) if level[b] > 0]
+    return [TaskKey(freq=0, m_block=b) for b in range(N_BLOCKS) if level[b] > 0]
 
 
 def _clean_task(ctx, key):
-    c, b = int(key[1:5]), int(key.split("-")[1][1:])
+    c, b = key.cycle, key.m_block
     g = ctx.open("clean.zarr", mode="r+")
     ctx.write(g, "level", (slice(c + 1, c + 2), slice(b, b + 1)), g["level"][c:c + 1, b:b + 1] * (0.35 + 0.1 * b))
 

@@ -52,6 +52,22 @@ def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
     assert_identical(before, read_outputs(run_dir))
 
 
+def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
+    """Completion markers are named by the task keys (:mod:`mmflow.workflow.task_key`): run
+    directories made by earlier versions resume only while these strings stay as they were."""
+    from mmflow.workflow.rundir import RunDir
+
+    run_dir, _ = reference_run
+    run = RunDir(run_dir)
+    keys = {st: run.manifest(st)["keys"] for st in ("simulate", "mmodes", "transfer", "normal", "solve", "products")}
+    assert keys["simulate"] == ["t00000"]
+    assert keys["mmodes"][:2] == ["b00000", "b00001"]
+    assert keys["transfer"][:2] == ["f0-g0000", "f0-g0001"]
+    assert keys["normal"] == keys["solve"] == ["f0-m00000", "f0-m00008", "f0-m00016", "f0-m00024"]
+    assert keys["products"] == ["f0"]
+    assert all(run.marker(st, k).name == f"{k}.done" and run.is_done(st, k) for st, ks in keys.items() for k in ks)
+
+
 def test_changed_settings_refuse_stale_outputs_then_force_recomputes(tmp_path):
     run_dir = tmp_path / "run"
     run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)

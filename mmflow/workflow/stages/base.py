@@ -12,8 +12,10 @@ A stage declares what it reads and writes; the runner derives everything else fr
 * ``outputs``: stores (``*.zarr``, removed whole by ``--force``) or folders whose files the
   tasks list in their markers (only those are ever removed).
 * ``prepare(ctx) -> keys`` runs once on the driver (create-or-validate its stores, list its
-  work keys; the keys may depend on the data and the configuration, never on the cluster);
-  ``task(ctx, key)`` runs per key on the workers; ``finalize(ctx)`` runs on the driver at the end.
+  work keys, :class:`~mmflow.workflow.task_key.TaskKey` values; the keys may depend on the data and
+  the configuration, never on the cluster); ``task(ctx, key)`` runs per key on the workers (``key``
+  a ``TaskKey``; its completion marker is named by ``key.format()``); ``finalize(ctx)`` runs on the
+  driver at the end.
 * ``check(cfg, stage_names)``, optional, runs on the driver before the run does any work (before
   any stage's prepare), knowing which stages the run will execute: it refuses inputs the run
   cannot use (an ingested observation too short to make m-modes) instead of failing stages later.

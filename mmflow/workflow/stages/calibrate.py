@@ -34,6 +34,7 @@ from mmflow.io.run_stores import gains_store
 from mmflow.workflow.baseline_cuts import check_baselines, resolved_cuts, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 
 def _epoch(ctx):
@@ -75,8 +76,8 @@ def _prepare(ctx):
                             "interpolate": bool(ctx.cfg.calibrate.interpolate),
                             "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
                             "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)}))
-    keys = [f"r{fi}" for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
-    return keys + [f"g{fi}_{k:05d}" for fi in range(nf) for k in range(len(solve))]
+    keys = [TaskKey(phase="r", freq=fi) for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
+    return keys + [TaskKey(phase="g", freq=fi, interval=k) for fi in range(nf) for k in range(len(solve))]
 
 
 _RIPPLE = {}  # (run, channel, smoothing, configuration) -> ratio: one computation per worker process
@@ -100,8 +101,8 @@ def _ratio(ctx, fi):
 
 def _task(ctx, key):
     g = ctx.open("gains.zarr", mode="r+")
-    if key.startswith("r"):
-        fi = int(key[1:])
+    if key.phase == "r":
+        fi = key.freq
         ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
         return {"ripple_channels": 1}
     from mmflow.calibrate.baselines import antennas_with_data
@@ -111,7 +112,7 @@ def _task(ctx, key):
     from mmflow.sky.sources import get_sources
 
     c = ctx.cfg.calibrate
-    fi, k = (int(x) for x in key[1:].split("_"))
+    fi, k = key.freq, key.interval
     t0, t1 = (int(x) for x in g["solve_rows"][k])
     block = read_block(ctx, slice(t0, t1))
     tel = ctx.telescope()

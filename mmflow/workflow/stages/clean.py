@@ -34,6 +34,7 @@ from mmflow.workflow.clean_state import (active, block_operators_from_gram, clea
                                          stored_operators)
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 CLEAN_CONFIG = ("mmode.lmax", "mmode.mmax", "mmode.splits", "transfer.m_block", "imaging", "clean")
 
@@ -57,7 +58,7 @@ def _prepare(ctx):
     n_dec = len(psf_decs_deg(_lat(ctx), cfg.clean.psf_dec_step_deg))
     ctx.create(clean_store(nf, lmax, mmax, cfg.transfer.m_block, n_dec, cfg.clean.max_cycles,
                            cfg.clean.peaks_per_cycle, 12 * clean_nside(cfg) ** 2, cfg.clean.keep_factors))
-    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in blocks]
+    return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in blocks]
 
 
 def _ml_to_block(alm_ml, lmax, m0, m1):
@@ -66,7 +67,7 @@ def _ml_to_block(alm_ml, lmax, m0, m1):
 
 
 def _task(ctx, key):
-    if key.startswith("c"):
+    if key.cycle is not None:
         return _cycle_task(ctx, key)
     return _setup_task(ctx, key)
 
@@ -74,7 +75,7 @@ def _task(ctx, key):
 def _setup_task(ctx, key):
     """Factorise, observe the PSF grid and write the residual of cycle 0, for one m block."""
     cfg = ctx.cfg
-    fi, m0 = (int(x[1:]) for x in key.split("-"))
+    fi, m0 = key.freq, key.m_block
     lmax, _, blocks = _geometry(ctx)
     m1 = dict(blocks)[m0]
     g = ctx.open("clean.zarr", mode="r+")
@@ -99,7 +100,7 @@ def _setup_task(ctx, key):
 def _cycle_task(ctx, key):
     """``residual[c + 1] = residual[c] - observe(x)`` for one (frequency, m block)."""
     cfg = ctx.cfg
-    c, fi, m0 = (int(x[1:]) for x in key.split("-"))
+    c, fi, m0 = key.cycle, key.freq, key.m_block
     lmax, _, blocks = _geometry(ctx)
     m1 = dict(blocks)[m0]
     t0 = time.perf_counter()
@@ -172,7 +173,7 @@ def _next_cycle(ctx, cycle):
         rows[:len(flux), :3], rows[:len(flux), 3] = vecs, flux
         ctx.write(g, "components", (slice(fi, fi + 1), slice(cycle, cycle + 1)), rows[None, None])
         ctx.write(g, "peaks", (slice(fi, fi + 1), slice(cycle, cycle + 1)), np.array([[peak]]))
-        keys += [f"f{fi}-m{m0:05d}" for m0, _ in blocks]
+        keys += [TaskKey(freq=fi, m_block=m0) for m0, _ in blocks]
     return keys or None
 
 

@@ -40,6 +40,7 @@ from mmflow.workflow.blocks import read_block
 from mmflow.workflow.geometry import mmax_of, n_bins_of
 from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 
 def _prepare(ctx):
@@ -56,7 +57,7 @@ def _prepare(ctx):
     if any(is_time_split(s) for s in splits):
         attrs.update(_check_time_splits(ctx, vis, splits, n_bins))
     ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1], attrs))
-    return [f"b{i:05d}" for i in range(-(-nbl // vis["vis"].chunks[1]))]
+    return [TaskKey(bl_chunk=i) for i in range(-(-nbl // vis["vis"].chunks[1]))]
 
 
 def _time_splits(ctx, vis, splits):
@@ -105,7 +106,7 @@ def _task(ctx, key):
     vg = ctx.open("vis.zarr")
     nt, nbl, nf = vg["vis"].shape[:3]
     ch = vg["vis"].chunks[1]
-    i = int(key[1:])
+    i = key.bl_chunk
     cols = slice(i * ch, min(nbl, (i + 1) * ch))
     block = read_block(ctx, slice(None), cols)  # all integrations, corrected
     good_t = np.isfinite(block.lst)

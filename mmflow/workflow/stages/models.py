@@ -40,6 +40,7 @@ from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 DEFAULT_SIZE_ARCMIN = 3.0
 
@@ -76,7 +77,7 @@ def _prepare(ctx):
     n_comp = [int(m.components.get(n, 1)) for n in m.sources]
     ctx.create(models_store(nf, len(m.sources), max(n_comp),
                             {"sources": list(m.sources), "n_components": n_comp, "columns": list(MODEL_COLUMNS)}))
-    return [f"f{fi}_s{s}" for fi in range(nf) for s in range(len(m.sources))]
+    return [TaskKey(freq=fi, source=s) for fi in range(nf) for s in range(len(m.sources))]
 
 
 def _read_rows(ctx, rows):
@@ -99,8 +100,7 @@ def _task(ctx, key):
     from mmflow.telescope.array import C_LIGHT
 
     m, p = ctx.cfg.models, ctx.cfg.peel
-    fkey, skey = key.split("_")
-    fi, si = int(fkey[1:]), int(skey[1:])
+    fi, si = key.freq, key.source
     name = m.sources[si]
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])

@@ -11,6 +11,7 @@ from mmflow.io.run_stores import gram_name, normal_store
 from mmflow.workflow.reduce import ordered_tree_sum
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 
 def _normal_prepare(ctx):
@@ -20,11 +21,11 @@ def _normal_prepare(ctx):
     nf = len(list(pg.group_keys()))
     n_split = pg["f0/rhs"].shape[1]
     ctx.create(normal_store(nf, lmax, mmax, cfg.transfer.m_block, n_split, pg[gram_name(0, 0)].dtype.str))
-    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
+    return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
 
 
 def _normal_task(ctx, key):
-    fi, m0 = (int(x[1:]) for x in key.split("-"))
+    fi, m0 = key.freq, key.m_block
     cfg = ctx.cfg
     m1 = dict(m_blocks(mmax_of(cfg), cfg.transfer.m_block))[m0]
     pg = ctx.open("partials.zarr")

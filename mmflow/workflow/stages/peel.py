@@ -62,7 +62,7 @@ def _prepare(ctx):
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
                            "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
                            "modes": {n: i for i, n in enumerate(PEEL_MODES)}, "pols": vg.attrs["pols"]}))
-    return [f"f{fi}_{t}" for fi in range(nf) for t in time_keys(nt)]
+    return [k for fi in range(nf) for k in time_keys(nt, freq=fi)]
 
 
 def _names(p):
@@ -78,9 +78,8 @@ def _task(ctx, key):
     from mmflow.sky.sources import get_sources
 
     p = ctx.cfg.peel
-    fkey, tkey = key.split("_")
-    fi = int(fkey[1:])
-    rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
+    fi = key.freq
+    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows)
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])

@@ -18,6 +18,7 @@ from mmflow.conventions import healpy_alm
 from mmflow.imaging.lcurve import lcurve_corner
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 
 def frequency_tags(freqs_hz):
@@ -32,7 +33,7 @@ def frequency_tags(freqs_hz):
 
 def _products_prepare(ctx):
     (ctx.run.path / "maps").mkdir(parents=True, exist_ok=True)
-    return [f"f{fi}" for fi in range(ctx.open("alm.zarr")["alm"].shape[1])]
+    return [TaskKey(freq=fi) for fi in range(ctx.open("alm.zarr")["alm"].shape[1])]
 
 
 def _products_task(ctx, key):
@@ -42,7 +43,7 @@ def _products_task(ctx, key):
     from mmflow.sky.frames import rotation_matrix
 
     cfg = ctx.cfg
-    fi = int(key[1:])
+    fi = key.freq
     vis = ctx.open("vis.zarr")
     freqs = vis["freqs_hz"][:]
     f, epoch, lat = float(freqs[fi]), float(vis.attrs["epoch_jd"]), float(vis.attrs["lat_deg"])

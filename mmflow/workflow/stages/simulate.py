@@ -79,7 +79,7 @@ def _sim_task(ctx, key):
     k = np.arange(t0, t1)
     tel, skies, corrupted = _skies(ctx.for_stage(ctx.stage))  # cached per configuration (no ledger)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
-    rng = np.random.default_rng([cfg.sky.seed, int(key[1:])]) if cfg.sky.noise else None  # fixed per chunk
+    rng = np.random.default_rng([cfg.sky.seed, key.time]) if cfg.sky.noise else None  # fixed per chunk
     # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
     time_jd = utc_at_lsts(lst, tel.layout, drift_scan_times(o.epoch_jd, o.integration_s, k[:1], n)[0])
     if cfg.sky.sun:  # the Sun moves ~1 deg a day against the stars: its position at the chunk's mid time

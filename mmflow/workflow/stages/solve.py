@@ -19,6 +19,7 @@ from mmflow.threads import n_threads, single_threaded_blas
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 N_EPS = 200
 SOLVE_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer.m_block", "imaging", "products.frame")
@@ -30,7 +31,7 @@ def _solve_prepare(ctx):
     ng = ctx.open("normal.zarr")
     n_split, nf = ng["rhs"].shape[:2]
     ctx.create(alm_store(nf, lmax, mmax, cfg.transfer.m_block, n_split, default_eps_grid(N_EPS)))
-    return [f"f{fi}-m{m0:05d}" for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
+    return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
 
 
 def _prior_alm(ctx, lmax):
@@ -49,7 +50,7 @@ def _prior_alm(ctx, lmax):
 def _solve_task(ctx, key):
     cfg = ctx.cfg
     im = cfg.imaging
-    fi, m0 = (int(x[1:]) for x in key.split("-"))
+    fi, m0 = key.freq, key.m_block
     m1 = dict(m_blocks(mmax_of(cfg), cfg.transfer.m_block))[m0]
     lmax = cfg.mmode.lmax
     rhs_all = ctx.read("normal.zarr", "rhs", (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]

@@ -32,16 +32,12 @@ from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.stages.base import Stage
 
 
-def _time_keys(ctx):
-    return time_keys(ctx.open("vis.zarr")["lst"].shape[0])
-
-
 def _prepare(ctx):
     vg = ctx.open("vis.zarr")
     nt, nbl, nf, npol = vg["vis"].shape
     ctx.create(terrestrial_store(len(time_keys(nt)), nt, nf, nbl, ctx.cfg.terrestrial.components,
                                  vg["antenna_enu"].shape[0], npol, TIME_CHUNK))
-    return [f"s_{t}" for t in time_keys(nt)]
+    return time_keys(nt, phase="s")
 
 
 def _templates(ctx, fi, pairs):
@@ -54,15 +50,14 @@ def _templates(ctx, fi, pairs):
 def _task(ctx, key):
     from mmflow.calibrate.terrestrial import fit_amplitudes, projection_fraction
 
-    phase, tkey = key.rpartition("-")[2].split("_")  # phase-2 keys carry their cycle's prefix
-    k = int(tkey[1:])
-    rows = slice(*chunk_rows(tkey, ctx.open("vis.zarr")["lst"].shape[0]))
+    k = key.time
+    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows)
     if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
         block.vis -= modelled_sources(ctx, block)
     g = ctx.open("terrestrial.zarr", mode="r+")
     w = np.where(np.isfinite(block.lst)[:, None, None, None], block.weights, 0.0)
-    if phase == "s":  # phase 1: weighted sums
+    if key.phase == "s":  # phase 1: weighted sums
         v = np.where(w > 0, block.vis, 0)
         ctx.write(g, "sum_vis", (slice(k, k + 1),), np.moveaxis((w * v).sum(0), 1, 0)[None])
         ctx.write(g, "sum_weight", (slice(k, k + 1),), np.moveaxis(w.sum(0), 1, 0)[None])
@@ -101,7 +96,7 @@ def _next_cycle(ctx, cycle):
     for fi in range(len(tel.freqs_hz)):  # every cross baseline: the template is never extrapolated
         patterns[fi] = fit_templates(mean[fi], weight[fi], pairs, tel.n_ant, t.components).patterns
     ctx.write(g, "patterns", (slice(None),), patterns)
-    return [f"a_{t}" for t in _time_keys(ctx)]
+    return time_keys(ctx.open("vis.zarr")["lst"].shape[0], phase="a")
 
 
 def _apply(ctx, block):

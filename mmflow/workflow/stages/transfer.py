@@ -21,6 +21,7 @@ from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
 
 TRANSFER_CONFIG = ("mmode.lmax", "mmode.mmax", "transfer", "beam")
 
@@ -51,12 +52,12 @@ def _transfer_prepare(ctx):
         orders = [np.concatenate([c.index for c in p[1]]).astype("int64") for p in plans]
         ctx.create(transfer_store(nf, len(tel.antenna_pairs()), lmax, mmax, cfg.transfer.baseline_chunk,
                                   "complex64" if cfg.transfer.dtype == "float32" else "complex128", orders))
-    return [f"f{fi}-g{k:04d}" for fi, p in enumerate(plans) for k in range(n_groups)]
+    return [TaskKey(freq=fi, group=k) for fi, p in enumerate(plans) for k in range(n_groups)]
 
 
 def _transfer_task(ctx, key):
     cfg = ctx.cfg
-    fi, gk = (int(x[1:]) for x in key.split("-"))
+    fi, gk = key.freq, key.group
     tel, chunks, lmax_b, groups = _plan(ctx, fi)
     f = tel.freqs_hz[fi]
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
