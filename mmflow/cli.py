@@ -64,6 +64,10 @@ def build_parser():
     ch.add_argument("--engine-only", action="store_true", help="only the engine (the default; overrides --workflow)")
     ch.add_argument("--workers", type=int, default=1, help="local worker processes for --workflow")
     ch.add_argument("--solve-stride", type=int, default=1, help="solve every N-th m (the rest projected by n^3)")
+    ig = b.add_argument_group("ingest", "options of `mmflow bench ingest`")
+    ig.add_argument("--raw", action="store_true",
+                    help="raw OVRO-LWA MeasurementSets (one per integration, 109 channels, xx yy xy yx, uncalib): "
+                    "one channel kept and four averaged, beside pyuvdata's reads")
     pp = b.add_argument_group("paper", "options of `mmflow bench paper` (workflows/paper-scale.yaml)")
     pp.add_argument("--paper-scale", choices=("full", "reduced", "small"),
                     help="full: the paper's channel (default); reduced: 64 antennas, 1/8 of the integrations, "
@@ -164,6 +168,8 @@ def _bench(args):
                        solve_stride=args.solve_stride)
     elif args.what == "paper":
         options = dict(scale=args.paper_scale, overrides=args.set)
+    elif args.what == "ingest":
+        options = dict(raw=args.raw)
     res = bench.run(args.what, quick=args.quick, **options)
     text = json.dumps(res, indent=2)
     print(text)

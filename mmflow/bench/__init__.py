@@ -18,6 +18,6 @@ MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workf
 
 
 def run(what, quick=False, **options):
-    """Run one benchmark; ``options`` are passed on to benchmarks that take them (``channel``)."""
+    """Run one benchmark; ``options`` are passed on to benchmarks that take them (``channel``, ``paper``, ``ingest``)."""
     mod = importlib.import_module(f"mmflow.bench.{MODULES[what]}")
     return mod.run(what, quick=quick, **options)
