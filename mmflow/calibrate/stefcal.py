@@ -277,25 +277,94 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
     return StefcalResult(g, flags, iters, converged, change, ant_change, ant_iter, chi2, ref)
 
 
-def flag_outlier_antennas(V, M, W, result, *, n_sigma=5.0, max_rounds=8, **kwargs):
+#: an antenna whose data the model describes to within this fraction of its model power is never an outlier
+MAX_EXPLAINED_RESIDUAL = 0.25
+
+
+def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
+    """Each antenna's residual power over what residuals at its baselines' lengths typically are,
+    and over the power of its model.
+
+    ``r_ij = sum_k w_ijk |V_ijk - g_i M_ijk g_j^*|^2``, ``w_ij = sum_k w_ijk`` and
+    ``p_ij = sum_k w_ijk |g_i M_ijk g_j^*|^2`` per baseline; the baselines between unflagged
+    antennas are cut into ``n_bins`` bins of equal count by length and ``f(b)`` is the median of
+    ``r_ij / w_ij`` in the bin of length ``b``. Returns, each (S, N) (NaN for flagged antennas or
+    antennas without data),
+
+        x_i = sum_j r_ij / sum_j w_ij f(|b_ij|)    and    u_i = sum_j r_ij / sum_j p_ij:
+
+    ``x`` ~1 for an antenna whose residuals are those of any baseline of its lengths, whatever
+    their cause (noise, or the direction-dependent errors that grow with baseline length and make
+    the outermost antennas' plain ``chi2`` the largest of the array), ``u`` the fraction of its
+    signal the model leaves unexplained (~1 or more for data that do not follow the model at all).
+    ``lengths`` (N, N), any unit.
+    """
+    S, K, N, _ = V.shape
+    iu = np.triu_indices(N, 1)
+    x, u = np.full((S, N), np.nan), np.full((S, N), np.nan)
+    for s in range(S):
+        g = gains[s].astype(np.complex128)
+        r, p = np.zeros((N, N)), np.zeros((N, N))
+        for k in range(K):
+            m = g[:, None] * M[s, k] * np.conj(g)[None, :]
+            res = V[s, k] - m
+            r += W[s, k] * (res.real ** 2 + res.imag ** 2)
+            p += W[s, k] * (m.real ** 2 + m.imag ** 2)
+        w = W[s].sum(axis=0, dtype=float)
+        r, p, w = r + r.T, p + p.T, w + w.T  # both halves: the dense problem may hold either
+        np.fill_diagonal(w, 0.0)
+        ok = ~flags[s]
+        use = (w > 0) & ok[:, None] & ok[None, :]
+        sel = use[iu]
+        if not sel.any():
+            continue
+        lb, rb = lengths[iu][sel], (r[iu] / np.where(w[iu] > 0, w[iu], 1.0))[sel]
+        edges = np.quantile(lb, np.linspace(0.0, 1.0, n_bins + 1))
+        bin_of = np.clip(np.searchsorted(edges, lb, side="right") - 1, 0, n_bins - 1)
+        typical = np.array([np.median(rb[bin_of == b]) if np.any(bin_of == b) else np.nan for b in range(n_bins)])
+        typical = np.where(np.isfinite(typical), typical, np.nanmedian(typical))
+        idx = np.clip(np.searchsorted(edges, lengths, side="right") - 1, 0, n_bins - 1)
+        power = np.sum(W[s] * np.abs(V[s]) ** 2) / max(np.count_nonzero(W[s]), 1)
+        expect = np.where(use, w * np.maximum(typical[idx], 1e-9 * power), 0.0).sum(axis=1)
+        got = np.where(use, r, 0.0).sum(axis=1)
+        model = np.where(use, p, 0.0).sum(axis=1)
+        x[s] = np.where(ok & (expect > 0), got / np.where(expect > 0, expect, 1.0), np.nan)
+        u[s] = np.where(ok & (expect > 0), got / np.maximum(model, 1e-300), np.nan)
+    return x, u
+
+
+def flag_outlier_antennas(V, M, W, result, *, n_sigma=5.0, max_rounds=8, lengths=None, **kwargs):
     """Flag antennas whose residuals are outliers, one per solution and round, and re-solve.
 
-    An antenna is an outlier when its ``chi2`` exceeds the median over unflagged antennas by
-    more than ``n_sigma`` x 1.4826 MAD (floored at 1e-9 of the median data power so that
-    noiseless data flag nothing). Its weights are zeroed (``W`` is copied) and the affected
-    solutions re-solved from their previous gains. Returns the new result and the weights.
+    The statistic is each antenna's ``chi2`` or, with ``lengths`` (N, N) the baseline lengths,
+    :func:`length_normalised_chi2` (its residuals over the typical residuals at its baselines'
+    lengths), and then an antenna whose model leaves at most :data:`MAX_EXPLAINED_RESIDUAL` of its
+    signal unexplained is never an outlier: direction-dependent errors of a modelled source, largest
+    on the outermost antennas, flag no antenna, an antenna whose data do not follow the model does.
+    An antenna is an outlier when its statistic exceeds the median over unflagged antennas by more
+    than ``n_sigma`` x 1.4826 MAD (for ``chi2`` floored at 1e-9 of the median data power, so that
+    noiseless data flag nothing). Its weights are zeroed (``W`` is copied) and the affected solutions re-solved
+    from their previous gains.
+    Returns the new result and the weights.
     """
     W = np.array(W, copy=True)
     S, K, N, _ = V.shape
     power = np.einsum("skij,skij->s", W, np.abs(V) ** 2) / np.maximum(W.reshape(S, -1).astype(bool).sum(1), 1)
     for _ in range(max_rounds):
-        chi2 = np.where(result.flags | ~np.isfinite(result.chi2), np.inf, result.chi2)
-        chi2[np.all(np.isinf(chi2), axis=1)] = 0.0
-        chi2 = np.where(np.isinf(chi2), np.nan, chi2)
-        med = np.nanmedian(chi2, axis=1)
-        mad = 1.4826 * np.nanmedian(np.abs(chi2 - med[:, None]), axis=1)
-        thresh = med + n_sigma * np.maximum(mad, 1e-9 * power)
-        z = np.where(np.isfinite(chi2), chi2 - thresh[:, None], -np.inf)
+        explained, floor = np.zeros((S, N), bool), 1e-9 * power
+        if lengths is None:
+            stat = result.chi2
+        else:  # a dimensionless statistic: its floor only keeps the MAD above zero
+            floor = np.full(S, 1e-9)
+            stat, unexplained = length_normalised_chi2(V, M, W, result.gains, result.flags, lengths)
+            explained = unexplained <= MAX_EXPLAINED_RESIDUAL
+        stat = np.where(result.flags | ~np.isfinite(stat), np.inf, stat)
+        stat[np.all(np.isinf(stat), axis=1)] = 0.0
+        stat = np.where(np.isinf(stat), np.nan, stat)
+        med = np.nanmedian(stat, axis=1)
+        mad = 1.4826 * np.nanmedian(np.abs(stat - med[:, None]), axis=1)
+        thresh = med + n_sigma * np.maximum(mad, floor)
+        z = np.where(np.isfinite(stat) & ~explained, stat - thresh[:, None], -np.inf)
         worst = np.argmax(z, axis=1)
         bad = z[np.arange(S), worst] > 0
         if not bad.any():
@@ -369,7 +438,8 @@ def dense_problem(vis, model, weights, pairs, n_ant, solint, baseline_keep=None)
 
 
 def solve_gains(vis, model, weights, pairs, n_ant, *, solint=None, baseline_keep=None, tol=1e-5,
-                max_iter=100, damping="half", ref_ant=None, outlier_sigma=5.0, g0=None, threads=None):
+                max_iter=100, damping="half", ref_ant=None, outlier_sigma=5.0, g0=None, threads=None,
+                baseline_lengths=None):
     """Direction-independent gains per solution interval and polarisation.
 
     Parameters
@@ -386,6 +456,10 @@ def solve_gains(vis, model, weights, pairs, n_ant, *, solint=None, baseline_keep
     outlier_sigma : float or None
         Flag outlier antennas one at a time (:func:`flag_outlier_antennas`); None: off.
     g0 : ndarray (n_interval, n_ant, n_pol), optional starting gains.
+    baseline_lengths : ndarray (n_bl,), optional
+        Length of each pair (any unit): the outlier search then compares each antenna's residuals
+        with the typical residuals at its baselines' lengths (:func:`length_normalised_chi2`),
+        so that direction-dependent errors, largest on the longest baselines, flag no antenna.
 
     Returns
     -------
@@ -399,7 +473,12 @@ def solve_gains(vis, model, weights, pairs, n_ant, *, solint=None, baseline_keep
     g0 = None if g0 is None else np.moveaxis(np.asarray(g0), -1, 1).reshape(-1, n_ant)
     res = stefcal(V, M, W, g0, **kw)
     if outlier_sigma is not None:
-        res, _ = flag_outlier_antennas(V, M, W, res, n_sigma=outlier_sigma, **kw)
+        lengths = None
+        if baseline_lengths is not None:
+            lengths = np.zeros((n_ant, n_ant))
+            p = np.asarray(pairs)
+            lengths[p[:, 0], p[:, 1]] = lengths[p[:, 1], p[:, 0]] = np.asarray(baseline_lengths, float)
+        res, _ = flag_outlier_antennas(V, M, W, res, n_sigma=outlier_sigma, lengths=lengths, **kw)
     n_int = V.shape[0] // P
 
     def ant(x):

@@ -136,7 +136,7 @@ def stage_work(stage, g, cfg):
         return n_tchunk, vis_task, units, [vis_spec]
     if stage == "calibrate":
         L = max(1, min(g.cal_interval or g.n_time, g.n_time))
-        n_int = -(-g.n_time // L)
+        n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
         w = L * g.n_bl * g.n_pol * (12.0 + 16.0 * max(1, g.n_cal_sources))
         spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                               np.zeros((n_int, 2), int), {})
@@ -240,8 +240,8 @@ def geometry(cfg):
     nside = cfg.products.nside or default_nside(mm.lmax)
     pts = _sky_points_count(cfg, tel, freqs) if cfg.source == "simulate" else 0
     cal = cfg.calibrate
-    interval = (int(round(cal.solint_s / cfg.observation.integration_s)) if getattr(cal, "solint_s", None)
-                else n_time)
+    # integrations per solve: an interval, or (solint_s null) the one track where the sources are highest
+    interval = int(round((cal.solint_s if cal.solint_s else 60.0 * cal.track_min) / cfg.observation.integration_s))
     return Geometry(n_time=n_time, n_ant=tel.n_ant, n_bl=n_bl, n_freq=len(freqs), n_pol=n_pol, lmax=mm.lmax,
                     mmax=mmax, m_block=cfg.transfer.m_block, n_split=len(mm.splits), mmode_chunk=mm.baseline_chunk,
                     gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),

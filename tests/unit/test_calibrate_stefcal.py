@@ -115,6 +115,40 @@ def test_outlier_antenna_is_flagged_one_at_a_time(rng):
     assert not off.flags.any()
 
 
+def test_long_baseline_model_errors_flag_no_antenna_when_compared_by_length(rng):
+    """One of two bright sources seen through a refractive offset: the model error ``S (e^{i k b.dtheta} - 1)``
+    grows with baseline length, so the outermost antennas' plain chi2 are the array's largest
+    (the paper-scale run flagged its outriggers). Compared with residuals at the same lengths
+    (:func:`length_normalised_chi2`) no antenna is an outlier, while an antenna whose data
+    do not follow the model at all is still flagged, first."""
+    n, n_time = 40, 6
+    r = np.concatenate([rng.uniform(0, 40, n - 8), rng.uniform(400, 800, 8)])  # core + outriggers (m)
+    a = rng.uniform(0, 2 * np.pi, n)
+    enu = np.stack([r * np.cos(a), r * np.sin(a), np.zeros(n)], axis=1)
+    pairs = _pairs(n)
+    b = enu[pairs[:, 1]] - enu[pairs[:, 0]]
+    lam, offset = 4.1, np.array([2.5e-4, -1.5e-4, 0.0])  # ~1' of refraction on one of two sources
+    src1, src2 = np.array([0.3, 0.2, 0.93]), np.array([-0.4, 0.5, 0.77])
+    fringe = lambda d: np.exp(-2j * np.pi * (b @ d) / lam)  # noqa: E731
+    model = np.repeat((1000.0 * (fringe(src1) + fringe(src2)))[None, :, None], n_time, axis=0) * np.ones((1, 1, 2))
+    seen = np.repeat((1000.0 * (fringe(src1 + offset) + fringe(src2)))[None, :, None], n_time, axis=0)
+    seen = seen * np.ones((1, 1, 2))
+    g = (1 + 0.2 * rng.uniform(-1, 1, (n, 2))) * np.exp(2j * np.pi * rng.uniform(size=(n, 2)))
+    noise = 0.5 * (rng.normal(size=seen.shape) + 1j * rng.normal(size=seen.shape))
+    vis = seen * gain_products(g, pairs) + noise
+    lengths = np.linalg.norm(b, axis=1)
+    w = np.ones(vis.shape)
+    plain = solve_gains(vis, model, w, pairs, n, outlier_sigma=5.0)
+    assert plain.flags[0, n - 8:].any()  # the old statistic flags outriggers for the sky's error
+    by_length = solve_gains(vis, model, w, pairs, n, outlier_sigma=5.0, baseline_lengths=lengths)
+    assert not by_length.flags.any()
+    bad = vis.copy()
+    sel = (pairs[:, 0] == 3) | (pairs[:, 1] == 3)
+    bad[:, sel] *= np.exp(1j * rng.uniform(0, 2 * np.pi, bad[:, sel].shape))  # a core antenna decorrelated
+    sol = solve_gains(bad, model, w, pairs, n, outlier_sigma=5.0, baseline_lengths=lengths)
+    assert sol.flags[0, 3].all() and sol.flags[0].sum() == 2, np.argwhere(sol.flags[0])
+
+
 def test_gain_error_scales_as_sigma_over_flux_sqrt_nant_nint(rng):
     """Point source of flux S on every baseline, unit gains; independent trials as solutions."""
     S, sigma, trials = 10.0, 2.0, 300

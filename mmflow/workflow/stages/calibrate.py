@@ -105,7 +105,7 @@ def _task(ctx, key):
         fi = key.freq
         ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
         return {"ripple_channels": 1}
-    from mmflow.calibrate.baselines import antennas_with_data
+    from mmflow.calibrate.baselines import antennas_with_data, baseline_lengths
     from mmflow.calibrate.coherency import source_coherencies
     from mmflow.calibrate.ripple import apply_ripple
     from mmflow.calibrate.stefcal import solve_gains
@@ -124,7 +124,8 @@ def _task(ctx, key):
     model = source_coherencies(tel, f, block.lst[good], get_sources(c.sources), _epoch(ctx), block.pairs).sum(0)
     keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)
     sol = solve_gains(vis, model[..., None], w, block.pairs, tel.n_ant, baseline_keep=keep, tol=c.tol,
-                      max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma)
+                      max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma,
+                      baseline_lengths=baseline_lengths(block.pairs, tel.layout.enu, f))
     has_data = antennas_with_data(w, block.pairs, tel.n_ant, keep)
     _stop_if_too_many_flagged(ctx, sol, has_data, f, (t0, t1), c)
     region = (slice(k, k + 1), slice(fi, fi + 1))
