@@ -3,10 +3,12 @@
 The real OVRO-LWA MeasurementSet in ``tests/data`` (read offline) is the template: its 256-antenna
 table of which 20 antennas hold data, its site and telescope name (``OVRO_MMA``), its 109 channels
 of 24 kHz at 27.4-30.0 MHz and its four polarisations xx, yy, xy, yx. One sidereal day of the
-catalogue's 14 sources is simulated on those 20 antennas in ``N_TIMES`` = 180 integrations (the
+catalogue's 14 sources is simulated on those 20 antennas in ``N_TIMES`` = 130 integrations (the
 m-mode stage bins the day into one sidereal bin per integration and needs ``n_bins >= 2 lmax + 1``
-= 161; the visibilities hold less than 1e-9 of their power beyond ``m = n_bins - lmax`` = 100, so
-nothing aliases: the longest baseline's fringe is ``2 pi |b_perp| / lambda`` ~ 34), unpolarised
+= 129 at ``lmax`` = 64; the visibilities hold less than 3e-9 of their power beyond ``m`` = 60, so
+nothing aliases from beyond ``n_bins - lmax`` = 66: the longest baseline's ``2 pi |b| / lambda``
+is 55, its fringe rate ``2 pi |b_perp| / lambda`` 34; the maps' FWHM, 5.3-7.0 degrees, is the
+array's, the same at ``lmax`` = 80), unpolarised
 (``XX = YY = sum_s S_s(nu) B(r_s) exp(2 pi i b . r_s / lambda)``, ``XY = YX = 0``), with independent
 complex noise on every polarisation and channel of the cross correlations, by mmflow's own
 point-source simulator (:func:`mmflow.simulate.visibilities.simulate_drift_scan`, the frame of
@@ -54,7 +56,7 @@ pytest.importorskip("casacore")
 DATA = Path(ROOT) / "tests" / "data"
 OVRO = "2018-03-21-01_26_33_0004384620257280_000000_downselected.ms"
 QUIET = dict(progress=False, log=lambda *a: None)
-N_TIMES, LMAX, CHANNEL, NOISE_JY = 180, 80, 54, 10.0
+N_TIMES, LMAX, CHANNEL, NOISE_JY = 130, 64, 54, 10.0
 SKY = np.arange(CHANNEL - 1, CHANNEL + 3)  # the block input.average_channels=4 takes around CHANNEL
 BEAM = {"type": "sin_elevation", "alpha": 1.5}
 
