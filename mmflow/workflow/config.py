@@ -12,6 +12,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from mmflow.errors import InputError
+from mmflow.mmode.splits import split_kind
 from mmflow.workflow.config_base import Section, power_of_two
 from mmflow.workflow.config_beam import BEAM_PARAMS, BeamConfig
 from mmflow.workflow.config_calibration import (CalibrateConfig, CorruptConfig, ModelsConfig, PeelConfig,
@@ -178,8 +179,6 @@ class MmodeConfig(Section):
     @field_validator("splits")
     @classmethod
     def _full_first(cls, v):
-        from mmflow.mmode.splits import split_kind
-
         for s in v:
             try:
                 split_kind(s)

@@ -14,10 +14,11 @@ from functools import lru_cache
 
 import numpy as np
 
-from mmflow.errors import MmflowError
+from mmflow.errors import InputError, MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
 from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
 from mmflow.telescope.beams import make_beam
+from mmflow.telescope.layout import Layout
 from mmflow.workflow.config import WorkflowConfig
 from mmflow.workflow.fingerprint import ConfigView
 from mmflow.workflow.rundir import RunDir
@@ -149,8 +150,6 @@ def _telescope(beam_json, run_path):
 
     import zarr
 
-    from mmflow.telescope.layout import Layout
-
     g = zarr.open_group(str(RunDir(run_path).store("vis.zarr")), mode="r")
     a = g.attrs.asdict()
     layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],
@@ -168,8 +167,6 @@ def build_telescope(cfg, layout=None):
         if t.preset is not None and t.layout_file is None:
             layout = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
         else:
-            from mmflow.errors import InputError
-
             if t.layout_file is None or t.lat_deg is None or t.lon_deg is None:
                 raise InputError("workflow", "telescope.layout_file", "no layout given",
                                  "set telescope.preset, or layout_file with lat_deg and lon_deg")

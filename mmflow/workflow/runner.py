@@ -23,12 +23,15 @@ from importlib.metadata import PackageNotFoundError, version
 
 import yaml
 
-from mmflow.errors import MmflowError, StaleOutputError
+from mmflow.allocator import keep_freed_memory
+from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
+from mmflow.workflow.config import load_config
 from mmflow.workflow.context import Context
 from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
-from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
 from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan import check_fits
+from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
 from mmflow.workflow.rundir import RunDir
 from mmflow.workflow.task_key import TaskKey
 
@@ -51,8 +54,6 @@ def run_task(ctx, pipeline, stage_name, key):
     ``key`` is the task's marker name (:meth:`TaskKey.format`); the stage's task gets the :class:`TaskKey`.
     """
     import os
-
-    from mmflow.allocator import keep_freed_memory
 
     keep_freed_memory()  # dask workers start with a 64 kB trim threshold: every array a fresh mmap
     run = ctx.run
@@ -371,8 +372,6 @@ def _worker_limit_gb(client):
 def _check_resources(cfg, run, client, stages):
     """Before any work: the largest task of each stage still to run against a worker's memory, and
     the stores against the free disk (:func:`mmflow.workflow.plan.check_fits`)."""
-    from mmflow.workflow.plan import check_fits
-
     todo = [st for st in stages if st.enabled(cfg) and st.task is not None
             and not (run.stage_status(st.name) or {}).get("complete")]
     if todo:
@@ -403,9 +402,6 @@ def _stamp_stores(run, stage, cfg, fingerprint):
 
 def status(run_path):
     """Per stage: chunks done, complete, and stale (made from other settings than ``config.yaml``)."""
-    from mmflow.errors import InputError
-    from mmflow.workflow.config import load_config
-
     run = RunDir(run_path)
     if not run.path.is_dir():
         raise InputError(str(run.path), "run directory", "does not exist",
@@ -425,8 +421,6 @@ def status(run_path):
 
 def verify(run_path, full=True):
     """``{stage: [problems]}``: missing markers, missing, truncated or changed chunk files."""
-    from mmflow.errors import InputError
-
     run = RunDir(run_path)
     if not run.path.is_dir():
         raise InputError(str(run.path), "run directory", "does not exist", "give an existing run directory")
