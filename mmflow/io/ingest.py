@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+import zarr
 
 from mmflow.errors import InputError
 from mmflow.io import checks, ms_index, uvh5_index
@@ -270,7 +271,7 @@ def _index_lookup(ant_numbers):
 
 
 def _antenna_enu(uv):
-    from pyuvdata.utils import ENU_from_ECEF
+    from pyuvdata.utils import ENU_from_ECEF  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     ecef = np.asarray(uv.telescope.antenna_positions) + np.asarray(uv.telescope._location.xyz())
     return ENU_from_ECEF(ecef, center_loc=uv.telescope.location)
@@ -287,8 +288,6 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged). Flagged
     non-finite samples are stored as 0 with weight 0, so ``vis.zarr`` holds only finite numbers.
     """
-    import zarr
-
     g = zarr.open_group(str(store_path), mode="r+")
     files = g.attrs["files"]
     infos = g.attrs.get("ingest_file_info")
@@ -363,7 +362,7 @@ def sidereal_coverage(plan, n_bins):
     """Fraction of ``n_bins`` sidereal bins that hold at least one of the plan's integrations (the
     most any baseline can cover: :func:`mmflow.mmode.transform.sidereal_bins` of every row's LST
     at the site, as the m-mode stage bins them)."""
-    from pyuvdata.utils import get_lst_for_time
+    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     lay = plan.layout
     lst = get_lst_for_time(np.asarray(plan.row_time), latitude=lay.lat_deg, longitude=lay.lon_deg,

@@ -50,6 +50,7 @@ def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):
         How many of ``pol_numbers`` (the first) are parallel hands, made real in autocorrelations
         (default: all).
     """
+    # deferred: optional (python-casacore); pyuvdata takes 2-3.5 s to import (docs/performance.md)
     from casacore.tables import table
     from pyuvdata.utils import get_lst_for_time
     from pyuvdata.utils.io.ms import POL_CASA2AIPS_DICT
