@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import healpy_alm, m_block_slice, n_alm
@@ -181,8 +182,6 @@ def jackknife_sigma(alms, jackknife, lmax, nside, mask, l_weights=None):
     """The full map's jackknife sigma (Jy/sr) over ``mask`` (frame of date) from the split alm
     ``{name: healpy alm}`` (:func:`mmflow.imaging.jackknife.split_variance`); ``jackknife`` from
     :func:`jackknife_splits`; ``l_weights``: of high-pass CLEAN's ``H`` maps (None: the maps)."""
-    import healpy
-
     kind, used, fractions = jackknife
     maps = {s: healpy.alm2map(alms[s] if l_weights is None else psf.apply_l_weights(alms[s], lmax, l_weights),
                               nside, lmax=lmax) for s in used}

@@ -350,7 +350,7 @@ class ClusterConfig(Section):
 
 def check_memory_limit(v):
     """``'auto'``, a fraction in (0, 1], or a byte count dask parses; returned as text."""
-    from dask.utils import parse_bytes
+    from dask.utils import parse_bytes  # deferred: dask takes 0.3-0.8 s to import; `mmflow --help` loads this module
 
     fix = "use 'auto', a fraction of the machine's memory such as 0.5, or bytes such as '4GiB'"
     if isinstance(v, bool):

@@ -8,11 +8,13 @@ marker, with a non-finite guard on everything written.
 """
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+import zarr
 
 from mmflow.errors import InputError, MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
@@ -130,8 +132,6 @@ class TaskContext(Context):
         return _telescope(self.cfg.beam.model_dump_json(), self.run_path)
 
     def vis_attrs(self):
-        import zarr
-
         return zarr.open_group(str(self.run.store("vis.zarr")), mode="r").attrs.asdict()
 
 
@@ -146,10 +146,6 @@ def _parse(js):
 
 @lru_cache(maxsize=8)
 def _telescope(beam_json, run_path):
-    import json
-
-    import zarr
-
     g = zarr.open_group(str(RunDir(run_path).store("vis.zarr")), mode="r")
     a = g.attrs.asdict()
     layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],

@@ -290,7 +290,7 @@ def plan(cfg, costs=None, peak_gflops=None):
 def worker_memory_gb(cfg):
     """A local worker's memory limit in GB (dask's 'auto' splits the machine among workers);
     None where the cluster is not local (its limit is the scheduler's business)."""
-    from dask.utils import parse_bytes
+    from dask.utils import parse_bytes  # deferred: dask takes 0.3-0.8 s to import; `mmflow status` loads this
 
     c = cfg.cluster
     if c.kind not in ("local", "synchronous"):

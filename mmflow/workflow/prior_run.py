@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import zarr
 
 from mmflow.conventions import healpy_alm
 from mmflow.errors import InputError
@@ -82,8 +83,6 @@ def prior_files(cfg):
 
 def _describe(path):
     """A :class:`PriorRun`, or ``(problem, fix)`` when ``path`` holds no finished run."""
-    import zarr
-
     again = f"finish that run first (mmflow run {path / 'config.yaml'}), or give another run directory"
     if not path.is_dir():
         return None, ("no such run directory", "give the run.directory of a finished earlier run of the same "

@@ -16,12 +16,14 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from dataclasses import replace
 from importlib.metadata import PackageNotFoundError, version
 
 import yaml
+import zarr
 
 from mmflow.allocator import keep_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
@@ -53,8 +55,6 @@ def run_task(ctx, pipeline, stage_name, key):
 
     ``key`` is the task's marker name (:meth:`TaskKey.format`); the stage's task gets the :class:`TaskKey`.
     """
-    import os
-
     keep_freed_memory()  # dask workers start with a 64 kB trim threshold: every array a fresh mmap
     run = ctx.run
     run.check_holder(ctx.token)
@@ -140,7 +140,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
             bar.update(len(out))
         bar.close()
         return out
-    from distributed import wait
+    from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
     futures = client.map(run_task, [ctx] * len(todo), [pipeline] * len(todo), [name] * len(todo), todo, pure=False,
                          key=[f"{name}-{k}-{ctx.token}" for k in todo], retries=2)
@@ -360,8 +360,6 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
 def _worker_limit_gb(client):
     """The smallest memory limit (GB) of the cluster's workers; the machine's memory in process
     (no client); None when no worker has joined yet or none has a limit."""
-    import os
-
     if client is None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
     limits = [w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()]
@@ -390,8 +388,6 @@ def _stale_error(run, stage, fp, stale):
 
 def _stamp_stores(run, stage, cfg, fingerprint):
     """Record the resolved configuration, versions and fingerprint in every zarr store a stage writes."""
-    import zarr
-
     for out in stage.outputs:
         path = run.store(out)
         if out.endswith(".zarr") and path.exists():

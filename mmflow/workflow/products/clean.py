@@ -24,6 +24,7 @@ file (``maps/``)                   content
 """
 from __future__ import annotations
 
+import healpy
 import numpy as np
 
 from mmflow.analysis import table1
@@ -139,8 +140,6 @@ def split_noise(ctx, fi, alms, freq, table):
     ``{"even_odd": ..., "per_day": ...}`` with :func:`mmflow.imaging.jackknife.beam_noise`'s
     fields, and ``"day_night"``: the rms of the day/night systematics map ``sqrt(f_d f_n) (day - night)``
     (:func:`day_night_alm`; not a noise estimate: noise alone gives it the full map's sigma)."""
-    import healpy
-
     cfg = ctx.cfg
     lmax, nside = cfg.mmode.lmax, cs.clean_nside(cfg)
     lat = np.deg2rad(float(ctx.vis_attrs()["lat_deg"]))

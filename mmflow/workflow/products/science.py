@@ -34,6 +34,7 @@ import csv
 import io
 import json
 
+import healpy
 import numpy as np
 
 from mmflow.analysis.astrometry import register, registration_rows
@@ -233,8 +234,6 @@ def finalize_science(ctx, parts, tags):
 def _kelvin_map(ctx, part):
     """The channel's map to compare across channels (restored with CLEAN, else the Tikhonov
     map) in K, and its seen pixels."""
-    import healpy
-
     rel = part["images"]["restored"]["fits"] if "images" in part else part["fits"]
     m = healpy.read_map(str(ctx.run.path / rel))
     seen = m != healpy.UNSEEN
@@ -244,8 +243,6 @@ def _kelvin_map(ctx, part):
 
 def _spectral(ctx, parts, maps, record):
     """T-T beta and R^2 between the lowest and highest channel; three colours with >= 3."""
-    import healpy
-
     p = ctx.cfg.products
     order = np.argsort([q["freq_hz"] for q in parts])
     lo, hi = parts[order[0]], parts[order[-1]]

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import time
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import m_blocks
@@ -177,8 +178,6 @@ def _next_cycle(ctx, cycle):
 
 
 def _finalize(ctx):
-    import healpy
-
     cfg = ctx.cfg
     lmax, mmax, blocks = _geometry(ctx)
     g = ctx.open("clean.zarr", mode="r+")

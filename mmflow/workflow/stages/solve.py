@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import m_blocks, m_slice
@@ -38,8 +39,6 @@ def _solve_prepare(ctx):
 
 def _prior_alm(ctx, lmax):
     """The prior map (``imaging.prior_map``, in ``products.frame``) as alm in the frame of date."""
-    import healpy
-
     cfg = ctx.cfg
     hmap = healpy.read_map(cfg.imaging.prior_map)
     epoch = ctx.vis_attrs()["epoch_jd"]
