@@ -31,6 +31,7 @@ import sys
 import tempfile
 import time
 
+import ducc0
 import numpy as np
 
 from mmflow.bench.engine import BEAM, LAT, full_lmax_baselines
@@ -83,8 +84,6 @@ def subsample(chunks, scale):
 # ---------------------------------------------------------------- work counts (the model's inputs)
 
 def _grid_shape(lg, fringe):
-    import ducc0
-
     quad = lg + fringe
     n_theta = quad // 2 + 2
     n_theta += n_theta % 2

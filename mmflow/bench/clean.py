@@ -20,11 +20,15 @@ for any Gram of that size; the PSF's shape is not the paper's.
 from __future__ import annotations
 
 import json
+import shutil
 import sys
+import tempfile
 import time
 
+import healpy
 import numpy as np
 import scipy.linalg as sla
+import zarr
 
 from mmflow.bench.engine import BEAM
 from mmflow.conventions import m_block_slice, m_blocks, m_slice, radec_to_vec
@@ -101,8 +105,6 @@ def _paper_projection(cycle_s, gain=0.15, n_peaks=256, noise_k=154.0, k_sigma=3.
     after a smooth large-scale part is split off (source counts ``N(>S) = 2200 (S/1 Jy)^-1.1``
     over the 3 pi sr seen, VLSSr-like at 74 MHz, noise 598 mJy/beam).
     """
-    import healpy
-
     nside = 64
     sky = healpy.alm2map(synthetic_sky_kelvin(freq_hz, 128, 2458000.5, nside=nside), nside, lmax=128)
     theta, _ = healpy.pix2ang(nside, np.arange(len(sky)))
@@ -134,11 +136,6 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
     as the stage reads it from ``normal.zarr``. The residual is checked against the in-memory :func:`clean.major_cycle`.
     The stage also checksums what it reads and records markers; that bookkeeping is not here.
     """
-    import shutil
-    import tempfile
-
-    import zarr
-
     blocks = m_blocks(lmax, m_block)
     keeps = {m: op.keep for m, op in ops.items()}
     tmp = tempfile.mkdtemp(prefix="mmflow-bench-clean-", dir=workdir)

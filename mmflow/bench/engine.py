@@ -13,6 +13,7 @@ import subprocess
 import sys
 import time
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import enu_to_equatorial_matrix
@@ -59,8 +60,6 @@ def transfer_rate(lmax, dtype, nb=64, chunks=3):
 
 def healpy_rate(lmax, nside, n=2):
     """The driftscan-style approach: per baseline, evaluate A e^{2 pi i b.r} on HEALPix, two map2alm."""
-    import healpy
-
     vec = np.array(healpy.pix2vec(nside, np.arange(healpy.nside2npix(nside)))).T
     a = BEAM.power_enu(vec @ enu_to_equatorial_matrix(LAT), 50e6)
     bs = full_lmax_baselines(lmax, n)
@@ -150,8 +149,6 @@ def memory_scaling(lmax=160, sizes=(64, 128, 256)):
 
 def simulate_rate(n_ant=64, nside=64, n_time=6628, freq_hz=50e6):
     """The independent simulator: ``n_ant`` OVRO-LWA core stands, a HEALPix diffuse sky, one day."""
-    import healpy
-
     tel = Telescope(ovro_lwa_layout("core", max_antennas=n_ant), BEAM, [freq_hz])
     alm = synthetic_sky_kelvin(freq_hz, 3 * nside - 1, 2457802.0)
     sky = healpix_points(kelvin_to_jy_per_sr(healpy.alm2map(alm, nside), freq_hz))

@@ -46,6 +46,10 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from astropy import units as u
+from astropy.coordinates import EarthLocation
+from pyuvdata import Telescope, UVData
+from pyuvdata.utils import ECEF_from_ENU
 
 from mmflow.io import ingest
 from mmflow.io.export import write_per_integration
@@ -73,11 +77,6 @@ def _scan(n_ant, n_freq, n_time, seed=0, raw=False):
     telescope ``OVRO_MMA``, channels of 24 kHz from 27.384 MHz, xx yy xy yx, ``uncalib``, no
     polarisation convention (pyuvdata's for uncalibrated data).
     """
-    from astropy import units as u
-    from astropy.coordinates import EarthLocation
-    from pyuvdata import Telescope, UVData
-    from pyuvdata.utils import ECEF_from_ENU
-
     rng = np.random.default_rng(seed)
     if raw:
         lay = ovro_lwa_layout("core", max_antennas=n_ant)
@@ -132,8 +131,6 @@ def _timed(fn):
 def _raw_read(paths, freq_chans=None, n_avg=1):
     """pyuvdata's own read of every file, one after another: ``(wall, CPU)`` of the faster of two
     passes. ``freq_chans``: ``UVData.read(freq_chans=...)``, then ``frequency_average(n_avg)``."""
-    from pyuvdata import UVData
-
     def one_pass():
         for p in paths:
             uv = UVData()
@@ -221,7 +218,7 @@ def _format_cases(root, quick, keep):
     out["per_integration_over_one_file_ingest_time"] = round(
         out["uvh5_per_integration"]["ingest_s"] / out["uvh5_one_file"]["ingest_s"], 2)
     try:
-        import casacore  # noqa: F401
+        import casacore  # noqa: F401  # deferred: optional (python-casacore), probed here
     except ImportError:
         out["ms_per_integration"] = "skipped: python-casacore not installed"
     else:
@@ -233,7 +230,7 @@ def _format_cases(root, quick, keep):
 def _raw_cases(root, quick, keep):
     """Raw OVRO-LWA MeasurementSets: one channel kept, and four averaged, beside pyuvdata's reads."""
     try:
-        import casacore  # noqa: F401
+        import casacore  # noqa: F401  # deferred: optional (python-casacore), probed here
     except ImportError:
         return {"raw_ms": "skipped: python-casacore not installed"}
     n_ant, n_time = (6, 3) if quick else (64, 30)
