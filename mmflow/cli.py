@@ -150,7 +150,7 @@ def _config(args):
 
 
 def _stores(args):
-    from mmflow.io.store_docs import stores_markdown  # deferred: zarr (0.5-1 s): `import mmflow.cli` stays light
+    from mmflow.io.store_docs import stores_markdown  # deferred: zarr (~1 s): `import mmflow.cli` stays light
 
     print(stores_markdown(), end="")
     return 0
