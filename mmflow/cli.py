@@ -4,8 +4,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from pathlib import Path
 
+import numpy as np
 import yaml
+
+from mmflow import __version__, bench
+from mmflow.allocator import keep_freed_memory
+from mmflow.errors import InputError, MmflowError
 
 BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel", "table1",
               "paper")
@@ -22,7 +28,7 @@ def _common(p):
 
 
 def build_parser():
-    from mmflow import __version__
+    # deferred: the stages load healpy, zarr and pydantic (~3 s): `import mmflow.cli` stays light
     from mmflow.workflow.pipeline import PIPELINE
 
     ap = argparse.ArgumentParser(prog="mmflow", description=__doc__)
@@ -87,9 +93,6 @@ def main(argv=None):
     if args.cmd is None:
         parser.print_help()
         return 0
-    from mmflow.allocator import keep_freed_memory
-    from mmflow.errors import MmflowError
-
     keep_freed_memory()  # the same allocator settings as mmflow's tasks in dask workers (mmflow.allocator)
     try:
         return _dispatch(args)
@@ -99,7 +102,7 @@ def main(argv=None):
 
 
 def _status(args):
-    from mmflow.workflow.runner import status
+    from mmflow.workflow.runner import status  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     for name, s in status(args.run_dir).items():
         if s is None:
@@ -113,7 +116,7 @@ def _status(args):
 
 
 def _verify(args):
-    from mmflow.workflow.runner import verify
+    from mmflow.workflow.runner import verify  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     bad = 0
     for name, problems in verify(args.run_dir, full=not args.quick).items():
@@ -127,14 +130,10 @@ def _verify(args):
 
 
 def _config(args):
-    from mmflow.workflow.config import schema_yaml
+    from mmflow.workflow.config import schema_yaml  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     text = schema_yaml()
     if args.action == "init":
-        from pathlib import Path
-
-        from mmflow.errors import InputError
-
         if not args.path:
             raise InputError("config init", "path", "no file name given", "write `mmflow config init my-workflow.yaml`")
         path = Path(args.path)
@@ -151,15 +150,13 @@ def _config(args):
 
 
 def _stores(args):
-    from mmflow.io.store_docs import stores_markdown
+    from mmflow.io.store_docs import stores_markdown  # deferred: zarr (~1 s): `import mmflow.cli` stays light
 
     print(stores_markdown(), end="")
     return 0
 
 
 def _bench(args):
-    from mmflow import bench
-
     options = {}
     if args.what == "channel":
         options = dict(layout=args.layout, freq_mhz=args.freq_mhz, lmax=args.lmax, dtype=args.dtype,
@@ -180,19 +177,18 @@ def _bench(args):
 
 
 def _plan(args):
-    from mmflow.workflow import plan as planmod
+    from mmflow.workflow import plan as planmod  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     if args.fit:
+        # deferred: scipy's BLAS and workflow modules (~3 s): `import mmflow.cli` stays light
         from mmflow.machine import gemm_gflops
         from mmflow.workflow.plan_fit import fit_costs, write_costs
-
-        import numpy as np
 
         path = args.costs or planmod.COSTS_FILE
         write_costs(fit_costs(args.fit, gemm_gflops(np.float32, n=768)), path)
         print(f"wrote {path}")
         return 0
-    from mmflow.workflow.config import load_config
+    from mmflow.workflow.config import load_config  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     cfg = load_config(args.workflow, args.overrides)
     res = planmod.plan(cfg, planmod.load_costs(args.costs) if args.costs else None)
@@ -205,6 +201,7 @@ def _dispatch(args):
                 "plan": _plan}
     if args.cmd in handlers:
         return handlers[args.cmd](args)
+    # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
     from mmflow.workflow.cluster import open_cluster
     from mmflow.workflow.config import load_config
     from mmflow.workflow.passes import run_with_passes
@@ -219,8 +216,6 @@ def _dispatch(args):
 
 def _report(cfg, summaries):
     """What a user checks first: where the maps are, their resolution, rms and fraction of modes, stage times."""
-    from pathlib import Path
-
     run = Path(cfg.run.directory).expanduser().absolute()
     print("stage times: " + ", ".join(f"{k} {v['wall_s']} s ({v['tasks_run']}/{v['tasks']} tasks run)"
                                       for k, v in summaries.items()))

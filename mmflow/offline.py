@@ -15,6 +15,7 @@ import warnings
 
 from astropy.utils import iers
 from astropy.utils.data import conf as data_conf
+from astropy.utils.data import is_url_in_cache
 
 
 def configure_astropy():
@@ -34,13 +35,13 @@ def offline_site_registry():
     then non-empty, so astropy never tries again, and pyuvdata drops empty names, so no telescope
     is matched by it). Returns the number of named sites known.
     """
+    # deferred: astropy.coordinates takes 0.1-0.2 s to import (docs/performance.md); `import mmflow` loads this module
     from astropy.coordinates import EarthLocation
     from astropy.coordinates.sites import SiteRegistry
-    from astropy.utils.data import conf, is_url_in_cache
 
     configure_astropy()
     if not EarthLocation._site_registry:
-        urls = [base + "coordinates/sites.json" for base in (conf.dataurl, conf.dataurl_mirror)]
+        urls = [base + "coordinates/sites.json" for base in (data_conf.dataurl, data_conf.dataurl_mirror)]
         with warnings.catch_warnings():  # no cache folder yet: astropy warns while answering "not cached"
             warnings.simplefilter("ignore")
             cached = any(is_url_in_cache(u) for u in urls)

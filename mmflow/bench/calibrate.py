@@ -18,7 +18,8 @@ import numpy as np
 
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
 from mmflow.calibrate.stefcal import stefcal, sweep, sweep_numpy
-from mmflow.machine import best_time
+from mmflow.machine import best_time, gemm_gflops, machine
+from mmflow.telescope import ovro_lwa_layout
 from mmflow.threads import n_threads
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
@@ -28,8 +29,6 @@ FREQ = 60e6
 
 def _layout(n_ant):
     try:
-        from mmflow.telescope import ovro_lwa_layout
-
         enu = ovro_lwa_layout("paper-2017").enu[:n_ant]
         if len(enu) == n_ant:
             return enu, "paper-2017"
@@ -133,8 +132,6 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None, modes=None):
 
 def run(what="calibrate", quick=False):
     """All figures as a dict (JSON-able)."""
-    from mmflow.machine import gemm_gflops, machine
-
     n_ant = 64 if quick else 256
     res = {"machine": machine(), "threads": n_threads(), "sgemm_gflops_peak": gemm_gflops(np.float32),
            "memory_copy_gbytes_per_s_peak": memory_bandwidth_gbs()}

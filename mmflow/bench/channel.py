@@ -31,10 +31,22 @@ import sys
 import tempfile
 import time
 
+import ducc0
 import numpy as np
 
+from mmflow.bench.engine import BEAM, LAT, full_lmax_baselines
+from mmflow.imaging.solvers import solve_alm
 from mmflow.machine import gemm_gflops, machine
+from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks
+from mmflow.mmode.normal import NormalAccumulator
+from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit, make_grid, transfer_pass
+from mmflow.telescope import Telescope, ovro_lwa_layout
+from mmflow.telescope.beams import SinElevationBeam
 from mmflow.threads import n_threads
+from mmflow.workflow.cluster import open_cluster
+from mmflow.workflow.config import load_config
+from mmflow.workflow.rundir import RunDir
+from mmflow.workflow.runner import run_workflow
 
 POOL_PHASES = ("tables_s", "legendre_s", "scale_s", "herk_s", "rhs_s")
 PAPER = {"layout": "paper-2017", "freq_mhz": 73.152, "lmax": 1000}
@@ -58,9 +70,6 @@ def _vm_hwm_mb():
 
 
 def telescope_for(layout, freq_hz):
-    from mmflow.telescope import Telescope, ovro_lwa_layout
-    from mmflow.telescope.beams import SinElevationBeam
-
     return Telescope(ovro_lwa_layout(layout), SinElevationBeam(1.5), [freq_hz])
 
 
@@ -75,8 +84,6 @@ def subsample(chunks, scale):
 # ---------------------------------------------------------------- work counts (the model's inputs)
 
 def _grid_shape(lg, fringe):
-    import ducc0
-
     quad = lg + fringe
     n_theta = quad // 2 + 2
     n_theta += n_theta % 2
@@ -109,8 +116,6 @@ def grid_work(lg, fringe):
 
 def plan_work(tel, freq_hz, lmax, chunks):
     """Work units summed over ``chunks`` in order, with a grid build wherever the grid key changes."""
-    from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
-
     tot = {"fourier": 0.0, "fourier_points": 0.0, "gram_bytes": 0.0, "legendre": 0.0, "herk": 0.0, "elements": 0.0,
            "tables": 0.0, "grid_points": 0.0, "grid_builds": 0, "chunks": len(chunks),
            "baselines": int(sum(len(c.index) for c in chunks))}
@@ -137,10 +142,6 @@ def plan_work(tel, freq_hz, lmax, chunks):
 
 def calibrate(dtype, lmaxes, nb=64):
     """Kernel rates (work units per second) on synthetic chunks whose baselines all need ``L``."""
-    from mmflow.bench.engine import full_lmax_baselines, BEAM, LAT
-    from mmflow.mmode.normal import NormalAccumulator
-    from mmflow.mmode.transfer import fringe_bandlimit, make_grid, transfer_pass
-
     out = []
     fresh = np.zeros(1 << 26, np.complex64)  # 512 MB never touched
     t0 = time.perf_counter()
@@ -232,9 +233,6 @@ def _mean_lmax(tel, freq_hz, lmax, chunks):
 # ---------------------------------------------------------------- the measured run
 
 def measure_engine(tel, freq_hz, lmax, chunks, lmax_b, dtype, solve_stride=1, eps=0.01):
-    from mmflow.mmode.engine import GridCache, accumulate_chunks
-    from mmflow.mmode.normal import NormalAccumulator
-
     acc_dtype = np.complex64 if np.dtype(dtype) == np.float32 else np.complex128
     acc = NormalAccumulator(lmax, lmax, acc_dtype)
     n_bl = len(lmax_b)
@@ -279,8 +277,6 @@ def measure_engine(tel, freq_hz, lmax, chunks, lmax_b, dtype, solve_stride=1, ep
 
 def measure_solve(acc, lmax, eps, stride=1):
     """Tikhonov solve + fraction of singular values above sqrt(eps) for every ``stride``-th m."""
-    from mmflow.imaging.solvers import solve_alm
-
     ms = list(range(0, lmax + 1, stride))
     sizes = np.array([lmax - m + 1.0 for m in ms])
     t0 = time.perf_counter()
@@ -298,10 +294,6 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
     ``transfer.groups`` is the number of workers: every group writes a full-lmax partial Gram
     (2.7 GB at lmax 1000 in float32) that the ``normal`` stage reads back.
     """
-    from mmflow.workflow.cluster import open_cluster
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.runner import run_workflow
-
     over = [f"telescope.preset={layout}", "telescope.radius_m=null", f"observation.freqs_mhz=[{freq_mhz}]",
             "sky.diffuse=false", "sky.sources=[Cyg A, Cas A]", "sky.noise=false", f"mmode.lmax={lmax}",
             f"transfer.dtype={np.dtype(dtype).name}", "transfer.noise_weighting=false", "transfer.baseline_chunk=64",
@@ -324,7 +316,6 @@ def measure_workflow(layout, freq_mhz, lmax, scale, workers, dtype, root):
         out["stages"] = {k: {q: v.get(q) for q in ("wall_s", "task_s", "checksum_s", "guard_s", "bytes_written")}
                          for k, v in summaries.items()}
         rss = client.run(_vm_hwm_mb)
-        from mmflow.workflow.rundir import RunDir
 
         out["transfer_tasks"] = RunDir(cfg.run.directory).task_infos("transfer")
         out["peak_rss_mb_per_worker"] = sorted(rss.values())
@@ -338,10 +329,6 @@ def workflow_antennas(scale):
 
 def engine_on_workflow_case(layout, freq_mhz, lmax, scale, dtype):
     """The engine on exactly the workflow's case (its first stands), every chunk and every m."""
-    from mmflow.mmode.engine import plan_chunks
-    from mmflow.telescope import Telescope, ovro_lwa_layout
-    from mmflow.telescope.beams import SinElevationBeam
-
     f = freq_mhz * 1e6
     tel = Telescope(ovro_lwa_layout(layout, max_antennas=workflow_antennas(scale)), SinElevationBeam(1.5), [f])
     chunks, lmax_b = plan_chunks(tel, f, lmax, 64, True)
@@ -352,8 +339,6 @@ def engine_on_workflow_case(layout, freq_mhz, lmax, scale, dtype):
 
 
 def run_case(layout, freq_mhz, lmax, scale, dtype, cal, solve_stride, do_engine=True):
-    from mmflow.mmode.engine import plan_chunks
-
     f = freq_mhz * 1e6
     tel = telescope_for(layout, f)
     chunks, lmax_b = plan_chunks(tel, f, lmax, 64, True)
@@ -392,8 +377,6 @@ def run_case(layout, freq_mhz, lmax, scale, dtype, cal, solve_stride, do_engine=
 def project_channels(layout, lmax, cal, measured_over_model, solve_s, freqs_mhz=PAPER_FREQS_MHZ):
     """PROJECTION of each of the paper's channels: the model's transfer + Gram for that channel times
     the measured/model ratio of this run, plus this run's solve (which depends on lmax only)."""
-    from mmflow.mmode.engine import plan_chunks
-
     out = {}
     for fm in freqs_mhz:
         tel = telescope_for(layout, fm * 1e6)

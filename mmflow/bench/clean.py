@@ -20,20 +20,29 @@ for any Gram of that size; the PSF's shape is not the paper's.
 from __future__ import annotations
 
 import json
+import shutil
 import sys
+import tempfile
 import time
 
+import healpy
 import numpy as np
 import scipy.linalg as sla
+import zarr
 
-from mmflow.machine import gemm_gflops, machine
+from mmflow.bench.engine import BEAM
 from mmflow.conventions import m_block_slice, m_blocks, m_slice, radec_to_vec
 from mmflow.imaging import clean, psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
-from mmflow.sky.diffuse import band_limited_random_alm
+from mmflow.machine import gemm_gflops, machine
+from mmflow.mmode.engine import accumulate_normal_equations
+from mmflow.sky.diffuse import band_limited_random_alm, synthetic_sky_kelvin
 from mmflow.sky.harmonics import point_sources_alm
+from mmflow.telescope import Telescope, ovro_lwa_layout
 from mmflow.threads import n_threads
+from mmflow.workflow import clean_state as clean_stage
+from mmflow.workflow.config import TransferConfig
 
 L_SCALE = 0.7  # the synthetic Grams' D_ll falls as exp(-l^2 / 2 (L_SCALE lmax)^2)
 
@@ -96,10 +105,6 @@ def _paper_projection(cycle_s, gain=0.15, n_peaks=256, noise_k=154.0, k_sigma=3.
     after a smooth large-scale part is split off (source counts ``N(>S) = 2200 (S/1 Jy)^-1.1``
     over the 3 pi sr seen, VLSSr-like at 74 MHz, noise 598 mJy/beam).
     """
-    import healpy
-
-    from mmflow.sky.diffuse import synthetic_sky_kelvin
-
     nside = 64
     sky = healpy.alm2map(synthetic_sky_kelvin(freq_hz, 128, 2458000.5, nside=nside), nside, lmax=128)
     theta, _ = healpy.pix2ang(nside, np.arange(len(sky)))
@@ -131,14 +136,6 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
     as the stage reads it from ``normal.zarr``. The residual is checked against the in-memory :func:`clean.major_cycle`.
     The stage also checksums what it reads and records markers; that bookkeeping is not here.
     """
-    import shutil
-    import tempfile
-
-    import zarr
-
-    from mmflow.conventions import m_blocks
-    from mmflow.workflow import clean_state as clean_stage
-
     blocks = m_blocks(lmax, m_block)
     keeps = {m: op.keep for m, op in ops.items()}
     tmp = tempfile.mkdtemp(prefix="mmflow-bench-clean-", dir=workdir)
@@ -191,8 +188,6 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
 def run(what="clean", quick=False):
     """Measure and return the figures (``mmflow bench clean``; ``python -m mmflow.bench.clean --paper-fwhm``
     for the paper-array Table-1 FWHM)."""
-    from mmflow.workflow.config import TransferConfig
-
     lmax = 200 if quick else 1000
     m_block = TransferConfig.model_fields["m_block"].default
     nside = 2 * default_nside(lmax)
@@ -251,10 +246,6 @@ def paper_table1_fwhm(lmax=1000, freq_hz=73.152e6, target_fraction=0.512, decs_d
     ``layout`` replaces the paper's (a quick check of the path on a small array).
     The paper reports 18.6' x 15.1', 16.8' x 14.6', 16.6' x 16.1' at dec 0, +45, +75.
     """
-    from mmflow.bench.engine import BEAM
-    from mmflow.mmode.engine import accumulate_normal_equations
-    from mmflow.telescope import Telescope, ovro_lwa_layout
-
     t0 = time.perf_counter()
     tel = Telescope(layout or ovro_lwa_layout("paper-2017"), BEAM, [freq_hz])
     nb = len(tel.antenna_pairs())

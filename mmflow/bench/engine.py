@@ -13,12 +13,19 @@ import subprocess
 import sys
 import time
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import enu_to_equatorial_matrix
-from mmflow.mmode.transfer import fringe_bandlimit, iter_transfer_blocks, make_grid
-from mmflow.telescope.beams import SinElevationBeam
+from mmflow.imaging.solvers import tikhonov
 from mmflow.machine import best_time, gemm_gflops, machine
+from mmflow.mmode.normal import herk_upper
+from mmflow.mmode.transfer import fringe_bandlimit, iter_transfer_blocks, make_grid
+from mmflow.simulate.visibilities import healpix_points, simulate_drift_scan
+from mmflow.sky.diffuse import synthetic_sky_kelvin
+from mmflow.sky.units import kelvin_to_jy_per_sr
+from mmflow.telescope import Telescope, ovro_lwa_layout
+from mmflow.telescope.beams import SinElevationBeam
 
 LAT = np.deg2rad(37.24)
 BEAM = SinElevationBeam(1.5)
@@ -53,8 +60,6 @@ def transfer_rate(lmax, dtype, nb=64, chunks=3):
 
 def healpy_rate(lmax, nside, n=2):
     """The driftscan-style approach: per baseline, evaluate A e^{2 pi i b.r} on HEALPix, two map2alm."""
-    import healpy
-
     vec = np.array(healpy.pix2vec(nside, np.arange(healpy.nside2npix(nside)))).T
     a = BEAM.power_enu(vec @ enu_to_equatorial_matrix(LAT), 50e6)
     bs = full_lmax_baselines(lmax, n)
@@ -72,8 +77,6 @@ def healpy_rate(lmax, nside, n=2):
 
 
 def herk_rate(lmax, nb=64, dtype=np.complex64):
-    from mmflow.mmode.normal import herk_upper
-
     rng = np.random.default_rng(0)
     blk = (rng.normal(size=(2 * nb, lmax + 1)) + 1j * rng.normal(size=(2 * nb, lmax + 1))).astype(dtype)
     c = herk_upper(blk)
@@ -86,8 +89,6 @@ def herk_rate(lmax, nb=64, dtype=np.complex64):
 
 def solve_rate(lmax, eps=0.01):
     """Cholesky factor + solve per m block; the total over all m from the L^3 model."""
-    from mmflow.imaging.solvers import tikhonov
-
     rng = np.random.default_rng(0)
     out = {}
     for n in sorted({min(lmax + 1, 128), min(lmax + 1, 512), lmax + 1}):
@@ -103,8 +104,6 @@ def solve_rate(lmax, eps=0.01):
 
 def _paper_projection(rates, herk, solve):
     """The paper's channel (256 antennas, 32,896 baselines with autos, lmax 1000, 73.152 MHz)."""
-    from mmflow.telescope import Telescope, ovro_lwa_layout
-
     tel = Telescope(ovro_lwa_layout("paper-2017"), BEAM, [73.152e6])
     lmax_b = tel.baseline_lmax(73.152e6, 1000)
     # measured transfer cost per baseline at several lmax, interpolated in log-log
@@ -150,13 +149,6 @@ def memory_scaling(lmax=160, sizes=(64, 128, 256)):
 
 def simulate_rate(n_ant=64, nside=64, n_time=6628, freq_hz=50e6):
     """The independent simulator: ``n_ant`` OVRO-LWA core stands, a HEALPix diffuse sky, one day."""
-    import healpy
-
-    from mmflow.simulate.visibilities import healpix_points, simulate_drift_scan
-    from mmflow.sky.diffuse import synthetic_sky_kelvin
-    from mmflow.sky.units import kelvin_to_jy_per_sr
-    from mmflow.telescope import Telescope, ovro_lwa_layout
-
     tel = Telescope(ovro_lwa_layout("core", max_antennas=n_ant), BEAM, [freq_hz])
     alm = synthetic_sky_kelvin(freq_hz, 3 * nside - 1, 2457802.0)
     sky = healpix_points(kelvin_to_jy_per_sr(healpy.alm2map(alm, nside), freq_hz))

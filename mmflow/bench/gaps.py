@@ -17,6 +17,10 @@ import time
 import numpy as np
 import scipy.fft
 
+from mmflow.machine import machine
+from mmflow.mmode.gapfill import lsq_mmodes, relative_rms
+from mmflow.mmode.transform import mmode_transform
+
 N_BINS = 6628
 
 
@@ -55,9 +59,6 @@ def fft_rate(n=N_BINS, nb=64, reps=5):
 
 def case(band, pattern, nb, tol=1e-10, snr=None, seed=0):
     """One fit; ``snr``: signal-to-noise ratio per bin of added noise, passed as ``sigma2`` (None: noiseless)."""
-    from mmflow.mmode.gapfill import lsq_mmodes, relative_rms
-    from mmflow.mmode.transform import mmode_transform
-
     rng = np.random.default_rng(seed)
     vis, _ = _scans(band, nb, rng)
     w = _flags(pattern, N_BINS, nb, rng)
@@ -81,8 +82,6 @@ def case(band, pattern, nb, tol=1e-10, snr=None, seed=0):
 
 
 def run(what="gaps", quick=False):
-    from mmflow.machine import machine
-
     nb = 4 if quick else 16
     bands = (100, 500) if quick else (100, 500, 1000)
     res = {"machine": machine(), "n_bins": N_BINS,

@@ -46,6 +46,20 @@ from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from astropy import units as u
+from astropy.coordinates import EarthLocation
+from pyuvdata import Telescope, UVData
+from pyuvdata.utils import ECEF_from_ENU
+
+from mmflow.io import ingest
+from mmflow.io.export import write_per_integration
+from mmflow.io.ingest import plan_ingest
+from mmflow.io.run_stores import vis_store
+from mmflow.offline import offline_site_registry
+from mmflow.telescope.layout import ovro_lwa_layout
+from mmflow.threads import n_threads
+from mmflow.workflow.chunking import TIME_CHUNK
+from mmflow.workflow.data_stage import layout_attrs
 
 #: the OVRO-LWA's MeasurementSets (the real file in tests/data): 109 channels of 24 kHz from 27.384 MHz
 OVRO_F0_HZ, OVRO_DF_HZ, OVRO_N_CHAN = 27.384e6, 24e3, 109
@@ -63,13 +77,6 @@ def _scan(n_ant, n_freq, n_time, seed=0, raw=False):
     telescope ``OVRO_MMA``, channels of 24 kHz from 27.384 MHz, xx yy xy yx, ``uncalib``, no
     polarisation convention (pyuvdata's for uncalibrated data).
     """
-    from astropy import units as u
-    from astropy.coordinates import EarthLocation
-    from pyuvdata import Telescope, UVData
-    from pyuvdata.utils import ECEF_from_ENU
-
-    from mmflow.telescope.layout import ovro_lwa_layout
-
     rng = np.random.default_rng(seed)
     if raw:
         lay = ovro_lwa_layout("core", max_antennas=n_ant)
@@ -100,8 +107,6 @@ def _scan(n_ant, n_freq, n_time, seed=0, raw=False):
 
 
 def _write(uv, directory, fmt, phase_frame="icrs"):
-    from mmflow.io.export import write_per_integration
-
     directory.mkdir(parents=True)
     with warnings.catch_warnings():  # pyuvdata warns on every MS that CASA may ignore vis_units
         warnings.simplefilter("ignore")
@@ -126,8 +131,6 @@ def _timed(fn):
 def _raw_read(paths, freq_chans=None, n_avg=1):
     """pyuvdata's own read of every file, one after another: ``(wall, CPU)`` of the faster of two
     passes. ``freq_chans``: ``UVData.read(freq_chans=...)``, then ``frequency_average(n_avg)``."""
-    from pyuvdata import UVData
-
     def one_pass():
         for p in paths:
             uv = UVData()
@@ -151,12 +154,6 @@ def _cfg(pattern, freqs_mhz=None, n_avg=1, calibrate=False):
 def _ingest(cfg, run_dir, keep=False):
     """mmflow's ingest as the stage runs it: plan and store, then the tasks over time chunks.
     Returns ``((wall, CPU) of the plan, (wall, CPU) of the tasks)``; ``run_dir`` is removed unless ``keep``."""
-    from mmflow.io import ingest
-    from mmflow.io.run_stores import vis_store
-    from mmflow.threads import n_threads
-    from mmflow.workflow.chunking import TIME_CHUNK
-    from mmflow.workflow.data_stage import layout_attrs
-
     ingest._plan.cache_clear()
     n_threads()  # its first call imports distributed (docs/performance.md): a worker has it loaded already
     found = {}
@@ -193,8 +190,6 @@ def _measure(paths, cfg, run_dir, select=False, keep=False):
     raw = _raw_read(paths)
     out = {"files": n, "mb": round(mb, 2), **_rates("raw", raw, n, mb, "raw_read_s")}
     if select:
-        from mmflow.io.ingest import plan_ingest
-
         chans = [int(c) for c in plan_ingest(cfg).file_info[0]["blocks"][0]]
         sel = _raw_read(paths, chans, len(chans))
         out.update(file_channels=chans, **_rates("raw_select", sel, n, mb, "raw_select_read_s"))
@@ -223,7 +218,7 @@ def _format_cases(root, quick, keep):
     out["per_integration_over_one_file_ingest_time"] = round(
         out["uvh5_per_integration"]["ingest_s"] / out["uvh5_one_file"]["ingest_s"], 2)
     try:
-        import casacore  # noqa: F401
+        import casacore  # noqa: F401  # deferred: optional (python-casacore), probed here
     except ImportError:
         out["ms_per_integration"] = "skipped: python-casacore not installed"
     else:
@@ -235,7 +230,7 @@ def _format_cases(root, quick, keep):
 def _raw_cases(root, quick, keep):
     """Raw OVRO-LWA MeasurementSets: one channel kept, and four averaged, beside pyuvdata's reads."""
     try:
-        import casacore  # noqa: F401
+        import casacore  # noqa: F401  # deferred: optional (python-casacore), probed here
     except ImportError:
         return {"raw_ms": "skipped: python-casacore not installed"}
     n_ant, n_time = (6, 3) if quick else (64, 30)
@@ -257,10 +252,6 @@ def run(what="ingest", quick=False, directory=None, raw=False, keep=False):
     """Measure; returns a dict (see the module docstring). ``directory``: where to write the files
     (default: the system temporary directory; ``MMFLOW_BENCH_DIR`` overrides); ``raw``: the raw
     OVRO-LWA cases; ``keep``: leave the files and run directories there."""
-    import mmflow  # noqa: F401  (offline astropy)
-    from mmflow.offline import offline_site_registry
-    from mmflow.threads import n_threads
-
     offline_site_registry()  # pyuvdata looks OVRO_MMA up among astropy's sites: no download
     root = Path(tempfile.mkdtemp(prefix="mmflow-bench-ingest-",
                                  dir=directory or os.environ.get("MMFLOW_BENCH_DIR")))

@@ -18,6 +18,12 @@ import time
 
 import numpy as np
 
+from mmflow.machine import gemm_gflops, machine
+from mmflow.workflow.cluster import open_cluster
+from mmflow.workflow.config import load_config
+from mmflow.workflow.plan import plan
+from mmflow.workflow.runner import run_workflow
+
 WORKFLOW = os.path.join(os.path.dirname(__file__), "..", "..", "workflows", "paper-scale.yaml")
 #: overrides of each scale: the reduced runs keep the whole sidereal day (fewer, longer integrations)
 SCALES = {
@@ -28,12 +34,6 @@ SCALES = {
 
 
 def run(what="paper", quick=False, scale=None, overrides=(), directory=None):
-    from mmflow.machine import gemm_gflops, machine
-    from mmflow.workflow.cluster import open_cluster
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.plan import plan
-    from mmflow.workflow.runner import run_workflow
-
     scale = scale or ("reduced" if quick else "full")
     res = {"machine": machine(), "scale": scale, "overrides": SCALES[scale] + list(overrides),
            "sgemm_gflops_before": gemm_gflops(np.float32), "dgemm_gflops_before": gemm_gflops(np.float64)}

@@ -17,6 +17,12 @@ import time
 
 import numpy as np
 
+from mmflow.bench.channel import telescope_for
+from mmflow.conventions import radec_to_vec
+from mmflow.imaging.psf import block_operators, map_blocks, measure_psf, psf_alm
+from mmflow.imaging.solvers import count_eigenvalues_above
+from mmflow.mmode.engine import accumulate_normal_equations
+
 PAPER_FWHM_ARCMIN = (16.8, 14.6)
 PAPER_FRACTION = 0.512
 
@@ -26,9 +32,6 @@ def _log(msg):
 
 
 def _fraction(acc, eps, ms):
-    from mmflow.imaging.psf import map_blocks
-    from mmflow.imaging.solvers import count_eigenvalues_above
-
     counts = map_blocks(lambda m: (count_eigenvalues_above(acc.full_gram(m), eps), acc.lmax - m + 1), ms)
     return sum(c for c, _ in counts) / sum(n for _, n in counts)
 
@@ -49,11 +52,6 @@ def choose_eps(acc, target, ms, steps=20):
 
 
 def run(what="table1", quick=False):
-    from mmflow.bench.channel import telescope_for
-    from mmflow.conventions import radec_to_vec
-    from mmflow.imaging.psf import block_operators, measure_psf, psf_alm
-    from mmflow.mmode.engine import accumulate_normal_equations
-
     layout, f, lmax = ("core", 40e6, 200) if quick else ("paper-2017", 73.152e6, 1000)
     tel = telescope_for(layout, f)
     nbl = len(tel.antenna_pairs())

@@ -16,6 +16,11 @@ import time
 
 import numpy as np
 
+from mmflow.io.stores import checksum
+from mmflow.machine import gemm_gflops, machine
+from mmflow.workflow.config import load_config
+from mmflow.workflow.runner import run_workflow
+
 CASES = {
     "demo": ["observation.freqs_mhz=[40.0]"],
     "lmax1000": ["telescope.preset=paper-2017", "telescope.radius_m=null", "telescope.max_antennas=16",
@@ -31,9 +36,6 @@ ONLY = {"lmax1000": ["simulate", "mmodes", "transfer", "normal"]}
 
 
 def run_case(name, root):
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.runner import run_workflow
-
     demo = os.path.join(os.path.dirname(__file__), "..", "..", "workflows", "demo.yaml")
     cfg = load_config(demo, CASES[name] + ["cluster.kind=synchronous", f"run.directory={root}/{name}"])
     t0 = time.perf_counter()
@@ -52,8 +54,6 @@ def run_case(name, root):
 
 def checksum_rate(n_bytes=256 << 20):
     """Chunk-checksum throughput of this machine (GB/s, in memory)."""
-    from mmflow.io.stores import checksum
-
     data = np.frombuffer(np.random.default_rng(0).bytes(n_bytes), np.uint8)
     t0 = time.perf_counter()
     checksum(data)
@@ -61,8 +61,6 @@ def checksum_rate(n_bytes=256 << 20):
 
 
 def run(what="workflow", quick=False):
-    from mmflow.machine import gemm_gflops, machine
-
     res = {"machine": machine(), "sgemm_gflops": gemm_gflops(np.float32), "checksum_gb_per_s": checksum_rate()}
     with tempfile.TemporaryDirectory(prefix="mmflow-bench-") as root:
         res["cases"] = [run_case(n, root) for n in (["demo"] if quick else ["demo", "lmax1000"])]

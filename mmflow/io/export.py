@@ -13,8 +13,11 @@ import warnings
 from pathlib import Path
 
 import healpy
+import matplotlib
+import matplotlib.pyplot as plt  # healpy imports pyplot itself: no extra cost
 import numpy as np
 from astropy.io import fits
+from healpy.newvisufunc import projview
 
 from mmflow.analysis import table1
 from mmflow.imaging.lcurve import lcurve_corner
@@ -129,12 +132,7 @@ def write_mollweide_png(path, hmap, title, unit, mask=None, lmax=None, eps=None,
         ``vmin, vmax, linthresh`` of the colour scale, ``colorbar_label``, ``caption`` and
         ``masked_fraction``.
     """
-    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from healpy.newvisufunc import projview
-
+    matplotlib.use("Agg")  # the backend is chosen where a PNG is drawn, never on import
     shown = _masked(hmap, mask)
     seen = shown[shown != -1.6375e30]
     vmin, vmax, lin = symlog_scale(seen)
@@ -186,11 +184,7 @@ def write_lcurve_png(path, lc, eps, chosen, corner=None, freq_hz=None, weighted=
     float
         ``chosen / corner``: how far (as a factor) the chosen eps is from the corner.
     """
-    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    matplotlib.use("Agg")  # the backend is chosen where a PNG is drawn, never on import
     lc = np.asarray(lc, float)
     eps = np.asarray(eps, float)
     if corner is None:
@@ -241,11 +235,7 @@ def write_psf_png(path, stamps, titles, half_width_deg, caption=""):
     ``stamps``: list of ``image[y, x]`` (x east to the left, as on the sky), each ``2
     half_width_deg`` across.
     """
-    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    matplotlib.use("Agg")  # the backend is chosen where a PNG is drawn, never on import
     fig, axes = plt.subplots(1, len(stamps), figsize=(4.2 * len(stamps), 4.4), squeeze=False)
     for ax, img, title, hw in zip(axes[0], stamps, titles, half_width_deg):
         img = np.asarray(img, float)

@@ -29,12 +29,14 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+import zarr
 
 from mmflow.errors import InputError
-from mmflow.io import checks
-from mmflow.io.channels import average_channels
+from mmflow.io import checks, ms_index, uvh5_index
+from mmflow.io.channels import average_channels, frequency_sets, select_channels
 from mmflow.io.polarization import pol_factor
 from mmflow.io.readers import file_kind, read_file, read_metadata
+from mmflow.mmode.transform import sidereal_bins
 from mmflow.telescope.layout import Layout
 from mmflow.threads import n_threads
 
@@ -129,13 +131,7 @@ def _metadata_indexed(files, fmt, on_bad, kind, calibrated_here=False):
     each checked against the first. None where that does not apply (then pyuvdata reads them all):
     the first file's phase state is not the one the index handles, or its index disagrees with
     pyuvdata's read of it."""
-    try:
-        if kind == "ms":
-            from mmflow.io import ms_index as indexer
-        else:
-            from mmflow.io import uvh5_index as indexer
-    except ImportError:
-        return None
+    indexer = ms_index if kind == "ms" else uvh5_index
     phase = {"ms": "phased", "uvh5": "drift"}[kind]
     skipped, indices, ref_uv = [], [], None
     for f in files:
@@ -180,8 +176,6 @@ def _channel_plan(good, metas, want_mhz, n_avg):
     """``(freqs_hz, width_hz, per-file {"out", "blocks"}, set_of_file)``: the kept channels
     (:mod:`mmflow.io.channels`) and, for every file, which output channels it holds and the blocks of
     its own channels that make them."""
-    from mmflow.io.channels import frequency_sets, select_channels
-
     sets, set_of = frequency_sets([_file_freqs(m) for m in metas])
     width = float(np.median(np.abs(np.asarray(metas[0].channel_width, float)))) \
         if getattr(metas[0], "channel_width", None) is not None else float(np.median(np.diff(sets[0]))) \
@@ -277,7 +271,7 @@ def _index_lookup(ant_numbers):
 
 
 def _antenna_enu(uv):
-    from pyuvdata.utils import ENU_from_ECEF
+    from pyuvdata.utils import ENU_from_ECEF  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     ecef = np.asarray(uv.telescope.antenna_positions) + np.asarray(uv.telescope._location.xyz())
     return ENU_from_ECEF(ecef, center_loc=uv.telescope.location)
@@ -294,8 +288,6 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged). Flagged
     non-finite samples are stored as 0 with weight 0, so ``vis.zarr`` holds only finite numbers.
     """
-    import zarr
-
     g = zarr.open_group(str(store_path), mode="r+")
     files = g.attrs["files"]
     infos = g.attrs.get("ingest_file_info")
@@ -370,9 +362,7 @@ def sidereal_coverage(plan, n_bins):
     """Fraction of ``n_bins`` sidereal bins that hold at least one of the plan's integrations (the
     most any baseline can cover: :func:`mmflow.mmode.transform.sidereal_bins` of every row's LST
     at the site, as the m-mode stage bins them)."""
-    from pyuvdata.utils import get_lst_for_time
-
-    from mmflow.mmode.transform import sidereal_bins
+    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     lay = plan.layout
     lst = get_lst_for_time(np.asarray(plan.row_time), latitude=lay.lat_deg, longitude=lay.lon_deg,

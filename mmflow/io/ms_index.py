@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from astropy.time import Time
 
 from mmflow.errors import InputError
 from mmflow.io import checks
@@ -45,7 +46,7 @@ class MSIndex:
 
 def read_index(path):
     """The columns the plan needs from one MS (python-casacore; no data)."""
-    from casacore.tables import table
+    from casacore.tables import table  # deferred: optional (python-casacore)
 
     p = str(path).rstrip("/")
     with table(p, ack=False, readonly=True) as t:
@@ -68,8 +69,6 @@ def read_index(path):
 def ms_time_to_jd(time_mjd_s, scale):
     """An MS ``TIME`` column (MJD seconds in the column's ``MEASINFO`` scale) as UTC JD, as pyuvdata
     converts it: ``Time(TIME / 86400, format="mjd", scale=scale).utc.jd``."""
-    from astropy.time import Time
-
     return Time(np.asarray(time_mjd_s) / 86400.0, format="mjd", scale=str(scale).lower()).utc.jd
 
 

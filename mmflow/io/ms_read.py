@@ -24,6 +24,10 @@ from contextlib import nullcontext
 
 import numpy as np
 
+from mmflow.io.file_data import FileData
+from mmflow.io.ms_index import ms_time_to_jd
+from mmflow.io.polarization import select_pols
+
 SPEED_OF_LIGHT = 299792458.0  # m/s (astropy.constants.c)
 
 
@@ -46,13 +50,10 @@ def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):
         How many of ``pol_numbers`` (the first) are parallel hands, made real in autocorrelations
         (default: all).
     """
+    # deferred: optional (python-casacore); pyuvdata takes 2-3.5 s to import (docs/performance.md)
     from casacore.tables import table
     from pyuvdata.utils import get_lst_for_time
     from pyuvdata.utils.io.ms import POL_CASA2AIPS_DICT
-
-    from mmflow.io.file_data import FileData
-    from mmflow.io.ms_index import ms_time_to_jd
-    from mmflow.io.polarization import select_pols
 
     p = str(path).rstrip("/")
     with lock or nullcontext():

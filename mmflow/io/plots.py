@@ -12,6 +12,8 @@ import os
 import textwrap
 
 import healpy
+import matplotlib
+import matplotlib.pyplot as plt  # healpy imports pyplot itself: no extra cost
 import numpy as np
 
 from mmflow.analysis.spectral_index import three_colour
@@ -20,11 +22,7 @@ from mmflow.sky.sources import CATALOG
 
 
 def _pyplot():
-    import matplotlib  # deferred: pyplot (0.3 s) only where a PNG is drawn, after choosing the Agg backend
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    matplotlib.use("Agg")  # the backend is chosen where a PNG is drawn, never on import
     return plt
 
 

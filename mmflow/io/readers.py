@@ -57,7 +57,7 @@ def _kwargs(path, fmt):
 def read_metadata(path, fmt=None):
     """pyuvdata ``UVData`` with metadata only. pyuvdata's own consistency check is skipped:
     mmflow checks what it uses (``mmflow.io.checks``)."""
-    from pyuvdata import UVData
+    from pyuvdata import UVData  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     offline_site_registry()
     kw, kind = _kwargs(path, fmt)
@@ -97,7 +97,7 @@ def _wanted(info, what):
 
 
 def _read_pyuvdata(path, fmt, info):
-    from pyuvdata import UVData
+    from pyuvdata import UVData  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     offline_site_registry()
     kw, kind = _kwargs(path, fmt)
@@ -123,7 +123,7 @@ def _read_uvh5_direct(path, pol_indices, n_parallel):
     order, ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex or an integer ``r``/``i`` compound.
     Autocorrelations' parallel hands (the first ``n_parallel`` of ``pol_indices``) are made real,
     as pyuvdata's ``fix_autos`` does on read."""
-    import h5py
+    import h5py  # deferred: h5py comes with pyuvdata (not a direct dependency), uvh5 files only
 
     with h5py.File(str(path), "r") as f:
         h, d = f["Header"], f["Data"]

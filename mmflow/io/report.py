@@ -32,6 +32,8 @@ from datetime import datetime, timezone
 from html.parser import HTMLParser
 from pathlib import Path, PurePosixPath
 
+from PIL import Image  # Pillow: a dependency of matplotlib, loaded with it
+
 from mmflow.analysis.table1 import split_columns
 from mmflow.errors import InputError
 
@@ -490,8 +492,6 @@ class _Scan(HTMLParser):
 
 def png_size(data):
     """``(width, height)`` of PNG bytes after a full decode (Pillow); raises ValueError if not a PNG."""
-    from PIL import Image  # deferred: Pillow comes with matplotlib (not a direct dependency), for PNG checks only
-
     if not data.startswith(b"\x89PNG\r\n\x1a\n"):
         raise ValueError("not a PNG (bad signature)")
     with Image.open(io.BytesIO(data)) as im:

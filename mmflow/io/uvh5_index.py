@@ -63,7 +63,7 @@ def convert_times(indices):
 
 
 def _ecef(lat_lon_alt):
-    from pyuvdata.utils import XYZ_from_LatLonAlt  # deferred (import cost: docs/performance.md)
+    from pyuvdata.utils import XYZ_from_LatLonAlt  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     lla = np.atleast_2d(lat_lon_alt)
     return np.atleast_2d(XYZ_from_LatLonAlt(np.deg2rad(lla[:, 0]), np.deg2rad(lla[:, 1]), lla[:, 2]))

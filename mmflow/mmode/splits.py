@@ -33,6 +33,8 @@ from __future__ import annotations
 import re
 
 import numpy as np
+from astropy import units as u
+from astropy.time import Time
 
 from mmflow.conventions import SIDEREAL_DAY_S, TWO_PI
 from mmflow.mmode.transform import bin_index
@@ -157,9 +159,8 @@ def sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m=0.0, grid_s=SUN_GRID_
 
 def _sun_elevation_deg(times_jd, lat_deg, lon_deg, height_m):
     """:func:`sun_elevation_deg` by astropy at every time."""
-    from astropy import units as u  # deferred (import cost: docs/performance.md): day/night only
+    # deferred: astropy.coordinates takes 0.1-0.2 s to import (docs/performance.md)
     from astropy.coordinates import AltAz, EarthLocation, get_body
-    from astropy.time import Time
 
     t = np.asarray(times_jd, float)
     out = np.full(t.shape, np.nan)

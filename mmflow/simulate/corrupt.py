@@ -29,6 +29,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from astropy import units as u
+from astropy.time import Time
 
 from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.simulate.visibilities import SkyPoints, thermal_noise
@@ -195,8 +197,8 @@ def sun_points(jd, freq_hz, flux_jy=2e4, ref_freq_hz=74e6, alpha=1.8, radius_arc
 
 
 def _sun_vector_date(jd):
-    from astropy.coordinates import TETE, get_sun  # deferred (import cost: docs/performance.md): the Sun only
-    from astropy.time import Time
+    # deferred: astropy.coordinates takes 0.1-0.2 s to import (docs/performance.md)
+    from astropy.coordinates import TETE, get_sun
 
     t = Time(jd, format="jd", scale="utc")
     s = get_sun(t).transform_to(TETE(obstime=t))
@@ -288,7 +290,7 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
     ``LST(t) = phi`` by Newton steps with ``dLST/dt = 2 pi / 86164.0905 s``: the first
     integration's time is found first, the rest follow from the unwrapped LSTs.
     """
-    from pyuvdata.utils import get_lst_for_time  # deferred (import cost: docs/performance.md): files only
+    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     phi = np.unwrap(np.asarray(lsts, float))
     rate = 2 * np.pi / (SIDEREAL_DAY_S / 86400.0)  # rad per (UTC) day
@@ -316,7 +318,7 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     ``x_orientation="east"`` labels linear polarisations as pyuvdata does for such feeds:
     ``pols=("ee", "nn")`` are then XX and YY (the same polarisation numbers, -5 and -6).
     """
-    from astropy import units as u  # deferred (import cost: docs/performance.md): files only
+    # deferred: astropy.coordinates (0.1-0.2 s) and pyuvdata (2-3.5 s) to import (docs/performance.md)
     from astropy.coordinates import EarthLocation
     from pyuvdata import Telescope as UVTelescope
     from pyuvdata import UVData

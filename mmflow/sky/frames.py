@@ -9,6 +9,8 @@ from functools import lru_cache
 
 import ducc0
 import numpy as np
+from astropy import units as u
+from astropy.time import Time
 from scipy.spatial.transform import Rotation
 
 from mmflow.conventions import enu_to_equatorial_matrix
@@ -17,9 +19,8 @@ from mmflow.threads import n_threads
 
 @lru_cache(maxsize=32)
 def _matrix(src, dst, epoch_jd):
-    from astropy import units as u  # deferred (import cost: docs/performance.md): once per epoch
+    # deferred: astropy.coordinates takes 0.1-0.2 s to import (docs/performance.md)
     from astropy.coordinates import ICRS, TETE, Galactic, SkyCoord
-    from astropy.time import Time
 
     t = Time(epoch_jd, format="jd", scale="utc")
     frames = {"icrs": ICRS(), "galactic": Galactic(), "date": TETE(obstime=t)}

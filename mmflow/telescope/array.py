@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+from astropy import units as u
 
 from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.errors import InputError
@@ -54,7 +55,7 @@ class Telescope:
     @property
     def location(self):
         """The array centre as an astropy ``EarthLocation``."""
-        from astropy import units as u  # deferred (import cost: docs/performance.md): site positions only
+        # deferred: astropy.coordinates takes 0.1-0.2 s to import (docs/performance.md)
         from astropy.coordinates import EarthLocation
 
         return EarthLocation.from_geodetic(self.layout.lon_deg * u.deg, self.layout.lat_deg * u.deg,

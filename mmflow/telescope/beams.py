@@ -196,7 +196,7 @@ class PyUVDataBeam(Beam):
     name = "pyuvdata"
 
     def __init__(self, beam, normalize=False, lmax_hint=48):
-        from pyuvdata import BeamInterface, UVBeam
+        from pyuvdata import BeamInterface, UVBeam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
         self.source = beam if isinstance(beam, str) else type(beam).__name__
         if isinstance(beam, str):
@@ -257,7 +257,7 @@ def _make_beam(spec):
     if kind == "pyuvdata":
         if "file" in spec:
             return PyUVDataBeam(spec["file"], **{k: v for k, v in spec.items() if k != "file"})
-        from pyuvdata import analytic_beam
+        from pyuvdata import analytic_beam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
         cls_name = spec.pop("class", "GaussianBeam")
         cls = getattr(analytic_beam, cls_name, None)

@@ -159,7 +159,7 @@ class PyUVDataJones(JonesBeam):
     name = "pyuvdata_efield"
 
     def __init__(self, beam, lmax_hint=48):
-        from pyuvdata import BeamInterface, UVBeam
+        from pyuvdata import BeamInterface, UVBeam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
         self.source = beam if isinstance(beam, str) else type(beam).__name__
         if isinstance(beam, str):

@@ -11,14 +11,18 @@ from __future__ import annotations
 
 import time
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import healpy_alm, m_block_slice, n_alm
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
+from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import gram_name
+from mmflow.mmode.normal import hermitian_full
+from mmflow.mmode.splits import day_splits, jackknife_kind
 from mmflow.workflow.geometry import split_fractions
 from mmflow.workflow.kernel_args import m_filters
 
@@ -58,8 +62,6 @@ def kept_coefficients(cfg, m0, m1):
 
 def block_operators_from_gram(ctx, fi, m0, m1):
     """:class:`psf.BlockOperator` of each m of a block, factorised from ``normal.zarr``'s Gram."""
-    from mmflow.mmode.normal import hermitian_full
-
     cfg = ctx.cfg
     lmax, eps, keeps = cfg.mmode.lmax, cfg.imaging.eps, kept_coefficients(cfg, m0, m1)
     grams = ctx.read("normal.zarr", gram_name(fi, m0))
@@ -74,8 +76,6 @@ def block_operators_from_gram(ctx, fi, m0, m1):
 def stored_operators(ctx, fi, m0, m1):
     """The block's operators from the stored factors (the Gram is read only where a filter
     leaves a coupling ``G_kf``: m = 1)."""
-    from mmflow.mmode.normal import hermitian_full
-
     cfg = ctx.cfg
     lmax, keeps = cfg.mmode.lmax, kept_coefficients(cfg, m0, m1)
     chol = ctx.read("clean.zarr", f"f{fi}/chol_b{m0:05d}")
@@ -168,8 +168,6 @@ def jackknife_splits(ctx, fi, kind=None):
     even/odd, else per-day; or the ``kind`` asked for): the splits it images and each split's share of
     the unflagged samples (``mmodes.zarr``, :func:`mmflow.workflow.geometry.split_fractions`);
     ``(None, (), {})`` without one."""
-    from mmflow.mmode.splits import day_splits, jackknife_kind
-
     splits = ctx.cfg.mmode.splits
     kind = jackknife_kind(splits) if kind is None else kind
     if kind == "even_odd" and {"even", "odd"} <= set(splits):
@@ -184,10 +182,6 @@ def jackknife_sigma(alms, jackknife, lmax, nside, mask, l_weights=None):
     """The full map's jackknife sigma (Jy/sr) over ``mask`` (frame of date) from the split alm
     ``{name: healpy alm}`` (:func:`mmflow.imaging.jackknife.split_variance`); ``jackknife`` from
     :func:`jackknife_splits`; ``l_weights``: of high-pass CLEAN's ``H`` maps (None: the maps)."""
-    import healpy
-
-    from mmflow.imaging.jackknife import split_variance
-
     kind, used, fractions = jackknife
     maps = {s: healpy.alm2map(alms[s] if l_weights is None else psf.apply_l_weights(alms[s], lmax, l_weights),
                               nside, lmax=lmax) for s in used}

@@ -41,7 +41,7 @@ def jobqueue_cluster(cfg, kind):
     its dashboard stays on loopback (reach it with an SSH tunnel) unless ``cluster.expose``.
     Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
     """
-    import dask_jobqueue
+    import dask_jobqueue  # deferred: dask_jobqueue takes 1-3 s to import (docs/performance.md), SLURM/PBS only
 
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
     opts = dict(cfg.cluster.jobqueue)
@@ -67,7 +67,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
     if kind == "synchronous":
         yield None
         return
-    from distributed import Client
+    from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
     cluster = None
     if kind == "address":
@@ -77,7 +77,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
                              "pass --scheduler tcp://host:8786 or set DASK_SCHEDULER_ADDRESS")
         client = Client(addr)
     elif kind == "local":
-        from distributed import LocalCluster
+        from distributed import LocalCluster  # deferred: as Client above
 
         cluster = LocalCluster(n_workers=c.n_workers, threads_per_worker=c.threads_per_worker,
                                memory_limit=memory_limit(c.memory_limit), host=bind_host(c),

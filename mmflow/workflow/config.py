@@ -12,6 +12,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 from mmflow.errors import InputError
+from mmflow.mmode.splits import split_kind
 from mmflow.workflow.config_base import Section, power_of_two
 from mmflow.workflow.config_beam import BEAM_PARAMS, BeamConfig
 from mmflow.workflow.config_calibration import (CalibrateConfig, CorruptConfig, ModelsConfig, PeelConfig,
@@ -178,8 +179,6 @@ class MmodeConfig(Section):
     @field_validator("splits")
     @classmethod
     def _full_first(cls, v):
-        from mmflow.mmode.splits import split_kind
-
         for s in v:
             try:
                 split_kind(s)
@@ -351,7 +350,7 @@ class ClusterConfig(Section):
 
 def check_memory_limit(v):
     """``'auto'``, a fraction in (0, 1], or a byte count dask parses; returned as text."""
-    from dask.utils import parse_bytes
+    from dask.utils import parse_bytes  # deferred: dask takes 0.3-0.8 s to import; `mmflow --help` loads this module
 
     fix = "use 'auto', a fraction of the machine's memory such as 0.5, or bytes such as '4GiB'"
     if isinstance(v, bool):

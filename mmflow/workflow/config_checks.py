@@ -17,8 +17,15 @@ from pydantic import ValidationError
 
 from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import InputError
+from mmflow.mmode.splits import day_index, day_splits, jackknife_kind, sidereal_times_jd, split_problems
+from mmflow.simulate.scene import drift_scan_lsts
+from mmflow.sky.sources import CATALOG
+from mmflow.telescope import load_layout, ovro_lwa_layout
+from mmflow.telescope.beams import make_beam
 from mmflow.workflow.config_beam import BEAM_PARAMS
-from mmflow.workflow.config_errors import Problem, from_pydantic, show
+from mmflow.workflow.config_errors import Problem, from_pydantic, nearest, show
+from mmflow.workflow.geometry import n_bins_of, n_integrations
+from mmflow.workflow.prior_run import prior_run_problems
 
 
 def beam_problems(beam):
@@ -78,8 +85,6 @@ def _telescope_problems(cfg):
 
 def _selection_problems(cfg):
     """Build the antenna selection as the simulate stage will, and check it."""
-    from mmflow.telescope import load_layout, ovro_lwa_layout
-
     t = cfg.telescope
     try:
         if t.layout_file is None:
@@ -113,8 +118,6 @@ def _selection_problems(cfg):
 
 def _beam_build_problems(cfg):
     """Build the beam as the stages do and check it covers every channel."""
-    from mmflow.telescope.beams import make_beam
-
     spec = cfg.beam.model_dump()
     if spec.get("type") == "pyuvdata" and spec.get("file") and not _exists(spec["file"]):
         return [Problem(("beam", "file"), spec["file"], "file not found",
@@ -233,8 +236,6 @@ def _duplicates(field, names):
 def _prior_run_problems(cfg):
     """``mmode.prior_run`` holds a finished run with this run's lmax (and, for simulated data, channels and
     epoch; ingested data are checked by the mmodes stage once their channels and epoch are known)."""
-    from mmflow.workflow.prior_run import prior_run_problems
-
     mm, ob = cfg.mmode, cfg.observation
     sim = cfg.source == "simulate"
     found = prior_run_problems(mm.prior_run, mm.lmax, mm.lmax if mm.mmax is None else mm.mmax, cfg.run.directory,
@@ -249,9 +250,6 @@ def _not_among(field, names, pool, pool_name, fix):
 
 
 def _source_problems(names, field=("sky", "sources")):
-    from mmflow.workflow.config_errors import nearest
-    from mmflow.sky.sources import CATALOG
-
     out = []
     for n in names:
         if n not in CATALOG:
@@ -294,7 +292,6 @@ def _clean_problems(cfg):
                            "(G + eps I)^-1 G, the Tikhonov operator; this method makes another PSF",
                            "use imaging.method: tikhonov (or min_variance) with clean.enabled, "
                            "or clean.enabled: false"))
-    from mmflow.mmode.splits import jackknife_kind
 
     if jackknife_kind(cfg.mmode.splits) is None and c.threshold is None and c.rel_threshold == 0:
         out.append(Problem(("clean", "threshold"), None, "CLEAN stops at threshold_sigma x the jackknife noise, "
@@ -322,10 +319,6 @@ def _split_problems(cfg):
     and ``day`` / ``night``, in its prepare: :func:`mmflow.mmode.splits.split_problems`). The days are
     counted as the stage counts them, from LSTs and times (the simulation's times advance at the
     sidereal rate: :func:`mmflow.mmode.splits.sidereal_times_jd`)."""
-    from mmflow.mmode.splits import day_index, day_splits, sidereal_times_jd, split_problems
-    from mmflow.simulate.scene import drift_scan_lsts
-    from mmflow.workflow.geometry import n_bins_of, n_integrations
-
     mm, ob = cfg.mmode, cfg.observation
     if cfg.source != "simulate":
         return []

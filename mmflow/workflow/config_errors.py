@@ -9,9 +9,11 @@ from __future__ import annotations
 
 import difflib
 import json
+import typing
 from dataclasses import dataclass
 
 import yaml
+from pydantic import BaseModel
 
 from mmflow.errors import InputError
 
@@ -127,8 +129,6 @@ def yaml_error(where, exc):
 # ----------------------------------------------------------------------------- schema words
 
 def _typename(ann):
-    import typing
-
     origin = typing.get_origin(ann)
     args = typing.get_args(ann)
     if origin is typing.Literal:
@@ -170,8 +170,6 @@ def allowed_text(field):
 
 def field_at(model_cls, loc):
     """The pydantic ``FieldInfo`` at ``loc`` below ``model_cls`` (None past lists or unknown keys)."""
-    from pydantic import BaseModel
-
     field = None
     cls = model_cls
     for part in loc:
@@ -189,8 +187,6 @@ def field_at(model_cls, loc):
 
 def section_keys(model_cls, loc):
     """The option names valid at ``loc`` (the section containing an unknown key)."""
-    from pydantic import BaseModel
-
     if not loc:
         return list(model_cls.model_fields)
     f = field_at(model_cls, loc)
@@ -201,8 +197,6 @@ def section_keys(model_cls, loc):
 
 
 def all_dotted_keys(model_cls, prefix=()):
-    from pydantic import BaseModel
-
     out = []
     for name, f in model_cls.model_fields.items():
         loc = prefix + (f.alias or name,)

@@ -8,16 +8,19 @@ marker, with a non-finite guard on everything written.
 """
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+import zarr
 
-from mmflow.errors import MmflowError
+from mmflow.errors import InputError, MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
 from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
 from mmflow.telescope.beams import make_beam
+from mmflow.telescope.layout import Layout
 from mmflow.workflow.config import WorkflowConfig
 from mmflow.workflow.fingerprint import ConfigView
 from mmflow.workflow.rundir import RunDir
@@ -129,8 +132,6 @@ class TaskContext(Context):
         return _telescope(self.cfg.beam.model_dump_json(), self.run_path)
 
     def vis_attrs(self):
-        import zarr
-
         return zarr.open_group(str(self.run.store("vis.zarr")), mode="r").attrs.asdict()
 
 
@@ -145,12 +146,6 @@ def _parse(js):
 
 @lru_cache(maxsize=8)
 def _telescope(beam_json, run_path):
-    import json
-
-    import zarr
-
-    from mmflow.telescope.layout import Layout
-
     g = zarr.open_group(str(RunDir(run_path).store("vis.zarr")), mode="r")
     a = g.attrs.asdict()
     layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],
@@ -168,8 +163,6 @@ def build_telescope(cfg, layout=None):
         if t.preset is not None and t.layout_file is None:
             layout = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
         else:
-            from mmflow.errors import InputError
-
             if t.layout_file is None or t.lat_deg is None or t.lon_deg is None:
                 raise InputError("workflow", "telescope.layout_file", "no layout given",
                                  "set telescope.preset, or layout_file with lat_deg and lon_deg")

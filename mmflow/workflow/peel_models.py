@@ -7,6 +7,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.calibrate.coherency import source_coherencies
+from mmflow.calibrate.peel import MODEL, PEEL
+from mmflow.calibrate.source_models import GaussianComponent
+from mmflow.simulate.corrupt import gain_products
+from mmflow.sky.sources import Source, get_sources
+
 
 def fitted_tables(g, names):
     """``{source: per channel a list of component rows (MODEL_COLUMNS)}`` of ``models.zarr`` (group ``g``)
@@ -21,9 +27,6 @@ def fitted_tables(g, names):
 def fitted_sources(ctx, fi, names):
     """Catalogue sources ``names`` for channel ``fi``, those the models stage fitted (``peel.zarr``'s
     attribute ``fitted_models``) with their fitted components. Reads only ``peel.zarr``."""
-    from mmflow.calibrate.source_models import GaussianComponent
-    from mmflow.sky.sources import Source, get_sources
-
     srcs = get_sources(list(names))
     fitted = ctx.open("peel.zarr").attrs.get("fitted_models", {})
     out = []
@@ -41,8 +44,6 @@ def peel_coherencies(ctx, tel, fi, lst, pairs, names):
     """(n_src, time, bl) model visibilities of sources ``names`` in channel ``fi`` at the data's epoch
     (the models stage's fitted components for the sources ``peel.zarr`` lists as ``fitted_models``,
     :func:`fitted_sources`); 0 at integrations without an LST (missing)."""
-    from mmflow.calibrate.coherency import source_coherencies
-
     good = np.isfinite(lst)
     out = np.zeros((len(names), len(lst), len(pairs)), complex)
     if good.any():
@@ -55,9 +56,6 @@ def peel_components(ctx, block, fi, kinds):
     """``sum_s f_s(t) h_si conj(h_sj) M^s_ij`` (time, bl, pol) of channel ``fi`` over the sources whose
     mode is in ``kinds``, ``f`` being 1 (peeled) or the fitted scale (subtracted, modelled); only the
     sources with such a mode somewhere in the block are computed. Reads only ``peel.zarr``."""
-    from mmflow.simulate.corrupt import gain_products
-    from mmflow.calibrate.peel import PEEL
-
     tel = ctx.telescope()
     names = ctx.open("peel.zarr").attrs["sources"]
     region = (block.rows, slice(fi, fi + 1))
@@ -78,6 +76,4 @@ def peel_components(ctx, block, fi, kinds):
 def modelled_sources(ctx, block):
     """The fitted ``peel.model_sources`` in a block, ``sum_s a_s(t) M^s_ij`` (time, bl, freq, pol): what
     a later fit (the terrestrial templates) holds out so that the catalogued sky does not bias it."""
-    from mmflow.calibrate.peel import MODEL
-
     return np.stack([peel_components(ctx, block, fi, (MODEL,)) for fi in range(block.vis.shape[2])], axis=2)

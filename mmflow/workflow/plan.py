@@ -25,10 +25,16 @@ from pathlib import Path
 
 import numpy as np
 
-from mmflow.conventions import m_blocks
+from mmflow.conventions import SIDEREAL_DAY_S, m_blocks
+from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
 from mmflow.io import run_stores as rs
+from mmflow.io.ingest import plan_ingest
+from mmflow.machine import gemm_gflops
+from mmflow.mmode.engine import plan_chunks, plan_groups
+from mmflow.mmode.transfer import fringe_bandlimit
 from mmflow.workflow.chunking import TIME_CHUNK
+from mmflow.workflow.context import build_telescope
 from mmflow.workflow.pipeline import PIPELINE
 
 COSTS_FILE = Path(__file__).with_name("plan_costs.json")
@@ -95,9 +101,6 @@ def _transfer_plan(tel, freq_hz, cfg, mmax):
     workspace of a task: float tables ``n_theta / 2 x (lmax + 1)(lmax + 2) / 2`` of the grid exact to
     ``lmax + fringe band limit`` (:func:`mmflow.mmode.transfer.make_grid`) and the ring-Fourier
     buffers ``2 x (mmax + 1) x n_theta / 2 x 2 n_chunk`` complex of the longest baselines' chunk."""
-    from mmflow.mmode.engine import plan_chunks, plan_groups
-    from mmflow.mmode.transfer import fringe_bandlimit
-
     t = cfg.transfer
     lmax = cfg.mmode.lmax
     chunks, _ = plan_chunks(tel, freq_hz, lmax, t.baseline_chunk, t.per_baseline_lmax)
@@ -216,22 +219,16 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers):
 def geometry(cfg):
     """The :class:`Geometry` of a configuration: from the telescope for a simulation, from the
     files' metadata (no visibilities read) for ingested data."""
-    from mmflow.workflow.context import build_telescope
-
     mm = cfg.mmode
     mmax = mm.mmax if mm.mmax is not None else mm.lmax
     itemsize = 8 if cfg.transfer.dtype == "float32" else 16
     if cfg.source == "simulate":
-        from mmflow.conventions import SIDEREAL_DAY_S
-
         tel = build_telescope(cfg)
         o = cfg.observation
         n_time = o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
         n_pol = 2 if cfg.corrupt.enabled else 1
         freqs = tel.freqs_hz
     else:
-        from mmflow.io.ingest import plan_ingest
-
         plan = plan_ingest(cfg)
         tel = build_telescope(cfg)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)
@@ -255,8 +252,6 @@ def geometry(cfg):
 def _sky_points_count(cfg, tel, freqs):
     """Points the simulator sums per integration: the diffuse sky's Gauss-Legendre grid
     (``(q + 1) x (2 q + 1)``, ``q = diffuse_lmax + fringe band limit + quad_oversample``) plus sources."""
-    from mmflow.mmode.transfer import fringe_bandlimit
-
     s = cfg.sky
     n = len(s.sources)
     if s.diffuse:
@@ -279,8 +274,6 @@ def plan(cfg, costs=None, peak_gflops=None):
     """
     costs = costs or load_costs()
     if peak_gflops is None:
-        from mmflow.machine import gemm_gflops
-
         peak_gflops = gemm_gflops(np.float32, n=768)
     g = geometry(cfg)
     workers = cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous" else 1
@@ -297,7 +290,7 @@ def plan(cfg, costs=None, peak_gflops=None):
 def worker_memory_gb(cfg):
     """A local worker's memory limit in GB (dask's 'auto' splits the machine among workers);
     None where the cluster is not local (its limit is the scheduler's business)."""
-    from dask.utils import parse_bytes
+    from dask.utils import parse_bytes  # deferred: dask takes 0.3-0.8 s to import; `mmflow status` loads this
 
     c = cfg.cluster
     if c.kind not in ("local", "synchronous"):
@@ -354,8 +347,6 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
     """Refuse, before any work, a run whose largest task exceeds a worker's memory or whose stores
     exceed the free disk: an :class:`mmflow.errors.InputError` naming the stage, the estimate, the
     limit and the setting that fixes it. ``existing_bytes``: what the run's stores hold already."""
-    from mmflow.errors import InputError
-
     g = geometry(cfg)
     costs = load_costs()
     workers = 1

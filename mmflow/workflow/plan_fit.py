@@ -21,13 +21,14 @@ import json
 
 import numpy as np
 
+from mmflow.workflow.config import load_config
+from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan import geometry, stage_work
+from mmflow.workflow.rundir import RunDir
+
 
 def samples(run_dir):
     """``{stage: (W, U, memory_bytes, seconds_per_task)}`` measured in one finished run."""
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.plan import geometry, stage_work
-    from mmflow.workflow.rundir import RunDir
-
     run = RunDir(run_dir)
     cfg = load_config(run.path / "config.yaml")
     g = geometry(cfg)
@@ -48,8 +49,6 @@ def samples(run_dir):
 
 
 def _finished_stages(run):
-    from mmflow.workflow.pipeline import PIPELINE
-
     return [st.name for st in PIPELINE if (run.status_dir(st.name) / "complete.json").exists()]
 
 

@@ -22,8 +22,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import zarr
 
+from mmflow.conventions import healpy_alm
 from mmflow.errors import InputError
+from mmflow.io.stores import open_checked
+from mmflow.workflow.rundir import RunDir
 
 FIELD = "mmode.prior_run"
 ALM = "alm.zarr"
@@ -79,10 +83,6 @@ def prior_files(cfg):
 
 def _describe(path):
     """A :class:`PriorRun`, or ``(problem, fix)`` when ``path`` holds no finished run."""
-    import zarr
-
-    from mmflow.workflow.rundir import RunDir
-
     again = f"finish that run first (mmflow run {path / 'config.yaml'}), or give another run directory"
     if not path.is_dir():
         return None, ("no such run directory", "give the run.directory of a finished earlier run of the same "
@@ -155,10 +155,6 @@ def read_prior_alm(prior_run, fi, lmax):
 
     Chunks are checked against the earlier run's ``solve`` records as they are read.
     """
-    from mmflow.conventions import healpy_alm
-    from mmflow.io.stores import open_checked
-    from mmflow.workflow.rundir import RunDir
-
     path = resolve(prior_run)
     g = open_checked(str(path), ALM, "r", RunDir(path).chunk_index("solve"), "solve")
     return healpy_alm(g["alm"][0, fi], lmax)

@@ -29,7 +29,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from mmflow.errors import MmflowError, StaleOutputError
-from mmflow.io.stores import verify_chunks
+from mmflow.io.stores import dir_size, verify_chunks
 
 
 EXTRA_MARKERS = ["_prepare", "_finalize"]  # what the driver wrote around a stage's tasks
@@ -254,8 +254,6 @@ class RunDir:
         return out
 
     def bytes_of(self, outputs):
-        from mmflow.io.stores import dir_size
-
         total = 0
         for o in outputs:
             p = self.path / o

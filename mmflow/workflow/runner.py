@@ -16,19 +16,24 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from dataclasses import replace
 from importlib.metadata import PackageNotFoundError, version
 
 import yaml
+import zarr
 
-from mmflow.errors import MmflowError, StaleOutputError
+from mmflow.allocator import keep_freed_memory
+from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
+from mmflow.workflow.config import load_config
 from mmflow.workflow.context import Context
 from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
-from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
 from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan import check_fits
+from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
 from mmflow.workflow.rundir import RunDir
 from mmflow.workflow.task_key import TaskKey
 
@@ -50,10 +55,6 @@ def run_task(ctx, pipeline, stage_name, key):
 
     ``key`` is the task's marker name (:meth:`TaskKey.format`); the stage's task gets the :class:`TaskKey`.
     """
-    import os
-
-    from mmflow.allocator import keep_freed_memory
-
     keep_freed_memory()  # dask workers start with a 64 kB trim threshold: every array a fresh mmap
     run = ctx.run
     run.check_holder(ctx.token)
@@ -139,7 +140,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
             bar.update(len(out))
         bar.close()
         return out
-    from distributed import wait
+    from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
     futures = client.map(run_task, [ctx] * len(todo), [pipeline] * len(todo), [name] * len(todo), todo, pure=False,
                          key=[f"{name}-{k}-{ctx.token}" for k in todo], retries=2)
@@ -359,8 +360,6 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
 def _worker_limit_gb(client):
     """The smallest memory limit (GB) of the cluster's workers; the machine's memory in process
     (no client); None when no worker has joined yet or none has a limit."""
-    import os
-
     if client is None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
     limits = [w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()]
@@ -371,8 +370,6 @@ def _worker_limit_gb(client):
 def _check_resources(cfg, run, client, stages):
     """Before any work: the largest task of each stage still to run against a worker's memory, and
     the stores against the free disk (:func:`mmflow.workflow.plan.check_fits`)."""
-    from mmflow.workflow.plan import check_fits
-
     todo = [st for st in stages if st.enabled(cfg) and st.task is not None
             and not (run.stage_status(st.name) or {}).get("complete")]
     if todo:
@@ -391,8 +388,6 @@ def _stale_error(run, stage, fp, stale):
 
 def _stamp_stores(run, stage, cfg, fingerprint):
     """Record the resolved configuration, versions and fingerprint in every zarr store a stage writes."""
-    import zarr
-
     for out in stage.outputs:
         path = run.store(out)
         if out.endswith(".zarr") and path.exists():
@@ -403,9 +398,6 @@ def _stamp_stores(run, stage, cfg, fingerprint):
 
 def status(run_path):
     """Per stage: chunks done, complete, and stale (made from other settings than ``config.yaml``)."""
-    from mmflow.errors import InputError
-    from mmflow.workflow.config import load_config
-
     run = RunDir(run_path)
     if not run.path.is_dir():
         raise InputError(str(run.path), "run directory", "does not exist",
@@ -425,8 +417,6 @@ def status(run_path):
 
 def verify(run_path, full=True):
     """``{stage: [problems]}``: missing markers, missing, truncated or changed chunk files."""
-    from mmflow.errors import InputError
-
     run = RunDir(run_path)
     if not run.path.is_dir():
         raise InputError(str(run.path), "run directory", "does not exist", "give an existing run directory")

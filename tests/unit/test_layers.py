@@ -248,6 +248,44 @@ def test_no_private_name_imported_across_modules(region):
     assert not bad, "\n" + "\n".join(bad)
 
 
+def uncommented_deferred_imports(root):
+    """Function-level imports carrying no ``# deferred: <why>`` comment, as ``'module:line: text'``.
+
+    An import inside a function (or method) is commented when ``# deferred:`` is on one of its
+    lines, or the line right above it is a comment starting with ``# deferred:``, or it follows a
+    commented import of the same indentation directly (no line between: one comment covers a block).
+    """
+    out = []
+    for name, path in module_files(root).items():
+        lines = path.read_text().splitlines()
+        found = []
+
+        def walk(node, in_function):
+            for child in ast.iter_child_nodes(node):
+                if in_function and isinstance(child, (ast.Import, ast.ImportFrom)):
+                    found.append(child)
+                walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)))
+
+        walk(ast.parse("\n".join(lines), filename=str(path)), False)
+        covered_ends = set()
+        for node in sorted(found, key=lambda n: n.lineno):
+            own = any("# deferred:" in line for line in lines[node.lineno - 1:node.end_lineno])
+            above = lines[node.lineno - 2].strip() if node.lineno > 1 else ""
+            if own or above.startswith("# deferred:") or (node.lineno - 1, node.col_offset) in covered_ends:
+                covered_ends.add((node.end_lineno, node.col_offset))
+            else:
+                out.append(f"{name}:{node.lineno}: {lines[node.lineno - 1].strip()}")
+    return out
+
+
+def test_every_deferred_import_says_why():
+    """Imports go at the top of a module; one inside a function is kept only for an optional or
+    slow-to-import dependency most callers never need, with a ``# deferred: <why>`` comment
+    (docs/architecture.md)."""
+    bad = uncommented_deferred_imports(ROOT)
+    assert not bad, "\nmove these to the top of the module, or add '# deferred: <why>':\n" + "\n".join(bad)
+
+
 def test_stage_modules_import_no_other_stage():
     bad = [f"{a} -> {b} (line {line})" for a, b, line, _ in EDGES if is_stage(a) and is_stage(b)]
     assert not bad, "\n" + "\n".join(bad)
@@ -274,3 +312,39 @@ def test_walker_finds_a_deferred_cycle_and_an_upward_import(tmp_path):
     assert upward(edges) == ["mmflow.imaging.maps -> mmflow.io.stores (line 2)"]
     assert private_imports(edges) == ["mmflow.imaging.maps imports _write from mmflow.io.stores (line 2)"]
     assert not is_stage("mmflow.workflow.stages.base") and is_stage("mmflow.workflow.stages.clean")
+
+
+def test_deferred_import_checker_flags_uncommented_imports(tmp_path):
+    pkg = tmp_path / "mmflow"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("import json\n")                    # module level: fine
+    (pkg / "m.py").write_text(
+        "import os\n"
+        "\n"
+        "def a():\n"
+        "    import numpy  # deferred: on its line\n"
+        "\n"
+        "def b():\n"
+        "    # deferred: on the line above, for the block below\n"
+        "    from astropy.coordinates import ICRS\n"
+        "    from astropy.time import (\n"
+        "        Time)\n"
+        "    import casacore\n"
+        "\n"
+        "    import pyuvdata\n"                                           # 13: a blank line ends the block
+        "\n"
+        "def c():\n"
+        "    x = 1\n"
+        "    from mmflow import sub\n"                                    # 17
+        "    import zarr  # deferred (no colon)\n"                        # 18
+        "\n"
+        "class K:\n"
+        "    import re\n"                                                 # class body: not a function
+        "\n"
+        "    def m(self):\n"
+        "        def inner():\n"
+        "            from . import sub  # deferred: nested functions count too\n"
+        "        import yaml\n")                                          # 26
+    assert uncommented_deferred_imports(pkg) == ["mmflow.m:13: import pyuvdata", "mmflow.m:17: from mmflow import sub",
+                                                 "mmflow.m:18: import zarr  # deferred (no colon)",
+                                                 "mmflow.m:26: import yaml"]

@@ -24,34 +24,35 @@ file (``maps/``)                   content
 """
 from __future__ import annotations
 
+import healpy
 import numpy as np
 
 from mmflow.analysis import table1
 from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
-from mmflow.imaging.jackknife import day_night_difference, noise_realisation
+from mmflow.imaging.jackknife import beam_noise, day_night_difference, masked_rms, noise_realisation
+from mmflow.io.export import psf_stamp_header, write_healpix_fits, write_image_fits, write_mollweide_png, write_psf_png
+from mmflow.io.plots import write_clean_history_png
 from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map
-from mmflow.sky.frames import rotate_alm
-from mmflow.workflow.geometry import mmax_of
+from mmflow.sky.frames import rotate_alm, rotation_matrix
+from mmflow.sky.harmonics import synthesize_at
+from mmflow.workflow import clean_state as cs
+from mmflow.workflow.geometry import mmax_of, split_fractions
 
 STAMP_DECS = table1.TABLE1_DECS_DEG
 STAMP_PIXELS = 65
 
 
 def _rotate_to(frame, epoch):
-    from mmflow.sky.frames import rotation_matrix
-
     return None if frame == "date" else rotation_matrix("date", frame, epoch)
 
 
 def psf_stamp(cols, lmax, dec_rad, half_width_rad, n=STAMP_PIXELS):
     """``image[y, x]`` of a PSF column (source at RA 0, ``dec``), azimuthal-equidistant, x east
     to the left, normalised to the PSF at its source; returns ``(image, peak)``."""
-    from mmflow.sky.harmonics import synthesize_at
-
     center = psf.table_vectors([dec_rad])[0]
     g = np.linspace(-half_width_rad, half_width_rad, n)
     yy, xx = np.meshgrid(g, -g, indexing="ij")  # column i: east offset decreasing (RA to the left)
@@ -63,10 +64,6 @@ def psf_stamp(cols, lmax, dec_rad, half_width_rad, n=STAMP_PIXELS):
 def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     """Write one channel's CLEAN maps and PSF stamps; return the summary info (paths, cycle
     history, PSF FWHMs, noise, Table-1 row)."""
-    from mmflow.io.export import psf_stamp_header, write_healpix_fits, write_image_fits, write_mollweide_png, \
-        write_psf_png
-    from mmflow.workflow import clean_state as cs
-
     cfg = ctx.cfg
     p, lmax, mmax = cfg.products, cfg.mmode.lmax, mmax_of(cfg)
     blocks = m_blocks(mmax, cfg.transfer.m_block)
@@ -134,8 +131,6 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
 def day_night_alm(ctx, fi, alms):
     """The day/night systematics map's alm ``sqrt(f_d f_n) (day - night)`` of channel ``fi``, the shares
     from ``mmodes.zarr`` (:func:`mmflow.imaging.jackknife.day_night_difference`)."""
-    from mmflow.workflow.geometry import split_fractions
-
     f = split_fractions(ctx, fi)
     return day_night_difference(alms["day"], alms["night"], f["day"], f["night"])
 
@@ -145,11 +140,6 @@ def split_noise(ctx, fi, alms, freq, table):
     ``{"even_odd": ..., "per_day": ...}`` with :func:`mmflow.imaging.jackknife.beam_noise`'s
     fields, and ``"day_night"``: the rms of the day/night systematics map ``sqrt(f_d f_n) (day - night)``
     (:func:`day_night_alm`; not a noise estimate: noise alone gives it the full map's sigma)."""
-    import healpy
-
-    from mmflow.imaging.jackknife import beam_noise, masked_rms
-    from mmflow.workflow import clean_state as cs
-
     cfg = ctx.cfg
     lmax, nside = cfg.mmode.lmax, cs.clean_nside(cfg)
     lat = np.deg2rad(float(ctx.vis_attrs()["lat_deg"]))
@@ -178,8 +168,6 @@ def _psf_summary(table):
 
 
 def _write_stamps(ctx, g, fi, tag, freq, table, lmax, blocks, png, header, write_fits, write_png):
-    from mmflow.workflow import clean_state as cs
-
     cols = cs.psf_alm_columns(g, fi, lmax, blocks)
     decs = table["dec"]
     out, images, titles, widths = [], [], [], []
@@ -226,8 +214,6 @@ def table1_row(ctx, fi, freq, info):
 
 def clean_history_figure(ctx, parts, tags):
     """``maps/clean_history.png``: every channel's residual peak and components per cycle."""
-    from mmflow.io.plots import write_clean_history_png
-
     hist, thr = {}, {}
     for tag, part in zip(tags, parts):
         h = part["clean"]["history"]

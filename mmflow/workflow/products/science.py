@@ -34,9 +34,25 @@ import csv
 import io
 import json
 
+import healpy
 import numpy as np
 
+from mmflow.analysis.astrometry import register, registration_rows
+from mmflow.analysis.fluxscale import (alm_sampler, disc_minus_annulus, flux_deviations, flux_row, peel_flux_factors,
+                                       source_flux)
+from mmflow.analysis.spectral_index import local_tt
+from mmflow.conventions import m_block_slice, m_blocks, m_slice, n_alm
 from mmflow.imaging import psf
+from mmflow.imaging.clean import never_seen_dec_min
+from mmflow.imaging.jackknife import noise_realisation
+from mmflow.io.export import write_healpix_fits
+from mmflow.io.plots import write_flux_scale_png, write_spectral_index_png, write_three_colour_png
+from mmflow.sky import units
+from mmflow.sky.frames import rotation_matrix
+from mmflow.sky.sources import CATALOG, epoch_year, get_sources
+from mmflow.workflow import clean_state as cs
+from mmflow.workflow.clean_state import jackknife_splits, split_alm
+from mmflow.workflow.geometry import mmax_of
 
 NOISE_ROTATIONS = 8  # noise realisations for the flux errors: 2 x this (turned jackknife maps and negatives)
 FLUX_COLUMNS = ("name", "freq_hz", "measured_jy", "measured_err_jy", "model_jy", "ratio", "clean_jy", "method",
@@ -45,8 +61,6 @@ FLUX_COLUMNS = ("name", "freq_hz", "measured_jy", "measured_err_jy", "model_jy",
 
 def seen_sources(names, icrs_to_date, dec_min_rad, exclude=()):
     """The catalogue sources (``names``; None: all) north of ``dec_min`` (frame of date), less ``exclude``."""
-    from mmflow.sky.sources import CATALOG, get_sources
-
     srcs = get_sources(list(CATALOG) if names is None else names)
     return [s for s in srcs if s.name not in exclude and (icrs_to_date @ s.vector_icrs())[2] > np.sin(dec_min_rad)]
 
@@ -54,10 +68,6 @@ def seen_sources(names, icrs_to_date, dec_min_rad, exclude=()):
 def psf_at(ctx, fi, vecs_date):
     """PSF alm columns ``(n_alm, n_src)`` (frame of date, Jy/sr per Jy) of sources at ``vecs_date``,
     one m block at a time (one block's operators in memory)."""
-    from mmflow.conventions import m_block_slice, m_blocks, n_alm
-    from mmflow.workflow import clean_state as cs
-    from mmflow.workflow.geometry import mmax_of
-
     cfg = ctx.cfg
     lmax = cfg.mmode.lmax
     stored = cfg.clean.enabled and cfg.clean.keep_factors
@@ -71,9 +81,6 @@ def psf_at(ctx, fi, vecs_date):
 def _peel_rows(ctx, fi, freq, epoch_year, wanted):
     """Flux rows of the sources ``peel.zarr`` removed (peeled or subtracted), from the peel solutions;
     the modelled sources (``peel.model_sources``) stay in the data and are measured in the map."""
-    from mmflow.analysis.fluxscale import flux_row, peel_flux_factors
-    from mmflow.sky.sources import get_sources
-
     g = ctx.open("peel.zarr")
     kept = set(g.attrs.get("modelled", []))
     index = {n: s for s, n in enumerate(g.attrs["sources"]) if n not in kept}  # store column of each
@@ -103,13 +110,6 @@ def _peel_rows(ctx, fi, freq, epoch_year, wanted):
 
 def channel_science(ctx, fi, tag, freq, epoch, hmap, nside):
     """Flux scale and astrometry of one channel; returns the summary info to merge."""
-    from mmflow.analysis.astrometry import register, registration_rows
-    from mmflow.analysis.fluxscale import alm_sampler, disc_minus_annulus, flux_deviations, flux_row, source_flux
-    from mmflow.sky.sources import epoch_year
-    from mmflow.imaging.clean import never_seen_dec_min
-    from mmflow.sky import units
-    from mmflow.sky.frames import rotation_matrix
-
     cfg = ctx.cfg
     p, lmax = cfg.products, cfg.mmode.lmax
     if not (p.flux_scale or p.astrometry):
@@ -169,11 +169,6 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
     ``day<k>`` split), its negative, and the same turned about the pole of date by
     ``2 pi k / n_rot`` (``a_lm exp(-i m dphi)``: the noise of a drift scan depends on
     declination); none without even and odd or day<k> splits."""
-    from mmflow.conventions import m_slice
-    from mmflow.imaging.jackknife import noise_realisation
-    from mmflow.workflow.clean_state import jackknife_splits, split_alm
-    from mmflow.workflow.geometry import mmax_of
-
     cfg = ctx.cfg
     kind, _, fractions = jackknife_splits(ctx, fi)
     if kind is None:
@@ -190,8 +185,6 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
 
 def _clean_components(ctx, fi):
     """CLEAN's components of one channel (frame of date): ``(vecs, fluxes)``."""
-    from mmflow.workflow import clean_state as cs
-
     g = ctx.open("clean.zarr")
     state, _ = cs.clean_result(g, fi, cs.clean_options(ctx.cfg.clean), int(g["n_cycles"][fi]))
     return state.comp_vec, state.comp_flux
@@ -225,9 +218,6 @@ def finalize_science(ctx, parts, tags):
         (maps / "fluxscale.csv").write_text(flux_csv(rows))
         out["flux_scale"] = {"rows": rows, "files": {"JSON": record("fluxscale.json"), "CSV": record("fluxscale.csv")}}
         if p.png:
-            from mmflow.sky.sources import epoch_year
-            from mmflow.io.plots import write_flux_scale_png
-
             drawn = write_flux_scale_png(maps / "fluxscale.png", rows, epoch_year(parts[0]["epoch_jd"]))
             out["flux_scale"]["figure"] = record("fluxscale.png")
             out["flux_scale"]["median_ratio"] = drawn["median_ratio"]
@@ -244,10 +234,6 @@ def finalize_science(ctx, parts, tags):
 def _kelvin_map(ctx, part):
     """The channel's map to compare across channels (restored with CLEAN, else the Tikhonov
     map) in K, and its seen pixels."""
-    import healpy
-
-    from mmflow.sky import units
-
     rel = part["images"]["restored"]["fits"] if "images" in part else part["fits"]
     m = healpy.read_map(str(ctx.run.path / rel))
     seen = m != healpy.UNSEEN
@@ -257,11 +243,6 @@ def _kelvin_map(ctx, part):
 
 def _spectral(ctx, parts, maps, record):
     """T-T beta and R^2 between the lowest and highest channel; three colours with >= 3."""
-    import healpy
-
-    from mmflow.analysis.spectral_index import local_tt
-    from mmflow.io.export import write_healpix_fits
-
     p = ctx.cfg.products
     order = np.argsort([q["freq_hz"] for q in parts])
     lo, hi = parts[order[0]], parts[order[-1]]
@@ -288,8 +269,6 @@ def _spectral(ctx, parts, maps, record):
     out["beta_median_r2_above_0.9"] = float(np.median(tt["beta"][good])) if good.any() else None
     out["fraction_r2_above_0.9"] = float(good.mean())
     if p.png:
-        from mmflow.io.plots import write_spectral_index_png, write_three_colour_png
-
         write_spectral_index_png(maps / "spectral_index.png", tt["beta"], tt["r2"], lo["freq_hz"], hi["freq_hz"],
                                  frame=p.frame)
         out["figures"] = [{"path": record("spectral_index.png"),

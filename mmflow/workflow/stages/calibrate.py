@@ -29,8 +29,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.calibrate.baselines import antennas_with_data, baseline_lengths
+from mmflow.calibrate.coherency import apparent_flux, source_coherencies
+from mmflow.calibrate.gain_tables import gains_at
+from mmflow.calibrate.ripple import apply_ripple, ripple_ratio
+from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, best_track, solve_gains
 from mmflow.errors import InputError
 from mmflow.io.run_stores import gains_store
+from mmflow.sky.sources import get_sources
 from mmflow.workflow.baseline_cuts import check_baselines, resolved_cuts, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage
@@ -43,10 +49,6 @@ def _epoch(ctx):
 
 def _intervals(ctx, tel, lst, integration_s):
     """``(solve_rows, apply_rows)`` (n_interval, 2) from ``calibrate.solint_s`` or the best track."""
-    from mmflow.calibrate.coherency import apparent_flux
-    from mmflow.calibrate.stefcal import best_track
-    from mmflow.sky.sources import get_sources
-
     c, n = ctx.cfg.calibrate, len(lst)
     if c.solint_s is not None:
         step = max(1, int(round(c.solint_s / integration_s)))
@@ -85,8 +87,6 @@ _RIPPLE = {}  # (run, channel, smoothing, configuration) -> ratio: one computati
 
 def _ratio(ctx, fi):
     """Ripple ratio ``(time, antenna, pol)`` of channel ``fi`` from the autocorrelations."""
-    from mmflow.calibrate.ripple import ripple_ratio
-
     key = (str(ctx.run_path), fi, ctx.cfg.calibrate.ripple_smooth_min, ctx.config_json)
     if key not in _RIPPLE:
         autos = ctx.read("vis.zarr", "autos", (slice(None), slice(None), slice(fi, fi + 1)))[:, :, 0]
@@ -105,11 +105,6 @@ def _task(ctx, key):
         fi = key.freq
         ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
         return {"ripple_channels": 1}
-    from mmflow.calibrate.baselines import antennas_with_data, baseline_lengths
-    from mmflow.calibrate.coherency import source_coherencies
-    from mmflow.calibrate.ripple import apply_ripple
-    from mmflow.calibrate.stefcal import solve_gains
-    from mmflow.sky.sources import get_sources
 
     c = ctx.cfg.calibrate
     fi, k = key.freq, key.interval
@@ -172,10 +167,6 @@ def _apply(ctx, block):
 
     Reads only ``gains.zarr`` (never the configuration: the reading stage's fingerprint covers
     the store)."""
-    from mmflow.calibrate.ripple import apply_ripple
-    from mmflow.calibrate.gain_tables import gains_at
-    from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos
-
     gains = ctx.read("gains.zarr", "gains")  # (interval, freq, antenna, pol): small
     flags = ctx.read("gains.zarr", "flags")
     apply_rows, solve_rows = ctx.read("gains.zarr", "apply_rows"), ctx.read("gains.zarr", "solve_rows")

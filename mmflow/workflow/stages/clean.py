@@ -22,12 +22,15 @@ from __future__ import annotations
 
 import time
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
+from mmflow.imaging.jackknife import beam_noise
 from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store
+from mmflow.sky import units
 from mmflow.workflow.clean_state import (active, block_operators_from_gram, clean_nside, clean_options, clean_result,
                                          clean_table, cycle_block, factors_of, highpass, jackknife_sigma,
                                          jackknife_splits, psf_alm_columns, psf_decs_deg, residual_alm, split_alm,
@@ -120,9 +123,6 @@ def _cycle_task(ctx, key):
 
 def _setup_tables(ctx, g):
     """Cycle 0 on the driver: PSF tables, jackknife noise and the stop threshold per frequency."""
-    from mmflow.imaging.jackknife import beam_noise
-    from mmflow.sky import units
-
     cfg = ctx.cfg
     c = cfg.clean
     lmax, mmax, blocks = _geometry(ctx)
@@ -178,8 +178,6 @@ def _next_cycle(ctx, cycle):
 
 
 def _finalize(ctx):
-    import healpy
-
     cfg = ctx.cfg
     lmax, mmax, blocks = _geometry(ctx)
     g = ctx.open("clean.zarr", mode="r+")

@@ -10,9 +10,11 @@ from __future__ import annotations
 import glob
 
 from mmflow.errors import CoverageError
+from mmflow.io.ingest import ingest_time_chunk, plan_ingest, sidereal_coverage, write_plan
 from mmflow.io.run_stores import vis_store
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.data_stage import VIS_ARRAYS, layout_attrs, write_autos
+from mmflow.workflow.geometry import n_bins_of
 from mmflow.workflow.stages.base import Stage
 
 CROSS_ARRAYS = ("vis_cross", "weights_cross")
@@ -27,9 +29,6 @@ def input_files(cfg):
 
 
 def _ingest_check(cfg, running):
-    from mmflow.io.ingest import plan_ingest, sidereal_coverage
-    from mmflow.workflow.geometry import n_bins_of
-
     plan = plan_ingest(cfg)
     if "mmodes" not in running:
         return
@@ -47,8 +46,6 @@ def _ingest_check(cfg, running):
 
 
 def _ingest_prepare(ctx):
-    from mmflow.io.ingest import plan_ingest, write_plan
-
     plan = plan_ingest(ctx.cfg)
     width = getattr(plan, "channel_width_hz", None)
     attrs = dict(layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files), pols=plan.pols,
@@ -63,8 +60,6 @@ def _ingest_prepare(ctx):
 
 
 def _ingest_task(ctx, key):
-    from mmflow.io.ingest import ingest_time_chunk
-
     g = ctx.open("vis.zarr", mode="r+")
     t0, t1 = chunk_rows(key, g["lst"].shape[0])
     info = ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), t0, t1)

@@ -34,8 +34,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source_vector_date
+from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
+                                            fit_point_position, pack_components, source_uvw, symmetric_start)
 from mmflow.errors import InputError
 from mmflow.io.run_stores import MODEL_COLUMNS, models_store
+from mmflow.sky.sources import epoch_year, get_sources
+from mmflow.telescope.array import C_LIGHT
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK
@@ -51,9 +56,6 @@ def _epoch(ctx):
 
 def _track(ctx, tel, lst, name):
     """Rows (sorted) where source ``name`` is above ``models.min_elevation_deg``, and their length (min)."""
-    from mmflow.calibrate.coherency import apparent_flux
-    from mmflow.sky.sources import get_sources
-
     good = np.isfinite(lst)
     _, elev = apparent_flux(tel, float(tel.freqs_hz[0]), np.where(good, lst, 0.0), get_sources([name]), _epoch(ctx))
     rows = np.flatnonzero(good & (np.rad2deg(elev[0]) >= ctx.cfg.models.min_elevation_deg))
@@ -93,12 +95,6 @@ def _read_rows(ctx, rows):
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.coherency import source_coherencies, source_vector_date
-    from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
-                                                fit_point_position, pack_components, source_uvw, symmetric_start)
-    from mmflow.sky.sources import epoch_year, get_sources
-    from mmflow.telescope.array import C_LIGHT
-
     m, p = ctx.cfg.models, ctx.cfg.peel
     fi, si = key.freq, key.source
     name = m.sources[si]

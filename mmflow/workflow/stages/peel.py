@@ -38,7 +38,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.calibrate.coherency import apparent_flux, source_vector_date
+from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
+from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, select_modes
+from mmflow.calibrate.source_models import position_gains
 from mmflow.io.run_stores import PEEL_MODES, peel_store
+from mmflow.simulate.corrupt import gain_products
+from mmflow.sky.sources import get_sources
 from mmflow.workflow.baseline_cuts import check_baselines, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
@@ -71,12 +77,6 @@ def _names(p):
 
 
 def _task(ctx, key):
-    from mmflow.simulate.corrupt import gain_products
-    from mmflow.calibrate.coherency import apparent_flux, source_vector_date
-    from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
-    from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, select_modes
-    from mmflow.sky.sources import get_sources
-
     p = ctx.cfg.peel
     fi = key.freq
     rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
@@ -127,11 +127,6 @@ def _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good):
     """DD phase gradients (src, time, ant) of each subtracted source's fitted position per
     integration (:func:`mmflow.calibrate.source_models.position_gains`) on the peeled data with the
     source put back (mean of the polarisations; autos and short baselines unused); 1 elsewhere."""
-    from mmflow.calibrate.coherency import source_vector_date
-    from mmflow.calibrate.peel import SUBTRACT
-    from mmflow.calibrate.source_models import position_gains
-    from mmflow.sky.sources import get_sources
-
     h = np.ones(out.dd_gains.shape[:3], complex)
     w = block.weights[:, :, fi].min(-1) * keep * (block.pairs[:, 0] != block.pairs[:, 1])
     epoch = float(ctx.vis_attrs()["epoch_jd"])
@@ -147,8 +142,6 @@ def _fit_positions(ctx, tel, f, block, fi, out, coh, keep, good):
 def _apply(ctx, block):
     """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
     ``peel.zarr``, never the configuration); the modelled sources stay."""
-    from mmflow.calibrate.peel import PEEL, SUBTRACT
-
     for fi in range(block.vis.shape[2]):
         block.vis[:, :, fi] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
 

@@ -15,8 +15,15 @@ import json
 import numpy as np
 
 from mmflow.conventions import healpy_alm
+from mmflow.imaging import maps as imaging_maps
 from mmflow.imaging.lcurve import lcurve_corner
+from mmflow.imaging.sky_mask import observed_sky_mask
+from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollweide_png, write_table1
+from mmflow.io.report import summary_from_run, write_report
+from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow.geometry import mmax_of
+from mmflow.workflow.products.clean import clean_history_figure, clean_products, table1_row
+from mmflow.workflow.products.science import channel_science, finalize_science
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
 
@@ -37,11 +44,6 @@ def _products_prepare(ctx):
 
 
 def _products_task(ctx, key):
-    from mmflow.imaging.maps import alm_to_output_map, default_nside
-    from mmflow.imaging.sky_mask import observed_sky_mask
-    from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollweide_png
-    from mmflow.sky.frames import rotation_matrix
-
     cfg = ctx.cfg
     fi = key.freq
     vis = ctx.open("vis.zarr")
@@ -53,8 +55,9 @@ def _products_task(ctx, key):
     frac = ctx.read("alm.zarr", "fraction_above", (slice(fi, fi + 1),))[0]
     eps = ctx.read("alm.zarr", "eps_grid")
     p = cfg.products
-    nside = p.nside or 2 * default_nside(lmax)
-    hmap = alm_to_output_map(alm, lmax, f, epoch, p.frame, p.unit, nside)
+    nside = p.nside or 2 * imaging_maps.default_nside(lmax)
+    # through the module: tests/acceptance/test_faults.py replaces alm_to_output_map there
+    hmap = imaging_maps.alm_to_output_map(alm, lmax, f, epoch, p.frame, p.unit, nside)
     ctx.check_finite(f"maps/map of channel {fi}", hmap)
     mask = observed_sky_mask(nside, lat, None if p.frame == "date" else rotation_matrix(p.frame, "date", epoch))
     tag = frequency_tags(freqs)[fi]
@@ -83,11 +86,8 @@ def _products_task(ctx, key):
                 weighted=cfg.transfer.noise_weighting)
             ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
     if cfg.clean.enabled:
-        from mmflow.workflow.products.clean import clean_products, table1_row
-
         info.update(clean_products(ctx, fi, tag, f, epoch, nside, mask, meta, p.png))
         info["table1"] = table1_row(ctx, fi, f, info)
-    from mmflow.workflow.products.science import channel_science
 
     info.update(channel_science(ctx, fi, tag, f, epoch, hmap, nside))
     (maps / f"summary_{tag}.json").write_text(json.dumps(info, indent=2))
@@ -112,24 +112,18 @@ def _products_finalize(ctx):
     parts = [json.loads((maps / f"summary_{t}.json").read_text()) for t in tags]
     out = {"maps": parts}
     if ctx.cfg.clean.enabled:
-        from mmflow.io.export import write_table1
-
         rows = [p["table1"] for p in parts]
         out["table1"] = {"rows": rows, "files": [f"maps/{q.name}" for q in write_table1(maps, rows)]}
         for q in out["table1"]["files"]:
             ctx.ledger.record_file(ctx.run.path / q)
         if ctx.cfg.products.png:
-            from mmflow.workflow.products.clean import clean_history_figure
-
             out["clean_figure"] = clean_history_figure(ctx, parts, tags)
-    from mmflow.workflow.products.science import finalize_science
 
     out.update(finalize_science(ctx, parts, tags))
     # what each stage before this one cost (issue 21): the run records it, the map's summary keeps it
     out["stages"] = {name: {k: st.get(k) for k in COST_KEYS} for name, st in ctx.run.stage_summaries().items()}
     (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
-    from mmflow.io.report import summary_from_run, write_report
 
     missing = write_report(maps / "report.html", summary_from_run(ctx.run.path), ctx.run.path)
     ctx.ledger.record_file(maps / "report.html")

@@ -14,9 +14,11 @@ from functools import lru_cache
 
 import numpy as np
 
+from mmflow.calibrate.coherency import source_vector_date
 from mmflow.io.run_stores import vis_store
-from mmflow.simulate.corrupt import utc_at_lsts
-from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points
+from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
+from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points, source_points_date
+from mmflow.sky.sources import get_sources, resolved
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import build_telescope
 from mmflow.workflow.data_stage import layout_attrs, write_autos
@@ -42,11 +44,6 @@ def _sim_prepare(ctx):
 def _skies(ctx):
     """The telescope, the sky per frequency (without the DD-corrupted sources) and, when the
     simulation is corrupted, per frequency the whole day's corruptions and the DD sources."""
-    from mmflow.calibrate.coherency import source_vector_date
-    from mmflow.simulate.scene import source_points_date
-    from mmflow.simulate.corrupt import day_corruptions
-    from mmflow.sky.sources import get_sources, resolved
-
     cfg = ctx.cfg
     tel = build_telescope(cfg)
     s, c, o = cfg.sky, cfg.corrupt, cfg.observation
@@ -83,7 +80,6 @@ def _sim_task(ctx, key):
     # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
     time_jd = utc_at_lsts(lst, tel.layout, drift_scan_times(o.epoch_jd, o.integration_s, k[:1], n)[0])
     if cfg.sky.sun:  # the Sun moves ~1 deg a day against the stars: its position at the chunk's mid time
-        from mmflow.simulate.corrupt import sun_points
 
         mid = float(np.median(time_jd))
         skies = [sky + sun_points(mid, float(f)) for sky, f in zip(skies, tel.freqs_hz)]

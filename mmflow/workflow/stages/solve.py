@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
+import healpy
 import numpy as np
 
 from mmflow.conventions import m_blocks, m_slice
@@ -15,9 +16,11 @@ from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
 from mmflow.io.run_stores import alm_store, gram_name
 from mmflow.mmode.normal import hermitian_full
+from mmflow.sky.diffuse import map_to_alm
+from mmflow.sky.frames import rotate_alm, rotation_matrix
 from mmflow.threads import n_threads, single_threaded_blas
-from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.geometry import mmax_of
+from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
 
@@ -36,11 +39,6 @@ def _solve_prepare(ctx):
 
 def _prior_alm(ctx, lmax):
     """The prior map (``imaging.prior_map``, in ``products.frame``) as alm in the frame of date."""
-    import healpy
-
-    from mmflow.sky.diffuse import map_to_alm
-    from mmflow.sky.frames import rotate_alm, rotation_matrix
-
     cfg = ctx.cfg
     hmap = healpy.read_map(cfg.imaging.prior_map)
     epoch = ctx.vis_attrs()["epoch_jd"]

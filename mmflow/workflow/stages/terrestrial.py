@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.calibrate.terrestrial import fit_amplitudes, fit_templates, projection_fraction, subtract_templates
 from mmflow.io.run_stores import terrestrial_store
+from mmflow.simulate.corrupt import gain_products
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
+from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.peel_models import modelled_sources
 from mmflow.workflow.reduce import ordered_tree_sum
-from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.stages.base import Stage
 
 
@@ -42,14 +44,10 @@ def _prepare(ctx):
 
 def _templates(ctx, fi, pairs):
     """(K, bl, pol) templates ``u_i conj(u_j)`` of channel ``fi`` for ``pairs``."""
-    from mmflow.simulate.corrupt import gain_products
-
     return gain_products(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
 
 
 def _task(ctx, key):
-    from mmflow.calibrate.terrestrial import fit_amplitudes, projection_fraction
-
     k = key.time
     rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
     block = read_block(ctx, rows)
@@ -80,8 +78,6 @@ def _task(ctx, key):
 
 def _next_cycle(ctx, cycle):
     """After the sums: fit the templates (driver), then the amplitudes (tasks); then done."""
-    from mmflow.calibrate.terrestrial import fit_templates
-
     if cycle > 0:
         return None
     t = ctx.cfg.terrestrial
@@ -101,8 +97,6 @@ def _next_cycle(ctx, cycle):
 
 def _apply(ctx, block):
     """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place."""
-    from mmflow.calibrate.terrestrial import subtract_templates
-
     amps = ctx.read("terrestrial.zarr", "amplitudes", (block.rows,))  # (time, freq, K, pol)
     for fi in range(block.vis.shape[2]):
         block.vis[:, :, fi] = subtract_templates(block.vis[:, :, fi], _templates(ctx, fi, block.pairs), amps[:, fi])
