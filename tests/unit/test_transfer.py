@@ -10,15 +10,26 @@ from mmflow.telescope.beams import GaussianBeam, SinElevationBeam
 LAT = np.deg2rad(37.24)
 
 
+_GRIDS = {}
+
+
+def _grid(nt, nph):
+    """Gauss-Legendre colatitudes and weights, and longitudes offset from any ring grid."""
+    if (nt, nph) not in _GRIDS:
+        th = ducc0.misc.GL_thetas(nt)
+        ph = 2 * np.pi * (np.arange(nph) + 0.37) / nph
+        _GRIDS[nt, nph] = th, ducc0.misc.GL_weights(nt, nph), ph, unit_vectors(th[:, None], ph[None, :])
+    return _GRIDS[nt, nph]
+
+
 def brute_force(beam, b, l, m, freq=50e6, nt=320, nph=640):
-    """int A exp(2 pi i b.r) Y_lm dOmega on an independent, offset, much finer grid."""
-    th = ducc0.misc.GL_thetas(nt)
-    w = ducc0.misc.GL_weights(nt, nph)
-    ph = 2 * np.pi * (np.arange(nph) + 0.37) / nph
-    vec = unit_vectors(th[:, None], ph[None, :])
+    """int A exp(2 pi i b.r) Y_lm dOmega on an independent, offset, much finer grid
+    (``Y_lm(theta, phi) = Y_lm(theta, 0) e^{i m phi}``, scipy's Y_lm on the colatitudes)."""
+    th, w, ph, vec = _grid(nt, nph)
     a = beam.power_enu(vec @ enu_to_equatorial_matrix(LAT), freq)
     f = a * np.exp(2j * np.pi * (vec @ b))
-    return np.sum(w[:, None] * f * sph_harm_y(l, m, th[:, None], ph[None, :]))
+    y = sph_harm_y(l, m, th, 0.0)[:, None] * np.exp(1j * m * ph)[None, :]
+    return np.sum(w[:, None] * f * y)
 
 
 def test_fast_coefficients_match_brute_force_float64():
