@@ -43,6 +43,21 @@ def _run(path, *extra):
 PLAIN = OFF + ["corrupt.gains=false", "corrupt.sawtooth_db=0", "corrupt.dd_sources=[]", "corrupt.crosstalk_jy=0"]
 
 
+def _fork(src, dst, after):
+    """``dst``: a copy of the run directory ``src`` with every stage after ``after`` forgotten and its
+    outputs removed (:meth:`RunDir.reset_stage`), so that a run there recomputes them from ``src``'s
+    earlier stages: those are deterministic, so this is the directory a fresh run leaves at ``after``."""
+    import shutil
+
+    from mmflow.workflow.pipeline import ORDER
+    from mmflow.workflow.rundir import RunDir
+
+    shutil.copytree(src, dst)
+    for stage in ORDER[ORDER.index(after) + 1:]:
+        RunDir(dst).reset_stage(stage)
+    return dst
+
+
 @pytest.fixture(scope="module")
 def maps(tmp_path_factory):
     d = tmp_path_factory.mktemp("chain")
@@ -54,8 +69,8 @@ def maps(tmp_path_factory):
         "noisy": _run(d / "noisy", f"sky.sources={FAINT}", *PLAIN),
         # the bright sources alone, to measure their peaks through the same imaging
         "bright": _run(d / "bright", f"sky.sources={BRIGHT}", "sky.noise=false", *PLAIN),
-        # the corrupted data imaged as they are (the "before" of the demo)
-        "raw": _run(d / "raw", *OFF),
+        # the corrupted data imaged as they are (the "before" of the demo): the chain's simulated data
+        "raw": _run(_fork(d / "chain", d / "raw", "simulate"), *OFF),
     }
     out["dir"] = d
     return out
@@ -129,7 +144,9 @@ class Crash(BaseException):
 
 def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
     """A driver killed after the first peel task resumes: every solution store and the m-modes are
-    bit-identical to the uninterrupted chain's."""
+    bit-identical to the uninterrupted chain's. The run starts from the chain's simulated and
+    calibrated data (:func:`_fork`) and resumes up to the m-modes, the last store compared."""
+    from mmflow.workflow.pipeline import ORDER
     from mmflow.workflow.rundir import RunDir
 
     real = RunDir.mark_done
@@ -141,13 +158,14 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
             seen.append(key)
             raise Crash()
 
-    run = tmp_path / "run"
+    run = _fork(maps["dir"] / "chain", tmp_path / "run", "calibrate")
+    cfg = load_config(DEMO, BASE + [f"run.directory={run}"])
     monkeypatch.setattr(RunDir, "mark_done", die_after_first_peel_task)
     with pytest.raises(Crash):
-        _run(run)
+        run_workflow(cfg, **QUIET)
     monkeypatch.setattr(RunDir, "mark_done", real)
-    _run(run)
-    assert seen
+    summaries = run_workflow(cfg, only=ORDER[:ORDER.index("mmodes") + 1], **QUIET)
+    assert seen == [seen[0]] and summaries["peel"]["tasks_run"] == summaries["peel"]["tasks"] - 1
     ref = maps["dir"] / "chain"
     for store in ("gains.zarr", "peel.zarr", "terrestrial.zarr", "mmodes.zarr"):
         a, b = zarr.open_group(str(ref / store), mode="r"), zarr.open_group(str(run / store), mode="r")
