@@ -20,6 +20,7 @@ import zarr
 
 from mmflow.workflow.config import load_config
 from mmflow.workflow.runner import run_workflow
+from tests.workflow_helpers import fork_run
 
 QUIET = dict(progress=False, log=lambda *a: None)
 BRIGHT = ["Cyg A", "Cas A", "Vir A", "Tau A"]
@@ -43,21 +44,6 @@ def _run(path, *extra):
 PLAIN = OFF + ["corrupt.gains=false", "corrupt.sawtooth_db=0", "corrupt.dd_sources=[]", "corrupt.crosstalk_jy=0"]
 
 
-def _fork(src, dst, after):
-    """``dst``: a copy of the run directory ``src`` with every stage after ``after`` forgotten and its
-    outputs removed (:meth:`RunDir.reset_stage`), so that a run there recomputes them from ``src``'s
-    earlier stages: those are deterministic, so this is the directory a fresh run leaves at ``after``."""
-    import shutil
-
-    from mmflow.workflow.pipeline import ORDER
-    from mmflow.workflow.rundir import RunDir
-
-    shutil.copytree(src, dst)
-    for stage in ORDER[ORDER.index(after) + 1:]:
-        RunDir(dst).reset_stage(stage)
-    return dst
-
-
 @pytest.fixture(scope="module")
 def maps(tmp_path_factory):
     d = tmp_path_factory.mktemp("chain")
@@ -70,7 +56,7 @@ def maps(tmp_path_factory):
         # the bright sources alone, to measure their peaks through the same imaging
         "bright": _run(d / "bright", f"sky.sources={BRIGHT}", "sky.noise=false", *PLAIN),
         # the corrupted data imaged as they are (the "before" of the demo): the chain's simulated data
-        "raw": _run(_fork(d / "chain", d / "raw", "simulate"), *OFF),
+        "raw": _run(fork_run(d / "chain", d / "raw", "simulate"), *OFF),
     }
     out["dir"] = d
     return out
@@ -145,7 +131,8 @@ class Crash(BaseException):
 def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
     """A driver killed after the first peel task resumes: every solution store and the m-modes are
     bit-identical to the uninterrupted chain's. The run starts from the chain's simulated and
-    calibrated data (:func:`_fork`) and resumes up to the m-modes, the last store compared."""
+    calibrated data (:func:`tests.workflow_helpers.fork_run`) and resumes up to the m-modes, the
+    last store compared."""
     from mmflow.workflow.pipeline import ORDER
     from mmflow.workflow.rundir import RunDir
 
@@ -158,7 +145,7 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
             seen.append(key)
             raise Crash()
 
-    run = _fork(maps["dir"] / "chain", tmp_path / "run", "calibrate")
+    run = fork_run(maps["dir"] / "chain", tmp_path / "run", "calibrate")
     cfg = load_config(DEMO, BASE + [f"run.directory={run}"])
     monkeypatch.setattr(RunDir, "mark_done", die_after_first_peel_task)
     with pytest.raises(Crash):
