@@ -104,13 +104,17 @@ def test_peeling_without_long_enough_baselines_stops_before_any_fit(tmp_path):
     assert not (tmp_path / "run" / "peel.zarr").exists()
 
 
+# the CLI runs compare FITS maps and stores (read_outputs): no PNGs (~2 s of each products stage)
+CLI_RUN = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, "products.png=false"]
+
+
 @pytest.fixture(scope="module")
 def cli_reference(tmp_path_factory):
     """An uninterrupted run by the CLI in a subprocess: the same executor as the interrupted runs
     (a process's BLAS thread count, e.g. OPENBLAS_NUM_THREADS, changes floating-point rounding)."""
     run_dir = tmp_path_factory.mktemp("cliref") / "run"
-    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
-                    f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([*CLI_RUN, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
+                   stdout=subprocess.DEVNULL)
     return run_dir
 
 
@@ -122,9 +126,9 @@ def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_pat
 
     ref_dir = cli_reference
     run_dir = fork_run(ref_dir, tmp_path / "interrupted", ORDER[ORDER.index(stage) - 1])
-    interrupt_run(run_dir, stage, sig)
-    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
-                    f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    interrupt_run(run_dir, stage, sig, extra=["products.png=false"])
+    subprocess.run([*CLI_RUN, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
+                   stdout=subprocess.DEVNULL)
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
