@@ -72,11 +72,14 @@ def matvis_uvdata(beam, n_times=60, radius_m=12.0, freq_hz=40e6,
 
 
 def write_blocks(uv, directory, files=6, stem="scan"):
-    """One UVH5 per block of consecutive integrations; returns the paths."""
+    """One UVH5 per block of consecutive integrations; returns the paths.
+
+    Selected by baseline-time index (the same rows as selecting the block's times, without
+    pyuvdata's per-time matching and LST checks: 2.5 s of 4 for 16 files of 64 x 351 rows)."""
     times = np.unique(uv.time_array)
     paths = []
     for k, block in enumerate(np.array_split(np.arange(len(times)), files)):
-        part = uv.select(times=times[block], inplace=False)
+        part = uv.select(blt_inds=np.flatnonzero(np.isin(uv.time_array, times[block])), inplace=False)
         path = directory / f"{stem}_{k:03d}.uvh5"
         part.write_uvh5(str(path), clobber=True, fix_autos=True)
         paths.append(path)

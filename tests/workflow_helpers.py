@@ -40,6 +40,22 @@ def small_config(run_dir, *extra):
     return load_config("workflows/demo.yaml", SMALL + [f"run.directory={run_dir}", *extra])
 
 
+def fork_run(src, dst, after):
+    """``dst``: a copy of the run directory ``src`` with every stage after ``after`` forgotten and its
+    outputs removed (:meth:`mmflow.workflow.rundir.RunDir.reset_stage`), so that a run there
+    recomputes them from ``src``'s stages up to ``after``. Stages are deterministic: this is the
+    directory a fresh run of ``src``'s configuration leaves once ``after`` is complete."""
+    import shutil
+
+    from mmflow.workflow.pipeline import ORDER
+    from mmflow.workflow.rundir import RunDir
+
+    shutil.copytree(src, dst)
+    for stage in ORDER[ORDER.index(after) + 1:]:
+        RunDir(dst).reset_stage(stage)
+    return dst
+
+
 def read_outputs(run_dir):
     """Every array a finished run produced (for bit-identical comparisons)."""
     out = {}

@@ -20,6 +20,7 @@ import zarr
 
 from mmflow.workflow.config import load_config
 from mmflow.workflow.runner import run_workflow
+from tests.workflow_helpers import fork_run
 
 QUIET = dict(progress=False, log=lambda *a: None)
 BRIGHT = ["Cyg A", "Cas A", "Vir A", "Tau A"]
@@ -54,8 +55,8 @@ def maps(tmp_path_factory):
         "noisy": _run(d / "noisy", f"sky.sources={FAINT}", *PLAIN),
         # the bright sources alone, to measure their peaks through the same imaging
         "bright": _run(d / "bright", f"sky.sources={BRIGHT}", "sky.noise=false", *PLAIN),
-        # the corrupted data imaged as they are (the "before" of the demo)
-        "raw": _run(d / "raw", *OFF),
+        # the corrupted data imaged as they are (the "before" of the demo): the chain's simulated data
+        "raw": _run(fork_run(d / "chain", d / "raw", "simulate"), *OFF),
     }
     out["dir"] = d
     return out
@@ -129,7 +130,10 @@ class Crash(BaseException):
 
 def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
     """A driver killed after the first peel task resumes: every solution store and the m-modes are
-    bit-identical to the uninterrupted chain's."""
+    bit-identical to the uninterrupted chain's. The run starts from the chain's simulated and
+    calibrated data (:func:`tests.workflow_helpers.fork_run`) and resumes up to the m-modes, the
+    last store compared."""
+    from mmflow.workflow.pipeline import ORDER
     from mmflow.workflow.rundir import RunDir
 
     real = RunDir.mark_done
@@ -141,13 +145,14 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
             seen.append(key)
             raise Crash()
 
-    run = tmp_path / "run"
+    run = fork_run(maps["dir"] / "chain", tmp_path / "run", "calibrate")
+    cfg = load_config(DEMO, BASE + [f"run.directory={run}"])
     monkeypatch.setattr(RunDir, "mark_done", die_after_first_peel_task)
     with pytest.raises(Crash):
-        _run(run)
+        run_workflow(cfg, **QUIET)
     monkeypatch.setattr(RunDir, "mark_done", real)
-    _run(run)
-    assert seen
+    summaries = run_workflow(cfg, only=ORDER[:ORDER.index("mmodes") + 1], **QUIET)
+    assert seen == [seen[0]] and summaries["peel"]["tasks_run"] == summaries["peel"]["tasks"] - 1
     ref = maps["dir"] / "chain"
     for store in ("gains.zarr", "peel.zarr", "terrestrial.zarr", "mmodes.zarr"):
         a, b = zarr.open_group(str(ref / store), mode="r"), zarr.open_group(str(run / store), mode="r")

@@ -113,7 +113,8 @@ def test_resume_on_another_cluster_size_is_bit_identical(tmp_path):
     uninterrupted on 3 workers: on one executor kind (worker processes), bits never depend on the cluster."""
     from mmflow.cli import main
 
-    local = ["cluster.kind=local", "cluster.dashboard_address=:0"]
+    # products.png=false: the maps compared are the FITS files; a PNG costs each run ~2 s in a worker
+    local = ["cluster.kind=local", "cluster.dashboard_address=:0", "products.png=false"]
 
     def cli(run_dir, *extra):
         return main(["run", "workflows/demo.yaml", *SMALL, *local, *extra, f"run.directory={run_dir}",
@@ -183,7 +184,8 @@ def test_task_of_a_superseded_driver_stops_before_writing(ref, tmp_path):
     fh, _ = RunDir(run_dir).acquire_lock()
     try:
         with pytest.raises(MmflowError, match="now held by another mmflow run"):
-            run_task(Context(small_config(run_dir).model_dump_json(), str(run_dir), "old-token"), "products", "f0")
+            run_task(Context(small_config(run_dir).model_dump_json(), str(run_dir), "old-token"), PIPELINE, "products",
+                     "f0")
     finally:
         fh.close()
 
@@ -191,7 +193,7 @@ def test_task_of_a_superseded_driver_stops_before_writing(ref, tmp_path):
 def test_worker_that_cannot_see_the_run_directory_fails_with_the_fix(tmp_path):
     ctx = Context(small_config(tmp_path / "elsewhere").model_dump_json(), str(tmp_path / "elsewhere"), "t")
     with pytest.raises(MmflowError, match="not visible on host .* filesystem that the driver and every worker"):
-        run_task(ctx, "products", "f0")
+        run_task(ctx, PIPELINE, "products", "f0")
 
 
 def test_relative_run_directory_is_made_absolute_by_the_driver(tmp_path, monkeypatch):

@@ -15,7 +15,7 @@ from mmflow.cli import main
 from mmflow.errors import InputError, StaleOutputError
 from mmflow.workflow.config import load_config, schema_yaml
 from mmflow.workflow.runner import run_workflow, status
-from tests.workflow_helpers import ROOT, SMALL, assert_identical, interrupt_run, read_outputs, small_config
+from tests.workflow_helpers import ROOT, SMALL, assert_identical, fork_run, interrupt_run, read_outputs, small_config
 
 
 
@@ -68,9 +68,8 @@ def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
     assert all(run.marker(st, k).name == f"{k}.done" and run.is_done(st, k) for st, ks in keys.items() for k in ks)
 
 
-def test_changed_settings_refuse_stale_outputs_then_force_recomputes(tmp_path):
-    run_dir = tmp_path / "run"
-    run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)
+def test_changed_settings_refuse_stale_outputs_then_force_recomputes(reference_run, tmp_path):
+    run_dir = fork_run(reference_run[0], tmp_path / "run", "products")  # a finished run (a copy)
     changed = small_config(run_dir, "imaging.eps=0.1")
     with pytest.raises(StaleOutputError, match="--force"):
         run_workflow(changed, progress=False, log=lambda *a: None)
@@ -105,23 +104,31 @@ def test_peeling_without_long_enough_baselines_stops_before_any_fit(tmp_path):
     assert not (tmp_path / "run" / "peel.zarr").exists()
 
 
+# the CLI runs compare FITS maps and stores (read_outputs): no PNGs (~2 s of each products stage)
+CLI_RUN = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, "products.png=false"]
+
+
 @pytest.fixture(scope="module")
 def cli_reference(tmp_path_factory):
     """An uninterrupted run by the CLI in a subprocess: the same executor as the interrupted runs
     (a process's BLAS thread count, e.g. OPENBLAS_NUM_THREADS, changes floating-point rounding)."""
     run_dir = tmp_path_factory.mktemp("cliref") / "run"
-    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
-                    f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    subprocess.run([*CLI_RUN, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
+                   stdout=subprocess.DEVNULL)
     return run_dir
 
 
 @pytest.mark.parametrize("stage, sig", [("transfer", signal.SIGKILL), ("mmodes", signal.SIGINT)])
 def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_path, stage, sig):
+    """A run interrupted in ``stage`` after its first chunk resumes to the reference's outputs. It
+    starts from a copy of the reference's stages before ``stage`` (:func:`fork_run`)."""
+    from mmflow.workflow.pipeline import ORDER
+
     ref_dir = cli_reference
-    run_dir = tmp_path / "interrupted"
-    interrupt_run(run_dir, stage, sig)
-    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL,
-                    f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    run_dir = fork_run(ref_dir, tmp_path / "interrupted", ORDER[ORDER.index(stage) - 1])
+    interrupt_run(run_dir, stage, sig, extra=["products.png=false"])
+    subprocess.run([*CLI_RUN, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
+                   stdout=subprocess.DEVNULL)
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
@@ -216,11 +223,13 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
 
     run_dir = tmp_path / "run"
     quiet = ["telescope.radius_m=10", "observation.integration_s=13.0", "sky.sources=[]", "transfer.mode=store"]
+    upto_mmodes = ["simulate", "mmodes"]
     cfg = small_config(run_dir, *quiet, "mmode.noise=data")  # the residual of each baseline's band-limited fit
-    run_workflow(cfg, progress=False, log=lambda *a: None)
+    run_workflow(cfg, only=upto_mmodes + ["transfer"], progress=False, log=lambda *a: None)
     data_iv = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")["inv_var"][0]
-    cfg2 = small_config(tmp_path / "run2", *quiet, "mmode.noise=radiometer")
-    run_workflow(cfg2, progress=False, log=lambda *a: None)
+    # the same simulated data (a copy of the first run's), their m-modes weighted by the radiometer equation
+    cfg2 = small_config(fork_run(run_dir, tmp_path / "run2", "simulate"), *quiet, "mmode.noise=radiometer")
+    run_workflow(cfg2, only=upto_mmodes, progress=False, log=lambda *a: None)
     radio_iv = zarr.open_group(str(tmp_path / "run2" / "mmodes.zarr"), mode="r")["inv_var"][0]
     vis = zarr.open_group(str(run_dir / "vis.zarr"), mode="r")
     pairs, enu = vis["pairs"][:], vis["antenna_enu"][:]
@@ -230,7 +239,9 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
         ratio = np.median(data_iv[part] / radio_iv[part])
         assert abs(ratio - 1) < 0.05, ratio  # injected radiometer noise recovered on short and long baselines
     # noiseless data: radiometer weights (the default where autocorrelations exist) are equal across lengths
-    run_workflow(small_config(tmp_path / "run3", *quiet, "sky.noise=false"), only=["simulate", "mmodes"],
+    # (250 integrations, the SMALL configuration's: the weights' equality depends on no integration count)
+    run_workflow(small_config(tmp_path / "run3", *quiet, "sky.noise=false", "observation.integration_s=344.6563620"),
+                 only=upto_mmodes,
                  progress=False, log=lambda *a: None)
     iv = zarr.open_group(str(tmp_path / "run3" / "mmodes.zarr"), mode="r")["inv_var"][0][cross]
     assert iv.max() / iv.min() - 1 < 0.01
