@@ -373,8 +373,8 @@ def _flagging(rows_flagged):
 
     read = ms.read_block
 
-    def read_flagged(ctx, rows=slice(None), columns=slice(None), before=None):
-        block = read(ctx, rows, columns, before)
+    def read_flagged(ctx, rows=slice(None), columns=slice(None)):
+        block = read(ctx, rows, columns)
         k = np.arange(*block.rows.indices(block.rows.stop))
         block.weights[rows_flagged(k)] = 0.0
         return block
