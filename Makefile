@@ -23,9 +23,10 @@ demo: $(STAMP)
 	$(VENV)/bin/mmflow run workflows/demo-calibrate.yaml calibrate.enabled=false peel.enabled=false \
 	    terrestrial.enabled=false run.directory=runs/demo-calibrate-before --no-progress
 
-## Run the test suite: every tier (tests/unit, tests/workflow, tests/acceptance)
+## Run the test suite: every tier (tests/unit, tests/workflow, tests/acceptance), two test files at a time
+## (pytest-xdist; a file's tests share one process and its fixtures)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 --dist loadfile
 
 ## The unit tier only (kernels on in-memory arrays)
 test-fast: $(STAMP)

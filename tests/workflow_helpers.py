@@ -1,5 +1,6 @@
 """Small workflow configurations shared by the workflow tests."""
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -84,7 +85,10 @@ def interrupt_run(run_dir, stage, sig, extra=()):
     args = [sys.executable, "-m", "mmflow.cli", "run", "workflows/demo.yaml", *SMALL, *extra,
             f"run.directory={run_dir}", "--no-progress"]
     env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
-    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # the child gets SIGINT's default action (Python's KeyboardInterrupt): a pytest-xdist worker
+    # ignores SIGINT, and an ignored signal is inherited across exec
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     marker_dir = run_dir / "_status" / stage
     deadline = time.time() + 120
     while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("[!_]*.done"))):
