@@ -462,24 +462,14 @@ def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=1
 
 
 @dataclass
-class PeelSolution:
+class PeelSolution(PeelResult):
     """Per-integration peeling products in baseline layout.
 
     dd_gains (n_src, time, n_ant, pol); scale, mode, guard, measured, removed, iterations,
     converged (n_src, time, pol); residual (time, bl, pol) (the peeled visibilities); offsets
     (n_src, time, pol, 2) the screen model's refractive offsets (rad; NaN for ``antenna``).
+    The fields of :class:`PeelResult`, laid out per integration.
     """
-
-    dd_gains: np.ndarray
-    scale: np.ndarray
-    mode: np.ndarray
-    guard: np.ndarray
-    measured: np.ndarray
-    removed: np.ndarray
-    iterations: np.ndarray
-    converged: np.ndarray
-    residual: np.ndarray
-    offsets: np.ndarray
 
 
 DD_MODELS = ("screen", "antenna")

@@ -49,6 +49,7 @@ import ducc0
 import numpy as np
 
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.mmode.transfer import QuadratureGrid
 
 #: Stokes parameters of the transfer coefficients, in the order of their axis.
 STOKES = ("T", "E", "B", "V")
@@ -58,24 +59,15 @@ _FEED = {"x": 0, "y": 1}
 
 
 @dataclass
-class PolarisedGrid:
-    """Gauss-Legendre grid (sky frame at ``phi = 0``) with the feeds' responses on ``(e_N, e_E)``.
+class PolarisedGrid(QuadratureGrid):
+    """A :class:`~mmflow.mmode.transfer.QuadratureGrid` (its ``weights`` include ``2 pi / n_phi``)
+    with the feeds' responses on ``(e_N, e_E)``.
 
     Attributes
     ----------
-    lmax, quad_lmax : int
-    theta, weights : ndarray (n_theta,); ``weights`` include ``2 pi / n_phi``
-    n_phi : int
-    vectors : ndarray (n_theta, n_phi, 3) directions
     jn, je : ndarray complex (2, n_theta, n_phi): ``J_p . e_N`` and ``J_p . e_E`` for feeds x, y
     """
 
-    lmax: int
-    quad_lmax: int
-    theta: np.ndarray
-    weights: np.ndarray
-    n_phi: int
-    vectors: np.ndarray
     jn: np.ndarray
     je: np.ndarray
 

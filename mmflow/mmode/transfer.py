@@ -45,8 +45,8 @@ def fringe_bandlimit(b_wavelengths, beam_lmax):
 
 
 @dataclass
-class TransferGrid:
-    """A Gauss-Legendre grid in the sky frame at ``phi = 0`` with the beam sampled on it.
+class QuadratureGrid:
+    """A Gauss-Legendre grid in the sky frame at ``phi = 0`` (what scalar and polarised transfers share).
 
     Attributes
     ----------
@@ -56,9 +56,7 @@ class TransferGrid:
         Band limit the quadrature is exact to (``lmax + L_f``).
     theta, weights : ndarray (n_theta,)
     n_phi : int
-    beam : ndarray (n_theta, n_phi) float64, zero below the horizon
-    active : ndarray of int
-        North-ring indices k whose ring or mirror ring sees the beam.
+    vectors : ndarray (n_theta, n_phi, 3) directions
     """
 
     lmax: int
@@ -67,6 +65,19 @@ class TransferGrid:
     weights: np.ndarray
     n_phi: int
     vectors: np.ndarray
+
+
+@dataclass
+class TransferGrid(QuadratureGrid):
+    """A :class:`QuadratureGrid` with the beam sampled on it.
+
+    Attributes
+    ----------
+    beam : ndarray (n_theta, n_phi) float64, zero below the horizon
+    active : ndarray of int
+        North-ring indices k whose ring or mirror ring sees the beam.
+    """
+
     beam: np.ndarray
     active: np.ndarray
     _tables: dict = field(default_factory=dict, repr=False)

@@ -13,7 +13,39 @@ import numpy as np
 from mmflow.errors import InputError
 
 
-class Beam:
+class BeamModel:
+    """What scalar power beams (:class:`Beam`) and E-field beams
+    (:class:`mmflow.telescope.jones.JonesBeam`) share: the frequency check, the description and
+    evaluation above the horizon only."""
+
+    name = "beam"
+    freq_range = None  # (lowest, highest) Hz the model covers (a beam file's channels); None: any
+    source = "beam"  # what an error names (a beam file's path)
+
+    def check_frequency(self, freq_hz):
+        """Raise :class:`InputError` when ``freq_hz`` is outside the beam model's ``freq_range``."""
+        if self.freq_range and not (self.freq_range[0] <= freq_hz <= self.freq_range[1]):
+            raise InputError(self.source, "freq_array", f"{freq_hz / 1e6:.3f} MHz outside the beam's "
+                             f"{self.freq_range[0] / 1e6:.3f}-{self.freq_range[1] / 1e6:.3f} MHz",
+                             "use a beam file that covers the observed channels")
+
+    def describe(self):
+        """A JSON-able description stored with every output."""
+        return {"type": self.name}
+
+    def _above_horizon(self, response, az, za, freq_hz, lead=(), dtype=float):
+        """``response(az, za, freq)`` where ``za < pi/2``, zero elsewhere: shape ``lead + az.shape``
+        (``az``, ``za`` broadcast; the frequency checked first)."""
+        self.check_frequency(freq_hz)
+        az, za = np.broadcast_arrays(np.asarray(az, float), np.asarray(za, float))
+        out = np.zeros(lead + az.shape, dtype)
+        up = za < np.pi / 2
+        if np.any(up):
+            out[..., up] = response(az[up], za[up], float(freq_hz))
+        return out
+
+
+class Beam(BeamModel):
     """Base class. Subclasses implement :meth:`_response` for ``za <= pi/2``.
 
     Attributes
@@ -28,13 +60,7 @@ class Beam:
 
     def power(self, az, za, freq_hz):
         """Power response at azimuth ``az`` and zenith angle ``za`` (radians), zero below horizon."""
-        self.check_frequency(freq_hz)
-        az, za = np.broadcast_arrays(np.asarray(az, float), np.asarray(za, float))
-        out = np.zeros(az.shape)
-        up = za < np.pi / 2
-        if np.any(up):
-            out[up] = self._response(az[up], za[up], float(freq_hz))
-        return out
+        return self._above_horizon(self._response, az, za, freq_hz)
 
     def power_enu(self, enu, freq_hz):
         """Power response for ENU unit vectors (last axis east, north, up)."""
@@ -42,13 +68,6 @@ class Beam:
         az = np.arctan2(enu[..., 0], enu[..., 1])
         za = np.arccos(np.clip(enu[..., 2], -1, 1))
         return self.power(az, za, freq_hz)
-
-    def check_frequency(self, freq_hz):
-        """Raise :class:`InputError` when ``freq_hz`` is outside the beam model's range."""
-
-    def describe(self):
-        """A JSON-able description stored with every output."""
-        return {"type": self.name}
 
     def _response(self, az, za, freq_hz):
         raise NotImplementedError
@@ -176,6 +195,27 @@ class ZernikeBeam(Beam):
         return {"type": self.name, "freqs_hz": self.freqs_hz.tolist(), "coeffs": self.coeffs.tolist()}
 
 
+def read_pyuvdata_beam(beam):
+    """``(source, beam)``: ``beam`` itself (a pyuvdata beam object) or the file at the path ``beam``
+    read by pyuvdata (refused, naming the file, when it cannot); ``source`` names it in errors."""
+    from pyuvdata import UVBeam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
+
+    source = beam if isinstance(beam, str) else type(beam).__name__
+    if isinstance(beam, str):
+        try:
+            beam = UVBeam.from_file(beam)
+        except Exception as exc:  # pyuvdata raises many types
+            raise InputError(source, "beam file", f"pyuvdata cannot read it ({exc})",
+                             "give a beamfits / MWA / CST file pyuvdata supports") from exc
+    return source, beam
+
+
+def beam_freq_range(interface):
+    """``(lowest, highest)`` Hz of a pyuvdata ``BeamInterface``'s channels (None for an analytic beam)."""
+    freqs = getattr(interface.beam, "freq_array", None)
+    return None if freqs is None else (float(np.min(freqs)), float(np.max(freqs)))
+
+
 class PyUVDataBeam(Beam):
     """Any pyuvdata beam (``AnalyticBeam`` objects or ``UVBeam`` files) through ``BeamInterface``.
 
@@ -196,26 +236,13 @@ class PyUVDataBeam(Beam):
     name = "pyuvdata"
 
     def __init__(self, beam, normalize=False, lmax_hint=48):
-        from pyuvdata import BeamInterface, UVBeam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
+        from pyuvdata import BeamInterface  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
-        self.source = beam if isinstance(beam, str) else type(beam).__name__
-        if isinstance(beam, str):
-            try:
-                beam = UVBeam.from_file(beam)
-            except Exception as exc:  # pyuvdata raises many types
-                raise InputError(self.source, "beam file", f"pyuvdata cannot read it ({exc})",
-                                 "give a beamfits / MWA / CST file pyuvdata supports") from exc
+        self.source, beam = read_pyuvdata_beam(beam)
         self.interface = BeamInterface(beam, beam_type="power")
         self.normalize = normalize
         self.lmax_hint = lmax_hint
-        freqs = getattr(self.interface.beam, "freq_array", None)
-        self.freq_range = None if freqs is None else (float(np.min(freqs)), float(np.max(freqs)))
-
-    def check_frequency(self, freq_hz):
-        if self.freq_range and not (self.freq_range[0] <= freq_hz <= self.freq_range[1]):
-            raise InputError(self.source, "freq_array", f"{freq_hz / 1e6:.3f} MHz outside the beam's "
-                             f"{self.freq_range[0] / 1e6:.3f}-{self.freq_range[1] / 1e6:.3f} MHz",
-                             "use a beam file that covers the observed channels")
+        self.freq_range = beam_freq_range(self.interface)
 
     def _raw(self, az, za, freq_hz):
         az_uvb = (np.pi / 2 - az) % (2 * np.pi)  # pyuvdata: azimuth from east through north

@@ -33,7 +33,7 @@ import numpy as np
 
 from mmflow.conventions import enu_to_azza
 from mmflow.errors import InputError
-from mmflow.telescope.beams import Beam
+from mmflow.telescope.beams import Beam, BeamModel, beam_freq_range, read_pyuvdata_beam
 
 #: Feed labels, in the order of the first axis of every Jones array: x east, y north.
 FEEDS = ("x", "y")
@@ -48,7 +48,7 @@ def local_basis(az, za):
     return np.stack([e_theta, e_phi])
 
 
-class JonesBeam:
+class JonesBeam(BeamModel):
     """Base class: subclasses implement :meth:`_jones` for directions above the horizon.
 
     Attributes
@@ -68,13 +68,7 @@ class JonesBeam:
         -------
         ndarray, complex, shape ``(2, 2) + az.shape``: ``[feed, component]``, zero below the horizon.
         """
-        self.check_frequency(freq_hz)
-        az, za = np.broadcast_arrays(np.asarray(az, float), np.asarray(za, float))
-        out = np.zeros((2, 2) + az.shape, complex)
-        up = za < np.pi / 2
-        if np.any(up):
-            out[:, :, up] = self._jones(az[up], za[up], float(freq_hz))
-        return out
+        return self._above_horizon(self._jones, az, za, freq_hz, lead=(2, 2), dtype=complex)
 
     def jones_enu(self, enu, freq_hz):
         """The feeds' response vectors in ENU components, ``J_p = J_theta e_theta + J_phi e_phi``.
@@ -100,13 +94,6 @@ class JonesBeam:
     def power_beam(self):
         """The derived Stokes-I power beam as a scalar :class:`mmflow.telescope.beams.Beam`."""
         return JonesPowerBeam(self)
-
-    def check_frequency(self, freq_hz):
-        """Raise :class:`InputError` when ``freq_hz`` is outside the beam model's range."""
-
-    def describe(self):
-        """A JSON-able description."""
-        return {"type": self.name}
 
     def _jones(self, az, za, freq_hz):
         raise NotImplementedError
@@ -159,23 +146,16 @@ class PyUVDataJones(JonesBeam):
     name = "pyuvdata_efield"
 
     def __init__(self, beam, lmax_hint=48):
-        from pyuvdata import BeamInterface, UVBeam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
+        from pyuvdata import BeamInterface  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
-        self.source = beam if isinstance(beam, str) else type(beam).__name__
-        if isinstance(beam, str):
-            try:
-                beam = UVBeam.from_file(beam)
-            except Exception as exc:  # pyuvdata raises many types
-                raise InputError(self.source, "beam file", f"pyuvdata cannot read it ({exc})",
-                                 "give a beamfits / MWA / CST file pyuvdata supports") from exc
+        self.source, beam = read_pyuvdata_beam(beam)
         if getattr(beam, "beam_type", "efield") != "efield":
             raise InputError(self.source, "beam_type", f"'{beam.beam_type}' beam",
                              "give an E-field beam (a power beam cannot describe Q, U, V)")
         self.interface = BeamInterface(beam, beam_type="efield")
         self.lmax_hint = lmax_hint
         self.feed_index = self._feed_order(beam)
-        freqs = getattr(self.interface.beam, "freq_array", None)
-        self.freq_range = None if freqs is None else (float(np.min(freqs)), float(np.max(freqs)))
+        self.freq_range = beam_freq_range(self.interface)
 
     def _feed_order(self, beam):
         feeds = [str(f).lower() for f in np.atleast_1d(beam.feed_array)]
@@ -191,12 +171,6 @@ class PyUVDataJones(JonesBeam):
         if "e" in feeds and "n" in feeds:
             return (feeds.index("e"), feeds.index("n"))
         return (0, 1)
-
-    def check_frequency(self, freq_hz):
-        if self.freq_range and not (self.freq_range[0] <= freq_hz <= self.freq_range[1]):
-            raise InputError(self.source, "freq_array", f"{freq_hz / 1e6:.3f} MHz outside the beam's "
-                             f"{self.freq_range[0] / 1e6:.3f}-{self.freq_range[1] / 1e6:.3f} MHz",
-                             "use a beam file that covers the observed channels")
 
     def _jones(self, az, za, freq_hz):
         az_uvb = (np.pi / 2 - az) % (2 * np.pi)  # pyuvdata: azimuth from east through north
