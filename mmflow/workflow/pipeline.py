@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel, products, simulate,
                                     solve, terrestrial, transfer)
+from mmflow.workflow.stages.base import first_writer
 
 _NAMED = {}
 
@@ -72,10 +73,7 @@ class Pipeline:
 
     def producer_of(self, store, cfg):
         """The enabled stage that writes ``store`` (None if none is enabled)."""
-        for s in self.stages:
-            if store in s.outputs and s.enabled(cfg):
-                return s
-        return None
+        return first_writer(self.stages, store, cfg)
 
     def __reduce__(self):
         if self.name is not None and _NAMED.get(self.name) is self:

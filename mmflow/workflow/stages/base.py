@@ -73,11 +73,13 @@ class Stage:
 
     def producer_of(self, store, cfg):
         """The enabled earlier stage that writes ``store`` (None if none is enabled)."""
-        for s in self.upstream:
-            if store in s.outputs and s.enabled(cfg):
-                return s
-        return None
+        return first_writer(self.upstream, store, cfg)
 
     def corrections(self, cfg):
         """The enabled solve-then-apply stages before this one, in pipeline order."""
         return [s for s in self.upstream if s.kind == "solve" and s.apply is not None and s.enabled(cfg)]
+
+
+def first_writer(stages, store, cfg):
+    """The first of ``stages`` that is enabled under ``cfg`` and writes ``store`` (None if none)."""
+    return next((s for s in stages if store in s.outputs and s.enabled(cfg)), None)
