@@ -76,6 +76,27 @@ def test_corrupt_file_is_named_or_skipped_and_counted(scan, tmp_path):
     assert len(attrs["skipped_files"]) == 1 and "scan_002" in attrs["skipped_files"][0]
 
 
+def test_flags_that_leave_most_baselines_half_a_day_stop_naming_the_flags(scan, tmp_path):
+    """The integrations cover the day but the input's flags cut most baselines to half of it: the
+    mmodes stage stops saying the flags are short, not the observation (its earlier message, "observe
+    a full sidereal day", named a symptom), and only after the stage's chunks have run."""
+    from pyuvdata import UVData
+
+    d, paths = scan
+    flagged = tmp_path / "flagged"
+    flagged.mkdir()
+    for k, path in enumerate(paths):
+        uv = UVData.from_file(str(path))
+        if k >= len(paths) // 2:  # the second half of the day: every baseline of antennas 0..9 flagged
+            bad = (uv.ant_1_array < 10) | (uv.ant_2_array < 10)
+            uv.flag_array[bad] = True
+        uv.write_uvh5(str(flagged / path.name))
+    with pytest.raises(CoverageError, match=r"keep less than 95% of the sidereal day after their flags, though the "
+                                            r"integrations cover the day: the flags, not the observation"):
+        run_workflow(_cfg(tmp_path / "run", str(flagged / "*.uvh5")), progress=False, log=lambda *a: None)
+    assert not (tmp_path / "run" / "partials.zarr").exists()
+
+
 def test_mixed_frequencies_and_duplicate_times_are_rejected(scan, tmp_path):
     from pyuvdata import UVData
 

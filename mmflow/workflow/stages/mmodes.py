@@ -35,7 +35,7 @@ from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, \
     sun_elevation_deg
-from mmflow.mmode.transform import sidereal_bins, split_bins
+from mmflow.mmode.transform import bin_index, sidereal_bins, split_bins
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.geometry import mmax_of, n_bins_of
 from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
@@ -53,6 +53,7 @@ def _prepare(ctx):
     if prior is not None:  # channels and epoch of ingested data are known only now
         check_prior_run(prior, cfg.mmode.lmax, mmax, ctx.run.path, vis["freqs_hz"][:],
                         float(vis.attrs["epoch_jd"]))
+    _check_day(ctx, vis["lst"][:], n_bins, cfg.mmode.min_coverage)
     attrs = {"mmax": mmax, "n_bins": n_bins, "splits": splits}
     if any(is_time_split(s) for s in splits):
         attrs.update(_check_time_splits(ctx, vis, splits, n_bins))
@@ -135,8 +136,8 @@ def _task(ctx, key):
         for names, sel in [(bin_splits, slice(None))] + [([s], m) for s, m in masks.items()]:
             binned, wsum, offset = sidereal_bins(lst[sel], vis[sel, :, fi], (w[sel, :, fi] > 0).astype(float), n_bins,
                                                  0.0, source=src)
-            _check_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins,
-                            None if names is bin_splits else names[0])
+            if names is not bin_splits:  # a flagged day of a time split (the full data: _finalize)
+                _check_split_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins, names[0])
             n_samples[[splits.index(s) for s in names], fi] = [_count(wsum, s) for s in names]
             prior = model.prior(binned, wsum, offset)
             info["fits_with_prior"] += prior is not None
@@ -209,22 +210,57 @@ def _radiometer_sigma2(ctx, vg, autos, pairs):
     return stokes_i_variance(np.stack(per_pol, axis=-1)), "radiometer"
 
 
-def _check_coverage(bin_weight, min_coverage, source, n_bins, split=None):
-    """A day where most baselines miss ``min_coverage`` is not a day's drift scan: stop, saying so.
-    ``split``: a time-subset split's unflagged bins (a day flagged away would give m-modes 0)."""
+def _day_coverage(lst, n_bins):
+    """Fraction of the ``n_bins`` sidereal bins that hold an integration (finite ``lst``), flags aside."""
+    lst = lst[np.isfinite(lst)]
+    return len(np.unique(bin_index(lst, n_bins)[0])) / n_bins if lst.size else 0.0
+
+
+def _check_day(ctx, lst, n_bins, min_coverage):
+    """Before any task: integrations that do not cover ``min_coverage`` of the sidereal day are not a
+    day's drift scan."""
+    coverage = _day_coverage(lst, n_bins)
+    if coverage < min_coverage:
+        raise CoverageError(str(ctx.run.store("vis.zarr")), "lst", f"the integrations cover only {coverage:.1%} "
+                            f"of the {n_bins} sidereal bins (need {min_coverage:.0%})",
+                            "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
+
+
+def _check_split_coverage(bin_weight, min_coverage, source, n_bins, split):
+    """A time-subset split's unflagged bins: a day flagged away would give m-modes 0."""
     coverage = float(np.median(np.mean(bin_weight > 0, axis=0)))
-    if coverage >= min_coverage:
-        return
-    if split is not None:
+    if coverage < min_coverage:
         raise CoverageError(str(source), "mmode.splits", f"split '{split}': only {coverage:.1%} of {n_bins} "
                             f"sidereal bins hold unflagged data for the median baseline (need {min_coverage:.0%})",
                             f"remove {split} from mmode.splits (its data are flagged), or lower mmode.min_coverage")
-    raise CoverageError(str(source), "lst", f"only {coverage:.1%} of {n_bins} sidereal bins hold data for the "
-                        f"median baseline (need {min_coverage:.0%})",
-                        "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
+
+
+def _finalize(ctx):
+    """A run where most baselines miss ``mmode.min_coverage`` stops, naming the cause. The
+    integrations cover the day (:func:`_check_day`, before any task), so the flags do: the input's or
+    the corrections' (antennas a calibration flagged)."""
+    infos = ctx.run.task_infos("mmodes").values()
+    nf = ctx.open("mmodes.zarr")["inv_var"].shape[0]
+    total = nf * sum(int(i.get("baselines", 0)) for i in infos)
+    short = sum(int(i.get(k, 0)) for i in infos
+                for k in ("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data"))
+    if total and short > total / 2:
+        cfg = ctx.cfg
+        cal = ""
+        if "gains.zarr" in ctx.stage.inputs and ctx.producer("gains.zarr") is not None:
+            flags = ctx.read("gains.zarr", "flags")
+            cal = f"; the calibrate stage flagged {np.mean(flags):.1%} of its antenna solutions (gains.zarr 'flags')"
+        raise CoverageError(str(ctx.run.store("vis.zarr")), "weights",
+                            f"{short} of {total} baselines (summed over channels) keep less than "
+                            f"{cfg.mmode.min_coverage:.0%} of the sidereal day after their flags, though the "
+                            f"integrations cover the day: the flags, not the observation, are short{cal}",
+                            "find what flags them (the input's flags; `mmflow status` for the antennas calibration "
+                            "flagged), or lower mmode.min_coverage")
+    return {"baselines_short_of_min_coverage": short}
 
 
 STAGE = Stage("mmodes", ("mmode", "beam"), ("vis.zarr",), ("mmodes.zarr",), _prepare, _task,
+               _finalize,
                reads_corrected=True, counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
                          "fits_with_prior"), files=prior_files,
                description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk")
