@@ -47,8 +47,8 @@ from mmflow.simulate.polarised import PolarisedPoints, simulate_polarised_drift_
 from mmflow.sky.diffuse import alm_to_map
 from mmflow.telescope import Telescope
 from mmflow.telescope.jones import ShortDipoleJones
-from tests.unit.test_polarised_imaging import (EPS_I, EPS_POL, FREQ, LMAX, N_LST, NO_FILTER, NSIDE, UNPOL_I,
-                                               UNPOL_RADEC, _layout, _peak)
+from tests.polarised_scene import (EPS_I, EPS_POL, FREQ, LMAX, N_LST, NO_FILTER, NSIDE, UNPOL_I, UNPOL_RADEC,
+                                   peak_near, scene_layout)
 
 TAPER = 3.0
 START_JD = 2457802.0  # 2017-02-18 UTC: inside the IERS tables astropy bundles (no download)
@@ -106,7 +106,7 @@ def scene():
     from astropy.time import Time
     from matvis import simulate_vis
 
-    lay = _layout()
+    lay = scene_layout()
     jones = ShortDipoleJones(horizon_taper=TAPER)
     tel = Telescope(lay, jones.power_beam(), [FREQ])
     pairs = tel.antenna_pairs()
@@ -175,14 +175,14 @@ def test_unpolarised_matvis_sky_leaves_no_polarisation_and_scalar_imaging_leaks(
     maps, ref = imaged["maps"], imaged["truth_imaged"]
     lat = scene["tel"].lat_rad
     for k, vec in enumerate(scene["vecs"]):
-        pk = _peak(maps[0], vec)
+        pk = peak_near(maps[0], vec)
         assert pk["offset_rad"] < 0.05 * pk["fwhm_rad"], (k, pk["offset_rad"] / pk["fwhm_rad"])
         disc = hp.query_disc(NSIDE, vec, pk["fwhm_rad"])
         leak = [np.abs(maps[s, disc]).max() / pk["peak"] for s in (1, 2, 3)]
         pol_i = np.abs(maps[0, disc] - ref[0, disc]).max() / pk["peak"]
         scalar_i = np.abs(imaged["scalar"][disc] - imaged["scalar_truth"][disc]).max() / pk["peak"]
         cross = np.abs(maps[0, disc] - imaged["scalar"][disc]).max() / pk["peak"]
-        i_to_q = imaged["scalar_q"][hp.vec2pix(NSIDE, *vec)] / _peak(imaged["scalar"], vec)["peak"]
+        i_to_q = imaged["scalar_q"][hp.vec2pix(NSIDE, *vec)] / peak_near(imaged["scalar"], vec)["peak"]
         za = np.rad2deg(abs(np.arcsin(vec[2]) - lat))
         print(f"source {k} (za {za:.0f} deg at transit): |Q|, |U|, |V| <= " + ", ".join(f"{x:.3%}" for x in leak)
               + f" of I; I map - truth imaged {pol_i:.1e}, scalar map - truth imaged {scalar_i:.1e}, "

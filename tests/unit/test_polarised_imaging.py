@@ -16,8 +16,7 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from mmflow.analysis.peaks import measure_peak
-from mmflow.conventions import enu_to_equatorial_matrix, radec_to_vec
+from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.imaging.polarised import (accumulate_polarised_normal, expected_alm, point_source_stokes_alm,
                                       solve_polarised, stokes_maps)
 from mmflow.imaging.solvers import solve_alm
@@ -30,45 +29,18 @@ from mmflow.simulate.visibilities import SkyPoints, simulate_drift_scan
 from mmflow.sky.diffuse import alm_to_map
 from mmflow.telescope import Telescope
 from mmflow.telescope.jones import ShortDipoleJones
-from mmflow.telescope.layout import Layout
-
-FREQ, LMAX, NSIDE, N_LST = 40e6, 32, 64, 300
-NO_FILTER = dict(filter_m0=False, filter_m1_lmin=None, zero_monopole=False)
-EPS_I, EPS_POL = 1e-6, 1e-4  # relative to the largest diagonal element of the Grams
-
-# (a) polarised sources: Q/I, U/I, V/I between 5 and 50 %
-POL_RADEC = np.deg2rad([[30, 60], [120, 20], [200, 45], [290, 5]])
-POL_I = np.array([100.0, 80.0, 120.0, 90.0])
-POL_FRAC = np.array([[0.3, 0.2, 0.05], [-0.1, 0.4, -0.1], [0.05, -0.3, 0.2], [-0.4, -0.1, 0.5]])
-# (b) unpolarised sources, from 2 deg to 47 deg from the zenith at transit
-UNPOL_RADEC = np.deg2rad([[40, 75], [150, -10], [260, 35], [330, 10]])
-UNPOL_I = np.array([100.0, 80.0, 120.0, 90.0])
-
-
-def _layout(n_ant=20, radius_m=12.0, seed=1):
-    rng = np.random.default_rng(seed)
-    pos = []
-    while len(pos) < n_ant:
-        p = rng.uniform(-radius_m, radius_m, 2)
-        if np.hypot(*p) <= radius_m and all(np.hypot(*(p - q)) > 2.0 for q in pos):
-            pos.append(p)
-    enu = np.c_[np.array(pos), rng.normal(0, 0.05, n_ant)]
-    return Layout([f"a{i}" for i in range(n_ant)], enu, 37.24, -118.28)
-
-
-def _vecs(radec):
-    return radec_to_vec(radec[:, 0], radec[:, 1])
-
+from tests.polarised_scene import (EPS_I, EPS_POL, FREQ, LMAX, N_LST, NO_FILTER, NSIDE, POL_FRAC, POL_I,
+                                   POL_RADEC, UNPOL_I, UNPOL_RADEC, peak_near, radec_vectors, scene_layout)
 
 @pytest.fixture(scope="module")
 def setup():
     jones = ShortDipoleJones(horizon_taper=3.0)
-    tel = Telescope(_layout(), jones.power_beam(), [FREQ])
+    tel = Telescope(scene_layout(), jones.power_beam(), [FREQ])
     lst = 2 * np.pi * np.arange(N_LST) / N_LST
     z = np.zeros(4)
-    skies = {"pol": PolarisedPoints(_vecs(POL_RADEC), np.c_[POL_I, POL_I[:, None] * POL_FRAC]),
-             "unpol": PolarisedPoints(_vecs(UNPOL_RADEC), np.c_[UNPOL_I, z, z, z]),
-             "pure_q": PolarisedPoints(_vecs(UNPOL_RADEC), np.c_[z, UNPOL_I, z, z])}
+    skies = {"pol": PolarisedPoints(radec_vectors(POL_RADEC), np.c_[POL_I, POL_I[:, None] * POL_FRAC]),
+             "unpol": PolarisedPoints(radec_vectors(UNPOL_RADEC), np.c_[UNPOL_I, z, z, z]),
+             "pure_q": PolarisedPoints(radec_vectors(UNPOL_RADEC), np.c_[z, UNPOL_I, z, z])}
     mm = {k: mmode_transform(simulate_polarised_drift_scan(tel, jones, FREQ, lst, s), LMAX)  # (m, 2, corr, bl)
           for k, s in skies.items()}
     b = baselines_in_wavelengths(tel, tel.antenna_pairs(), FREQ)
@@ -86,20 +58,16 @@ def test_simulator_follows_iau_and_avg_conventions():
     V_xy = U - iV, V_yx = U + iV; and (xx + yy) / 2 of an unpolarised sky is the scalar
     simulator's visibility through the derived power beam (flux convention ``avg``)."""
     jones = ShortDipoleJones()
-    tel = Telescope(_layout(6, 6.0), jones.power_beam(), [FREQ])
+    tel = Telescope(scene_layout(6, 6.0), jones.power_beam(), [FREQ])
     zenith = enu_to_equatorial_matrix(tel.lat_rad) @ np.array([0.0, 0.0, 1.0])
     vis = simulate_polarised_drift_scan(tel, jones, FREQ, [0.0], PolarisedPoints(zenith, [1.0, 0.3, 0.2, 0.1]),
                                         pairs=np.array([[0, 0], [1, 1]]))
     np.testing.assert_allclose(vis[0], [[0.7, 0.7], [1.3, 1.3], [0.2 - 0.1j] * 2, [0.2 + 0.1j] * 2], atol=1e-12)
-    vecs, flux = _vecs(UNPOL_RADEC), UNPOL_I
+    vecs, flux = radec_vectors(UNPOL_RADEC), UNPOL_I
     lst = np.linspace(0, 2 * np.pi, 17)
     pol = simulate_polarised_drift_scan(tel, jones, FREQ, lst, PolarisedPoints(vecs, np.c_[flux, np.zeros((4, 3))]))
     scalar = simulate_drift_scan(tel, FREQ, lst, SkyPoints(vecs, flux))
     np.testing.assert_allclose(0.5 * (pol[:, 0] + pol[:, 1]), scalar, atol=1e-10 * flux.sum())
-
-
-def _peak(hmap, vec, sign=1.0):
-    return measure_peak(sign * hmap, vec, np.deg2rad(8))
 
 
 def test_polarised_point_sources_imaged_like_the_true_sky(setup):
@@ -114,9 +82,9 @@ def test_polarised_point_sources_imaged_like_the_true_sky(setup):
     ref = stokes_maps(expected_alm(setup["normal"], truth, setup["eps"])[0], NSIDE, LMAX)
     p_map = np.hypot(maps[1], maps[2])
     for k, (vec, st) in enumerate(zip(sky.vectors, sky.stokes_jy)):
-        fwhm = _peak(maps[0], vec)["fwhm_rad"]
+        fwhm = peak_near(maps[0], vec)["fwhm_rad"]
         for s in range(4):
-            got, want = _peak(maps[s], vec, np.sign(st[s])), _peak(ref[s], vec, np.sign(st[s]))
+            got, want = peak_near(maps[s], vec, np.sign(st[s])), peak_near(ref[s], vec, np.sign(st[s]))
             rel = got["peak"] / want["peak"] - 1
             print(f"source {k} {'IQUV'[s]}: peak / truth imaged {1 + rel:.4f}, offset "
                   f"{got['offset_rad'] / fwhm:.3f} FWHM (truth imaged {want['offset_rad'] / fwhm:.3f})")
@@ -124,7 +92,7 @@ def test_polarised_point_sources_imaged_like_the_true_sky(setup):
             assert np.arccos(min(1.0, got["vec"] @ want["vec"])) < 0.05 * fwhm, (k, s)
             if s in (0, 3):  # spin 0: the peak is at the source
                 assert got["offset_rad"] < 0.05 * fwhm, (k, s, got["offset_rad"] / fwhm)
-        pk = _peak(p_map, vec)  # polarised intensity: at the source (Q, U alone need not be)
+        pk = peak_near(p_map, vec)  # polarised intensity: at the source (Q, U alone need not be)
         assert pk["offset_rad"] < 0.05 * fwhm, (k, pk["offset_rad"] / fwhm)
         pix = hp.vec2pix(NSIDE, *pk["vec"])
         chi = 0.5 * np.rad2deg(np.arctan2(maps[2, pix], maps[1, pix]))
@@ -150,17 +118,17 @@ def test_unpolarised_sky_leaves_no_polarisation_and_scalar_imaging_leaks(setup):
     expected = stokes_maps(expected_alm(setup["normal"], truth, setup["eps"])[0], NSIDE, LMAX)
     worst_scalar = 0.0
     for k, (vec, flux) in enumerate(zip(sky.vectors, sky.stokes_jy[:, 0])):
-        pk = _peak(maps[0], vec)
+        pk = peak_near(maps[0], vec)
         assert pk["offset_rad"] < 0.05 * pk["fwhm_rad"]
         disc = hp.query_disc(NSIDE, vec, pk["fwhm_rad"])
         leak = [np.abs(maps[s, disc]).max() / pk["peak"] for s in (1, 2, 3)]
         pix = hp.vec2pix(NSIDE, *vec)
-        ref = _peak(scalar[0], vec)["peak"]
+        ref = peak_near(scalar[0], vec)["peak"]
         q_to_i, i_to_q = scalar[1][pix] / ref, scalar[2][pix] / ref
         za = np.rad2deg(abs(np.arcsin(vec[2]) - lat))
         print(f"source {k} (za {za:.0f} deg at transit): full Stokes |Q|, |U|, |V| <= "
               + ", ".join(f"{x:.3%}" for x in leak) + f" of I; scalar path Q->I {q_to_i:+.2%}, I->Q {i_to_q:+.2%}")
         assert max(leak) < 0.005, (k, leak)
-        assert pk["peak"] == pytest.approx(_peak(expected[0], vec)["peak"], rel=0.01)
+        assert pk["peak"] == pytest.approx(peak_near(expected[0], vec)["peak"], rel=0.01)
         worst_scalar = max(worst_scalar, abs(q_to_i), abs(i_to_q))
     assert worst_scalar > 0.02  # the leakage a scalar-beam imager leaves (and the full-Stokes one removes)
