@@ -136,3 +136,18 @@ def healpy_alm(alm_ml, lmax, mmax=None):
     for m in range(mmax + 1):
         out[m_slice(lmax, m)] = alm_ml[m, m:lmax + 1]
     return out
+
+
+def padded_alm(alm, lmax, n_m=None):
+    """A healpy-layout alm vector as the ``(m, l)`` padded array stores keep: the inverse of :func:`healpy_alm`.
+
+    ``out[..., m, l] = alm[..., alm_index(lmax, l, m)]`` for ``m <= min(n_m - 1, lmax)``, ``l >= m``;
+    0 elsewhere. Leading axes of ``alm`` are kept: ``(..., n_alm(lmax))`` -> ``(..., n_m, lmax + 1)``
+    (default ``n_m = lmax + 1``).
+    """
+    alm = np.asarray(alm)
+    n_m = lmax + 1 if n_m is None else n_m
+    out = np.zeros(alm.shape[:-1] + (n_m, lmax + 1), np.complex128)
+    for m in range(min(n_m - 1, lmax) + 1):
+        out[..., m, m:] = alm[..., m_slice(lmax, m)]
+    return out

@@ -6,14 +6,23 @@ import pytest
 os.environ.setdefault("MMFLOW_THREADS", "2")
 
 
+#: the longest test files, longest first: started first, so that with ``-n 2 --dist loadfile`` (``make
+#: test``) no long file is left running alone at the end (a scheduling hint; measured, docs/architecture.md)
+LONGEST_FIRST = ("test_readme.py", "test_raw_day.py", "test_calibration_workflow.py", "test_faults.py",
+                 "test_workflow.py", "test_clean_stage.py", "test_cluster.py", "test_stokes_workflow.py",
+                 "test_calibration_ingest.py", "test_models_stage.py", "test_plan.py")
+
+
 def pytest_collection_modifyitems(config, items):
     """Tests in three tiers: ``tests/unit`` (kernels on in-memory arrays, ``make test-fast``),
     ``tests/workflow`` (stages and runs at small scale) and ``tests/acceptance`` (the README tour, the
     demos, faults, clusters, real files and matvis scans at scale), marked ``slow``
-    (``pytest -m "not slow"`` leaves them out)."""
+    (``pytest -m "not slow"`` leaves them out). The files of :data:`LONGEST_FIRST` run first."""
     for item in items:
         if "acceptance" in item.path.parts:
             item.add_marker(pytest.mark.slow)
+    rank = {name: k for k, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's order kept
 
 
 @pytest.fixture(scope="session")

@@ -119,6 +119,7 @@ def ripple_ratio(autos, weights, integration_s, smooth_fwhm_s=2700.0, median_win
     return ratio, outliers
 
 
-def apply_ripple(vis, weights, pairs, ratio):
-    """Corrected (vis, weights): autos / r_i, crosses / sqrt(r_i r_j)."""
-    return apply_gains(vis, weights, pairs, np.sqrt(ratio))
+def apply_ripple(vis, weights, pairs, ratio, feeds=None):
+    """Corrected (vis, weights): autos / r_i, crosses / sqrt(r_i r_j) (``feeds``: as in
+    :func:`mmflow.calibrate.stefcal.apply_gains`, for the cross hands)."""
+    return apply_gains(vis, weights, pairs, np.sqrt(ratio), feeds=feeds)

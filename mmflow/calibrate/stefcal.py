@@ -513,26 +513,31 @@ def gains_per_integration(solution, n_time):
     return solution.gains[idx], solution.flags[idx]
 
 
-def apply_gains(vis, weights, pairs, gains, flags=None):
-    """Correct visibilities: ``V_ij / (g_i conj(g_j))``; flagged antennas get weight 0.
+def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None):
+    """Correct visibilities: ``V_ij,pq / (g_ip conj(g_jq))``; flagged antennas get weight 0.
 
     Parameters
     ----------
     vis : ndarray (time, bl, pol)
     weights : ndarray broadcastable to ``vis``
-    gains : ndarray (time, n_ant, pol) or (n_ant, pol)
+    gains : ndarray (time, n_ant, feed) or (n_ant, feed)
     flags : bool array like ``gains``, optional
+    feeds : pair of sequences, optional
+        ``(p, q)``: polarisation k of ``vis`` correlates feed ``p[k]`` of antenna i with feed
+        ``q[k]`` of antenna j (the cross hands xy, yx: ``((0, 1), (1, 0))``). Default: ``p = q``
+        = the polarisation axis itself (the parallel hands, one gain per feed).
 
     Returns
     -------
     (vis_corrected, weights_out); the input arrays are not modified.
     """
     pairs = np.asarray(pairs)
-    gi, gj = gains[..., pairs[:, 0], :], gains[..., pairs[:, 1], :]
+    p, q = (slice(None), slice(None)) if feeds is None else (list(feeds[0]), list(feeds[1]))
+    gi, gj = gains[..., pairs[:, 0], :][..., p], gains[..., pairs[:, 1], :][..., q]
     prod = gi * np.conj(gj)
     bad = prod == 0
     if flags is not None:
-        bad = bad | flags[..., pairs[:, 0], :] | flags[..., pairs[:, 1], :]
+        bad = bad | flags[..., pairs[:, 0], :][..., p] | flags[..., pairs[:, 1], :][..., q]
     out = np.where(bad, 0, vis / np.where(bad, 1, prod))
     w = np.where(bad, 0.0, np.broadcast_to(weights, np.shape(vis)))
     return out.astype(np.result_type(vis), copy=False), w

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 
+from mmflow.imaging.polarised import stokes_maps
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map
 from mmflow.sky.frames import rotate_alm, rotation_matrix
@@ -20,3 +21,18 @@ def alm_to_output_map(alm_jy_sr, lmax, freq_hz, epoch_jd, frame="icrs", unit="K"
     alm = rotate_alm(alm_jy_sr, rotation_matrix("date", frame, epoch_jd), lmax) if frame != "date" else alm_jy_sr
     m = alm_to_map(alm, nside or default_nside(lmax), lmax)
     return units.convert(m, "Jy/sr", unit, freq_hz)
+
+
+def stokes_alm_to_output_maps(alm_tebv, lmax, freq_hz, epoch_jd, frame="icrs", unit="K", nside=None):
+    """IAU ``(I, Q, U, V)`` maps in ``frame`` and ``unit`` from ``(T, E, B, V)`` alm of date ``(4, n_alm)``.
+
+    T, E, B and V transform alike under a rotation of the frame (E and B are defined on each
+    frame's own north/east basis), so each is rotated as a scalar alm and the maps are
+    synthesised in ``frame``: Q and U are then referred to that frame's north (IAU: angle from
+    north through east; :func:`mmflow.imaging.polarised.stokes_maps`).
+    """
+    if frame != "date":
+        rot = rotation_matrix("date", frame, epoch_jd)
+        alm_tebv = [rotate_alm(a, rot, lmax) for a in alm_tebv]
+    maps = stokes_maps(alm_tebv, nside or default_nside(lmax), lmax)
+    return units.convert(maps, "Jy/sr", unit, freq_hz)

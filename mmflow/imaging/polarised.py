@@ -35,6 +35,7 @@ import numpy as np
 
 from mmflow.conventions import m_slice, n_alm
 from mmflow.errors import InputError
+from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.solvers import generalized
 from mmflow.mmode.polarised import CORRELATIONS, STOKES, polarised_transfer_blocks
 from mmflow.sky.harmonics import point_sources_alm
@@ -128,6 +129,24 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     return PolarisedNormal(lmax, gram, rhs, vhv)
 
 
+#: the Stokes parameters of full-Stokes imaging, as ``imaging.stokes`` lists them
+FULL_STOKES = ("I", "Q", "U", "V")
+#: ``eps_pol / eps`` when not given: the prior of a weakly polarised sky (docs/stokes.md)
+EPS_POL_RATIO = 100.0
+
+
+def is_full_stokes(stokes):
+    """True when ``stokes`` (``imaging.stokes``) asks for I, Q, U and V."""
+    return tuple(stokes) == FULL_STOKES
+
+
+def stokes_eps(eps, eps_pol=None):
+    """Tikhonov eps per harmonic ``(T, E, B, V)``: ``eps`` for T, ``eps_pol`` (default
+    ``EPS_POL_RATIO x eps``) for E, B and V."""
+    pol = float(eps_pol) if eps_pol is not None else EPS_POL_RATIO * float(eps)
+    return (float(eps), pol, pol, pol)
+
+
 def penalty(eps, n_l):
     """Diagonal of ``D`` for one m block: ``eps`` per Stokes (T, E, B, V), each repeated ``n_l`` times.
 
@@ -151,37 +170,47 @@ def _pack(alm, m, lmax):
     return np.concatenate([alm[x, m_slice(lmax, m)] for x in range(4)])
 
 
-def _solve(normal, eps, rhs_of_m):
+def _solve(normal, eps, rhs_of_m, filters=None):
     lmax = normal.lmax
     n_vec = rhs_of_m(0).shape[0]
     out = np.zeros((n_vec, 4, n_alm(lmax)), np.complex128)
     for m in range(lmax + 1):
         n_l = lmax - m + 1
-        x = generalized(normal.gram[m], rhs_of_m(m).T, 1.0, penalty(eps, n_l)).T  # (n_vec, 4 n_l)
+        keep = np.tile(filter_mask(m, lmax, **filters), 4) if filters else np.ones(4 * n_l, bool)
+        if not keep.any():
+            continue
+        x = np.zeros((n_vec, 4 * n_l), np.complex128)
+        g = normal.gram[m][np.ix_(keep, keep)]
+        x[:, keep] = generalized(g, rhs_of_m(m)[:, keep].T, 1.0, penalty(eps, n_l)[keep]).T
         out[:, :, m_slice(lmax, m)] = x.reshape(n_vec, 4, n_l)
     return out
 
 
-def solve_polarised(normal, eps):
+def solve_polarised(normal, eps, filters=None):
     """``x_m = (G_m + D)^-1 r_m`` for every m and data vector: alm ``(n_vec, 4 [T, E, B, V], n_alm)``.
 
     Parameters
     ----------
     normal : PolarisedNormal
     eps : see :func:`penalty`
+    filters : dict, optional
+        Keyword arguments of :func:`mmflow.imaging.filters.filter_mask` (the m-filters of the
+        Stokes-I solve): the unknowns they remove are removed from every Stokes parameter (zero).
     """
-    return _solve(normal, eps, lambda m: normal.rhs[m])
+    return _solve(normal, eps, lambda m: normal.rhs[m], filters)
 
 
-def expected_alm(normal, true_alm, eps):
+def expected_alm(normal, true_alm, eps, filters=None):
     """The noiseless image of a true sky through the same solve: ``(G_m + D)^-1 G_m x_m``.
 
-    ``true_alm``: ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` T, E, B, V band-limited to ``lmax``.
-    Returns ``(n_vec, 4, n_alm)``.
+    ``true_alm``: ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` T, E, B, V band-limited to ``lmax``;
+    ``filters`` as in :func:`solve_polarised`. Returns ``(n_vec, 4, n_alm)``. With a T-only
+    ``true_alm`` (an unpolarised sky) its E, B, V parts are the leakage of I into Q, U, V maps.
     """
     x = np.asarray(true_alm)
     x = x if x.ndim == 3 else x[None]
-    return _solve(normal, eps, lambda m: np.stack([normal.gram[m] @ _pack(xx, m, normal.lmax) for xx in x]))
+    return _solve(normal, eps, lambda m: np.stack([normal.gram[m] @ _pack(xx, m, normal.lmax) for xx in x]),
+                  filters)
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

@@ -32,22 +32,25 @@ def tmp_sibling(path):
 def _masked(hmap, mask):
     out = np.array(hmap, np.float64, copy=True)
     if mask is not None:
-        out[~np.asarray(mask, bool)] = healpy.UNSEEN
+        out[..., ~np.asarray(mask, bool)] = healpy.UNSEEN
     return out
 
 
-def write_healpix_fits(path, hmap, meta, mask=None):
+def write_healpix_fits(path, hmap, meta, mask=None, column_names=None):
     """HEALPix map (RING) with header keywords from ``meta``; pixels outside ``mask`` are UNSEEN.
 
     Parameters
     ----------
+    hmap : ndarray ``(npix,)`` or ``(n_maps, npix)`` (one column per map, e.g. I, Q, U, V)
     mask : ndarray of bool, optional
         True where the sky was observed (:func:`mmflow.imaging.sky_mask.observed_sky_mask`).
+    column_names : list of str, optional
+        Names of the columns (healpy's default otherwise).
     """
     tmp = tmp_sibling(path)
     healpy.write_map(str(tmp), _masked(hmap, mask), overwrite=True, coord=meta.get("COORDSYS", "C"),
-                     column_units=meta.get("BUNIT", ""), extra_header=[(k[:8], v) for k, v in meta.items()
-                                                                      if k not in ("COORDSYS",)], dtype=np.float64)
+                     column_units=meta.get("BUNIT", ""), column_names=column_names,
+                     extra_header=[(k[:8], v) for k, v in meta.items() if k not in ("COORDSYS",)], dtype=np.float64)
     os.replace(tmp, path)
 
 

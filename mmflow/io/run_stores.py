@@ -22,6 +22,8 @@ DIMENSIONS = {
     "freq": "channels (``freqs_hz``)",
     "pol": "polarisations, named by vis.zarr's attribute ``pols``",
     "cross_pol": "cross hands, named by vis.zarr's attribute ``cross_pols``",
+    "correlation": "the four linear correlations xx, yy, xy, yx (feed p of antenna i, q of antenna j)",
+    "stokes": "T, E, B, V harmonics (full Stokes: I; Q, U through healpy's E, B; V)",
     "antenna": "antennas",
     "ant": "the two antennas of a baseline",
     "enu": "east, north, up",
@@ -86,9 +88,18 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
         "(:func:`mmflow.io.ingest.write_plan`) and the attribute ingest_file_info."))
 
 
-def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs):
-    """The mmodes stage's store (baseline chunks as vis.zarr's)."""
+def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs, n_corr=0):
+    """The mmodes stage's store (baseline chunks as vis.zarr's); ``n_corr`` > 0 (full Stokes) adds the
+    m-modes of each correlation (xx, yy, xy, yx)."""
     ch = min(baseline_chunk, nbl)
+    pol = () if not n_corr else (
+        ArraySpec("mmodes_corr", ("freq", "m", "pm", "correlation", "baseline"), (nf, mmax + 1, 2, n_corr, nbl),
+                  (nf, mmax + 1, 2, n_corr, ch), "complex128",
+                  doc="m-modes of each correlation (xx, yy, xy, yx; full data, no splits), layout of ``mmodes``; "
+                      "only with imaging.stokes [I, Q, U, V]"),
+        ArraySpec("inv_var_corr", ("freq", "correlation", "baseline"), (nf, n_corr, nbl), (nf, n_corr, ch),
+                  "float64", doc="inverse noise variance of each correlation's m-modes"),
+    )
     return StoreSpec("mmodes.zarr", (
         ArraySpec("mmodes", ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
                   (n_split, nf, mmax + 1, 2, ch), "complex128",
@@ -98,7 +109,7 @@ def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs):
         ArraySpec("n_samples", ("split", "freq", "baseline"), (n_split, nf, nbl), (n_split, nf, ch), "int64",
                   doc="each split's unflagged integrations (the bins' summed 0/1 weights), from which the "
                       "jackknives take each split's share ``f_k`` (:func:`mmflow.mmode.splits.split_shares`)"),
-    ), attrs, doc="m-modes of the (corrected) visibilities, per data split: the mmodes stage.")
+    ) + pol, attrs, doc="m-modes of the (corrected) visibilities, per data split: the mmodes stage.")
 
 
 def gram_name(fi, m0):
@@ -163,6 +174,20 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
         ArraySpec("eps_grid", ("eps",), (n_eps,), (n_eps,), "float64", data=eps_grid,
                   doc="the L-curve's trial eps"),
     ), doc="The solve stage's sky: a_lm per data split.")
+
+
+def stokes_store(nf, lmax, mmax):
+    """The stokes stage's full-Stokes harmonics, per frequency."""
+    shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, mmax + 1, lmax + 1)
+    dims = ("freq", "stokes", "m", "l")
+    return StoreSpec("stokes.zarr", (
+        ArraySpec("alm", dims, shape, ch, "complex128",
+                  doc="T, E, B, V harmonics (Jy/sr, frame of date, healpy E/B; IAU Q, U through "
+                      ":func:`mmflow.imaging.polarised.stokes_maps`), ``[f, X, m, l]``, 0 for l < m"),
+        ArraySpec("leakage", dims, shape, ch, "complex128",
+                  doc="the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]`` (T the solved I): "
+                      "its E, B, V parts are the I -> Q, U, V leakage the beam model leaves"),
+    ), {}, doc="full-Stokes harmonics (imaging.stokes [I, Q, U, V]): the stokes stage.")
 
 
 def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):

@@ -45,19 +45,27 @@ def difference_variance(vis, weights):
     return np.where(np.isfinite(med), med / (2 * np.log(2)), np.inf)
 
 
-def radiometer_variance(mean_autos, pairs, bandwidth_hz, integration_s, source="visibilities"):
+def radiometer_variance(mean_autos, pairs, bandwidth_hz, integration_s, source="visibilities", mean_autos_j=None):
     """``sigma^2_ij = <V_ii> <V_jj> / (dnu tau)`` per baseline and frequency, shape ``(freq, bl)``.
 
-    ``mean_autos``: ``{antenna index: (freq,) time-averaged |V_ii|}``.
+    ``mean_autos``: ``{antenna index: (freq,) time-averaged |V_ii|}`` of the feed that antenna i
+    correlates; ``mean_autos_j`` those of antenna j's feed where it differs (a cross hand:
+    ``sigma^2_ij,xy = <V_ii,xx> <V_jj,yy> / (dnu tau)``).
     """
     if not mean_autos:
         raise InputError(source, "pairs", "no autocorrelations for the radiometer equation",
                          "set mmode.noise=data, or ingest autocorrelations")
-    nf = len(next(iter(mean_autos.values())))
-    power = np.full((int(max(pairs.max(), max(mean_autos))) + 1, nf), np.nan)
-    for a, v in mean_autos.items():
-        power[a] = v
-    return (power[pairs[:, 0]] * power[pairs[:, 1]]).T / (bandwidth_hz * integration_s)
+
+    def powers(autos):
+        nf = len(next(iter(autos.values())))
+        out = np.full((int(max(pairs.max(), max(autos))) + 1, nf), np.nan)
+        for a, v in autos.items():
+            out[a] = v
+        return out
+
+    p_i = powers(mean_autos)
+    p_j = p_i if mean_autos_j is None else powers(mean_autos_j)
+    return (p_i[pairs[:, 0]] * p_j[pairs[:, 1]]).T / (bandwidth_hz * integration_s)
 
 
 def mmode_inverse_variance(sigma2, bin_weight):

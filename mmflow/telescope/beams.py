@@ -262,35 +262,3 @@ class PyUVDataBeam(Beam):
 
     def describe(self):
         return {"type": self.name, "source": self.source}
-
-
-def make_beam(spec):
-    """Build a beam from a config mapping (``{"type": "sin_elevation", "alpha": 1.5}`` etc.)."""
-    try:
-        return _make_beam(dict(spec))
-    except TypeError as exc:
-        raise InputError("workflow", "beam", f"options {sorted(spec)} do not fit beam type "
-                         f"'{spec.get('type')}' ({exc})", "replace the whole section: beam={type: ..., ...}") from None
-
-
-def _make_beam(spec):
-    kind = spec.pop("type", "sin_elevation")
-    if kind == "sin_elevation":
-        return SinElevationBeam(**spec)
-    if kind == "gaussian":
-        return GaussianBeam(**spec)
-    if kind == "zernike":
-        return ZernikeBeam(**spec)
-    if kind == "pyuvdata":
-        if "file" in spec:
-            return PyUVDataBeam(spec["file"], **{k: v for k, v in spec.items() if k != "file"})
-        from pyuvdata import analytic_beam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
-
-        cls_name = spec.pop("class", "GaussianBeam")
-        cls = getattr(analytic_beam, cls_name, None)
-        if cls is None:
-            raise InputError("beam", "class", f"pyuvdata has no analytic beam '{cls_name}'",
-                             "use e.g. GaussianBeam, AiryBeam, ShortDipoleBeam, UniformBeam")
-        return PyUVDataBeam(cls(**spec.pop("params", {})), **spec)
-    raise InputError("beam", "type", f"unknown beam type '{kind}'",
-                     "use sin_elevation, gaussian, zernike or pyuvdata")

@@ -113,11 +113,11 @@ class ShortDipoleJones(JonesBeam):
 
     name = "short_dipole"
 
-    def __init__(self, horizon_taper=0.0, lmax_hint=None):
+    def __init__(self, horizon_taper=0.0, lmax_hint=24):
         if horizon_taper < 0:
             raise InputError("jones beam", "horizon_taper", f"{horizon_taper} < 0", "use 0 or a positive power")
         self.horizon_taper = float(horizon_taper)
-        self.lmax_hint = int(lmax_hint) if lmax_hint is not None else 24
+        self.lmax_hint = int(lmax_hint)
 
     def _jones(self, az, za, freq_hz):
         sa, ca, cz = np.sin(az), np.cos(az), np.cos(za)

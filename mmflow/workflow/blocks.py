@@ -25,11 +25,16 @@ class DataBlock:
     columns: slice  # the block's baselines in vis.zarr
     autos: np.ndarray  # (time, antenna, freq, pol) |V_ii| of the block's integrations (calibrated by apply)
     lst: np.ndarray  # (time,) rad
+    cross: np.ndarray = None  # (time, baseline, freq, cross_pol) complex128: xy, yx, where read
+    cross_weights: np.ndarray = None  # like cross
 
 
-def read_block(ctx, rows=slice(None), columns=slice(None)):
+def read_block(ctx, rows=slice(None), columns=slice(None), cross=False):
     """Read a block of ``vis.zarr`` and apply, in pipeline order, the corrections of the enabled
-    solve-then-apply stages before the reading stage (``ctx.corrections()``)."""
+    solve-then-apply stages before the reading stage (``ctx.corrections()``).
+
+    ``cross``: also read the cross hands (``vis_cross``, ``weights_cross``; full-Stokes imaging);
+    a correction corrects them with the same per-feed solutions."""
     vg = ctx.open("vis.zarr")
     nt, nbl = vg["vis"].shape[:2]
     rows, columns = slice(*rows.indices(nt)), slice(*columns.indices(nbl))
@@ -37,6 +42,9 @@ def read_block(ctx, rows=slice(None), columns=slice(None)):
                       ctx.read("vis.zarr", "weights", (rows, columns)).astype(float),
                       vg["pairs"][columns], rows, columns, ctx.read("vis.zarr", "autos", (rows,)),
                       ctx.read("vis.zarr", "lst", (rows,)))
+    if cross:
+        block.cross = ctx.read("vis.zarr", "vis_cross", (rows, columns)).astype(np.complex128)
+        block.cross_weights = ctx.read("vis.zarr", "weights_cross", (rows, columns)).astype(float)
     for stage in ctx.corrections():
         stage.apply(ctx, block)
     return block

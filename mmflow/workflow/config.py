@@ -217,6 +217,19 @@ class ImagingConfig(Section):
     filter_m1_lmin: Optional[int] = Field(100, ge=0, description="Drop m = 1 above this l (null: keep).")
     lcurve: bool = Field(True, description="Compute an L-curve over 200 eps values.")
     prior_map: Optional[str] = Field(None, description="HEALPix FITS map for method: prior.")
+    stokes: list[Literal["I", "Q", "U", "V"]] = Field(
+        ["I"], description="Stokes parameters to image: [I] (the scalar power-beam path) or [I, Q, U, V] (full "
+        "Stokes from xx, yy, xy, yx through an E-field beam: beam type short_dipole or a pyuvdata E-field beam; "
+        "docs/stokes.md).")
+    eps_pol: Optional[float] = Field(None, gt=0, description="Regularisation of Q, U (E, B) and V with stokes "
+                                     "[I, Q, U, V] (null: 100 x eps, the prior of a weakly polarised sky).")
+
+    @field_validator("stokes")
+    @classmethod
+    def _stokes(cls, v):
+        if v not in (["I"], ["I", "Q", "U", "V"]):
+            raise BadValue(f"{v}", "give [I] or [I, Q, U, V] (the four are solved together)")
+        return v
 
 
 class CleanConfig(Section):

@@ -1,6 +1,6 @@
 """The ``beam`` section: its type and, per type, the model of its parameters.
 
-One model per beam type of :func:`mmflow.telescope.beams.make_beam`; defaults match the beam
+One model per beam type of :func:`mmflow.telescope.beam_factory.make_beam`; defaults match the beam
 classes (a test checks). :class:`BeamConfig` keeps the user's keys as given and validates them
 with these (:func:`mmflow.workflow.config_checks.beam_problems`).
 """
@@ -48,6 +48,18 @@ class ZernikeBeamParams(Section):
         return self
 
 
+class ShortDipoleBeamParams(Section):
+    """short_dipole: crossed short dipoles, x east, y north (E-field beam: full Stokes; Stokes-I power 1 - sin^2(za)/2).
+
+    The power beam ``(|J_x|^2 + |J_y|^2) / 2`` is ``1 - sin^2(za) / 2`` times ``cos(za)^(2 horizon_taper)``.
+    """
+
+    horizon_taper: float = Field(0.0, ge=0, description="Each feed's response times cos(za)^horizon_taper (0: "
+                                 "the bare dipole, pyuvdata's ShortDipoleBeam; a taper, e.g. 3, vanishes at the "
+                                 "horizon like a dipole over a ground screen, which small lmax needs: docs/stokes.md).")
+    lmax_hint: int = Field(24, ge=1, description="Angular band limit of the beam pattern.")
+
+
 PYUVDATA_ANALYTIC = ("AiryBeam", "GaussianBeam", "ShortDipoleBeam", "UniformBeam")
 
 
@@ -75,14 +87,14 @@ class PyUVDataBeamParams(Section):
 
 
 BEAM_PARAMS = {"sin_elevation": SinElevationBeamParams, "gaussian": GaussianBeamParams,
-               "zernike": ZernikeBeamParams, "pyuvdata": PyUVDataBeamParams}
+               "zernike": ZernikeBeamParams, "short_dipole": ShortDipoleBeamParams, "pyuvdata": PyUVDataBeamParams}
 
 
 class BeamConfig(Section):
     """Primary beam (Stokes-I power, 1 at zenith). The other keys are the parameters of the chosen type."""
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
-    type: Literal["sin_elevation", "gaussian", "zernike", "pyuvdata"] = Field(
+    type: Literal["sin_elevation", "gaussian", "zernike", "short_dipole", "pyuvdata"] = Field(
         "sin_elevation", description="Beam model; its parameters are listed below.")
 
     def params(self):

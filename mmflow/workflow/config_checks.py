@@ -17,11 +17,12 @@ from pydantic import ValidationError
 
 from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import InputError
+from mmflow.imaging.polarised import is_full_stokes
 from mmflow.mmode.splits import day_index, day_splits, jackknife_kind, sidereal_times_jd, split_problems
 from mmflow.simulate.scene import drift_scan_lsts
 from mmflow.sky.sources import CATALOG
 from mmflow.telescope import load_layout, ovro_lwa_layout
-from mmflow.telescope.beams import make_beam
+from mmflow.telescope.beam_factory import make_beam, make_jones
 from mmflow.workflow.config_beam import BEAM_PARAMS
 from mmflow.workflow.config_errors import Problem, from_pydantic, nearest, show
 from mmflow.workflow.geometry import n_bins_of, n_integrations
@@ -349,10 +350,40 @@ def _products_problems(cfg):
     return out
 
 
+def _stokes_problems(cfg):
+    """Full Stokes (``imaging.stokes: [I, Q, U, V]``): what it needs of the input, the beam and the stages."""
+    if not is_full_stokes(cfg.imaging.stokes):
+        return []
+    loc, val = ("imaging", "stokes"), list(cfg.imaging.stokes)
+    out = []
+    if cfg.source == "simulate":
+        out.append(Problem(loc, val, "the simulate stage writes the parallel hands only, not xy and yx",
+                           "ingest files holding XX, YY, XY and YX (source: files; e.g. a matvis polarized=True "
+                           "simulation written by pyuvdata), or set imaging.stokes=[I]"))
+    elif not cfg.input.cross_hands:
+        out.append(Problem(("input", "cross_hands"), False, "full Stokes needs the cross hands xy, yx",
+                           "set input.cross_hands=true"))
+    for stage in ("peel", "terrestrial"):
+        if getattr(cfg, stage).enabled:
+            out.append(Problem((stage, "enabled"), True, f"{stage} models and subtracts the parallel hands only: the "
+                               "cross hands would keep what it removes, and Q, U, V with them",
+                               f"set {stage}.enabled=false for imaging.stokes [I, Q, U, V], or image Stokes I only"))
+    mm = cfg.mmode
+    if mm.mmax is not None and mm.mmax != mm.lmax:
+        out.append(Problem(("mmode", "mmax"), mm.mmax, f"full Stokes solves every m up to lmax = {mm.lmax}",
+                           "set mmode.mmax=null"))
+    try:
+        make_jones(cfg.beam.model_dump())
+    except InputError as exc:
+        out.append(Problem(("beam", "type"), cfg.beam.type, exc.problem, exc.fix))
+    return out
+
+
 def check_config(cfg):
     """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
     out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg) + _products_problems(cfg) + \
         _split_problems(cfg)
     if not any(p.loc[:1] == ("beam",) for p in out):
         out.extend(_beam_build_problems(cfg))
+        out.extend(_stokes_problems(cfg))
     return out

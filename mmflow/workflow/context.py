@@ -19,7 +19,7 @@ import zarr
 from mmflow.errors import InputError, MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
 from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
-from mmflow.telescope.beams import make_beam
+from mmflow.telescope.beam_factory import make_beam
 from mmflow.telescope.layout import Layout
 from mmflow.workflow.config import WorkflowConfig
 from mmflow.workflow.fingerprint import ConfigView

@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel, products, simulate,
-                                    solve, terrestrial, transfer)
+                                    solve, stokes, terrestrial, transfer)
 from mmflow.workflow.stages.base import first_writer
 
 _NAMED = {}
@@ -96,7 +96,7 @@ def named(name):
 #: the stages of an mmflow run, in order
 PIPELINE = register(Pipeline.of(simulate.STAGE, ingest.STAGE, calibrate.STAGE, models.STAGE, peel.STAGE,
                                 terrestrial.STAGE, mmodes.STAGE, transfer.STAGE, normal.STAGE, solve.STAGE,
-                                clean.STAGE, products.STAGE), "mmflow")
+                                stokes.STAGE, clean.STAGE, products.STAGE), "mmflow")
 
 #: the stage names in run order
 ORDER = PIPELINE.names

@@ -28,6 +28,7 @@ import numpy as np
 from mmflow.conventions import SIDEREAL_DAY_S, m_blocks
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
+from mmflow.imaging.polarised import FULL_STOKES, is_full_stokes
 from mmflow.io import run_stores as rs
 from mmflow.io.ingest import plan_ingest
 from mmflow.machine import gemm_gflops
@@ -158,7 +159,8 @@ def stage_work(stage, g, cfg):
     if stage == "mmodes":
         bc = min(g.mmode_chunk, g.n_bl)
         w = g.n_time * bc * g.n_freq * g.n_pol * 12.0 + g.n_split * g.n_freq * (g.mmax + 1) * 2 * bc * 16.0
-        spec = rs.mmodes_store(g.n_split, g.n_freq, g.mmax, g.n_bl, g.mmode_chunk, {})
+        spec = rs.mmodes_store(g.n_split, g.n_freq, g.mmax, g.n_bl, g.mmode_chunk, {},
+                               len(FULL_STOKES) if is_full_stokes(cfg.imaging.stokes) else 0)
         return -(-g.n_bl // bc), w, g.n_time * bc * g.n_freq * g.n_pol, [spec]
     if stage == "transfer":
         gram = _gram_bytes(g.lmax, g.mmax, g.gram_itemsize) + g.transfer_workspace
@@ -177,6 +179,13 @@ def stage_work(stage, g, cfg):
     if stage == "solve":
         spec = rs.alm_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split, np.zeros(LCURVE_POINTS))
         return g.n_freq * n_mb, blk2 * 16.0, _block_sum(g.lmax, g.mmax, g.m_block, 3), [spec]
+    if stage == "stokes":
+        # the whole channel's Gram over [T, E, B, V] (complex128, full matrices), twice while solving,
+        # and the coefficients of one chunk of 32 baselines (4 correlations x 4 Stokes, every (l, m))
+        gram = 2 * 16.0 * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
+        coef = 16 * 32 * 16.0 * (g.lmax + 1) * (2 * g.lmax + 1)
+        spec = rs.stokes_store(g.n_freq, g.lmax, g.mmax)
+        return g.n_freq, gram + coef, g.n_bl * 4 * (g.lmax + 1) ** 2, [spec]
     if stage == "clean":
         c = cfg.clean
         # residuals are written per cycle: the disk holds the cycles run, not max_cycles

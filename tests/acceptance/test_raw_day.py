@@ -81,7 +81,7 @@ def _sky_day(tmpl):
     from mmflow.simulate.scene import sky_points
     from mmflow.simulate.visibilities import simulate_drift_scan
     from mmflow.telescope.array import Telescope
-    from mmflow.telescope.beams import make_beam
+    from mmflow.telescope.beam_factory import make_beam
     from mmflow.telescope.layout import Layout
 
     ants = np.unique(np.concatenate([tmpl.ant_1_array, tmpl.ant_2_array]))

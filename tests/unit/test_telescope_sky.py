@@ -7,7 +7,8 @@ from mmflow.sky import units
 from mmflow.sky.frames import rotate_alm, rotation_matrix
 from mmflow.sky.sources import CATALOG, PAPER_REMOVED, SH12_CALIBRATORS, get_sources
 from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
-from mmflow.telescope.beams import GaussianBeam, PyUVDataBeam, SinElevationBeam, ZernikeBeam, make_beam
+from mmflow.telescope.beam_factory import make_beam
+from mmflow.telescope.beams import GaussianBeam, PyUVDataBeam, SinElevationBeam, ZernikeBeam
 
 
 def test_ovro_presets_from_real_positions():

@@ -229,6 +229,13 @@ def test_beam_parameter_models_match_the_beam_classes():
     sig = inspect.signature(beams.PyUVDataBeam.__init__).parameters
     for name in ("normalize", "lmax_hint"):
         assert BEAM_PARAMS["pyuvdata"].model_fields[name].default == sig[name].default
+    from mmflow.telescope.jones import ShortDipoleJones
+
+    sig = inspect.signature(ShortDipoleJones.__init__).parameters
+    model = BEAM_PARAMS["short_dipole"].model_fields
+    assert set(model) == set(sig) - {"self"}
+    for name, f in model.items():
+        assert sig[name].default == f.default, name
 
 
 def test_config_show_lists_allowed_values_and_every_beam_type_and_round_trips(tmp_path):

@@ -35,6 +35,7 @@ from mmflow.calibrate.gain_tables import gains_at
 from mmflow.calibrate.ripple import apply_ripple, ripple_ratio
 from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, best_track, solve_gains
 from mmflow.errors import InputError
+from mmflow.io.polarization import CROSS_FEEDS
 from mmflow.io.run_stores import gains_store
 from mmflow.sky.sources import get_sources
 from mmflow.workflow.baseline_cuts import check_baselines, resolved_cuts, solve_mask
@@ -181,8 +182,17 @@ def _apply(ctx, block):
         g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
         block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, g, fl)
         block.autos[:, :, fi] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
+        if block.cross is not None:  # xy, yx: feed p of antenna i, feed q of antenna j
+            cv, cw = block.cross[:, :, fi], block.cross_weights[:, :, fi]
+            if ratio is not None:
+                cv, cw = apply_ripple(cv, cw, block.pairs, ratio[:, fi], feeds=CROSS_FEEDS)
+            block.cross[:, :, fi], block.cross_weights[:, :, fi] = apply_gains(cv, cw, block.pairs, g, fl,
+                                                                               feeds=CROSS_FEEDS)
     if ctx.open("gains.zarr").attrs.get("flag_autos", False):
-        block.weights[:, block.pairs[:, 0] == block.pairs[:, 1]] = 0.0
+        autos = block.pairs[:, 0] == block.pairs[:, 1]
+        block.weights[:, autos] = 0.0
+        if block.cross is not None:
+            block.cross_weights[:, autos] = 0.0
 
 
 STAGE = Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",

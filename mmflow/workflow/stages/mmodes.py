@@ -29,10 +29,12 @@ import threading
 import numpy as np
 
 from mmflow.errors import CoverageError, InputError
-from mmflow.io.polarization import stokes_i, stokes_i_variance
+from mmflow.imaging.polarised import is_full_stokes
+from mmflow.io.polarization import CROSS_FEEDS, stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
+from mmflow.mmode.polarised import CORRELATIONS
 from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, \
     sun_elevation_deg
 from mmflow.mmode.transform import bin_index, sidereal_bins, split_bins
@@ -57,8 +59,22 @@ def _prepare(ctx):
     attrs = {"mmax": mmax, "n_bins": n_bins, "splits": splits}
     if any(is_time_split(s) for s in splits):
         attrs.update(_check_time_splits(ctx, vis, splits, n_bins))
-    ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1], attrs))
+    n_corr = 0
+    if is_full_stokes(cfg.imaging.stokes):
+        _check_correlations(ctx, vis)
+        n_corr = len(CORRELATIONS)
+    ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1], attrs, n_corr))
     return [TaskKey(bl_chunk=i) for i in range(-(-nbl // vis["vis"].chunks[1]))]
+
+
+def _check_correlations(ctx, vis):
+    """Full Stokes needs both parallel hands and both cross hands in ``vis.zarr``."""
+    pols, cross = list(vis.attrs.get("pols", [])), list(vis.attrs.get("cross_pols") or [])
+    if len(pols) != 2 or len(cross) != 2:
+        raise InputError(str(ctx.run.store("vis.zarr")), "cross_pols",
+                         f"polarisations {pols} and cross hands {cross}: imaging.stokes [I, Q, U, V] needs the four "
+                         "correlations xx, yy, xy, yx",
+                         "ingest files that hold XX, YY, XY and YX (input.cross_hands true), or set imaging.stokes=[I]")
 
 
 def _time_splits(ctx, vis, splits):
@@ -109,7 +125,8 @@ def _task(ctx, key):
     ch = vg["vis"].chunks[1]
     i = key.bl_chunk
     cols = slice(i * ch, min(nbl, (i + 1) * ch))
-    block = read_block(ctx, slice(None), cols)  # all integrations, corrected
+    full_stokes = "mmodes_corr" in ctx.open("mmodes.zarr")
+    block = read_block(ctx, slice(None), cols, cross=full_stokes)  # all integrations, corrected
     good_t = np.isfinite(block.lst)
     vis, w = stokes_i(block.vis[good_t], block.weights[good_t])
     lst = block.lst[good_t]
@@ -118,7 +135,9 @@ def _task(ctx, key):
     bin_splits = [s for s in splits if not is_time_split(s)]
     masks = {s: m[good_t] for s, m in _time_splits(ctx, vg, splits)[3].items()} if len(bin_splits) < len(splits) \
         else {}
-    sigma2, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs)
+    per_pol, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs,
+                                        [(p, p) for p in range(block.vis.shape[-1])])
+    sigma2 = None if per_pol is None else stokes_i_variance(np.stack(per_pol, axis=-1))
     tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
     # the bins of the smallest split bound the fit: half of them for even / odd
     n_fit = n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
@@ -154,7 +173,37 @@ def _task(ctx, key):
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
     ctx.write(g, "n_samples", (slice(None), slice(None), cols), n_samples)
+    if full_stokes:
+        corr, inv_corr = _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax)
+        ctx.write(g, "mmodes_corr", (slice(None),) * 4 + (cols,), corr)
+        ctx.write(g, "inv_var_corr", (slice(None), slice(None), cols), inv_corr)
     return info
+
+
+def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax):
+    """m-modes ``(freq, m, pm, correlation, baseline)`` and their inverse variances ``(freq, correlation,
+    baseline)`` of xx, yy, xy, yx (full Stokes), each fitted as Stokes I is (the full data; no splits, no
+    prior run) with each correlation's own radiometer noise ``<V_ii,p> <V_jj,q> / (dnu tau)``."""
+    cfg = ctx.cfg
+    vis = np.concatenate([block.vis, block.cross], axis=-1)[good_t]  # (time, bl, freq, [xx, yy, xy, yx])
+    w = np.concatenate([block.weights, block.cross_weights], axis=-1)[good_t]
+    lst = block.lst[good_t]
+    feeds = [(0, 0), (1, 1)] + list(zip(*CROSS_FEEDS))
+    per_corr, _ = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs, feeds)
+    tel, freqs, src = ctx.telescope(), vg["freqs_hz"][:], str(ctx.run.store("vis.zarr"))
+    nf, nbl = vis.shape[2], vis.shape[1]
+    out = np.zeros((nf, mmax + 1, 2, len(feeds), nbl), np.complex128)
+    inv_var = np.zeros((nf, len(feeds), nbl))
+    for fi in range(nf):
+        band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
+        for c in range(len(feeds)):
+            binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi, c], (w[:, :, fi, c] > 0).astype(float), n_bins,
+                                                 0.0, source=src)
+            res = chunk_mmodes(binned, wsum, mmax, offset, band, ["full"],
+                               None if per_corr is None else per_corr[c][fi], cfg.mmode.min_coverage,
+                               cfg.mmode.coverage_policy)
+            out[fi, :, :, c], inv_var[fi, c] = res.mmodes[0], res.inv_var
+    return out, inv_var
 
 
 def _count(bin_weight, split):
@@ -191,11 +240,12 @@ class _PriorModel:
         return refit_prior_m0(self.model, binned, bin_weight, offset)
 
 
-def _radiometer_sigma2(ctx, vg, autos, pairs):
-    """Per-sample radiometer variance of Stokes I ``(freq, bl)`` where ``mmode.noise`` asks for it and
-    the chunk's antennas all have autocorrelations (``auto``); else None (estimated from the fit's
-    residual). Each kept polarisation has ``<V_ii,p> <V_jj,p> / (dnu tau)``; Stokes I, their mean,
-    has :func:`mmflow.io.polarization.stokes_i_variance` of them (two hands halve it)."""
+def _radiometer_sigma2(ctx, vg, autos, pairs, feeds):
+    """Per-sample radiometer variances ``(freq, bl)`` of the correlations of feeds ``feeds`` (pairs
+    ``(p, q)``: feed p of antenna i, q of antenna j, on the autocorrelations' polarisation axis):
+    ``<V_ii,p> <V_jj,q> / (dnu tau)``, where ``mmode.noise`` asks for them and the chunk's antennas
+    all have autocorrelations (``auto``); else None (estimated from the fit's residual). Stokes I,
+    the mean of the parallel hands, has :func:`mmflow.io.polarization.stokes_i_variance` of theirs."""
     noise = ctx.cfg.mmode.noise
     if noise == "data":
         return None, "data"
@@ -204,10 +254,9 @@ def _radiometer_sigma2(ctx, vg, autos, pairs):
     have = [a for a in range(len(mean)) if np.all(np.isfinite(mean[a]))]
     if noise == "auto" and not set(np.unique(pairs)) <= set(have):
         return None, "data"
-    per_pol = [radiometer_variance({a: mean[a, :, p] for a in have}, pairs, vg.attrs["channel_width_hz"],
-                                   vg.attrs["integration_s"], str(ctx.run.store("vis.zarr")))
-               for p in range(mean.shape[-1])]
-    return stokes_i_variance(np.stack(per_pol, axis=-1)), "radiometer"
+    return [radiometer_variance({a: mean[a, :, p] for a in have}, pairs, vg.attrs["channel_width_hz"],
+                                vg.attrs["integration_s"], str(ctx.run.store("vis.zarr")),
+                                {a: mean[a, :, q] for a in have}) for p, q in feeds], "radiometer"
 
 
 def _day_coverage(lst, n_bins):
@@ -259,7 +308,7 @@ def _finalize(ctx):
     return {"baselines_short_of_min_coverage": short}
 
 
-STAGE = Stage("mmodes", ("mmode", "beam"), ("vis.zarr",), ("mmodes.zarr",), _prepare, _task,
+STAGE = Stage("mmodes", ("mmode", "beam", "imaging.stokes"), ("vis.zarr",), ("mmodes.zarr",), _prepare, _task,
                _finalize,
                reads_corrected=True, counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
                          "fits_with_prior"), files=prior_files,

@@ -6,7 +6,8 @@ summaries; with ``clean.enabled`` also the restored, residual, model and noise m
 stamps and Table 1 (:mod:`mmflow.workflow.products.clean`); the flux scale, astrometric
 registration and spectral-index products (:mod:`mmflow.workflow.products.science`). ``summary_<tag>.json``
 and ``summary.json`` hold what a report needs (paths, PSF FWHMs, noise, CLEAN history,
-Table-1 rows). Only the files it lists are ever removed.
+Table-1 rows); with ``imaging.stokes: [I, Q, U, V]`` the full-Stokes maps
+(:mod:`mmflow.workflow.products.stokes`). Only the files it lists are ever removed.
 """
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ import numpy as np
 from mmflow.conventions import healpy_alm
 from mmflow.imaging import maps as imaging_maps
 from mmflow.imaging.lcurve import lcurve_corner
+from mmflow.imaging.polarised import is_full_stokes
 from mmflow.imaging.sky_mask import observed_sky_mask
 from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollweide_png, write_table1
 from mmflow.io.report import summary_from_run, write_report
@@ -24,6 +26,7 @@ from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow.geometry import mmax_of
 from mmflow.workflow.products.clean import clean_history_figure, clean_products, table1_row
 from mmflow.workflow.products.science import channel_science, finalize_science
+from mmflow.workflow.products.stokes import stokes_products
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
 
@@ -85,6 +88,8 @@ def _products_task(ctx, key):
                 maps / f"lcurve_{tag}.png", lc, eps, cfg.imaging.eps, corner=info["lcurve_corner_eps"], freq_hz=f,
                 weighted=cfg.transfer.noise_weighting)
             ctx.ledger.record_file(maps / f"lcurve_{tag}.png")
+    if is_full_stokes(cfg.imaging.stokes):
+        info["stokes"] = stokes_products(ctx, fi, tag, nside, mask, meta, p.png)
     if cfg.clean.enabled:
         info.update(clean_products(ctx, fi, tag, f, epoch, nside, mask, meta, p.png))
         info["table1"] = table1_row(ctx, fi, f, info)
@@ -132,7 +137,8 @@ def _products_finalize(ctx):
 
 STAGE = Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
                             "transfer.noise_weighting", "transfer.m_block", "clean", "peel.enabled"),
-               ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr", "clean.zarr", "peel.zarr"), ("maps",),
+               ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr", "stokes.zarr", "clean.zarr", "peel.zarr"),
+               ("maps",),
                _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
                "flux scale, spectral index, astrometry; HTML report")

@@ -1,0 +1,82 @@
+"""The full-Stokes part of the ``products`` stage (``imaging.stokes: [I, Q, U, V]``; docs/stokes.md).
+
+=================================  =============================================================
+file (``maps/``)                   content
+=================================  =============================================================
+``stokes_<tag>.fits``              I, Q, U, V (columns ``I_STOKES`` .. ``V_STOKES``) of the
+                                   full-Stokes solve, IAU convention (``POLCCONV = 'IAU'``: Q > 0
+                                   north-south, angle from north through east in
+                                   ``products.frame``), ``products.unit``
+``leakage_<tag>.fits``             I, Q, U, V of the unpolarised sky ``[T, 0, 0, 0]`` imaged
+                                   through the same solve: Q, U, V are the leakage of I the beam
+                                   model leaves
+``polfrac_<tag>.fits``             linear ``sqrt(Q^2 + U^2) / I`` and circular ``V / I``
+                                   fractions where I exceeds ``POLFRAC_MIN_I`` of the I peak
+``stokes_<tag>_<X>.png``           Mollweide views of Q, U, V and the linear fraction
+=================================  =============================================================
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.conventions import healpy_alm
+from mmflow.imaging.maps import stokes_alm_to_output_maps
+from mmflow.io.export import write_healpix_fits, write_mollweide_png
+
+#: the polarised fraction is shown only where I exceeds this fraction of the map's I peak
+POLFRAC_MIN_I = 0.05
+COLUMNS = ["I_STOKES", "Q_STOKES", "U_STOKES", "V_STOKES"]
+
+
+def _maps(ctx, name, fi, nside):
+    cfg = ctx.cfg
+    lmax, p = cfg.mmode.lmax, cfg.products
+    vis = ctx.open("vis.zarr")
+    f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
+    padded = ctx.read("stokes.zarr", name, (slice(fi, fi + 1),))[0]  # (4, m, l)
+    alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
+    maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, p.unit, nside)
+    ctx.check_finite(f"maps/{name} of channel {fi}", maps)
+    return maps
+
+
+def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
+    """``(sqrt(Q^2 + U^2) / I, V / I)`` where ``I > min_i_fraction`` x the I peak (of the ``mask``ed sky), NaN elsewhere."""
+    i, q, u, v = iquv
+    seen = np.ones(i.shape, bool) if mask is None else np.asarray(mask, bool)
+    good = seen & (i > min_i_fraction * np.max(i[seen]))
+    safe = np.where(good, i, 1.0)
+    return np.where(good, np.hypot(q, u) / safe, np.nan), np.where(good, v / safe, np.nan)
+
+
+def stokes_products(ctx, fi, tag, nside, mask, meta, png):
+    """Write the full-Stokes maps of channel ``fi`` and return their summary entries."""
+    maps_dir = ctx.run.path / "maps"
+    iquv, leak = _maps(ctx, "alm", fi, nside), _maps(ctx, "leakage", fi, nside)
+    pmeta = dict(meta, STOKES="IQUV", POLCCONV="IAU", POLCONV="avg")
+    files = {"stokes_fits": f"maps/stokes_{tag}.fits", "leakage_fits": f"maps/leakage_{tag}.fits",
+             "polfrac_fits": f"maps/polfrac_{tag}.fits"}
+    write_healpix_fits(ctx.run.path / files["stokes_fits"], iquv, pmeta, mask=mask, column_names=COLUMNS)
+    write_healpix_fits(ctx.run.path / files["leakage_fits"], leak, dict(pmeta, LEAKAGE=True), mask=mask,
+                       column_names=COLUMNS)
+    lin, circ = polarised_fraction(iquv, mask=mask)
+    seen_frac = mask & np.isfinite(lin)
+    write_healpix_fits(ctx.run.path / files["polfrac_fits"], np.stack([np.nan_to_num(lin), np.nan_to_num(circ)]),
+                       dict(pmeta, BUNIT="", MINIFRAC=POLFRAC_MIN_I), mask=seen_frac, column_names=["P_LIN", "P_CIRC"])
+    for q in files.values():
+        ctx.ledger.record_file(ctx.run.path / q)
+    i_peak = float(np.max(iquv[0][mask]))
+    info = dict(files)
+    info["stokes_peak"] = {s: float(np.max(np.abs(m[mask]))) for s, m in zip("IQUV", iquv)}
+    # the largest leakage of the unpolarised sky into each of Q, U, V, relative to the I peak
+    info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
+    if png:
+        views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
+        for name, hmap in views.items():
+            path = maps_dir / f"stokes_{tag}_{name}.png"
+            unit = "" if name == "plin" else ctx.cfg.products.unit
+            write_mollweide_png(path, hmap, f"mmflow {tag} Stokes {name} (IAU, {ctx.cfg.products.frame})", unit,
+                                mask=seen_frac if name == "plin" else mask)
+            ctx.ledger.record_file(path)
+        info["stokes_png"] = [f"maps/stokes_{tag}_{n}.png" for n in views]
+    return info

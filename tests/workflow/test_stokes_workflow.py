@@ -1,0 +1,141 @@
+"""Full-Stokes imaging through the workflow (issue 22): UVH5 files holding xx, yy, xy, yx of polarised
+point sources (:mod:`tests.stokes_helpers`: mmflow's direct simulator, independent of the transfer
+code) -> ingest -> mmodes (the four correlations) -> stokes -> products (I, Q, U, V FITS, IAU).
+
+The maps are compared with the true sky imaged through the same operator (the run's own weights,
+:func:`mmflow.imaging.polarised.expected_alm` of the sources' true T, E, B, V harmonics): equal in the
+noiseless, band-limited limit, whatever the regularisation. What this checks is everything between
+the file and the map: the correlations' order and conjugation on ingest, the corrections' feeds,
+the m-modes, the weights, the E/B -> Q/U convention (IAU, U = -U_healpy), the rotation and the units.
+"""
+import json
+import signal
+import subprocess
+import sys
+
+import healpy as hp
+import numpy as np
+import pytest
+from astropy.io import fits
+
+from mmflow.analysis.peaks import measure_peak
+from mmflow.imaging.polarised import (accumulate_polarised_normal, expected_alm, point_source_stokes_alm,
+                                      stokes_eps, stokes_maps)
+from mmflow.mmode.noise import relative_weights
+from mmflow.mmode.polarised import make_polarised_grid
+from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
+from mmflow.telescope import Telescope
+from mmflow.telescope.jones import ShortDipoleJones
+from tests.stokes_helpers import HORIZON_TAPER, compact_layout, polarised_uvh5
+from tests.workflow_helpers import ROOT, assert_identical, fork_run, interrupt_run, read_outputs, refused_problem
+
+LMAX, NSIDE, EPS, EPS_POL = 20, 32, 1e-4, 1e-2
+FREQS = (40e6, 41e6)
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory):
+    d = tmp_path_factory.mktemp("stokes_data")
+    paths, lay, sky = polarised_uvh5(d, FREQS, n_times=160, files=2, layout=compact_layout())
+    return d, lay, sky
+
+
+def _args(scan):
+    return ["workflows/uvh5-image.yaml", f"input.path={scan[0]}/*.uvh5",
+            f"beam={{type: short_dipole, horizon_taper: {HORIZON_TAPER}}}", "imaging.stokes=[I, Q, U, V]",
+            f"imaging.eps={EPS}", f"imaging.eps_pol={EPS_POL}", f"mmode.lmax={LMAX}", f"products.nside={NSIDE}",
+            "products.frame=date", "products.unit=Jy/sr", "products.png=false", "products.flux_scale=false"]
+
+
+@pytest.fixture(scope="module")
+def reference(scan, tmp_path_factory):
+    """An uninterrupted run by the CLI in a subprocess (the executor of the interrupted run)."""
+    run_dir = tmp_path_factory.mktemp("stokes_ref") / "run"
+    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", *_args(scan), f"run.directory={run_dir}",
+                    "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    return run_dir
+
+
+def _truth_imaged(run_dir, lay, sky, fi):
+    """The true sky's (I, Q, U, V) through the run's operator: its baselines, weights, beam and eps."""
+    import zarr
+
+    vg = zarr.open_group(str(run_dir / "vis.zarr"), mode="r")
+    inv_var = zarr.open_group(str(run_dir / "mmodes.zarr"), mode="r")["inv_var_corr"][fi]
+    jones = ShortDipoleJones(HORIZON_TAPER)
+    f = float(vg["freqs_hz"][fi])
+    tel = Telescope(lay, jones.power_beam(), [f])
+    b = baselines_in_wavelengths(tel, vg["pairs"][:], f)
+    grid = make_polarised_grid(tel.lat_rad, jones, f, LMAX, fringe_bandlimit(np.linalg.norm(b, axis=1),
+                                                                              jones.lmax_hint))
+    normal = accumulate_polarised_normal(grid, b, None, relative_weights(inv_var))
+    truth = point_source_stokes_alm(sky.vectors, sky.stokes_jy, LMAX)
+    filters = dict(zero_monopole=True, filter_m0=True, filter_m1_lmin=100)
+    return stokes_maps(expected_alm(normal, truth, stokes_eps(EPS, EPS_POL), filters)[0], NSIDE, LMAX)
+
+
+def test_stokes_maps_equal_the_true_sky_imaged_and_follow_iau(scan, reference):
+    """Every I, Q, U, V peak at every source equals the truth imaged through the same operator
+    (measured <= 0.3 %: 160 integrations; asserted 1 %), at the same position; the polarisation angle at the peak of
+    P = sqrt(Q^2 + U^2) within 2 deg of the source's (IAU: 0.5 atan2(U, Q)); the unpolarised source
+    has in Q, U and V within one FWHM what the truth imaged has (its neighbours' wings) to 0.5 % of its I
+    peak, and the leakage maps (the unpolarised sky through the same solve) hold < 0.5 % of the I peak
+    in Q, U, V (measured 0.19 %); the FITS header states IAU."""
+    _, lay, sky = scan
+    summary = json.loads((reference / "maps" / "summary_40.000MHz.json").read_text())["stokes"]
+    assert max(summary["leakage_max_fraction"].values()) < 0.005, summary
+    path = reference / "maps" / "stokes_40.000MHz.fits"
+    maps = np.array(hp.read_map(str(path), field=None))
+    assert fits.getheader(path, 1)["POLCCONV"] == "IAU"
+    maps = np.where(maps == hp.UNSEEN, 0.0, maps)
+    ref = _truth_imaged(reference, lay, sky, 0)
+    p_map = np.hypot(maps[1], maps[2])
+    for k, (vec, st) in enumerate(zip(sky.vectors, sky.stokes_jy)):
+        i_pk = measure_peak(maps[0], vec, np.deg2rad(10))
+        fwhm = i_pk["fwhm_rad"]
+        for s in range(4):
+            sign = np.sign(st[s]) or 1.0
+            got, want = measure_peak(sign * maps[s], vec, np.deg2rad(10)), measure_peak(sign * ref[s], vec,
+                                                                                        np.deg2rad(10))
+            if st[s] == 0:  # unpolarised (source 2): within one FWHM only what its polarised neighbours'
+                near = hp.query_disc(NSIDE, vec, fwhm)  # band-limited wings put there, as in the truth imaged
+                diff = np.abs(maps[s][near] - ref[s][near]).max() / i_pk["peak"]
+                print(f"source {k} {'IQUV'[s]}: |map - truth imaged| within 1 FWHM {diff:.2e} of its I peak")
+                assert diff < 0.005, (k, s)
+                continue
+            print(f"source {k} {'IQUV'[s]}: peak / truth imaged {got['peak'] / want['peak']:.5f}")
+            assert abs(got["peak"] / want["peak"] - 1) < 0.01, (k, s)
+            assert np.arccos(min(1.0, got["vec"] @ want["vec"])) < 0.05 * fwhm, (k, s)
+        if st[1] or st[2]:
+            pk = measure_peak(p_map, vec, np.deg2rad(10))
+            pix = hp.vec2pix(NSIDE, *pk["vec"])
+            chi = 0.5 * np.rad2deg(np.arctan2(maps[2, pix], maps[1, pix]))
+            chi_true = 0.5 * np.rad2deg(np.arctan2(st[2], st[1]))
+            print(f"source {k}: chi {chi:.2f} deg, true {chi_true:.2f}")
+            assert abs((chi - chi_true + 90) % 180 - 90) < 2.0, (k, chi, chi_true)
+
+
+def test_stokes_run_resumes_bit_identical_after_a_kill(scan, reference, tmp_path):
+    """Killed (SIGKILL) in the stokes stage after its first channel, the run resumes to the
+    uninterrupted run's stores and maps, bit for bit."""
+    run_dir = fork_run(reference, tmp_path / "killed", "solve")
+    interrupt_run(run_dir, "stokes", signal.SIGKILL, base=_args(scan))
+    subprocess.run([sys.executable, "-m", "mmflow.cli", "run", *_args(scan), f"run.directory={run_dir}",
+                    "--no-progress"], cwd=ROOT, check=True, stdout=subprocess.DEVNULL)
+    assert_identical(read_outputs(reference), read_outputs(run_dir))
+
+
+@pytest.mark.parametrize("overrides, field, words", [
+    (["beam.type=sin_elevation"], "beam.type", "scalar power beam"),
+    (["source=simulate"], "imaging.stokes", "parallel hands only"),
+    (["peel.enabled=true", "peel.sources=[Cyg A]"], "peel.enabled", "cross hands would keep"),
+    (["mmode.mmax=10"], "mmode.mmax", "every m up to lmax"),
+    (["imaging.stokes=[I, V]"], "imaging.stokes", "[I] or [I, Q, U, V]"),
+])
+def test_full_stokes_settings_refused_before_work(tmp_path, overrides, field, words):
+    """What full Stokes cannot do is refused when the configuration loads, naming the setting."""
+    base = ["imaging.stokes=[I, Q, U, V]", "beam={type: short_dipole}", f"run.directory={tmp_path / 'r'}",
+            f"input.path={tmp_path}/x.uvh5"]
+    (tmp_path / "x.uvh5").write_text("")
+    (what, fld, problem, fix), _ = refused_problem(base + overrides, field, path="workflows/uvh5-image.yaml")
+    assert words in problem or words in fix, (problem, fix)
