@@ -44,6 +44,12 @@ def build_parser():
     pl.add_argument("--fit", nargs="+", metavar="RUN_DIR",
                     help="fit the cost constants to finished runs and write them to --costs (no plan printed)")
     pl.add_argument("--costs", help="constants file to read (or write with --fit); default: the package's")
+    pl.add_argument("--peak", type=float, metavar="GFLOPS",
+                    help="plan at this SGEMM peak (GFLOP/s) instead of the one measured now (e.g. the peak "
+                    "measured beside a run, for --against)")
+    pl.add_argument("--against", metavar="RUN_DIR",
+                    help="a finished run: its configuration's plan beside what it measured, per stage (the "
+                    "workflow argument is ignored: give any)")
     st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
     vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and XXH3 checksum)")
@@ -188,10 +194,18 @@ def _plan(args):
         write_costs(fit_costs(args.fit, gemm_gflops(np.float32, n=768)), path)
         print(f"wrote {path}")
         return 0
+    if args.against:
+        from mmflow.workflow.plan_fit import format_against, plan_against_run  # deferred: workflow modules (~3 s)
+
+        rows, peak = plan_against_run(args.against, planmod.load_costs(args.costs) if args.costs else None,
+                                      args.peak)
+        print(json.dumps({"sgemm_gflops": peak, "stages": rows}, indent=2, default=float) if args.json
+              else format_against(rows, peak))
+        return 0
     from mmflow.workflow.config import load_config  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     cfg = load_config(args.workflow, args.overrides)
-    res = planmod.plan(cfg, planmod.load_costs(args.costs) if args.costs else None)
+    res = planmod.plan(cfg, planmod.load_costs(args.costs) if args.costs else None, args.peak)
     print(json.dumps(res, indent=2, default=float) if args.json else planmod.format_plan(res))
     return 0
 

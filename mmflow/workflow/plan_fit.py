@@ -23,7 +23,7 @@ import numpy as np
 
 from mmflow.workflow.config import load_config
 from mmflow.workflow.pipeline import PIPELINE
-from mmflow.workflow.plan import geometry, stage_work
+from mmflow.workflow.plan import WORKER_BASE_BYTES, geometry, plan, stage_work
 from mmflow.workflow.rundir import RunDir
 
 
@@ -83,3 +83,49 @@ def fit_costs(run_dirs, sgemm_gflops):
 def write_costs(costs, path):
     with open(path, "w") as fh:
         json.dump(costs, fh, indent=2, sort_keys=True)
+
+
+def plan_against_run(run_dir, costs=None, peak_gflops=None):
+    """The plan of a finished run's configuration beside what its tasks measured, per stage.
+
+    Per task, as :func:`samples` measures them from the task markers (they survive resumes, so a
+    run finished over several invocations counts every task): the mean seconds against the plan's
+    ``c U + d`` (scaled from the constants' SGEMM peak to ``peak_gflops``, default the peak measured
+    now), and the largest task's memory above its worker's baseline, plus the plan's worker
+    baseline, against the plan's task memory. Returns ``(rows, peak_gflops)``; each row
+    ``{stage, tasks, planned_task_s, measured_task_s, time_ratio, planned_task_gb, measured_task_gb,
+    memory_ratio}`` (ratios measured / planned).
+    """
+    run = RunDir(run_dir)
+    cfg = load_config(run.path / "config.yaml")
+    res = plan(cfg, costs, peak_gflops)
+    workers = max(1, cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous"
+                  else 1)
+    measured = samples(run_dir)
+    rows = []
+    for e in res["stages"]:
+        if e["stage"] not in measured:
+            continue
+        _, _, mem, sec = measured[e["stage"]]
+        planned_s = e["seconds"] / -(-e["tasks"] // workers) if e["seconds"] else None
+        planned_gb = (e["task_bytes"] + WORKER_BASE_BYTES) / 1e9
+        measured_gb = (mem + WORKER_BASE_BYTES) / 1e9
+        rows.append({"stage": e["stage"], "tasks": e["tasks"], "planned_task_s": planned_s, "measured_task_s": sec,
+                     "time_ratio": sec / planned_s if planned_s else None, "planned_task_gb": planned_gb,
+                     "measured_task_gb": measured_gb, "memory_ratio": measured_gb / planned_gb})
+    return rows, res["sgemm_gflops"]
+
+
+def format_against(rows, peak_gflops):
+    """:func:`plan_against_run` as a table (ratios measured / planned)."""
+    def num(v, fmt):
+        return format(v, fmt) if v is not None else "-"
+
+    out = [f"planned at {peak_gflops:.0f} SGEMM GFLOP/s; per task:",
+           f"{'stage':12s} {'tasks':>6s} {'plan s':>8s} {'run s':>8s} {'ratio':>6s} {'plan GB':>8s} {'run GB':>7s} "
+           f"{'ratio':>6s}"]
+    for r in rows:
+        out.append(f"{r['stage']:12s} {r['tasks']:6d} {num(r['planned_task_s'], '8.1f')} {r['measured_task_s']:8.1f} "
+                   f"{num(r['time_ratio'], '6.2f')} {r['planned_task_gb']:8.2f} {r['measured_task_gb']:7.2f} "
+                   f"{r['memory_ratio']:6.2f}")
+    return "\n".join(out)

@@ -10,6 +10,7 @@ import pytest
 import zarr
 
 from mmflow.errors import InputError
+from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan import check_fits, geometry, plan, stage_work
 from mmflow.workflow.runner import run_workflow
 from tests.workflow_helpers import small_config
@@ -138,6 +139,34 @@ def test_memory_prediction_against_a_measured_run(measured_run):
         assert abs(e["task_bytes"] - got) <= max(0.5 * got, 100e6), (e["stage"], e["task_bytes"], got)
         checked += 1
     assert checked >= 5
+
+
+def test_plan_against_a_finished_run_reports_measured_over_planned(measured_run, capsys):
+    """`mmflow plan --against RUN_DIR`: per stage the task markers' mean seconds and largest memory
+    beside the plan of the run's own configuration at the SGEMM peak given, as ratios."""
+    from mmflow.cli import main
+    from mmflow.workflow.plan import WORKER_BASE_BYTES
+    from mmflow.workflow.plan_fit import plan_against_run, samples
+
+    cfg, run_dir = measured_run
+    rows, peak = plan_against_run(run_dir, peak_gflops=50.0)
+    meas = samples(run_dir)
+    assert peak == 50.0 and {r["stage"] for r in rows} == set(meas) & {e.name for e in PIPELINE if e.enabled(cfg)}
+    for r in rows:
+        w, u, mem, sec = meas[r["stage"]]
+        assert r["measured_task_s"] == sec and r["measured_task_gb"] == (mem + WORKER_BASE_BYTES) / 1e9
+        assert r["memory_ratio"] == pytest.approx(r["measured_task_gb"] / r["planned_task_gb"])
+        if r["planned_task_s"]:
+            assert r["time_ratio"] == pytest.approx(sec / r["planned_task_s"])
+    # twice the peak: half the planned time per task, the same memory
+    rows2, _ = plan_against_run(run_dir, peak_gflops=100.0)
+    for a, b in zip(rows, rows2):
+        if a["planned_task_s"]:
+            assert b["planned_task_s"] == pytest.approx(a["planned_task_s"] / 2)
+        assert b["planned_task_gb"] == a["planned_task_gb"]
+    assert main(["plan", "x", "--against", str(run_dir), "--peak", "50"]) == 0
+    out = capsys.readouterr().out
+    assert "planned at 50 SGEMM GFLOP/s" in out and all(f"\n{r['stage']:12s}" in out for r in rows)
 
 
 def test_progress_says_how_long_the_stage_has_left():
