@@ -163,8 +163,9 @@ def _ingest(cfg, run_dir, keep=False):
         spec = vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu,
                          {**layout_attrs(plan.layout), "source": "ingest", "epoch_jd": plan.epoch_jd,
                           "files": plan.files, "skipped_files": plan.skipped, "integration_s": plan.integration_s,
-                          "pols": plan.pols, "cross_pols": plan.cross_pols}, TIME_CHUNK, 256)
-        ingest.write_plan(spec.create(run_dir), plan)  # the stage's own store declaration
+                          "pols": plan.pols, "cross_pols": plan.cross_pols, "ingest_file_info": plan.file_info},
+                         TIME_CHUNK, 256, ingest.plan_arrays(plan))
+        spec.create(run_dir)  # the stage's own store declaration
         found["store"] = run_dir / spec.path
 
     def tasks():

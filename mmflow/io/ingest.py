@@ -252,14 +252,13 @@ def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, c
                       float(np.median(times)), tint, skipped, infos)
 
 
-def write_plan(group, plan):
-    """Store what tasks need (row times, each row's file, antenna numbers, per-file phase state,
-    units and Stokes-I recipe) so no worker rescans or re-checks files."""
-    if "plan_time_jd" not in group:
-        group.create_array("plan_time_jd", data=plan.row_time)
-        group.create_array("plan_file_rows", data=plan.file_rows)
-        group.create_array("antenna_numbers", data=np.asarray(plan.ant_numbers, "int64"))
-        group.attrs["ingest_file_info"] = plan.file_info
+def plan_arrays(plan):
+    """What ingest's tasks need of the plan, as :func:`mmflow.io.run_stores.vis_store` declares it
+    (``ingest_plan``): row times, each file's rows, antenna numbers; with ``plan.file_info`` in the
+    store's attribute ``ingest_file_info`` (per-file phase state, units, Stokes-I recipe) no worker
+    rescans or re-checks files."""
+    return (np.asarray(plan.row_time, "float64"), np.asarray(plan.file_rows, "int64"),
+            np.asarray(plan.ant_numbers, "int64"))
 
 
 def _index_lookup(ant_numbers):

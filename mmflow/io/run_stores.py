@@ -22,6 +22,8 @@ DIMENSIONS = {
     "freq": "channels (``freqs_hz``)",
     "pol": "polarisations, named by vis.zarr's attribute ``pols``",
     "cross_pol": "cross hands, named by vis.zarr's attribute ``cross_pols``",
+    "file": "ingested files, in vis.zarr's attribute ``files``",
+    "first_last": "first and last (inclusive) row",
     "correlation": "the four linear correlations xx, yy, xy, yx (feed p of antenna i, q of antenna j)",
     "stokes": "T, E, B, V harmonics (full Stokes: I; Q, U through healpy's E, B; V)",
     "antenna": "antennas",
@@ -52,8 +54,10 @@ DIMENSIONS = {
 }
 
 
-def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk):
-    """``attrs["pols"]`` names the polarisation axis, ``attrs["cross_pols"]`` (optional) the cross hands' axis."""
+def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_chunk, ingest_plan=None):
+    """``attrs["pols"]`` names the polarisation axis, ``attrs["cross_pols"]`` (optional) the cross hands' axis;
+    ``ingest_plan`` (ingest: ``(row_time_jd, file_rows, antenna_numbers)``, :func:`mmflow.io.ingest.plan_arrays`)
+    adds what ingest's tasks read instead of rescanning the files."""
     nbl, nf, n_ant, npol = len(pairs), len(freqs_hz), len(antenna_enu), len(attrs["pols"])
     ch = (time_chunk, min(baseline_chunk, nbl), nf, npol)
     dims = ("time", "baseline", "freq", "pol")
@@ -63,6 +67,7 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
                   doc="cross-hand visibilities (xy, yx | rl, lr), Jy; only where the ingested files hold them"),
         ArraySpec("weights_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
                   "float32", doc="their weights, 0 = flagged"))
+    planned = () if ingest_plan is None else _ingest_plan_arrays(*ingest_plan)
     return StoreSpec("vis.zarr", (
         ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64",
                   doc="visibilities, Jy, mmflow's sign convention (docs/conventions.md)"),
@@ -77,15 +82,27 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
                   doc="antenna indices (i, j) of each baseline, i <= j"),
         ArraySpec("antenna_enu", ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
                   data=antenna_enu, doc="antenna positions east, north, up of the array centre, metres"),
-    ) + cross, attrs, doc=(
+    ) + cross + planned, attrs, doc=(
         "Visibilities, written by the simulate or ingest stage and never rewritten: corrections are "
         "applied where the data are read. Attributes: ``pols`` names the pol axis ([I] a clean "
         "simulation or pseudo-Stokes files, [xx, yy] linear feeds (ee/nn alike), [rr, ll], or one hand; "
         "Stokes I is formed after the corrections, where the mmodes stage reads the data), "
         "``cross_pols`` the cross_pol axis; site (lat_deg, lon_deg, height_m), antenna_names, epoch_jd "
         "(the data's epoch: every frame rotation and header uses it), integration_s, channel_width_hz, "
-        "source, files. Ingest adds plan_time_jd, plan_file_rows and antenna_numbers "
-        "(:func:`mmflow.io.ingest.write_plan`) and the attribute ingest_file_info."))
+        "source, files; ingest adds the attribute ingest_file_info (each file's phase state, units and "
+        "polarisation recipe)."))
+
+
+def _ingest_plan_arrays(row_time, file_rows, antenna_numbers):
+    """Ingest's plan in vis.zarr: its tasks read these instead of rescanning the files' metadata."""
+    return (
+        ArraySpec("plan_time_jd", ("time",), np.shape(row_time), np.shape(row_time), "float64", data=row_time,
+                  doc="UTC Julian date of each row, from the files' metadata (ingest's plan)"),
+        ArraySpec("plan_file_rows", ("file", "first_last"), np.shape(file_rows), np.shape(file_rows), "int64",
+                  data=file_rows, doc="first and last row (inclusive) of each ingested file's integrations"),
+        ArraySpec("antenna_numbers", ("antenna",), np.shape(antenna_numbers), np.shape(antenna_numbers), "int64",
+                  data=antenna_numbers, doc="the files' antenna number of each antenna (index = antenna axis)"),
+    )
 
 
 def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs, n_corr=0):

@@ -43,7 +43,8 @@ def reference_stores():
     return [
         (rs.vis_store, dict(n_time=N_TIME, pairs=pairs, freqs_hz=np.linspace(60e6, 70e6, N_FREQ),
                             antenna_enu=np.zeros((N_ANT, 3)), attrs=pol_attrs, time_chunk=TIME_CHUNK,
-                            baseline_chunk=16)),
+                            baseline_chunk=16, ingest_plan=(np.zeros(N_TIME), np.zeros((3, 2), int),
+                                                            np.arange(N_ANT)))),
         (rs.mmodes_store, dict(n_split=n_split, nf=N_FREQ, mmax=LMAX, nbl=nbl, baseline_chunk=16, attrs={},
                                n_corr=4)),
         (rs.partials_store, dict(nf=N_FREQ, n_groups=4, dtype="complex64", **blocks)),

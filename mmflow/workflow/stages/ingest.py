@@ -10,7 +10,7 @@ from __future__ import annotations
 import glob
 
 from mmflow.errors import CoverageError
-from mmflow.io.ingest import ingest_time_chunk, plan_ingest, sidereal_coverage, write_plan
+from mmflow.io.ingest import ingest_time_chunk, plan_arrays, plan_ingest, sidereal_coverage
 from mmflow.io.run_stores import vis_store
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.data_stage import VIS_ARRAYS, layout_attrs, write_autos
@@ -52,10 +52,10 @@ def _ingest_prepare(ctx):
                  cross_pols=plan.cross_pols, pol_convention=plan.file_info[0]["pol_convention_used"],
                  pol_factor=plan.file_info[0]["pol_factor"],
                  skipped_files=list(plan.skipped), integration_s=plan.integration_s,
-                 channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3)
-    g = ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,
-                             ctx.cfg.mmode.baseline_chunk))
-    write_plan(g, plan)
+                 channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3,
+                 ingest_file_info=plan.file_info)
+    ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,
+                         ctx.cfg.mmode.baseline_chunk, plan_arrays(plan)))
     return time_keys(plan.n_time)
 
 
