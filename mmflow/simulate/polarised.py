@@ -23,6 +23,10 @@ Evaluation. With the antenna phasors ``z_as = exp(2 pi i x_a . r_s / lambda)`` a
 ``A[(a, p), (s, c)] = conj(z_as) J_pc(r_s)`` (``c`` in N, E), all baselines and feed pairs of
 one integration are one product ``V = (A S) A^H`` with ``S`` block-diagonal over sources:
 ``V[(i, p), (j, q)] = sum_s conj(z_is) z_js J_p S_s J_q^H``.
+
+Polarisation leakage (D-terms, :func:`apply_leakage`): each antenna's feeds pick up a fraction
+of the other feed's voltage, ``V'_ij = D_i V_ij D_j^H`` on the feed matrix ``[[xx, xy], [yx, yy]]``
+with ``D_i = [[1, d_ix], [-d_iy, 1]]``.
 """
 from __future__ import annotations
 
@@ -79,7 +83,8 @@ def coherency(stokes_jy):
     return np.stack([np.stack([i + q, u + 1j * v], -1), np.stack([u - 1j * v, i - q], -1)], -2)
 
 
-def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=None, correlations=CORRELATIONS):
+def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=None, correlations=CORRELATIONS,
+                                  dterms=None):
     """Noise-free ``V_pq`` of every pair and correlation for each sidereal angle in ``lsts``.
 
     Parameters
@@ -96,11 +101,18 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
         Antenna pairs ``(i, j)``; default ``telescope.antenna_pairs()``.
     correlations : sequence of str
         Feed pairs ``"pq"`` of the output's correlation axis.
+    dterms : ndarray complex ``(n_ant, 2)``, optional
+        Polarisation leakage ``(d_x, d_y)`` of every antenna, applied to the four correlations
+        by :func:`apply_leakage` before ``correlations`` are selected; None: no leakage.
 
     Returns
     -------
     ndarray complex128 ``(n_time, n_corr, n_bl)`` in Jy.
     """
+    if dterms is not None:
+        full = simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs)
+        full = apply_leakage(full, telescope.antenna_pairs() if pairs is None else pairs, dterms)
+        return full[:, [CORRELATIONS.index(c) for c in correlations]]
     pairs = telescope.antenna_pairs() if pairs is None else np.asarray(pairs)
     lsts = np.atleast_1d(np.asarray(lsts, float))
     x_wl = telescope.layout.enu * (freq_hz / C_LIGHT)  # (n_ant, 3) wavelengths
@@ -127,3 +139,55 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
         vis = vis.reshape(n_ant, 2, n_ant, 2)  # [i, p, j, q]
         out[t] = vis[pairs[None, :, 0], p_idx[:, None], pairs[None, :, 1], q_idx[:, None]]
     return out
+
+
+def apply_leakage(vis, pairs, dterms, correlations=CORRELATIONS):
+    """Corrupt the four linear correlations with per-antenna polarisation leakage (D-terms).
+
+    Feed p of antenna i records ``v'_ip = sum_p' D_i[p, p'] v_ip'`` with::
+
+        D_i = [[1,      d_ix],      (rows and columns: feeds x east, y north)
+               [-d_iy,  1   ]],
+
+    so on the feed matrix of each pair ``V_ij = [[xx, xy], [yx, yy]]`` (``V_ij[p, q] =
+    <v_ip conj(v_jq)>``)::
+
+        V'_ij = D_i V_ij D_j^H,   e.g.  xx' = xx + conj(d_jx) xy + d_ix yx + d_ix conj(d_jx) yy,
+                                        xy' = xy + d_ix yy - conj(d_jy) xx - d_ix conj(d_jy) yx.
+
+    The linear-feed form with the minus sign (MeqTrees' leakage Jones ``[[1, d], [-d, 1]]`` for
+    ``d_x = d_y``): a rotation of both dipoles by a small angle ``theta`` (x towards y, east
+    towards north) is ``d_x = d_y = theta`` to first order, and leaves ``xx + yy`` unchanged but
+    for the factor ``1 + theta^2``. CASA's D Jones (``DJones::calcOneJones``) is
+    ``[[1, d_0], [d_1, 1]]``: its ``d_0`` is ``d_x``, its ``d_1`` is ``-d_y`` here.
+
+    Parameters
+    ----------
+    vis : ndarray complex ``(..., n_corr, n_bl)``
+        Visibilities as :func:`simulate_polarised_drift_scan` returns them (``(n_time, n_corr,
+        n_bl)``); ``correlations`` must hold xx, yy, xy and yx.
+    pairs : ndarray ``(n_bl, 2)``
+        Antenna indices ``(i, j)`` of each baseline.
+    dterms : ndarray complex ``(n_ant, 2)``
+        ``(d_x, d_y)`` of every antenna.
+    correlations : sequence of str
+        The correlations on ``vis``'s correlation axis.
+
+    Returns
+    -------
+    ndarray complex128, the shape of ``vis``.
+    """
+    if sorted(correlations) != sorted(CORRELATIONS):
+        raise InputError("polarisation leakage", "correlations", f"{tuple(correlations)}",
+                         "give all four correlations xx, yy, xy, yx: leakage mixes them")
+    vis = np.asarray(vis, np.complex128)
+    pairs = np.asarray(pairs).reshape(-1, 2)
+    d = np.asarray(dterms, np.complex128).reshape(-1, 2)
+    jones = np.ones((len(d), 2, 2), np.complex128)
+    jones[:, 0, 1], jones[:, 1, 0] = d[:, 0], -d[:, 1]
+    p_idx = [_FEED[c[0]] for c in correlations]
+    q_idx = [_FEED[c[1]] for c in correlations]
+    mat = np.zeros(vis.shape[:-2] + (vis.shape[-1], 2, 2), np.complex128)  # (..., n_bl, p, q)
+    mat[..., p_idx, q_idx] = np.moveaxis(vis, -2, -1)
+    out = np.einsum("bpr,...brs,bqs->...bpq", jones[pairs[:, 0]], mat, jones[pairs[:, 1]].conj())
+    return np.moveaxis(out[..., p_idx, q_idx], -1, -2)
