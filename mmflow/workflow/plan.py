@@ -239,7 +239,8 @@ def geometry(cfg):
         freqs = tel.freqs_hz
     else:
         plan = plan_ingest(cfg)
-        tel = build_telescope(cfg)
+        tel = build_telescope(cfg, plan.layout)  # the files' array and baselines, not the config's telescope
+        tel.pairs = np.asarray(plan.pairs)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)
     n_bl = len(tel.antenna_pairs())
     tplans = [_transfer_plan(tel, float(f), cfg, mmax) for f in freqs]

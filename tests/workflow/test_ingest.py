@@ -57,6 +57,20 @@ def test_matvis_uvh5_drift_scan_images_sources_at_their_icrs_positions(scan, tmp
     assert measure_peak(wrong, v, np.deg2rad(12))["offset_rad"] > measure_peak(hmap, v, np.deg2rad(12))["fwhm_rad"] * 0.3
 
 
+def test_plan_of_ingested_files_counts_their_array(scan, tmp_path):
+    """`mmflow plan` of ingested files plans the files' antennas and baselines (not the configuration's
+    telescope section, which ingest ignores)."""
+    from pyuvdata import UVData
+
+    from mmflow.workflow.plan import geometry
+
+    d, paths = scan
+    uv = UVData.from_file(str(paths[0]))
+    n_ant = len(set(uv.ant_1_array) | set(uv.ant_2_array))
+    g = geometry(_cfg(tmp_path / "run", str(d / "*.uvh5")))
+    assert (g.n_ant, g.n_bl, g.n_time) == (n_ant, n_ant * (n_ant + 1) // 2, 140)
+
+
 def test_corrupt_file_is_named_or_skipped_and_counted(scan, tmp_path):
     d, paths = scan
     bad = tmp_path / "uvh5"
