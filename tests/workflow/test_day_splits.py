@@ -373,8 +373,8 @@ def _flagging(rows_flagged):
 
     read = ms.read_block
 
-    def read_flagged(ctx, rows=slice(None), columns=slice(None)):
-        block = read(ctx, rows, columns)
+    def read_flagged(ctx, rows=slice(None), columns=slice(None), **kw):
+        block = read(ctx, rows, columns, **kw)
         k = np.arange(*block.rows.indices(block.rows.stop))
         block.weights[rows_flagged(k)] = 0.0
         return block
