@@ -44,7 +44,8 @@ def _args(scan):
     return ["workflows/uvh5-image.yaml", f"input.path={scan[0]}/*.uvh5",
             f"beam={{type: short_dipole, horizon_taper: {HORIZON_TAPER}}}", "imaging.stokes=[I, Q, U, V]",
             f"imaging.eps={EPS}", f"imaging.eps_pol={EPS_POL}", f"mmode.lmax={LMAX}", f"products.nside={NSIDE}",
-            "products.frame=date", "products.unit=Jy/sr", "products.png=false", "products.flux_scale=false"]
+            "products.frame=date", "products.unit=Jy/sr", "products.png=false", "products.flux_scale=false",
+            "cluster.kind=synchronous"]
 
 
 @pytest.fixture(scope="module")
