@@ -76,6 +76,9 @@ def build_parser():
     ch.add_argument("--engine-only", action="store_true", help="only the engine (the default; overrides --workflow)")
     ch.add_argument("--workers", type=int, default=1, help="local worker processes for --workflow")
     ch.add_argument("--solve-stride", type=int, default=1, help="solve every N-th m (the rest projected by n^3)")
+    tr = b.add_argument_group("transfer", "options of `mmflow bench transfer`")
+    tr.add_argument("--stokes", choices=("I", "IQUV"), default="I",
+                    help="IQUV: full-Stokes transfer + Gram against Stokes I in the same run (docs/stokes.md)")
     ig = b.add_argument_group("ingest", "options of `mmflow bench ingest`")
     ig.add_argument("--raw", action="store_true",
                     help="raw OVRO-LWA MeasurementSets (one per integration, 109 channels, xx yy xy yx, uncalib): "
@@ -173,6 +176,8 @@ def _bench(args):
         options = dict(scale=args.paper_scale, overrides=args.set)
     elif args.what == "ingest":
         options = dict(raw=args.raw)
+    elif args.what == "transfer":
+        options = dict(stokes=args.stokes)
     res = bench.run(args.what, quick=args.quick, **options)
     text = json.dumps(res, indent=2)
     print(text)

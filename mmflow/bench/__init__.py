@@ -6,7 +6,8 @@ workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.cal
 (least-squares m-modes of flagged data), :mod:`.clean` (PSF and CLEAN cycles), :mod:`.channel`
 (one real channel through transfer, Gram and solve, per phase, beside the model's projection),
 :mod:`.table1` (the paper array's resolution at the paper's fraction of modes), :mod:`.paper` (the
-paper's channel end to end through the workflow, per stage, beside ``mmflow plan``).
+paper's channel end to end through the workflow, per stage, beside ``mmflow plan``), :mod:`.stokes`
+(``transfer --stokes IQUV``: full-Stokes transfer + Gram against Stokes I).
 """
 from __future__ import annotations
 
@@ -19,5 +20,8 @@ MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workf
 
 def run(what, quick=False, **options):
     """Run one benchmark; ``options`` are passed on to benchmarks that take them (``channel``, ``paper``, ``ingest``)."""
-    mod = importlib.import_module(f"mmflow.bench.{MODULES[what]}")
+    name = MODULES[what]
+    if what == "transfer":  # --stokes IQUV: full Stokes against Stokes I (:mod:`.stokes`)
+        name = "stokes" if options.pop("stokes", "I") == "IQUV" else name
+    mod = importlib.import_module(f"mmflow.bench.{name}")
     return mod.run(what, quick=quick, **options)

@@ -233,3 +233,14 @@ def test_pure_V_sky_gives_antisymmetric_cross_hands_and_no_parallel_hands():
         xx, yy, xy, yx = blk[:, 3]
         assert np.abs(xx).max() < 1e-12 * peak and np.abs(yy).max() < 1e-12 * peak
         assert np.abs(xy + yx).max() < 1e-12 * peak
+
+
+def test_bench_transfer_stokes_compares_both_paths_on_the_same_baselines():
+    """`mmflow bench transfer --stokes IQUV` times both paths on the same baselines: full Stokes solves for
+    4x the unknowns from 4x the correlations, so it cannot cost less than Stokes I (measured 33-78x with
+    the reference kernels: docs/stokes.md)."""
+    from mmflow.bench.stokes import compare
+
+    r = compare(16, 4)
+    assert (r["lmax"], r["baselines"]) == (16, 4)
+    assert r["full_over_i"] > 1 and r["full_stokes_s_per_baseline"] == r["full_stokes_s"] / 4
