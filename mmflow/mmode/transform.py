@@ -89,6 +89,14 @@ def bin_index(lsts, n_bins):
     return np.round(pos).astype(int) % n_bins, (pos - np.round(pos)) * TWO_PI / n_bins
 
 
+def bin_coverage(lsts, n_bins):
+    """Fraction of the ``n_bins`` sidereal bins (:func:`bin_index`) that hold at least one of the finite
+    ``lsts``: the most of the sidereal day any baseline of those integrations can cover, flags aside."""
+    lsts = np.asarray(lsts, float)
+    lsts = lsts[np.isfinite(lsts)]
+    return len(np.unique(bin_index(lsts, n_bins)[0])) / n_bins if lsts.size else 0.0
+
+
 def mmode_transform(binned, mmax, offset=None):
     """m-modes of sidereally binned data, shape ``(mmax + 1, 2) + binned.shape[1:]``.
 

@@ -37,7 +37,7 @@ from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.polarised import CORRELATIONS
 from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_masks, split_problems, \
     sun_elevation_deg
-from mmflow.mmode.transform import bin_index, sidereal_bins, split_bins
+from mmflow.mmode.transform import bin_coverage, sidereal_bins, split_bins
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.geometry import mmax_of, n_bins_of
 from mmflow.workflow.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
@@ -259,16 +259,10 @@ def _radiometer_sigma2(ctx, vg, autos, pairs, feeds):
                                 {a: mean[a, :, q] for a in have}) for p, q in feeds], "radiometer"
 
 
-def _day_coverage(lst, n_bins):
-    """Fraction of the ``n_bins`` sidereal bins that hold an integration (finite ``lst``), flags aside."""
-    lst = lst[np.isfinite(lst)]
-    return len(np.unique(bin_index(lst, n_bins)[0])) / n_bins if lst.size else 0.0
-
-
 def _check_day(ctx, lst, n_bins, min_coverage):
     """Before any task: integrations that do not cover ``min_coverage`` of the sidereal day are not a
     day's drift scan."""
-    coverage = _day_coverage(lst, n_bins)
+    coverage = bin_coverage(lst, n_bins)
     if coverage < min_coverage:
         raise CoverageError(str(ctx.run.store("vis.zarr")), "lst", f"the integrations cover only {coverage:.1%} "
                             f"of the {n_bins} sidereal bins (need {min_coverage:.0%})",
