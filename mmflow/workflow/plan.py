@@ -278,7 +278,8 @@ def plan(cfg, costs=None, peak_gflops=None):
     Returns
     -------
     dict
-        ``stages`` (list of estimates as dicts), ``total_store_gb``, ``largest_task`` (stage and GB),
+        ``stages`` (list of estimates as dicts), ``task_slots`` (tasks running at once, by which each
+        stage's per-task time is multiplied), ``total_store_gb``, ``largest_task`` (stage and GB),
         ``worker_memory_gb`` (the cluster's per-worker limit, or None) and ``free_disk_gb`` where
         the run directory will be.
     """
@@ -290,7 +291,7 @@ def plan(cfg, costs=None, peak_gflops=None):
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
-    return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops,
+    return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops, "task_slots": workers,
             "total_store_gb": sum(e.store_bytes for e in ests) / 1e9,
             "largest_task": {"stage": largest.stage, "gb": (largest.task_bytes + WORKER_BASE_BYTES) / 1e9},
             "worker_memory_gb": worker_memory_gb(cfg), "free_disk_gb": free_disk_gb(cfg.run.directory),

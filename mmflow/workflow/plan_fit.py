@@ -99,8 +99,7 @@ def plan_against_run(run_dir, costs=None, peak_gflops=None):
     run = RunDir(run_dir)
     cfg = load_config(run.path / "config.yaml")
     res = plan(cfg, costs, peak_gflops)
-    workers = max(1, cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous"
-                  else 1)
+    workers = max(res["task_slots"], 1)  # the plan's stage time is its per-task time x ceil(tasks / workers)
     measured = samples(run_dir)
     rows = []
     for e in res["stages"]:
