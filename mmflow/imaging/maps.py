@@ -1,6 +1,7 @@
 """From a_lm in the frame of date to HEALPix maps in ICRS or Galactic, in K or Jy/sr."""
 from __future__ import annotations
 
+import numpy as np
 
 from mmflow.imaging.polarised import stokes_maps
 from mmflow.sky import units
@@ -18,9 +19,17 @@ def default_nside(lmax):
 
 def alm_to_output_map(alm_jy_sr, lmax, freq_hz, epoch_jd, frame="icrs", unit="K", nside=None):
     """Rotate from the frame of date to ``frame`` and synthesise a map in ``unit``."""
-    alm = rotate_alm(alm_jy_sr, rotation_matrix("date", frame, epoch_jd), lmax) if frame != "date" else alm_jy_sr
-    m = alm_to_map(alm, nside or default_nside(lmax), lmax)
+    m = alm_to_map(alm_in_frame(alm_jy_sr, lmax, epoch_jd, frame), nside or default_nside(lmax), lmax)
     return units.convert(m, "Jy/sr", unit, freq_hz)
+
+
+def alm_in_frame(alm, lmax, epoch_jd, frame):
+    """alm of date (healpy layout, any leading axes: e.g. T, E, B, V) rotated to ``frame`` (as they are for
+    ``frame == "date"``)."""
+    if frame == "date":
+        return alm
+    rot = rotation_matrix("date", frame, epoch_jd)
+    return rotate_alm(alm, rot, lmax) if np.ndim(alm) == 1 else np.stack([rotate_alm(a, rot, lmax) for a in alm])
 
 
 def stokes_alm_to_output_maps(alm_tebv, lmax, freq_hz, epoch_jd, frame="icrs", unit="K", nside=None):
@@ -31,8 +40,5 @@ def stokes_alm_to_output_maps(alm_tebv, lmax, freq_hz, epoch_jd, frame="icrs", u
     synthesised in ``frame``: Q and U are then referred to that frame's north (IAU: angle from
     north through east; :func:`mmflow.imaging.polarised.stokes_maps`).
     """
-    if frame != "date":
-        rot = rotation_matrix("date", frame, epoch_jd)
-        alm_tebv = [rotate_alm(a, rot, lmax) for a in alm_tebv]
-    maps = stokes_maps(alm_tebv, nside or default_nside(lmax), lmax)
+    maps = stokes_maps(alm_in_frame(alm_tebv, lmax, epoch_jd, frame), nside or default_nside(lmax), lmax)
     return units.convert(maps, "Jy/sr", unit, freq_hz)
