@@ -40,6 +40,14 @@ def to_matrix(vis, pairs, n_ant, fill=0.0):
     return out
 
 
+def solution_matrices(x, pairs, n_ant):
+    """``(time, bl, pol)`` -> ``(time * pol, n_ant, n_ant)``: one Hermitian antenna matrix per
+    integration and polarisation (solution ``s = t * n_pol + p``, :func:`to_matrix`)."""
+    x = np.asarray(x)
+    T, B, P = x.shape
+    return to_matrix(np.moveaxis(x, -1, 1).reshape(T * P, B), pairs, n_ant)
+
+
 def from_matrix(mat, pairs):
     """Antenna matrices ``(..., n_ant, n_ant)`` -> baseline axis ``(..., n_bl)``."""
     pairs = np.asarray(pairs)

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from mmflow.calibrate.baselines import check_pairs, from_matrix, to_matrix
+from mmflow.calibrate.baselines import check_pairs, from_matrix, solution_matrices
 from mmflow.calibrate.dd_screen import screen_gains, screen_normal_matrix, solve_screen
 from mmflow.calibrate.stefcal import run_rows, stefcal
 from mmflow.errors import InputError
@@ -551,7 +551,7 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
         nb = t1 - t0
 
         def dense(x):  # (nb, bl, P) -> (nb * P, N, N), solution index = t * P + p
-            return to_matrix(np.moveaxis(x, -1, 1).reshape(nb * P, B), pairs, n_ant)
+            return solution_matrices(x, pairs, n_ant)
 
         def per_solution(x):  # (n_src, nb, ...) -> (n_src, nb * P, ...), the same for every pol
             return np.repeat(x, P, axis=1)

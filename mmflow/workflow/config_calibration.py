@@ -66,6 +66,13 @@ class CalibrateConfig(Section):
                               "phase between the intervals' centres (a slow drift is followed); false: each "
                               "interval's solution held over it.")
     track_min: float = Field(22.0, gt=0, description="Length of that track (minutes).")
+    screen_sources: list[str] = Field(["Cyg A", "Cas A"], description="Of calibrate.sources, the ones given a "
+                                      "refractive offset and a scintillation amplitude (mean 1 over the "
+                                      "interval, so the flux scale stays the catalogue's) per integration while "
+                                      "the gains are solved: the gains then do not absorb the ionosphere's "
+                                      "distortion of the brightest sources (docs/calibration.md); [] solves "
+                                      "against the catalogue models as they are.", json_schema_extra=CATALOG_NAMES)
+    screen_rounds: int = Field(2, ge=1, description="Alternations of gains and screens with screen_sources.")
     tol: float = Field(1e-5, gt=0, lt=1, description="Convergence: ||dg|| / ||g|| below this.")
     max_iter: int = Field(100, ge=1, description="Stefcal iterations at most.")
     damping: Literal["half", "rk4", "none"] = Field("half", description="Stefcal damping of the update.")

@@ -75,6 +75,7 @@ class Geometry:
     def gram_dtype(self):
         return "complex64" if self.gram_itemsize == 8 else "complex128"
     n_cal_sources: int = 0
+    cal_screen_rounds: int = 0  # alternations of gains and screens (0: no calibrate.screen_sources)
     n_peel_sources: int = 0
     cal_interval: int = 0  # integrations per calibration solution
     n_models: int = 0
@@ -142,9 +143,12 @@ def stage_work(stage, g, cfg):
         L = max(1, min(g.cal_interval or g.n_time, g.n_time))
         n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
         w = L * g.n_bl * g.n_pol * (12.0 + 16.0 * max(1, g.n_cal_sources))
+        if g.cal_screen_rounds:  # the screened model, the masked data and weights; a batch's antenna matrices
+            w += L * g.n_bl * g.n_pol * 56.0 + 6 * 16 * 16.0 * g.n_pol * g.n_ant ** 2
         spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                               np.zeros((n_int, 2), int), {})
-        return n_int * g.n_freq, w, L * g.n_bl * g.n_pol * max(1, g.n_cal_sources), [spec]
+        units = L * g.n_bl * g.n_pol * max(1, g.n_cal_sources) * (1 + g.cal_screen_rounds)  # a gain solve a round
+        return n_int * g.n_freq, w, units, [spec]
     if stage == "models":
         return max(1, g.n_models) * g.n_freq, vis_task, g.n_time * g.n_bl, []
     if stage == "peel":
@@ -254,6 +258,8 @@ def geometry(cfg):
                     gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
                     transfer_workspace=max(p[1] for p in tplans), n_sky_points=pts,
                     n_cal_sources=len(cal.sources) if cal.enabled else 0,
+                    cal_screen_rounds=cal.screen_rounds if cal.enabled and set(cal.screen_sources) & set(cal.sources)
+                    else 0,
                     n_peel_sources=len(cfg.peel.sources) + len(cfg.peel.model_sources) if cfg.peel.enabled else 0,
                     cal_interval=interval, n_models=len(cfg.peel.sources) if cfg.models.enabled else 0,
                     npix=12 * nside ** 2, clean_cycles=min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) if cfg.clean.enabled else 0)

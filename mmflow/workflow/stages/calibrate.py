@@ -6,7 +6,8 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
   autocorrelations (:func:`mmflow.calibrate.ripple.ripple_ratio`, paper section 3.2);
 * ``g{F}_{K}``: Stefcal gains of channel F on interval K against the model
   ``calibrate.sources`` through the beam at the data's epoch
-  (:func:`mmflow.calibrate.stefcal.solve_gains`), on ripple-corrected data and on baselines
+  (:func:`mmflow.calibrate.screened_gains.solve_gains_screened`: the ``calibrate.screen_sources``
+  refracted and scintillating per integration, the rest as catalogued), on ripple-corrected data and on baselines
   longer than ``calibrate.min_baseline_lambda`` (``auto``: 15 lambda, lowered until every antenna keeps
   half of its baselines, :mod:`mmflow.workflow.baseline_cuts`); outlier antennas are flagged one at a
   time, and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with
@@ -30,10 +31,12 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.baselines import antennas_with_data, baseline_lengths
-from mmflow.calibrate.coherency import apparent_flux, source_coherencies
+from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source_vector_date
 from mmflow.calibrate.gain_tables import gains_at
 from mmflow.calibrate.ripple import apply_ripple, ripple_ratio
-from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, best_track, solve_gains
+from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
+from mmflow.calibrate.screened_gains import solve_gains_screened
+from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, best_track
 from mmflow.errors import InputError
 from mmflow.io.polarization import CROSS_FEEDS
 from mmflow.io.run_stores import gains_store
@@ -117,11 +120,17 @@ def _task(ctx, key):
     vis, w = block.vis[good, :, fi], block.weights[good, :, fi]
     if c.ripple:
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
-    model = source_coherencies(tel, f, block.lst[good], get_sources(c.sources), _epoch(ctx), block.pairs).sum(0)
+    lst, sources = block.lst[good], get_sources(c.sources)
+    coh = source_coherencies(tel, f, lst, sources, _epoch(ctx), block.pairs)
     keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)
-    sol = solve_gains(vis, model[..., None], w, block.pairs, tel.n_ant, baseline_keep=keep, tol=c.tol,
-                      max_iter=c.max_iter, damping=c.damping, outlier_sigma=c.outlier_sigma,
-                      baseline_lengths=baseline_lengths(block.pairs, tel.layout.enu, f))
+    screened = np.array([name in c.screen_sources for name in c.sources], bool)
+    vec = np.stack([source_vector_date(s, _epoch(ctx)) for s in sources])
+    basis = screen_basis(tel.layout.enu, f, sky_tangents_enu(tel, lst, vec))
+    out = solve_gains_screened(vis, coh, w, block.pairs, tel.n_ant, basis, screened, rounds=c.screen_rounds,
+                               baseline_keep=keep, tol=c.tol, max_iter=c.max_iter, damping=c.damping,
+                               outlier_sigma=c.outlier_sigma,
+                               baseline_lengths=baseline_lengths(block.pairs, tel.layout.enu, f))
+    sol = out.solution
     has_data = antennas_with_data(w, block.pairs, tel.n_ant, keep)
     _stop_if_too_many_flagged(ctx, sol, has_data, f, (t0, t1), c)
     region = (slice(k, k + 1), slice(fi, fi + 1))
@@ -132,7 +141,8 @@ def _task(ctx, key):
     ctx.write(g, "converged", region, sol.converged[:, None])
     return {"solutions": int(sol.converged.size), "not_converged": int((~sol.converged).sum()),
             "flagged_antennas": int((sol.flags[0] & has_data).any(axis=-1).sum()),
-            "antennas_without_data": int((~has_data).all(axis=-1).sum())}
+            "antennas_without_data": int((~has_data).all(axis=-1).sum()),
+            "screened_integrations": int(np.isfinite(out.offsets[screened, ..., 0]).sum())}
 
 
 def _stop_if_too_many_flagged(ctx, sol, has_data, f, rows, c):
