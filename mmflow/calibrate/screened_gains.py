@@ -147,16 +147,14 @@ def _fit_screens(v, w, coherencies, pairs, n_ant, basis, screened, g, th, amplit
         t1 = min(T, t0 + batch)
         nb = t1 - t0
         rows = slice(t0 * P, t1 * P)
-        gs = np.moveaxis(g[t0:t1], -1, 1).reshape(nb * P, n_ant)  # solution s = t * P + p
-        G = gs[:, :, None] * np.conj(gs[:, None, :])
-        V = solution_matrices(v[t0:t1], pairs, n_ant)
-        W = solution_matrices(w[t0:t1], pairs, n_ant)
+        gt = g[t0:t1]
+        gp = gt[:, pairs[:, 0]] * np.conj(gt[:, pairs[:, 1]])  # (nb, bl, P): g_i conj(g_j)
+        W = solution_matrices(w[t0:t1], pairs, n_ant)  # solution s = t * P + p
         amp = np.moveaxis(amplitude[:, t0:t1], -1, 2).reshape(n_src, nb * P)  # (n_src, nb * P)
-        Ms = {s: G * solution_matrices(np.broadcast_to(coherencies[s, t0:t1, :, None], (nb, B, P)), pairs, n_ant)
-              for s in scr}
+        Ms = {s: solution_matrices(gp * coherencies[s, t0:t1, :, None], pairs, n_ant) for s in scr}
         bs = {s: np.repeat(basis[s, t0:t1], P, axis=0) for s in scr}
-        rest = sum(coherencies[u, t0:t1] for u in range(n_src) if not screened[u])
-        X = V - G * solution_matrices(np.broadcast_to(np.asarray(rest)[..., None], (nb, B, P)), pairs, n_ant)
+        rest = coherencies[~screened, t0:t1].sum(0)  # (nb, bl): the unscreened sources
+        X = solution_matrices(v[t0:t1] - gp * rest[..., None], pairs, n_ant)
 
         def screened_part(s):
             e = np.exp(1j * np.einsum("sak,sk->sa", bs[s], th[s, rows]))

@@ -147,7 +147,9 @@ def stage_work(stage, g, cfg):
             w += L * g.n_bl * g.n_pol * 56.0 + 6 * 16 * 16.0 * g.n_pol * g.n_ant ** 2
         spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                               np.zeros((n_int, 2), int), {})
-        units = L * g.n_bl * g.n_pol * max(1, g.n_cal_sources) * (1 + g.cal_screen_rounds)  # a gain solve a round
+        # each screen round costs ~4 catalogue solves: a gain solve and the screen fits' antenna matrices
+        # (`mmflow bench calibrate`, gains_screened; docs/calibration.md)
+        units = L * g.n_bl * g.n_pol * max(1, g.n_cal_sources) * (1 + 4 * g.cal_screen_rounds)
         return n_int * g.n_freq, w, units, [spec]
     if stage == "models":
         return max(1, g.n_models) * g.n_freq, vis_task, g.n_time * g.n_bl, []
