@@ -19,7 +19,8 @@ import time
 import numpy as np
 
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
-from mmflow.calibrate.stefcal import stefcal, sweep, sweep_numpy
+from mmflow.calibrate.screened_gains import solve_gains_screened
+from mmflow.calibrate.stefcal import solve_gains, stefcal, sweep, sweep_numpy
 from mmflow.machine import best_time, gemm_gflops, machine
 from mmflow.telescope import ovro_lwa_layout
 from mmflow.threads import n_threads
@@ -136,9 +137,6 @@ def screened_gain_rates(n_ant=256, n_int=100, rng=None):
     """The gain solve of the default recipe (one track of ``n_int`` 13 s integrations, xx and yy,
     four sources) against the catalogue models and with two of them screened
     (:func:`mmflow.calibrate.screened_gains.solve_gains_screened`, two rounds)."""
-    from mmflow.calibrate.screened_gains import solve_gains_screened
-    from mmflow.calibrate.stefcal import solve_gains
-
     rng = rng or np.random.default_rng(3)
     enu, name = _layout(n_ant)
     i, j = np.triu_indices(n_ant, 1)
