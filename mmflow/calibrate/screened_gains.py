@@ -29,7 +29,9 @@ times:
    the overall scale, which the gains' amplitude trades against where the screened sources
    dominate the sky, is set by this mean (per source it would impose the finite sample's mean
    scintillation, ~sigma / sqrt(n_int) = 4 % over 21 integrations, as a direction-dependent
-   flux error).
+   flux error). With ``reference`` only those sources' mean is 1 (the paper's recipe: Cyg A on
+   the Baars scale) and the others' mean factor is their flux measured against the catalogue's
+   (Cas A, which fades by ~0.8 %/yr).
 
 With no screened source (or ``rounds=0``) the result is :func:`solve_gains` against the sum of
 the catalogue models, unchanged.
@@ -51,12 +53,16 @@ class ScreenedGains:
 
     solution: the gains (:class:`mmflow.calibrate.stefcal.GainSolution`) of the last round;
     offsets: (n_src, time, pol, 2) refractive offsets (rad; NaN for unscreened sources and where
-    the source gave no model power); amplitude: (n_src, time, pol) flux factors (1 unscreened).
+    the source gave no model power); amplitude: (n_src, time, pol) flux factors (1 unscreened);
+    flux: (n_src, pol) each screened source's flux over its catalogue model in the interval, the
+    model-power-weighted mean of its factors (1 for the sources that set the scale on average;
+    the measurement for the others; 1 unscreened, NaN where never fitted).
     """
 
     solution: GainSolution
     offsets: np.ndarray
     amplitude: np.ndarray
+    flux: np.ndarray
 
 
 def screened_model(coherencies, basis, offsets, amplitude, screened, pairs):
@@ -75,8 +81,8 @@ def screened_model(coherencies, basis, offsets, amplitude, screened, pairs):
     return model
 
 
-def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screened, *, rounds=2, batch=16,
-                         screen_tol=1e-4, screen_max_iter=30, baseline_keep=None, threads=None, **solve_kw):
+def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screened, *, reference=None, rounds=2,
+                         batch=16, screen_tol=1e-4, screen_max_iter=30, baseline_keep=None, threads=None, **solve_kw):
     """Gains of one solution set against the catalogue model with the screened sources refracted
     and scintillating (module docstring).
 
@@ -88,6 +94,10 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
     basis : ndarray (n_src, time, n_ant, 2): phase per unit offset
         (:func:`mmflow.calibrate.dd_screen.screen_basis`); read for the screened sources only
     screened : bool array (n_src,): the sources given an offset and a flux factor per integration
+    reference : bool array (n_src,), optional
+        Of the screened sources, those whose catalogue flux sets the scale (their factors' mean is
+        1); the other screened sources' flux is measured (``flux``). Default: every screened one.
+        Where none of them gives model power, every screened source sets it.
     rounds : int
         Alternations of gains and screens (0: plain :func:`solve_gains`).
     batch : int
@@ -108,10 +118,12 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
     n_src = coherencies.shape[0]
     offsets = np.full((n_src, T, P, 2), np.nan)
     amplitude = np.ones((n_src, T, P))
+    reference = screened if reference is None else np.asarray(reference, bool) & screened
+    flux = np.where(screened[:, None], np.nan, 1.0) * np.ones((1, P))
     kw = dict(baseline_keep=baseline_keep, threads=threads, **solve_kw)
     sol = solve_gains(vis, coherencies.sum(0)[..., None], weights, pairs, n_ant, **kw)
     if not screened.any() or rounds <= 0:
-        return ScreenedGains(sol, offsets, amplitude)
+        return ScreenedGains(sol, offsets, amplitude, np.ones((n_src, P)))
     w = np.array(np.broadcast_to(weights, vis.shape), float)
     w[:, pairs[:, 0] == pairs[:, 1]] = 0.0
     if baseline_keep is not None:
@@ -128,11 +140,16 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
         # scintillation moves flux between integrations with mean 1: the screened sources' mean flux
         # over the interval, weighted by their model power, stays the catalogue's (one factor per pol)
         wp = np.where(fitted, power, 0.0)
-        mean = np.sum(wp * amplitude, (0, 1)) / np.where(wp.sum((0, 1)) > 0, wp.sum((0, 1)), 1.0)  # (pol,)
+        ref = wp * reference[:, None, None]
+        ref = np.where(ref.sum((0, 1)) > 0, ref, wp)  # no reference source up: every screened one
+        mean = np.sum(ref * amplitude, (0, 1)) / np.where(ref.sum((0, 1)) > 0, ref.sum((0, 1)), 1.0)  # (pol,)
         amplitude[:] = np.where(fitted, amplitude / np.where(mean > 0, mean, 1.0), 1.0)
+        seen = wp.sum(1) > 0  # (n_src, pol)
+        flux = np.where(screened[:, None], np.where(seen, np.sum(wp * amplitude, 1) / np.where(seen, wp.sum(1), 1.0),
+                                                     np.nan), 1.0)
         model = screened_model(coherencies, basis, offsets, amplitude, screened, pairs)
         sol = solve_gains(vis, model, weights, pairs, n_ant, g0=sol.gains, **kw)
-    return ScreenedGains(sol, offsets, amplitude)
+    return ScreenedGains(sol, offsets, amplitude, flux)
 
 
 def _fit_screens(v, w, coherencies, pairs, n_ant, basis, screened, g, th, amplitude, batch, tol, max_iter, threads):

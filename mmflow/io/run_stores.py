@@ -222,11 +222,16 @@ def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
         "``transfer.mode=store``."))
 
 
-def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, attrs):
-    """The calibrate stage's store."""
+def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, attrs, n_src=1):
+    """The calibrate stage's store (``n_src``: the calibration sources, ``attrs["sources"]``)."""
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
     return StoreSpec("gains.zarr", (
+        ArraySpec("flux_factor", ("interval", "freq", "source", "pol"), (n_interval, nf, n_src, npol),
+                  (1, 1, n_src, npol), "float64", np.nan,
+                  doc="each calibration source's flux over its catalogue model in the interval: 1 for the "
+                  "unscreened ones and, on average, for those setting the scale; measured for calibrate.measure_flux; 0 "
+                  "where a screened source gave no model power (below the horizon)"),
         ArraySpec("gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"),
         ArraySpec("flags", sol, (n_interval, nf, n_ant, npol), per, "bool",
                   doc="no data, not finite, or not converged"),

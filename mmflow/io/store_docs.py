@@ -54,7 +54,7 @@ def reference_stores():
         (rs.transfer_store, dict(nf=N_FREQ, nbl=nbl, lmax=LMAX, mmax=LMAX, baseline_chunk=12, dtype="complex64",
                                  orders=[np.arange(nbl)] * N_FREQ)),
         (rs.gains_store, dict(n_interval=n_int, nf=N_FREQ, n_ant=N_ANT, npol=npol, n_time=N_TIME, solve_rows=rows,
-                              apply_rows=rows, attrs={})),
+                              apply_rows=rows, attrs={}, n_src=3)),
         (rs.peel_store, dict(n_time=N_TIME, nf=N_FREQ, n_src=3, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK,
                              attrs={})),
         (rs.models_store, dict(nf=N_FREQ, n_src=3, n_comp=4, attrs={})),

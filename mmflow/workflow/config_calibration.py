@@ -73,6 +73,11 @@ class CalibrateConfig(Section):
                                       "distortion of the brightest sources (docs/calibration.md); [] solves "
                                       "against the catalogue models as they are.", json_schema_extra=CATALOG_NAMES)
     screen_rounds: int = Field(2, ge=1, description="Alternations of gains and screens with screen_sources.")
+    measure_flux: list[str] = Field([], description="Of screen_sources, the ones whose flux is measured from "
+                                    "the data instead of taken from the catalogue: the others set the flux scale "
+                                    "and these get their flux over the catalogue's per interval in gains.zarr "
+                                    "(flux_factor). [Cas A] is the paper's recipe: Cyg A on the Baars scale, Cas "
+                                    "A (fading ~0.8 %/yr) measured.", json_schema_extra=CATALOG_NAMES)
     tol: float = Field(1e-5, gt=0, lt=1, description="Convergence: ||dg|| / ||g|| below this.")
     max_iter: int = Field(100, ge=1, description="Stefcal iterations at most.")
     damping: Literal["half", "rk4", "none"] = Field("half", description="Stefcal damping of the update.")

@@ -170,7 +170,7 @@ def _value_problems(cfg):
             out.extend(_not_among(("corrupt", "dd_sources"), cfg.corrupt.dd_sources, cfg.sky.sources, "sky.sources",
                                   "add them to sky.sources, or remove them from corrupt.dd_sources"))
     if cfg.calibrate.enabled:
-        out.extend(_source_problems(cfg.calibrate.sources, ("calibrate", "sources")))
+        out.extend(_calibrate_problems(cfg.calibrate))
     if cfg.peel.enabled:
         out.extend(_source_problems(cfg.peel.sources, ("peel", "sources")))
         out.extend(_not_among(("peel", "peel"), cfg.peel.peel, cfg.peel.sources, "peel.sources",
@@ -248,6 +248,20 @@ def _not_among(field, names, pool, pool_name, fix):
     """A problem for the ``names`` that ``pool`` (the setting ``pool_name``) lacks, if any."""
     missing = [n for n in names if n not in pool]
     return [Problem(field, missing, f"not among {pool_name}", fix)] if missing else []
+
+
+def _calibrate_problems(c):
+    out = _source_problems(c.sources, ("calibrate", "sources"))
+    out.extend(_source_problems(c.screen_sources, ("calibrate", "screen_sources")))
+    screened = [n for n in c.screen_sources if n in c.sources]
+    out.extend(_not_among(("calibrate", "measure_flux"), c.measure_flux, screened,
+                          "calibrate.screen_sources and calibrate.sources",
+                          "a measured flux is the mean of a screened source's flux factors: list it in both"))
+    if screened and c.measure_flux and all(n in c.measure_flux for n in screened):
+        out.append(Problem(("calibrate", "measure_flux"), list(c.measure_flux), "measures every screened source: "
+                           "none is left to set the flux scale", "keep at least one screened source (e.g. Cyg A, "
+                           "on the Baars scale) out of calibrate.measure_flux"))
+    return out
 
 
 def _source_problems(names, field=("sky", "sources")):

@@ -146,7 +146,7 @@ def stage_work(stage, g, cfg):
         if g.cal_screen_rounds:  # the screened model, the masked data and weights; a batch's antenna matrices
             w += L * g.n_bl * g.n_pol * 56.0 + 6 * 16 * 16.0 * g.n_pol * g.n_ant ** 2
         spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
-                              np.zeros((n_int, 2), int), {})
+                              np.zeros((n_int, 2), int), {}, n_src=max(1, g.n_cal_sources))
         # each screen round costs ~4 catalogue solves: a gain solve and the screen fits' antenna matrices
         # (`mmflow bench calibrate`, gains_screened; docs/calibration.md)
         units = L * g.n_bl * g.n_pol * max(1, g.n_cal_sources) * (1 + 4 * g.cal_screen_rounds)

@@ -297,3 +297,13 @@ def test_even_odd_splits_with_an_odd_number_of_bins_are_refused_before_work():
     err = pytest.raises(InputError, load_config, DEMO, ["mmode.splits=[full, even, odd]", "mmode.n_bins=829"]).value
     assert "mmode.n_bins" in str(err) and "830" in str(err)
     assert load_config(DEMO, ["mmode.splits=[full, even, odd]", "mmode.n_bins=830"]).mmode.n_bins == 830
+
+
+@pytest.mark.parametrize("measure, problem, fix", [
+    ("[Vir A]", "not among calibrate.screen_sources and calibrate.sources", "list it in both"),
+    ("[Cyg A, Cas A]", "none is left to set the flux scale", "out of calibrate.measure_flux"),
+])
+def test_measured_fluxes_must_be_screened_and_leave_a_flux_scale(measure, problem, fix):
+    (_, _, prob, fx), _ = refused_problem(["calibrate.enabled=true", f"calibrate.measure_flux={measure}"],
+                                          "calibrate.measure_flux", DEMO)
+    assert problem in prob and fix in fx, (prob, fx)

@@ -7,7 +7,8 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 * ``g{F}_{K}``: Stefcal gains of channel F on interval K against the model
   ``calibrate.sources`` through the beam at the data's epoch
   (:func:`mmflow.calibrate.screened_gains.solve_gains_screened`: the ``calibrate.screen_sources``
-  refracted and scintillating per integration, the rest as catalogued), on ripple-corrected data and on baselines
+  refracted and scintillating per integration, the rest as catalogued; ``calibrate.measure_flux``
+  measured rather than setting the flux scale, ``flux_factor``), on ripple-corrected data and on baselines
   longer than ``calibrate.min_baseline_lambda`` (``auto``: 15 lambda, lowered until every antenna keeps
   half of its baselines, :mod:`mmflow.workflow.baseline_cuts`); outlier antennas are flagged one at a
   time, and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with
@@ -81,7 +82,8 @@ def _prepare(ctx):
                             "ripple": bool(ctx.cfg.calibrate.ripple),
                             "interpolate": bool(ctx.cfg.calibrate.interpolate),
                             "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
-                            "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)}))
+                            "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)},
+                           n_src=len(ctx.cfg.calibrate.sources)))
     keys = [TaskKey(phase="r", freq=fi) for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [TaskKey(phase="g", freq=fi, interval=k) for fi in range(nf) for k in range(len(solve))]
 
@@ -126,7 +128,9 @@ def _task(ctx, key):
     screened = np.array([name in c.screen_sources for name in c.sources], bool)
     vec = np.stack([source_vector_date(s, _epoch(ctx)) for s in sources])
     basis = screen_basis(tel.layout.enu, f, sky_tangents_enu(tel, lst, vec))
-    out = solve_gains_screened(vis, coh, w, block.pairs, tel.n_ant, basis, screened, rounds=c.screen_rounds,
+    reference = screened & np.array([name not in c.measure_flux for name in c.sources], bool)
+    out = solve_gains_screened(vis, coh, w, block.pairs, tel.n_ant, basis, screened, reference=reference,
+                               rounds=c.screen_rounds,
                                baseline_keep=keep, tol=c.tol, max_iter=c.max_iter, damping=c.damping,
                                outlier_sigma=c.outlier_sigma,
                                baseline_lengths=baseline_lengths(block.pairs, tel.layout.enu, f))
@@ -139,6 +143,7 @@ def _task(ctx, key):
     ctx.write(g, "chi2", region, np.nan_to_num(sol.chi2[:, None]))
     ctx.write(g, "iterations", region, sol.iterations[:, None].astype(np.int32))
     ctx.write(g, "converged", region, sol.converged[:, None])
+    ctx.write(g, "flux_factor", region, np.nan_to_num(out.flux, nan=0.0)[None, None])  # 0: never fitted
     return {"solutions": int(sol.converged.size), "not_converged": int((~sol.converged).sum()),
             "flagged_antennas": int((sol.flags[0] & has_data).any(axis=-1).sum()),
             "antennas_without_data": int((~has_data).all(axis=-1).sum()),
