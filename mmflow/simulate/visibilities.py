@@ -26,6 +26,7 @@ from mmflow.telescope.array import C_LIGHT
 from mmflow.threads import n_threads, single_threaded_blas
 
 
+SERIAL_WORK = 2_000_000  # time steps x points x antennas^2 below which one thread does the work
 PIXEL_BLOCK = 1024  # directions per block: a block's phasors stay in a core's L2 cache
 
 
@@ -82,7 +83,8 @@ def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.comp
         phase error of ~6e-8 x 2 pi |x| / lambda rad for an antenna |x| from the origin.
     threads : int, optional
         Time steps are split into this many contiguous blocks run concurrently, each with
-        single-threaded BLAS (default :func:`mmflow.threads.n_threads`).
+        single-threaded BLAS (default :func:`mmflow.threads.n_threads`, or 1 for a small problem,
+        :data:`SERIAL_WORK`).
 
     Returns
     -------
@@ -92,7 +94,12 @@ def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.comp
     lsts = np.atleast_1d(np.asarray(lsts, float))
     rdtype = np.float32 if np.dtype(dtype) == np.complex64 else np.float64
     out = np.empty((len(lsts), len(pairs)), np.complex128)
+    if threads is None and len(lsts) * max(1, len(sky.flux_jy)) * len(telescope.layout.enu) ** 2 < SERIAL_WORK:
+        threads = 1  # a few points (a calibration model): starting threads costs more than the work
     threads = max(1, min(n_threads() if threads is None else threads, len(lsts)))
+    if threads == 1:  # each time step is computed alone: the same values as in any split over threads
+        _simulate_block(telescope, freq_hz, lsts, sky, pairs, rdtype, out)
+        return out
     bounds = np.linspace(0, len(lsts), threads + 1).astype(int)
     blocks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
     with single_threaded_blas(threads > 1), ThreadPoolExecutor(max_workers=threads) as pool:

@@ -123,10 +123,11 @@ def _task(ctx, key):
     if c.ripple:
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
     lst, sources = block.lst[good], get_sources(c.sources)
-    coh = source_coherencies(tel, f, lst, sources, _epoch(ctx), block.pairs)
+    epoch = _epoch(ctx)  # once: each call opens vis.zarr's attributes
+    coh = source_coherencies(tel, f, lst, sources, epoch, block.pairs)
     keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)
     screened = np.array([name in c.screen_sources for name in c.sources], bool)
-    vec = np.stack([source_vector_date(s, _epoch(ctx)) for s in sources])
+    vec = np.stack([source_vector_date(s, epoch) for s in sources])
     basis = screen_basis(tel.layout.enu, f, sky_tangents_enu(tel, lst, vec))
     reference = screened & np.array([name not in c.measure_flux for name in c.sources], bool)
     out = solve_gains_screened(vis, coh, w, block.pairs, tel.n_ant, basis, screened, reference=reference,
