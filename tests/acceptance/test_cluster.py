@@ -1,4 +1,5 @@
 """A real multi-process dask cluster on loopback: a scheduler and two worker processes."""
+import contextlib
 import os
 import shutil
 import socket
@@ -21,8 +22,9 @@ def _free_port():
         return s.getsockname()[1]
 
 
-@pytest.fixture
-def loopback_cluster(tmp_path):
+@contextlib.contextmanager
+def _loopback(workdir):
+    """A dask scheduler and two single-threaded worker processes on the loopback interface."""
     port = _free_port()
     addr = f"tcp://127.0.0.1:{port}"
     env = dict(os.environ, MMFLOW_THREADS="1")
@@ -33,7 +35,7 @@ def loopback_cluster(tmp_path):
     workers = []
     for i in range(2):
         w = subprocess.Popen([dask, "worker", addr, "--nthreads", "1", "--nworkers", "1", "--no-nanny",
-                              "--memory-limit", "2GiB", "--name", f"w{i}", "--local-directory", str(tmp_path / f"w{i}")],
+                              "--memory-limit", "2GiB", "--name", f"w{i}", "--local-directory", str(workdir / f"w{i}")],
                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         workers.append(w)
     from distributed import Client
@@ -47,6 +49,20 @@ def loopback_cluster(tmp_path):
         for p in workers + procs:
             p.kill()
             p.wait()
+
+
+@pytest.fixture(scope="module")
+def loopback_cluster(tmp_path_factory):
+    """One cluster for the tests that leave its workers alive (starting one costs ~10 s)."""
+    with _loopback(tmp_path_factory.mktemp("cluster")) as cluster:
+        yield cluster
+
+
+@pytest.fixture
+def own_cluster(tmp_path):
+    """A cluster of the test's own, for a test that kills a worker."""
+    with _loopback(tmp_path) as cluster:
+        yield cluster
 
 
 @pytest.fixture(scope="module")
@@ -66,8 +82,8 @@ def test_workflow_on_two_worker_processes_matches_synchronous_run(loopback_clust
     assert_identical(reference, read_outputs(run_dir))
 
 
-def test_killing_a_worker_mid_stage_still_gives_identical_outputs(loopback_cluster, reference, tmp_path):
-    client, workers = loopback_cluster
+def test_killing_a_worker_mid_stage_still_gives_identical_outputs(own_cluster, reference, tmp_path):
+    client, workers = own_cluster
     run_dir = tmp_path / "killw"
     os.environ["MMFLOW_TASK_DELAY_S"] = "0.3"
     client.run(lambda: os.environ.__setitem__("MMFLOW_TASK_DELAY_S", "0.3"))
