@@ -131,9 +131,8 @@ def _task(ctx, key):
     basis = screen_basis(tel.layout.enu, f, sky_tangents_enu(tel, lst, vec))
     reference = screened & np.array([name not in c.measure_flux for name in c.sources], bool)
     out = solve_gains_screened(vis, coh, w, block.pairs, tel.n_ant, basis, screened, reference=reference,
-                               rounds=c.screen_rounds,
-                               baseline_keep=keep, tol=c.tol, max_iter=c.max_iter, damping=c.damping,
-                               outlier_sigma=c.outlier_sigma,
+                               rounds=c.screen_rounds, baseline_keep=keep, tol=c.tol, max_iter=c.max_iter,
+                               damping=c.damping, outlier_sigma=c.outlier_sigma,
                                baseline_lengths=baseline_lengths(block.pairs, tel.layout.enu, f))
     sol = out.solution
     has_data = antennas_with_data(w, block.pairs, tel.n_ant, keep)
@@ -213,5 +212,5 @@ def _apply(ctx, block):
 
 STAGE = Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.calibrate.enabled,
-               counters=("not_converged", "flagged_antennas", "antennas_without_data"),
+               counters=("not_converged", "flagged_antennas", "antennas_without_data", "screened_integrations"),
                description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)")
