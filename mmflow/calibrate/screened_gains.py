@@ -43,8 +43,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, solution_matrices
-from mmflow.calibrate.dd_screen import screen_gains, solve_screen
+from mmflow.calibrate.dd_screen import screen_gains, screen_normal_matrix, solve_screen
 from mmflow.calibrate.stefcal import GainSolution, gains_per_integration, solve_gains
+from mmflow.simulate.corrupt import gain_products
 
 
 @dataclass
@@ -76,8 +77,7 @@ def screened_model(coherencies, basis, offsets, amplitude, screened, pairs):
     model = np.repeat(rest, offsets.shape[2], axis=-1).astype(complex)
     for s in np.flatnonzero(screened):
         h = screen_gains(basis[s][:, None], np.nan_to_num(offsets[s]), amplitude[s])  # (time, pol, n_ant)
-        prod = h[..., pairs[:, 0]] * np.conj(h[..., pairs[:, 1]])  # (time, pol, bl)
-        model += np.moveaxis(prod, 1, 2) * coherencies[s][..., None]
+        model += gain_products(np.moveaxis(h, 1, 2), pairs) * coherencies[s][..., None]
     return model
 
 
@@ -119,7 +119,6 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
     offsets = np.full((n_src, T, P, 2), np.nan)
     amplitude = np.ones((n_src, T, P))
     reference = screened if reference is None else np.asarray(reference, bool) & screened
-    flux = np.where(screened[:, None], np.nan, 1.0) * np.ones((1, P))
     kw = dict(baseline_keep=baseline_keep, threads=threads, **solve_kw)
     sol = solve_gains(vis, coherencies.sum(0)[..., None], weights, pairs, n_ant, **kw)
     if not screened.any() or rounds <= 0:
@@ -164,8 +163,7 @@ def _fit_screens(v, w, coherencies, pairs, n_ant, basis, screened, g, th, amplit
         t1 = min(T, t0 + batch)
         nb = t1 - t0
         rows = slice(t0 * P, t1 * P)
-        gt = g[t0:t1]
-        gp = gt[:, pairs[:, 0]] * np.conj(gt[:, pairs[:, 1]])  # (nb, bl, P): g_i conj(g_j)
+        gp = gain_products(g[t0:t1], pairs)  # (nb, bl, P)
         W = solution_matrices(w[t0:t1], pairs, n_ant)  # solution s = t * P + p
         amp = np.moveaxis(amplitude[:, t0:t1], -1, 2).reshape(n_src, nb * P)  # (n_src, nb * P)
         Ms = {s: solution_matrices(gp * coherencies[s, t0:t1, :, None], pairs, n_ant) for s in scr}
@@ -180,10 +178,11 @@ def _fit_screens(v, w, coherencies, pairs, n_ant, basis, screened, g, th, amplit
         for s in scr:
             Xs = X - sum(screened_part(r) for r in scr if r != s)
             a = np.ones(nb * P)
-            active = np.abs(Ms[s]).reshape(nb * P, -1).max(1) > 0
+            normal = screen_normal_matrix(Ms[s], W, bs[s])  # its second part: the model power
+            active = normal[1] > 0
             solve_screen(Xs, Ms[s], W, bs[s], active, th[s, rows], a, tol=tol, max_iter=max_iter,
-                         threads=threads)
+                         normal=normal, threads=threads)
             amp[s] = np.where(active, a, 0.0)
             amplitude[s, t0:t1] = amp[s].reshape(nb, P)
-            power[s, t0:t1] = np.einsum("sij,sij->s", W, np.abs(Ms[s]) ** 2).reshape(nb, P)
+            power[s, t0:t1] = normal[1].reshape(nb, P)
     return power
