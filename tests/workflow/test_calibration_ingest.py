@@ -17,10 +17,9 @@ MeasurementSet must be phased to one centre, which ingest rightly refuses (MS da
 zenith-phased per integration), and 1024 one-integration MSs take minutes to write.
 
 Measured (26 stands, 1024 x 84 s, 40 MHz; docs/calibration.md): map difference from the clean
-faint sky 2.73 K through ingest against 2.60 K for the same data through the simulate stage
-(the flagged integrations and antenna remove data, the calibration is as good); Cyg A -45.9 dB,
-Cas A -41.1 dB, Vir A -32.9 dB, Tau A -33.9 dB through ingest (simulate stage -44.3, -41.2, -32.5
-and -31.6 dB).
+faint sky 2.73 K through ingest, 1.44 x the thermal-noise map (the calibration demo through the
+simulate stage: 1.38 x; the flagged integrations and antenna remove data); Cyg A -45.9 dB,
+Cas A -41.1 dB, Vir A -32.9 dB, Tau A -33.9 dB (the demo's thresholds: -30 and -28 dB).
 """
 import healpy
 import numpy as np
@@ -81,10 +80,13 @@ def write_flagged_uvh5(sim_dir, out_dir, files=16):
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     d = tmp_path_factory.mktemp("ingest_chain")
-    out = {"sim": _run(d / "sim")}  # the simulate-stage chain on the same data (and their source)
-    paths, out["weights"] = write_flagged_uvh5(d / "sim", d / "files")
-    out["ingest"] = _run(d / "ingest", "source=ingest", f"input.path={d / 'files'}/*.uvh5")
+    # the simulated data the files are written from (the simulate stage alone: its chain is the
+    # calibration demo's, tests/acceptance/test_calibration_workflow.py)
+    run_workflow(load_config(DEMO, BASE + [f"run.directory={d / 'sim'}"]), only=["simulate"], **QUIET)
+    paths, weights = write_flagged_uvh5(d / "sim", d / "files")
+    out = {"weights": weights, "ingest": _run(d / "ingest", "source=ingest", f"input.path={d / 'files'}/*.uvh5")}
     out["truth"] = _run(d / "truth", f"sky.sources={FAINT}", "sky.noise=false", *PLAIN)
+    out["noisy"] = _run(d / "noisy", f"sky.sources={FAINT}", *PLAIN)  # ... with the files' thermal noise
     out["bright"] = _run(d / "bright", f"sky.sources={BRIGHT}", "sky.noise=false", *PLAIN)
     out["dir"], out["files"] = d, paths
     return out
@@ -127,26 +129,27 @@ def test_flags_are_honoured(runs):
     assert np.all(inv_var[:, ~bad_bl & (cover[:, 0] != cover[:, 1])] > 0)
 
 
-def test_ingested_chain_is_as_good_as_the_simulated_chain(runs):
+def test_ingested_chain_meets_the_calibration_demos_targets(runs):
     from mmflow.conventions import radec_to_vec
     from mmflow.sky.frames import rotation_matrix
     from mmflow.sky.sources import get_sources
 
     truth = runs["truth"]
     seen = truth != healpy.UNSEEN
-    diff = {k: float(np.std((runs[k] - truth)[seen])) for k in ("sim", "ingest")}
-    print(f"map difference rms from the clean faint sky: through ingest {diff['ingest']:.4g} K, "
-          f"through the simulate stage {diff['sim']:.4g} K (faint sky {np.std(truth[seen]):.4g} K)")
-    # measured 2.73 K against 2.60 K: the ten flagged integrations and the flagged antenna remove data
-    assert diff["ingest"] < 1.15 * diff["sim"]
+    diff = float(np.std((runs["ingest"] - truth)[seen]))
+    noise = float(np.std((runs["noisy"] - truth)[seen]))
+    print(f"map difference rms from the clean faint sky through ingest: {diff:.4g} K, {diff / noise:.2f} x the "
+          f"thermal-noise map ({noise:.4g} K; faint sky {np.std(truth[seen]):.4g} K)")
+    # the calibration demo's target (1.5 x the noise map); measured 2.73 K, 1.44 x (the demo through the
+    # simulate stage: 1.38 x; the ten flagged integrations and the flagged antenna remove data)
+    assert diff < 1.5 * noise
     nside = healpy.npix2nside(len(truth))
     rot = rotation_matrix("icrs", "galactic", JD_2023)
     for src in get_sources(BRIGHT):
         pix = healpy.query_disc(nside, rot @ radec_to_vec(np.deg2rad(src.ra_deg), np.deg2rad(src.dec_deg)),
                                 np.deg2rad(3.0))
         peak = runs["bright"][pix].max()
-        db = {k: 10 * np.log10(np.abs((runs[k] - truth)[pix]).max() / peak) for k in ("sim", "ingest")}
-        print(f"{src.name}: through ingest {db['ingest']:.1f} dB, simulate stage {db['sim']:.1f} dB")
+        db = 10 * np.log10(np.abs((runs["ingest"] - truth)[pix]).max() / peak)
+        print(f"{src.name}: through ingest {db:.1f} dB")
         # the thresholds of tests/acceptance/test_calibration_workflow.py: peeled > 30 dB, subtracted > 28 dB
-        assert db["ingest"] < (-30 if src.name in ("Cyg A", "Cas A") else -28), (src.name, db)
-        assert db["ingest"] < db["sim"] + 1.0, (src.name, db)
+        assert db < (-30 if src.name in ("Cyg A", "Cas A") else -28), (src.name, db)

@@ -1,0 +1,62 @@
+"""The parsed IERS table kept in mmflow's cache folder: the same table as astropy's own parse, a
+damaged cache file replaced, an unwritable folder harmless (mmflow.offline)."""
+import subprocess
+import sys
+
+import numpy as np
+from astropy.utils import iers
+
+from mmflow import offline
+
+ROTATE = ("import mmflow; from mmflow.sky.frames import rotation_matrix; "
+          "print(repr(rotation_matrix('icrs', 'date', 2457802.0).tolist()))")
+
+
+def _columns_equal(a, b):
+    for c in a.colnames:
+        x, y = a[c], b[c]
+        if not np.array_equal(np.asarray(x), np.asarray(y), equal_nan=x.dtype.kind == "f"):
+            return False
+        if not np.array_equal(np.ma.getmaskarray(x), np.ma.getmaskarray(y)):
+            return False
+    return a.colnames == b.colnames
+
+
+def _fresh_read(monkeypatch, cache):
+    monkeypatch.setenv("MMFLOW_CACHE_DIR", str(cache))
+    return iers.IERS_Auto.read()
+
+
+def test_cached_table_equals_astropys_parse_and_is_written_once(tmp_path, monkeypatch):
+    astropy_read = iers.IERS_Auto.read.__func__.astropy_read
+    parsed = astropy_read(iers.IERS_Auto)
+    first = _fresh_read(monkeypatch, tmp_path)  # parses and writes the cache file
+    files = list(tmp_path.glob("iers-auto-*.pickle"))
+    assert len(files) == 1 and files[0].stat().st_size > 1_000_000
+    second = _fresh_read(monkeypatch, tmp_path)  # from the file
+    assert second is not first and _columns_equal(parsed, first) and _columns_equal(parsed, second)
+    assert second.meta == parsed.meta and len(list(tmp_path.iterdir())) == 1
+
+
+def test_damaged_cache_file_is_parsed_again_and_replaced(tmp_path, monkeypatch):
+    monkeypatch.setenv("MMFLOW_CACHE_DIR", str(tmp_path))
+    path = offline._iers_cache_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(b"\x80\x05 truncated by a kill")
+    table = iers.IERS_Auto.read()
+    assert isinstance(table, iers.IERS_Auto) and len(table) > 10_000
+    assert path.stat().st_size > 1_000_000  # replaced by a whole table
+
+
+def test_processes_give_the_same_rotation_with_and_without_the_cache(tmp_path):
+    """A process that parses (empty cache, unwritable folder) and one that loads the cache file give
+    the same frame rotation to the last bit."""
+    import os
+
+    env = dict(os.environ, MMFLOW_CACHE_DIR=str(tmp_path / "cache"))
+    blocked = tmp_path / "file"
+    blocked.write_text("a file where the folder would be: nothing can be cached")
+    runs = [subprocess.run([sys.executable, "-c", ROTATE], env=e, capture_output=True, text=True, check=True).stdout
+            for e in (dict(env, MMFLOW_CACHE_DIR=str(blocked / "sub")), env, env)]
+    assert runs[0] == runs[1] == runs[2] and runs[0].startswith("[[0.99999")
+    assert len(list((tmp_path / "cache").glob("iers-auto-*.pickle"))) == 1
