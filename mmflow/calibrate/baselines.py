@@ -25,27 +25,41 @@ def check_pairs(pairs, n_ant):
     return pairs.astype(np.intp)
 
 
-def to_matrix(vis, pairs, n_ant, fill=0.0):
+def to_matrix(vis, pairs, n_ant, fill=0.0, out=None):
     """Baseline axis (last) -> Hermitian antenna matrices ``(..., n_ant, n_ant)``.
 
     Entries not covered by ``pairs`` are ``fill``. For real input (weights) the matrix is
-    symmetric.
+    symmetric. ``out``: an array of that shape to fill (its dtype kept), e.g. one slice of a
+    stack of sources' matrices, which then needs no copy (at 256 antennas a stack of eleven
+    sources' matrices is ~0.4 GB per 16 integrations).
     """
     vis = np.asarray(vis)
     pairs = check_pairs(pairs, n_ant)
-    out = np.full(vis.shape[:-1] + (n_ant, n_ant), fill, dtype=vis.dtype)
+    shape = vis.shape[:-1] + (n_ant, n_ant)
+    if out is None:
+        out = np.zeros(shape, vis.dtype) if fill == 0 else np.full(shape, fill, vis.dtype)
+    else:
+        if out.shape != shape or not out.flags.c_contiguous:
+            raise ValueError(f"out has shape {out.shape} (C-contiguous: {out.flags.c_contiguous}), the "
+                             f"matrices {shape}")
+        out[...] = fill
     i, j = pairs[:, 0], pairs[:, 1]
-    out[..., j, i] = np.conj(vis) if np.iscomplexobj(vis) else vis
-    out[..., i, j] = vis
+    lower, upper = j * n_ant + i, i * n_ant + j  # flat positions of [j, i] and [i, j]
+    flat = out.reshape(-1, n_ant * n_ant)  # a view: out is C-contiguous
+    rows = vis.reshape(-1, vis.shape[-1])
+    conj = np.iscomplexobj(vis)
+    for r in range(len(flat)):  # one contiguous scatter per matrix: ~3x faster than one fancy index over all
+        flat[r, lower] = np.conj(rows[r]) if conj else rows[r]
+        flat[r, upper] = rows[r]  # after [j, i]: an autocorrelation keeps V_ii itself
     return out
 
 
-def solution_matrices(x, pairs, n_ant):
+def solution_matrices(x, pairs, n_ant, out=None):
     """``(time, bl, pol)`` -> ``(time * pol, n_ant, n_ant)``: one Hermitian antenna matrix per
-    integration and polarisation (solution ``s = t * n_pol + p``, :func:`to_matrix`)."""
+    integration and polarisation (solution ``s = t * n_pol + p``, :func:`to_matrix`, ``out`` as there)."""
     x = np.asarray(x)
     T, B, P = x.shape
-    return to_matrix(np.moveaxis(x, -1, 1).reshape(T * P, B), pairs, n_ant)
+    return to_matrix(np.moveaxis(x, -1, 1).reshape(T * P, B), pairs, n_ant, out=out)
 
 
 def from_matrix(mat, pairs):

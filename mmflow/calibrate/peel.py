@@ -550,15 +550,17 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
         t1 = min(T, t0 + batch)
         nb = t1 - t0
 
-        def dense(x):  # (nb, bl, P) -> (nb * P, N, N), solution index = t * P + p
-            return solution_matrices(x, pairs, n_ant)
+        def dense(x, out=None):  # (nb, bl, P) -> (nb * P, N, N), solution index = t * P + p
+            return solution_matrices(x, pairs, n_ant, out=out)
 
         def per_solution(x):  # (n_src, nb, ...) -> (n_src, nb * P, ...), the same for every pol
             return np.repeat(x, P, axis=1)
 
         V = dense(vis[t0:t1])
         W = dense(w[t0:t1].astype(np.float32))
-        M = np.stack([dense(np.broadcast_to(coh[s, t0:t1], (nb, B, P))) for s in range(n_src)])
+        M = np.empty((n_src, nb * P, n_ant, n_ant), np.result_type(coh))  # filled in place: no stacked copy
+        for s in range(n_src):
+            dense(np.broadcast_to(coh[s, t0:t1], (nb, B, P)), out=M[s])
         md = per_solution(np.asarray(modes)[:, t0:t1])
         start = None
         if last is not None:
