@@ -69,7 +69,12 @@ def peel_components(ctx, block, fi, kinds):
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used])
     for k, s in enumerate(used):
         f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)
-        out += f[:, None] * gain_products(h[:, s], block.pairs) * coh[k][..., None]
+        if np.all(h[:, s] == 1):  # a subtracted or modelled source at its catalogue position: h_i conj(h_j) = 1
+            term = np.broadcast_to(f[:, None], out.shape).astype(out.dtype)
+        else:
+            term = f[:, None] * gain_products(h[:, s], block.pairs)
+        term *= coh[k][..., None]  # in place: at 256 antennas each (time, bl, pol) temporary is ~0.3 GB
+        out += term
     return out
 
 
