@@ -24,9 +24,10 @@ demo: $(STAMP)
 	    terrestrial.enabled=false run.directory=runs/demo-calibrate-before --no-progress
 
 ## Run the test suite: every tier (tests/unit, tests/workflow, tests/acceptance), two test files at a time
-## (pytest-xdist; a file's tests share one process and its fixtures)
+## (pytest-xdist; a file's tests share one process and its fixtures; --no-loadscope-reorder keeps the
+## longest files first, tests/conftest.py, where xdist would start the files with most tests first)
 test: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile
+	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 ## The unit tier only (kernels on in-memory arrays)
 test-fast: $(STAMP)

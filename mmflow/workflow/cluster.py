@@ -54,49 +54,85 @@ def jobqueue_cluster(cfg, kind):
     return cls(**opts)
 
 
+class LazyClient:
+    """A ``distributed.Client`` that starts its cluster on first use.
+
+    A run with nothing to compute (every stage finished, or refused before any work: stale
+    settings, a bad input) starts no workers and submits no batch job; the dashboard link is
+    printed when the cluster starts. Any attribute of the client (``map``, ``gather``,
+    ``scheduler_info``, ...) starts it.
+    """
+
+    def __init__(self, start):
+        self._start = start
+        self._client = None
+        self._cluster = None
+
+    @property
+    def started(self):
+        return self._client is not None
+
+    def __getattr__(self, name):  # only for names not found on this object: the client's
+        if name.startswith("_"):
+            raise AttributeError(name)
+        if self._client is None:
+            self._client, self._cluster = self._start()
+        return getattr(self._client, name)
+
+    def close(self):
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
 @contextmanager
 def open_cluster(cfg, scheduler=None, kind=None, log=print):
-    """Yield a ``distributed.Client`` (or None for the synchronous scheduler).
+    """Yield a client (a :class:`LazyClient`: the cluster starts when the first task is sent) or
+    None for the synchronous scheduler.
 
     ``scheduler`` (or ``DASK_SCHEDULER_ADDRESS``) joins an existing cluster; ``kind`` overrides
     ``cluster.kind``. Worker memory limits stay on: dask spills, pauses and restarts workers
-    that exceed them.
+    that exceed them. A bad ``kind`` or a missing address is refused here, before any work.
     """
     c = cfg.cluster
     kind = kind or ("address" if (scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")) else c.kind)
     if kind == "synchronous":
         yield None
         return
-    from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
-
-    cluster = None
-    if kind == "address":
-        addr = scheduler or c.address or os.environ.get("DASK_SCHEDULER_ADDRESS")
-        if not addr:
-            raise InputError("cluster", "address", "no scheduler address",
-                             "pass --scheduler tcp://host:8786 or set DASK_SCHEDULER_ADDRESS")
-        client = Client(addr)
-    elif kind == "local":
-        from distributed import LocalCluster  # deferred: as Client above
-
-        cluster = LocalCluster(n_workers=c.n_workers, threads_per_worker=c.threads_per_worker,
-                               memory_limit=memory_limit(c.memory_limit), host=bind_host(c),
-                               dashboard_address=dashboard_bind(c),
-                               env={"MMFLOW_WORKERS_PER_HOST": str(c.n_workers)})  # thread budget per task
-        client = Client(cluster)
-        if c.expose:
-            log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
-                "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
-    elif kind in ("slurm", "pbs"):
-        cluster = jobqueue_cluster(cfg, kind)
-        cluster.scale(jobs=c.n_workers)
-        client = Client(cluster)
-    else:
+    addr = scheduler or c.address or os.environ.get("DASK_SCHEDULER_ADDRESS")
+    if kind == "address" and not addr:
+        raise InputError("cluster", "address", "no scheduler address",
+                         "pass --scheduler tcp://host:8786 or set DASK_SCHEDULER_ADDRESS")
+    if kind not in ("address", "local", "slurm", "pbs"):
         raise InputError("cluster", "kind", f"unknown cluster kind '{kind}'", "use local, address, slurm or pbs")
-    log(f"dask dashboard: {client.dashboard_link}")
+
+    def start():
+        from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
+
+        cluster = None
+        if kind == "address":
+            client = Client(addr)
+        elif kind == "local":
+            from distributed import LocalCluster  # deferred: as Client above
+
+            cluster = LocalCluster(n_workers=c.n_workers, threads_per_worker=c.threads_per_worker,
+                                   memory_limit=memory_limit(c.memory_limit), host=bind_host(c),
+                                   dashboard_address=dashboard_bind(c),
+                                   env={"MMFLOW_WORKERS_PER_HOST": str(c.n_workers)})  # thread budget per task
+            client = Client(cluster)
+            if c.expose:
+                log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
+                    "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
+        else:
+            cluster = jobqueue_cluster(cfg, kind)
+            cluster.scale(jobs=c.n_workers)
+            client = Client(cluster)
+        log(f"dask dashboard: {client.dashboard_link}")
+        return client, cluster
+
+    client = LazyClient(start)
     try:
         yield client
     finally:
         client.close()
-        if cluster is not None:
-            cluster.close()

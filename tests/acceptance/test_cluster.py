@@ -117,6 +117,13 @@ def test_cli_joins_an_existing_scheduler(loopback_cluster, reference, tmp_path, 
     assert rc == 0
     assert "dask dashboard:" in capsys.readouterr().out
     assert_identical(reference, read_outputs(run_dir))
+    # the same run again on a local cluster: every stage is finished, so no cluster is started
+    # (mmflow.workflow.cluster.LazyClient: no worker processes, no batch jobs for a run with no work)
+    rc = main(["run", "workflows/demo.yaml", *[o for o in SMALL if not o.startswith("cluster.")],
+               f"run.directory={run_dir}", "--cluster", "local", "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "dask dashboard:" not in out and "(0/" in out, out[-2000:]
+    assert_identical(reference, read_outputs(run_dir))
 
 
 @pytest.mark.parametrize("kind, marker", [("slurm", "#SBATCH"), ("pbs", "#PBS")])
