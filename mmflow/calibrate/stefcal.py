@@ -544,6 +544,10 @@ def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None, block=16):
     flags = None if flags is None else np.asarray(flags)
     weights = np.broadcast_to(weights, vis.shape)
     timed = gains.ndim == 3
+    if timed and gains.shape[0] == 1:  # one time for all: as (n_ant, feed)
+        inv, flags, timed = inv[0], None if flags is None else flags[0], False
+    if timed and gains.shape[0] != vis.shape[0]:
+        raise ValueError(f"apply_gains: gains for {gains.shape[0]} integrations, data for {vis.shape[0]}")
     out = np.empty(vis.shape, np.result_type(vis))
     w_out = None
     for t0 in range(0, vis.shape[0], block):
