@@ -67,7 +67,10 @@ def _cached_read(read):
     def cached(cls, file=None, readme=None):
         if cls is not iers.IERS_Auto or file is not None or readme is not None or os.path.exists("finals2000A.all"):
             return read(cls, file, readme)  # astropy's own choice of file (a local finals2000A.all first)
-        path = _iers_cache_path()
+        try:
+            path = _iers_cache_path()
+        except (OSError, RuntimeError, KeyError):  # no home folder (some containers): no cache
+            return read(cls)
         try:
             table = pickle.loads(path.read_bytes())
             if isinstance(table, iers.IERS_Auto):

@@ -68,10 +68,6 @@ class LazyClient:
         self._client = None
         self._cluster = None
 
-    @property
-    def started(self):
-        return self._client is not None
-
     def __getattr__(self, name):  # only for names not found on this object: the client's
         if name.startswith("_"):
             raise AttributeError(name)

@@ -60,3 +60,17 @@ def test_processes_give_the_same_rotation_with_and_without_the_cache(tmp_path):
             for e in (dict(env, MMFLOW_CACHE_DIR=str(blocked / "sub")), env, env)]
     assert runs[0] == runs[1] == runs[2] and runs[0].startswith("[[0.99999")
     assert len(list((tmp_path / "cache").glob("iers-auto-*.pickle"))) == 1
+
+
+def test_no_home_folder_means_no_cache_not_a_failure(monkeypatch):
+    """A process without a home folder (HOME unset in some containers) parses as astropy alone would."""
+    from pathlib import Path
+
+    def no_home():
+        raise RuntimeError("Could not determine home directory.")
+
+    monkeypatch.delenv("MMFLOW_CACHE_DIR", raising=False)
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setattr(Path, "home", staticmethod(no_home))
+    table = iers.IERS_Auto.read()
+    assert isinstance(table, iers.IERS_Auto) and len(table) > 10_000
