@@ -236,3 +236,30 @@ def test_calibration_track_is_where_both_calibrators_are_high():
     w[95] = 0
     tr = best_track(np.stack([cyg, cas]), 20, w)
     assert not (tr.start <= 95 < tr.stop)
+
+
+def test_apply_gains_in_blocks_equals_the_division_and_broadcasts_one_integration():
+    """``apply_gains`` (reciprocal gains, blocks of integrations) equals ``V / (g_i conj(g_j))`` with
+    flagged antennas and gains of 0 zeroed, for float32 data to the last bit; gains of one integration
+    apply to every integration; gains for another number of integrations are refused."""
+    rng = np.random.default_rng(3)
+    n, T = 9, 37  # not a multiple of the block
+    i, j = np.triu_indices(n)
+    pairs = np.stack([i, j], 1)
+    vis = (rng.normal(size=(T, len(pairs), 2)) + 1j * rng.normal(size=(T, len(pairs), 2))).astype(np.complex64)
+    g = rng.normal(size=(T, n, 2)) + 1j * rng.normal(size=(T, n, 2))
+    g[:, 2] = 0
+    flags = np.zeros(g.shape, bool)
+    flags[5:9, 4] = True
+    w = rng.uniform(0.5, 1, size=vis.shape).astype(np.float32)
+    out, wout = apply_gains(vis, w, pairs, g, flags, block=8)
+    prod = g[:, i] * np.conj(g[:, j])
+    bad = (prod == 0) | flags[:, i] | flags[:, j]
+    ref = np.where(bad, 0, vis / np.where(bad, 1, prod)).astype(np.complex64)
+    assert out.dtype == np.complex64 and np.array_equal(out, ref)
+    assert np.array_equal(wout, np.where(bad, 0.0, w)) and bad.any() and not bad.all()
+    one, _ = apply_gains(vis, 1.0, pairs, g[:1], flags[:1])
+    same, _ = apply_gains(vis, 1.0, pairs, g[0], flags[0])
+    assert np.array_equal(one, same)
+    with pytest.raises(ValueError, match="gains for 3 integrations, data for 37"):
+        apply_gains(vis, 1.0, pairs, g[:3])
