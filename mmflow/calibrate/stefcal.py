@@ -549,7 +549,7 @@ def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None, block=16):
     if timed and gains.shape[0] != vis.shape[0]:
         raise ValueError(f"apply_gains: gains for {gains.shape[0]} integrations, data for {vis.shape[0]}")
     out = np.empty(vis.shape, np.result_type(vis))
-    w_out = None
+    w_out = np.empty(vis.shape, np.result_type(weights.dtype, 0.0))  # the dtype np.where(bad, 0.0, weights) has
     for t0 in range(0, vis.shape[0], block):
         t = slice(t0, t0 + block)
         g = inv[t] if timed else inv
@@ -563,12 +563,7 @@ def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None, block=16):
         bad = np.broadcast_to(bad, corrected.shape)
         corrected[bad] = 0  # flagged or without a gain: 0 whatever the sample held
         out[t] = corrected
-        w = np.where(bad, 0.0, weights[t])
-        if w_out is None:
-            w_out = np.empty(vis.shape, w.dtype)
-        w_out[t] = w
-    if w_out is None:  # no integrations
-        w_out = np.where(np.zeros(vis.shape, bool), 0.0, weights)
+        w_out[t] = np.where(bad, 0.0, weights[t])
     return out, w_out
 
 
