@@ -243,6 +243,18 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         cycle += 1
 
 
+def _kept_summary(run, st, todo):
+    """The recorded summary of a stage already complete with the same fingerprint (``begin_stage``
+    has refused any other), with ``kept: True`` and ``tasks_run: 0``; None when it has work left,
+    including a finalize whose marker ``_repair_or_refuse`` removed for a damaged file."""
+    status = run.stage_status(st.name)
+    if todo or not status or not status["complete"]:
+        return None
+    if st.finalize is not None and not run.is_done(st.name, "_finalize"):
+        return None
+    return dict(status["summary"], kept=True, tasks_run=0)
+
+
 def _counts(run, st):
     """The stage's counters summed over every finished task (this run's and earlier ones)."""
     infos = run.task_infos(st.name).values()
@@ -319,6 +331,11 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
         pctx = sctx.for_task()
         keys = [k.format() for k in st.prepare(pctx)]
         todo = run.begin_stage(st.name, fp, keys, st.outputs)
+        kept = _kept_summary(run, st, todo)
+        if kept is not None:  # finished with these settings and inputs: nothing is recomputed or rewritten
+            summaries[st.name] = kept
+            log(f"[{st.name}] complete, kept: {len(keys)} tasks done (took {kept.get('wall_s')} s when it ran)")
+            continue
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
         _stamp_stores(run, st, cfg, fp.digest)
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
@@ -351,9 +368,11 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
             log(f"stages now made from older inputs (STALE): {', '.join(later)}. Refresh them with "
                 f"`mmflow run WORKFLOW ... --force` (the same settings; up-to-date stages are kept)")
     summary_path = run.path / "summary.json"
-    merged = json.loads(summary_path.read_text()) if summary_path.exists() else {}
-    merged.update(summaries)
-    summary_path.write_text(json.dumps(merged, indent=2))
+    fresh = {k: v for k, v in summaries.items() if not v.get("kept")}  # kept stages keep their record
+    if fresh:
+        merged = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+        merged.update(fresh)
+        summary_path.write_text(json.dumps(merged, indent=2))
     return summaries
 
 

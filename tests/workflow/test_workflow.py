@@ -45,11 +45,20 @@ def test_demo_chain_produces_maps_and_summaries(reference_run):
 
 
 def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
+    """A finished run run again keeps every stage: no task, no finalize (the maps, the report and
+    the recorded stage costs are not rewritten), and says so."""
     run_dir, _ = reference_run
     before = read_outputs(run_dir)
-    summaries = run_workflow(small_config(run_dir), progress=False, log=lambda *a: None)
-    assert all(s["tasks_run"] == 0 for s in summaries.values())
+    written = {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in [run_dir / "summary.json",
+               *(run_dir / "maps").iterdir(), *(run_dir / "_status").glob("*/complete.json")]}
+    logged = []
+    summaries = run_workflow(small_config(run_dir), progress=False, log=logged.append)
+    assert all(s["tasks_run"] == 0 and s["kept"] for s in summaries.values())
+    recorded = json.loads((run_dir / "summary.json").read_text())
+    assert all(recorded[k]["tasks_run"] == recorded[k]["tasks"] > 0 for k in summaries)  # the run that made them
+    assert sum("complete, kept" in m for m in logged) == len(summaries) > 4
     assert_identical(before, read_outputs(run_dir))
+    assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in written} == written
 
 
 def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
