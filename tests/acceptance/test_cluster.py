@@ -122,7 +122,7 @@ def test_cli_joins_an_existing_scheduler(loopback_cluster, reference, tmp_path, 
     rc = main(["run", "workflows/demo.yaml", *[o for o in SMALL if not o.startswith("cluster.")],
                f"run.directory={run_dir}", "--cluster", "local", "--no-progress"])
     out = capsys.readouterr().out
-    assert rc == 0 and "dask dashboard:" not in out and "(0/" in out, out[-2000:]
+    assert rc == 0 and "dask dashboard:" not in out and "simulate kept (" in out, out[-2000:]
     assert_identical(reference, read_outputs(run_dir))
 
 
@@ -155,3 +155,41 @@ def test_relative_run_directory_with_workers_in_another_cwd(loopback_cluster, re
     run_workflow(cfg, client=client, progress=False, log=lambda *a: None)
     assert not (elsewhere / "rel").exists()
     assert_identical(reference, read_outputs(tmp_path / "rel" / "run"))
+
+
+def _worker_state(_):
+    from threadpoolctl import threadpool_info
+
+    return (os.getpid(), os.getppid(), "mmflow.workflow.pipeline" in sys.modules, os.environ.get("PYTHONHASHSEED"),
+            os.environ.get("MMFLOW_WORKERS_PER_HOST"), {i["internal_api"]: i["num_threads"] for i in threadpool_info()})
+
+
+def test_local_workers_fork_from_one_server_with_the_stages_imported(tmp_path):
+    """A local cluster's workers are forks of one server process that imported the stages once
+    (mmflow.workflow.cluster.fork_workers_from_a_preloaded_server) and see the environment dask
+    gives spawned workers: one BLAS thread until a task sets its budget, dask's hash seed, mmflow's
+    per-host worker count. A cluster opened again in the same process forks from the same server."""
+    from mmflow.workflow.cluster import open_cluster
+
+    cfg = small_config(tmp_path / "r", "cluster.kind=local", "cluster.n_workers=2", "cluster.dashboard_address=:0")
+    parents = set()
+    for _ in range(2):
+        with open_cluster(cfg, log=lambda *a: None) as client:
+            states = list(client.run(_worker_state, 0).values())
+        assert len(states) == 2 and len({s[0] for s in states}) == 2
+        for pid, ppid, preloaded, seed, per_host, threads in states:
+            assert preloaded and seed == "6640" and per_host == "2" and ppid != os.getpid()
+            assert set(threads.values()) == {1}, threads
+        parents |= {s[1] for s in states}
+    assert len(parents) == 1  # every worker of both clusters: a child of the one server
+
+
+def test_a_start_method_the_user_chose_is_kept(monkeypatch):
+    import dask
+
+    from mmflow.workflow.cluster import START_METHOD, fork_workers_from_a_preloaded_server
+
+    monkeypatch.setenv("DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD", "spawn")
+    with dask.config.set({START_METHOD: "spawn"}):
+        fork_workers_from_a_preloaded_server()
+        assert dask.config.get(START_METHOD) == "spawn"
