@@ -27,16 +27,19 @@ def _common(p):
     p.add_argument("--no-progress", action="store_true", help="no progress lines")
 
 
-def build_parser():
-    # deferred: the stages load healpy, zarr and pydantic (~3 s): `import mmflow.cli` stays light
-    from mmflow.workflow.pipeline import PIPELINE
-
+def build_parser(stages=True):
+    """The command line; ``stages=False`` leaves out the per-stage subcommands (and the ~3 s import
+    of every stage they are listed from) for a command that is not one of them."""
     ap = argparse.ArgumentParser(prog="mmflow", description=__doc__)
     ap.add_argument("--version", action="version", version=f"mmflow {__version__}")
     sub = ap.add_subparsers(dest="cmd")
     _common(sub.add_parser("run", help="run every enabled stage of a workflow"))
-    for st in PIPELINE:  # the one list of stages drives the subcommands
-        _common(sub.add_parser(st.name, help=f"run only the '{st.name}' stage: {st.description}"))
+    if stages:
+        # deferred: the stages load healpy, zarr and pydantic (~3 s): `import mmflow.cli` stays light
+        from mmflow.workflow.pipeline import PIPELINE
+
+        for st in PIPELINE:  # the one list of stages drives the subcommands
+            _common(sub.add_parser(st.name, help=f"run only the '{st.name}' stage: {st.description}"))
     pl = sub.add_parser("plan", help="before a run: tasks, memory per task, disk and time of every stage")
     pl.add_argument("workflow", help="workflow YAML (see workflows/)")
     pl.add_argument("overrides", nargs="*", help="section.key=value overrides")
@@ -92,8 +95,13 @@ def build_parser():
     return ap
 
 
+#: commands (and options) that are not a stage: their parser need not list the stages
+NOT_STAGES = ("--version", "plan", "status", "verify", "config", "stores", "bench")
+
+
 def main(argv=None):
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = build_parser(stages=not (argv and argv[0] in NOT_STAGES))
     args, extra = parser.parse_known_args(argv)
     if extra:  # options and overrides in any order: `mmflow run wf.yaml --no-progress key=value`
         if not hasattr(args, "overrides") or any(x.startswith("-") or "=" not in x for x in extra):

@@ -147,6 +147,22 @@ def test_single_stage_subcommand_needs_its_inputs(tmp_path, capsys):
     assert "stage 'solve' needs stage 'simulate' complete" in capsys.readouterr().err
 
 
+def test_version_and_non_stage_commands_do_not_import_the_stages():
+    """`mmflow --version` (and the other commands that are not a stage) parse without listing the
+    stages, whose import costs ~3 s; a stage command still finds its stage."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from mmflow.cli import build_parser, main\n"
+            "try:\n    main(['--version'])\nexcept SystemExit:\n    pass\n"
+            "print('stages imported:', 'mmflow.workflow.pipeline' in sys.modules)\n"
+            "print(build_parser().parse_args(['solve', 'w.yaml']).cmd)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    from mmflow import __version__
+
+    assert out.splitlines() == [f"mmflow {__version__}", "stages imported: False", "solve"], out
+
+
 def test_config_schema_overrides_and_errors(tmp_path, capsys):
     text = schema_yaml()
     assert "eps: 0.01" in text and "lmax: 64" in text
