@@ -33,6 +33,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, to_matrix
 from mmflow.errors import InputError
+from mmflow.simulate.corrupt import baseline_ends, gain_products
 from mmflow.threads import n_threads
 
 DAMPING = ("half", "rk4", "none")
@@ -537,7 +538,6 @@ def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None, block=16):
     """
     pairs = np.asarray(pairs)
     vis = np.asarray(vis)
-    p, q = (slice(None), slice(None)) if feeds is None else (list(feeds[0]), list(feeds[1]))
     # the reciprocal gains once per antenna (0 for a gain of 0): the data are multiplied, not divided
     gains = np.asarray(gains)
     inv = np.divide(1.0, gains, out=np.zeros(gains.shape, np.result_type(gains, 1.0)), where=gains != 0)
@@ -553,12 +553,12 @@ def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None, block=16):
     for t0 in range(0, vis.shape[0], block):
         t = slice(t0, t0 + block)
         g = inv[t] if timed else inv
-        factor = g[..., pairs[:, 0], :][..., p] * np.conj(g[..., pairs[:, 1], :][..., q])
+        factor = gain_products(g, pairs, feeds)
         bad = factor == 0
         if flags is not None:
-            f = flags[t] if timed else flags
-            bad |= f[..., pairs[:, 0], :][..., p]
-            bad |= f[..., pairs[:, 1], :][..., q]
+            fi, fj = baseline_ends(flags[t] if timed else flags, pairs, feeds)
+            bad |= fi
+            bad |= fj
         corrected = vis[t] * factor
         bad = np.broadcast_to(bad, corrected.shape)
         corrected[bad] = 0  # flagged or without a gain: 0 whatever the sample held

@@ -40,20 +40,43 @@ from mmflow.telescope.array import C_LIGHT
 ARCMIN = np.pi / 180 / 60
 
 
-def gain_products(gains, pairs):
-    """``g_i conj(g_j)`` for every baseline.
+def baseline_ends(values, pairs, feeds=None):
+    """``(x[..., i, p], x[..., j, q])``: a per-antenna, per-feed quantity at both ends of every baseline.
 
     Parameters
     ----------
-    gains : ndarray (..., n_ant, n_pol)
+    values : ndarray (..., n_ant, n_feed)
+    pairs : ndarray (n_bl, 2), the antennas ``(i, j)`` of each baseline
+    feeds : pair of sequences, optional
+        ``(p, q)``: polarisation k correlates feed ``p[k]`` of antenna i with feed ``q[k]`` of
+        antenna j (xx, yy, xy, yx: ``((0, 1, 0, 1), (0, 1, 1, 0))``). Default: ``p = q`` = the last axis.
+
+    Returns
+    -------
+    two ndarrays (..., n_bl, n_pol)
+    """
+    pairs = np.asarray(pairs)
+    vi, vj = values[..., pairs[:, 0], :], values[..., pairs[:, 1], :]
+    if feeds is not None:
+        vi, vj = vi[..., list(feeds[0])], vj[..., list(feeds[1])]
+    return vi, vj
+
+
+def gain_products(gains, pairs, feeds=None):
+    """``g_ip conj(g_jq)`` for every baseline (and polarisation, :func:`baseline_ends`' ``feeds``).
+
+    Parameters
+    ----------
+    gains : ndarray (..., n_ant, n_feed)
     pairs : ndarray (n_bl, 2)
+    feeds : see :func:`baseline_ends` (default: one gain per polarisation, ``p = q``)
 
     Returns
     -------
     ndarray (..., n_bl, n_pol)
     """
-    pairs = np.asarray(pairs)
-    return gains[..., pairs[:, 0], :] * np.conj(gains[..., pairs[:, 1], :])
+    gi, gj = baseline_ends(gains, pairs, feeds)
+    return gi * np.conj(gj)
 
 
 def sawtooth_db(times_s, rng, amplitude_db=0.1, period_s=(900.0, 1020.0), wander_s=3 * 3600.0):
