@@ -47,8 +47,13 @@ def test_peak_rss_is_reset_and_follows_an_allocation():
 @pytest.fixture(scope="module")
 def measured_run(tmp_path_factory):
     """A small run on a local cluster, as the constants were fitted: fresh worker processes, whose
-    first tasks bear the imports they trigger (astropy frames, healpy) like every real run's."""
+    first tasks bear the imports they trigger (astropy frames, healpy) like every real run's, with
+    astropy's IERS table in mmflow's cache folder as on any machine after its first run (the one
+    parse on a machine's first frame rotation, ~50 MB, is not a task's working set: mmflow.offline)."""
+    from mmflow.sky.frames import rotation_matrix
     from mmflow.workflow.cluster import open_cluster
+
+    rotation_matrix("icrs", "date", 2457802.0)  # parses the table into the cache if it is not there
 
     run_dir = tmp_path_factory.mktemp("plan") / "r"
     cfg = small_config(run_dir, "cluster.kind=local", "cluster.n_workers=1", "cluster.dashboard_address=:0")
