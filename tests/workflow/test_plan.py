@@ -49,7 +49,7 @@ def measured_run(tmp_path_factory):
     """A small run on a local cluster, as the constants were fitted: fresh worker processes, whose
     first tasks bear the imports they trigger (astropy frames, healpy) like every real run's, with
     astropy's IERS table in mmflow's cache folder as on any machine after its first run (the one
-    parse on a machine's first frame rotation, ~50 MB, is not a task's working set: mmflow.offline)."""
+    parse on a machine's first frame rotation, 30-45 MB measured, is not a task's working set: mmflow.offline)."""
     from mmflow.sky.frames import rotation_matrix
     from mmflow.workflow.cluster import open_cluster
 
