@@ -51,14 +51,17 @@ def fork_workers_from_a_preloaded_server():
     environ``: one BLAS/OpenMP thread, glibc's trim threshold; ``PYTHONHASHSEED``), which must be set
     before numpy loads and which dask's nanny would otherwise set only in a spawned child. A start
     method the user chose (the ``DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD`` environment
-    variable) is kept. Idempotent; the server lives until this process exits.
+    variable) is kept, as is dask's where Python has no ``forkserver`` (Windows). Idempotent; the
+    server lives until this process exits.
     """
+    import multiprocessing  # deferred: as the forkserver below
     import multiprocessing.forkserver as forkserver  # deferred: only local clusters start one
 
     import dask  # deferred: as distributed in open_cluster
     from distributed.utils import get_mp_context  # deferred: as above
 
-    if "DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD" in os.environ:
+    if ("DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD" in os.environ
+            or "forkserver" not in multiprocessing.get_all_start_methods()):  # Windows: spawn only
         return
     dask.config.set({START_METHOD: "forkserver"})
     get_mp_context().set_forkserver_preload(list(PRELOAD))
