@@ -18,6 +18,9 @@ from __future__ import annotations
 import healpy
 import numpy as np
 
+#: output pixels whose discs are gathered into one array (~400 input pixels each at the defaults)
+DISCS_PER_BLOCK = 2048
+
 
 def local_tt(map1, map2, nu1, nu2, radius_deg=10.0, nside_out=None, mask=None, min_pixels=20):
     """Spectral index and R^2 of local T-T regressions of ``map2`` on ``map1``.
@@ -41,24 +44,32 @@ def local_tt(map1, map2, nu1, nu2, radius_deg=10.0, nside_out=None, mask=None, m
     radius = np.deg2rad(radius_deg)
     npix_out = healpy.nside2npix(nside_out)
     out = {k: np.full(npix_out, np.nan) for k in ("beta", "r2", "slope")}
-    for p in range(npix_out):
-        c = np.array(healpy.pix2vec(nside_out, p))
-        disc = healpy.query_disc(nside, c, radius)
-        disc = disc[use[disc]]
-        if len(disc) < min_pixels:
-            continue
-        d2 = (np.arccos(np.clip(np.array(healpy.pix2vec(nside, disc)).T @ c, -1, 1)) / radius) ** 2
+    centres = np.array(healpy.pix2vec(nside_out, np.arange(npix_out))).T
+    vectors = np.array(healpy.pix2vec(nside, np.arange(len(t1)))).T
+    for start in range(0, npix_out, DISCS_PER_BLOCK):  # the discs of a block as one (disc, pixel) list
+        p = np.arange(start, min(start + DISCS_PER_BLOCK, npix_out))
+        discs = [healpy.query_disc(nside, centres[q], radius) for q in p]
+        rows = np.repeat(np.arange(len(p)), [len(d) for d in discs])
+        cols = np.concatenate(discs)
+        keep = use[cols]
+        rows, cols = rows[keep], cols[keep]
+        n = len(p)
+        d2 = (np.arccos(np.clip(np.einsum("ij,ij->i", vectors[cols], centres[p][rows]), -1, 1)) / radius) ** 2
         w = (1 - np.minimum(d2, 1)) ** 2
-        w /= w.sum()
-        a, b = t1[disc], t2[disc]
-        da, db = a - w @ a, b - w @ b
-        var1, var2, cov = w @ (da * da), w @ (db * db), w @ (da * db)
-        if var1 <= 0 or var2 <= 0:
-            continue
-        s = cov / var1
-        out["slope"][p] = s
-        out["r2"][p] = cov * cov / (var1 * var2)
-        out["beta"][p] = np.log(s) / np.log(nu2 / nu1) if s > 0 else np.nan
+        wsum = np.bincount(rows, w, minlength=n)
+        w = w / np.where(wsum > 0, wsum, 1)[rows]
+        a, b = t1[cols], t2[cols]
+        da = a - np.bincount(rows, w * a, minlength=n)[rows]  # about each disc's weighted means
+        db = b - np.bincount(rows, w * b, minlength=n)[rows]
+        var1 = np.bincount(rows, w * da * da, minlength=n)
+        var2 = np.bincount(rows, w * db * db, minlength=n)
+        cov = np.bincount(rows, w * da * db, minlength=n)
+        ok = (np.bincount(rows, minlength=n) >= min_pixels) & (var1 > 0) & (var2 > 0)
+        s = cov[ok] / var1[ok]
+        out["slope"][p[ok]] = s
+        out["r2"][p[ok]] = cov[ok] ** 2 / (var1[ok] * var2[ok])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out["beta"][p[ok]] = np.where(s > 0, np.log(s) / np.log(nu2 / nu1), np.nan)
     return out
 
 

@@ -85,6 +85,38 @@ def test_tt_recovers_an_injected_spectral_index_and_ignores_offsets():
     np.testing.assert_allclose(off["beta"], out["beta"], atol=1e-9)
 
 
+def test_tt_regression_of_every_disc_equals_a_brute_force_one():
+    """Each output pixel's slope and R^2 equal the weighted regression written out over every input
+    pixel within the radius (angles from the dot products of all pixel pairs), masked pixels left
+    out, discs with too few pixels NaN."""
+    from mmflow.analysis.spectral_index import local_tt
+
+    nside, nside_out, radius, nu1, nu2 = 16, 4, np.deg2rad(20.0), 40e6, 80e6
+    rng = np.random.default_rng(5)
+    npix = healpy.nside2npix(nside)
+    t1 = 3000.0 + 500.0 * rng.normal(size=npix)
+    t2 = 0.2 * t1 + 40.0 * rng.normal(size=npix) - 7.0
+    vec = np.array(healpy.pix2vec(nside, np.arange(npix))).T
+    mask = vec[:, 2] > -0.3  # a horizon: southern discs are partial or empty
+    out = local_tt(t1, t2, nu1, nu2, radius_deg=20.0, nside_out=nside_out, mask=mask, min_pixels=25)
+    centres = np.array(healpy.pix2vec(nside_out, np.arange(healpy.nside2npix(nside_out)))).T
+    for q, c in enumerate(centres):
+        ang = np.arccos(np.clip(vec @ c, -1, 1))
+        inside = (ang <= radius) & mask
+        if inside.sum() < 25:
+            assert np.isnan(out["slope"][q]) and np.isnan(out["beta"][q])
+            continue
+        w = (1 - (ang[inside] / radius) ** 2) ** 2
+        w /= w.sum()
+        a, b = t1[inside], t2[inside]
+        ma, mb = w @ a, w @ b
+        v1, v2, cv = w @ (a - ma) ** 2, w @ (b - mb) ** 2, w @ ((a - ma) * (b - mb))
+        assert out["slope"][q] == pytest.approx(cv / v1, rel=1e-10)
+        assert out["r2"][q] == pytest.approx(cv ** 2 / (v1 * v2), rel=1e-10)
+        assert out["beta"][q] == pytest.approx(np.log(cv / v1) / np.log(2.0), rel=1e-10)
+    assert np.isfinite(out["slope"]).sum() > 100 and np.isnan(out["slope"]).sum() > 10
+
+
 def test_flux_from_disc_minus_annulus_over_the_psf_sum():
     from mmflow.analysis.fluxscale import source_flux
 
