@@ -143,6 +143,8 @@ def write_mollweide_png(path, hmap, title, unit, mask=None, lmax=None, eps=None,
     caption = caption_text(lmax, eps, freq_hz, resolution_deg, frame, masked=mask is not None and not np.all(mask))
     xlab, ylab = AXIS_NAMES.get(frame, ("longitude", "latitude"))
     fig = plt.figure(figsize=(10, 6.4))
+    # projview ends with plt.draw(), a full render of the figure that savefig renders again
+    fig.canvas.draw_idle = lambda *args, **kwargs: None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         projview(shown, fig=fig, xsize=xsize, title=title, unit=label, min=vmin, max=vmax, norm="symlog",
