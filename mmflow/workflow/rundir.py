@@ -232,12 +232,16 @@ class RunDir:
                               f"(or `mmflow {stage}`) first")
         return _load_index(str(p), p.stat().st_mtime_ns)
 
+    def completion(self, stage):
+        """The summary the stage recorded when it completed (:meth:`finish_stage`); None if it has not."""
+        return _read_json(self.status_dir(stage) / "complete.json")
+
     def stage_status(self, stage):
         man = self.manifest(stage)
         if man is None:
             return None
         done = sum(1 for k in man["keys"] if self.is_done(stage, k))
-        comp = _read_json(self.status_dir(stage) / "complete.json")
+        comp = self.completion(stage)
         return {"fingerprint": man["fingerprint"], "done": done, "total": len(man["keys"]),
                 "complete": comp is not None, "summary": comp}
 

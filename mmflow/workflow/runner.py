@@ -247,12 +247,10 @@ def _kept_summary(run, st, todo):
     """The recorded summary of a stage already complete with the same fingerprint (``begin_stage``
     has refused any other), with ``kept: True`` and ``tasks_run: 0``; None when it has work left,
     including a finalize whose marker ``_repair_or_refuse`` removed for a damaged file."""
-    status = run.stage_status(st.name)
-    if todo or not status or not status["complete"]:
+    recorded = None if todo else run.completion(st.name)  # no key left to do: no per-key scan again
+    if recorded is None or (st.finalize is not None and not run.is_done(st.name, "_finalize")):
         return None
-    if st.finalize is not None and not run.is_done(st.name, "_finalize"):
-        return None
-    return dict(status["summary"], kept=True, tasks_run=0)
+    return dict(recorded, kept=True, tasks_run=0)
 
 
 def _counts(run, st):
