@@ -25,33 +25,38 @@ def _taylor(odd, n_terms):
     return [(-1) ** k / math.factorial(2 * k + start) for k in range(n_terms)]
 
 
+@numba.njit(inline="always", cache=True)
+def _sincos_turns(t, s, c, two_pi, quarter):
+    """``(sin 2 pi t, cos 2 pi t)`` for ``|t| <= 1/2`` from the Taylor coefficients ``s``, ``c`` (9 each,
+    in the working precision, as are ``t``, ``two_pi`` and ``quarter``)."""
+    q = np.rint(t * 4)
+    y = (t - q * quarter) * two_pi  # |y| <= pi/4
+    y2 = y * y
+    sn = y * (s[0] + y2 * (s[1] + y2 * (s[2] + y2 * (s[3] + y2 * (s[4] + y2 * (s[5] + y2 * (s[6] + y2 * (s[7]
+                                                                                                       + y2 * s[8]))))))))
+    cs = c[0] + y2 * (c[1] + y2 * (c[2] + y2 * (c[3] + y2 * (c[4] + y2 * (c[5] + y2 * (c[6] + y2 * (c[7]
+                                                                                                 + y2 * c[8])))))))
+    qi = int(q) & 3  # rotate by q quarter turns
+    odd = (qi & 1) == 1
+    ss = cs if odd else sn
+    cc = sn if odd else cs
+    ss = -ss if (qi & 2) == 2 else ss
+    cc = -cc if ((qi + 1) & 2) == 2 else cc
+    return ss, cc
+
+
 @lru_cache(maxsize=None)
 def _kernels(real_name):
-    """Compile :func:`fringe_folds` for float32 or float64 working precision."""
+    """Compile :func:`fringe_folds` for float32 or float64 working precision (or load it from numba's
+    cache: the closure holds only numbers and numpy types, so its cache key is the same in every process)."""
     real = np.dtype(real_name).type
     cplx = np.complex64 if real is np.float32 else np.complex128
     n_terms = 6 if real is np.float32 else 9  # |y| <= pi/4: y^13/13! ~ 2e-11, y^19/19! ~ 1e-19
-    s0, s1, s2, s3, s4, s5, s6, s7, s8 = (real(c) for c in (_taylor(True, n_terms) + [0.0] * 9)[:9])
-    c0, c1, c2, c3, c4, c5, c6, c7, c8 = (real(c) for c in (_taylor(False, n_terms) + [0.0] * 9)[:9])
+    sin_c = tuple(real(c) for c in (_taylor(True, n_terms) + [0.0] * 9)[:9])
+    cos_c = tuple(real(c) for c in (_taylor(False, n_terms) + [0.0] * 9)[:9])
     two_pi, quarter = real(2 * np.pi), real(0.25)
 
-    @numba.njit(inline="always")
-    def sincos_turns(t):
-        """``(sin 2 pi t, cos 2 pi t)`` for ``|t| <= 1/2`` (t in the working precision)."""
-        q = np.rint(t * 4)
-        y = (t - q * quarter) * two_pi  # |y| <= pi/4
-        y2 = y * y
-        s = y * (s0 + y2 * (s1 + y2 * (s2 + y2 * (s3 + y2 * (s4 + y2 * (s5 + y2 * (s6 + y2 * (s7 + y2 * s8))))))))
-        c = c0 + y2 * (c1 + y2 * (c2 + y2 * (c3 + y2 * (c4 + y2 * (c5 + y2 * (c6 + y2 * (c7 + y2 * c8)))))))
-        qi = int(q) & 3  # rotate by q quarter turns
-        odd = (qi & 1) == 1
-        ss = c if odd else s
-        cc = s if odd else c
-        ss = -ss if (qi & 2) == 2 else ss
-        cc = -cc if ((qi + 1) & 2) == 2 else cc
-        return ss, cc
-
-    @numba.njit(nogil=True, boundscheck=False)
+    @numba.njit(nogil=True, boundscheck=False, cache=True)
     def fringe_folds(vec, b_turns, beam_n, beam_s, rot_re, rot_im, out_sum, out_diff):
         nr, nphi = beam_n.shape
         nb = b_turns.shape[0]
@@ -67,7 +72,7 @@ def _kernels(real_name):
                 vx, vy, vz = vec[r, j, 0], vec[r, j, 1], vec[r, j, 2]
                 for c in range(nb):
                     t = vx * bx[c] + vy * by[c] + vz * bz[c]
-                    s, co = sincos_turns(real(t - np.rint(t)))
+                    s, co = _sincos_turns(real(t - np.rint(t)), sin_c, cos_c, two_pi, quarter)
                     rr, ri = rot_re[r, c], rot_im[r, c]
                     sr = co * rr - s * ri  # the mirror ring's fringe: north times exp(-4 pi i b_z z)
                     si = co * ri + s * rr

@@ -73,7 +73,7 @@ def _kernel():
     # 2^(256 s) for s = 0, -1, -2, -3, -4 (2^-1024 is subnormal); 0 below
     powers = np.array([2.0 ** (-_SHIFT * j) for j in range(5)])
 
-    @numba.njit(nogil=True, boundscheck=False)
+    @numba.njit(nogil=True, boundscheck=False, cache=True)
     def scaled_recurrence(m, lmax, x, start, exponent, w, out, colmax, l_block):
         n = x.shape[0]
         prev = np.zeros(n)

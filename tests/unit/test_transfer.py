@@ -141,3 +141,30 @@ def test_compiled_fringe_kernel_matches_numpy():
         fringe_folds(vec, b, beam_n, beam_s, rot, out_s, out_d)
         np.testing.assert_allclose(out_s, north + south, atol=tol)
         np.testing.assert_allclose(out_d, north - south, atol=tol)
+
+
+def test_compiled_kernels_load_from_numba_cache_in_a_new_process(tmp_path):
+    """Every worker process would otherwise compile the Legendre recurrence and the fringe kernels
+    again (1-2 s each): a second process must find them in numba's cache (their closure constants
+    pickle to the same key in every process) and add nothing to it. (The float64 fringe kernel is
+    the float32 one with other constants.)"""
+    import subprocess
+    import sys
+
+    code = ("import json, numpy as np\n"
+            "from mmflow.mmode import fringe_kernels as fk, legendre\n"
+            "legendre.legendre_table(3, 20, np.linspace(0.1, 3.0, 7))\n"
+            "fk.sincos_turns(np.array([0.1, 0.4]), np.float32)\n"
+            "ks = [legendre._kernel(), fk._kernels('float32')]\n"
+            "print(json.dumps([[len(k.stats.cache_hits), len(k.stats.cache_misses)] for k in ks]))\n")
+    env = dict(__import__("os").environ, NUMBA_CACHE_DIR=str(tmp_path))
+
+    def run():
+        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+        return __import__("json").loads(out.stdout.strip().splitlines()[-1])
+
+    first = run()
+    files = sorted(p.name for p in tmp_path.rglob("*.nb*"))
+    assert first == [[0, 1]] * 2  # compiled once each, and written to the cache
+    assert run() == [[1, 0]] * 2  # the second process compiles nothing
+    assert sorted(p.name for p in tmp_path.rglob("*.nb*")) == files  # and adds no entry
