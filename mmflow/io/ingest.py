@@ -37,6 +37,7 @@ from mmflow.io.channels import average_channels, frequency_sets, select_channels
 from mmflow.io.polarization import pol_factor
 from mmflow.io.readers import file_kind, read_file, read_metadata
 from mmflow.mmode.transform import bin_coverage
+from mmflow.sky.frames import apparent_sidereal_time
 from mmflow.telescope.layout import Layout
 from mmflow.threads import n_threads
 
@@ -361,9 +362,5 @@ def sidereal_coverage(plan, n_bins):
     """Fraction of ``n_bins`` sidereal bins that hold at least one of the plan's integrations (the
     most any baseline can cover: :func:`mmflow.mmode.transform.bin_coverage` of every row's LST
     at the site, as the m-mode stage bins them)."""
-    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
-
-    lay = plan.layout
-    lst = get_lst_for_time(np.asarray(plan.row_time), latitude=lay.lat_deg, longitude=lay.lon_deg,
-                           altitude=lay.height_m)
+    lst = apparent_sidereal_time(np.asarray(plan.row_time), plan.layout.lon_deg)
     return bin_coverage(lst, n_bins)

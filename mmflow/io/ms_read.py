@@ -11,7 +11,8 @@ docs, "MeasurementSet"; ``tests/workflow/test_ingest_formats.py`` compares the s
   ``DATA`` and negates ``UVW`` unless the file says it was written in pyuvdata's convention
   (the main table's ``pyuvdata_flip_conj`` keyword, else a ``pyuvdata`` entry in ``HISTORY``);
 * times as the plan converts them (:func:`mmflow.io.ms_index.ms_time_to_jd`); LSTs the
-  site's apparent sidereal time at those times (``pyuvdata.utils.get_lst_for_time``);
+  site's apparent sidereal time at those times (:func:`mmflow.sky.frames.apparent_sidereal_time`,
+  pyuvdata's ``get_lst_for_time``);
 * weights ``WEIGHT_SPECTRUM``, else ``WEIGHT`` repeated over channels;
 * phased rows (any phase centre) unprojected to a drift scan as ``unproject_phase`` does: new w = 0,
   ``V *= exp(-2 pi i (0 - w) nu / c)`` with ``w`` pyuvdata's (sign-flipped) ``UVW[:, 2]``,
@@ -27,6 +28,7 @@ import numpy as np
 from mmflow.io.file_data import FileData
 from mmflow.io.ms_index import ms_time_to_jd
 from mmflow.io.polarization import select_pols
+from mmflow.sky.frames import apparent_sidereal_time
 
 SPEED_OF_LIGHT = 299792458.0  # m/s (astropy.constants.c)
 
@@ -52,7 +54,6 @@ def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):
     """
     # deferred: optional (python-casacore); pyuvdata takes 2-3.5 s to import (docs/performance.md)
     from casacore.tables import table
-    from pyuvdata.utils import get_lst_for_time
     from pyuvdata.utils.io.ms import POL_CASA2AIPS_DICT
 
     p = str(path).rstrip("/")
@@ -85,8 +86,8 @@ def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):
         delta_w_lambda = delta_w * (1.0 / SPEED_OF_LIGHT) * freqs.reshape(1, -1)
         data *= np.exp((-1j * 2 * np.pi) * delta_w_lambda[:, :, None])
     time_jd = ms_time_to_jd(time_s, scale)
-    lat, lon, height = site
-    lst = get_lst_for_time(time_jd, latitude=lat, longitude=lon, altitude=height)
+    lon = site[1]
+    lst = apparent_sidereal_time(time_jd, lon)
     vis, flg, ns = select_pols(data, flags, np.asarray(nsample, float), [corr.index(int(n)) for n in pol_numbers])
     auto = ant1 == ant2
     if auto.any():

@@ -34,7 +34,7 @@ from astropy.time import Time
 
 from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.simulate.visibilities import SkyPoints, thermal_noise
-from mmflow.sky.frames import source_enu, tangent_basis
+from mmflow.sky.frames import apparent_sidereal_time, source_enu, tangent_basis
 from mmflow.telescope.array import C_LIGHT
 
 ARCMIN = np.pi / 180 / 60
@@ -305,22 +305,20 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
 
 
 def utc_at_lsts(lsts, layout, near_jd, iterations=3):
-    """UTC Julian dates near ``near_jd`` at which the site's apparent LST (as pyuvdata computes
-    it, ``lst_array``) equals ``lsts`` (rad, one sidereal day of consecutive integrations).
+    """UTC Julian dates near ``near_jd`` at which the site's apparent LST
+    (:func:`mmflow.sky.frames.apparent_sidereal_time`, pyuvdata's ``lst_array``) equals ``lsts``
+    (rad, one sidereal day of consecutive integrations).
 
     The simulation is a function of LST alone (``simulate.scene.drift_scan_lsts``); files
     written through pyuvdata carry times, from which a reader recomputes the LST. Solves
     ``LST(t) = phi`` by Newton steps with ``dLST/dt = 2 pi / 86164.0905 s``: the first
     integration's time is found first, the rest follow from the unwrapped LSTs.
     """
-    from pyuvdata.utils import get_lst_for_time  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
-
     phi = np.unwrap(np.asarray(lsts, float))
     rate = 2 * np.pi / (SIDEREAL_DAY_S / 86400.0)  # rad per (UTC) day
 
     def lst(jd):
-        return get_lst_for_time(np.atleast_1d(jd), latitude=layout.lat_deg, longitude=layout.lon_deg,
-                                altitude=layout.height_m)
+        return apparent_sidereal_time(jd, layout.lon_deg)
 
     t = np.full(phi.shape, float(near_jd)) + (phi - phi[0]) / rate
     for _ in range(iterations):

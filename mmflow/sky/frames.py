@@ -8,6 +8,7 @@ import warnings
 from functools import lru_cache
 
 import ducc0
+import erfa
 import numpy as np
 from astropy import units as u
 from astropy.time import Time
@@ -53,6 +54,25 @@ def rotation_matrix(src, dst, epoch_jd):
 
 
 _FIT_ORDER = ("date", "icrs", "galactic")
+
+
+def apparent_sidereal_time(jd_utc, lon_deg):
+    """Local apparent sidereal time (rad, in [0, 2 pi)) at UTC Julian dates ``jd_utc`` and east
+    longitude ``lon_deg``: the sidereal angle of the frame of date.
+
+    ``LAST = GAST(UT1, TT) + s' + lambda``: Greenwich apparent sidereal time of IAU 2006/2000A
+    (ERFA ``gst06a``), the TIO locator ``s'`` (``sp00``) and the longitude; UT1 - UTC from astropy's
+    IERS table, held at its ends outside it (offline: :mod:`mmflow.offline`). This is the definition
+    of pyuvdata's ``lst_array`` (``pyuvdata.utils.get_lst_for_time``, ERFA library), to rounding
+    (tested), without importing pyuvdata (2-3.5 s) in every worker that only needs the angle.
+    """
+    t = Time(np.atleast_1d(np.asarray(jd_utc, float)), format="jd", scale="utc")
+    with warnings.catch_warnings():  # beyond the table: its end value (a warning per call otherwise)
+        warnings.simplefilter("ignore")
+        t.delta_ut1_utc = t.get_delta_ut1_utc(return_status=True)[0]
+    ut1, tt = t.ut1, t.tt
+    gast = erfa.gst06a(ut1.jd1, ut1.jd2, tt.jd1, tt.jd2)
+    return np.mod(gast + erfa.sp00(tt.jd1, tt.jd2) + np.deg2rad(lon_deg), 2.0 * np.pi)
 
 
 def tangent_basis(vec):

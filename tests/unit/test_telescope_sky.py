@@ -136,3 +136,30 @@ def test_gaussian_components_conserve_flux_and_centroid_and_match_analytic_visib
 def test_telescope_location_is_an_earth_location():
     tel = Telescope(ovro_lwa_layout("core", radius_m=10), SinElevationBeam(), [50e6])
     assert tel.location.lat.deg == pytest.approx(37.23977727)
+
+
+def test_apparent_sidereal_time_is_pyuvdatas_lst_and_utc_at_lsts_inverts_it():
+    """mmflow's LAST (ERFA's GAST 2006/2000A + s' + longitude, without importing pyuvdata in every
+    worker) equals pyuvdata's ``get_lst_for_time`` to rounding at three sites from 1968 to 2040,
+    beyond both ends of the IERS table included; and the UTC that ``utc_at_lsts`` finds for a day of
+    LSTs has, by pyuvdata's LST, those LSTs."""
+    from pyuvdata.utils import get_lst_for_time
+
+    from mmflow.simulate.corrupt import utc_at_lsts
+    from mmflow.sky.frames import apparent_sidereal_time
+
+    rng = np.random.default_rng(3)
+    for jd0 in (2440000.5, 2451545.0, 2457802.0, 2462502.5, 2466000.5):  # 1968, 2000, 2017, 2030, 2040
+        jd = jd0 + rng.uniform(0, 2, 300)
+        for lat, lon, h in ((37.2398, -118.2817, 1183.0), (-30.72, 21.43, 1050.0), (0.0, 179.9, 0.0)):
+            ours = apparent_sidereal_time(jd, lon)
+            assert np.all((ours >= 0) & (ours < 2 * np.pi))
+            theirs = get_lst_for_time(jd, latitude=lat, longitude=lon, altitude=h)
+            assert np.abs(np.angle(np.exp(1j * (ours - theirs)))).max() < 1e-14
+    layout = ovro_lwa_layout("core", radius_m=15)
+    lsts = np.mod(1.0 + 2 * np.pi * np.arange(500) / 500, 2 * np.pi)  # wraps through 0
+    t = utc_at_lsts(lsts, layout, 2460000.5)
+    assert np.all(np.diff(t) > 0) and abs(t[0] - 2460000.5) < 1.0
+    got = get_lst_for_time(t, latitude=layout.lat_deg, longitude=layout.lon_deg, altitude=layout.height_m)
+    # to the resolution of a float64 Julian date (5e-10 d = 3.4e-9 rad of LST)
+    assert np.abs(np.angle(np.exp(1j * (got - lsts)))).max() < 1e-8
