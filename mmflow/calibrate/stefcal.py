@@ -305,12 +305,10 @@ def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
     x, u = np.full((S, N), np.nan), np.full((S, N), np.nan)
     for s in range(S):
         g = gains[s].astype(np.complex128)
-        r, p = np.zeros((N, N)), np.zeros((N, N))
-        for k in range(K):
-            m = g[:, None] * M[s, k] * np.conj(g)[None, :]
-            res = V[s, k] - m
-            r += W[s, k] * (res.real ** 2 + res.imag ** 2)
-            p += W[s, k] * (m.real ** 2 + m.imag ** 2)
+        m = g[None, :, None] * M[s] * np.conj(g)[None, None, :]  # (K, N, N): all samples at once
+        res = V[s] - m
+        r = np.sum(W[s] * (res.real ** 2 + res.imag ** 2), axis=0)
+        p = np.sum(W[s] * (m.real ** 2 + m.imag ** 2), axis=0)
         w = W[s].sum(axis=0, dtype=float)
         r, p, w = r + r.T, p + p.T, w + w.T  # both halves: the dense problem may hold either
         np.fill_diagonal(w, 0.0)
@@ -322,7 +320,7 @@ def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
         lb, rb = lengths[iu][sel], (r[iu] / np.where(w[iu] > 0, w[iu], 1.0))[sel]
         edges = np.quantile(lb, np.linspace(0.0, 1.0, n_bins + 1))
         bin_of = np.clip(np.searchsorted(edges, lb, side="right") - 1, 0, n_bins - 1)
-        typical = np.array([np.median(rb[bin_of == b]) if np.any(bin_of == b) else np.nan for b in range(n_bins)])
+        typical = _binned_medians(rb, bin_of, n_bins)
         typical = np.where(np.isfinite(typical), typical, np.nanmedian(typical))
         idx = np.clip(np.searchsorted(edges, lengths, side="right") - 1, 0, n_bins - 1)
         power = np.sum(W[s] * np.abs(V[s]) ** 2) / max(np.count_nonzero(W[s]), 1)
@@ -332,6 +330,18 @@ def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
         x[s] = np.where(ok & (expect > 0), got / np.where(expect > 0, expect, 1.0), np.nan)
         u[s] = np.where(ok & (expect > 0), got / np.maximum(model, 1e-300), np.nan)
     return x, u
+
+
+def _binned_medians(values, bins, n_bins):
+    """``np.median(values[bins == b])`` for ``b = 0..n_bins-1`` (NaN for an empty bin) from one sort:
+    the mean of the two middle values of each bin (one value for an odd count)."""
+    v = values[np.lexsort((values, bins))]
+    counts = np.bincount(bins, minlength=n_bins)
+    start = np.cumsum(counts) - counts
+    filled = counts > 0
+    lo = np.where(filled, start + (counts - 1) // 2, 0)
+    hi = np.where(filled, start + counts // 2, 0)
+    return np.where(filled, (v[lo] + v[hi]) / 2, np.nan) if len(v) else np.full(n_bins, np.nan)
 
 
 def flag_outlier_antennas(V, M, W, result, *, n_sigma=5.0, max_rounds=8, lengths=None, **kwargs):

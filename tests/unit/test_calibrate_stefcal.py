@@ -263,3 +263,15 @@ def test_apply_gains_in_blocks_equals_the_division_and_broadcasts_one_integratio
     assert np.array_equal(one, same)
     with pytest.raises(ValueError, match="gains for 3 integrations, data for 37"):
         apply_gains(vis, 1.0, pairs, g[:3])
+
+
+def test_binned_medians_equal_numpys_median_of_each_bin(rng):
+    """The outlier statistic's typical residual per length bin, from one sort, is np.median of the bin
+    (odd and even counts, empty bins NaN, ties)."""
+    from mmflow.calibrate.stefcal import _binned_medians
+
+    for n in (0, 1, 2, 7, 40, 333):
+        values = np.round(rng.random(n), 1)  # ties
+        bins = rng.integers(0, 16, n)
+        expected = [np.median(values[bins == b]) if np.any(bins == b) else np.nan for b in range(16)]
+        np.testing.assert_array_equal(_binned_medians(values, bins, 16), expected)
