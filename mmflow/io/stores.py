@@ -172,8 +172,9 @@ class ChunkLedger:
         self.seconds = 0.0  # spent on checksums (reported per task: the bookkeeping's cost)
         self.guard_seconds = 0.0  # spent checking outputs for NaN/inf
 
-    def write(self, group, name, region, data):
-        arr = group[name]
+    def write(self, group, name, region, data, arr=None):
+        """Write ``data`` to ``group[name][region]`` (``arr``: that array, when already looked up)."""
+        arr = group[name] if arr is None else arr
         before = getattr(arr.store, "seconds", 0.0)
         arr[tuple(region) if len(region) else ...] = data
         self.seconds += getattr(arr.store, "seconds", 0.0) - before  # checksums computed as the bytes passed

@@ -56,13 +56,19 @@ class TaskContext(Context):
 
     stage: object = None
     ledger: ChunkLedger = field(default=None, compare=False)
+    #: a task's opened groups and looked-up arrays (None: not kept). Each zarr open or lookup reads
+    #: metadata through zarr's I/O thread (~1-1.5 ms); a task that reads and writes several arrays
+    #: would otherwise repeat them. Only a stage task keeps them: it changes no store's metadata.
+    handles: dict = field(default=None, compare=False, repr=False)
 
     @property
     def cfg(self):
         return ConfigView(_parse(self.config_json), self.stage.config, self.stage.name)
 
-    def for_task(self):
-        return TaskContext(self.config_json, self.run_path, self.token, self.stage, ChunkLedger(self.run_path))
+    def for_task(self, keep_handles=False):
+        """A context with its own chunk records; ``keep_handles``: a stage task's (see ``handles``)."""
+        return TaskContext(self.config_json, self.run_path, self.token, self.stage, ChunkLedger(self.run_path),
+                           {} if keep_handles else None)
 
     # ------------------------------------------------------------------ stores
     def create(self, spec):
@@ -88,28 +94,43 @@ class TaskContext(Context):
         as they pass; reads of an input store are checked against its producer's chunk records."""
         if store not in self.stage.inputs and store not in self.stage.outputs:
             raise MmflowError(f"stage '{self.stage.name}' opens {store}, which it does not declare")
+        if self.handles is not None and (store, mode) in self.handles:
+            return self.handles[store, mode]
         producer = self.producer(store) if store in self.stage.inputs else None
         expected = None
         if producer is not None and producer.name != self.stage.name and mode == "r":
             expected = self.run.chunk_index(producer.name)
-        return open_checked(self.run_path, store, mode, expected, producer.name if producer else None)
+        g = open_checked(self.run_path, store, mode, expected, producer.name if producer else None)
+        if self.handles is not None:
+            self.handles[store, mode] = g
+        return g
+
+    def array(self, group, name):
+        """``group[name]`` (kept with the group in a stage task: see ``handles``)."""
+        if self.handles is None:
+            return group[name]
+        key = ("array", id(group), name)
+        if key not in self.handles:
+            self.handles[key] = (group, group[name])  # the group held: its id stays its own
+        return self.handles[key][1]
 
     def read(self, store, name, region=()):
         """Read ``store/name[region]``; every chunk is checked against the producer's records as it is read."""
         g = self.open(store)
-        arr = g[name]
+        arr = self.array(g, name)
+        before = g.store.seconds
         try:
             return arr[tuple(region) if region else ...]
         finally:
             if self.ledger is not None:
-                self.ledger.seconds += g.store.seconds
+                self.ledger.seconds += g.store.seconds - before
 
     def write(self, group, name, region, data, allow_nan=False):
         """Write a chunk-aligned region, refusing NaN/inf, and record its chunks."""
         data = np.asarray(data)
         if not allow_nan:
             self.check_finite(f"{group.store.root}/{name} region {_fmt(region)}", data)
-        self.ledger.write(group, name, region, data)
+        self.ledger.write(group, name, region, data, arr=self.array(group, name))
 
     def check_finite(self, what, data):
         """Refuse NaN/inf about to be written (timed: the guard's cost is reported per stage)."""

@@ -67,7 +67,7 @@ def run_task(ctx, pipeline, stage_name, key):
     rss_start = current_rss_bytes()
     t0 = time.time()
     stage = pipeline.stage(stage_name)
-    tctx = ctx.for_stage(stage).for_task()
+    tctx = ctx.for_stage(stage).for_task(keep_handles=True)
     info = stage.task(tctx, TaskKey.parse(key)) or {}
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),

@@ -296,3 +296,39 @@ def test_every_store_records_config_versions_and_fingerprint(reference_run):
         meta = zarr.open_group(str(run_dir / store), mode="r").attrs["mmflow"]
         assert meta["config"]["mmode"]["lmax"] == 24 and meta["versions"]["numpy"]
         assert meta["fingerprint"] == status(run_dir)[meta["stage"]]["fingerprint"]
+
+
+def test_a_stage_task_opens_each_store_once_and_still_checks_every_chunk(reference_run, monkeypatch):
+    """A task's context keeps the groups and arrays it opened (zarr reads their metadata through its
+    I/O thread, ~1 ms each): reading two regions of one array opens the store once; every chunk read
+    is still checked against the producer's records, and the checksum time is counted once."""
+    import zarr
+
+    from mmflow.io import stores
+    from mmflow.workflow.context import Context
+    from mmflow.workflow.pipeline import PIPELINE
+
+    run_dir, _ = reference_run
+    opened = []
+    real_open = zarr.open_group
+    monkeypatch.setattr(stores.zarr, "open_group", lambda *a, **k: opened.append(1) or real_open(*a, **k))
+    cfg = small_config(run_dir)
+    ctx = Context(cfg.model_dump_json(), str(run_dir)).for_stage(PIPELINE.stage("mmodes"))
+    task = ctx.for_task(keep_handles=True)
+    a, b = task.read("vis.zarr", "vis", (slice(0, 3),)), task.read("vis.zarr", "vis", (slice(3, 6),))
+    assert len(opened) == 1 and a.shape[0] == b.shape[0] == 3
+    store_total = task.open("vis.zarr").store.seconds  # the kept store's running total of checksum time
+    assert 0 < store_total and task.ledger.seconds == pytest.approx(store_total, rel=1e-9)  # counted once
+    plain = ctx.for_task()  # outside a stage task (prepare, finalize): opened each time
+    plain.read("vis.zarr", "vis", (slice(0, 3),)), plain.read("vis.zarr", "vis", (slice(3, 6),))
+    assert len(opened) == 3
+    chunk = next((run_dir / "vis.zarr" / "vis" / "c").rglob("*"), None)
+    while chunk is not None and chunk.is_dir():
+        chunk = next(chunk.iterdir())
+    data = chunk.read_bytes()
+    chunk.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # a damaged chunk is found through a kept handle
+    try:
+        with pytest.raises(stores.DamagedStoreError, match="checksum differs"):
+            task.read("vis.zarr", "vis", (slice(None),))
+    finally:
+        chunk.write_bytes(data)
