@@ -25,6 +25,10 @@ Row layout of an m block
 
 Sidereal day
     ``SIDEREAL_DAY_S`` = 86164.0905 s of UTC: the sidereal angle advances by ``2 pi`` in it.
+    A drift scan's integration ``k`` is at ``phi_k = phi_0 + 2 pi k tau / T_sid`` (:func:`drift_scan_lsts`).
+
+Stokes parameters
+    ``imaging.stokes`` is ``[I]`` or the full set :data:`FULL_STOKES` (:func:`is_full_stokes`).
 
 Units
     Visibilities in Jy; beams are power responses, 1 at zenith; transfer matrices map
@@ -35,6 +39,24 @@ import numpy as np
 
 SIDEREAL_DAY_S = 86164.0905  # s: one turn of the sidereal angle
 TWO_PI = 2 * np.pi  # rad: one turn (of the sidereal angle, of an m-mode phase)
+#: the Stokes parameters of full-Stokes imaging, as ``imaging.stokes`` lists them
+FULL_STOKES = ("I", "Q", "U", "V")
+
+
+def is_full_stokes(stokes):
+    """True when ``stokes`` (``imaging.stokes``) asks for I, Q, U and V."""
+    return tuple(stokes) == FULL_STOKES
+
+
+def drift_scan_lsts(start_lst_rad, integration_s, index):
+    """``phi_k = phi_0 + 2 pi k tau / T_sid (mod 2 pi)`` for integration indices ``k``."""
+    k = np.asarray(index, float)
+    return (start_lst_rad + 2 * np.pi * k * integration_s / SIDEREAL_DAY_S) % (2 * np.pi)
+
+
+def drift_scan_times(epoch_jd, integration_s, index, n_total):
+    """UTC JD of each integration, centred on ``epoch_jd``: ``t_k = t_0 + (k - n/2) tau``."""
+    return epoch_jd + (np.asarray(index, float) - n_total / 2) * integration_s / 86400.0
 
 
 def enu_to_equatorial_matrix(lat_rad, phi=0.0):

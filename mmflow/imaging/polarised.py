@@ -129,15 +129,8 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     return PolarisedNormal(lmax, gram, rhs, vhv)
 
 
-#: the Stokes parameters of full-Stokes imaging, as ``imaging.stokes`` lists them
-FULL_STOKES = ("I", "Q", "U", "V")
 #: ``eps_pol / eps`` when not given: the prior of a weakly polarised sky (docs/stokes.md)
 EPS_POL_RATIO = 100.0
-
-
-def is_full_stokes(stokes):
-    """True when ``stokes`` (``imaging.stokes``) asks for I, Q, U and V."""
-    return tuple(stokes) == FULL_STOKES
 
 
 def stokes_eps(eps, eps_pol=None):

@@ -309,7 +309,7 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
     (:func:`mmflow.sky.frames.apparent_sidereal_time`, pyuvdata's ``lst_array``) equals ``lsts``
     (rad, one sidereal day of consecutive integrations).
 
-    The simulation is a function of LST alone (``simulate.scene.drift_scan_lsts``); files
+    The simulation is a function of LST alone (:func:`mmflow.conventions.drift_scan_lsts`); files
     written through pyuvdata carry times, from which a reader recomputes the LST. Solves
     ``LST(t) = phi`` by Newton steps with ``dLST/dt = 2 pi / 86164.0905 s``: the first
     integration's time is found first, the rest follow from the unwrapped LSTs.

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import InputError
 from mmflow.mmode.transfer import fringe_bandlimit
 from mmflow.simulate.corrupt import corrupted_visibilities
@@ -15,17 +14,6 @@ from mmflow.sky.frames import rotation_matrix, tangent_basis
 from mmflow.sky.diffuse import synthetic_sky_kelvin
 from mmflow.sky.sources import epoch_year, get_sources
 from mmflow.sky.units import kelvin_to_jy_per_sr
-
-
-def drift_scan_lsts(start_lst_rad, integration_s, index):
-    """``phi_k = phi_0 + 2 pi k tau / T_sid (mod 2 pi)`` for integration indices ``k``."""
-    k = np.asarray(index, float)
-    return (start_lst_rad + 2 * np.pi * k * integration_s / SIDEREAL_DAY_S) % (2 * np.pi)
-
-
-def drift_scan_times(epoch_jd, integration_s, index, n_total):
-    """UTC JD of each integration, centred on ``epoch_jd``: ``t_k = t_0 + (k - n/2) tau``."""
-    return epoch_jd + (np.asarray(index, float) - n_total / 2) * integration_s / 86400.0
 
 
 def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=(), quad_oversample=48):

@@ -15,11 +15,9 @@ from pathlib import Path
 import numpy as np
 from pydantic import ValidationError
 
-from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.conventions import SIDEREAL_DAY_S, drift_scan_lsts, is_full_stokes
 from mmflow.errors import InputError
-from mmflow.imaging.polarised import is_full_stokes
 from mmflow.mmode.splits import day_index, day_splits, jackknife_kind, sidereal_times_jd, split_problems
-from mmflow.simulate.scene import drift_scan_lsts
 from mmflow.sky.sources import CATALOG
 from mmflow.telescope import load_layout, ovro_lwa_layout
 from mmflow.telescope.beam_factory import make_beam, make_jones

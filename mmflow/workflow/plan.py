@@ -25,10 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S, m_blocks
+from mmflow.conventions import FULL_STOKES, SIDEREAL_DAY_S, is_full_stokes, m_blocks
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
-from mmflow.imaging.polarised import FULL_STOKES, is_full_stokes
 from mmflow.io import run_stores as rs
 from mmflow.io.ingest import plan_ingest
 from mmflow.machine import gemm_gflops

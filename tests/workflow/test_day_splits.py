@@ -92,7 +92,7 @@ def test_day_index_splits_a_regular_grid_into_whole_days_for_any_start_lst(start
     from types import SimpleNamespace
 
     from mmflow.simulate.corrupt import utc_at_lsts
-    from mmflow.simulate.scene import drift_scan_lsts
+    from mmflow.conventions import drift_scan_lsts
 
     lst = np.asarray(drift_scan_lsts(start, T_SID / 250, np.arange(750)))
     site = SimpleNamespace(lat_deg=37.2398, lon_deg=-118.2817, height_m=1222.0)

@@ -28,8 +28,8 @@ import threading
 
 import numpy as np
 
+from mmflow.conventions import is_full_stokes
 from mmflow.errors import CoverageError, InputError
-from mmflow.imaging.polarised import is_full_stokes
 from mmflow.io.polarization import CROSS_FEEDS, stokes_i, stokes_i_variance
 from mmflow.io.run_stores import mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0

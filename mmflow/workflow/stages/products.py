@@ -15,10 +15,9 @@ import json
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm
+from mmflow.conventions import healpy_alm, is_full_stokes
 from mmflow.imaging import maps as imaging_maps
 from mmflow.imaging.lcurve import lcurve_corner
-from mmflow.imaging.polarised import is_full_stokes
 from mmflow.imaging.sky_mask import observed_sky_mask
 from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollweide_png, write_table1
 from mmflow.io.report import summary_from_run, write_report

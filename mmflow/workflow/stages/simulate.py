@@ -15,9 +15,10 @@ from functools import lru_cache
 import numpy as np
 
 from mmflow.calibrate.coherency import source_vector_date
+from mmflow.conventions import drift_scan_lsts, drift_scan_times
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
-from mmflow.simulate.scene import drift_scan_lsts, drift_scan_times, simulate_chunk, sky_points, source_points_date
+from mmflow.simulate.scene import simulate_chunk, sky_points, source_points_date
 from mmflow.sky.sources import get_sources, resolved
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import build_telescope

@@ -22,8 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import padded_alm
-from mmflow.imaging.polarised import accumulate_polarised_normal, expected_alm, is_full_stokes, solve_polarised, \
+from mmflow.conventions import is_full_stokes, padded_alm
+from mmflow.imaging.polarised import accumulate_polarised_normal, expected_alm, solve_polarised, \
     stokes_eps
 from mmflow.io.run_stores import stokes_store
 from mmflow.mmode.noise import relative_weights
