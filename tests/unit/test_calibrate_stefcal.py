@@ -275,3 +275,22 @@ def test_binned_medians_equal_numpys_median_of_each_bin(rng):
         bins = rng.integers(0, 16, n)
         expected = [np.median(values[bins == b]) if np.any(bins == b) else np.nan for b in range(16)]
         np.testing.assert_array_equal(_binned_medians(values, bins, 16), expected)
+
+
+def test_to_matrix_equals_a_loop_over_baselines(rng):
+    """The compiled scatter against a plain loop: conj(V_ij) at [j, i] first, then V_ij at [i, j] (an
+    autocorrelation keeps V_ii; a pair listed both ways keeps the [i, j] writes), ``fill`` elsewhere,
+    complex and real input, an ``out`` of wider dtype, a non-contiguous input."""
+    pairs = np.array([[0, 1], [1, 0], [2, 2], [3, 1], [4, 0]])
+    vis = rng.normal(size=(3, 2, 5)) + 1j * rng.normal(size=(3, 2, 5))
+    for x, fill, out in ((vis, 0.0, None), (vis.real, -1.0, None), (vis[..., ::-1], 2.5, None),
+                         (vis.astype(np.complex64), 0.0, np.empty((3, 2, 6, 6), np.complex128))):
+        ref = np.full(x.shape[:-1] + (6, 6), fill, x.dtype if out is None else out.dtype)
+        for k, (i, j) in enumerate(pairs):
+            ref[..., j, i] = np.conj(x[..., k])
+        for k, (i, j) in enumerate(pairs):
+            ref[..., i, j] = x[..., k]
+        got = to_matrix(x, pairs, 6, fill=fill, out=out)
+        assert got.dtype == ref.dtype and np.array_equal(got, ref)
+    with pytest.raises(ValueError, match="complex visibilities"):
+        to_matrix(vis, pairs, 6, out=np.empty((3, 2, 6, 6)))
