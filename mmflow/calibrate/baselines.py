@@ -33,8 +33,8 @@ def to_matrix(vis, pairs, n_ant, fill=0.0, out=None):
     entries not covered by ``pairs`` are ``fill``. For real input (weights) the matrix is
     symmetric. ``out``: an array of that shape to fill (its dtype kept), e.g. one slice of a
     stack of sources' matrices, which then needs no copy (at 256 antennas a stack of eleven
-    sources' matrices is ~0.4 GB per 16 integrations). One compiled pass per matrix (numba): 3x
-    numpy's two fancy-indexed scatters at 256 antennas (docs/performance.md).
+    sources' matrices is ~0.4 GB per 16 integrations). One compiled pass per matrix (numba), faster
+    than numpy's two fancy-indexed scatters (docs/performance.md).
     """
     vis = np.asarray(vis)
     pairs = check_pairs(pairs, n_ant)

@@ -303,12 +303,17 @@ def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
     S, K, N, _ = V.shape
     iu = np.triu_indices(N, 1)
     x, u = np.full((S, N), np.nan), np.full((S, N), np.nan)
+    block = max(1, 2 ** 20 // (N * N))
     for s in range(S):
         g = gains[s].astype(np.complex128)
-        m = g[None, :, None] * M[s] * np.conj(g)[None, None, :]  # (K, N, N): all samples at once
-        res = V[s] - m
-        r = np.sum(W[s] * (res.real ** 2 + res.imag ** 2), axis=0)
-        p = np.sum(W[s] * (m.real ** 2 + m.imag ** 2), axis=0)
+        r, p = np.zeros((N, N)), np.zeros((N, N))
+        for k0 in range(0, K, block):  # samples a block at a time (temporaries ~16 MB), summed in order
+            ks = slice(k0, k0 + block)
+            m = g[None, :, None] * M[s, ks] * np.conj(g)[None, None, :]
+            res = V[s, ks] - m
+            for rk, pk in zip(W[s, ks] * (res.real ** 2 + res.imag ** 2), W[s, ks] * (m.real ** 2 + m.imag ** 2)):
+                r += rk
+                p += pk
         w = W[s].sum(axis=0, dtype=float)
         r, p, w = r + r.T, p + p.T, w + w.T  # both halves: the dense problem may hold either
         np.fill_diagonal(w, 0.0)
