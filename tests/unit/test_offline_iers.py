@@ -74,3 +74,33 @@ def test_no_home_folder_means_no_cache_not_a_failure(monkeypatch):
     monkeypatch.setattr(Path, "home", staticmethod(no_home))
     table = iers.IERS_Auto.read()
     assert isinstance(table, iers.IERS_Auto) and len(table) > 10_000
+
+
+def test_compiled_kernels_import_and_run_from_a_read_only_installation(tmp_path):
+    """A read-only installation without a writable home: numba finds no folder for the kernels' cache
+    and refused their decorators (importing the calibration kernels raised "no locator available").
+    ``import mmflow`` now gives it mmflow's cache folder, else a per-user temporary one. Here every
+    ``__pycache__`` of a copy of the package is a file (cannot be a folder), $HOME and the cache
+    variables point nowhere writable: the kernels compile, run and land in the temporary folder."""
+    import os
+    import shutil
+    from pathlib import Path
+
+    pkg = Path(offline.__file__).resolve().parent
+    copy = tmp_path / "site" / "mmflow"
+    shutil.copytree(pkg, copy, ignore=shutil.ignore_patterns("__pycache__"))
+    for folder in [copy, *[p for p in copy.rglob("*") if p.is_dir()]]:
+        (folder / "__pycache__").write_text("")  # numba's in-tree cache folder cannot be made
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "MMFLOW_CACHE_DIR", "XDG_CACHE_HOME")}
+    env.update(HOME="/dev/null", PYTHONPATH=str(copy.parent), TMPDIR=str(tmp), PYTHONDONTWRITEBYTECODE="1")
+    code = ("import os, numpy as np\n"
+            "from mmflow.calibrate.baselines import to_matrix\n"
+            "m = to_matrix(np.array([[1 + 2j]]), np.array([[0, 1]]), 2)\n"
+            "print(m[0, 1, 0], os.environ['NUMBA_CACHE_DIR'])\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr[-2000:]
+    value, folder = out.stdout.split()
+    assert complex(value) == 1 - 2j and Path(folder).parent == tmp
+    assert any(Path(folder).rglob("*.nbi"))  # the compiled kernel was cached there
