@@ -9,6 +9,7 @@ import numpy as np
 from mmflow.errors import InputError
 from mmflow.mmode.transfer import fringe_bandlimit
 from mmflow.simulate.corrupt import corrupted_visibilities
+from mmflow.simulate.polarised import CORRELATIONS, PolarisedPoints, simulate_polarised_drift_scan
 from mmflow.simulate.visibilities import SkyPoints, gauss_legendre_points, simulate_drift_scan, thermal_noise
 from mmflow.sky.frames import rotation_matrix, tangent_basis
 from mmflow.sky.diffuse import synthetic_sky_kelvin
@@ -91,3 +92,58 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
             v = v + noise
         out[:, :, fi, 0] = v
     return out
+
+
+def unpolarised(points):
+    """:class:`SkyPoints` as :class:`~mmflow.simulate.polarised.PolarisedPoints` with Q = U = V = 0."""
+    stokes = np.zeros((len(points.flux_jy), 4))
+    stokes[:, 0] = points.flux_jy
+    return PolarisedPoints(points.vectors, stokes)
+
+
+def polarised_sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=(), fractions=None,
+                         quad_oversample=48):
+    """The sky of :func:`sky_points` with Stokes parameters: the diffuse sky unpolarised, each catalogue
+    source ``s`` with ``(Q, U, V) = I_s (q_s, u_s, v_s)`` for its fractions in ``fractions``
+    (``{name: (q, u, v)}``, IAU; absent: unpolarised), every component of a resolved source alike."""
+    fractions = fractions or {}
+    parts = [unpolarised(sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed, (), quad_oversample))]
+    for src in get_sources(list(sources)):
+        pts = source_points_date(src, freq_hz, epoch_jd)
+        q, u, v = fractions.get(src.name, (0.0, 0.0, 0.0))
+        parts.append(PolarisedPoints(pts.vectors, pts.flux_jy[:, None] * np.array([1.0, q, u, v])))
+    return joined(parts)
+
+
+def joined(parts):
+    """One :class:`~mmflow.simulate.polarised.PolarisedPoints` of several."""
+    return PolarisedPoints(np.concatenate([p.vectors for p in parts]), np.concatenate([p.stokes_jy for p in parts]))
+
+
+def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, integration_s=None):
+    """The four linear correlations of one time chunk: ``(parallel, cross)``, each ``(time, baseline,
+    freq, 2)`` complex64, the parallel hands xx, yy and the cross hands xy, yx (x east, y north), one
+    :class:`~mmflow.simulate.polarised.PolarisedPoints` sky per frequency through the E-field beam
+    ``jones`` (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`: direct sums, independent
+    of the transfer code). With ``noise_rng``, radiometer noise on every correlation,
+    ``sigma_pq^2 = V_ii^pp V_jj^qq / (dnu tau)`` (feed p of antenna i, feed q of antenna j), real on
+    the parallel hands' autocorrelations."""
+    pairs = telescope.antenna_pairs()
+    out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), len(CORRELATIONS)), np.complex64)
+    is_auto = pairs[:, 0] == pairs[:, 1]
+    if noise_rng is not None:
+        if not is_auto.any():
+            raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
+                             "set telescope.include_autos=true or sky.noise=false")
+        col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
+        ci, cj = [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
+    for fi, f in enumerate(telescope.freqs_hz):
+        v = np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, skies[fi], pairs), 1, -1)
+        if noise_rng is not None:
+            autos = {feed: np.real(v[:, is_auto, CORRELATIONS.index(feed * 2)]) for feed in "xy"}
+            for c, (p, q) in enumerate(CORRELATIONS):
+                noise, _ = thermal_noise(v[..., c], autos[p][:, ci], autos[q][:, cj], telescope.channel_width_hz,
+                                         integration_s, noise_rng, is_auto if p == q else None)
+                v[..., c] += noise
+        out[:, :, fi] = v
+    return out[..., :2], out[..., 2:]

@@ -97,6 +97,11 @@ class SkyConfig(Section):
                       "+1.8, at its apparent position at each time chunk's mid time "
                       "(mmflow.simulate.corrupt.sun_points).")
     noise: bool = Field(True, description="Add radiometer-equation thermal noise (needs telescope.include_autos).")
+    polarised: dict[str, tuple[float, float, float]] = Field(
+        {}, description="Fractional polarisation (Q/I, U/I, V/I; IAU) of sources in sky.sources, e.g. "
+        "{3C 286: [0.1, 0.05, 0.0]}, the others unpolarised. With imaging.stokes [I, Q, U, V] the simulate "
+        "stage writes xx, yy, xy and yx through the E-field beam (mmflow.simulate.polarised: direct sums); "
+        "needs corrupt.enabled false.")
     seed: int = Field(1, ge=0, description="Random seed (diffuse sky and noise).")
     quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")
 

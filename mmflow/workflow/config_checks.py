@@ -362,17 +362,38 @@ def _products_problems(cfg):
     return out
 
 
+def _polarised_sky_problems(cfg):
+    """``sky.polarised``: sources of ``sky.sources``, fractions of at most 1, and a run that images them."""
+    pol = cfg.sky.polarised
+    if not pol:
+        return []
+    out = []
+    for name, (q, u, v) in pol.items():
+        loc = ("sky", "polarised", name)
+        if name not in cfg.sky.sources:
+            out.append(Problem(loc, [q, u, v], f"'{name}' is not in sky.sources {list(cfg.sky.sources)}",
+                               "add it to sky.sources" + (f" (or did you mean '{hit}'?)" if (hit := nearest(name, cfg.sky.sources)) else "")))
+        if q * q + u * u + v * v > 1.0:
+            out.append(Problem(loc, [q, u, v], f"polarised fraction sqrt(q^2 + u^2 + v^2) = "
+                               f"{(q * q + u * u + v * v) ** 0.5:.3g} is more than 1", "give fractions of I"))
+    if cfg.source != "simulate" or not is_full_stokes(cfg.imaging.stokes):
+        out.append(Problem(("sky", "polarised"), dict(pol), "only a full-Stokes simulation carries polarisation "
+                           f"(source: {cfg.source}, imaging.stokes: {list(cfg.imaging.stokes)})",
+                           "set source=simulate and imaging.stokes=[I, Q, U, V], or sky.polarised={}"))
+    return out
+
+
 def _stokes_problems(cfg):
     """Full Stokes (``imaging.stokes: [I, Q, U, V]``): what it needs of the input, the beam and the stages."""
     if not is_full_stokes(cfg.imaging.stokes):
         return []
     loc, val = ("imaging", "stokes"), list(cfg.imaging.stokes)
     out = []
-    if cfg.source == "simulate":
-        out.append(Problem(loc, val, "the simulate stage writes the parallel hands only, not xy and yx",
-                           "ingest files holding XX, YY, XY and YX (source: files; e.g. a matvis polarized=True "
-                           "simulation written by pyuvdata), or set imaging.stokes=[I]"))
-    elif not cfg.input.cross_hands:
+    if cfg.source == "simulate" and cfg.corrupt.enabled:
+        out.append(Problem(("corrupt", "enabled"), True, "the corruption simulator writes the parallel hands only, "
+                           "not xy and yx", "set corrupt.enabled=false for a full-Stokes simulation, or image "
+                           "Stokes I only"))
+    elif cfg.source != "simulate" and not cfg.input.cross_hands:
         out.append(Problem(("input", "cross_hands"), False, "full Stokes needs the cross hands xy, yx",
                            "set input.cross_hands=true"))
     for stage in ("peel", "terrestrial"):
@@ -394,7 +415,7 @@ def _stokes_problems(cfg):
 def check_config(cfg):
     """Every cross-field and file problem of a schema-valid configuration (empty list: fine)."""
     out = _telescope_problems(cfg) + _value_problems(cfg) + _clean_problems(cfg) + _products_problems(cfg) + \
-        _split_problems(cfg)
+        _split_problems(cfg) + _polarised_sky_problems(cfg)
     if not any(p.loc[:1] == ("beam",) for p in out):
         out.extend(_beam_build_problems(cfg))
         out.extend(_stokes_problems(cfg))

@@ -15,10 +15,12 @@ from functools import lru_cache
 import numpy as np
 
 from mmflow.calibrate.coherency import source_vector_date
-from mmflow.conventions import drift_scan_lsts, drift_scan_times
+from mmflow.conventions import drift_scan_lsts, drift_scan_times, is_full_stokes
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
-from mmflow.simulate.scene import simulate_chunk, sky_points, source_points_date
+from mmflow.simulate.scene import joined, polarised_sky_points, simulate_chunk, simulate_polarised_chunk, sky_points, \
+    source_points_date, unpolarised
+from mmflow.telescope.beam_factory import make_jones
 from mmflow.sky.sources import get_sources, resolved
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import build_telescope
@@ -31,11 +33,14 @@ def _sim_prepare(ctx):
     tel = build_telescope(cfg)
     n = n_integrations(cfg)
     o = cfg.observation
+    full = is_full_stokes(cfg.imaging.stokes)
     attrs = dict(layout_attrs(tel.layout), source="simulate", epoch_jd=o.epoch_jd, sky=cfg.sky.model_dump(),
                  integration_s=o.integration_s, channel_width_hz=o.channel_width_khz * 1e3,
-                 pols=["xx", "yy"] if cfg.corrupt.enabled else ["I"])
+                 pols=["xx", "yy"] if cfg.corrupt.enabled or full else ["I"])
     if cfg.corrupt.enabled:
         attrs["corrupt"] = cfg.corrupt.model_dump()
+    if full:  # the four correlations through the E-field beam, in mmflow's avg convention (I = (xx + yy) / 2)
+        attrs.update(cross_pols=["xy", "yx"], pol_convention="avg")
     ctx.create(vis_store(n, tel.antenna_pairs(), tel.freqs_hz, tel.layout.enu, attrs, TIME_CHUNK,
                          cfg.mmode.baseline_chunk))
     return time_keys(n)
@@ -51,6 +56,9 @@ def _skies(ctx):
     dd = list(c.dd_sources) if c.enabled else []
     model = resolved if s.resolved else (lambda src: src)  # sky.resolved: Cyg A, Cas A as Gaussian components
     plain = tuple(model(x) for x in get_sources([n for n in s.sources if n not in dd]))
+    if is_full_stokes(cfg.imaging.stokes):  # checked: not corrupted
+        return tel, [polarised_sky_points(tel, float(f), o.epoch_jd, s.diffuse_lmax if s.diffuse else None, s.seed,
+                                          plain, s.polarised, s.quad_oversample) for f in tel.freqs_hz], None
     skies = [sky_points(tel, float(f), o.epoch_jd, s.diffuse_lmax if s.diffuse else None, s.seed, plain,
                         s.quad_oversample) for f in tel.freqs_hz]
     if not c.enabled:
@@ -83,10 +91,17 @@ def _sim_task(ctx, key):
     if cfg.sky.sun:  # the Sun moves ~1 deg a day against the stars: its position at the chunk's mid time
 
         mid = float(np.median(time_jd))
-        skies = [sky + sun_points(mid, float(f)) for sky, f in zip(skies, tel.freqs_hz)]
-    vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy)
+        sun = [sun_points(mid, float(f)) for f in tel.freqs_hz]
+        skies = [joined([sky, unpolarised(x)]) if corrupted is None and is_full_stokes(cfg.imaging.stokes)
+                 else sky + x for sky, x in zip(skies, sun)]
     g = ctx.open("vis.zarr", mode="r+")
     rows = (slice(t0, t1),)
+    if is_full_stokes(cfg.imaging.stokes):
+        vis, cross = simulate_polarised_chunk(tel, make_jones(cfg.beam.model_dump()), lst, skies, rng, o.integration_s)
+        ctx.write(g, "vis_cross", rows, cross)
+        ctx.write(g, "weights_cross", rows, np.ones(cross.shape, np.float32))
+    else:
+        vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy)
     weights = np.ones(vis.shape, np.float32)
     ctx.write(g, "vis", rows, vis)
     ctx.write(g, "weights", rows, weights)
@@ -96,7 +111,9 @@ def _sim_task(ctx, key):
     return {"integrations": int(len(k))}
 
 
-STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk"), (),
+STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk",
+                           "imaging.stokes"), (),
                ("vis.zarr",), _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
                description="time-domain drift-scan simulation (independent of transfer matrices), "
-               "optionally corrupted (gains, DD effects, terrestrial signals)")
+               "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "
+               "correlations of a polarised sky through the E-field beam")
