@@ -70,12 +70,7 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
     n_pol = 1 if corrupted is None else 2
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), n_pol), np.complex64)
     if noise_rng is not None:
-        is_auto = pairs[:, 0] == pairs[:, 1]
-        if not is_auto.any():
-            raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
-                             "set telescope.include_autos=true or sky.noise=false")
-        col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
-        ci, cj = [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
+        is_auto, ci, cj = _auto_columns(pairs)
     for fi, f in enumerate(telescope.freqs_hz):
         v = simulate_drift_scan(telescope, f, lsts, skies[fi], pairs, np.complex64)
         if corrupted is not None:
@@ -92,6 +87,17 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
             v = v + noise
         out[:, :, fi, 0] = v
     return out
+
+
+def _auto_columns(pairs):
+    """For radiometer noise: which baselines are autocorrelations, and for each baseline the columns of
+    its two antennas' autocorrelations among them (refused when there are none)."""
+    is_auto = pairs[:, 0] == pairs[:, 1]
+    if not is_auto.any():
+        raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
+                         "set telescope.include_autos=true or sky.noise=false")
+    col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
+    return is_auto, [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
 
 
 def unpolarised(points):
@@ -130,13 +136,8 @@ def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, inte
     the parallel hands' autocorrelations."""
     pairs = telescope.antenna_pairs()
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), len(CORRELATIONS)), np.complex64)
-    is_auto = pairs[:, 0] == pairs[:, 1]
     if noise_rng is not None:
-        if not is_auto.any():
-            raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
-                             "set telescope.include_autos=true or sky.noise=false")
-        col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
-        ci, cj = [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
+        is_auto, ci, cj = _auto_columns(pairs)
     for fi, f in enumerate(telescope.freqs_hz):
         v = np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, skies[fi], pairs), 1, -1)
         if noise_rng is not None:

@@ -193,3 +193,34 @@ def test_scalar_stokes_i_path_sees_dterms_only_through_the_cross_hands(setup):
             maps = setup["scalar"][eps_i]
             np.testing.assert_allclose(maps[s, "rotation"], (1 + THETA ** 2) * maps[s, "none"],
                                        atol=1e-9 * np.abs(maps[s, "none"]).max())
+
+
+def test_simulated_chunk_noise_follows_the_radiometer_equation_of_each_feed_pair():
+    """The simulate stage's full-Stokes chunk: the noise on each correlation pq of baseline (i, j) has
+    variance V_ii^pp V_jj^qq / (dnu tau) (complex on cross correlations, real on the parallel hands'
+    autocorrelations), and without noise the parallel and cross hands are the direct sums'."""
+    from mmflow.simulate.polarised import PolarisedPoints, simulate_polarised_drift_scan
+    from mmflow.simulate.scene import simulate_polarised_chunk
+    from mmflow.telescope import Telescope
+    from mmflow.telescope.jones import ShortDipoleJones
+    from tests.stokes_helpers import compact_layout
+
+    jones = ShortDipoleJones(3.0)
+    tel = Telescope(compact_layout(4), jones.power_beam(), [40e6], include_autos=True)
+    tel.channel_width_hz = 24e3
+    sky = [PolarisedPoints(np.array([[0.3, 0.2, 0.93]]) / np.linalg.norm([0.3, 0.2, 0.93]),
+                           np.array([[1e5, 3e4, -2e4, 1e4]]))]
+    lsts = np.full(4000, 0.4)  # one sky, many noise draws
+    par, cross = simulate_polarised_chunk(tel, jones, lsts, sky)
+    exact = simulate_polarised_drift_scan(tel, jones, 40e6, lsts[:1], sky[0], tel.antenna_pairs())[0]  # (corr, bl)
+    np.testing.assert_allclose(np.concatenate([par[0, :, 0], cross[0, :, 0]], axis=-1), exact.T, rtol=1e-6, atol=1e-3)
+    npar, ncross = simulate_polarised_chunk(tel, jones, lsts, sky, np.random.default_rng(0), integration_s=13.0)
+    noise = np.concatenate([npar - par, ncross - cross], axis=-1)[:, :, 0]  # (time, bl, corr)
+    pairs = tel.antenna_pairs()
+    auto = {int(i): exact[:2, b].real for b, (i, j) in enumerate(pairs) if i == j}  # xx, yy autos per antenna
+    for b, (i, j) in enumerate(pairs):
+        for c, (p, q) in enumerate(("xx", "yy", "xy", "yx")):
+            var = auto[int(i)]["xy".index(p)] * auto[int(j)]["xy".index(q)] / (24e3 * 13.0)
+            n = noise[:, b, c]
+            assert abs(np.mean(np.abs(n) ** 2) / var - 1) < 0.1, (b, c)
+            assert (np.abs(n.imag).max() == 0) == (i == j and p == q), (b, c)
