@@ -64,7 +64,8 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
     ncross = len(attrs.get("cross_pols") or [])
     cross = () if not ncross else (
         ArraySpec("vis_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,), "complex64",
-                  doc="cross-hand visibilities (xy, yx | rl, lr), Jy; only where the ingested files hold them"),
+                  doc="cross-hand visibilities (xy, yx | rl, lr), Jy; where the ingested files hold them, or a "
+                  "full-Stokes simulation"),
         ArraySpec("weights_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
                   "float32", doc="their weights, 0 = flagged"))
     planned = () if ingest_plan is None else _ingest_plan_arrays(*ingest_plan)
@@ -85,7 +86,8 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
     ) + cross + planned, attrs, doc=(
         "Visibilities, written by the simulate or ingest stage and never rewritten: corrections are "
         "applied where the data are read. Attributes: ``pols`` names the pol axis ([I] a clean "
-        "simulation or pseudo-Stokes files, [xx, yy] linear feeds (ee/nn alike), [rr, ll], or one hand; "
+        "Stokes-I simulation or pseudo-Stokes files, [xx, yy] linear feeds (ee/nn alike; a corrupted or "
+        "full-Stokes simulation), [rr, ll], or one hand; "
         "Stokes I is formed after the corrections, where the mmodes stage reads the data), "
         "``cross_pols`` the cross_pol axis; site (lat_deg, lon_deg, height_m), antenna_names, epoch_jd "
         "(the data's epoch: every frame rotation and header uses it), integration_s, channel_width_hz, "
