@@ -2,6 +2,9 @@
 
 With ``sky.resolved`` Cyg A and Cas A are simulated as their Gaussian components
 (:func:`mmflow.sky.sources.resolved`), sampled by Gauss-Hermite quadrature (:meth:`Source.points`).
+With ``imaging.stokes: [I, Q, U, V]`` (uncorrupted) it writes the four linear correlations through the
+E-field beam, the sources polarised as ``sky.polarised`` says
+(:func:`mmflow.simulate.scene.simulate_polarised_chunk`; docs/stokes.md).
 
 Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): visibilities per
 polarisation (Stokes I alone for a clean simulation; XX and YY for a corrupted one or as ingested) in
