@@ -38,6 +38,8 @@ def to_matrix(vis, pairs, n_ant, fill=0.0, out=None):
     """
     vis = np.asarray(vis)
     pairs = check_pairs(pairs, n_ant)
+    if vis.ndim == 0 or vis.shape[-1] != len(pairs):
+        raise ValueError(f"visibilities of shape {vis.shape}: the last axis must hold the {len(pairs)} baselines of pairs")
     shape = vis.shape[:-1] + (n_ant, n_ant)
     if out is None:
         out = np.empty(shape, vis.dtype)

@@ -338,15 +338,19 @@ def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
 
 
 def _binned_medians(values, bins, n_bins):
-    """``np.median(values[bins == b])`` for ``b = 0..n_bins-1`` (NaN for an empty bin) from one sort:
-    the mean of the two middle values of each bin (one value for an odd count)."""
+    """``np.median(values[bins == b])`` for ``b = 0..n_bins-1`` (NaN for an empty bin, or one holding a
+    NaN, as np.median) from one sort: the mean of the two middle values of each bin (one value for
+    an odd count)."""
     v = values[np.lexsort((values, bins))]
     counts = np.bincount(bins, minlength=n_bins)
     start = np.cumsum(counts) - counts
     filled = counts > 0
     lo = np.where(filled, start + (counts - 1) // 2, 0)
     hi = np.where(filled, start + counts // 2, 0)
-    return np.where(filled, (v[lo] + v[hi]) / 2, np.nan) if len(v) else np.full(n_bins, np.nan)
+    if not len(v):
+        return np.full(n_bins, np.nan)
+    with_nan = np.bincount(bins, weights=np.isnan(values), minlength=n_bins) > 0
+    return np.where(filled & ~with_nan, (v[lo] + v[hi]) / 2, np.nan)
 
 
 def flag_outlier_antennas(V, M, W, result, *, n_sigma=5.0, max_rounds=8, lengths=None, **kwargs):

@@ -146,5 +146,7 @@ def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, inte
                 noise, _ = thermal_noise(v[..., c], autos[p][:, ci], autos[q][:, cj], telescope.channel_width_hz,
                                          integration_s, noise_rng, is_auto if p == q else None)
                 v[..., c] += noise
+            # an autocorrelation's yx is conj(xy) in any correlator: one noise draw for the pair
+            v[:, is_auto, CORRELATIONS.index("yx")] = np.conj(v[:, is_auto, CORRELATIONS.index("xy")])
         out[:, :, fi] = v
     return out[..., :2], out[..., 2:]

@@ -67,9 +67,11 @@ def apparent_sidereal_time(jd_utc, lon_deg):
     (tested), without importing pyuvdata (2-3.5 s) in every worker that only needs the angle.
     """
     t = Time(np.atleast_1d(np.asarray(jd_utc, float)), format="jd", scale="utc")
-    with warnings.catch_warnings():  # beyond the table: its end value (a warning per call otherwise)
-        warnings.simplefilter("ignore")
-        t.delta_ut1_utc = t.get_delta_ut1_utc(return_status=True)[0]
+    delta, status = t.get_delta_ut1_utc(return_status=True)
+    if np.any(status < 0):  # iers.TIME_BEFORE_IERS_RANGE (-1), TIME_BEYOND_IERS_RANGE (-2)
+        warnings.warn("times outside the IERS table: UT1 - UTC held at the table's end (as pyuvdata does)",
+                      stacklevel=2)
+    t.delta_ut1_utc = delta
     ut1, tt = t.ut1, t.tt
     gast = erfa.gst06a(ut1.jd1, ut1.jd2, tt.jd1, tt.jd2)
     return np.mod(gast + erfa.sp00(tt.jd1, tt.jd2) + np.deg2rad(lon_deg), 2.0 * np.pi)

@@ -373,7 +373,7 @@ def _polarised_sky_problems(cfg):
         if name not in cfg.sky.sources:
             out.append(Problem(loc, [q, u, v], f"'{name}' is not in sky.sources {list(cfg.sky.sources)}",
                                "add it to sky.sources" + (f" (or did you mean '{hit}'?)" if (hit := nearest(name, cfg.sky.sources)) else "")))
-        if q * q + u * u + v * v > 1.0:
+        if q * q + u * u + v * v > 1.0:  # (NaN and inf: refused by the schema)
             out.append(Problem(loc, [q, u, v], f"polarised fraction sqrt(q^2 + u^2 + v^2) = "
                                f"{(q * q + u * u + v * v) ** 0.5:.3g} is more than 1", "give fractions of I"))
     if cfg.source != "simulate" or not is_full_stokes(cfg.imaging.stokes):

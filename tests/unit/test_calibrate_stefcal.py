@@ -275,6 +275,10 @@ def test_binned_medians_equal_numpys_median_of_each_bin(rng):
         bins = rng.integers(0, 16, n)
         expected = [np.median(values[bins == b]) if np.any(bins == b) else np.nan for b in range(16)]
         np.testing.assert_array_equal(_binned_medians(values, bins, 16), expected)
+        if n > 2:  # a NaN makes its bin's median NaN, as np.median does
+            values[0] = np.nan
+            expected = [np.median(values[bins == b]) if np.any(bins == b) else np.nan for b in range(16)]
+            np.testing.assert_array_equal(_binned_medians(values, bins, 16), expected)
 
 
 def test_to_matrix_equals_a_loop_over_baselines(rng):
@@ -294,3 +298,6 @@ def test_to_matrix_equals_a_loop_over_baselines(rng):
         assert got.dtype == ref.dtype and np.array_equal(got, ref)
     with pytest.raises(ValueError, match="complex visibilities"):
         to_matrix(vis, pairs, 6, out=np.empty((3, 2, 6, 6)))
+    for short in (vis[..., :4], vis[..., :1], np.ones((1, 2000))):  # never past the pairs' end
+        with pytest.raises(ValueError, match="the 5 baselines of pairs"):
+            to_matrix(short, pairs, 6)

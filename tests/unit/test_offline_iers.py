@@ -104,3 +104,29 @@ def test_compiled_kernels_import_and_run_from_a_read_only_installation(tmp_path)
     value, folder = out.stdout.split()
     assert complex(value) == 1 - 2j and Path(folder).parent == tmp
     assert any(Path(folder).rglob("*.nbi"))  # the compiled kernel was cached there
+
+
+def test_numba_cache_folder_fallbacks_are_private(tmp_path, monkeypatch):
+    """Without a home folder the numba cache falls back to a temporary folder only this user can write;
+    a folder of that name that others can write is not used (numba unpickles what it finds there)."""
+    import os
+
+    from mmflow import compiled_cache
+
+    monkeypatch.setattr(compiled_cache.tempfile, "gettempdir", lambda: str(tmp_path))
+    monkeypatch.delitem(sys.modules, "numba", raising=False)  # as before numba's first import
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")
+    read_only = tmp_path / "pkg"
+    read_only.mkdir()
+    (read_only / "__pycache__").write_text("")  # the package's own cache folder cannot be made
+
+    def no_home():
+        raise RuntimeError("Could not determine home directory")
+
+    monkeypatch.setattr(compiled_cache, "cache_dir", no_home)
+    folder = compiled_cache.configure_numba_cache(read_only)
+    assert folder is not None and folder.parent == tmp_path and os.environ["NUMBA_CACHE_DIR"] == str(folder)
+    assert folder.stat().st_mode & 0o077 == 0
+    monkeypatch.setenv("NUMBA_CACHE_DIR", "")
+    folder.chmod(0o777)  # prepared by someone else, or open to them
+    assert compiled_cache.configure_numba_cache(read_only) is None and not os.environ["NUMBA_CACHE_DIR"]

@@ -224,3 +224,5 @@ def test_simulated_chunk_noise_follows_the_radiometer_equation_of_each_feed_pair
             n = noise[:, b, c]
             assert abs(np.mean(np.abs(n) ** 2) / var - 1) < 0.1, (b, c)
             assert (np.abs(n.imag).max() == 0) == (i == j and p == q), (b, c)
+        if i == j:  # an autocorrelation's yx is conj(xy), noise included
+            np.testing.assert_array_equal(ncross[:, b, 0, 1], np.conj(ncross[:, b, 0, 0]))
