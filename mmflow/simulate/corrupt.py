@@ -316,13 +316,9 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
     """
     phi = np.unwrap(np.asarray(lsts, float))
     rate = 2 * np.pi / (SIDEREAL_DAY_S / 86400.0)  # rad per (UTC) day
-
-    def lst(jd):
-        return apparent_sidereal_time(jd, layout.lon_deg)
-
     t = np.full(phi.shape, float(near_jd)) + (phi - phi[0]) / rate
     for _ in range(iterations):
-        err = np.angle(np.exp(1j * (phi - lst(t))))
+        err = np.angle(np.exp(1j * (phi - apparent_sidereal_time(t, layout.lon_deg))))
         t = t + err / rate
     return t
 

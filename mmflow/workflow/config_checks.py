@@ -371,11 +371,13 @@ def _polarised_sky_problems(cfg):
     for name, (q, u, v) in pol.items():
         loc = ("sky", "polarised", name)
         if name not in cfg.sky.sources:
+            hit = nearest(name, cfg.sky.sources)
             out.append(Problem(loc, [q, u, v], f"'{name}' is not in sky.sources {list(cfg.sky.sources)}",
-                               "add it to sky.sources" + (f" (or did you mean '{hit}'?)" if (hit := nearest(name, cfg.sky.sources)) else "")))
-        if q * q + u * u + v * v > 1.0:  # (NaN and inf: refused by the schema)
-            out.append(Problem(loc, [q, u, v], f"polarised fraction sqrt(q^2 + u^2 + v^2) = "
-                               f"{(q * q + u * u + v * v) ** 0.5:.3g} is more than 1", "give fractions of I"))
+                               "add it to sky.sources" + (f" (or did you mean '{hit}'?)" if hit else "")))
+        p = float(np.sqrt(q * q + u * u + v * v))  # (NaN and inf: refused by the schema)
+        if p > 1.0:
+            out.append(Problem(loc, [q, u, v], f"polarised fraction sqrt(q^2 + u^2 + v^2) = {p:.3g} is more than 1",
+                               "give fractions of I"))
     if cfg.source != "simulate" or not is_full_stokes(cfg.imaging.stokes):
         out.append(Problem(("sky", "polarised"), dict(pol), "only a full-Stokes simulation carries polarisation "
                            f"(source: {cfg.source}, imaging.stokes: {list(cfg.imaging.stokes)})",
@@ -387,7 +389,6 @@ def _stokes_problems(cfg):
     """Full Stokes (``imaging.stokes: [I, Q, U, V]``): what it needs of the input, the beam and the stages."""
     if not is_full_stokes(cfg.imaging.stokes):
         return []
-    loc, val = ("imaging", "stokes"), list(cfg.imaging.stokes)
     out = []
     if cfg.source == "simulate" and cfg.corrupt.enabled:
         out.append(Problem(("corrupt", "enabled"), True, "the corruption simulator writes the parallel hands only, "

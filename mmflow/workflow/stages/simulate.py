@@ -23,8 +23,8 @@ from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
 from mmflow.simulate.scene import joined, polarised_sky_points, simulate_chunk, simulate_polarised_chunk, sky_points, \
     source_points_date, unpolarised
-from mmflow.telescope.beam_factory import make_jones
 from mmflow.sky.sources import get_sources, resolved
+from mmflow.telescope.beam_factory import make_jones
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import build_telescope
 from mmflow.workflow.data_stage import layout_attrs, write_autos
@@ -80,6 +80,12 @@ def _skies(ctx):
     return tel, skies, corrupted
 
 
+@lru_cache(maxsize=2)
+def _jones(ctx):
+    """The E-field beam of a full-Stokes simulation, built once per configuration (a beam file is read once)."""
+    return make_jones(ctx.cfg.beam.model_dump())
+
+
 def _sim_task(ctx, key):
     cfg = ctx.cfg
     o = cfg.observation
@@ -87,6 +93,7 @@ def _sim_task(ctx, key):
     t0, t1 = chunk_rows(key, n)
     k = np.arange(t0, t1)
     tel, skies, corrupted = _skies(ctx.for_stage(ctx.stage))  # cached per configuration (no ledger)
+    full = is_full_stokes(cfg.imaging.stokes)  # then uncorrupted (checked)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
     rng = np.random.default_rng([cfg.sky.seed, key.time]) if cfg.sky.noise else None  # fixed per chunk
     # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
@@ -95,12 +102,11 @@ def _sim_task(ctx, key):
 
         mid = float(np.median(time_jd))
         sun = [sun_points(mid, float(f)) for f in tel.freqs_hz]
-        skies = [joined([sky, unpolarised(x)]) if corrupted is None and is_full_stokes(cfg.imaging.stokes)
-                 else sky + x for sky, x in zip(skies, sun)]
+        skies = [joined([sky, unpolarised(x)]) if full else sky + x for sky, x in zip(skies, sun)]
     g = ctx.open("vis.zarr", mode="r+")
     rows = (slice(t0, t1),)
-    if is_full_stokes(cfg.imaging.stokes):
-        vis, cross = simulate_polarised_chunk(tel, make_jones(cfg.beam.model_dump()), lst, skies, rng, o.integration_s)
+    if full:
+        vis, cross = simulate_polarised_chunk(tel, _jones(ctx.for_stage(ctx.stage)), lst, skies, rng, o.integration_s)
         ctx.write(g, "vis_cross", rows, cross)
         ctx.write(g, "weights_cross", rows, np.ones(cross.shape, np.float32))
     else:
