@@ -37,7 +37,7 @@ def memory_limit(text):
 #: dask's setting for how a local cluster's nanny starts its worker process
 START_METHOD = "distributed.worker.multiprocessing-method"
 #: what a local worker's server process imports once, before it forks each worker
-PRELOAD = ("distributed", "mmflow.workflow.pipeline")
+PRELOAD = ("distributed", "mmflow.workflow.worker_start")
 
 
 def fork_workers_from_a_preloaded_server():
@@ -45,8 +45,8 @@ def fork_workers_from_a_preloaded_server():
 
     With dask's default (``spawn``) every local worker is a new interpreter that imports numpy,
     astropy, zarr and every stage (~3-5 s of CPU each, and again for every cluster a process
-    opens). With ``forkserver`` a server process imports :data:`PRELOAD` once and each worker is a
-    fork of it (a cluster opened again in the same process starts in ~0.3 s instead of ~6 s).
+    opens). With ``forkserver`` a server process imports :data:`PRELOAD` once (the stages and the
+    compiled imaging kernels: :mod:`mmflow.workflow.worker_start`) and each worker is a fork of it (a cluster opened again in the same process starts in ~0.3 s instead of ~6 s).
     The server is started here with dask's pre-spawn environment (``distributed.nanny.pre-spawn-
     environ``: one BLAS/OpenMP thread, glibc's trim threshold; ``PYTHONHASHSEED``), which must be set
     before numpy loads and which dask's nanny would otherwise set only in a spawned child. A start

@@ -38,7 +38,8 @@ from mmflow.workflow.context import build_telescope
 from mmflow.workflow.pipeline import PIPELINE
 
 COSTS_FILE = Path(__file__).with_name("plan_costs.json")
-#: A worker process's resident memory before any task (interpreter, numpy, dask, zarr, pyuvdata).
+#: A worker process's resident memory before any task (interpreter, numpy, dask, zarr, pyuvdata, the stages;
+#: a local worker also numba's runtime and the imaging kernels: mmflow.workflow.worker_start; measured 0.19 GB).
 WORKER_BASE_BYTES = 0.35e9
 LCURVE_POINTS = 200  # eps values of an L-curve (alm.zarr eps_grid)
 PSF_DECLINATIONS = 16  # declinations of CLEAN's PSF table

@@ -160,13 +160,22 @@ def test_relative_run_directory_with_workers_in_another_cwd(loopback_cluster, re
 def _worker_state(_):
     from threadpoolctl import threadpool_info
 
-    return (os.getpid(), os.getppid(), "mmflow.workflow.pipeline" in sys.modules, os.environ.get("PYTHONHASHSEED"),
-            os.environ.get("MMFLOW_WORKERS_PER_HOST"), {i["internal_api"]: i["num_threads"] for i in threadpool_info()})
+    from mmflow.mmode import fringe_kernels, legendre
+
+    # the imaging kernels compiled (or loaded from numba's cache) before the fork: the Legendre
+    # recurrence for float32 and float64 tables, the fringe kernel in both precisions
+    compiled = (legendre._kernel.cache_info().currsize == 1 and len(legendre._kernel().signatures) == 2
+                and fringe_kernels._kernels.cache_info().currsize == 2
+                and all(len(fringe_kernels._kernels(r).signatures) == 1 for r in ("float32", "float64")))
+    return (os.getpid(), os.getppid(), "mmflow.workflow.pipeline" in sys.modules and compiled,
+            os.environ.get("PYTHONHASHSEED"), os.environ.get("MMFLOW_WORKERS_PER_HOST"),
+            {i["internal_api"]: i["num_threads"] for i in threadpool_info()})
 
 
 def test_local_workers_fork_from_one_server_with_the_stages_imported(tmp_path):
-    """A local cluster's workers are forks of one server process that imported the stages once
-    (mmflow.workflow.cluster.fork_workers_from_a_preloaded_server) and see the environment dask
+    """A local cluster's workers are forks of one server process that imported the stages and loaded
+    the compiled imaging kernels once (mmflow.workflow.cluster.fork_workers_from_a_preloaded_server,
+    mmflow.workflow.worker_start) and see the environment dask
     gives spawned workers: one BLAS thread until a task sets its budget, dask's hash seed, mmflow's
     per-host worker count. A cluster opened again in the same process forks from the same server."""
     from mmflow.workflow.cluster import open_cluster
