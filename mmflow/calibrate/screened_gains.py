@@ -69,15 +69,15 @@ class ScreenedGains:
 def screened_model(coherencies, basis, offsets, amplitude, screened, pairs):
     """``sum_u M^u_ij + sum_s a_s e_si conj(e_sj) M^s_ij``: (time, bl, pol) model visibilities.
 
-    ``coherencies`` (n_src, time, bl); ``basis`` (n_src, time, n_ant, 2)
+    ``coherencies`` (n_src, time, bl, 1 or pol); ``basis`` (n_src, time, n_ant, 2)
     (:func:`mmflow.calibrate.dd_screen.screen_basis`); ``offsets`` (n_src, time, pol, 2) and
     ``amplitude`` (n_src, time, pol) of the ``screened`` (n_src,) sources (NaN offsets: none).
     """
-    rest = coherencies[~screened].sum(0)[..., None]
-    model = np.repeat(rest, offsets.shape[2], axis=-1).astype(complex)
+    rest = coherencies[~screened].sum(0)
+    model = np.array(np.broadcast_to(rest, rest.shape[:-1] + (offsets.shape[2],)), complex)
     for s in np.flatnonzero(screened):
         h = screen_gains(basis[s][:, None], np.nan_to_num(offsets[s]), amplitude[s])  # (time, pol, n_ant)
-        model += gain_products(np.moveaxis(h, 1, 2), pairs) * coherencies[s][..., None]
+        model += gain_products(np.moveaxis(h, 1, 2), pairs) * coherencies[s]
     return model
 
 
@@ -89,7 +89,9 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
     Parameters
     ----------
     vis : ndarray (time, bl, pol); weights broadcastable to it (0 = flagged)
-    coherencies : ndarray (n_src, time, bl): each source's catalogue model through the beam
+    coherencies : ndarray (n_src, time, bl) or (n_src, time, bl, pol): each source's catalogue model
+        through the beam, one for every polarisation or one per polarisation (each feed's own power
+        beam: :func:`mmflow.telescope.jones.feed_telescopes`)
     pairs : ndarray (n_bl, 2); n_ant : int
     basis : ndarray (n_src, time, n_ant, 2): phase per unit offset
         (:func:`mmflow.calibrate.dd_screen.screen_basis`); read for the screened sources only
@@ -114,13 +116,15 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
     T, B, P = vis.shape
     pairs = check_pairs(pairs, n_ant)
     coherencies = np.asarray(coherencies)
+    if coherencies.ndim == 3:  # one model for every polarisation
+        coherencies = coherencies[..., None]
     screened = np.asarray(screened, bool)
     n_src = coherencies.shape[0]
     offsets = np.full((n_src, T, P, 2), np.nan)
     amplitude = np.ones((n_src, T, P))
     reference = screened if reference is None else np.asarray(reference, bool) & screened
     kw = dict(baseline_keep=baseline_keep, threads=threads, **solve_kw)
-    sol = solve_gains(vis, coherencies.sum(0)[..., None], weights, pairs, n_ant, **kw)
+    sol = solve_gains(vis, coherencies.sum(0), weights, pairs, n_ant, **kw)
     if not screened.any() or rounds <= 0:
         return ScreenedGains(sol, offsets, amplitude, np.ones((n_src, P)))
     w = np.array(np.broadcast_to(weights, vis.shape), float)
@@ -166,10 +170,10 @@ def _fit_screens(v, w, coherencies, pairs, n_ant, basis, screened, g, th, amplit
         gp = gain_products(g[t0:t1], pairs)  # (nb, bl, P)
         W = solution_matrices(w[t0:t1], pairs, n_ant)  # solution s = t * P + p
         amp = np.moveaxis(amplitude[:, t0:t1], -1, 2).reshape(n_src, nb * P)  # (n_src, nb * P)
-        Ms = {s: solution_matrices(gp * coherencies[s, t0:t1, :, None], pairs, n_ant) for s in scr}
+        Ms = {s: solution_matrices(gp * coherencies[s, t0:t1], pairs, n_ant) for s in scr}
         bs = {s: np.repeat(basis[s, t0:t1], P, axis=0) for s in scr}
-        rest = coherencies[~screened, t0:t1].sum(0)  # (nb, bl): the unscreened sources
-        X = solution_matrices(v[t0:t1] - gp * rest[..., None], pairs, n_ant)
+        rest = coherencies[~screened, t0:t1].sum(0)  # (nb, bl, 1 or P): the unscreened sources
+        X = solution_matrices(v[t0:t1] - gp * rest, pairs, n_ant)
 
         def screened_part(s):
             e = np.exp(1j * np.einsum("sak,sk->sa", bs[s], th[s, rows]))

@@ -23,6 +23,15 @@ tests can compare what calibration recovers with what was put in. The data model
   ``e_i = (d0 / d_i) exp(2 pi i d_i / lambda)``, ``d_i = |x_i - p|``, fluctuating amplitude ``a(t)``.
 * flags (bad antennas, bad integrations) as zero weights, and thermal noise from the
   radiometer equation (:func:`mmflow.simulate.visibilities.thermal_noise`).
+
+A polarised sky (full-Stokes simulations) carries the four correlations ``V_ij`` as 2 x 2 feed
+matrices ``[[xx, xy], [yx, yy]]``, ``g`` one gain per feed (``G_i = diag(g_ix, g_iy)``), the feeds'
+polarisation leakage ``D_i = [[1, d_ix], [-d_iy, 1]]`` (:func:`leakage_terms`), and::
+
+    V_ij = G_i ( D_i [ V^sky_ij + sum_s h_si conj(h_sj) M^s_ij ] D_j^H + (terrestrial) 1 ) G_j^H + n_ij
+
+with the terrestrial signals unpolarised (on xx and yy; cross-talk arises behind the feeds) and
+radiometer noise on every correlation (:func:`mmflow.simulate.polarised.correlation_noise`).
 """
 from __future__ import annotations
 
@@ -33,11 +42,14 @@ from astropy import units as u
 from astropy.time import Time
 
 from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.simulate.polarised import apply_leakage, correlation_noise
 from mmflow.simulate.visibilities import SkyPoints, thermal_noise
 from mmflow.sky.frames import apparent_sidereal_time, source_enu, tangent_basis
 from mmflow.telescope.array import C_LIGHT
 
 ARCMIN = np.pi / 180 / 60
+#: the feeds ``(p, q)`` of the correlations xx, yy, xy, yx (:func:`baseline_ends`)
+FOUR_FEEDS = ((0, 1, 0, 1), (0, 1, 1, 0))
 
 
 def baseline_ends(values, pairs, feeds=None):
@@ -167,9 +179,10 @@ def direction_dependent_gains(telescope, freq_hz, lsts, src_vec_date, offsets, f
 
 
 def dd_visibilities(coherencies, dd_gains, pairs):
-    """``sum_s h_si conj(h_sj) M^s_ij``: (n_time, n_bl) from (n_src, n_time, n_bl) and (n_src, n_time, n_ant)."""
+    """``sum_s h_si conj(h_sj) M^s_ij``: (n_time, n_bl[, n_corr]) from (n_src, n_time, n_bl[, n_corr]) and
+    (n_src, n_time, n_ant) (one scalar gain per antenna and source: the ionosphere acts on both feeds alike)."""
     prod = gain_products(dd_gains[..., None], pairs)[..., 0]
-    return np.einsum("stb,stb->tb", prod, coherencies)
+    return np.einsum("stb,stb...->tb...", prod, coherencies)
 
 
 def crosstalk_pattern(n_ant, rng, amplitude_jy=5.0):
@@ -257,25 +270,34 @@ class Corruption:
     gains: np.ndarray = None            # (time, ant, pol)
     sawtooth_power: np.ndarray = None   # (time, ant, pol)
     terrestrial: list = field(default_factory=list)  # [(pattern (ant,), amplitude (time,))]
-    noise_sigma: np.ndarray = None      # (time, bl, pol)
+    noise_sigma: np.ndarray = None      # (time, bl, pol); None for the four correlations
     weights: np.ndarray = None          # (time, bl, pol)
 
 
-def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=None, weights=None):
+def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=None, weights=None,
+            four_correlations=False, dterms=None):
     """Apply gains, add terrestrial components and noise to (time, bl, pol) visibilities.
 
     Parameters
     ----------
     vis : ndarray (time, bl, pol): the sky (including any DD-corrupted sources, from
-        :func:`dd_visibilities`), in Jy.
+        :func:`dd_visibilities`), in Jy: the parallel hands (one feed per column), or with
+        ``four_correlations`` xx, yy, xy, yx (:data:`mmflow.simulate.polarised.CORRELATIONS`).
     gains : ndarray (time, ant, pol) or None
-        Applied as ``g_i conj(g_j) (V + terrestrial)`` (from :func:`antenna_gains`).
+        Applied as ``g_ip conj(g_jq) (V + terrestrial)`` (from :func:`antenna_gains`; with
+        ``four_correlations`` one gain per feed x, y: ``feeds`` :data:`FOUR_FEEDS`).
     terrestrial : sequence of (pattern (ant,), amplitude (time,)) rank-1 components, added before
-        the gains (they enter the receivers like sky signals).
+        the gains (they enter the receivers like sky signals), unpolarised: on the parallel hands.
     noise : dict(bandwidth_hz, integration_s) or None
-        Radiometer noise from the corrupted autocorrelations (pairs with ``i == j`` needed).
+        Radiometer noise from the corrupted autocorrelations (pairs with ``i == j`` needed); with
+        ``four_correlations`` on every correlation (:func:`mmflow.simulate.polarised.correlation_noise`).
     weights : ndarray (time, bl, pol) or None, e.g. from :func:`flag_weights`; flagged samples
         are set to 0 in the output.
+    dterms : ndarray complex (ant, 2) or None
+        With ``four_correlations``: the feeds' polarisation leakage ``V -> D_i V D_j^H``
+        (:func:`mmflow.simulate.polarised.apply_leakage`), applied to the sky before the
+        terrestrial signals (cross-talk arises behind the feeds) and the gains: the Jones chain
+        ``G_i D_i``.
 
     Returns
     -------
@@ -284,11 +306,18 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
     pairs = np.asarray(pairs)
     out = np.array(vis, np.complex128, copy=True)
     truth = Corruption(gains=gains, terrestrial=list(terrestrial), weights=weights)
+    if dterms is not None:
+        if not four_correlations:
+            raise ValueError("polarisation leakage mixes the four correlations: give xx, yy, xy, yx")
+        out = np.moveaxis(apply_leakage(np.moveaxis(out, -1, -2), pairs, dterms), -2, -1)
+    parallel = slice(0, 2) if four_correlations else slice(None)  # xx, yy lead CORRELATIONS
     for vec, amp in terrestrial:
-        out += rank1_visibilities(vec, amp, pairs)[..., None]
+        out[..., parallel] += rank1_visibilities(vec, amp, pairs)[..., None]
     if gains is not None:
-        out *= gain_products(gains, pairs)
-    if noise is not None:
+        out *= gain_products(gains, pairs, FOUR_FEEDS if four_correlations else None)
+    if noise is not None and four_correlations:
+        correlation_noise(out, pairs, noise["bandwidth_hz"], noise["integration_s"], rng)
+    elif noise is not None:
         auto_idx = np.full(int(pairs.max()) + 1, -1)
         autos = pairs[:, 0] == pairs[:, 1]
         auto_idx[pairs[autos, 0]] = np.flatnonzero(autos)
@@ -369,22 +398,33 @@ class DayCorruptions:
     """The whole drift scan's corruptions of one channel (the truth), sliced per time chunk.
 
     gains (time, ant, pol) or None; dd_offsets (n_dd, time, 2) rad and dd_flux (n_dd, time)
-    for the sources with direction-dependent gains; terrestrial [(pattern (ant,), amplitude (time,))].
+    for the sources with direction-dependent gains; terrestrial [(pattern (ant,), amplitude (time,))];
+    dterms (ant, 2) complex or None: the feeds' polarisation leakage (full-Stokes simulations).
     """
 
     gains: np.ndarray
     dd_offsets: np.ndarray
     dd_flux: np.ndarray
     terrestrial: list
+    dterms: np.ndarray = None
+
+
+def leakage_terms(n_ant, rng, amplitude):
+    """D-terms ``d_x, d_y`` of every antenna: ``|d|`` uniform in ``[amplitude / 5, amplitude]``, phases
+    uniform (a dipole array's few-percent leakage: mechanical misalignment and feed coupling); (n_ant, 2)."""
+    mag = rng.uniform(amplitude / 5, amplitude, (n_ant, 2))
+    return mag * np.exp(2j * np.pi * rng.uniform(size=(n_ant, 2)))
 
 
 def day_corruptions(n_ant, freq_hz, times_s, n_dd, enu, rng, *, gains=True, sawtooth_db=0.1,
-                    ionosphere_arcmin=20.0, scintillation_sigma=0.2, crosstalk_jy=0.0, rfi_jy=0.0, n_pol=2):
+                    ionosphere_arcmin=20.0, scintillation_sigma=0.2, crosstalk_jy=0.0, rfi_jy=0.0, n_pol=2,
+                    leakage=0.0):
     """Draw every corruption of one channel for the whole scan (``times_s`` all integrations).
 
     Drawn once per channel so that any time chunk sees the same gains, offsets and terrestrial
     amplitudes (:func:`antenna_gains`, :func:`ionospheric_offsets`, :func:`scintillation`,
-    :func:`crosstalk_pattern`, :func:`near_field_rfi`); switched-off parts draw nothing.
+    :func:`crosstalk_pattern`, :func:`near_field_rfi`, :func:`leakage_terms`); switched-off parts
+    draw nothing (the leakage last, so the others are the same draws with and without it).
     """
     t = np.asarray(times_s, float)
     g = None
@@ -398,29 +438,38 @@ def day_corruptions(n_ant, freq_hz, times_s, n_dd, enu, rng, *, gains=True, sawt
         terr.append((crosstalk_pattern(n_ant, rng, crosstalk_jy), np.ones(len(t))))
     if rfi_jy > 0:
         terr.append(near_field_rfi(enu, freq_hz, len(t), rng, amplitude_jy=rfi_jy))
-    return DayCorruptions(g, offsets, flux, terr)
+    d = leakage_terms(n_ant, rng, leakage) if leakage > 0 else None
+    return DayCorruptions(g, offsets, flux, terr, d)
 
 
 def corrupted_visibilities(telescope, freq_hz, lsts, sky_vis, dd_coherencies, dd_vecs, day, rows, pairs,
-                           noise_rng=None, integration_s=None, system_jy=0.0):
+                           noise_rng=None, integration_s=None, system_jy=0.0, four_correlations=False):
     """One time chunk of corrupted ``(time, bl, pol)`` visibilities (see the module docstring).
 
-    ``sky_vis`` (time, bl): the sky without the DD sources; ``dd_coherencies`` (n_dd, time, bl)
-    their model visibilities and ``dd_vecs`` (n_dd, 3) their frame-of-date directions; ``day`` a
-    :class:`DayCorruptions`, ``rows`` the chunk's integrations in it; ``system_jy`` a receiver
-    (and unmodelled background) power added to the autocorrelations, uncorrelated between
-    antennas: it enters the radiometer noise and the gains act on it like on the sky.
+    ``sky_vis``: the sky without the DD sources, (time, bl) the same for every feed (a scalar beam),
+    (time, bl, pol) each feed's parallel hand (a Jones beam's feeds), or with ``four_correlations``
+    (time, bl, 4) the correlations xx, yy, xy, yx of a polarised sky (the output then holds the
+    four, with the day's D-terms); ``dd_coherencies`` (n_dd, time, bl[, pol or 4]) the DD sources'
+    model visibilities alike and ``dd_vecs`` (n_dd, 3) their frame-of-date directions; ``day`` a
+    :class:`DayCorruptions`, ``rows`` the chunk's integrations in it; ``system_jy`` a receiver (and
+    unmodelled background) power added to the autocorrelations of each feed, uncorrelated between
+    antennas and feeds: it enters the radiometer noise and the gains act on it like on the sky.
     """
     n_pol = 2 if day.gains is None else day.gains.shape[-1]
     vis = np.array(sky_vis, np.complex128)
-    vis[:, np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]] += system_jy
+    autos = np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]
+    if four_correlations:
+        vis[:, autos, :2] += system_jy  # xx, yy
+    else:
+        vis[:, autos] += system_jy
     if len(dd_vecs):
         h = direction_dependent_gains(telescope, freq_hz, lsts, dd_vecs, day.dd_offsets[:, rows],
                                       day.dd_flux[:, rows])
         vis += dd_visibilities(dd_coherencies, h, pairs)
-    vis = np.repeat(vis[..., None], n_pol, axis=-1)
+    if vis.ndim == 2:
+        vis = np.repeat(vis[..., None], n_pol, axis=-1)
     terr = [(vec, amp[rows]) for vec, amp in day.terrestrial]
     noise = None if noise_rng is None else {"bandwidth_hz": telescope.channel_width_hz, "integration_s": integration_s}
     out, _ = corrupt(vis, pairs, noise_rng, gains=None if day.gains is None else day.gains[rows],
-                     terrestrial=terr, noise=noise)
+                     terrestrial=terr, noise=noise, four_correlations=four_correlations, dterms=day.dterms)
     return out

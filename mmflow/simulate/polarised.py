@@ -36,6 +36,7 @@ import numpy as np
 
 from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.errors import InputError
+from mmflow.simulate.visibilities import auto_columns, thermal_noise
 from mmflow.telescope.array import C_LIGHT
 
 #: Correlations in the default order of the output's correlation axis (x east, y north).
@@ -191,3 +192,21 @@ def apply_leakage(vis, pairs, dterms, correlations=CORRELATIONS):
     mat[..., p_idx, q_idx] = np.moveaxis(vis, -2, -1)
     out = np.einsum("bpr,...brs,bqs->...bpq", jones[pairs[:, 0]], mat, jones[pairs[:, 1]].conj())
     return np.moveaxis(out[..., p_idx, q_idx], -1, -2)
+
+
+def correlation_noise(vis, pairs, bandwidth_hz, integration_s, rng):
+    """Add radiometer noise to the four correlations ``(time, baseline, [xx, yy, xy, yx])`` in place.
+
+    ``sigma_pq^2 = V_ii^pp V_jj^qq / (dnu tau)`` for feed p of antenna i and feed q of antenna j
+    (:func:`mmflow.simulate.visibilities.thermal_noise`, from the autocorrelations in ``vis`` before the
+    noise): complex on every correlation, real on the parallel hands' autocorrelations, and an
+    autocorrelation's yx is conj(xy), one draw for the pair, as in any correlator. Returns ``vis``.
+    """
+    is_auto, ci, cj = auto_columns(np.asarray(pairs))
+    autos = {feed: np.real(vis[:, is_auto, CORRELATIONS.index(feed * 2)]) for feed in "xy"}
+    for c, (p, q) in enumerate(CORRELATIONS):
+        noise, _ = thermal_noise(vis[..., c], autos[p][:, ci], autos[q][:, cj], bandwidth_hz, integration_s, rng,
+                                 is_auto if p == q else None)
+        vis[..., c] += noise
+    vis[:, is_auto, CORRELATIONS.index("yx")] = np.conj(vis[:, is_auto, CORRELATIONS.index("xy")])
+    return vis

@@ -6,15 +6,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.errors import InputError
 from mmflow.mmode.transfer import fringe_bandlimit
 from mmflow.simulate.corrupt import corrupted_visibilities
-from mmflow.simulate.polarised import CORRELATIONS, PolarisedPoints, simulate_polarised_drift_scan
-from mmflow.simulate.visibilities import SkyPoints, gauss_legendre_points, simulate_drift_scan, thermal_noise
+from mmflow.simulate.polarised import (CORRELATIONS, PolarisedPoints, correlation_noise,
+                                      simulate_polarised_drift_scan)
+from mmflow.simulate.visibilities import (SkyPoints, auto_columns, gauss_legendre_points, simulate_drift_scan,
+                                         thermal_noise)
 from mmflow.sky.frames import rotation_matrix, tangent_basis
 from mmflow.sky.diffuse import synthetic_sky_kelvin
 from mmflow.sky.sources import epoch_year, get_sources
 from mmflow.sky.units import kelvin_to_jy_per_sr
+from mmflow.telescope.jones import feed_telescopes
 
 
 def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=(), quad_oversample=48):
@@ -63,20 +65,27 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
     ``corrupted``: per frequency ``(day, dd_points, dd_vecs)`` -- a
     :class:`mmflow.simulate.corrupt.DayCorruptions`, the direction-dependent sources as
     :class:`SkyPoints` (not in ``skies``) and their directions -- gives XX and YY through
-    :func:`mmflow.simulate.corrupt.corrupted_visibilities`; ``rows`` are the chunk's
+    :func:`mmflow.simulate.corrupt.corrupted_visibilities`, each through its feed's power beam when
+    the beam is an E-field beam (:func:`mmflow.telescope.jones.feed_telescopes`); ``rows`` are the chunk's
     integrations in the day; ``system_jy`` the receiver power of the corrupted autocorrelations.
     """
     pairs = telescope.antenna_pairs()
     n_pol = 1 if corrupted is None else 2
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), n_pol), np.complex64)
     if noise_rng is not None:
-        is_auto, ci, cj = _auto_columns(pairs)
+        is_auto, ci, cj = auto_columns(pairs)
+    feeds = feed_telescopes(telescope) if corrupted is not None else None  # a Jones beam: each feed its own
+
+    def drift_scan(points, dtype=np.complex128):
+        if feeds is None:
+            return simulate_drift_scan(telescope, f, lsts, points, pairs, dtype)
+        return np.stack([simulate_drift_scan(t, f, lsts, points, pairs, dtype) for t in feeds], axis=-1)
+
     for fi, f in enumerate(telescope.freqs_hz):
-        v = simulate_drift_scan(telescope, f, lsts, skies[fi], pairs, np.complex64)
+        v = drift_scan(skies[fi], np.complex64)
         if corrupted is not None:
             day, dd_points, dd_vecs = corrupted[fi]
-            dd = (np.stack([simulate_drift_scan(telescope, f, lsts, p, pairs) for p in dd_points])
-                  if dd_points else np.zeros((0,) + v.shape, complex))
+            dd = np.stack([drift_scan(p) for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex)
             out[:, :, fi] = corrupted_visibilities(telescope, f, lsts, v, dd, dd_vecs, day, rows, pairs, noise_rng,
                                                    integration_s, system_jy)
             continue
@@ -87,17 +96,6 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
             v = v + noise
         out[:, :, fi, 0] = v
     return out
-
-
-def _auto_columns(pairs):
-    """For radiometer noise: which baselines are autocorrelations, and for each baseline the columns of
-    its two antennas' autocorrelations among them (refused when there are none)."""
-    is_auto = pairs[:, 0] == pairs[:, 1]
-    if not is_auto.any():
-        raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
-                         "set telescope.include_autos=true or sky.noise=false")
-    col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
-    return is_auto, [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]
 
 
 def unpolarised(points):
@@ -112,13 +110,17 @@ def polarised_sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0
     """The sky of :func:`sky_points` with Stokes parameters: the diffuse sky unpolarised, each catalogue
     source ``s`` with ``(Q, U, V) = I_s (q_s, u_s, v_s)`` for its fractions in ``fractions``
     (``{name: (q, u, v)}``, IAU; absent: unpolarised), every component of a resolved source alike."""
-    fractions = fractions or {}
     parts = [unpolarised(sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed, (), quad_oversample))]
-    for src in get_sources(list(sources)):
-        pts = source_points_date(src, freq_hz, epoch_jd)
-        q, u, v = fractions.get(src.name, (0.0, 0.0, 0.0))
-        parts.append(PolarisedPoints(pts.vectors, pts.flux_jy[:, None] * np.array([1.0, q, u, v])))
+    parts += [polarised_source_points(src, freq_hz, epoch_jd, fractions) for src in get_sources(list(sources))]
     return joined(parts)
+
+
+def polarised_source_points(source, freq_hz, epoch_jd, fractions=None):
+    """A catalogue source's components in the frame of date with ``(I, I q, I u, I v)`` for its fractions
+    ``(q, u, v)`` in ``fractions`` (``{name: (q, u, v)}``, IAU; absent: unpolarised)."""
+    pts = source_points_date(source, freq_hz, epoch_jd)
+    q, u, v = (fractions or {}).get(source.name, (0.0, 0.0, 0.0))
+    return PolarisedPoints(pts.vectors, pts.flux_jy[:, None] * np.array([1.0, q, u, v]))
 
 
 def joined(parts):
@@ -126,27 +128,29 @@ def joined(parts):
     return PolarisedPoints(np.concatenate([p.vectors for p in parts]), np.concatenate([p.stokes_jy for p in parts]))
 
 
-def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, integration_s=None):
+def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, integration_s=None, corrupted=None,
+                             rows=None, system_jy=0.0):
     """The four linear correlations of one time chunk: ``(parallel, cross)``, each ``(time, baseline,
     freq, 2)`` complex64, the parallel hands xx, yy and the cross hands xy, yx (x east, y north), one
     :class:`~mmflow.simulate.polarised.PolarisedPoints` sky per frequency through the E-field beam
     ``jones`` (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`: direct sums, independent
-    of the transfer code). With ``noise_rng``, radiometer noise on every correlation,
-    ``sigma_pq^2 = V_ii^pp V_jj^qq / (dnu tau)`` (feed p of antenna i, feed q of antenna j), real on
-    the parallel hands' autocorrelations."""
+    of the transfer code). With ``noise_rng``, radiometer noise on every correlation
+    (:func:`mmflow.simulate.polarised.correlation_noise`, ``sigma_pq^2 = V_ii^pp V_jj^qq / (dnu tau)``).
+
+    ``corrupted``, ``rows``, ``system_jy``: as :func:`simulate_chunk`'s, the direction-dependent sources
+    as PolarisedPoints: gains per feed, the day's D-terms, DD gains and terrestrial signals
+    (:func:`mmflow.simulate.corrupt.corrupted_visibilities` on the four correlations)."""
     pairs = telescope.antenna_pairs()
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), len(CORRELATIONS)), np.complex64)
-    if noise_rng is not None:
-        is_auto, ci, cj = _auto_columns(pairs)
     for fi, f in enumerate(telescope.freqs_hz):
         v = np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, skies[fi], pairs), 1, -1)
-        if noise_rng is not None:
-            autos = {feed: np.real(v[:, is_auto, CORRELATIONS.index(feed * 2)]) for feed in "xy"}
-            for c, (p, q) in enumerate(CORRELATIONS):
-                noise, _ = thermal_noise(v[..., c], autos[p][:, ci], autos[q][:, cj], telescope.channel_width_hz,
-                                         integration_s, noise_rng, is_auto if p == q else None)
-                v[..., c] += noise
-            # an autocorrelation's yx is conj(xy) in any correlator: one noise draw for the pair
-            v[:, is_auto, CORRELATIONS.index("yx")] = np.conj(v[:, is_auto, CORRELATIONS.index("xy")])
+        if corrupted is not None:
+            day, dd_points, dd_vecs = corrupted[fi]
+            dd = (np.stack([np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, p, pairs), 1, -1)
+                            for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex))
+            v = corrupted_visibilities(telescope, f, lsts, v, dd, dd_vecs, day, rows, pairs, noise_rng,
+                                       integration_s, system_jy, four_correlations=True)
+        elif noise_rng is not None:
+            correlation_noise(v, pairs, telescope.channel_width_hz, integration_s, noise_rng)
         out[:, :, fi] = v
     return out[..., :2], out[..., 2:]

@@ -22,6 +22,7 @@ import numpy as np
 from scipy.linalg import blas
 
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.errors import InputError
 from mmflow.telescope.array import C_LIGHT
 from mmflow.threads import n_threads, single_threaded_blas
 
@@ -170,3 +171,14 @@ def thermal_noise(vis, autos_i, autos_j, bandwidth_hz, integration_s, rng, is_au
     if is_auto is not None:
         noise = np.where(np.broadcast_to(is_auto, noise.shape), sigma * re + 0j, noise)
     return noise, sigma
+
+
+def auto_columns(pairs):
+    """For radiometer noise: which baselines are autocorrelations, and for each baseline the columns of
+    its two antennas' autocorrelations among them (refused when there are none)."""
+    is_auto = pairs[:, 0] == pairs[:, 1]
+    if not is_auto.any():
+        raise InputError("workflow", "sky.noise", "thermal noise needs autocorrelations",
+                         "set telescope.include_autos=true or sky.noise=false")
+    col = {int(p[0]): c for c, p in enumerate(pairs[is_auto])}
+    return is_auto, [col[int(p)] for p in pairs[:, 0]], [col[int(p)] for p in pairs[:, 1]]

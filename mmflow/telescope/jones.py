@@ -29,6 +29,8 @@ Stokes-I path). For a short dipole ``A_I = 1 - sin^2(za) / 2``, 1 at zenith.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from mmflow.conventions import enu_to_azza
@@ -86,14 +88,19 @@ class JonesBeam(BeamModel):
         basis = local_basis(az, za)  # (2 comps, 3, ...)
         return np.einsum("pc...,ci...->pi...", comp, basis)
 
-    def power(self, az, za, freq_hz):
-        """Stokes-I power response ``A_I = (|J_x|^2 + |J_y|^2) / 2`` (``avg`` convention)."""
+    def power(self, az, za, freq_hz, feed=None):
+        """Stokes-I power response ``A_I = (|J_x|^2 + |J_y|^2) / 2`` (``avg`` convention), or with
+        ``feed`` (``"x"``, ``"y"``) that feed's ``|J_p|^2``: its parallel hand's response to an
+        unpolarised sky (``V_pp = int |J_p|^2 I ...``)."""
         j = self.jones(az, za, freq_hz)
+        if feed is not None:
+            return np.sum(np.abs(j[FEEDS.index(feed)]) ** 2, axis=0)
         return 0.5 * np.sum(np.abs(j) ** 2, axis=(0, 1))
 
-    def power_beam(self):
-        """The derived Stokes-I power beam as a scalar :class:`mmflow.telescope.beams.Beam`."""
-        return JonesPowerBeam(self)
+    def power_beam(self, feed=None):
+        """The derived Stokes-I power beam (or one feed's, ``feed``) as a scalar
+        :class:`mmflow.telescope.beams.Beam`."""
+        return JonesPowerBeam(self, feed)
 
     def _jones(self, az, za, freq_hz):
         raise NotImplementedError
@@ -183,19 +190,36 @@ class PyUVDataJones(JonesBeam):
 
 
 class JonesPowerBeam(Beam):
-    """The Stokes-I power beam ``(|J_x|^2 + |J_y|^2) / 2`` of a :class:`JonesBeam`, for the scalar path."""
+    """The Stokes-I power beam ``(|J_x|^2 + |J_y|^2) / 2`` of a :class:`JonesBeam`, for the scalar path;
+    with ``feed`` one feed's ``|J_p|^2`` (the parallel hand pp of an unpolarised sky)."""
 
     name = "jones_power"
 
-    def __init__(self, jones):
+    def __init__(self, jones, feed=None):
+        if feed not in (None,) + FEEDS:
+            raise InputError("jones power beam", "feed", repr(feed), f"use one of {FEEDS} or None (Stokes I)")
         self.jones = jones
+        self.feed = feed
         self.lmax_hint = jones.lmax_hint
 
     def check_frequency(self, freq_hz):
         self.jones.check_frequency(freq_hz)
 
     def _response(self, az, za, freq_hz):
-        return self.jones.power(az, za, freq_hz)
+        return self.jones.power(az, za, freq_hz, self.feed)
 
     def describe(self):
-        return {"type": self.name, "jones": self.jones.describe()}
+        out = {"type": self.name, "jones": self.jones.describe()}
+        if self.feed is not None:
+            out["feed"] = self.feed
+        return out
+
+
+def feed_telescopes(telescope):
+    """The telescope as each feed sees an unpolarised sky, ``[x, y]`` (its beam :class:`JonesPowerBeam` of that
+    feed), when its beam is a Jones beam's Stokes-I power beam; None for a scalar beam (both feeds alike) or
+    one feed's."""
+    beam = telescope.beam
+    if not isinstance(beam, JonesPowerBeam) or beam.feed is not None:
+        return None
+    return [dataclasses.replace(telescope, beam=JonesPowerBeam(beam.jones, feed)) for feed in FEEDS]

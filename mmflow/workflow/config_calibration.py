@@ -35,7 +35,8 @@ AUTO_CUT = ("'auto' (the default): 15, lowered per channel until every antenna k
 
 class CorruptConfig(Section):
     """Corruptions of the simulated drift scan (``mmflow.simulate.corrupt``); when enabled the data
-    hold XX and YY, each with its own gains and noise, for calibrate, peel and terrestrial to undo."""
+    hold XX and YY (and XY, YX for full Stokes), each feed with its own gains, and noise, for calibrate,
+    peel and terrestrial to undo."""
 
     enabled: bool = Field(False, description="Corrupt the simulation (data then hold XX and YY).")
     seed: int = Field(7, ge=0, description="Random seed of the corruptions.")
@@ -50,6 +51,9 @@ class CorruptConfig(Section):
     rfi_jy: float = Field(0.0, ge=0, description="Near-field RFI source 10 km west on the horizon (Jy; 0 = off).")
     system_jy: float = Field(0.0, ge=0, description="Receiver and unmodelled background power added to every "
                              "autocorrelation (Jy): it sets the radiometer noise and dominates real autos.")
+    leakage: float = Field(0.0, ge=0, lt=1, description="Polarisation leakage (D-terms) of each antenna's feeds: "
+                           "|d| uniform in [leakage/5, leakage], random phases (full-Stokes simulations: "
+                           "imaging.stokes [I, Q, U, V]; 0 = off).")
 
 
 class CalibrateConfig(Section):

@@ -386,15 +386,16 @@ def _polarised_sky_problems(cfg):
 
 
 def _stokes_problems(cfg):
-    """Full Stokes (``imaging.stokes: [I, Q, U, V]``): what it needs of the input, the beam and the stages."""
+    """Full Stokes (``imaging.stokes: [I, Q, U, V]``): what it needs of the input, the beam and the stages;
+    polarisation leakage, which only a simulation of the four correlations carries."""
     if not is_full_stokes(cfg.imaging.stokes):
+        if cfg.source == "simulate" and cfg.corrupt.enabled and cfg.corrupt.leakage > 0:
+            return [Problem(("corrupt", "leakage"), cfg.corrupt.leakage, "polarisation leakage mixes the four "
+                            "correlations: a simulation of xx and yy alone cannot carry it",
+                            "set imaging.stokes=[I, Q, U, V] (and a beam with feeds), or corrupt.leakage=0")]
         return []
     out = []
-    if cfg.source == "simulate" and cfg.corrupt.enabled:
-        out.append(Problem(("corrupt", "enabled"), True, "the corruption simulator writes the parallel hands only, "
-                           "not xy and yx", "set corrupt.enabled=false for a full-Stokes simulation, or image "
-                           "Stokes I only"))
-    elif cfg.source != "simulate" and not cfg.input.cross_hands:
+    if cfg.source != "simulate" and not cfg.input.cross_hands:
         out.append(Problem(("input", "cross_hands"), False, "full Stokes needs the cross hands xy, yx",
                            "set input.cross_hands=true"))
     for stage in ("peel", "terrestrial"):

@@ -128,7 +128,6 @@ def test_stokes_run_resumes_bit_identical_after_a_kill(scan, reference, tmp_path
 
 @pytest.mark.parametrize("overrides, field, words", [
     (["beam.type=sin_elevation"], "beam.type", "scalar power beam"),
-    (["source=simulate", "corrupt.enabled=true"], "corrupt.enabled", "parallel hands only"),
     (["source=simulate", "sky.polarised={3C 286: [0.6, 0.6, 0.6]}"], "sky.polarised.3C 286", "not in sky.sources"),
     (["source=simulate", "sky.polarised={Cyg A: [0.6, 0.6, 0.6]}"], "sky.polarised.Cyg A", "more than 1"),
     (["source=simulate", "sky.polarised={Cyg A: [.nan, 0, 0]}"], "sky.polarised.Cyg A.0", "finite"),
@@ -200,3 +199,59 @@ def test_simulated_polarised_sources_image_to_their_stokes_parameters(tmp_path):
     chi_true = 0.5 * np.rad2deg(np.arctan2(-0.15, 0.2))
     print(f"Cyg A: chi {chi:.2f} deg, true {chi_true:.2f}")
     assert abs((chi - chi_true + 90) % 180 - 90) < 2.0
+
+
+SOURCES = ["Cyg A", "Cas A", "Vir A", "Tau A", "3C 123", "3C 48", "3C 147", "3C 196", "3C 286", "3C 295", "3C 380"]
+CORRUPT = ["corrupt.enabled=true", "corrupt.dd_sources=[]", "corrupt.leakage=0.03", "corrupt.system_jy=2.0e+5",
+           "sky.polarised={}", "sky.noise=true", f"sky.sources=[{', '.join(SOURCES)}]", "calibrate.enabled=true",
+           f"calibrate.sources=[{', '.join(SOURCES)}]", "calibrate.screen_sources=[]", "calibrate.solint_s=900",
+           f"observation.integration_s={86164.0905 / 512}"]
+
+
+def test_corrupted_polarised_simulation_calibrates_to_the_stokes_i_of_the_truth(tmp_path):
+    """A corrupted full-Stokes simulation (the 11 bright sources, unpolarised; gains per feed with bandpass,
+    drift and sawtooth, 0.6-3 % D-terms, receiver power and radiometer noise on all four correlations,
+    512 integrations) through ``calibrate`` (one gain per feed against each feed's own power beam, applied
+    to the cross hands too) and the full-Stokes imaging: Cyg A's and Cas A's I peaks equal the true sky
+    imaged through the same operator to 2 % at the same place (measured 1.0-1.1 % low, as without the
+    D-terms: the 15-min gain solutions against the sawtooth; uncorrupted 0.05 %), so the D-terms,
+    uncalibrated, do not break I; what leaks into Q, U, V within one FWHM stays at the percent level
+    (measured <= 3.3 %, in V: polarisation calibration is out of scope, and the feeds' relative phase
+    is left free by solving each feed's gains on its own parallel hand), and Cyg A's Q below 0.8 %
+    (0.43 %; 1.3 % when both feeds are calibrated against the Stokes-I power beam)."""
+    from mmflow.simulate.scene import polarised_sky_points
+    from mmflow.sky.sources import get_sources
+    from mmflow.telescope import ovro_lwa_layout
+    from mmflow.workflow.config import load_config
+    from mmflow.workflow.runner import run_workflow
+
+    run_dir = tmp_path / "run"
+    run_workflow(load_config(SIM[0], SIM[1:] + CORRUPT + [f"run.directory={run_dir}"]), progress=False,
+                 log=lambda *a: None)
+    import zarr
+
+    vis = zarr.open_group(str(run_dir / "vis.zarr"), mode="r")
+    assert vis.attrs["cross_pols"] == ["xy", "yx"] and vis.attrs["corrupt"]["leakage"] in (0.0, 0.03)
+    lay = ovro_lwa_layout("core", radius_m=15)
+    sky = polarised_sky_points(Telescope(lay, ShortDipoleJones(HORIZON_TAPER).power_beam(), [40e6]), 40e6,
+                               float(vis.attrs["epoch_jd"]), sources=get_sources(SOURCES))
+    maps = np.array(hp.read_map(str(run_dir / "maps" / "stokes_40.000MHz.fits"), field=None))
+    maps = np.where(maps == hp.UNSEEN, 0.0, maps)
+    ref = _truth_imaged(run_dir, lay, sky, 0, lmax=48)
+    for k, vec in enumerate(sky.vectors[:2]):  # Cyg A, Cas A
+        got, want = measure_peak(maps[0], vec, np.deg2rad(10)), measure_peak(ref[0], vec, np.deg2rad(10))
+        near = hp.query_disc(NSIDE, vec, got["fwhm_rad"])
+        leak = [np.abs(maps[s][near]).max() / got["peak"] for s in (1, 2, 3)]
+        print(f"source {k}: I peak / truth imaged {got['peak'] / want['peak']:.4f}, offset "
+              f"{np.arccos(min(1.0, got['vec'] @ want['vec'])) / got['fwhm_rad']:.3f} FWHM, "
+              f"Q, U, V within 1 FWHM / I peak {leak[0]:.4f} {leak[1]:.4f} {leak[2]:.4f}")
+        assert abs(got["peak"] / want["peak"] - 1) < 0.02, k
+        assert np.arccos(min(1.0, got["vec"] @ want["vec"])) < 0.05 * got["fwhm_rad"], k
+        assert max(leak) < 0.06, (k, leak)
+        if k == 0:  # Cyg A, near the zenith at transit: each feed calibrated against its own power beam leaves
+            assert leak[0] < 0.008  # Q at 0.43 %; one model for both feeds (the Stokes-I beam) 1.3 %
+
+
+def test_leakage_needs_a_full_stokes_simulation():
+    (what, fld, problem, fix), _ = refused_problem(["corrupt.enabled=true", "corrupt.leakage=0.02"], "corrupt.leakage")
+    assert "four correlations" in problem and "imaging.stokes=[I, Q, U, V]" in fix

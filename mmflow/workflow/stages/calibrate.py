@@ -5,7 +5,8 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 * ``r{F}``: the ripple ratio ``r(t)`` of every antenna and polarisation of channel F from the
   autocorrelations (:func:`mmflow.calibrate.ripple.ripple_ratio`, paper section 3.2);
 * ``g{F}_{K}``: Stefcal gains of channel F on interval K against the model
-  ``calibrate.sources`` through the beam at the data's epoch
+  ``calibrate.sources`` through the beam at the data's epoch (with an E-field beam, each feed's
+  parallel hand through its own power beam ``|J_p|^2``: :func:`mmflow.telescope.jones.feed_telescopes`)
   (:func:`mmflow.calibrate.screened_gains.solve_gains_screened`: the ``calibrate.screen_sources``
   refracted and scintillating per integration, the rest as catalogued; ``calibrate.measure_flux``
   measured rather than setting the flux scale, ``flux_factor``), on ripple-corrected data and on baselines
@@ -42,6 +43,7 @@ from mmflow.errors import InputError
 from mmflow.io.polarization import CROSS_FEEDS
 from mmflow.io.run_stores import gains_store
 from mmflow.sky.sources import get_sources
+from mmflow.telescope.jones import feed_telescopes
 from mmflow.workflow.baseline_cuts import check_baselines, resolved_cuts, solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.stages.base import Stage
@@ -124,7 +126,9 @@ def _task(ctx, key):
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
     lst, sources = block.lst[good], get_sources(c.sources)
     epoch = _epoch(ctx)  # once: each call opens vis.zarr's attributes
-    coh = source_coherencies(tel, f, lst, sources, epoch, block.pairs)
+    feeds = feed_telescopes(tel)  # a Jones beam: each feed's parallel hand through its own power beam
+    coh = (source_coherencies(tel, f, lst, sources, epoch, block.pairs) if feeds is None else
+           np.stack([source_coherencies(t, f, lst, sources, epoch, block.pairs) for t in feeds], axis=-1))
     keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)
     screened = np.array([name in c.screen_sources for name in c.sources], bool)
     vec = np.stack([source_vector_date(s, epoch) for s in sources])

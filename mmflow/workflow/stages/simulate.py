@@ -2,9 +2,9 @@
 
 With ``sky.resolved`` Cyg A and Cas A are simulated as their Gaussian components
 (:func:`mmflow.sky.sources.resolved`), sampled by Gauss-Hermite quadrature (:meth:`Source.points`).
-With ``imaging.stokes: [I, Q, U, V]`` (uncorrupted) it writes the four linear correlations through the
-E-field beam, the sources polarised as ``sky.polarised`` says
-(:func:`mmflow.simulate.scene.simulate_polarised_chunk`; docs/stokes.md).
+With ``imaging.stokes: [I, Q, U, V]`` it writes the four linear correlations through the
+E-field beam, the sources polarised as ``sky.polarised`` says, corrupted or not (gains per feed,
+``corrupt.leakage`` D-terms; :func:`mmflow.simulate.scene.simulate_polarised_chunk`; docs/stokes.md).
 
 Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): visibilities per
 polarisation (Stokes I alone for a clean simulation; XX and YY for a corrupted one or as ingested) in
@@ -21,8 +21,8 @@ from mmflow.calibrate.coherency import source_vector_date
 from mmflow.conventions import drift_scan_lsts, drift_scan_times, is_full_stokes
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
-from mmflow.simulate.scene import joined, polarised_sky_points, simulate_chunk, simulate_polarised_chunk, sky_points, \
-    source_points_date, unpolarised
+from mmflow.simulate.scene import (joined, polarised_sky_points, polarised_source_points, simulate_chunk,
+                                   simulate_polarised_chunk, sky_points, source_points_date, unpolarised)
 from mmflow.sky.sources import get_sources, resolved
 from mmflow.telescope.beam_factory import make_jones
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
@@ -59,11 +59,13 @@ def _skies(ctx):
     dd = list(c.dd_sources) if c.enabled else []
     model = resolved if s.resolved else (lambda src: src)  # sky.resolved: Cyg A, Cas A as Gaussian components
     plain = tuple(model(x) for x in get_sources([n for n in s.sources if n not in dd]))
-    if is_full_stokes(cfg.imaging.stokes):  # checked: not corrupted
-        return tel, [polarised_sky_points(tel, float(f), o.epoch_jd, s.diffuse_lmax if s.diffuse else None, s.seed,
-                                          plain, s.polarised, s.quad_oversample) for f in tel.freqs_hz], None
-    skies = [sky_points(tel, float(f), o.epoch_jd, s.diffuse_lmax if s.diffuse else None, s.seed, plain,
-                        s.quad_oversample) for f in tel.freqs_hz]
+    full = is_full_stokes(cfg.imaging.stokes)
+    diffuse = s.diffuse_lmax if s.diffuse else None
+    if full:
+        skies = [polarised_sky_points(tel, float(f), o.epoch_jd, diffuse, s.seed, plain, s.polarised, s.quad_oversample)
+                 for f in tel.freqs_hz]
+    else:
+        skies = [sky_points(tel, float(f), o.epoch_jd, diffuse, s.seed, plain, s.quad_oversample) for f in tel.freqs_hz]
     if not c.enabled:
         return tel, skies, None
     n = n_integrations(cfg)
@@ -75,8 +77,10 @@ def _skies(ctx):
         day = day_corruptions(tel.n_ant, float(f), times_s, len(srcs), tel.layout.enu,
                               np.random.default_rng([c.seed, fi]), gains=c.gains, sawtooth_db=c.sawtooth_db,
                               ionosphere_arcmin=c.ionosphere_arcmin, scintillation_sigma=c.scintillation,
-                              crosstalk_jy=c.crosstalk_jy, rfi_jy=c.rfi_jy)
-        corrupted.append((day, [source_points_date(x, float(f), o.epoch_jd) for x in srcs], vecs))
+                              crosstalk_jy=c.crosstalk_jy, rfi_jy=c.rfi_jy, leakage=c.leakage)
+        points = [polarised_source_points(x, float(f), o.epoch_jd, s.polarised) if full
+                  else source_points_date(x, float(f), o.epoch_jd) for x in srcs]
+        corrupted.append((day, points, vecs))
     return tel, skies, corrupted
 
 
@@ -93,7 +97,7 @@ def _sim_task(ctx, key):
     t0, t1 = chunk_rows(key, n)
     k = np.arange(t0, t1)
     tel, skies, corrupted = _skies(ctx.for_stage(ctx.stage))  # cached per configuration (no ledger)
-    full = is_full_stokes(cfg.imaging.stokes)  # then uncorrupted (checked)
+    full = is_full_stokes(cfg.imaging.stokes)
     lst = drift_scan_lsts(np.deg2rad(o.start_lst_deg), o.integration_s, k)
     rng = np.random.default_rng([cfg.sky.seed, key.time]) if cfg.sky.noise else None  # fixed per chunk
     # the UTC at which the site's apparent LST is each integration's: near the day centred on the epoch
@@ -106,7 +110,8 @@ def _sim_task(ctx, key):
     g = ctx.open("vis.zarr", mode="r+")
     rows = (slice(t0, t1),)
     if full:
-        vis, cross = simulate_polarised_chunk(tel, _jones(ctx.for_stage(ctx.stage)), lst, skies, rng, o.integration_s)
+        vis, cross = simulate_polarised_chunk(tel, _jones(ctx.for_stage(ctx.stage)), lst, skies, rng, o.integration_s,
+                                              corrupted, slice(t0, t1), cfg.corrupt.system_jy)
         ctx.write(g, "vis_cross", rows, cross)
         ctx.write(g, "weights_cross", rows, np.ones(cross.shape, np.float32))
     else:
