@@ -32,11 +32,12 @@ from dataclasses import dataclass
 import ducc0
 import healpy
 import numpy as np
+import scipy.linalg as sla
 
 from mmflow.conventions import m_slice, n_alm
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.solvers import generalized
+from mmflow.imaging.solvers import floored_penalty, generalized
 from mmflow.mmode.polarised import CORRELATIONS, STOKES, polarised_transfer_blocks
 from mmflow.sky.harmonics import point_sources_alm
 
@@ -199,11 +200,44 @@ def expected_alm(normal, true_alm, eps, filters=None):
     ``true_alm``: ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` T, E, B, V band-limited to ``lmax``;
     ``filters`` as in :func:`solve_polarised`. Returns ``(n_vec, 4, n_alm)``. With a T-only
     ``true_alm`` (an unpolarised sky) its E, B, V parts are the leakage of I into Q, U, V maps.
+    (:class:`PolarisedObserver`, which keeps the factorisations for repeated calls.)
     """
-    x = np.asarray(true_alm)
-    x = x if x.ndim == 3 else x[None]
-    return _solve(normal, eps, lambda m: np.stack([normal.gram[m] @ _pack(xx, m, normal.lmax) for xx in x]),
-                  filters)
+    return PolarisedObserver(normal, eps, filters)(true_alm)
+
+
+class PolarisedObserver:
+    """``x -> (G_m + D)^-1 G_m x_m`` for every m, the Cholesky factors of ``G_m + D`` computed once (what a
+    CLEAN applies every major cycle); ``filters`` remove unknowns as in :func:`solve_polarised`, and
+    ``D`` is :func:`penalty` (:func:`mmflow.imaging.solvers.floored_penalty`, as the solve)."""
+
+    def __init__(self, normal, eps, filters=None):
+        self.lmax = normal.lmax
+        self.blocks = []
+        for m in range(self.lmax + 1):
+            n_l = self.lmax - m + 1
+            keep = np.tile(filter_mask(m, self.lmax, **filters), 4) if filters else np.ones(4 * n_l, bool)
+            if not keep.any():
+                self.blocks.append(None)
+                continue
+            d = floored_penalty(penalty(eps, n_l)[keep])
+            g = normal.gram[m][np.ix_(keep, keep)]
+            self.blocks.append((keep, normal.gram[m][keep], sla.cho_factor(g + np.diag(d).astype(g.dtype),
+                                                                        check_finite=False)))
+
+    def __call__(self, true_alm):
+        x = np.asarray(true_alm)
+        x = x if x.ndim == 3 else x[None]
+        out = np.zeros((len(x), 4, n_alm(self.lmax)), np.complex128)
+        for m, block in enumerate(self.blocks):
+            if block is None:
+                continue
+            keep, g_rows, factor = block
+            n_l = self.lmax - m + 1
+            rhs = np.stack([g_rows @ _pack(xx, m, self.lmax) for xx in x], axis=1)  # (n_keep, n_vec)
+            y = np.zeros((len(x), 4 * n_l), np.complex128)
+            y[:, keep] = sla.cho_solve(factor, rhs, check_finite=False).T
+            out[:, :, m_slice(self.lmax, m)] = y.reshape(len(x), 4, n_l)
+        return out
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

@@ -58,10 +58,15 @@ def smoothness_weights(ell):
     return ell * (ell + 1)
 
 
-def generalized(gram, rhs, eps, penalty_diag):
-    """``(G + eps A^H A)^-1 r`` for diagonal ``A^H A`` (floored at 1e-12 relative for l = 0)."""
+def floored_penalty(penalty_diag):
+    """A diagonal ``A^H A`` floored at 1e-12 of its largest element (or of 1): no zero on the diagonal (l = 0)."""
     d = np.asarray(penalty_diag, float)
-    d = np.maximum(d, 1e-12 * max(d.max(), 1.0))
+    return np.maximum(d, 1e-12 * max(d.max(), 1.0))
+
+
+def generalized(gram, rhs, eps, penalty_diag):
+    """``(G + eps A^H A)^-1 r`` for diagonal ``A^H A`` (:func:`floored_penalty`)."""
+    d = floored_penalty(penalty_diag)
     a = gram + eps * np.diag(d).astype(gram.dtype)
     return sla.solve(a, rhs, assume_a="her", check_finite=False)
 

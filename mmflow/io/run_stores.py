@@ -195,18 +195,43 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     ), doc="The solve stage's sky: a_lm per data split.")
 
 
-def stokes_store(nf, lmax, mmax):
-    """The stokes stage's full-Stokes harmonics, per frequency."""
+def stokes_store(nf, lmax, mmax, clean=None):
+    """The stokes stage's full-Stokes harmonics, per frequency; ``clean`` ``(n_dec, max_cycles, n_peaks)``
+    adds the CLEAN of V (``clean.enabled``)."""
     shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, mmax + 1, lmax + 1)
     dims = ("freq", "stokes", "m", "l")
-    return StoreSpec("stokes.zarr", (
+    arrays = [
         ArraySpec("alm", dims, shape, ch, "complex128",
                   doc="T, E, B, V harmonics (Jy/sr, frame of date, healpy E/B; IAU Q, U through "
                       ":func:`mmflow.imaging.polarised.stokes_maps`), ``[f, X, m, l]``, 0 for l < m"),
         ArraySpec("leakage", dims, shape, ch, "complex128",
                   doc="the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]`` (T the solved I): "
                       "its E, B, V parts are the I -> Q, U, V leakage the beam model leaves"),
-    ), {}, doc="full-Stokes harmonics (imaging.stokes [I, Q, U, V]): the stokes stage.")
+    ]
+    if clean is not None:
+        n_dec, max_cycles, n_peaks = clean
+        arrays += [
+            ArraySpec("v_residual", dims, shape, ch, "complex128",
+                      doc="T, E, B, V after the CLEAN of V: ``alm`` minus the solve's image of the V components "
+                          "(:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) [clean.enabled]"),
+            ArraySpec("v_psf_table", ("freq", "dec", "column"), (nf, n_dec, 5), (1, n_dec, 5), "float64", np.nan,
+                      doc="the V PSF by declination: dec, peak, major, minor, pa [clean.enabled]"),
+            ArraySpec("v_components", ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4),
+                      (1, 1, n_peaks, 4), "float64", doc="V CLEAN components, frame of date, Jy (flux 0 = none) "
+                      "[clean.enabled]"),
+            ArraySpec("v_peaks", ("freq", "cycle"), (nf, max_cycles), (1, max_cycles), "float64", np.nan,
+                      doc="the residual V peak each cycle started from, Jy/sr [clean.enabled]"),
+            ArraySpec("v_threshold", ("freq",), (nf,), (1,), "float64", np.nan,
+                      doc="the V CLEAN threshold, Jy/sr [clean.enabled]"),
+            ArraySpec("v_noise", ("freq",), (nf,), (1,), "float64", np.nan,
+                      doc="the dirty V map's robust rms (1.4826 MAD over the sky seen), Jy/sr [clean.enabled]"),
+            ArraySpec("v_n_cycles", ("freq",), (nf,), (1,), "int64", doc="V CLEAN cycles run [clean.enabled]"),
+            ArraySpec("v_stop", ("freq",), (nf,), (1,), "int64", -1,
+                      doc=f"why the V CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "
+                          "[clean.enabled]"),
+        ]
+    return StoreSpec("stokes.zarr", tuple(arrays), {},
+                     doc="full-Stokes harmonics (imaging.stokes [I, Q, U, V]) and the CLEAN of V: the stokes stage.")
 
 
 def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):

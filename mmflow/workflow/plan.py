@@ -190,7 +190,9 @@ def stage_work(stage, g, cfg):
         # and the coefficients of one chunk of 32 baselines (4 correlations x 4 Stokes, every (l, m))
         gram = 2 * 16.0 * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
         coef = 16 * 32 * 16.0 * (g.lmax + 1) * (2 * g.lmax + 1)
-        spec = rs.stokes_store(g.n_freq, g.lmax, g.mmax)
+        c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
+        spec = rs.stokes_store(g.n_freq, g.lmax, g.mmax,
+                               (PSF_DECLINATIONS, g.clean_cycles, c.peaks_per_cycle) if c.enabled else None)
         return g.n_freq, gram + coef, g.n_bl * 4 * (g.lmax + 1) ** 2, [spec]
     if stage == "clean":
         c = cfg.clean

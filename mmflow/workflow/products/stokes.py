@@ -13,6 +13,11 @@ file (``maps/``)                   content
 ``polfrac_<tag>.fits``             linear ``sqrt(Q^2 + U^2) / I`` and circular ``V / I``
                                    fractions where I exceeds ``POLFRAC_MIN_I`` of the I peak
 ``stokes_<tag>_<X>.png``           Mollweide views of Q, U, V and the linear fraction
+``vclean_<tag>.fits``              with ``clean.enabled``: the CLEAN of V, columns ``V_RESTORED``
+                                   (residual + components convolved with the V PSF's fitted
+                                   Gaussian of their declination), ``V_RESIDUAL``, ``V_MODEL``
+                                   (components, flux / pixel solid angle)
+``vclean_<tag>.png``               the restored V map
 =================================  =============================================================
 """
 from __future__ import annotations
@@ -20,24 +25,60 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import healpy_alm
+from mmflow.imaging import clean as ck
+from mmflow.imaging import psf
 from mmflow.imaging.maps import stokes_alm_to_output_maps
 from mmflow.io.export import write_healpix_fits, write_mollweide_png
+from mmflow.io.run_stores import CLEAN_STOPS
+from mmflow.sky import units
+from mmflow.sky.frames import rotation_matrix
 
 #: the polarised fraction is shown only where I exceeds this fraction of the map's I peak
 POLFRAC_MIN_I = 0.05
 COLUMNS = ["I_STOKES", "Q_STOKES", "U_STOKES", "V_STOKES"]
 
 
-def _maps(ctx, name, fi, nside):
+def _maps(ctx, name, fi, nside, unit=None):
     cfg = ctx.cfg
     lmax, p = cfg.mmode.lmax, cfg.products
     vis = ctx.open("vis.zarr")
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
     padded = ctx.read("stokes.zarr", name, (slice(fi, fi + 1),))[0]  # (4, m, l)
     alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
-    maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, p.unit, nside)
+    maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, unit or p.unit, nside)
     ctx.check_finite(f"maps/{name} of channel {fi}", maps)
     return maps
+
+
+def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
+    """Write the CLEAN of V of channel ``fi`` (``vclean_<tag>.fits``) and return its summary entry."""
+    p = ctx.cfg.products
+    g = ctx.open("stokes.zarr")
+    vis = ctx.open("vis.zarr")
+    f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
+    rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
+    n_cyc = int(g["v_n_cycles"][fi])
+    comps = g["v_components"][fi, :n_cyc].reshape(-1, 4)
+    comps = comps[comps[:, 3] != 0]
+    residual = _maps(ctx, "v_residual", fi, nside, "Jy/sr")[3]
+    table = psf.table_from_array(g["v_psf_table"][fi])
+    restored = ck.restore_map(residual, comps[:, :3], comps[:, 3], table, to_frame=rot)
+    cols = [units.convert(m, "Jy/sr", p.unit, f) for m in (restored, residual,
+                                                         ck.model_map(comps[:, :3], comps[:, 3], nside, rot))]
+    ctx.check_finite(f"maps/vclean of channel {fi}", np.stack(cols))
+    path = f"maps/vclean_{tag}.fits"
+    write_healpix_fits(ctx.run.path / path, np.stack(cols), dict(meta, STOKES="V", CLEANCYC=n_cyc), mask=mask,
+                       column_names=["V_RESTORED", "V_RESIDUAL", "V_MODEL"])
+    ctx.ledger.record_file(ctx.run.path / path)
+    info = {"fits": path, "cycles": n_cyc, "components": int(len(comps)), "flux_jy": float(comps[:, 3].sum()),
+            "stop": CLEAN_STOPS[int(g["v_stop"][fi])], "threshold_jy_sr": float(g["v_threshold"][fi]),
+            "noise_jy_sr": float(g["v_noise"][fi]), "restored_peak": float(np.max(np.abs(cols[0][mask])))}
+    if png:
+        write_mollweide_png(ctx.run.path / f"maps/vclean_{tag}.png", cols[0], f"mmflow {tag} CLEANed Stokes V "
+                            f"({p.frame})", p.unit, mask=mask)
+        ctx.ledger.record_file(ctx.run.path / f"maps/vclean_{tag}.png")
+        info["png"] = f"maps/vclean_{tag}.png"
+    return info
 
 
 def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
@@ -79,4 +120,6 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
                                 mask=seen_frac if name == "plin" else mask)
             ctx.ledger.record_file(path)
         info["stokes_png"] = [f"maps/stokes_{tag}_{n}.png" for n in views]
+    if ctx.cfg.clean.enabled:
+        info["v_clean"] = v_clean_products(ctx, fi, tag, nside, mask, meta, png)
     return info

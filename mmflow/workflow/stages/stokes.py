@@ -11,7 +11,11 @@ inverse noise variances where ``transfer.noise_weighting``) and solves
 solve's m-filters (:func:`mmflow.imaging.polarised.solve_polarised`). It also writes the
 leakage: the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]``
 (:func:`mmflow.imaging.polarised.expected_alm`), whose Q, U, V are what the beam model leaves of I
-in them. Writes ``stokes.zarr``; the products stage makes the maps.
+in them. With ``clean.enabled`` it CLEANs V (a sparse sky) with the ``clean`` settings
+(:func:`mmflow.imaging.polarised_clean.clean_stokes_v`: components from the V residual, subtracted
+through the full-Stokes solve from all four Stokes parameters; threshold ``clean.threshold`` or
+``clean.threshold_sigma`` x the dirty V map's robust rms). Writes ``stokes.zarr``; the products
+stage makes the maps.
 
 The transfer coefficients are the reference kernels (six spherical-harmonic transforms per
 baseline and correlation, the whole Gram of a channel in memory: ``16 sum_m (4 L_m)^2`` bytes):
@@ -25,23 +29,33 @@ import numpy as np
 from mmflow.conventions import is_full_stokes, padded_alm
 from mmflow.imaging.polarised import accumulate_polarised_normal, expected_alm, solve_polarised, \
     stokes_eps
-from mmflow.io.run_stores import stokes_store
+from mmflow.imaging import psf
+from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
+from mmflow.io.run_stores import CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
+from mmflow.sky import units
 from mmflow.telescope.beam_factory import make_jones
+from mmflow.workflow.clean_state import clean_nside, clean_options, psf_decs_deg
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
 
-STOKES_CONFIG = ("mmode.lmax", "beam", "imaging", "transfer.noise_weighting")
+STOKES_CONFIG = ("mmode.lmax", "beam", "imaging", "transfer.noise_weighting", "clean")
+
+
+def _v_decs(ctx):
+    """The V PSF table's declinations (as the Stokes-I CLEAN's: :func:`psf_decs_deg`)."""
+    return psf_decs_deg(float(ctx.vis_attrs()["lat_deg"]), ctx.cfg.clean.psf_dec_step_deg)
 
 
 def _prepare(ctx):
     mg = ctx.open("mmodes.zarr")
     nf, n_m = mg["mmodes_corr"].shape[:2]
-    lmax = ctx.cfg.mmode.lmax
-    ctx.create(stokes_store(nf, lmax, n_m - 1))
+    c = ctx.cfg.clean
+    v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
+    ctx.create(stokes_store(nf, ctx.cfg.mmode.lmax, n_m - 1, v_clean))
     return [TaskKey(freq=fi) for fi in range(nf)]
 
 
@@ -70,10 +84,39 @@ def _task(ctx, key):
     n_m = out["alm"].shape[2]
     ctx.write(out, "alm", (slice(fi, fi + 1),), padded_alm(alm, lmax, n_m)[None])
     ctx.write(out, "leakage", (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
-    return {"baselines": int(len(keep)), "eps": list(eps)}
+    info = {"baselines": int(len(keep)), "eps": list(eps)}
+    if cfg.clean.enabled:
+        info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, tel.lat_rad)
+    return info
+
+
+def _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, lat_rad):
+    """The CLEAN of V (:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) with the ``clean`` settings:
+    ``clean.threshold`` if set, else ``clean.threshold_sigma`` x the dirty V map's robust rms."""
+    cfg = ctx.cfg
+    c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out["alm"].shape[2]
+    thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
+    table = v_psf_table(normal, eps, np.deg2rad(_v_decs(ctx)), filters)
+    res = clean_stokes_v(normal, eps, alm, lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table)
+    st, one = res["state"], (slice(fi, fi + 1),)
+    ctx.write(out, "v_residual", one, padded_alm(res["residual"], lmax, n_m)[None])
+    ctx.write(out, "v_psf_table", one, psf.table_to_array(table)[None], allow_nan=True)
+    for cyc in range(st.cycle):  # one chunk per cycle run (flux 0: no component)
+        sel = st.comp_cycle == cyc
+        comps = np.zeros((1, 1, c.peaks_per_cycle, 4))
+        comps[0, 0, :sel.sum()] = np.c_[st.comp_vec[sel], st.comp_flux[sel]]
+        ctx.write(out, "v_components", (slice(fi, fi + 1), slice(cyc, cyc + 1)), comps)
+    peaks = np.full(out["v_peaks"].shape[1], np.nan)
+    peaks[:st.cycle] = st.peaks
+    ctx.write(out, "v_peaks", one, peaks[None], allow_nan=True)
+    for name, value in (("v_threshold", res["threshold"]), ("v_noise", res["noise"]), ("v_n_cycles", st.cycle),
+                        ("v_stop", CLEAN_STOPS.index(res["reason"]))):
+        ctx.write(out, name, one, np.array([value]))
+    return {"cycles": int(st.cycle), "components": int(len(st.comp_flux)), "stop": res["reason"],
+            "threshold_jy_sr": float(res["threshold"])}
 
 
 STAGE = Stage("stokes", STOKES_CONFIG, ("vis.zarr", "mmodes.zarr"), ("stokes.zarr",), _prepare, _task,
               enabled=lambda cfg: is_full_stokes(cfg.imaging.stokes),
               description="full-Stokes transfer coefficients (E-field beam), normal equations over T, E, B, V and "
-              "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky")
+              "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)")
