@@ -272,7 +272,7 @@ class CleanOptions:
     max_cycles: int = 1000
     rel_threshold: float = 0.0
     stall_cycles: int = 10
-    stall_frac: float = 0.01
+    stall_frac: float = 0.1
 
     def stop(self, peaks, threshold):
         return stop_reason(peaks, threshold, self.rel_threshold, self.max_cycles, self.stall_cycles,

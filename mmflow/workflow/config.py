@@ -263,7 +263,10 @@ class CleanConfig(Section):
     max_cycles: int = Field(1000, ge=1, description="Stop after this many major cycles.")
     stall_cycles: int = Field(10, ge=0, description="Stop when the best peak of the last this-many cycles is "
                               "not stall_fraction below the best before them (0: off).")
-    stall_fraction: float = Field(0.01, ge=0, lt=1, description="See stall_cycles.")
+    stall_fraction: float = Field(0.1, ge=0, lt=1, description="See stall_cycles: 0.1 stops a residual falling "
+                                  "by less than ~1 % a cycle (calibration and ionospheric errors that point "
+                                  "components cannot describe), where a point source falls by the loop gain "
+                                  "(docs/clean.md).")
     psf_dec_step_deg: float = Field(2.0, gt=0, le=30, description="Declination step of the PSF table (the PSF "
                                     "depends only on declination; 0, +45 and +75 are always in it).")
     highpass_lmin: Optional[int] = Field(None, ge=1, description="CLEAN only l above this (cosine ramp of "
