@@ -221,8 +221,8 @@ class PolarisedObserver:
                 continue
             d = floored_penalty(penalty(eps, n_l)[keep])
             g = normal.gram[m][np.ix_(keep, keep)]
-            self.blocks.append((keep, normal.gram[m][keep], sla.cho_factor(g + np.diag(d).astype(g.dtype),
-                                                                        check_finite=False)))
+            g[np.diag_indices(len(g))] += d
+            self.blocks.append((keep, normal.gram[m], sla.cho_factor(g, overwrite_a=True, check_finite=False)))
 
     def __call__(self, true_alm):
         x = np.asarray(true_alm)
@@ -231,9 +231,9 @@ class PolarisedObserver:
         for m, block in enumerate(self.blocks):
             if block is None:
                 continue
-            keep, g_rows, factor = block
+            keep, gram, factor = block  # the Gram itself (no copy: one factor per m is the extra memory)
             n_l = self.lmax - m + 1
-            rhs = np.stack([g_rows @ _pack(xx, m, self.lmax) for xx in x], axis=1)  # (n_keep, n_vec)
+            rhs = np.stack([(gram @ _pack(xx, m, self.lmax))[keep] for xx in x], axis=1)  # (n_keep, n_vec)
             y = np.zeros((len(x), 4 * n_l), np.complex128)
             y[:, keep] = sla.cho_solve(factor, rhs, check_finite=False).T
             out[:, :, m_slice(self.lmax, m)] = y.reshape(len(x), 4, n_l)

@@ -22,6 +22,8 @@ eps 1e-4 in the tests) is V in the dirty map and CLEANed as such.
 """
 from __future__ import annotations
 
+import dataclasses
+
 import healpy
 import numpy as np
 
@@ -36,16 +38,18 @@ from mmflow.sky.harmonics import point_sources_alm
 V = 3  # the row of V in (T, E, B, V)
 
 
-def v_psf_table(normal, eps, dec_rad, filters=None):
+def v_psf_table(normal, eps, dec_rad, filters=None, observe=None):
     """The V PSF by declination: the V map of a unit V point source at RA 0 and each ``dec_rad``
     through the solve (:class:`mmflow.imaging.polarised.PolarisedObserver`), its peak and fitted Gaussian
-    (:func:`mmflow.imaging.psf.fit_psf_columns`: ``dec``, ``peak``, ``major``, ``minor``, ``pa``)."""
+    (:func:`mmflow.imaging.psf.fit_psf_columns`: ``dec``, ``peak``, ``major``, ``minor``, ``pa``); ``observe``
+    a :class:`mmflow.imaging.polarised.PolarisedObserver` of the same solve, to share its factors."""
     lmax = normal.lmax
     vecs = psf_mod.table_vectors(dec_rad)
     x = np.zeros((len(vecs), 4, n_alm(lmax)), np.complex128)
     for k, vec in enumerate(vecs):
         x[k, V] = point_sources_alm(vec[None], np.ones(1), lmax)
-    cols = PolarisedObserver(normal, eps, filters)(x)[:, V].T  # (n_alm, n_dec)
+    observe = observe or PolarisedObserver(normal, eps, filters)
+    cols = observe(x)[:, V].T  # (n_alm, n_dec)
     return psf_mod.fit_psf_columns(cols, lmax, dec_rad)
 
 
@@ -56,7 +60,7 @@ def robust_rms(values):
 
 
 def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=None, threshold=None, table=None,
-                   dec_step_deg=2.0):
+                   dec_step_deg=2.0, observe=None):
     """CLEAN the V part of a full-Stokes solve (module docstring).
 
     Parameters
@@ -69,6 +73,8 @@ def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=Non
     threshold : float, optional, Jy/sr; default ``opts.k_sigma`` x :func:`robust_rms` of the dirty V
     table : dict, optional, the V PSF table (default :func:`v_psf_table` from the lowest seen
         declination to the pole in ``dec_step_deg`` steps)
+    observe : :class:`mmflow.imaging.polarised.PolarisedObserver` of the same solve, optional (shares
+        its factors); V is signed, so peaks are always ranked by ``|V|`` (``opts.absolute`` is ignored)
 
     Returns
     -------
@@ -76,15 +82,15 @@ def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=Non
     ``residual`` (4, n_alm) after the subtractions, ``reason``, ``threshold``, ``noise`` (the robust
     rms), ``table``.
     """
-    opts = opts or CleanOptions()
+    opts = dataclasses.replace(opts or CleanOptions(), absolute=True)  # V is signed: both signs are sources
     lmax = normal.lmax
     nside = nside or 2 * default_nside(lmax)
     dec_min = never_seen_dec_min(lat_rad)
     mask = observed_mask(nside, dec_min)
+    observe = observe or PolarisedObserver(normal, eps, filters)
     if table is None:
         table = v_psf_table(normal, eps, np.deg2rad(np.arange(np.rad2deg(dec_min), 90.0 + 1e-9, dec_step_deg)),
-                            filters)
-    observe = PolarisedObserver(normal, eps, filters)
+                            filters, observe)
     residual = np.array(alm, np.complex128, copy=True)
     noise = robust_rms(healpy.alm2map(residual[V], nside, lmax=lmax)[mask])
     thr = opts.k_sigma * noise if threshold is None else float(threshold)

@@ -28,9 +28,10 @@ A polarised sky (full-Stokes simulations) carries the four correlations ``V_ij``
 matrices ``[[xx, xy], [yx, yy]]``, ``g`` one gain per feed (``G_i = diag(g_ix, g_iy)``), the feeds'
 polarisation leakage ``D_i = [[1, d_ix], [-d_iy, 1]]`` (:func:`leakage_terms`), and::
 
-    V_ij = G_i ( D_i [ V^sky_ij + sum_s h_si conj(h_sj) M^s_ij ] D_j^H + (terrestrial) 1 ) G_j^H + n_ij
+    V_ij = G_i ( D_i [ V^sky_ij + sum_s h_si conj(h_sj) M^s_ij ] D_j^H + (terrestrial + receiver) 1 ) G_j^H + n_ij
 
-with the terrestrial signals unpolarised (on xx and yy; cross-talk arises behind the feeds) and
+with the terrestrial signals unpolarised (on xx and yy; cross-talk arises behind the feeds), the
+receiver power (``system_jy``) on each feed's autocorrelation alike, and
 radiometer noise on every correlation (:func:`mmflow.simulate.polarised.correlation_noise`).
 """
 from __future__ import annotations
@@ -275,7 +276,7 @@ class Corruption:
 
 
 def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=None, weights=None,
-            four_correlations=False, dterms=None):
+            four_correlations=False, dterms=None, receiver_jy=0.0):
     """Apply gains, add terrestrial components and noise to (time, bl, pol) visibilities.
 
     Parameters
@@ -298,6 +299,9 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
         (:func:`mmflow.simulate.polarised.apply_leakage`), applied to the sky before the
         terrestrial signals (cross-talk arises behind the feeds) and the gains: the Jones chain
         ``G_i D_i``.
+    receiver_jy : float
+        With ``four_correlations``: a receiver power added to each feed's autocorrelation (xx, yy) after
+        the leakage (it arises behind the feeds), before the gains.
 
     Returns
     -------
@@ -311,6 +315,8 @@ def corrupt(vis, pairs, rng, *, times_s=None, gains=None, terrestrial=(), noise=
             raise ValueError("polarisation leakage mixes the four correlations: give xx, yy, xy, yx")
         out = np.moveaxis(apply_leakage(np.moveaxis(out, -1, -2), pairs, dterms), -2, -1)
     parallel = slice(0, 2) if four_correlations else slice(None)  # xx, yy lead CORRELATIONS
+    if receiver_jy and four_correlations:
+        out[:, pairs[:, 0] == pairs[:, 1], parallel] += receiver_jy
     for vec, amp in terrestrial:
         out[..., parallel] += rank1_visibilities(vec, amp, pairs)[..., None]
     if gains is not None:
@@ -453,14 +459,13 @@ def corrupted_visibilities(telescope, freq_hz, lsts, sky_vis, dd_coherencies, dd
     model visibilities alike and ``dd_vecs`` (n_dd, 3) their frame-of-date directions; ``day`` a
     :class:`DayCorruptions`, ``rows`` the chunk's integrations in it; ``system_jy`` a receiver (and
     unmodelled background) power added to the autocorrelations of each feed, uncorrelated between
-    antennas and feeds: it enters the radiometer noise and the gains act on it like on the sky.
+    antennas and feeds (with four correlations after the D-terms: it arises behind the feeds): it
+    enters the radiometer noise and the gains act on it like on the sky.
     """
     n_pol = 2 if day.gains is None else day.gains.shape[-1]
     vis = np.array(sky_vis, np.complex128)
     autos = np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]
-    if four_correlations:
-        vis[:, autos, :2] += system_jy  # xx, yy
-    else:
+    if not four_correlations:
         vis[:, autos] += system_jy
     if len(dd_vecs):
         h = direction_dependent_gains(telescope, freq_hz, lsts, dd_vecs, day.dd_offsets[:, rows],
@@ -471,5 +476,6 @@ def corrupted_visibilities(telescope, freq_hz, lsts, sky_vis, dd_coherencies, dd
     terr = [(vec, amp[rows]) for vec, amp in day.terrestrial]
     noise = None if noise_rng is None else {"bandwidth_hz": telescope.channel_width_hz, "integration_s": integration_s}
     out, _ = corrupt(vis, pairs, noise_rng, gains=None if day.gains is None else day.gains[rows],
-                     terrestrial=terr, noise=noise, four_correlations=four_correlations, dterms=day.dterms)
+                     terrestrial=terr, noise=noise, four_correlations=four_correlations, dterms=day.dterms,
+                     receiver_jy=system_jy)
     return out

@@ -217,8 +217,9 @@ class JonesPowerBeam(Beam):
 
 def feed_telescopes(telescope):
     """The telescope as each feed sees an unpolarised sky, ``[x, y]`` (its beam :class:`JonesPowerBeam` of that
-    feed), when its beam is a Jones beam's Stokes-I power beam; None for a scalar beam (both feeds alike) or
-    one feed's."""
+    feed), when its beam is a Jones beam's Stokes-I power beam (:class:`ShortDipoleJones`, :class:`PyUVDataJones`
+    made into a scalar beam by :meth:`JonesBeam.power_beam`); None for any other beam (both feeds alike: a
+    scalar beam, one feed's, or a pyuvdata beam read as a power beam)."""
     beam = telescope.beam
     if not isinstance(beam, JonesPowerBeam) or beam.feed is not None:
         return None

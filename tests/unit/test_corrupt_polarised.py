@@ -1,7 +1,7 @@
 """The corruption simulator on the four linear correlations of a polarised sky (issue 22): gains per
 feed, the feeds' polarisation leakage (D-terms), direction-dependent gains of bright sources,
 unpolarised terrestrial signals and radiometer noise, checked against the Jones chain
-``G_i (D_i [V_ij + sum_s h_si conj(h_sj) M^s_ij] D_j^H + T_ij 1) G_j^H`` written out with 2 x 2 matrices
+``G_i (D_i [V_ij + sum_s h_si conj(h_sj) M^s_ij] D_j^H + (T_ij + S_ij) 1) G_j^H`` written out with 2 x 2 matrices
 per baseline and integration (independent of the vectorised code)."""
 import numpy as np
 import pytest
@@ -45,8 +45,9 @@ def scene():
 
 
 def test_four_correlations_follow_the_jones_chain_per_baseline(scene):
-    """Per integration and baseline, the corrupted correlations equal ``G_i (D_i [V + h_i conj(h_j) M + S]
-    D_j^H + T_ij 1) G_j^H`` (S: the system power on the autocorrelations' xx and yy), the same chain for
+    """Per integration and baseline, the corrupted correlations equal ``G_i (D_i [V + h_i conj(h_j) M] D_j^H
+    + (T_ij + S_ij) 1) G_j^H`` (S: the receiver power on the autocorrelations' xx and yy, behind the feeds,
+    as the terrestrial signal T), the same chain for
     the stage's chunk (complex64), and without corruptions the uncorrupted chunk."""
     tel, jones, lsts, pairs, day = scene["tel"], scene["jones"], scene["lsts"], scene["pairs"], scene["day"]
     rows = slice(3, 3 + len(lsts))
@@ -61,10 +62,9 @@ def test_four_correlations_follow_the_jones_chain_per_baseline(scene):
     for t in range(len(lsts)):
         for b, (i, j) in enumerate(pairs):
             m = _feed_matrix(sky_v[t, b]) + h[t, i] * np.conj(h[t, j]) * _feed_matrix(dd_v[0, t, b])
-            if i == j:
-                m = m + 1e5 * np.eye(2)
             di, dj = (np.array([[1, day.dterms[a, 0]], [-day.dterms[a, 1], 1]]) for a in (i, j))
-            m = di @ m @ dj.conj().T + amp[rows][t] * pattern[i] * np.conj(pattern[j]) * np.eye(2)
+            behind = amp[rows][t] * pattern[i] * np.conj(pattern[j]) + (1e5 if i == j else 0.0)
+            m = di @ m @ dj.conj().T + behind * np.eye(2)
             m = np.diag(g[t, i]) @ m @ np.diag(g[t, j]).conj()
             np.testing.assert_allclose(got[t, b], _correlations(m), rtol=1e-12, atol=1e-9)
     corrupted = [(day, [scene["dd"]], vec)]

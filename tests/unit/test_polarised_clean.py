@@ -2,6 +2,8 @@
 scene of tests/polarised_scene.py (20 antennas within 12 m, 300 integrations, lmax 32) with its four
 polarised sources (V = 5, -8, 24 and 45 Jy) and four unpolarised ones, noiseless, simulated by the direct
 sums of :mod:`mmflow.simulate.polarised` (independent of the transfer code)."""
+import dataclasses
+
 import healpy as hp
 import numpy as np
 import pytest
@@ -67,6 +69,10 @@ def test_v_clean_recovers_each_v_source_flux_and_subtracts_from_all_four_stokes(
         else:  # (source 4 is 15 deg from source 0, whose components lie within 2 FWHM of it)
             core = np.arccos(np.clip(st.comp_vec @ vec, -1, 1)) < 0.5 * fwhm
             assert abs(st.comp_flux[core].sum()) < 0.01 * sky.stokes_jy[k, 0], k
+    # V is signed: a positive-sky option of the Stokes-I CLEAN (absolute=False) does not apply to it
+    signed = clean_stokes_v(n, eps, alm, solved["tel"].lat_rad, dataclasses.replace(opts, absolute=False), nside,
+                            NO_FILTER, threshold=0.002 * peak0, table=table)
+    np.testing.assert_array_equal(signed["state"].comp_flux, st.comp_flux)
     resid_v = hp.alm2map(out["residual"][V], nside, lmax=LMAX)
     assert np.abs(resid_v).max() < 1.5 * out["threshold"]
     x = np.zeros_like(alm)

@@ -5,8 +5,9 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 * ``r{F}``: the ripple ratio ``r(t)`` of every antenna and polarisation of channel F from the
   autocorrelations (:func:`mmflow.calibrate.ripple.ripple_ratio`, paper section 3.2);
 * ``g{F}_{K}``: Stefcal gains of channel F on interval K against the model
-  ``calibrate.sources`` through the beam at the data's epoch (with an E-field beam, each feed's
-  parallel hand through its own power beam ``|J_p|^2``: :func:`mmflow.telescope.jones.feed_telescopes`)
+  ``calibrate.sources`` through the beam at the data's epoch (with the ``short_dipole`` E-field beam
+  and data holding xx and yy, each feed's parallel hand through its own power beam ``|J_p|^2``:
+  :func:`mmflow.telescope.jones.feed_telescopes`; a pyuvdata beam is its Stokes-I power beam for both)
   (:func:`mmflow.calibrate.screened_gains.solve_gains_screened`: the ``calibrate.screen_sources``
   refracted and scintillating per integration, the rest as catalogued; ``calibrate.measure_flux``
   measured rather than setting the flux scale, ``flux_factor``), on ripple-corrected data and on baselines
@@ -126,7 +127,8 @@ def _task(ctx, key):
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
     lst, sources = block.lst[good], get_sources(c.sources)
     epoch = _epoch(ctx)  # once: each call opens vis.zarr's attributes
-    feeds = feed_telescopes(tel)  # a Jones beam: each feed's parallel hand through its own power beam
+    # a Jones beam and data holding xx and yy: each feed's parallel hand through its own power beam
+    feeds = feed_telescopes(tel) if list(ctx.vis_attrs()["pols"]) == ["xx", "yy"] else None
     coh = (source_coherencies(tel, f, lst, sources, epoch, block.pairs) if feeds is None else
            np.stack([source_coherencies(t, f, lst, sources, epoch, block.pairs) for t in feeds], axis=-1))
     keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)

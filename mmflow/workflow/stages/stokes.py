@@ -27,8 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import is_full_stokes, padded_alm
-from mmflow.imaging.polarised import accumulate_polarised_normal, expected_alm, solve_polarised, \
-    stokes_eps
+from mmflow.imaging.polarised import PolarisedObserver, accumulate_polarised_normal, solve_polarised, stokes_eps
 from mmflow.imaging import psf
 from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
 from mmflow.io.run_stores import CLEAN_STOPS, stokes_store
@@ -79,25 +78,27 @@ def _task(ctx, key):
     alm = solve_polarised(normal, eps, filters)[0]  # (4, n_alm)
     unpolarised = np.zeros_like(alm)
     unpolarised[0] = alm[0]
-    leak = expected_alm(normal, unpolarised, eps, filters)[0]
+    observe = PolarisedObserver(normal, eps, filters)  # factorised once: the leakage and the CLEAN of V
+    leak = observe(unpolarised)[0]
     out = ctx.open("stokes.zarr", mode="r+")
     n_m = out["alm"].shape[2]
     ctx.write(out, "alm", (slice(fi, fi + 1),), padded_alm(alm, lmax, n_m)[None])
     ctx.write(out, "leakage", (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
     info = {"baselines": int(len(keep)), "eps": list(eps)}
     if cfg.clean.enabled:
-        info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, tel.lat_rad)
+        info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, tel.lat_rad, observe)
     return info
 
 
-def _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, lat_rad):
+def _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, lat_rad, observe):
     """The CLEAN of V (:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) with the ``clean`` settings:
     ``clean.threshold`` if set, else ``clean.threshold_sigma`` x the dirty V map's robust rms."""
     cfg = ctx.cfg
     c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out["alm"].shape[2]
     thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
-    table = v_psf_table(normal, eps, np.deg2rad(_v_decs(ctx)), filters)
-    res = clean_stokes_v(normal, eps, alm, lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table)
+    table = v_psf_table(normal, eps, np.deg2rad(_v_decs(ctx)), filters, observe)
+    res = clean_stokes_v(normal, eps, alm, lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table,
+                         observe=observe)
     st, one = res["state"], (slice(fi, fi + 1),)
     ctx.write(out, "v_residual", one, padded_alm(res["residual"], lmax, n_m)[None])
     ctx.write(out, "v_psf_table", one, psf.table_to_array(table)[None], allow_nan=True)
