@@ -16,7 +16,8 @@ with a Tikhonov penalty per Stokes parameter::
 
     x_m = (G_m + D)^-1 r_m,    D = diag(eps_T 1_L, eps_E 1_L, eps_B 1_L, eps_V 1_L),
 
-(:func:`mmflow.imaging.solvers.generalized`); usually ``eps_E = eps_B = eps_pol``. E and B
+(the Cholesky factors of :class:`PolarisedObserver`, ``D`` floored as
+:func:`mmflow.imaging.solvers.floored_penalty`); usually ``eps_E = eps_B = eps_pol``. E and B
 harmonics with ``l < 2`` do not exist: their columns are zero and the penalty keeps them zero.
 The noiseless image of a true sky ``x`` through the same operator is ``(G_m + D)^-1 G_m x_m``
 (the resolution matrix, :func:`expected_alm`): comparing a map with it is exact in the
@@ -37,7 +38,7 @@ import scipy.linalg as sla
 from mmflow.conventions import m_slice, n_alm
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.solvers import floored_penalty, generalized
+from mmflow.imaging.solvers import floored_penalty
 from mmflow.mmode.polarised import CORRELATIONS, STOKES, polarised_transfer_blocks
 from mmflow.sky.harmonics import point_sources_alm
 
@@ -164,22 +165,6 @@ def _pack(alm, m, lmax):
     return np.concatenate([alm[x, m_slice(lmax, m)] for x in range(4)])
 
 
-def _solve(normal, eps, rhs_of_m, filters=None):
-    lmax = normal.lmax
-    n_vec = rhs_of_m(0).shape[0]
-    out = np.zeros((n_vec, 4, n_alm(lmax)), np.complex128)
-    for m in range(lmax + 1):
-        n_l = lmax - m + 1
-        keep = np.tile(filter_mask(m, lmax, **filters), 4) if filters else np.ones(4 * n_l, bool)
-        if not keep.any():
-            continue
-        x = np.zeros((n_vec, 4 * n_l), np.complex128)
-        g = normal.gram[m][np.ix_(keep, keep)]
-        x[:, keep] = generalized(g, rhs_of_m(m)[:, keep].T, 1.0, penalty(eps, n_l)[keep]).T
-        out[:, :, m_slice(lmax, m)] = x.reshape(n_vec, 4, n_l)
-    return out
-
-
 def solve_polarised(normal, eps, filters=None):
     """``x_m = (G_m + D)^-1 r_m`` for every m and data vector: alm ``(n_vec, 4 [T, E, B, V], n_alm)``.
 
@@ -191,7 +176,7 @@ def solve_polarised(normal, eps, filters=None):
         Keyword arguments of :func:`mmflow.imaging.filters.filter_mask` (the m-filters of the
         Stokes-I solve): the unknowns they remove are removed from every Stokes parameter (zero).
     """
-    return _solve(normal, eps, lambda m: normal.rhs[m], filters)
+    return PolarisedObserver(normal, eps, filters).solution()
 
 
 def expected_alm(normal, true_alm, eps, filters=None):
@@ -206,11 +191,13 @@ def expected_alm(normal, true_alm, eps, filters=None):
 
 
 class PolarisedObserver:
-    """``x -> (G_m + D)^-1 G_m x_m`` for every m, the Cholesky factors of ``G_m + D`` computed once (what a
-    CLEAN applies every major cycle); ``filters`` remove unknowns as in :func:`solve_polarised`, and
-    ``D`` is :func:`penalty` (:func:`mmflow.imaging.solvers.floored_penalty`, as the solve)."""
+    """The solve ``x_m = (G_m + D)^-1 r_m`` and the map of a true sky through it, ``x -> (G_m + D)^-1 G_m x_m``,
+    for every m from the Cholesky factors of ``G_m + D`` computed once (the stokes stage solves, images the
+    leakage and CLEANs V with one set); ``filters`` remove unknowns (zero in every Stokes parameter) as in
+    :func:`solve_polarised`, and ``D`` is :func:`penalty` (:func:`mmflow.imaging.solvers.floored_penalty`)."""
 
     def __init__(self, normal, eps, filters=None):
+        self.normal = normal
         self.lmax = normal.lmax
         self.blocks = []
         for m in range(self.lmax + 1):
@@ -219,25 +206,34 @@ class PolarisedObserver:
             if not keep.any():
                 self.blocks.append(None)
                 continue
-            d = floored_penalty(penalty(eps, n_l)[keep])
             g = normal.gram[m][np.ix_(keep, keep)]
-            g[np.diag_indices(len(g))] += d
-            self.blocks.append((keep, normal.gram[m], sla.cho_factor(g, overwrite_a=True, check_finite=False)))
+            g[np.diag_indices(len(g))] += floored_penalty(penalty(eps, n_l)[keep])
+            self.blocks.append((keep, sla.cho_factor(g, overwrite_a=True, check_finite=False)))
 
-    def __call__(self, true_alm):
-        x = np.asarray(true_alm)
-        x = x if x.ndim == 3 else x[None]
-        out = np.zeros((len(x), 4, n_alm(self.lmax)), np.complex128)
+    def solve(self, rhs_of_m):
+        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``: alm ``(n_vec, 4, n_alm)``."""
+        n_vec = len(rhs_of_m(0))
+        out = np.zeros((n_vec, 4, n_alm(self.lmax)), np.complex128)
         for m, block in enumerate(self.blocks):
             if block is None:
                 continue
-            keep, gram, factor = block  # the Gram itself (no copy: one factor per m is the extra memory)
-            n_l = self.lmax - m + 1
-            rhs = np.stack([(gram @ _pack(xx, m, self.lmax))[keep] for xx in x], axis=1)  # (n_keep, n_vec)
-            y = np.zeros((len(x), 4 * n_l), np.complex128)
-            y[:, keep] = sla.cho_solve(factor, rhs, check_finite=False).T
-            out[:, :, m_slice(self.lmax, m)] = y.reshape(len(x), 4, n_l)
+            keep, factor = block
+            rhs = rhs_of_m(m)
+            y = np.zeros((n_vec, len(keep)), np.complex128)
+            y[:, keep] = sla.cho_solve(factor, rhs[:, keep].T, check_finite=False).T
+            out[:, :, m_slice(self.lmax, m)] = y.reshape(n_vec, 4, -1)
         return out
+
+    def solution(self):
+        """The solve of the data: ``(G_m + D)^-1 r_m`` of every data vector, ``(n_vec, 4, n_alm)``."""
+        return self.solve(lambda m: self.normal.rhs[m])
+
+    def __call__(self, true_alm):
+        """The noiseless image through the solve of ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` true harmonics
+        (the Gram's own product, no copy of it: one factor per m is the extra memory)."""
+        x = np.asarray(true_alm)
+        x = x if x.ndim == 3 else x[None]
+        return self.solve(lambda m: np.stack([self.normal.gram[m] @ _pack(xx, m, self.lmax) for xx in x]))
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

@@ -76,16 +76,16 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
         is_auto, ci, cj = auto_columns(pairs)
     feeds = feed_telescopes(telescope) if corrupted is not None else None  # a Jones beam: each feed its own
 
-    def drift_scan(points, dtype=np.complex128):
+    def drift_scan(points, f, dtype=np.complex128):
         if feeds is None:
             return simulate_drift_scan(telescope, f, lsts, points, pairs, dtype)
         return np.stack([simulate_drift_scan(t, f, lsts, points, pairs, dtype) for t in feeds], axis=-1)
 
     for fi, f in enumerate(telescope.freqs_hz):
-        v = drift_scan(skies[fi], np.complex64)
+        v = drift_scan(skies[fi], f, np.complex64)
         if corrupted is not None:
             day, dd_points, dd_vecs = corrupted[fi]
-            dd = np.stack([drift_scan(p) for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex)
+            dd = np.stack([drift_scan(p, f) for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex)
             out[:, :, fi] = corrupted_visibilities(telescope, f, lsts, v, dd, dd_vecs, day, rows, pairs, noise_rng,
                                                    integration_s, system_jy)
             continue
@@ -142,12 +142,15 @@ def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, inte
     (:func:`mmflow.simulate.corrupt.corrupted_visibilities` on the four correlations)."""
     pairs = telescope.antenna_pairs()
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), len(CORRELATIONS)), np.complex64)
+
+    def drift_scan(points, f):  # (time, baseline, correlation)
+        return np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, points, pairs), 1, -1)
+
     for fi, f in enumerate(telescope.freqs_hz):
-        v = np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, skies[fi], pairs), 1, -1)
+        v = drift_scan(skies[fi], f)
         if corrupted is not None:
             day, dd_points, dd_vecs = corrupted[fi]
-            dd = (np.stack([np.moveaxis(simulate_polarised_drift_scan(telescope, jones, f, lsts, p, pairs), 1, -1)
-                            for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex))
+            dd = np.stack([drift_scan(p, f) for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex)
             v = corrupted_visibilities(telescope, f, lsts, v, dd, dd_vecs, day, rows, pairs, noise_rng,
                                        integration_s, system_jy, four_correlations=True)
         elif noise_rng is not None:

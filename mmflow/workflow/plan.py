@@ -186,10 +186,10 @@ def stage_work(stage, g, cfg):
         spec = rs.alm_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split, np.zeros(LCURVE_POINTS))
         return g.n_freq * n_mb, blk2 * 16.0, _block_sum(g.lmax, g.mmax, g.m_block, 3), [spec]
     if stage == "stokes":
-        # the whole channel's Gram over [T, E, B, V] (complex128, full matrices), twice while solving, and
-        # its Cholesky factors kept for the leakage and the CLEAN of V (PolarisedObserver): three Grams;
+        # the whole channel's Gram over [T, E, B, V] (complex128, full matrices) and its Cholesky factors,
+        # one set for the solve, the leakage and the CLEAN of V (PolarisedObserver): two Grams;
         # and the coefficients of one chunk of 32 baselines (4 correlations x 4 Stokes, every (l, m))
-        gram = 3 * 16.0 * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
+        gram = 2 * 16.0 * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
         coef = 16 * 32 * 16.0 * (g.lmax + 1) * (2 * g.lmax + 1)
         c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
         spec = rs.stokes_store(g.n_freq, g.lmax, g.mmax,

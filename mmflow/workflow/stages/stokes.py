@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import is_full_stokes, padded_alm
-from mmflow.imaging.polarised import PolarisedObserver, accumulate_polarised_normal, solve_polarised, stokes_eps
+from mmflow.imaging.polarised import PolarisedObserver, accumulate_polarised_normal, stokes_eps
 from mmflow.imaging import psf
 from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
 from mmflow.io.run_stores import CLEAN_STOPS, stokes_store
@@ -75,10 +75,10 @@ def _task(ctx, key):
                                fringe_bandlimit(np.linalg.norm(b, axis=1), jones.lmax_hint))
     normal = accumulate_polarised_normal(grid, b, mm[:lmax + 1, :, :, keep][None], w[:, keep], CORRELATIONS)
     eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
-    alm = solve_polarised(normal, eps, filters)[0]  # (4, n_alm)
+    observe = PolarisedObserver(normal, eps, filters)  # factorised once: the solve, the leakage, the CLEAN of V
+    alm = observe.solution()[0]  # (4, n_alm)
     unpolarised = np.zeros_like(alm)
     unpolarised[0] = alm[0]
-    observe = PolarisedObserver(normal, eps, filters)  # factorised once: the leakage and the CLEAN of V
     leak = observe(unpolarised)[0]
     out = ctx.open("stokes.zarr", mode="r+")
     n_m = out["alm"].shape[2]
