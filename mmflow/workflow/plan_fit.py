@@ -9,10 +9,13 @@ of the run's own configuration) the constants of
 
     memory = a W + b,     seconds = c U + d
 
-are fitted over the runs: ``a = 1`` (a task holds its working set; small runs cannot tell a slope
-from their overheads, and a fitted slope extrapolated 20x to the paper's channel would refuse runs
-that fit), ``b`` the median measured excess over ``W`` (>= 0); ``c, d`` a least-squares line
-(``d >= 0``; runs of one size: ``d = 0``).
+are fitted over the runs (:func:`fit_memory`): where the runs' working sets span at least
+:data:`SLOPE_SPAN` (a paper-scale run beside small ones), ``a, b`` a least-squares line, ``a >= 1``
+(a task holds at least its working set; the intermediates a working-set model leaves out grow with
+it: at 256 antennas the simulator's and the terrestrial fit's tasks held ~4.7x theirs); else
+``a = 1`` (small runs alone cannot tell a slope from their overheads, and a slope fitted on them and
+extrapolated 20x would refuse runs that fit) and ``b`` the median measured excess over ``W``
+(>= 0); ``c, d`` a least-squares line (``d >= 0``; runs of one size: ``d = 0``).
 The SGEMM peak measured at fit time is kept with them, and the plan scales its times by it.
 """
 from __future__ import annotations
@@ -65,6 +68,21 @@ def _fit(x, y):
     return float(slope), float(icpt)
 
 
+#: the ratio of the largest to the smallest working set above which memory's slope is fitted
+SLOPE_SPAN = 4.0
+
+
+def fit_memory(w, mem):
+    """``(a, b)`` of ``mem ~ a w + b`` (module docstring): fitted where ``w`` spans :data:`SLOPE_SPAN`,
+    ``a >= 1``, ``b >= 0``; else ``a = 1``, ``b`` the median excess ``mem - w`` (>= 0)."""
+    w, mem = np.asarray(w, float), np.asarray(mem, float)
+    if len(w) > 1 and w.min() > 0 and w.max() / w.min() >= SLOPE_SPAN:
+        a, b = _fit(w, mem)
+        if a >= 1.0:
+            return a, b
+    return 1.0, max(0.0, float(np.median(mem - w)))
+
+
 def fit_costs(run_dirs, sgemm_gflops):
     """The constants file's content fitted to ``run_dirs`` (see the module docstring)."""
     per_stage = {}
@@ -74,7 +92,7 @@ def fit_costs(run_dirs, sgemm_gflops):
     stages = {}
     for stage, ss in per_stage.items():
         w, u, mem, sec = (np.array(v, float) for v in zip(*ss))
-        a, b = 1.0, max(0.0, float(np.median(mem - w)))  # the working set itself, plus the stage's overhead
+        a, b = fit_memory(w, mem)
         c, d = _fit(u, sec)
         stages[stage] = {"a": a, "b": b, "c": c, "d": d, "runs": len(ss)}
     return {"sgemm_gflops": sgemm_gflops, "fitted_on": [str(d) for d in run_dirs], "stages": stages}

@@ -189,3 +189,17 @@ def test_progress_says_how_long_the_stage_has_left():
     now[0] += 590.0  # 600 s for 3 of 10: 1400 s left
     assert bar.text(3) == "[transfer] 3/10 tasks, ~23.3 min left"
     assert bar.text(10) == "[transfer] 10/10 tasks"
+
+
+def test_memory_slope_is_fitted_only_where_the_runs_span_the_scales():
+    """Runs of one scale keep ``a = 1`` and the median excess (a slope fitted on small runs alone would
+    be extrapolated 20x); a paper-scale run beside small ones fits the slope of what the working-set
+    model leaves out (never below 1)."""
+    from mmflow.workflow.plan_fit import fit_memory
+
+    w = np.array([2e8, 4e8, 3e9])
+    a, b = fit_memory(w, 4.7 * w + 5e7)
+    assert a == pytest.approx(4.7) and b == pytest.approx(5e7)
+    assert fit_memory(w[:2], 4.7 * w[:2] + 5e7) == (1.0, pytest.approx(np.median(3.7 * w[:2] + 5e7)))
+    assert fit_memory(w, 0.5 * w + 1e9) == (1.0, pytest.approx(np.median(1e9 - 0.5 * w)))  # a < 1: the model holds
+    assert fit_memory(w, 0.2 * w) == (1.0, 0.0)  # no negative overhead
