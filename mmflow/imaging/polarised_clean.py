@@ -13,8 +13,9 @@ one. With ``H_m = (G_m + D)^-1 G_m`` the map of a true sky ``x = [T; E; B; V]`` 
    parameters: a V component's leakage into I, Q and U through the solve leaves with it.
 
 It stops as :func:`mmflow.imaging.clean.stop_reason` says; the threshold is ``k_sigma`` x the V map's
+noise: its jackknife sigma from the data splits (:func:`jackknife_v_noise`) where given, else its
 robust rms, ``1.4826 MAD`` over the sky the array sees (:func:`robust_rms`: V is noise almost
-everywhere) unless a threshold is given. Restoring is :func:`mmflow.imaging.clean.restore_map` with the V
+everywhere), unless a threshold is given. Restoring is :func:`mmflow.imaging.clean.restore_map` with the V
 PSF's fitted Gaussian per declination.
 
 The I -> V leakage the regularised solve leaves (the stokes stage's leakage map; ~0.2 % of I at
@@ -31,6 +32,7 @@ from mmflow.conventions import n_alm
 from mmflow.imaging import psf as psf_mod
 from mmflow.imaging.clean import (CleanOptions, CleanState, component_alm, never_seen_dec_min, observed_mask,
                                   select_components)
+from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
 from mmflow.imaging.polarised import PolarisedObserver
 from mmflow.sky.harmonics import point_sources_alm
@@ -59,8 +61,21 @@ def robust_rms(values):
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
+def jackknife_v_noise(split_alm, kind, fractions, lat_rad, nside):
+    """The V map's jackknife sigma (Jy/sr) over the sky seen (declinations above ``lat - 90 deg``).
+
+    ``split_alm``: ``{split name: (4, n_alm) T, E, B, V}`` of the data splits the jackknife ``kind``
+    uses, each solved through the same factorisation as the full data
+    (:func:`mmflow.imaging.jackknife.split_variance`; ``fractions`` the per-day shares ``f_k``).
+    """
+    lmax = healpy.Alm.getlmax(len(next(iter(split_alm.values()))[V]))
+    mask = observed_mask(nside, never_seen_dec_min(lat_rad))
+    maps = {s: healpy.alm2map(np.ascontiguousarray(a[V]), nside, lmax=lmax) for s, a in split_alm.items()}
+    return float(np.sqrt(split_variance(maps, kind, fractions, mask)))
+
+
 def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=None, threshold=None, table=None,
-                   dec_step_deg=2.0, observe=None):
+                   dec_step_deg=2.0, observe=None, noise=None):
     """CLEAN the V part of a full-Stokes solve (module docstring).
 
     Parameters
@@ -70,7 +85,9 @@ def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=Non
     lat_rad : float, the array's latitude (the sky it sees: declinations above ``lat - 90 deg``)
     opts : :class:`mmflow.imaging.clean.CleanOptions`
     nside : int, resolution of the residual V maps (default twice :func:`mmflow.imaging.maps.default_nside`)
-    threshold : float, optional, Jy/sr; default ``opts.k_sigma`` x :func:`robust_rms` of the dirty V
+    threshold : float, optional, Jy/sr; default ``opts.k_sigma`` x ``noise``
+    noise : float, optional, the V map's noise sigma, Jy/sr (e.g. :func:`jackknife_v_noise`); default
+        :func:`robust_rms` of the dirty V map over the sky seen
     table : dict, optional, the V PSF table (default :func:`v_psf_table` from the lowest seen
         declination to the pole in ``dec_step_deg`` steps)
     observe : :class:`mmflow.imaging.polarised.PolarisedObserver` of the same solve, optional (shares
@@ -79,8 +96,8 @@ def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=Non
     Returns
     -------
     dict: ``state`` (:class:`mmflow.imaging.clean.CleanState` of the V residual and components),
-    ``residual`` (4, n_alm) after the subtractions, ``reason``, ``threshold``, ``noise`` (the robust
-    rms), ``table``.
+    ``residual`` (4, n_alm) after the subtractions, ``reason``, ``threshold``, ``noise`` (the one given,
+    else the robust rms), ``table``.
     """
     opts = dataclasses.replace(opts or CleanOptions(), absolute=True)  # V is signed: both signs are sources
     lmax = normal.lmax
@@ -92,7 +109,7 @@ def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=Non
         table = v_psf_table(normal, eps, np.deg2rad(np.arange(np.rad2deg(dec_min), 90.0 + 1e-9, dec_step_deg)),
                             filters, observe)
     residual = np.array(alm, np.complex128, copy=True)
-    noise = robust_rms(healpy.alm2map(residual[V], nside, lmax=lmax)[mask])
+    noise = robust_rms(healpy.alm2map(residual[V], nside, lmax=lmax)[mask]) if noise is None else float(noise)
     thr = opts.k_sigma * noise if threshold is None else float(threshold)
     state = CleanState(residual[V].copy())
     reason = opts.stop(state.peaks, thr)

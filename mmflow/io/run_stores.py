@@ -112,9 +112,9 @@ def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs, n_corr=0):
     m-modes of each correlation (xx, yy, xy, yx)."""
     ch = min(baseline_chunk, nbl)
     pol = () if not n_corr else (
-        ArraySpec("mmodes_corr", ("freq", "m", "pm", "correlation", "baseline"), (nf, mmax + 1, 2, n_corr, nbl),
-                  (nf, mmax + 1, 2, n_corr, ch), "complex128",
-                  doc="m-modes of each correlation (xx, yy, xy, yx; full data, no splits), layout of ``mmodes``; "
+        ArraySpec("mmodes_corr", ("split", "freq", "m", "pm", "correlation", "baseline"),
+                  (n_split, nf, mmax + 1, 2, n_corr, nbl), (n_split, nf, mmax + 1, 2, n_corr, ch), "complex128",
+                  doc="m-modes of each correlation (xx, yy, xy, yx) per data split, layout of ``mmodes``; "
                       "only with imaging.stokes [I, Q, U, V]"),
         ArraySpec("inv_var_corr", ("freq", "correlation", "baseline"), (nf, n_corr, nbl), (nf, n_corr, ch),
                   "float64", doc="inverse noise variance of each correlation's m-modes"),
@@ -195,17 +195,19 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     ), doc="The solve stage's sky: a_lm per data split.")
 
 
-def stokes_store(nf, lmax, mmax, clean=None):
-    """The stokes stage's full-Stokes harmonics, per frequency; ``clean`` ``(n_dec, max_cycles, n_peaks)``
-    adds the CLEAN of V (``clean.enabled``)."""
+def stokes_store(n_split, nf, lmax, mmax, clean=None):
+    """The stokes stage's full-Stokes harmonics, per data split and frequency; ``clean``
+    ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V (``clean.enabled``)."""
     shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, mmax + 1, lmax + 1)
     dims = ("freq", "stokes", "m", "l")
     arrays = [
-        ArraySpec("alm", dims, shape, ch, "complex128",
-                  doc="T, E, B, V harmonics (Jy/sr, frame of date, healpy E/B; IAU Q, U through "
-                      ":func:`mmflow.imaging.polarised.stokes_maps`), ``[f, X, m, l]``, 0 for l < m"),
+        ArraySpec("alm", ("split",) + dims, (n_split,) + shape, (n_split,) + ch, "complex128",
+                  doc="T, E, B, V harmonics of each data split (``mmode.splits``; Jy/sr, frame of date, healpy E/B; "
+                      "IAU Q, U through :func:`mmflow.imaging.polarised.stokes_maps`), ``[split, f, X, m, l]``, "
+                      "0 for l < m; the splits other than ``full`` give the jackknife noise of each Stokes map"),
         ArraySpec("leakage", dims, shape, ch, "complex128",
-                  doc="the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]`` (T the solved I): "
+                  doc="the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]`` (T the solved I of "
+                      "the full data): "
                       "its E, B, V parts are the I -> Q, U, V leakage the beam model leaves"),
     ]
     if clean is not None:
@@ -224,7 +226,9 @@ def stokes_store(nf, lmax, mmax, clean=None):
             ArraySpec("v_threshold", ("freq",), (nf,), (1,), "float64", np.nan,
                       doc="the V CLEAN threshold, Jy/sr [clean.enabled]"),
             ArraySpec("v_noise", ("freq",), (nf,), (1,), "float64", np.nan,
-                      doc="the dirty V map's robust rms (1.4826 MAD over the sky seen), Jy/sr [clean.enabled]"),
+                      doc="the V map's noise the CLEAN threshold is a multiple of: its jackknife sigma (even/odd or "
+                          "per-day splits), else the dirty V map's robust rms (1.4826 MAD over the sky seen), Jy/sr "
+                          "[clean.enabled]"),
             ArraySpec("v_n_cycles", ("freq",), (nf,), (1,), "int64", doc="V CLEAN cycles run [clean.enabled]"),
             ArraySpec("v_stop", ("freq",), (nf,), (1,), "int64", -1,
                       doc=f"why the V CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "

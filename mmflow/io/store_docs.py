@@ -50,7 +50,7 @@ def reference_stores():
         (rs.partials_store, dict(nf=N_FREQ, n_groups=4, dtype="complex64", **blocks)),
         (rs.normal_store, dict(nf=N_FREQ, gram_dtype="complex64", **blocks)),
         (rs.alm_store, dict(nf=N_FREQ, eps_grid=np.logspace(-4, 1, 20), **blocks)),
-        (rs.stokes_store, dict(nf=N_FREQ, lmax=LMAX, mmax=LMAX, clean=(8, 10, 16))),
+        (rs.stokes_store, dict(n_split=n_split, nf=N_FREQ, lmax=LMAX, mmax=LMAX, clean=(8, 10, 16))),
         (rs.transfer_store, dict(nf=N_FREQ, nbl=nbl, lmax=LMAX, mmax=LMAX, baseline_chunk=12, dtype="complex64",
                                  orders=[np.arange(nbl)] * N_FREQ)),
         (rs.gains_store, dict(n_interval=n_int, nf=N_FREQ, n_ant=N_ANT, npol=npol, n_time=N_TIME, solve_rows=rows,

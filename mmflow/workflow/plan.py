@@ -192,7 +192,7 @@ def stage_work(stage, g, cfg):
         gram = 2 * 16.0 * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
         coef = 16 * 32 * 16.0 * (g.lmax + 1) * (2 * g.lmax + 1)
         c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
-        spec = rs.stokes_store(g.n_freq, g.lmax, g.mmax,
+        spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                                (PSF_DECLINATIONS, g.clean_cycles, c.peaks_per_cycle) if c.enabled else None)
         return g.n_freq, gram + coef, g.n_bl * 4 * (g.lmax + 1) ** 2, [spec]
     if stage == "clean":

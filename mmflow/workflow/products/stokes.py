@@ -7,6 +7,9 @@ file (``maps/``)                   content
                                    full-Stokes solve, IAU convention (``POLCCONV = 'IAU'``: Q > 0
                                    north-south, angle from north through east in
                                    ``products.frame``), ``products.unit``
+``stokes_noise_<tag>.fits``        a jackknife noise realisation of I, Q, U, V (``(odd - even) / 2``,
+                                   else of the first day; ``mmode.splits``), whose rms is the noise
+                                   each Stokes map's summary states
 ``leakage_<tag>.fits``             I, Q, U, V of the unpolarised sky ``[T, 0, 0, 0]`` imaged
                                    through the same solve: Q, U, V are the leakage of I the beam
                                    model leaves
@@ -27,27 +30,51 @@ import numpy as np
 from mmflow.conventions import healpy_alm
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
+from mmflow.imaging.jackknife import noise_realisation, split_variance
 from mmflow.imaging.maps import stokes_alm_to_output_maps
 from mmflow.io.export import write_healpix_fits, write_mollweide_png
 from mmflow.io.run_stores import CLEAN_STOPS
 from mmflow.sky import units
 from mmflow.sky.frames import rotation_matrix
+from mmflow.workflow import clean_state as cs
 
 #: the polarised fraction is shown only where I exceeds this fraction of the map's I peak
 POLFRAC_MIN_I = 0.05
 COLUMNS = ["I_STOKES", "Q_STOKES", "U_STOKES", "V_STOKES"]
 
 
-def _maps(ctx, name, fi, nside, unit=None):
+def _maps(ctx, name, fi, nside, unit=None, split=None):
+    """I, Q, U, V maps ``(4, npix)`` of ``stokes.zarr``'s array ``name`` at channel ``fi`` (of data split
+    ``split``, an index of ``mmode.splits``, for ``alm``) in ``products.frame`` and ``unit``."""
     cfg = ctx.cfg
     lmax, p = cfg.mmode.lmax, cfg.products
     vis = ctx.open("vis.zarr")
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
-    padded = ctx.read("stokes.zarr", name, (slice(fi, fi + 1),))[0]  # (4, m, l)
+    where = (slice(fi, fi + 1),) if split is None else (slice(split, split + 1), slice(fi, fi + 1))
+    padded = ctx.read("stokes.zarr", name, where).reshape(ctx.open("stokes.zarr")[name].shape[-3:])  # (4, m, l)
     alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
     maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, unit or p.unit, nside)
     ctx.check_finite(f"maps/{name} of channel {fi}", maps)
     return maps
+
+
+def stokes_noise(ctx, fi, nside, mask):
+    """The jackknife noise of each Stokes map (``mmode.splits``: even/odd, else per day;
+    :func:`mmflow.workflow.clean_state.jackknife_splits`): ``(realisation (4, npix) in products.unit,
+    {"estimator", "I"..."V": sigma in products.unit})``, or ``(None, None)`` without a jackknife.
+
+    Each split is imaged through the same factorisation as the full data, so the estimators of
+    :mod:`mmflow.imaging.jackknife` apply to Q, U and V as to I: the rms over the sky seen
+    (``mask``, the output frame) of the jackknife variance map.
+    """
+    kind, used, fractions = cs.jackknife_splits(ctx, fi)
+    if kind is None:
+        return None, None
+    splits = list(ctx.cfg.mmode.splits)
+    maps = {s: _maps(ctx, "alm", fi, nside, split=splits.index(s)) for s in used}
+    sigma = {x: float(np.sqrt(split_variance({s: m[k] for s, m in maps.items()}, kind, fractions, mask)))
+             for k, x in enumerate("IQUV")}
+    return noise_realisation(maps, kind, fractions), {"estimator": kind, "unit": ctx.cfg.products.unit, **sigma}
 
 
 def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
@@ -93,7 +120,7 @@ def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
 def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     """Write the full-Stokes maps of channel ``fi`` and return their summary entries."""
     maps_dir = ctx.run.path / "maps"
-    iquv, leak = _maps(ctx, "alm", fi, nside), _maps(ctx, "leakage", fi, nside)
+    iquv, leak = _maps(ctx, "alm", fi, nside, split=0), _maps(ctx, "leakage", fi, nside)
     pmeta = dict(meta, STOKES="IQUV", POLCCONV="IAU", POLCONV="avg")
     files = {"stokes_fits": f"maps/stokes_{tag}.fits", "leakage_fits": f"maps/leakage_{tag}.fits",
              "polfrac_fits": f"maps/polfrac_{tag}.fits"}
@@ -104,11 +131,18 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     seen_frac = mask & np.isfinite(lin)
     write_healpix_fits(ctx.run.path / files["polfrac_fits"], np.stack([np.nan_to_num(lin), np.nan_to_num(circ)]),
                        dict(pmeta, BUNIT="", MINIFRAC=POLFRAC_MIN_I), mask=seen_frac, column_names=["P_LIN", "P_CIRC"])
+    noise_map, noise = stokes_noise(ctx, fi, nside, mask)
+    if noise is not None:
+        files["noise_fits"] = f"maps/stokes_noise_{tag}.fits"
+        write_healpix_fits(ctx.run.path / files["noise_fits"], noise_map, dict(pmeta, JACKKNIF=noise["estimator"]),
+                           mask=mask, column_names=COLUMNS)
     for q in files.values():
         ctx.ledger.record_file(ctx.run.path / q)
     i_peak = float(np.max(iquv[0][mask]))
     info = dict(files)
     info["stokes_peak"] = {s: float(np.max(np.abs(m[mask]))) for s, m in zip("IQUV", iquv)}
+    if noise is not None:
+        info["noise"] = noise
     # the largest leakage of the unpolarised sky into each of Q, U, V, relative to the I peak
     info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
     if png:

@@ -119,7 +119,6 @@ def _check_time_splits(ctx, vis, splits, n_bins):
 
 
 def _task(ctx, key):
-    cfg = ctx.cfg
     vg = ctx.open("vis.zarr")
     nt, nbl, nf = vg["vis"].shape[:3]
     ch = vg["vis"].chunks[1]
@@ -147,63 +146,86 @@ def _task(ctx, key):
     info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
             "downweighted_low_coverage": 0, "baselines_without_data": 0, "max_cg_iterations": 0,
             "fits_with_prior": 0}
-    src = str(ctx.run.store("vis.zarr"))
+    fit = _SplitFit(ctx, lst, masks, splits, n_bins, mmax)
     for fi in range(nf):
         band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
-        s2 = None if sigma2 is None else sigma2[fi]
         model = _PriorModel(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop))
-        for names, sel in [(bin_splits, slice(None))] + [([s], m) for s, m in masks.items()]:
-            binned, wsum, offset = sidereal_bins(lst[sel], vis[sel, :, fi], (w[sel, :, fi] > 0).astype(float), n_bins,
-                                                 0.0, source=src)
-            if names is not bin_splits:  # a flagged day of a time split (the full data: _finalize)
-                _check_split_coverage(wsum, cfg.mmode.min_coverage, ctx.run.store("vis.zarr"), n_bins, names[0])
-            n_samples[[splits.index(s) for s in names], fi] = [_count(wsum, s) for s in names]
-            prior = model.prior(binned, wsum, offset)
-            info["fits_with_prior"] += prior is not None
-            res = chunk_mmodes(binned, wsum, mmax, offset, band, names if names is bin_splits else ["full"], s2,
-                               cfg.mmode.min_coverage, cfg.mmode.coverage_policy, prior=prior)
-            out[[splits.index(s) for s in names], fi] = res.mmodes
-            info["max_cg_iterations"] = max([info["max_cg_iterations"]] +
-                                            [int(np.max(f.iterations)) for f in res.fits])
-            if names is bin_splits:  # the full data's noise and coverage
-                inv_var[fi] = res.inv_var
-                info["dropped_low_coverage"] += res.coverage.n_dropped
-                info["downweighted_low_coverage"] += res.coverage.n_downweighted
-                info["baselines_without_data"] += res.coverage.n_empty
+        full, n_samples[:, fi], n_prior = fit(vis[:, :, fi], w[:, :, fi], band,
+                                              None if sigma2 is None else sigma2[fi], out[:, fi], model.prior)
+        info["fits_with_prior"] += n_prior
+        info["max_cg_iterations"] = max(info["max_cg_iterations"], fit.max_iterations)
+        inv_var[fi] = full.inv_var  # the full data's noise and coverage
+        info["dropped_low_coverage"] += full.coverage.n_dropped
+        info["downweighted_low_coverage"] += full.coverage.n_downweighted
+        info["baselines_without_data"] += full.coverage.n_empty
     ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
     ctx.write(g, "inv_var", (slice(None), cols), inv_var)
     ctx.write(g, "n_samples", (slice(None), slice(None), cols), n_samples)
     if full_stokes:
-        corr, inv_corr = _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax)
-        ctx.write(g, "mmodes_corr", (slice(None),) * 4 + (cols,), corr)
+        corr, inv_corr = _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit)
+        ctx.write(g, "mmodes_corr", (slice(None),) * 5 + (cols,), corr)
         ctx.write(g, "inv_var_corr", (slice(None), slice(None), cols), inv_corr)
     return info
 
 
-def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax):
-    """m-modes ``(freq, m, pm, correlation, baseline)`` and their inverse variances ``(freq, correlation,
-    baseline)`` of xx, yy, xy, yx (full Stokes), each fitted as Stokes I is (the full data; no splits, no
-    prior run) with each correlation's own radiometer noise ``<V_ii,p> <V_jj,q> / (dnu tau)``."""
-    cfg = ctx.cfg
+def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit):
+    """m-modes ``(split, freq, m, pm, correlation, baseline)`` and their inverse variances ``(freq, correlation,
+    baseline)`` of xx, yy, xy, yx (full Stokes), each fitted as Stokes I is (every data split, no prior run)
+    with each correlation's own radiometer noise ``<V_ii,p> <V_jj,q> / (dnu tau)``."""
     vis = np.concatenate([block.vis, block.cross], axis=-1)[good_t]  # (time, bl, freq, [xx, yy, xy, yx])
     w = np.concatenate([block.weights, block.cross_weights], axis=-1)[good_t]
-    lst = block.lst[good_t]
     feeds = [(0, 0), (1, 1)] + list(zip(*CROSS_FEEDS))
     per_corr, _ = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs, feeds)
-    tel, freqs, src = ctx.telescope(), vg["freqs_hz"][:], str(ctx.run.store("vis.zarr"))
+    tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
     nf, nbl = vis.shape[2], vis.shape[1]
-    out = np.zeros((nf, mmax + 1, 2, len(feeds), nbl), np.complex128)
+    out = np.zeros((len(fit.splits), nf, mmax + 1, 2, len(feeds), nbl), np.complex128)
     inv_var = np.zeros((nf, len(feeds), nbl))
     for fi in range(nf):
         band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
         for c in range(len(feeds)):
-            binned, wsum, offset = sidereal_bins(lst, vis[:, :, fi, c], (w[:, :, fi, c] > 0).astype(float), n_bins,
-                                                 0.0, source=src)
-            res = chunk_mmodes(binned, wsum, mmax, offset, band, ["full"],
-                               None if per_corr is None else per_corr[c][fi], cfg.mmode.min_coverage,
-                               cfg.mmode.coverage_policy)
-            out[fi, :, :, c], inv_var[fi, c] = res.mmodes[0], res.inv_var
+            full, _, _ = fit(vis[:, :, fi, c], w[:, :, fi, c], band, None if per_corr is None else per_corr[c][fi],
+                             out[:, fi, :, :, c])
+            inv_var[fi, c] = full.inv_var
     return out, inv_var
+
+
+class _SplitFit:
+    """The m-modes of every data split of one baseline chunk at one frequency: the bin-parity splits
+    (``full``, ``even``, ``odd``) from one binning, each time split from its own integrations
+    (:func:`mmflow.mmode.gapfill.chunk_mmodes`); what Stokes I and each correlation share.
+
+    Calling it with ``(vis, weights)`` ``(time, bl)``, the band limits, the per-sample variance (or
+    None), the output ``(split, mmax + 1, 2, bl)`` and optionally ``prior(binned, weights, offset)``
+    fills the output and returns ``(the full data's ChunkMmodes, n_samples (split, bl), fits with a
+    prior)``; a time split without ``mmode.min_coverage`` of the bins is refused.
+    """
+
+    def __init__(self, ctx, lst, masks, splits, n_bins, mmax):
+        self.ctx, self.lst, self.masks, self.splits, self.n_bins, self.mmax = ctx, lst, masks, splits, n_bins, mmax
+        self.bin_splits = [s for s in splits if not is_time_split(s)]
+        self.src = str(ctx.run.store("vis.zarr"))
+        self.max_iterations = 0
+
+    def __call__(self, vis, weights, band, sigma2, out, prior=None):
+        cfg, splits = self.ctx.cfg, self.splits
+        n_samples = np.zeros((len(splits), vis.shape[1]), np.int64)
+        full, n_prior = None, 0
+        for names, sel in [(self.bin_splits, slice(None))] + [([s], m) for s, m in self.masks.items()]:
+            binned, wsum, offset = sidereal_bins(self.lst[sel], vis[sel], (weights[sel] > 0).astype(float),
+                                                 self.n_bins, 0.0, source=self.src)
+            if names is not self.bin_splits:  # a flagged day of a time split (the full data: _finalize)
+                _check_split_coverage(wsum, cfg.mmode.min_coverage, self.src, self.n_bins, names[0])
+            rows = [splits.index(s) for s in names]
+            n_samples[rows] = [_count(wsum, s) for s in names]
+            model = None if prior is None else prior(binned, wsum, offset)
+            n_prior += model is not None
+            res = chunk_mmodes(binned, wsum, self.mmax, offset, band, names if names is self.bin_splits else ["full"],
+                               sigma2, cfg.mmode.min_coverage, cfg.mmode.coverage_policy, prior=model)
+            out[rows] = res.mmodes
+            self.max_iterations = max([self.max_iterations] + [int(np.max(f.iterations)) for f in res.fits])
+            if names is self.bin_splits:
+                full = res
+        return full, n_samples, n_prior
 
 
 def _count(bin_weight, split):

@@ -14,7 +14,9 @@ leakage: the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]`
 in them. With ``clean.enabled`` it CLEANs V (a sparse sky) with the ``clean`` settings
 (:func:`mmflow.imaging.polarised_clean.clean_stokes_v`: components from the V residual, subtracted
 through the full-Stokes solve from all four Stokes parameters; threshold ``clean.threshold`` or
-``clean.threshold_sigma`` x the dirty V map's robust rms). Writes ``stokes.zarr``; the products
+``clean.threshold_sigma`` x the V map's jackknife noise, or its robust rms without even/odd or
+per-day splits). Every data split (``mmode.splits``) is solved through the same factorisation, so
+the products can state each Stokes map's jackknife noise. Writes ``stokes.zarr``; the products
 stage makes the maps.
 
 The transfer coefficients are the reference kernels (six spherical-harmonic transforms per
@@ -29,19 +31,19 @@ import numpy as np
 from mmflow.conventions import is_full_stokes, padded_alm
 from mmflow.imaging.polarised import PolarisedObserver, accumulate_polarised_normal, stokes_eps
 from mmflow.imaging import psf
-from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
+from mmflow.imaging.polarised_clean import clean_stokes_v, jackknife_v_noise, v_psf_table
 from mmflow.io.run_stores import CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.sky import units
 from mmflow.telescope.beam_factory import make_jones
-from mmflow.workflow.clean_state import clean_nside, clean_options, psf_decs_deg
+from mmflow.workflow.clean_state import clean_nside, clean_options, jackknife_splits, psf_decs_deg
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
 
-STOKES_CONFIG = ("mmode.lmax", "beam", "imaging", "transfer.noise_weighting", "clean")
+STOKES_CONFIG = ("mmode.lmax", "mmode.splits", "beam", "imaging", "transfer.noise_weighting", "clean")
 
 
 def _v_decs(ctx):
@@ -51,10 +53,10 @@ def _v_decs(ctx):
 
 def _prepare(ctx):
     mg = ctx.open("mmodes.zarr")
-    nf, n_m = mg["mmodes_corr"].shape[:2]
+    n_split, nf, n_m = mg["mmodes_corr"].shape[:3]
     c = ctx.cfg.clean
     v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
-    ctx.create(stokes_store(nf, ctx.cfg.mmode.lmax, n_m - 1, v_clean))
+    ctx.create(stokes_store(n_split, nf, ctx.cfg.mmode.lmax, n_m - 1, v_clean))
     return [TaskKey(freq=fi) for fi in range(nf)]
 
 
@@ -64,7 +66,7 @@ def _task(ctx, key):
     vg = ctx.open("vis.zarr")
     freq = float(vg["freqs_hz"][fi])
     pairs = vg["pairs"][:]
-    mm = ctx.read("mmodes.zarr", "mmodes_corr", (slice(fi, fi + 1),))[0]  # (m, pm, corr, bl)
+    mm = ctx.read("mmodes.zarr", "mmodes_corr", (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, m, pm, corr, bl)
     inv_var = ctx.read("mmodes.zarr", "inv_var_corr", (slice(fi, fi + 1),))[0]  # (corr, bl)
     w = relative_weights(inv_var) if cfg.transfer.noise_weighting else (inv_var > 0).astype(float)
     keep = np.flatnonzero(w.max(axis=0) > 0)  # baselines with data in some correlation
@@ -73,32 +75,41 @@ def _task(ctx, key):
     b = baselines_in_wavelengths(tel, pairs[keep], freq)
     grid = make_polarised_grid(tel.lat_rad, jones, freq, lmax,
                                fringe_bandlimit(np.linalg.norm(b, axis=1), jones.lmax_hint))
-    normal = accumulate_polarised_normal(grid, b, mm[:lmax + 1, :, :, keep][None], w[:, keep], CORRELATIONS)
+    # every data split through one factorisation: split 0 is the full data, the others its jackknives
+    normal = accumulate_polarised_normal(grid, b, mm[:, :lmax + 1, :, :, keep], w[:, keep], CORRELATIONS)
     eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
     observe = PolarisedObserver(normal, eps, filters)  # factorised once: the solve, the leakage, the CLEAN of V
-    alm = observe.solution()[0]  # (4, n_alm)
+    splits = observe.solution()  # (split, 4, n_alm)
+    alm = splits[0]
     unpolarised = np.zeros_like(alm)
     unpolarised[0] = alm[0]
     leak = observe(unpolarised)[0]
     out = ctx.open("stokes.zarr", mode="r+")
-    n_m = out["alm"].shape[2]
-    ctx.write(out, "alm", (slice(fi, fi + 1),), padded_alm(alm, lmax, n_m)[None])
+    n_m = out["alm"].shape[3]
+    ctx.write(out, "alm", (slice(None), slice(fi, fi + 1)),
+              np.stack([padded_alm(a, lmax, n_m) for a in splits])[:, None])
     ctx.write(out, "leakage", (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
     info = {"baselines": int(len(keep)), "eps": list(eps)}
     if cfg.clean.enabled:
-        info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, tel.lat_rad, observe)
+        info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, tel.lat_rad, observe)
     return info
 
 
-def _clean_v(ctx, out, fi, freq, normal, eps, filters, alm, lat_rad, observe):
-    """The CLEAN of V (:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) with the ``clean`` settings:
-    ``clean.threshold`` if set, else ``clean.threshold_sigma`` x the dirty V map's robust rms."""
+def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe):
+    """The CLEAN of V (:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) of the full data ``splits[0]``
+    with the ``clean`` settings: ``clean.threshold`` if set, else ``clean.threshold_sigma`` x the V map's
+    noise: its jackknife sigma where ``mmode.splits`` make one (as the Stokes-I CLEAN), else the dirty V
+    map's robust rms."""
     cfg = ctx.cfg
-    c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out["alm"].shape[2]
+    c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out["alm"].shape[3]
     thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
+    kind, used, fractions = jackknife_splits(ctx, fi)
+    names = list(cfg.mmode.splits)
+    noise = None if kind is None else jackknife_v_noise({s: splits[names.index(s)] for s in used}, kind, fractions,
+                                                        lat_rad, clean_nside(cfg))
     table = v_psf_table(normal, eps, np.deg2rad(_v_decs(ctx)), filters, observe)
-    res = clean_stokes_v(normal, eps, alm, lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table,
-                         observe=observe)
+    res = clean_stokes_v(normal, eps, splits[0], lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table,
+                         observe=observe, noise=noise)
     st, one = res["state"], (slice(fi, fi + 1),)
     ctx.write(out, "v_residual", one, padded_alm(res["residual"], lmax, n_m)[None])
     ctx.write(out, "v_psf_table", one, psf.table_to_array(table)[None], allow_nan=True)
