@@ -13,7 +13,8 @@ one. With ``H_m = (G_m + D)^-1 G_m`` the map of a true sky ``x = [T; E; B; V]`` 
    parameters: a V component's leakage into I, Q and U through the solve leaves with it.
 
 It stops as :func:`mmflow.imaging.clean.stop_reason` says; the threshold is ``k_sigma`` x the V map's
-noise: its jackknife sigma from the data splits (:func:`jackknife_v_noise`) where given, else its
+noise: its jackknife sigma from the data splits where given (the stokes stage's, as the Stokes-I
+CLEAN's), else its
 robust rms, ``1.4826 MAD`` over the sky the array sees (:func:`robust_rms`: V is noise almost
 everywhere), unless a threshold is given. Restoring is :func:`mmflow.imaging.clean.restore_map` with the V
 PSF's fitted Gaussian per declination.
@@ -32,7 +33,6 @@ from mmflow.conventions import n_alm
 from mmflow.imaging import psf as psf_mod
 from mmflow.imaging.clean import (CleanOptions, CleanState, component_alm, never_seen_dec_min, observed_mask,
                                   select_components)
-from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
 from mmflow.imaging.polarised import PolarisedObserver
 from mmflow.sky.harmonics import point_sources_alm
@@ -61,19 +61,6 @@ def robust_rms(values):
     return float(1.4826 * np.median(np.abs(x - np.median(x))))
 
 
-def jackknife_v_noise(split_alm, kind, fractions, lat_rad, nside):
-    """The V map's jackknife sigma (Jy/sr) over the sky seen (declinations above ``lat - 90 deg``).
-
-    ``split_alm``: ``{split name: (4, n_alm) T, E, B, V}`` of the data splits the jackknife ``kind``
-    uses, each solved through the same factorisation as the full data
-    (:func:`mmflow.imaging.jackknife.split_variance`; ``fractions`` the per-day shares ``f_k``).
-    """
-    lmax = healpy.Alm.getlmax(len(next(iter(split_alm.values()))[V]))
-    mask = observed_mask(nside, never_seen_dec_min(lat_rad))
-    maps = {s: healpy.alm2map(np.ascontiguousarray(a[V]), nside, lmax=lmax) for s, a in split_alm.items()}
-    return float(np.sqrt(split_variance(maps, kind, fractions, mask)))
-
-
 def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=None, threshold=None, table=None,
                    dec_step_deg=2.0, observe=None, noise=None):
     """CLEAN the V part of a full-Stokes solve (module docstring).
@@ -86,7 +73,7 @@ def clean_stokes_v(normal, eps, alm, lat_rad, opts=None, nside=None, filters=Non
     opts : :class:`mmflow.imaging.clean.CleanOptions`
     nside : int, resolution of the residual V maps (default twice :func:`mmflow.imaging.maps.default_nside`)
     threshold : float, optional, Jy/sr; default ``opts.k_sigma`` x ``noise``
-    noise : float, optional, the V map's noise sigma, Jy/sr (e.g. :func:`jackknife_v_noise`); default
+    noise : float, optional, the V map's noise sigma, Jy/sr (e.g. its jackknife sigma); default
         :func:`robust_rms` of the dirty V map over the sky seen
     table : dict, optional, the V PSF table (default :func:`v_psf_table` from the lowest seen
         declination to the pole in ``dec_step_deg`` steps)

@@ -50,17 +50,20 @@ def _maps(ctx, name, fi, nside, unit=None, split=None):
     lmax, p = cfg.mmode.lmax, cfg.products
     vis = ctx.open("vis.zarr")
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
-    where = (slice(fi, fi + 1),) if split is None else (slice(split, split + 1), slice(fi, fi + 1))
-    padded = ctx.read("stokes.zarr", name, where).reshape(ctx.open("stokes.zarr")[name].shape[-3:])  # (4, m, l)
+    if split is None:
+        padded = ctx.read("stokes.zarr", name, (slice(fi, fi + 1),))[0]  # (4, m, l)
+    else:
+        padded = ctx.read("stokes.zarr", name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
     alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
     maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, unit or p.unit, nside)
     ctx.check_finite(f"maps/{name} of channel {fi}", maps)
     return maps
 
 
-def stokes_noise(ctx, fi, nside, mask):
+def stokes_noise(ctx, fi, nside, mask, full):
     """The jackknife noise of each Stokes map (``mmode.splits``: even/odd, else per day;
-    :func:`mmflow.workflow.clean_state.jackknife_splits`): ``(realisation (4, npix) in products.unit,
+    :func:`mmflow.workflow.clean_state.jackknife_splits`; ``full`` the full data's maps ``(4, npix)``,
+    already made): ``(realisation (4, npix) in products.unit,
     {"estimator", "I"..."V": sigma in products.unit})``, or ``(None, None)`` without a jackknife.
 
     Each split is imaged through the same factorisation as the full data, so the estimators of
@@ -71,7 +74,7 @@ def stokes_noise(ctx, fi, nside, mask):
     if kind is None:
         return None, None
     splits = list(ctx.cfg.mmode.splits)
-    maps = {s: _maps(ctx, "alm", fi, nside, split=splits.index(s)) for s in used}
+    maps = {s: full if s == "full" else _maps(ctx, "alm", fi, nside, split=splits.index(s)) for s in used}
     sigma = {x: float(np.sqrt(split_variance({s: m[k] for s, m in maps.items()}, kind, fractions, mask)))
              for k, x in enumerate("IQUV")}
     return noise_realisation(maps, kind, fractions), {"estimator": kind, "unit": ctx.cfg.products.unit, **sigma}
@@ -131,7 +134,7 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     seen_frac = mask & np.isfinite(lin)
     write_healpix_fits(ctx.run.path / files["polfrac_fits"], np.stack([np.nan_to_num(lin), np.nan_to_num(circ)]),
                        dict(pmeta, BUNIT="", MINIFRAC=POLFRAC_MIN_I), mask=seen_frac, column_names=["P_LIN", "P_CIRC"])
-    noise_map, noise = stokes_noise(ctx, fi, nside, mask)
+    noise_map, noise = stokes_noise(ctx, fi, nside, mask, iquv)
     if noise is not None:
         files["noise_fits"] = f"maps/stokes_noise_{tag}.fits"
         write_healpix_fits(ctx.run.path / files["noise_fits"], noise_map, dict(pmeta, JACKKNIF=noise["estimator"]),

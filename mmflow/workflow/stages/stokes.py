@@ -31,14 +31,15 @@ import numpy as np
 from mmflow.conventions import is_full_stokes, padded_alm
 from mmflow.imaging.polarised import PolarisedObserver, accumulate_polarised_normal, stokes_eps
 from mmflow.imaging import psf
-from mmflow.imaging.polarised_clean import clean_stokes_v, jackknife_v_noise, v_psf_table
+from mmflow.imaging.clean import never_seen_dec_min, observed_mask
+from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
 from mmflow.io.run_stores import CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.sky import units
 from mmflow.telescope.beam_factory import make_jones
-from mmflow.workflow.clean_state import clean_nside, clean_options, jackknife_splits, psf_decs_deg
+from mmflow.workflow.clean_state import clean_nside, clean_options, jackknife_sigma, jackknife_splits, psf_decs_deg
 from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
@@ -103,12 +104,12 @@ def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe)
     cfg = ctx.cfg
     c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out["alm"].shape[3]
     thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
-    kind, used, fractions = jackknife_splits(ctx, fi)
-    names = list(cfg.mmode.splits)
-    noise = None if kind is None else jackknife_v_noise({s: splits[names.index(s)] for s in used}, kind, fractions,
-                                                        lat_rad, clean_nside(cfg))
+    jk, names, nside = jackknife_splits(ctx, fi), list(cfg.mmode.splits), clean_nside(cfg)
+    # V's jackknife sigma over the sky CLEAN sees, by the Stokes-I CLEAN's estimator (V is spin 0)
+    noise = None if jk[0] is None else jackknife_sigma({s: splits[names.index(s)][3] for s in jk[1]}, jk, lmax,
+                                                       nside, observed_mask(nside, never_seen_dec_min(lat_rad)))
     table = v_psf_table(normal, eps, np.deg2rad(_v_decs(ctx)), filters, observe)
-    res = clean_stokes_v(normal, eps, splits[0], lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table,
+    res = clean_stokes_v(normal, eps, splits[0], lat_rad, clean_options(c), nside, filters, thr, table,
                          observe=observe, noise=noise)
     st, one = res["state"], (slice(fi, fi + 1),)
     ctx.write(out, "v_residual", one, padded_alm(res["residual"], lmax, n_m)[None])
