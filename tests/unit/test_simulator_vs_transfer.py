@@ -1,5 +1,6 @@
 """v = B a agrees with the independent time-domain simulator after the m-mode transform."""
 import numpy as np
+import pytest
 
 from mmflow.conventions import m_slice
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks, make_grid
@@ -69,11 +70,17 @@ def test_lsts_off_the_bin_grid_keep_their_exact_phase(small_telescope):
     assert np.abs(naive - ref).max() > 1e-3 * np.abs(ref).max()  # snapping to bin centres is wrong
 
 
-def test_blocked_threaded_simulator_matches_direct_sum(small_telescope):
-    """Pixel blocks, time threads, reversed pairs and signed fluxes against the sum of eq. 1."""
+@pytest.mark.parametrize("path", ["every pair", "pair-wise"])
+def test_blocked_threaded_simulator_matches_direct_sum(small_telescope, path, monkeypatch):
+    """Pixel blocks, time threads, reversed pairs and signed fluxes against the sum of eq. 1, through
+    the rank-k product of every pair and through the pair-wise product of a few baselines."""
     from mmflow.conventions import enu_to_equatorial_matrix
     from mmflow.simulate import visibilities
 
+    if path == "pair-wise":
+        monkeypatch.setattr(visibilities, "_simulate_block", visibilities._simulate_pairs)
+    else:
+        monkeypatch.setattr(visibilities, "_simulate_pairs", visibilities._simulate_block)
     tel, f = small_telescope, 40e6
     rng = np.random.default_rng(3)
     vec = rng.normal(size=(3 * visibilities.PIXEL_BLOCK + 17, 3))
@@ -101,3 +108,15 @@ def test_an_empty_sky_simulates_zero_visibilities(small_telescope):
     v0 = simulate_drift_scan(small_telescope, 50e6, lsts, empty)
     v1 = simulate_drift_scan(small_telescope, 50e6, lsts, one)
     assert v0.shape == v1.shape and np.all(v0 == 0) and np.abs(v1).max() > 0
+
+
+def test_a_corner_turn_chunk_of_a_large_array_is_computed_pair_wise():
+    """The m-mode stage's chunk of 256 baselines at 256 antennas (one or two first antennas) is summed
+    pair-wise; a time chunk of every baseline is one rank-k product."""
+    from mmflow.simulate.visibilities import few_pairs
+
+    n = 256
+    pairs = np.array([(i, j) for i in range(n) for j in range(i, n)])
+    assert few_pairs(pairs[1000:1256], n)
+    assert not few_pairs(pairs, n)
+    assert not few_pairs(pairs[:n * 32], n)  # 32 first antennas x every second one: the rank-k product
