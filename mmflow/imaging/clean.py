@@ -297,12 +297,14 @@ def plan_cycle(residual_alm, lmax, table, mask, nside, opts=None, threshold=0.0)
     return vecs, flux, peak, t
 
 
-def component_alm(vecs, fluxes, lmax, m_stop=None):
-    """``x = sum_i c_i conj(Y_lm(r_i))`` for ``m < m_stop`` (default all m; healpy layout up to it)."""
+def component_alm(vecs, fluxes, lmax, m_stop=None, m_start=0):
+    """``x = sum_i c_i conj(Y_lm(r_i))`` for ``m_start <= m < m_stop`` (default all m): healpy layout
+    up to ``m_stop``, or its :func:`mmflow.conventions.m_block_slice` ``(m_start, m_stop)`` part."""
     mmax = lmax if m_stop is None else min(lmax, m_stop - 1)
     if len(fluxes) == 0:
-        return np.zeros(m_block_slice(lmax, 0, mmax + 1).stop, np.complex128)
-    return point_sources_alm(vecs, fluxes, lmax, mmax)
+        sl = m_block_slice(lmax, m_start, mmax + 1)
+        return np.zeros(sl.stop - sl.start, np.complex128)
+    return point_sources_alm(vecs, fluxes, lmax, mmax, m_start)
 
 
 def major_cycle(state, ops, lmax, table, mask, nside, opts=None, threshold=0.0, m_block=None, weights=None):

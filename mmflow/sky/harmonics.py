@@ -62,7 +62,7 @@ def _angles(vecs):
     return theta, phi
 
 
-def point_sources_alm(vecs, fluxes, lmax, mmax=None):
+def point_sources_alm(vecs, fluxes, lmax, mmax=None, mmin=0):
     """``a_lm`` of a sum of delta functions: ``a_lm = sum_k flux_k conj(Y_lm(vec_k))``.
 
     This is the harmonic transform of ``sum_k flux_k delta(r - vec_k)`` (a point-source sky
@@ -76,28 +76,39 @@ def point_sources_alm(vecs, fluxes, lmax, mmax=None):
         Real weights ``flux_k``.
     lmax, mmax : int
         Band limit; ``mmax`` defaults to ``lmax``.
+    mmin : int
+        Only ``m >= mmin`` (an m block of a CLEAN cycle): the coefficients are those of the full
+        layout from ``(l, m) = (mmin, mmin)`` on, each the same to the bit (every m is its own
+        recursion in l).
 
     Returns
     -------
-    ndarray, complex128, healpy layout of size ``Alm.getsize(lmax, mmax)``
+    ndarray, complex128, healpy layout of size ``Alm.getsize(lmax, mmax)`` (with ``mmin``: its part
+    from ``(mmin, mmin)`` on)
     """
     mmax = _mmax(lmax, mmax)
+    if not 0 <= mmin <= mmax:
+        raise ValueError(f"mmin must satisfy 0 <= mmin <= mmax, got mmin={mmin}, mmax={mmax}")
     theta, phi = _angles(vecs)
     fluxes = np.broadcast_to(np.asarray(fluxes, float), theta.shape)
-    return _conj_ylm_sum(theta, phi, fluxes, lmax, mmax)
+    return _conj_ylm_sum(theta, phi, fluxes, lmax, mmax, mmin)
 
 
-def _conj_ylm_sum(theta, phi, weights, lmax, mmax):
-    """``sum_k weights_k conj(Y_lm(theta_k, phi_k))`` in healpy layout (ducc0 ``leg2alm``)."""
+def _conj_ylm_sum(theta, phi, weights, lmax, mmax, mmin=0):
+    """``sum_k weights_k conj(Y_lm(theta_k, phi_k))`` in healpy layout from ``m = mmin`` on (ducc0
+    ``leg2alm``; its ``mstart`` indices must be >= 0: the output is computed ``mmin`` places into a
+    buffer whose first ``mmin`` entries no ``l >= m`` reaches)."""
     mval, mstart, size = _layout(lmax, mmax)
-    alm = np.zeros((1, size), np.complex128)
-    m = np.arange(mmax + 1)
+    skip = int(mstart[mmin]) + mmin  # the index of (l, m) = (mmin, mmin) in the full layout
+    mval, mstart = mval[mmin:], mstart[mmin:] - (skip - mmin)
+    alm = np.zeros((1, size - skip + mmin), np.complex128)
+    m = np.arange(mmin, mmax + 1)
     for s in range(0, len(theta), _CHUNK):
         sl = slice(s, s + _CHUNK)
         leg = (weights[sl, None] * np.exp(-1j * m[None, :] * phi[sl, None]))[None]
         alm += ducc0.sht.leg2alm(leg=leg, lmax=lmax, theta=theta[sl], spin=0, mval=mval,
                                  mstart=mstart, nthreads=n_threads())
-    return alm[0]
+    return alm[0, mmin:]
 
 
 def synthesize_at(alm, vecs, lmax, mmax=None):

@@ -159,6 +159,32 @@ def test_many_sources_are_the_sum_of_single_sources():
     np.testing.assert_allclose(part, total[: healpy.Alm.getsize(lmax, 30)], rtol=0, atol=1e-12 * np.abs(total).max())
 
 
+def test_an_m_block_of_point_sources_alm_is_the_full_one_to_the_bit():
+    """A CLEAN cycle's m block (``mmin``) at the paper's lmax: the coefficients of the full layout from
+    ``(mmin, mmin)`` on, bit for bit (each m its own recursion), and none beyond ``mmax``."""
+    from mmflow.conventions import m_block_slice
+    from mmflow.imaging.clean import component_alm
+
+    rng = np.random.default_rng(5)
+    vecs, flux = rng.normal(size=(40, 3)), rng.normal(size=40)
+    lmax = 1000
+    full = point_sources_alm(vecs, flux, lmax)
+    for m0, m1 in [(0, 16), (16, 32), (496, 512), (992, 1001), (1000, 1001)]:
+        block = point_sources_alm(vecs, flux, lmax, m1 - 1, m0)
+        np.testing.assert_array_equal(block, full[m_block_slice(lmax, m0, m1)])
+        np.testing.assert_array_equal(component_alm(vecs, flux, lmax, m1, m0), block)
+    assert component_alm(vecs[:0], flux[:0], lmax, 32, 16).shape == block_size(lmax, 16, 32)
+    with pytest.raises(ValueError, match="mmin"):
+        point_sources_alm(vecs, flux, lmax, 10, 11)
+
+
+def block_size(lmax, m0, m1):
+    from mmflow.conventions import m_block_slice
+
+    sl = m_block_slice(lmax, m0, m1)
+    return (sl.stop - sl.start,)
+
+
 @pytest.mark.parametrize("lmax, n", [(300, 700), (1000, 40)])
 def test_synthesize_at_is_the_adjoint_of_point_sources_alm(lmax, n):
     rng = np.random.default_rng(lmax)
