@@ -14,6 +14,13 @@ arrays up to ``mmap_mb`` come from the heap, and up to ``trim_mb`` of freed heap
 mapped for the next allocation. The results do not depend on it (same bits); the process's
 resident memory may stay up to ``trim_mb`` above what it uses. A no-op where the C library
 is not glibc.
+
+Freed memory can also stay resident *inside* the heap (arrays below ``mmap_mb`` freed among
+others still held: fragmentation), which no trim threshold returns: a worker that ran the
+paper channel's transfer tasks began the next with 5.3 GB resident and peaked at 8.6 GB, and
+began CLEAN with 6 GB. :func:`release_freed_memory` (glibc ``malloc_trim(0)``, which also gives
+back the free pages inside the heap) returns it; measured here: 4.5 GB of 20 MB arrays in 85 ms,
+0.1 ms when there is nothing to return.
 """
 from __future__ import annotations
 
@@ -50,6 +57,7 @@ def keep_freed_memory(mmap_mb=MMAP_MB, trim_mb=TRIM_MB):
     return bool(ok_mmap and ok_trim)
 
 
+@lru_cache(maxsize=1)
 def _glibc():
     """The process's C library if it is glibc (it has ``gnu_get_libc_version``), else None."""
     try:
@@ -58,4 +66,17 @@ def _glibc():
     except (OSError, AttributeError):
         return None
     libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
+    libc.malloc_trim.argtypes = [ctypes.c_size_t]
     return libc
+
+
+def release_freed_memory():
+    """Give the free pages of every heap back to the kernel (glibc ``malloc_trim(0)``).
+
+    Returns
+    -------
+    bool
+        True where memory was released (False: nothing to release, or not glibc).
+    """
+    libc = _glibc()
+    return bool(libc is not None and libc.malloc_trim(0))

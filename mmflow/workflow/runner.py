@@ -25,7 +25,7 @@ from importlib.metadata import PackageNotFoundError, version
 import yaml
 import zarr
 
-from mmflow.allocator import keep_freed_memory
+from mmflow.allocator import keep_freed_memory, release_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.config import load_config
@@ -50,6 +50,12 @@ def versions():
     return out
 
 
+#: A worker resident above this when a task starts holds earlier tasks' freed memory (no result stays in a
+#: worker: tasks write stores): it is given back first (mmflow.allocator.release_freed_memory), so that a
+#: task's peak is its own working set on the worker's baseline.
+RELEASE_ABOVE_BYTES = 1.5e9
+
+
 def run_task(ctx, pipeline, stage_name, key):
     """Worker side: skip if marked done, else compute, write, then mark (atomically).
 
@@ -63,6 +69,8 @@ def run_task(ctx, pipeline, stage_name, key):
     delay = float(os.environ.get("MMFLOW_TASK_DELAY_S", "0") or 0)
     if delay:  # a knob to slow tasks down: watch the dashboard, or test kills mid-stage
         time.sleep(delay)
+    if current_rss_bytes() > RELEASE_ABOVE_BYTES:  # an earlier task's freed memory, still resident
+        release_freed_memory()
     reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.resources)
     rss_start = current_rss_bytes()
     t0 = time.time()
