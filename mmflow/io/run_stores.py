@@ -359,7 +359,8 @@ def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_
             n, k = lmax - m0 + 1, sl.stop - sl.start
             if keep_factors:
                 arrays.append(ArraySpec(f"f{fi}/chol_b{m0:05d}", ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
-                                        "complex128", doc="Cholesky factors of ``G_kk + eps I`` [keep_factors]"))
+                                        "complex128", doc="Cholesky factors of ``G_kk + eps I`` [keep_factors]; "
+                                        "uncompressed (every cycle task reads its block's)", compressed=False))
             arrays.append(ArraySpec(f"f{fi}/psf_b{m0:05d}", ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128",
                                     doc="PSF columns of the declination grid"))
             arrays.append(ArraySpec(f"f{fi}/residual_b{m0:05d}", ("cycle", "alm"), (max_cycles + 1, k), (1, k),

@@ -146,6 +146,7 @@ def test_stored_factors_and_refactorising_give_the_same_bits(noiseless, tmp_path
     run_workflow(small_config(other, *NOISELESS, "clean.keep_factors=false"), only=["clean"], force=True, **QUIET)
     a, b = (zarr.open_group(str(d / "clean.zarr"), mode="r") for d in (run_dir, other))
     assert "f0/chol_b00000" in a and "f0/chol_b00000" not in b
+    assert a["f0/chol_b00000"].compressors == ()  # read by every cycle task: raw bytes, no decoding
     n = int(a["n_cycles"][0])
     assert n == int(b["n_cycles"][0]) > 3
     for name in ("components", "peaks"):
