@@ -44,14 +44,19 @@ def build_parser(stages=True):
     pl.add_argument("workflow", help="workflow YAML (see workflows/)")
     pl.add_argument("overrides", nargs="*", help="section.key=value overrides")
     pl.add_argument("--json", action="store_true", help="print the plan as JSON")
-    pl.add_argument("--fit", nargs="+", metavar="RUN_DIR",
-                    help="fit the cost constants to finished runs and write them to --costs (no plan printed)")
+    pl.add_argument("--fit", nargs="+", metavar="RUN",
+                    help="fit the cost constants to finished runs (run directories or --record files) and write "
+                    "them to --costs (no plan printed)")
+    pl.add_argument("--record", metavar="RUN_DIR",
+                    help="print what a finished run measured (its configuration; per stage tasks, the largest "
+                    "task's memory, seconds per task) as JSON: a record --fit and --against take like the run")
     pl.add_argument("--costs", help="constants file to read (or write with --fit); default: the package's")
     pl.add_argument("--peak", type=float, metavar="GFLOPS",
                     help="plan at this SGEMM peak (GFLOP/s) instead of the one measured now (e.g. the peak "
-                    "measured beside a run, for --against)")
-    pl.add_argument("--against", metavar="RUN_DIR",
-                    help="a finished run: its configuration's plan beside what it measured, per stage (the "
+                    "measured beside a run, for --against); with --record, the peak measured beside the run")
+    pl.add_argument("--against", metavar="RUN",
+                    help="a finished run (directory or --record file): its configuration's plan beside what it "
+                    "measured, per stage (the "
                     "workflow argument is ignored: give any)")
     st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
@@ -206,6 +211,11 @@ def _plan(args):
         path = args.costs or planmod.COSTS_FILE
         write_costs(fit_costs(args.fit, gemm_gflops(np.float32, n=768)), path)
         print(f"wrote {path}")
+        return 0
+    if args.record:
+        from mmflow.workflow.plan_fit import record  # deferred: workflow modules (~3 s)
+
+        print(json.dumps(record(args.record, args.peak), indent=1))
         return 0
     if args.against:
         from mmflow.workflow.plan_fit import format_against, plan_against_run  # deferred: workflow modules (~3 s)

@@ -17,37 +17,85 @@ it: at 256 antennas the simulator's and the terrestrial fit's tasks held ~4.7x t
 extrapolated 20x would refuse runs that fit) and ``b`` the median measured excess over ``W``
 (>= 0); ``c, d`` a least-squares line (``d >= 0``; runs of one size: ``d = 0``).
 The SGEMM peak measured at fit time is kept with them, and the plan scales its times by it.
+
+A run's measurements outlive its directory as a *record* (:func:`record`, ``mmflow plan --record
+RUN_DIR``): its configuration and, per stage, the task count, the largest task's memory above its
+worker's baseline and the mean seconds per task. ``--fit`` and ``--against`` take a record file
+wherever they take a run directory; the records the package's constants were fitted to lie in
+``plan_runs/`` beside this module, so the constants can be refitted, and checked, without the runs.
 """
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 
-from mmflow.workflow.config import load_config
+from mmflow.errors import InputError
+from mmflow.workflow.config import WorkflowConfig, load_config
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan import WORKER_BASE_BYTES, geometry, plan, stage_work
 from mmflow.workflow.rundir import RunDir
 
 
-def samples(run_dir):
-    """``{stage: (W, U, memory_bytes, seconds_per_task)}`` measured in one finished run."""
+#: the folder of the records the package's constants were fitted to
+RECORDS_DIR = Path(__file__).with_name("plan_runs")
+
+
+def record(run_dir, sgemm_gflops=None, note=""):
+    """What one finished run measured, as a JSON-able record: ``{"source", "note", "sgemm_gflops",
+    "config", "stages": {stage: {"tasks", "task_memory_bytes", "task_seconds"}}}`` (the SGEMM peak
+    measured beside the run, or None; the configuration as the run resolved it; per stage the tasks
+    with resource readings, the largest task's memory above its worker's baseline, the mean seconds
+    per task)."""
     run = RunDir(run_dir)
     cfg = load_config(run.path / "config.yaml")
-    g = geometry(cfg)
-    out = {}
+    stages = {}
     for stage in _finished_stages(run):
         infos = [i for i in run.task_infos(stage).values()
                  if i.get("peak_rss_gb") is not None and i.get("rss_start_gb") is not None]
-        if not infos:
-            continue
+        if infos:
+            mem = max(i["peak_rss_gb"] - i["rss_start_gb"] for i in infos) * 1e9
+            stages[stage] = {"tasks": len(infos), "task_memory_bytes": max(mem, 0.0),
+                             "task_seconds": float(np.mean([i["seconds"] for i in infos]))}
+    return {"source": str(run_dir), "note": note, "sgemm_gflops": sgemm_gflops, "config": cfg.model_dump(mode="json"),
+            "stages": stages}
+
+
+def load_record(source):
+    """A record (:func:`record`) from a run directory or from a record file (``*.json``)."""
+    path = Path(source)
+    if path.is_file():
+        with open(path) as fh:
+            rec = json.load(fh)
+        if not isinstance(rec, dict) or "config" not in rec or "stages" not in rec:
+            raise InputError(str(path), "config, stages", "not a run's record (mmflow plan --record RUN_DIR)",
+                             "give a finished run directory or a file written by mmflow plan --record")
+        return rec
+    return record(path)
+
+
+def record_config(rec):
+    """The configuration of a record."""
+    return WorkflowConfig.model_validate(rec["config"])
+
+
+def samples(source, sgemm_gflops=None):
+    """``{stage: (W, U, memory_bytes, seconds_per_task)}`` measured in one finished run (its directory
+    or its record), ``W`` and ``U`` from the run's configuration by today's work model; with
+    ``sgemm_gflops``, the seconds a run whose record states the peak beside it would have taken at
+    that peak (``seconds x peak_run / sgemm_gflops``)."""
+    rec = source if isinstance(source, dict) else load_record(source)
+    scale = rec["sgemm_gflops"] / sgemm_gflops if sgemm_gflops and rec.get("sgemm_gflops") else 1.0
+    cfg = record_config(rec)
+    g = geometry(cfg)
+    out = {}
+    for stage, m in rec["stages"].items():
         try:
             _, w, u, _ = stage_work(stage, g, cfg)
         except KeyError:
             continue
-        mem = max(i["peak_rss_gb"] - i["rss_start_gb"] for i in infos) * 1e9
-        sec = float(np.mean([i["seconds"] for i in infos]))
-        out[stage] = (w, u, max(mem, 0.0), sec)
+        out[stage] = (w, u, m["task_memory_bytes"], m["task_seconds"] * scale)
     return out
 
 
@@ -84,10 +132,12 @@ def fit_memory(w, mem):
 
 
 def fit_costs(run_dirs, sgemm_gflops):
-    """The constants file's content fitted to ``run_dirs`` (see the module docstring)."""
+    """The constants file's content fitted to ``run_dirs`` (run directories or records; see the module
+    docstring) at the SGEMM peak ``sgemm_gflops``: a record's times are first scaled from the peak
+    measured beside its run to this one."""
     per_stage = {}
     for d in run_dirs:
-        for stage, s in samples(d).items():
+        for stage, s in samples(d, sgemm_gflops).items():
             per_stage.setdefault(stage, []).append(s)
     stages = {}
     for stage, ss in per_stage.items():
@@ -95,7 +145,13 @@ def fit_costs(run_dirs, sgemm_gflops):
         a, b = fit_memory(w, mem)
         c, d = _fit(u, sec)
         stages[stage] = {"a": a, "b": b, "c": c, "d": d, "runs": len(ss)}
-    return {"sgemm_gflops": sgemm_gflops, "fitted_on": [str(d) for d in run_dirs], "stages": stages}
+    return {"sgemm_gflops": sgemm_gflops, "fitted_on": [_name(d) for d in run_dirs], "stages": stages}
+
+
+def _name(source):
+    """A fitted-on entry: a record in :data:`RECORDS_DIR` by its file name, anything else by its path."""
+    path = Path(source)
+    return path.name if path.is_file() and path.resolve().parent == RECORDS_DIR.resolve() else str(source)
 
 
 def write_costs(costs, path):
@@ -104,21 +160,22 @@ def write_costs(costs, path):
 
 
 def plan_against_run(run_dir, costs=None, peak_gflops=None):
-    """The plan of a finished run's configuration beside what its tasks measured, per stage.
+    """The plan of a finished run's configuration (its directory or its record) beside what its tasks
+    measured, per stage.
 
     Per task, as :func:`samples` measures them from the task markers (they survive resumes, so a
     run finished over several invocations counts every task): the mean seconds against the plan's
-    ``c U + d`` (scaled from the constants' SGEMM peak to ``peak_gflops``, default the peak measured
-    now), and the largest task's memory above its worker's baseline, plus the plan's worker
+    ``c U + d`` (scaled from the constants' SGEMM peak to ``peak_gflops``, default the peak its record
+    states beside the run, else the peak measured now), and the largest task's memory above its worker's baseline, plus the plan's worker
     baseline, against the plan's task memory. Returns ``(rows, peak_gflops)``; each row
     ``{stage, tasks, planned_task_s, measured_task_s, time_ratio, planned_task_gb, measured_task_gb,
     memory_ratio}`` (ratios measured / planned).
     """
-    run = RunDir(run_dir)
-    cfg = load_config(run.path / "config.yaml")
-    res = plan(cfg, costs, peak_gflops)
+    rec = load_record(run_dir)
+    cfg = record_config(rec)
+    res = plan(cfg, costs, peak_gflops or rec.get("sgemm_gflops"))
     workers = max(res["task_slots"], 1)  # the plan's stage time is its per-task time x ceil(tasks / workers)
-    measured = samples(run_dir)
+    measured = samples(rec)
     rows = []
     for e in res["stages"]:
         if e["stage"] not in measured:

@@ -174,6 +174,32 @@ def test_plan_against_a_finished_run_reports_measured_over_planned(measured_run,
     assert "planned at 50 SGEMM GFLOP/s" in out and all(f"\n{r['stage']:12s}" in out for r in rows)
 
 
+def test_a_record_stands_for_its_run(measured_run, tmp_path, capsys):
+    """`mmflow plan --record RUN_DIR` keeps what the run measured: the samples, the plan against it and
+    the fitted constants are the same from the record file as from the run directory, and its times
+    scale with the SGEMM peak stated beside the run."""
+    from mmflow.cli import main
+    from mmflow.workflow.plan_fit import fit_costs, plan_against_run, samples
+
+    cfg, run_dir = measured_run
+    assert main(["plan", "x", "--record", str(run_dir), "--peak", "80"]) == 0
+    path = tmp_path / "run.json"
+    path.write_text(capsys.readouterr().out)
+    rec = json.loads(path.read_text())
+    assert rec["sgemm_gflops"] == 80.0 and rec["config"]["run"]["directory"] == str(run_dir)
+    assert samples(path) == samples(run_dir)
+    assert plan_against_run(path, peak_gflops=50.0) == plan_against_run(run_dir, peak_gflops=50.0)
+    assert plan_against_run(path)[1] == 80.0  # the peak beside the run, not the one measured now
+    assert fit_costs([path], 80.0) == dict(fit_costs([run_dir], 80.0), fitted_on=[str(path)])
+    at160 = samples(path, 160.0)  # measured at 80 GFLOP/s: half the seconds at twice the peak
+    for stage, (w, u, mem, sec) in samples(path).items():
+        assert at160[stage] == (w, u, mem, pytest.approx(sec / 2))
+    bad = tmp_path / "bad.json"
+    bad.write_text("[1, 2]")
+    with pytest.raises(InputError, match="mmflow plan --record"):
+        samples(bad)
+
+
 def test_progress_says_how_long_the_stage_has_left():
     """Elapsed time per finished task times the tasks left: 10 s for 2 of 10 tasks -> ~40 s left."""
     import io
