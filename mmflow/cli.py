@@ -206,10 +206,10 @@ def _plan(args):
     if args.fit:
         # deferred: scipy's BLAS and workflow modules (~3 s): `import mmflow.cli` stays light
         from mmflow.machine import gemm_gflops
-        from mmflow.workflow.plan_fit import fit_costs, write_costs
+        from mmflow.workflow.plan_fit import fit_costs, reference_peak, write_costs
 
         path = args.costs or planmod.COSTS_FILE
-        write_costs(fit_costs(args.fit, gemm_gflops(np.float32, n=768)), path)
+        write_costs(fit_costs(args.fit, reference_peak(args.fit, lambda: gemm_gflops(np.float32, n=768))), path)
         print(f"wrote {path}")
         return 0
     if args.record:
