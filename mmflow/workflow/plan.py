@@ -138,7 +138,10 @@ def stage_work(stage, g, cfg):
                             {"pols": ["p"] * g.n_pol}, TIME_CHUNK, g.mmode_chunk)
     if stage in ("simulate", "ingest"):
         units = T * g.n_bl * g.n_freq * (g.n_sky_points if stage == "simulate" else g.n_pol)
-        return n_tchunk, vis_task, units, [vis_spec]
+        w = vis_task
+        if stage == "simulate":  # one channel at a time: ~10 complex128 (time, bl, pol) temporaries (drift scans,
+            w += T * g.n_bl * g.n_pol * 160.0  # corruptions, noise; measured 2.8 GB at 256 antennas: docs/planning.md)
+        return n_tchunk, w, units, [vis_spec]
     if stage == "calibrate":
         L = max(1, min(g.cal_interval or g.n_time, g.n_time))
         n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
@@ -164,7 +167,15 @@ def stage_work(stage, g, cfg):
         return 2 * n_tchunk, vis_task, T * g.n_bl * g.n_freq * g.n_pol, [spec]
     if stage == "mmodes":
         bc = min(g.mmode_chunk, g.n_bl)
-        w = g.n_time * bc * g.n_freq * g.n_pol * 12.0 + g.n_split * g.n_freq * (g.mmax + 1) * 2 * bc * 16.0
+        # the corrected block (complex128 + float64) of every integration, and the peel stage's correction
+        # of one channel on read: the subtracted sources' coherencies, five (time, bl, pol) complex
+        # temporaries and the sources' per-antenna DD gains, read and copied (measured: 0.75 GB at 6,628
+        # integrations and 64 antennas, 1.22 GB at 256: docs/planning.md)
+        n_sub = len(cfg.peel.sources) if cfg.peel.enabled else 0
+        per_time = bc * g.n_freq * g.n_pol * 24.0
+        if n_sub:
+            per_time += bc * 16.0 * (n_sub + 5 * g.n_pol) + 32.0 * n_sub * g.n_ant * g.n_pol
+        w = g.n_time * per_time + g.n_split * g.n_freq * (g.mmax + 1) * 2 * bc * 16.0
         spec = rs.mmodes_store(g.n_split, g.n_freq, g.mmax, g.n_bl, g.mmode_chunk, {},
                                len(FULL_STOKES) if is_full_stokes(cfg.imaging.stokes) else 0)
         return -(-g.n_bl // bc), w, g.n_time * bc * g.n_freq * g.n_pol, [spec]

@@ -199,6 +199,62 @@ def test_a_record_stands_for_its_run(measured_run, tmp_path, capsys):
         samples(bad)
 
 
+def _records():
+    from mmflow.workflow.plan_fit import RECORDS_DIR
+
+    return sorted(p.name for p in RECORDS_DIR.glob("*.json"))
+
+
+def _worst_errors(costs, records):
+    """Per stage the largest relative errors (memory with the worker's baseline, time) of ``costs`` over the
+    records, each run at the constants' reference peak (what the fit minimises)."""
+    from mmflow.workflow.plan_fit import TIME_FLOOR_S, plan_against_run
+
+    worst = {}
+    for rec in records:
+        for r in plan_against_run(rec, costs, costs["sgemm_gflops"])[0]:
+            m, t = worst.get(r["stage"], (0.0, 0.0))
+            planned_s = max(r["planned_task_s"], TIME_FLOOR_S) if r["planned_task_s"] is not None else None
+            terr = abs(planned_s / max(r["measured_task_s"], TIME_FLOOR_S) - 1) if planned_s is not None else 0.0
+            worst[r["stage"]] = (max(m, abs(1 / r["memory_ratio"] - 1)), max(t, terr))
+    return worst
+
+
+def test_the_package_constants_are_fitted_to_its_records():
+    """`plan_costs.json` is what `mmflow plan --fit` gives on the records in `plan_runs/` (the runs it
+    names), at the median of their SGEMM peaks: refitted here from the records alone, its largest
+    relative errors are the least a refit reaches (a linear programme's optimum need not be unique)."""
+    from mmflow.workflow.plan import load_costs
+    from mmflow.workflow.plan_fit import RECORDS_DIR, fit_costs, reference_peak
+
+    costs = load_costs()
+    assert _records() and sorted(costs["fitted_on"]) == _records()
+    records = [RECORDS_DIR / n for n in costs["fitted_on"]]
+    assert costs["sgemm_gflops"] == pytest.approx(reference_peak(records, lambda: 1 / 0))
+    refit = fit_costs(records, costs["sgemm_gflops"])
+    assert set(refit["stages"]) == set(costs["stages"])
+    ours, best = _worst_errors(costs, records), _worst_errors(refit, records)
+    for stage in ours:
+        assert ours[stage][0] <= best[stage][0] + 1e-6 and ours[stage][1] <= best[stage][1] + 1e-6, stage
+
+
+@pytest.mark.parametrize("name", _records())
+def test_the_plan_holds_on_each_measured_run(name):
+    """Issue 21's bounds on every run the constants were fitted to (the paper's channel at full scale, the
+    reduced ones of 1, 2 and 8 channels, the demo): each stage's largest task within 25 % in memory (with
+    the worker's baseline) and its mean task time within 50 % (tasks above TIME_FLOOR_S), at the
+    constants' reference SGEMM peak."""
+    from mmflow.workflow.plan import load_costs
+    from mmflow.workflow.plan_fit import RECORDS_DIR, TIME_FLOOR_S, plan_against_run
+
+    rows, _ = plan_against_run(RECORDS_DIR / name, None, load_costs()["sgemm_gflops"])
+    assert len(rows) >= 9
+    for r in rows:
+        assert abs(1 / r["memory_ratio"] - 1) <= 0.25, (r["stage"], r["planned_task_gb"], r["measured_task_gb"])
+        if r["planned_task_s"] is not None and r["measured_task_s"] >= TIME_FLOOR_S:
+            assert abs(1 / r["time_ratio"] - 1) <= 0.5, (r["stage"], r["planned_task_s"], r["measured_task_s"])
+
+
 def test_progress_says_how_long_the_stage_has_left():
     """Elapsed time per finished task times the tasks left: 10 s for 2 of 10 tasks -> ~40 s left."""
     import io
