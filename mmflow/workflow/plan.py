@@ -8,7 +8,7 @@ its work units ``U`` (visibility-samples x sources, baselines x sum_m (lmax_b - 
 and from per-stage constants fitted to measured runs (:mod:`mmflow.workflow.plan_fit`, kept in
 ``plan_costs.json`` beside this module)::
 
-    task memory  = W + b_s                          (bytes above the worker's baseline)
+    task memory  = a_s W + b_s                      (bytes above the worker's baseline)
     task seconds = (c_s U + d_s) * peak_ref / peak  (peak: this machine's SGEMM GFLOP/s now)
 
 Store sizes are the declared stores' uncompressed bytes (:attr:`mmflow.io.stores.StoreSpec.nbytes`
