@@ -128,7 +128,7 @@ def _simulate_pairs(telescope, freq_hz, lsts, sky, pairs, rdtype, out):
     time step); a chunk of baselines of a large array (a corner turn's: one or two first antennas,
     every second one) needs ``|A| |B| << n^2`` of them. Each time step's product is its own (the same
     values in any split over time)."""
-    x = (2 * np.pi * telescope.layout.enu / (C_LIGHT / freq_hz)).astype(rdtype)
+    x = _antenna_phases(telescope, freq_hz, rdtype)
     a, ea = np.unique(pairs[:, 0], return_inverse=True)
     b, eb = np.unique(pairs[:, 1], return_inverse=True)
     ctype = np.complex64 if rdtype == np.float32 else np.complex128
@@ -147,6 +147,13 @@ def _simulate_pairs(telescope, freq_hz, lsts, sky, pairs, rdtype, out):
         out[t0:t0 + TIME_BLOCK] = q[:, ea.ravel(), eb.ravel()]
 
 
+def _antenna_phases(telescope, freq_hz, rdtype):
+    """Antenna positions in radians of phase per unit direction, ``2 pi x / lambda`` (n_ant, 3): the phase
+    ``2 pi x.r`` is formed directly in the working precision (sin/cos reduce large arguments exactly,
+    so reducing in turns first would not make a float32 phase any more accurate)."""
+    return (2 * np.pi * telescope.layout.enu / (C_LIGHT / freq_hz)).astype(rdtype)
+
+
 def _expi(phase, ctype):
     """``exp(i phase)`` from one cosine and one sine (``np.exp`` of a complex argument also forms ``exp(0)``)."""
     z = np.empty(phase.shape, ctype)
@@ -157,10 +164,7 @@ def _expi(phase, ctype):
 
 def _simulate_block(telescope, freq_hz, lsts, sky, pairs, rdtype, out):
     """Fill ``out[t]`` for the sidereal angles ``lsts``; buffers are reused across time steps."""
-    # antenna positions in radians of phase per unit direction: the phase 2 pi x.r is formed
-    # directly in the working precision (sin/cos reduce large arguments exactly, so reducing in
-    # turns first would not make a float32 phase any more accurate)
-    x = (2 * np.pi * telescope.layout.enu / (C_LIGHT / freq_hz)).astype(rdtype)
+    x = _antenna_phases(telescope, freq_hz, rdtype)
     n = len(x)
     syrk = blas.ssyrk if rdtype == np.float32 else blas.dsyrk
     # Q is upper-triangular from syrk: read Q[i, j] as Q[min, max]

@@ -188,6 +188,7 @@ def reference_peak(run_dirs, measure):
 def write_costs(costs, path):
     with open(path, "w") as fh:
         json.dump(costs, fh, indent=2, sort_keys=True)
+        fh.write("\n")
 
 
 def plan_against_run(run_dir, costs=None, peak_gflops=None):
