@@ -95,6 +95,9 @@ def build_parser(stages=True):
     pp.add_argument("--paper-scale", choices=("full", "reduced", "small"),
                     help="full: the paper's channel (default); reduced: 64 antennas, 1/8 of the integrations, "
                     "lmax 200 (--quick); small: 32 antennas, 1/16, lmax 100")
+    pp.add_argument("--paper-source", choices=("ingest", "simulate"), default="ingest",
+                    help="ingest (default): the simulate stage first writes the telescope's UVH5 files, the "
+                    "measured run reads them; simulate: the workflow simulates straight into vis.zarr")
     pp.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE",
                     help="further workflow overrides, e.g. observation.freqs_mhz=[62.688,73.152]")
     return ap
@@ -186,7 +189,7 @@ def _bench(args):
                        workflow=args.workflow and not args.engine_only, workers=args.workers,
                        solve_stride=args.solve_stride)
     elif args.what == "paper":
-        options = dict(scale=args.paper_scale, overrides=args.set)
+        options = dict(scale=args.paper_scale, overrides=args.set, source=args.paper_source)
     elif args.what == "ingest":
         options = dict(raw=args.raw)
     elif args.what == "transfer":

@@ -359,8 +359,12 @@ def utc_at_lsts(lsts, layout, near_jd, iterations=3):
 
 
 def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy"), channel_width_hz=None,
-              integration_s=None, x_orientation=None):
-    """A pyuvdata ``UVData`` of (time, bl, pol) visibilities, to write as UVH5 or MS.
+              integration_s=None, x_orientation=None, pol_convention=None):
+    """A pyuvdata ``UVData`` of (time, bl, pol) or (time, bl, freq, pol) visibilities, to write as UVH5 or MS.
+
+    ``freq_hz``: one frequency, or one per channel of a (time, bl, freq, pol) ``vis``.
+    ``pol_convention``: pyuvdata's statement of how the parallel hands relate to Stokes I
+    (``"avg"``: XX = I, mmflow's simulator; ``"sum"``: XX = I / 2), written into the file.
 
     ``ant_1 = i``, ``ant_2 = j`` for ``pairs[b] = (i, j)`` and the data as they are: pyuvdata's
     ``uvw = x_2 - x_1`` and mmflow's ``V_ij ~ exp(+2 pi i (x_j - x_i).r / lambda)`` agree (ingest
@@ -385,17 +389,22 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
                           antenna_numbers=list(range(n_ant)), instrument="mmflow-corrupt", mount_type="fixed",
                           feeds=["x", "y"] if len(pols) > 1 else ["x"], x_orientation=x_orientation)
     vis = np.array(vis, np.complex128)
-    T, B, P = vis.shape
+    freqs = np.atleast_1d(np.asarray(freq_hz, float))
+    if vis.ndim == 3:
+        vis, weights = vis[:, :, None], np.asarray(weights)[..., None, :]
+    T, B, F, P = vis.shape
     autos = np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]
     vis[:, autos] = vis[:, autos].real
-    data = vis.reshape(T * B, 1, P)
-    flags = (np.broadcast_to(weights, vis.shape) == 0).reshape(T * B, 1, P)
-    uv = UVData.new(freq_array=np.array([float(freq_hz)]), polarization_array=list(pols), times=np.asarray(times_jd),
+    data = vis.reshape(T * B, F, P)
+    flags = (np.broadcast_to(weights, vis.shape) == 0).reshape(T * B, F, P)
+    uv = UVData.new(freq_array=freqs, polarization_array=list(pols), times=np.asarray(times_jd),
                     x_orientation=x_orientation,
                     telescope=tel, antpairs=[tuple(map(int, p)) for p in pairs], do_blt_outer=True, data_array=data,
                     flag_array=flags, integration_time=integration_s or telescope.integration_s,
                     channel_width=channel_width_hz or telescope.channel_width_hz, vis_units="Jy",
                     time_axis_faster_than_bls=False)
+    if pol_convention is not None:
+        uv.pol_convention = pol_convention
     return uv
 
 

@@ -66,6 +66,10 @@ class ObservationConfig(Section):
                                           description="Integrations to simulate (default: one sidereal day).")
     start_lst_deg: float = Field(0.0, description="LST of the first simulated integration.")
     epoch_jd: float = Field(2457802.0, gt=0, description="Epoch (UTC JD) of the frame of date (default 2017-02-18).")
+    raw_files: Optional[Literal["uvh5"]] = Field(
+        None, description="Simulated data: also write the drift scan as a telescope writes it, one UVH5 file per "
+        "time chunk in the run directory's raw/ (pyuvdata, drift scan, pol_convention avg), for a run with "
+        "source: ingest to read (docs/planning.md). null: vis.zarr only.")
 
     def simulated_freqs_mhz(self):
         """The channels a simulation makes: ``freqs_mhz``, or 40 MHz when it is null."""

@@ -163,6 +163,11 @@ def _value_problems(cfg):
                                "set telescope.include_autos: true, or sky.noise: false"))
         if cfg.sky.sources:
             out.extend(_source_problems(cfg.sky.sources))
+        if ob.raw_files and not (cfg.corrupt.enabled or is_full_stokes(cfg.imaging.stokes)):
+            out.append(Problem(("observation", "raw_files"), ob.raw_files, "a clean Stokes-I simulation has no "
+                               "correlations to write (it makes I alone, not a feed's XX and YY)",
+                               "set corrupt.enabled: true (XX, YY as a telescope records them) or "
+                               "imaging.stokes: [I, Q, U, V] (the four correlations), or raw_files: null"))
         if cfg.corrupt.enabled:
             out.extend(_source_problems(cfg.corrupt.dd_sources, ("corrupt", "dd_sources")))
             out.extend(_not_among(("corrupt", "dd_sources"), cfg.corrupt.dd_sources, cfg.sky.sources, "sky.sources",

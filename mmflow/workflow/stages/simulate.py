@@ -19,6 +19,7 @@ import numpy as np
 
 from mmflow.calibrate.coherency import source_vector_date
 from mmflow.conventions import drift_scan_lsts, drift_scan_times, is_full_stokes
+from mmflow.io.raw_files import RAW_DIR, raw_path, write_raw_chunk
 from mmflow.io.run_stores import vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
 from mmflow.simulate.scene import (joined, polarised_sky_points, polarised_source_points, simulate_chunk,
@@ -117,6 +118,8 @@ def _sim_task(ctx, key):
     else:
         vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy)
     weights = np.ones(vis.shape, np.float32)
+    if o.raw_files:
+        _write_raw(ctx, tel, t0, time_jd, vis, cross if full else None)
     ctx.write(g, "vis", rows, vis)
     ctx.write(g, "weights", rows, weights)
     write_autos(ctx, g, rows, vis, weights)
@@ -125,9 +128,21 @@ def _sim_task(ctx, key):
     return {"integrations": int(len(k))}
 
 
+def _write_raw(ctx, tel, t0, time_jd, vis, cross):
+    """The chunk as the UVH5 file a telescope writes (``observation.raw_files``; :mod:`mmflow.io.raw_files`):
+    XX, YY (and XY, YX of a full-Stokes simulation), recorded in the task's marker."""
+    o = ctx.cfg.observation
+    pols = ["xx", "yy"] + (["xy", "yx"] if cross is not None else [])
+    data = vis if cross is None else np.concatenate([vis, cross], axis=-1)
+    path = write_raw_chunk(raw_path(ctx.run_path, t0), tel, data, np.ones(data.shape, np.float32),
+                           tel.antenna_pairs(), time_jd, tel.freqs_hz, pols, o.integration_s,
+                           o.channel_width_khz * 1e3)
+    ctx.ledger.record_file(path)
+
+
 STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk",
                            "imaging.stokes"), (),
-               ("vis.zarr",), _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
+               ("vis.zarr", RAW_DIR), _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
                description="time-domain drift-scan simulation (independent of transfer matrices), "
                "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "
                "correlations of a polarised sky through the E-field beam")
