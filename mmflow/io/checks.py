@@ -100,7 +100,12 @@ def time_key(jd):
 def duplicate_rows(jd, ant1, ant2, what):
     """Refuse two rows of one file with the same (time, baseline), (i, j) and (j, i) alike."""
     lo, hi = np.minimum(ant1, ant2), np.maximum(ant1, ant2)
-    keys = np.rec.fromarrays([time_key(jd), lo, hi])
+    if not len(lo):
+        return
+    _, t_idx = np.unique(time_key(jd), return_inverse=True)
+    base = int(lo.min())
+    n = int(hi.max()) - base + 1  # one int64 key per row, (time index, i, j): 8.4M rows sort in ~1 s
+    keys = (t_idx.astype(np.int64) * n + (lo - base)) * n + (hi - base)
     order = np.argsort(keys, kind="stable")
     same = np.flatnonzero(keys[order][1:] == keys[order][:-1])
     if len(same):

@@ -44,8 +44,10 @@ class MSIndex:
     time_array: np.ndarray = None  # UTC JD, set by :func:`convert_times`
 
 
-def read_index(path):
-    """The columns the plan needs from one MS (python-casacore; no data)."""
+def read_index(path, compact=False):
+    """The columns the plan needs from one MS (python-casacore; no data). ``compact`` is ignored: an
+    MS's times are converted after the read (:func:`convert_times`); the OVRO-LWA's files are one
+    integration each."""
     from casacore.tables import table  # deferred: optional (python-casacore)
 
     p = str(path).rstrip("/")
