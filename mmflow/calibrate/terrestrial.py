@@ -9,8 +9,8 @@ zenith (drift-scan data as stored), while the sky smears into rings of constant 
    (:func:`mmflow.calibrate.peel.peel_dense`, guard off); their DD gains absorb each pattern,
    so template k is ``B_k,ij = u_ki conj(u_kj)`` (rank 1). Component k starts from the leading
    eigenvector of what the previous components left (autocorrelations zeroed);
-3. per integration and pol, real amplitudes by weighted least squares on the baselines kept
-   (default > 15 wavelengths)::
+3. per integration and pol, real amplitudes of the templates' basis ``B_k`` (K^2 of them, below)
+   by weighted least squares on the baselines kept (default > 15 wavelengths)::
 
        sum_l Re<B_k, B_l>_w a_l(t) = Re<B_k, v_t>_w
 
@@ -21,9 +21,13 @@ on the peeled data); the stage composes them from these kernels. Contamination o
 template is measured by ``||B^H v|| / (||B|| ||v||)`` (:func:`projection_fraction`; the paper
 found ~0.035 for its three components).
 
-Note: for K > 1 the span of the templates is determined by the average, but not the split
-into rank-1 terms when the patterns overlap (``sum_k u_k u_k^H`` is invariant under a unitary
-mixing of the ``u_k``); the leading-eigenvector start picks the strongest pattern first.
+For K > 1 the average fixes the span of the patterns but not their split into rank-1 terms when
+they overlap (``sum_k u_k u_k^H`` is invariant under a unitary mixing of the ``u_k``): a constant
+cross-talk ``c c^H`` and a flickering emitter ``a(t) e e^H`` are then mixtures of the fitted
+``u_k``, with cross terms ``u_k u_l^H``. So the amplitudes are fitted on the K^2 real-coefficient
+Hermitian basis of that span (:func:`template_basis`): ``u_k u_k^H``, then for k < l
+``u_k u_l^H + u_l u_k^H`` and ``i (u_k u_l^H - u_l u_k^H)``; any ``sum a_kl u_k u_l^H`` with a
+Hermitian ``a`` is a real combination of them. For K = 1 it is the single ``u u^H``.
 """
 from __future__ import annotations
 
@@ -31,7 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmflow.calibrate.baselines import check_pairs, from_matrix, to_matrix
+from mmflow.calibrate.baselines import check_pairs, to_matrix
 from mmflow.calibrate.peel import PEEL, peel_dense
 
 
@@ -43,9 +47,26 @@ def zenith_average(vis, weights):
     return np.where(ws > 0, (w * v).sum(0) / np.where(ws > 0, ws, 1), 0), ws
 
 
+def template_basis(patterns, pairs):
+    """The real-coefficient Hermitian basis (K^2, bl, pol) of the span of K patterns (K, n_ant, pol).
+
+    ``B = u_k,i conj(u_k,j)`` for each k, then for k < l ``u_k,i conj(u_l,j) + u_l,i conj(u_k,j)``
+    and ``i (u_k,i conj(u_l,j) - u_l,i conj(u_k,j))`` on every baseline ``(i, j)`` of ``pairs``.
+    """
+    pairs = np.asarray(pairs)
+    ui, uj = patterns[:, pairs[:, 0]], np.conj(patterns[:, pairs[:, 1]])  # (K, bl, pol)
+    K = patterns.shape[0]
+    out = [ui[k] * uj[k] for k in range(K)]
+    for k in range(K):
+        for m in range(k + 1, K):
+            kl, lk = ui[k] * uj[m], ui[m] * uj[k]
+            out += [kl + lk, 1j * (kl - lk)]
+    return np.stack(out)
+
+
 @dataclass
 class Templates:
-    """``templates`` (K, bl, pol) = u_i conj(u_j); ``patterns`` (K, n_ant, pol) the vectors u."""
+    """``templates`` (K^2, bl, pol): :func:`template_basis` of ``patterns`` (K, n_ant, pol), the vectors u."""
 
     templates: np.ndarray
     patterns: np.ndarray
@@ -54,7 +75,8 @@ class Templates:
 
 def fit_templates(mean_vis, mean_weights, pairs, n_ant, n_components=3, *, baseline_keep=None, passes=5,
                   tol=1e-8, max_iter=500, threads=None):
-    """Rank-1 templates of the stationary part of ``mean_vis`` (bl, pol) (see the module docstring)."""
+    """K rank-1 patterns of the stationary part of ``mean_vis`` (bl, pol) and their templates' basis
+    (see the module docstring)."""
     pairs = check_pairs(pairs, n_ant)
     P = mean_vis.shape[-1]
     w = np.array(mean_weights, float)
@@ -75,9 +97,8 @@ def fit_templates(mean_vis, mean_weights, pairs, n_ant, n_components=3, *, basel
         R = R - u[:, :, None] * np.conj(u)[:, None, :] * (W > 0)
     res = peel_dense(A, ones, W, np.full((K, P), PEEL), g0, passes=passes, tol=tol, max_iter=max_iter,
                      guard=None, threads=threads)
-    u = res.dd_gains  # (K, P, N)
-    tmpl = from_matrix(u[..., :, None] * np.conj(u)[..., None, :], pairs)  # (K, P, bl)
-    return Templates(np.moveaxis(tmpl, 1, -1), np.moveaxis(u, 1, -1), res.iterations)
+    u = np.moveaxis(res.dd_gains, 1, -1)  # (K, N, P)
+    return Templates(template_basis(u, pairs), u, res.iterations)
 
 
 def fit_amplitudes(vis, weights, templates, baseline_keep=None):

@@ -40,7 +40,8 @@ DIMENSIONS = {
     "interval": "calibration solution intervals",
     "edge": "first and one-past-last integration",
     "source": "sources, in the order of the stage's source list",
-    "component": "components of a model (Gaussian components; rank-1 terrestrial templates)",
+    "component": "components of a model (Gaussian components; rank-1 terrestrial patterns)",
+    "template": "terrestrial templates: the K^2 Hermitian combinations u_k u_l^H of K rank-1 patterns",
     "column": "columns of a table, named in the array's description",
     "kind": "variants of a quantity, named in the array's description",
     "chunk": "time chunks of vis.zarr",
@@ -339,8 +340,10 @@ def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk
         ArraySpec("patterns", ("freq", "component", "antenna", "pol"), (nf, n_comp, n_ant, npol),
                   (nf, n_comp, n_ant, npol), "complex128",
                   doc="``u_k`` of the rank-1 templates ``B_k = u_k u_k^H`` fitted to the average"),
-        ArraySpec("amplitudes", ("time", "freq", "component", "pol"), (n_time, nf, n_comp, npol),
-                  (time_chunk, nf, n_comp, npol), "float64", doc="real amplitude ``a_k(t)`` of each template"),
+        ArraySpec("amplitudes", ("time", "freq", "template", "pol"), (n_time, nf, n_comp ** 2, npol),
+                  (time_chunk, nf, n_comp ** 2, npol), "float64",
+                  doc="real amplitude ``a_k(t)`` of each of the K^2 templates: ``u_k u_k^H``, then for k < l "
+                  "``u_k u_l^H + u_l u_k^H`` and ``i (u_k u_l^H - u_l u_k^H)``"),
     ), doc="Signals that do not move with the sky: the terrestrial stage.")
 
 

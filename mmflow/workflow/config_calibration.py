@@ -178,6 +178,7 @@ class TerrestrialConfig(Section):
     """Removal of terrestrial signals (cross-talk, near-field RFI) that do not move with the sky."""
 
     enabled: bool = Field(False, description="Run this stage.")
-    components: int = Field(2, ge=1, description="Rank-1 templates fitted to the zenith-phased average.")
+    components: int = Field(2, ge=1, description="Rank-1 patterns u_k fitted to the zenith-phased average; their "
+                            "K^2 Hermitian combinations u_k u_l^H are fitted and subtracted per integration.")
     min_baseline_lambda: BaselineCut = Field("auto", description="Fit amplitudes on baselines longer than this "
                                              "(wavelengths); " + AUTO_CUT, json_schema_extra=CUT_ALLOWED)

@@ -63,34 +63,50 @@ def test_single_template_and_amplitude_series_recovered(drift, kind):
         assert np.corrcoef(a[:, 0, 0] * scale, amp)[0, 1] > 0.99
 
 
-def test_two_components_removed_and_sky_m_ge_2_unchanged(drift):
-    tel, pairs, v_sky, keep, rng = drift
-    n = tel.n_ant
-    c = crosstalk_pattern(n, rng, 100.0)
+def _two_patterns(drift, seed):
+    """Cross-talk (constant) and a flickering near-field emitter with patterns drawn by ``seed``: the
+    data, what was injected, and the two fitted patterns' templates."""
+    tel, pairs, v_sky, keep, _ = drift
+    rng = np.random.default_rng([2, seed])
+    c = crosstalk_pattern(tel.n_ant, rng, 100.0)
     e, amp = near_field_rfi(tel.layout.enu, FREQ, T, rng, amplitude_jy=50.0)
     inj = (rank1_visibilities(c, np.ones(T), pairs) + rank1_visibilities(e, amp, pairs))[..., None]
     vis = v_sky + inj
     mean, ws = zenith_average(vis, np.ones(vis.shape))
-    tm = fit_templates(mean, ws, pairs, n, 2, baseline_keep=keep)
-    a = fit_amplitudes(vis, np.ones(vis.shape), tm.templates, keep)
-    clean = subtract_templates(vis, tm.templates, a)
-    left = np.linalg.norm((clean - v_sky)[:, keep]) / np.linalg.norm(inj[:, keep])
-    # limited by the sky's m = 0 part, which a stationary template cannot tell from pickup
-    sky_mean = np.linalg.norm(zenith_average(v_sky, 1.0)[0][keep]) / np.linalg.norm(zenith_average(inj, 1.0)[0][keep])
-    assert left < 2 * sky_mean, (left, sky_mean)
-    # m-modes: V_m = (1/N) sum_n V(phi_n) exp(-i m phi_n); compare |m| >= 2
-    fm = np.fft.fft(clean[:, keep, 0] - v_sky[:, keep, 0], axis=0) / T
-    sm = np.fft.fft(v_sky[:, keep, 0], axis=0) / T
-    im = np.fft.fft(inj[:, keep, 0], axis=0) / T
-    m = np.abs(np.fft.fftfreq(T, 1 / T))
-    hi = m >= 2
-    change = np.linalg.norm(fm[hi]) / np.linalg.norm(sm[hi])
-    # removing K real directions from each of the n_bl-dimensional v_t takes ~sqrt(K / n_bl) of
-    # the sky with it (the paper's ||B^H v|| / (||B|| ||v||) ~ 0.035 is this number)
-    bound = 2 * np.sqrt(2 / keep.sum())
-    assert change < bound, (change, bound)
-    # and the interference had real m >= 2 power (the RFI flicker) that is now gone
-    assert np.linalg.norm(fm[hi]) < 0.3 * np.linalg.norm(im[hi])
+    return vis, inj, fit_templates(mean, ws, pairs, tel.n_ant, 2, baseline_keep=keep)
+
+
+def _m_ge_2(x, keep):
+    """``|m| >= 2`` m-modes of (time, bl, 1) data on the kept baselines: V_m = sum_n V(phi_n) exp(-i m phi_n)."""
+    return np.fft.fft(x[:, keep, 0], axis=0)[np.abs(np.fft.fftfreq(T, 1 / T)) >= 2]
+
+
+def test_two_components_removed_and_sky_m_ge_2_unchanged(drift):
+    """Over ten draws of the two patterns: the fitted patterns are mixtures of cross-talk and emitter
+    (the average fixes their span only), so their own rank-1 templates leave the flicker's cross
+    terms; the K^2 Hermitian templates remove them (the residual halved in 9 of 10 draws when
+    measured), the sky's m >= 2 content barely touched."""
+    tel, pairs, v_sky, keep, _ = drift
+    ones = np.ones(v_sky.shape)
+    sky_hi = np.linalg.norm(_m_ge_2(v_sky, keep))
+    flicker_left = {"diagonal": [], "basis": []}
+    for seed in range(10):
+        vis, inj, tm = _two_patterns(drift, seed)
+        assert tm.templates.shape[0] == 4
+        for name, B in (("diagonal", tm.templates[:2]), ("basis", tm.templates)):
+            clean = subtract_templates(vis, B, fit_amplitudes(vis, ones, B, keep))
+            flicker_left[name].append(np.linalg.norm(_m_ge_2(clean - v_sky, keep)) / np.linalg.norm(_m_ge_2(inj, keep)))
+        left = np.linalg.norm((clean - v_sky)[:, keep]) / np.linalg.norm(inj[:, keep])
+        # limited by the sky's m = 0 part, which a stationary template cannot tell from pickup
+        sky_mean = np.linalg.norm(zenith_average(v_sky, 1.0)[0][keep]) / np.linalg.norm(zenith_average(inj, 1.0)[0][keep])
+        assert left < 2 * sky_mean, (seed, left, sky_mean)
+        # removing K^2 real directions from each n_bl-dimensional v_t takes ~sqrt(K^2 / n_bl) of the sky's
+        # m >= 2 content with it (the paper's ||B^H v|| / (||B|| ||v||) ~ 0.035 is this number)
+        a_sky = fit_amplitudes(v_sky, ones, tm.templates, keep)
+        change = np.linalg.norm(_m_ge_2(subtract_templates(v_sky, tm.templates, a_sky) - v_sky, keep)) / sky_hi
+        assert change < 2 * np.sqrt(4 / keep.sum()), (seed, change)
+    basis, diagonal = np.array(flicker_left["basis"]), np.array(flicker_left["diagonal"])
+    assert basis.max() < 0.4 and np.median(basis / diagonal) < 0.6, (basis, diagonal)
 
 
 def test_projection_fraction_of_a_known_response():

@@ -7,8 +7,9 @@ it, :func:`read_block`):
    centre at zenith (drift-scan data as stored); the sky smears into rings over > 24 h, a
    cross-talk pattern or a near-field emitter does not;
 2. the driver adds the sums in a fixed order (:func:`ordered_tree_sum`), and fits
-   ``terrestrial.components`` rank-1 templates ``B_k = u_k u_k^H`` to the average per channel
-   and polarisation (:func:`mmflow.calibrate.terrestrial.fit_templates`);
+   ``terrestrial.components`` rank-1 patterns ``u_k`` to the average per channel and polarisation
+   (:func:`mmflow.calibrate.terrestrial.fit_templates`); the templates are the K^2 Hermitian
+   ``u_k u_l^H`` combinations (``u_k u_k^H`` alone for one component);
 3. tasks ``a_t{K}`` fit a real amplitude per template and integration on baselines longer than
    ``terrestrial.min_baseline_lambda`` (:func:`fit_amplitudes`) and report how much of the data
    each template sees, ``||B^H v_t|| / (||B|| ||v_t||)`` (:func:`projection_fraction`).
@@ -23,9 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.calibrate.terrestrial import fit_amplitudes, fit_templates, projection_fraction, subtract_templates
+from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, projection_fraction, subtract_templates,
+                                          template_basis)
 from mmflow.io.run_stores import terrestrial_store
-from mmflow.simulate.corrupt import gain_products
 from mmflow.workflow.baseline_cuts import solve_mask
 from mmflow.workflow.blocks import read_block
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
@@ -43,8 +44,8 @@ def _prepare(ctx):
 
 
 def _templates(ctx, fi, pairs):
-    """(K, bl, pol) templates ``u_i conj(u_j)`` of channel ``fi`` for ``pairs``."""
-    return gain_products(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
+    """The (K^2, bl, pol) templates of channel ``fi`` for ``pairs`` (:func:`template_basis` of its K patterns)."""
+    return template_basis(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
 
 
 def _task(ctx, key):
