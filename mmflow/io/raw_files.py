@@ -7,7 +7,7 @@ plan's checks, LSTs recomputed from the files' UTC times, the flux convention of
 holds every baseline and channel of those integrations, the parallel hands XX, YY (and the cross
 hands XY, YX of a full-Stokes simulation), with the simulator's ``pol_convention="avg"``
 (``I = (XX + YY) / 2``) and the data's sign convention (``V_ij ~ exp(+2 pi i (x_j - x_i).r / lambda)``,
-pyuvdata's: ingest with ``conjugate: false``). Each file is written under a temporary name and
+pyuvdata's: ingest with ``conjugate: false``), the data in single precision. Each file is written under a temporary name and
 renamed, so a killed task leaves no partial file under the final name.
 """
 from __future__ import annotations
@@ -41,6 +41,7 @@ def write_raw_chunk(path, telescope, vis, weights, pairs, times_jd, freqs_hz, po
                    pols=tuple(pols), channel_width_hz=channel_width_hz, integration_s=integration_s,
                    pol_convention="avg")
     tmp = path.with_name(f".{path.stem}.tmp{os.getpid()}{path.suffix}")
-    uv.write_uvh5(str(tmp), clobber=True, run_check=False)
+    # single precision on disk, as a correlator writes it (the simulation is complex64: nothing lost)
+    uv.write_uvh5(str(tmp), clobber=True, run_check=False, data_write_dtype="c8")
     os.replace(tmp, path)
     return path
