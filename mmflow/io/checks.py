@@ -97,10 +97,38 @@ def time_key(jd):
     return np.round(np.asarray(jd, float) * 86400.0, 3)
 
 
+def distinct_pairs(ant1, ant2):
+    """The distinct ``(ant1, ant2)`` rows, sorted: one int64 key per row (np.unique over rows of a
+    two-column array takes seconds at 8.4M rows)."""
+    a1, a2 = np.asarray(ant1, np.int64), np.asarray(ant2, np.int64)
+    if not len(a1):
+        return a1, a2
+    base = int(min(a1.min(), a2.min()))
+    n = int(max(a1.max(), a2.max())) - base + 1
+    keys = np.unique((a1 - base) * n + (a2 - base))
+    return keys // n + base, keys % n + base
+
+
+def _regular_grid(tk, lo, hi):
+    """True when the rows are blocks of one integration each, every block the same baselines in the same
+    order (how pyuvdata writes a drift scan, ``time_axis_faster_than_bls=False``), with distinct times
+    and no baseline twice in a block: then no row repeats, shown in O(rows) without a sort."""
+    n = len(tk)
+    starts = np.flatnonzero(np.r_[True, tk[1:] != tk[:-1]])
+    nb = n // len(starts)
+    if nb * len(starts) != n or not np.array_equal(starts, np.arange(0, n, nb)):
+        return False
+    blo, bhi = lo.reshape(-1, nb), hi.reshape(-1, nb)
+    if not ((blo == blo[0]).all() and (bhi == bhi[0]).all()):
+        return False
+    first = np.stack([blo[0], bhi[0]], 1)
+    return len(np.unique(tk[starts])) == len(starts) and len(np.unique(first, axis=0)) == nb
+
+
 def duplicate_rows(jd, ant1, ant2, what):
     """Refuse two rows of one file with the same (time, baseline), (i, j) and (j, i) alike."""
     lo, hi = np.minimum(ant1, ant2), np.maximum(ant1, ant2)
-    if not len(lo):
+    if not len(lo) or _regular_grid(time_key(jd), lo, hi):
         return
     _, t_idx = np.unique(time_key(jd), return_inverse=True)
     base = int(lo.min())

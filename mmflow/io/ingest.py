@@ -224,7 +224,7 @@ def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, c
             raise InputError(f, "ant_1_array/ant_2_array", f"antenna numbers outside {good[0]}'s antenna table",
                              "ingest files from one array configuration per run")
         found.append(np.sort(np.stack([index[a1], index[a2]], 1), 1))
-    pairs = np.unique(np.concatenate(found), axis=0)
+    pairs = np.stack(checks.distinct_pairs(*np.concatenate(found).T), 1)
     # the antennas with data: an antenna table may list many more (the OVRO-LWA's MS lists 256
     # stands for 20 with data); the layout and every per-antenna array keep only these
     used = np.unique(pairs)

@@ -60,8 +60,7 @@ def read_index(path, compact=False):
         rows = h["time_array"][()], h["ant_1_array"][()], h["ant_2_array"][()]
         if compact:
             checks.duplicate_rows(*rows, str(path))
-            pairs = np.unique(np.stack(rows[1:], 1), axis=0)
-            rows = np.unique(rows[0]), pairs[:, 0], pairs[:, 1]
+            rows = np.unique(rows[0]), *checks.distinct_pairs(rows[1], rows[2])
         return UVH5Index(
             str(path), *rows,
             np.asarray(h["freq_array"][()], float).ravel(), h["polarization_array"][()], _str(h["vis_units"][()]),
