@@ -7,8 +7,8 @@ plan's checks, LSTs recomputed from the files' UTC times, the flux convention of
 holds every baseline and channel of those integrations, the parallel hands XX, YY (and the cross
 hands XY, YX of a full-Stokes simulation), with the simulator's ``pol_convention="avg"``
 (``I = (XX + YY) / 2``) and the data's sign convention (``V_ij ~ exp(+2 pi i (x_j - x_i).r / lambda)``,
-pyuvdata's: ingest with ``conjugate: false``), the data in single precision. Each file is written under a temporary name and
-renamed, so a killed task leaves no partial file under the final name.
+pyuvdata's: ingest with ``conjugate: false``), the data in single precision. Each file is written
+under a temporary name and renamed, so a killed task leaves no partial file under the final name.
 """
 from __future__ import annotations
 

@@ -369,8 +369,9 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     ``ant_1 = i``, ``ant_2 = j`` for ``pairs[b] = (i, j)`` and the data as they are: pyuvdata's
     ``uvw = x_2 - x_1`` and mmflow's ``V_ij ~ exp(+2 pi i (x_j - x_i).r / lambda)`` agree (ingest
     with ``conjugate: false``). Weights of 0 become flags. Antenna positions are the layout's
-    ENU positions about its centre. Autocorrelations are written as their real part, as a
-    correlator writes them (the simulator's radiometer noise is complex on every baseline).
+    ENU positions about its centre. Autocorrelations of the parallel hands are written as their real
+    part, as a correlator writes them (the simulator's radiometer noise is complex on every baseline;
+    an antenna's XY and YX are complex).
     ``x_orientation="east"`` labels linear polarisations as pyuvdata does for such feeds:
     ``pols=("ee", "nn")`` are then XX and YY (the same polarisation numbers, -5 and -6).
     """
@@ -394,7 +395,10 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
         vis, weights = vis[:, :, None], np.asarray(weights)[..., None, :]
     T, B, F, P = vis.shape
     autos = np.asarray(pairs)[:, 0] == np.asarray(pairs)[:, 1]
-    vis[:, autos] = vis[:, autos].real
+    parallel = [k for k, p in enumerate(pols) if str(p)[0] == str(p)[-1]]  # xx, yy (ee, nn): real autos
+    sub = vis[:, autos]
+    sub[..., parallel] = sub[..., parallel].real
+    vis[:, autos] = sub
     data = vis.reshape(T * B, F, P)
     flags = (np.broadcast_to(weights, vis.shape) == 0).reshape(T * B, F, P)
     uv = UVData.new(freq_array=freqs, polarization_array=list(pols), times=np.asarray(times_jd),

@@ -66,6 +66,30 @@ def test_ingest_reads_back_the_simulated_visibilities(sim):
     np.testing.assert_allclose(b["antenna_enu"][:], a["antenna_enu"][:], atol=1e-3)
 
 
+def test_a_full_stokes_simulation_writes_the_four_correlations(tmp_path):
+    """Through the E-field beam: XX, YY, XY, YX in each file; ingest carries the cross hands as simulated."""
+    base = ["telescope.max_antennas=6", "observation.freqs_mhz=[73.152]", "observation.n_integrations=300",
+            "mmode.min_coverage=0", "cluster.kind=synchronous", "observation.raw_files=uvh5",
+            "imaging.stokes=[I, Q, U, V]", "beam={type: short_dipole}", "corrupt.enabled=false",
+            "calibrate.enabled=false", "peel.enabled=false", "terrestrial.enabled=false"]
+    run_workflow(load_config(DEMO, base + [f"run.directory={tmp_path / 'sim'}"]), only=["simulate"], **QUIET)
+    from pyuvdata import UVData
+
+    uv = UVData.from_file(str(tmp_path / "sim" / "raw" / "t000256.uvh5"))
+    assert sorted(uv.get_pols()) == ["xx", "xy", "yx", "yy"] and uv.Ntimes == 44
+    cfg = load_config(DEMO, base + ["source=ingest", f"input.path={tmp_path / 'sim' / 'raw'}/*.uvh5",
+                                    f"run.directory={tmp_path / 'ing'}"])
+    run_workflow(cfg, only=["ingest"], **QUIET)
+    a = zarr.open_group(str(tmp_path / "sim" / "vis.zarr"), mode="r")
+    b = zarr.open_group(str(tmp_path / "ing" / "vis.zarr"), mode="r")
+    cross = a["pairs"][:, 0] != a["pairs"][:, 1]
+    assert b.attrs["cross_pols"] == ["xy", "yx"]
+    assert np.array_equal(a["vis_cross"][:, cross], b["vis_cross"][:, cross])
+    assert np.array_equal(a["vis"][:, cross], b["vis"][:, cross])
+    autos = ~cross  # an antenna's XY is complex (only the parallel hands' autos are real)
+    assert np.array_equal(a["vis_cross"][:, autos], b["vis_cross"][:, autos]) and b["vis_cross"][:, autos].imag.any()
+
+
 def test_a_clean_stokes_i_simulation_cannot_write_raw_files():
     (_, _, problem, fix), _ = refused_problem(["observation.raw_files=uvh5"], "observation.raw_files",
                                               path="workflows/demo.yaml")
