@@ -21,6 +21,7 @@ import threading
 
 import numpy as np
 
+from mmflow.import_thread import import_in_thread
 from mmflow.io import checks
 from mmflow.io.file_data import FileData
 from mmflow.io.ms_read import read_ms_direct
@@ -57,6 +58,7 @@ def _kwargs(path, fmt):
 def read_metadata(path, fmt=None):
     """pyuvdata ``UVData`` with metadata only. pyuvdata's own consistency check is skipped:
     mmflow checks what it uses (``mmflow.io.checks``)."""
+    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
     from pyuvdata import UVData  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     offline_site_registry()
@@ -97,6 +99,7 @@ def _wanted(info, what):
 
 
 def _read_pyuvdata(path, fmt, info):
+    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
     from pyuvdata import UVData  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     offline_site_registry()

@@ -43,6 +43,7 @@ from astropy import units as u
 from astropy.time import Time
 
 from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.import_thread import import_in_thread
 from mmflow.simulate.polarised import apply_leakage, correlation_noise
 from mmflow.simulate.visibilities import SkyPoints, thermal_noise
 from mmflow.sky.frames import apparent_sidereal_time, source_enu, tangent_basis
@@ -377,6 +378,7 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     """
     # deferred: astropy.coordinates (0.1-0.2 s) and pyuvdata (2-3.5 s) to import (docs/performance.md)
     from astropy.coordinates import EarthLocation
+    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
     from pyuvdata import Telescope as UVTelescope
     from pyuvdata import UVData
     from pyuvdata.utils import ECEF_from_ENU
