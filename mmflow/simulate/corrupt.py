@@ -376,9 +376,9 @@ def to_uvdata(vis, weights, pairs, telescope, times_jd, freq_hz, pols=("xx", "yy
     ``x_orientation="east"`` labels linear polarisations as pyuvdata does for such feeds:
     ``pols=("ee", "nn")`` are then XX and YY (the same polarisation numbers, -5 and -6).
     """
+    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
     # deferred: astropy.coordinates (0.1-0.2 s) and pyuvdata (2-3.5 s) to import (docs/performance.md)
     from astropy.coordinates import EarthLocation
-    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
     from pyuvdata import Telescope as UVTelescope
     from pyuvdata import UVData
     from pyuvdata.utils import ECEF_from_ENU
