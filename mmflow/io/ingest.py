@@ -141,6 +141,8 @@ def _metadata_indexed(files, fmt, on_bad, kind, calibrated_here=False):
                 ref_uv = read_metadata(f, fmt)
                 ref_file = f
             indices.append(indexer.read_index(f, compact=bool(indices)))  # the first whole: checked against pyuvdata
+        except InputError:  # a readable file the index refuses (duplicated rows): its own message
+            raise
         except Exception as exc:  # corrupt files raise many exception types
             if ref_uv is not None and not indices:
                 return None  # the first file reads with pyuvdata but not with the index

@@ -275,3 +275,7 @@ def test_uvh5_plan_reads_one_file_with_pyuvdata_the_rest_with_h5py_and_checks_ea
     refused(r"int_3.uvh5.*vis_units.*'uncalib'", uncalibrated, "uncal")
     refused(r"int_3.uvh5.*phase_center_catalog \(cat_type=sidereal\).*unproject_phase", phased, "phased")
     refused(r"int_3.uvh5.*duplicated \(time, baseline\) rows: rows 1 and 2", duplicate_row, "dup")
+    ingest._plan.cache_clear()  # a readable file with repeated rows is refused as that, never skipped as unreadable
+    with pytest.raises(InputError) as info:
+        ingest._plan(str(tmp_path / "dup" / "*.uvh5"), None, "skip")
+    assert "duplicated" in str(info.value) and "cannot read" not in str(info.value)
