@@ -109,28 +109,31 @@ def distinct_pairs(ant1, ant2):
     return keys // n + base, keys % n + base
 
 
-def _regular_grid(tk, lo, hi):
-    """True when the rows are blocks of one integration each, every block the same baselines in the same
-    order (how pyuvdata writes a drift scan, ``time_axis_faster_than_bls=False``), with distinct times
-    and no baseline twice in a block: then no row repeats, shown in O(rows) without a sort."""
+def _grid_block(tk, ant1, ant2):
+    """The rows per integration when the rows are pyuvdata's regular grid (``time_axis_faster_than_bls=False``):
+    blocks of one integration each (time keys ``tk``), every block the same ``(ant1, ant2)`` in the same
+    order, distinct times, no baseline twice in a block (``(i, j)`` and ``(j, i)`` alike). Then no row
+    repeats, shown in O(rows) without a sort. 0 when they are not."""
     n = len(tk)
+    if not n:
+        return 0
     starts = np.flatnonzero(np.r_[True, tk[1:] != tk[:-1]])
     nb = n // len(starts)
     if nb * len(starts) != n or not np.array_equal(starts, np.arange(0, n, nb)):
-        return False
-    blo, bhi = lo.reshape(-1, nb), hi.reshape(-1, nb)
-    if not ((blo == blo[0]).all() and (bhi == bhi[0]).all()):
-        return False
-    first = np.stack([blo[0], bhi[0]], 1)
-    return len(np.unique(tk[starts])) == len(starts) and len(np.unique(first, axis=0)) == nb
+        return 0
+    b1, b2 = ant1.reshape(-1, nb), ant2.reshape(-1, nb)
+    if not ((b1 == b1[0]).all() and (b2 == b2[0]).all()):
+        return 0
+    first = np.sort(np.stack([b1[0], b2[0]], 1), 1)
+    ok = len(np.unique(tk[starts])) == len(starts) and len(distinct_pairs(*first.T)[0]) == nb
+    return nb if ok else 0
 
 
-def duplicate_rows(jd, ant1, ant2, what):
-    """Refuse two rows of one file with the same (time, baseline), (i, j) and (j, i) alike."""
+def _refuse_repeats(jd, tk, ant1, ant2, what):
     lo, hi = np.minimum(ant1, ant2), np.maximum(ant1, ant2)
-    if not len(lo) or _regular_grid(time_key(jd), lo, hi):
+    if not len(lo):
         return
-    _, t_idx = np.unique(time_key(jd), return_inverse=True)
+    _, t_idx = np.unique(tk, return_inverse=True)
     base = int(lo.min())
     n = int(hi.max()) - base + 1  # one int64 key per row, (time index, i, j): 8.4M rows sort in ~1 s
     keys = (t_idx.astype(np.int64) * n + (lo - base)) * n + (hi - base)
@@ -142,6 +145,25 @@ def duplicate_rows(jd, ant1, ant2, what):
                          f"{len(same)} duplicated (time, baseline) rows: rows {r1} and {r2} are both baseline "
                          f"({int(lo[r1])}, {int(hi[r1])}) at JD {float(jd[r1]):.6f}",
                          "remove the duplicated rows (pyuvdata: uv.select(blt_inds=...)) or the duplicated file")
+
+
+def duplicate_rows(jd, ant1, ant2, what):
+    """Refuse two rows of one file with the same (time, baseline), (i, j) and (j, i) alike."""
+    tk = time_key(jd)
+    if not _grid_block(tk, ant1, ant2):
+        _refuse_repeats(jd, tk, ant1, ant2, what)
+
+
+def distinct_rows(jd, ant1, ant2, what):
+    """Refuse repeated rows (:func:`duplicate_rows`), and return the file's distinct times (sorted) and
+    distinct ``(ant1, ant2)`` pairs (:func:`distinct_pairs`): read off the first integration's block
+    for pyuvdata's regular grid, from every row otherwise."""
+    tk = time_key(jd)
+    nb = _grid_block(tk, ant1, ant2)
+    if nb:
+        return np.sort(jd[::nb]), *distinct_pairs(ant1[:nb], ant2[:nb])
+    _refuse_repeats(jd, tk, ant1, ant2, what)
+    return np.unique(jd), *distinct_pairs(ant1, ant2)
 
 
 def nonfinite(vis, flagged, what, mode):

@@ -18,6 +18,7 @@ where the file's antennas are, never looked up on the network.
 from __future__ import annotations
 
 import threading
+from contextlib import nullcontext
 
 import numpy as np
 
@@ -58,17 +59,19 @@ def _kwargs(path, fmt):
 def read_metadata(path, fmt=None):
     """pyuvdata ``UVData`` with metadata only. pyuvdata's own consistency check is skipped:
     mmflow checks what it uses (``mmflow.io.checks``)."""
-    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
+    return _read_uvdata(path, fmt, read_data=False)
+
+
+def _read_uvdata(path, fmt, **options):
+    """One file read by pyuvdata (its own check skipped; a MeasurementSet under the casacore lock)."""
+    import_in_thread("pyuvdata")  # its first import would pin this frame and its caller's locals (mmflow.import_thread)
     from pyuvdata import UVData  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
     offline_site_registry()
     kw, kind = _kwargs(path, fmt)
     uv = UVData()
-    if kind == "ms":
-        with _CASACORE_LOCK:
-            uv.read(str(path), read_data=False, run_check=False, **kw)
-    else:
-        uv.read(str(path), read_data=False, run_check=False, **kw)
+    with _CASACORE_LOCK if kind == "ms" else nullcontext():
+        uv.read(str(path), run_check=False, **options, **kw)
     return uv
 
 
@@ -99,17 +102,7 @@ def _wanted(info, what):
 
 
 def _read_pyuvdata(path, fmt, info):
-    import_in_thread("pyuvdata")  # its first import would pin this frame and its locals (mmflow.import_thread)
-    from pyuvdata import UVData  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
-
-    offline_site_registry()
-    kw, kind = _kwargs(path, fmt)
-    uv = UVData()
-    if kind == "ms":
-        with _CASACORE_LOCK:
-            uv.read(str(path), run_check=False, **kw)
-    else:
-        uv.read(str(path), run_check=False, **kw)
+    uv = _read_uvdata(path, fmt)
     if info is None:
         info = checks.file_info(uv, str(path))
     if info["phase"] == "phased":

@@ -59,8 +59,7 @@ def read_index(path, compact=False):
         cat = h["phase_center_catalog"]
         rows = h["time_array"][()], h["ant_1_array"][()], h["ant_2_array"][()]
         if compact:
-            checks.duplicate_rows(*rows, str(path))
-            rows = np.unique(rows[0]), *checks.distinct_pairs(rows[1], rows[2])
+            rows = checks.distinct_rows(*rows, str(path))
         return UVH5Index(
             str(path), *rows,
             np.asarray(h["freq_array"][()], float).ravel(), h["polarization_array"][()], _str(h["vis_units"][()]),

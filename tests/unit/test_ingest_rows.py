@@ -39,3 +39,20 @@ def test_distinct_pairs_are_numpys_unique_rows():
     got = np.stack(distinct_pairs(a1[perm] + 100, a2[perm] + 100), 1)
     assert np.array_equal(got, np.unique(np.stack([a1, a2], 1) + 100, axis=0))
     assert np.array_equal(got - 100, pairs)
+
+
+def test_distinct_rows_read_off_the_grid_equal_those_of_every_row():
+    """A grid's distinct times and pairs come from its first block; shuffled rows (no grid) give the same,
+    and a grid with a repeat is refused like duplicate_rows."""
+    from mmflow.io.checks import distinct_rows
+
+    jd, a1, a2, pairs = _grid()
+    times, p1, p2 = distinct_rows(jd, a1, a2, "f")
+    perm = np.random.default_rng(5).permutation(len(jd))
+    times_s, q1, q2 = distinct_rows(jd[perm], a1[perm], a2[perm], "f")
+    assert np.array_equal(times, np.unique(jd)) and np.array_equal(times_s, times)
+    assert np.array_equal(np.stack([p1, p2], 1), pairs) and np.array_equal(np.stack([q1, q2], 1), pairs)
+    t = jd.copy()
+    t[3 * len(pairs):4 * len(pairs)] = jd[len(pairs)]
+    with pytest.raises(InputError, match=rf"{len(pairs)} duplicated"):
+        distinct_rows(t, a1, a2, "f")
