@@ -15,7 +15,7 @@ of integrations and ``w(t)`` its weight (0 = flagged):
    normalised convolution is biased there by the slope of the sky's slow variation);
 3. ratio ``r(t) = a(t) / s(t)``: autos are corrected by ``r_i``, cross-correlations by
    ``sqrt(r_i r_j)``, i.e. gains ``sqrt(r)`` applied with
-   :func:`mmflow.calibrate.stefcal.apply_gains` (on read, never rewriting the data).
+   :func:`mmflow.calibrate.gain_apply.apply_gains` (on read, never rewriting the data).
 
 The sky's own variation is slow (hours) and survives: its 24 h harmonic is attenuated by the
 smoothing by ``1 - exp(-2 pi^2 sigma^2 / P^2) ~ 0.3 %`` of its amplitude for sigma = 19 min.
@@ -28,7 +28,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 from scipy.ndimage import correlate1d
 
-from mmflow.calibrate.stefcal import apply_gains
+from mmflow.calibrate.gain_apply import apply_gains
 
 
 def autocorrelations(vis, weights, pairs, n_ant):
@@ -119,7 +119,7 @@ def ripple_ratio(autos, weights, integration_s, smooth_fwhm_s=2700.0, median_win
     return ratio, outliers
 
 
-def apply_ripple(vis, weights, pairs, ratio, feeds=None):
-    """Corrected (vis, weights): autos / r_i, crosses / sqrt(r_i r_j) (``feeds``: as in
-    :func:`mmflow.calibrate.stefcal.apply_gains`, for the cross hands)."""
-    return apply_gains(vis, weights, pairs, np.sqrt(ratio), feeds=feeds)
+def apply_ripple(vis, weights, pairs, ratio, feeds=None, out=None):
+    """Corrected (vis, weights): autos / r_i, crosses / sqrt(r_i r_j) (``feeds``, ``out``: as in
+    :func:`mmflow.calibrate.gain_apply.apply_gains`, for the cross hands; in place)."""
+    return apply_gains(vis, weights, pairs, np.sqrt(ratio), feeds=feeds, out=out)

@@ -33,7 +33,6 @@ import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, to_matrix
 from mmflow.errors import InputError
-from mmflow.simulate.corrupt import baseline_ends, gain_products
 from mmflow.threads import n_threads
 
 DAMPING = ("half", "rk4", "none")
@@ -533,85 +532,5 @@ def gains_per_integration(solution, n_time):
     return solution.gains[idx], solution.flags[idx]
 
 
-def apply_gains(vis, weights, pairs, gains, flags=None, feeds=None, block=16):
-    """Correct visibilities: ``V_ij,pq / (g_ip conj(g_jq))``, computed as ``V_ij,pq (1 / g_ip)
-    conj(1 / g_jq)``; flagged antennas (and gains of 0) get weight 0 and data 0.
-
-    Parameters
-    ----------
-    vis : ndarray (time, bl, pol)
-    weights : ndarray broadcastable to ``vis``
-    gains : ndarray (time, n_ant, feed) or (n_ant, feed)
-    flags : bool array like ``gains``, optional
-    feeds : pair of sequences, optional
-        ``(p, q)``: polarisation k of ``vis`` correlates feed ``p[k]`` of antenna i with feed
-        ``q[k]`` of antenna j (the cross hands xy, yx: ``((0, 1), (1, 0))``). Default: ``p = q``
-        = the polarisation axis itself (the parallel hands, one gain per feed).
-    block : int
-        Integrations corrected at a time: the temporaries stay small (a 256-antenna time chunk in
-        one piece allocated ~0.8 GB of them and spent most of its 2.6 s on first-touch page faults).
-
-    Returns
-    -------
-    (vis_corrected, weights_out); the input arrays are not modified.
-    """
-    pairs = np.asarray(pairs)
-    vis = np.asarray(vis)
-    # the reciprocal gains once per antenna (0 for a gain of 0): the data are multiplied, not divided
-    gains = np.asarray(gains)
-    inv = np.divide(1.0, gains, out=np.zeros(gains.shape, np.result_type(gains, 1.0)), where=gains != 0)
-    flags = None if flags is None else np.asarray(flags)
-    weights = np.broadcast_to(weights, vis.shape)
-    timed = gains.ndim == 3
-    if timed and gains.shape[0] == 1:  # one time for all: as (n_ant, feed)
-        inv, flags, timed = inv[0], None if flags is None else flags[0], False
-    if timed and gains.shape[0] != vis.shape[0]:
-        raise ValueError(f"apply_gains: gains for {gains.shape[0]} integrations, data for {vis.shape[0]}")
-    out = np.empty(vis.shape, np.result_type(vis))
-    w_out = np.empty(vis.shape, np.result_type(weights.dtype, 0.0))  # the dtype np.where(bad, 0.0, weights) has
-    for t0 in range(0, vis.shape[0], block):
-        t = slice(t0, t0 + block)
-        g = inv[t] if timed else inv
-        factor = gain_products(g, pairs, feeds)
-        bad = factor == 0
-        if flags is not None:
-            fi, fj = baseline_ends(flags[t] if timed else flags, pairs, feeds)
-            bad |= fi
-            bad |= fj
-        corrected = vis[t] * factor
-        bad = np.broadcast_to(bad, corrected.shape)
-        corrected[bad] = 0  # flagged or without a gain: 0 whatever the sample held
-        out[t] = corrected
-        w_out[t] = np.where(bad, 0.0, weights[t])
-    return out, w_out
-
-
-def apply_gains_autos(autos, gains, flags=None):
-    """Autocorrelation powers in the units of the corrected data: ``|V_ii| / |g_i|^2``.
-
-    The radiometer noise of a corrected visibility, ``sigma_ij^2 = <V_ii> <V_jj> / (dnu tau)``,
-    needs the autocorrelations corrected as the visibilities are (:func:`apply_gains` divides
-    ``V_ij`` by ``g_i conj(g_j)``); uncorrected, raw data in correlator units would weigh baseline
-    ``ij`` by ``|g_i g_j|^2`` and scale every variance by the mean ``|g|^4``.
-
-    Parameters
-    ----------
-    autos : ndarray (time, n_ant, pol)
-        ``|V_ii|`` (NaN where an antenna has none).
-    gains, flags
-        As :func:`apply_gains`. Antennas flagged or with gain 0 keep their values: their
-        baselines already weigh 0.
-
-    Returns
-    -------
-    ndarray like ``autos`` (the input is not modified).
-    """
-    amp2 = np.abs(np.broadcast_to(gains, np.shape(autos))) ** 2
-    bad = amp2 == 0
-    if flags is not None:
-        bad = bad | np.broadcast_to(flags, np.shape(autos))
-    return np.where(bad, autos, autos / np.where(bad, 1.0, amp2))
-
-
-__all__ = ["stefcal", "sweep", "solve_gains", "apply_gains", "apply_gains_autos", "gains_per_integration",
+__all__ = ["stefcal", "sweep", "solve_gains", "gains_per_integration",
            "best_track", "flag_outlier_antennas", "dense_problem", "StefcalResult", "GainSolution"]

@@ -5,7 +5,8 @@ from mmflow.calibrate.baselines import baseline_mask
 from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source_vector_date
 from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.peel import PEEL, guard_fluxes, peel, select_modes
-from mmflow.calibrate.stefcal import apply_gains, gains_per_integration, solve_gains
+from mmflow.calibrate.gain_apply import apply_gains
+from mmflow.calibrate.stefcal import gains_per_integration, solve_gains
 from mmflow.calibrate.baselines import to_matrix
 from mmflow.simulate.corrupt import (antenna_gains, corrupt, dd_visibilities, direction_dependent_gains,
                                      ionospheric_offsets, scintillation)

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 
 from mmflow.calibrate.baselines import baseline_mask, to_matrix
-from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, solve_gains, stefcal, sweep
+from mmflow.calibrate.gain_apply import apply_gains, apply_gains_autos
+from mmflow.calibrate.stefcal import solve_gains, stefcal, sweep
 from mmflow.simulate.corrupt import gain_products
 
 
@@ -238,12 +239,13 @@ def test_calibration_track_is_where_both_calibrators_are_high():
     assert not (tr.start <= 95 < tr.stop)
 
 
-def test_apply_gains_in_blocks_equals_the_division_and_broadcasts_one_integration():
-    """``apply_gains`` (reciprocal gains, blocks of integrations) equals ``V / (g_i conj(g_j))`` with
-    flagged antennas and gains of 0 zeroed, for float32 data to the last bit; gains of one integration
+def test_apply_gains_equals_the_division_in_place_and_broadcasts_one_integration():
+    """``apply_gains`` (reciprocal gains, one compiled pass) equals ``V / (g_i conj(g_j))`` with
+    flagged antennas and gains of 0 zeroed, for float32 data to the last bit and complex128 data to
+    rounding, also for the cross hands (feed p of i, q of j) and in place; gains of one integration
     apply to every integration; gains for another number of integrations are refused."""
     rng = np.random.default_rng(3)
-    n, T = 9, 37  # not a multiple of the block
+    n, T = 9, 37
     i, j = np.triu_indices(n)
     pairs = np.stack([i, j], 1)
     vis = (rng.normal(size=(T, len(pairs), 2)) + 1j * rng.normal(size=(T, len(pairs), 2))).astype(np.complex64)
@@ -252,12 +254,22 @@ def test_apply_gains_in_blocks_equals_the_division_and_broadcasts_one_integratio
     flags = np.zeros(g.shape, bool)
     flags[5:9, 4] = True
     w = rng.uniform(0.5, 1, size=vis.shape).astype(np.float32)
-    out, wout = apply_gains(vis, w, pairs, g, flags, block=8)
+    out, wout = apply_gains(vis, w, pairs, g, flags)
     prod = g[:, i] * np.conj(g[:, j])
     bad = (prod == 0) | flags[:, i] | flags[:, j]
     ref = np.where(bad, 0, vis / np.where(bad, 1, prod)).astype(np.complex64)
     assert out.dtype == np.complex64 and np.array_equal(out, ref)
     assert np.array_equal(wout, np.where(bad, 0.0, w)) and bad.any() and not bad.all()
+    # the cross hands in double precision, in place
+    v2, w2 = vis.astype(np.complex128), w.astype(float)
+    feeds = ((0, 1), (1, 0))
+    prod = g[:, i][..., [0, 1]] * np.conj(g[:, j][..., [1, 0]])
+    bad = (prod == 0) | flags[:, i][..., [0, 1]] | flags[:, j][..., [1, 0]]
+    ref = np.where(bad, 0, v2 / np.where(bad, 1, prod))
+    got = apply_gains(v2, w2, pairs, g, flags, feeds=feeds, out=(v2, w2))
+    assert got[0] is v2 and got[1] is w2
+    np.testing.assert_allclose(v2, ref, rtol=1e-14, atol=0)
+    assert np.array_equal(v2 == 0, bad) and np.array_equal(w2, np.where(bad, 0.0, w))
     one, _ = apply_gains(vis, 1.0, pairs, g[:1], flags[:1])
     same, _ = apply_gains(vis, 1.0, pairs, g[0], flags[0])
     assert np.array_equal(one, same)

@@ -39,7 +39,8 @@ from mmflow.calibrate.gain_tables import gains_at
 from mmflow.calibrate.ripple import apply_ripple, ripple_ratio
 from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.screened_gains import solve_gains_screened
-from mmflow.calibrate.stefcal import apply_gains, apply_gains_autos, best_track
+from mmflow.calibrate.gain_apply import apply_gains, apply_gains_autos
+from mmflow.calibrate.stefcal import best_track
 from mmflow.errors import InputError
 from mmflow.io.polarization import CROSS_FEEDS
 from mmflow.io.run_stores import gains_store
@@ -196,19 +197,18 @@ def _apply(ctx, block):
     rows = np.arange(block.rows.start, block.rows.stop)
     ratio = ctx.read("gains.zarr", "ripple", (block.rows,)) if ctx.open("gains.zarr").attrs["ripple"] else None
     for fi in range(block.vis.shape[2]):
-        v, w, autos = block.vis[:, :, fi], block.weights[:, :, fi], block.autos[:, :, fi]
+        v, w, autos = block.vis[:, :, fi], block.weights[:, :, fi], block.autos[:, :, fi]  # views: in place
         if ratio is not None:
-            v, w = apply_ripple(v, w, block.pairs, ratio[:, fi])
+            apply_ripple(v, w, block.pairs, ratio[:, fi], out=(v, w))
             autos = apply_gains_autos(autos, np.sqrt(ratio[:, fi]))
         g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
-        block.vis[:, :, fi], block.weights[:, :, fi] = apply_gains(v, w, block.pairs, g, fl)
+        apply_gains(v, w, block.pairs, g, fl, out=(v, w))
         block.autos[:, :, fi] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
         if block.cross is not None:  # xy, yx: feed p of antenna i, feed q of antenna j
             cv, cw = block.cross[:, :, fi], block.cross_weights[:, :, fi]
             if ratio is not None:
-                cv, cw = apply_ripple(cv, cw, block.pairs, ratio[:, fi], feeds=CROSS_FEEDS)
-            block.cross[:, :, fi], block.cross_weights[:, :, fi] = apply_gains(cv, cw, block.pairs, g, fl,
-                                                                               feeds=CROSS_FEEDS)
+                apply_ripple(cv, cw, block.pairs, ratio[:, fi], feeds=CROSS_FEEDS, out=(cv, cw))
+            apply_gains(cv, cw, block.pairs, g, fl, feeds=CROSS_FEEDS, out=(cv, cw))
     if ctx.open("gains.zarr").attrs.get("flag_autos", False):
         autos = block.pairs[:, 0] == block.pairs[:, 1]
         block.weights[:, autos] = 0.0
