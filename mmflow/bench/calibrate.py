@@ -13,17 +13,26 @@ asserts a time.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
+from contextlib import contextmanager
 
 import numpy as np
 
+from mmflow.calibrate.coherency import source_coherencies, source_vector_date
+from mmflow.calibrate.dd_screen import screen_basis, screen_gains, sky_tangents_enu
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
 from mmflow.calibrate.screened_gains import solve_gains_screened
 from mmflow.calibrate.stefcal import solve_gains, stefcal, sweep, sweep_numpy
 from mmflow.machine import best_time, gemm_gflops, machine
+from mmflow.simulate.corrupt import gain_products
+from mmflow.sky.sources import get_sources
 from mmflow.telescope import ovro_lwa_layout
-from mmflow.threads import n_threads
+from mmflow.threads import n_threads, single_threaded_blas, usable_cores
+from mmflow.workflow.config import load_config
+from mmflow.workflow.context import build_telescope
+from mmflow.workflow.peel_solve import peel_names, peel_solve, solve_dtype
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
 N_CHANNELS_PAPER = 8
@@ -133,6 +142,79 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None, modes=None):
             "projected_minutes_28h_day_one_channel_cold": per_cold * N_DAY / 60}
 
 
+#: the paper-scale workflow's peel recipe (workflows/paper-scale.yaml): two peeled, two subtracted,
+#: seven modelled sources, the screen DD model, xx and yy
+STAGE_RECIPE = {"sources": ["Cyg A", "Cas A", "Vir A", "Tau A"], "peel": ["Cyg A", "Cas A"],
+                "model_sources": ["3C 123", "3C 48", "3C 147", "3C 196", "3C 286", "3C 295", "3C 380"]}
+N_SIDEREAL_DAY = 6628  # 13 s integrations in a sidereal day: the paper-scale workflow's
+
+
+def peel_stage_rates(n_ant=256, n_int=32, rng=None):
+    """The peel stage's computation on one channel's time chunk, without its reads and writes: the
+    models of the paper-scale recipe's eleven sources (``source_coherencies``) and the stage's solve
+    (:func:`mmflow.workflow.peel_solve.peel_solve`: modes, screen basis, the batches' antenna
+    matrices, the solve in its working precision, back to baselines), both polarisations, on data
+    made of the same models with Cyg A and Cas A moved by a refractive offset (3' rms) plus noise,
+    at LSTs where both are high. On one core, as a worker of mmflow's local cluster runs a task (one
+    worker per core, one thread each): the stage's wall time on ``c`` cores compares with
+    ``projected_s_sidereal_day_one_core / c``."""
+    with one_core():
+        return _peel_stage_rates(n_ant, n_int, rng)
+
+
+@contextmanager
+def one_core():
+    """Kernels on one thread (``MMFLOW_THREADS=1``, BLAS limited to one thread) for the block's duration."""
+    old = os.environ.get("MMFLOW_THREADS")
+    os.environ["MMFLOW_THREADS"] = "1"
+    try:
+        with single_threaded_blas():
+            yield
+    finally:
+        if old is None:
+            del os.environ["MMFLOW_THREADS"]
+        else:
+            os.environ["MMFLOW_THREADS"] = old
+
+
+def _peel_stage_rates(n_ant, n_int, rng):
+    rng = rng or np.random.default_rng(4)
+    cfg = load_config(overrides=["telescope.preset=paper-2017", f"telescope.max_antennas={n_ant}",
+                                 "beam.type=sin_elevation", "beam.alpha=1.5", "observation.freqs_mhz=[73.152]",
+                                 "peel.enabled=true"] + [f"peel.{k}={json.dumps(v)}" for k, v in STAGE_RECIPE.items()])
+    p, tel, epoch = cfg.peel, build_telescope(cfg), 2457802.0
+    pairs = tel.antenna_pairs()
+    lst = np.deg2rad(322.0) + 2 * np.pi / N_SIDEREAL_DAY * np.arange(n_int)  # Cyg A and Cas A high
+    names = peel_names(p)
+    sources = get_sources(names)
+    t0 = time.perf_counter()
+    coh = source_coherencies(tel, 73.152e6, lst, sources, epoch, pairs, solve_dtype(p),
+                             out=np.empty((len(names), n_int, len(pairs)), solve_dtype(p)))
+    t_models = time.perf_counter() - t0
+    vec = np.stack([source_vector_date(s, epoch) for s in sources[:2]])
+    basis = screen_basis(tel.layout.enu, 73.152e6, sky_tangents_enu(tel, lst, vec))  # (2, time, ant, 2)
+    h = screen_gains(basis, np.deg2rad(3 / 60) * rng.normal(size=(2, n_int, 2)), np.ones((2, n_int)))
+    vis = coh[2:].sum(0).astype(complex) + sum(coh[s] * gain_products(h[s][..., None], pairs)[..., 0] for s in (0, 1))
+    vis = np.repeat(vis[..., None], 2, -1) + 20 * (rng.normal(size=vis.shape + (2,)) + 1j * rng.normal(size=vis.shape + (2,)))
+    weights = np.ones(vis.shape)
+
+    def solve(n):
+        return peel_solve(tel, 0, lst[:n], pairs, vis[:n], weights[:n], coh[:, :n], p, epoch, 13.0)
+
+    solve(2)  # compile
+    t0 = time.perf_counter()
+    out = solve(n_int)
+    t_solve = time.perf_counter() - t0
+    per = (t_models + t_solve) / n_int
+    return {"n_ant": n_ant, "integrations": n_int, "pols": 2, **STAGE_RECIPE, "dd_model": p.dd_model,
+            "batch": p.batch, "passes": p.passes, "working_precision": np.dtype(solve_dtype(p)).name,
+            "ms_per_integration_models": 1e3 * t_models / n_int, "ms_per_integration_solve": 1e3 * t_solve / n_int,
+            "ms_per_integration": 1e3 * per, "peeled_fraction": float((out.mode[:2] == PEEL).mean()),
+            "not_converged": int(((out.mode == PEEL) & ~out.converged).sum()),
+            "projected_s_sidereal_day_one_core": per * N_SIDEREAL_DAY,
+            "projected_s_sidereal_day_all_cores": per * N_SIDEREAL_DAY / usable_cores(), "cores": usable_cores()}
+
+
 def screened_gain_rates(n_ant=256, n_int=100, rng=None):
     """The gain solve of the default recipe (one track of ``n_int`` 13 s integrations, xx and yy,
     four sources) against the catalogue models and with two of them screened
@@ -169,6 +251,8 @@ def run(what="calibrate", quick=False):
     res["peel_demo_recipe"] = peel_rates(n_ant, n_int=4 if quick else 16, n_src=11,
                                          modes=[PEEL] * 2 + [SUBTRACT] * 2 + [MODEL] * 7)
     res["gains_screened"] = screened_gain_rates(n_ant, n_int=20 if quick else 100)
+    # what the peel stage computes per time chunk (paper-scale recipe, both hands, screen model)
+    res["peel_stage"] = peel_stage_rates(n_ant, n_int=4 if quick else 32)
     s = res["stefcal"]
     res["stefcal"]["projected_minutes_28h_day_one_channel_per_iteration"] = (
         s["ms_per_iteration_per_integration"] * N_DAY / 6e4)

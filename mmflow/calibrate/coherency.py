@@ -16,7 +16,7 @@ from mmflow.sky.frames import rotation_matrix, source_enu
 from mmflow.sky.sources import epoch_year
 
 
-def source_coherencies(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, dtype=np.complex128):
+def source_coherencies(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, dtype=np.complex128, out=None):
     """Model visibilities of each source separately.
 
     Parameters
@@ -27,16 +27,22 @@ def source_coherencies(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, 
     sources : list of :class:`mmflow.sky.sources.Source` or :class:`SkyPoints` (frame of date)
     epoch_jd : float
     pairs : ndarray (n_bl, 2), optional
+    dtype : working precision of :func:`~mmflow.simulate.visibilities.simulate_drift_scan`
+    out : ndarray (n_src, n_time, n_bl) complex, optional
+        Filled in place, one source at a time (no stacked copy: at 256 antennas eleven sources of
+        a time chunk are 1.5 GB in complex128).
 
     Returns
     -------
-    ndarray (n_src, n_time, n_bl) complex128, Jy (published flux through the beam)
+    ndarray (n_src, n_time, n_bl) complex128 (or ``out``'s dtype), Jy (published flux through the beam)
     """
-    out = []
-    for src in sources:
+    pairs = telescope.antenna_pairs() if pairs is None else np.asarray(pairs)
+    if out is None:
+        out = np.empty((len(sources), len(np.atleast_1d(lsts)), len(pairs)), np.complex128)
+    for s, src in enumerate(sources):
         pts = src if isinstance(src, SkyPoints) else source_points_date(src, freq_hz, epoch_jd)
-        out.append(simulate_drift_scan(telescope, freq_hz, lsts, pts, pairs=pairs, dtype=dtype))
-    return np.stack(out)
+        simulate_drift_scan(telescope, freq_hz, lsts, pts, pairs=pairs, dtype=dtype, out=out[s])
+    return out
 
 
 def source_vector_date(source, epoch_jd):

@@ -90,10 +90,11 @@ def _screen_sums(X, M, W, e, active, out, j0, j1):
 
 def screen_normal_matrix(M, W, basis):
     """``(G (S, 2, 2), <M, M>_w (S,))`` of the Gauss-Newton step (independent of the offsets)."""
-    Q = np.asarray(W, float) * (M.real.astype(float) ** 2 + M.imag.astype(float) ** 2)
+    Q = (W * (M.real ** 2 + M.imag ** 2)).astype(float)  # |M|^2 in the models' precision: no float64 temporaries
     Q[:, np.arange(Q.shape[1]), np.arange(Q.shape[1])] = 0.0
     q = Q.sum(2)
-    G = 2 * np.einsum("sa,sak,sal->skl", q, basis, basis) - 2 * np.einsum("sak,sab,sbl->skl", basis, Q, basis)
+    bt = np.swapaxes(basis, 1, 2)  # G = 2 B^T diag(q) B - 2 B^T Q B per solution, as GEMMs
+    G = 2 * np.matmul(bt, basis * q[..., None]) - 2 * np.matmul(bt, np.matmul(Q, basis))
     return G, q.sum(1)
 
 

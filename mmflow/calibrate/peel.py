@@ -50,8 +50,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from mmflow.calibrate.baselines import check_pairs, from_matrix, solution_matrices
+from mmflow.calibrate.baselines import check_pairs, from_matrix, solution_matrices, to_matrix
 from mmflow.calibrate.dd_screen import screen_gains, screen_normal_matrix, solve_screen
+from mmflow.calibrate.scale_fit import fit_scales, scale_system
 from mmflow.calibrate.stefcal import run_rows, stefcal
 from mmflow.errors import InputError
 
@@ -321,7 +322,7 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
                 conv[s, peel] = res.converged[peel]
                 add_component(R, coherencies[s], g[s], -1.0 * peel, threads)
         fit_scales(R, coherencies, W, scale, scaled, system=system)
-    del system  # two arrays of the scaled sources' models
+    del system  # the scaled sources' models as rows (a copy where they are not contiguous)
     # 3. guard
     measured = np.zeros((n_src, S))
     removed = np.zeros((n_src, S))
@@ -356,81 +357,6 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     scale[modes == SKIP] = 0.0
     offsets[modes != PEEL] = np.nan
     return PeelResult(g, scale, modes, fired, measured, removed, iters, conv, R, offsets)
-
-
-@dataclass
-class ScaleSystem:
-    """The normal equations of :func:`fit_scales` for fixed models, weights and selection: the
-    selected sources ``idx``, their models as rows ``X`` (S, n, N^2) and weighted rows ``XW``
-    (real views), the Jacobi scaling ``d``, the fitted entries ``use`` (S, n) and the
-    pseudo-inverse ``P`` of the scaled matrix. Only the right-hand side changes between passes."""
-
-    idx: np.ndarray
-    sel: np.ndarray
-    X: np.ndarray
-    XW: np.ndarray
-    d: np.ndarray
-    use: np.ndarray
-    P: np.ndarray
-
-
-def scale_system(coherencies, W, sel, dtype):
-    """:class:`ScaleSystem` of the sources selected in ``sel`` (n_src, S) (None when none is)."""
-    idx = np.flatnonzero(sel.any(1))
-    if len(idx) == 0:
-        return None
-    S, N = W.shape[0], W.shape[1]
-    n = len(idx)
-    X = np.empty((S, n, N * N), dtype)  # the selected models, one row each per solution
-    for a, s in enumerate(idx):
-        X[:, a] = np.asarray(coherencies[s]).reshape(S, N * N)
-    real = X.real.dtype
-    w = np.array(np.reshape(W, (S, N * N)), real)
-    w[:, :: N + 1] = 0.0  # autocorrelations never enter a fit
-    # Re <X_s, Y>_w as real dot products of the (re, im) views: one GEMM per solution
-    XW = (X * w[:, None, :]).view(real)
-    A = np.matmul(XW, np.swapaxes(X.view(real), 1, 2)).astype(float)
-    diag = np.einsum("sii->si", A)
-    # fitted in a solution: selected there, with a model that is not ~0 (a source at the horizon)
-    use = sel[idx].T & (diag > 1e-12 * np.max(diag, axis=1, keepdims=True)) & (diag > 0)
-    d = np.where(use, 1 / np.sqrt(np.where(use, diag, 1)), 0.0)  # Jacobi scaling: cond of the correlations
-    An = A * d[:, :, None] * d[:, None, :] + np.eye(n) * ~use[:, :, None]
-    return ScaleSystem(idx, np.asarray(sel, bool), X, XW, d, use, np.linalg.pinv(An, rcond=1e-10, hermitian=True))
-
-
-def fit_scales(R, coherencies, W, scale, sel, system=None):
-    """Joint least-squares flux scales of the sources ``sel`` (n_src, S), in place.
-
-    Puts ``sum_s a_s M_s`` back into ``R``, solves per solution the normal equations of the
-    selected sources,
-
-    ``sum_t Re<M_s, M_t>_w a_t = Re<M_s, R>_w``   (``<X, Y>_w = sum_ij w_ij conj(X_ij) Y_ij``),
-
-    and subtracts them again. Solving them together, not one after another, keeps sources whose
-    fringes overlap (low elevations, few baselines) from absorbing each other's flux. The system
-    is solved scaled to unit diagonal (the sources' fringe correlations) by a pseudo-inverse
-    (singular values below 1e-10 dropped: fully correlated fringes share their flux); a source
-    whose model is ~0 there (at the horizon) keeps the scale it had. ``system``: the
-    :func:`scale_system` of these models, weights and ``sel``, built once for several passes.
-    """
-    if not R.flags.c_contiguous:
-        raise ValueError("fit_scales updates R in place through a flat view: R must be C-contiguous")
-    sys_ = scale_system(coherencies, W, sel, R.dtype) if system is None else system
-    if sys_ is None:
-        return
-    if not np.array_equal(sys_.sel, sel):
-        raise ValueError("fit_scales: the system was built for another selection")
-    idx, X, d, use = sys_.idx, sys_.X, sys_.d, sys_.use
-    S = R.shape[0]
-    Rf = R.reshape(S, -1)  # a view: R changes in place
-    start = np.where(sel[idx], scale[idx], 0.0).T.astype(R.dtype)  # (S, n)
-    Rf += np.matmul(start[:, None, :], X)[:, 0]
-    b = np.matmul(sys_.XW, Rf.view(Rf.real.dtype)[..., None])[..., 0].astype(float)
-    new = d * (sys_.P @ (b * d)[..., None])[..., 0]
-    for a, s in enumerate(idx):
-        fitted = use[:, a]
-        scale[s][fitted] = new[fitted, a]
-    Rf -= np.matmul(np.where(sel[idx], scale[idx], 0.0).T.astype(R.dtype)[:, None, :], X)[:, 0]
 
 
 def select_modes(apparent_flux, elevation, *, peelable, peel_min_elevation_deg=10.0, peel_min_flux_jy=0.0,
@@ -479,7 +405,7 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
          screen_basis: np.ndarray | None = None, baseline_keep: np.ndarray | None = None, batch: int = 16,
          warm_start: bool = False, g0: np.ndarray | None = None, threads: int | None = None, solint: int = 1,
          passes: int = 3, tol: float = 1e-4, max_iter: int = 30, guard: float | None = 0.9,
-         damping: str = "half") -> PeelSolution:
+         damping: str = "half", dtype=np.complex128) -> PeelSolution:
     """Peel a time chunk in batches of ``batch`` integrations (memory bounded by the batch).
 
     The defaults are the schema's (``PeelConfig``).
@@ -508,6 +434,10 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
         multiple of it.
     passes, tol, max_iter, guard, damping : :func:`peel_dense` (``tol``: Stefcal's relative gain
         change, or the screen's largest antenna phase change in rad)
+    dtype : complex64 or complex128
+        Working precision of the solve: each batch's antenna matrices (data, models, residual) are
+        formed in it. complex64 halves the memory traffic that bounds peeling (``mmflow bench
+        calibrate`` times it so); it resolves a ``tol`` down to ~1e-5 (:data:`SINGLE_TOL`).
 
     Returns
     -------
@@ -546,9 +476,15 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
                        np.full((n_src, T, P, 2), np.nan))
     # the start of the next batch, per source and pol: gains (n_src, P, N) or offsets (n_src, P, 2)
     last = None if g0 is None else np.moveaxis(np.asarray(g0, complex), -1, 1)
+    buffers = {}  # a full batch's antenna matrices, reused: new ones each batch cost their page faults again
     for t0 in range(0, T, batch):
         t1 = min(T, t0 + batch)
         nb = t1 - t0
+
+        def buffer(name, shape, dt):
+            if nb < batch:  # the last, short batch
+                return np.empty(shape, dt)
+            return buffers.setdefault(name, np.empty(shape, dt))
 
         def dense(x, out=None):  # (nb, bl, P) -> (nb * P, N, N), solution index = t * P + p
             return solution_matrices(x, pairs, n_ant, out=out)
@@ -556,11 +492,16 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
         def per_solution(x):  # (n_src, nb, ...) -> (n_src, nb * P, ...), the same for every pol
             return np.repeat(x, P, axis=1)
 
-        V = dense(vis[t0:t1])
-        W = dense(w[t0:t1].astype(np.float32))
-        M = np.empty((n_src, nb * P, n_ant, n_ant), np.result_type(coh))  # filled in place: no stacked copy
+        V = dense(vis[t0:t1], out=buffer("V", (nb * P, n_ant, n_ant), dtype))
+        W = dense(w[t0:t1].astype(np.float32), out=buffer("W", (nb * P, n_ant, n_ant), np.float32))
+        M = buffer("M", (n_src, nb * P, n_ant, n_ant), dtype)  # filled in place: no stacked copy
         for s in range(n_src):
-            dense(np.broadcast_to(coh[s, t0:t1], (nb, B, P)), out=M[s])
+            if coh.shape[-1] == 1 and P > 1:  # one model for every polarisation: scattered once, copied
+                to_matrix(coh[s, t0:t1, :, 0], pairs, n_ant, out=M[s, :nb])
+                for k in range(nb * P - 1, 0, -1):  # solution t * P + p <- t, last first (k >= t: no overwrite)
+                    M[s, k] = M[s, k // P]
+            else:
+                dense(np.broadcast_to(coh[s, t0:t1], (nb, B, P)), out=M[s])
         md = per_solution(np.asarray(modes)[:, t0:t1])
         start = None
         if last is not None:

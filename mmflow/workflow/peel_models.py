@@ -40,15 +40,20 @@ def fitted_sources(ctx, fi, names):
     return out
 
 
-def peel_coherencies(ctx, tel, fi, lst, pairs, names):
+def peel_coherencies(ctx, tel, fi, lst, pairs, names, dtype=np.complex128):
     """(n_src, time, bl) model visibilities of sources ``names`` in channel ``fi`` at the data's epoch
     (the models stage's fitted components for the sources ``peel.zarr`` lists as ``fitted_models``,
-    :func:`fitted_sources`); 0 at integrations without an LST (missing)."""
+    :func:`fitted_sources`); 0 at integrations without an LST (missing). ``dtype``: the working
+    precision and the result's (complex64 for the peel solve, which runs in single precision)."""
     good = np.isfinite(lst)
-    out = np.zeros((len(names), len(lst), len(pairs)), complex)
+    out = np.zeros((len(names), len(lst), len(pairs)), dtype)
     if good.any():
-        out[:, good] = source_coherencies(tel, float(tel.freqs_hz[fi]), lst[good], fitted_sources(ctx, fi, names),
-                                          float(ctx.vis_attrs()["epoch_jd"]), pairs)
+        args = (tel, float(tel.freqs_hz[fi]), lst[good], fitted_sources(ctx, fi, names),
+                float(ctx.vis_attrs()["epoch_jd"]), pairs, dtype)
+        if good.all():
+            source_coherencies(*args, out=out)  # filled in place: no copy of the sources' stack
+        else:
+            out[:, good] = source_coherencies(*args)
     return out
 
 

@@ -2,7 +2,8 @@
 import numpy as np
 
 from mmflow.calibrate.gain_tables import gains_at
-from mmflow.calibrate.peel import MODEL, PEEL, SKIP, SUBTRACT, add_component, fit_scales, peel_dense, select_modes
+from mmflow.calibrate.peel import MODEL, PEEL, SKIP, SUBTRACT, add_component, peel_dense, select_modes
+from mmflow.calibrate.scale_fit import fit_scales
 from tests.peel_helpers import cross_weights, point_coherencies, random_array, random_directions
 
 
@@ -54,6 +55,37 @@ def test_joint_scales_equal_least_squares_for_overlapping_fringes_and_skip_a_nul
     assert np.all(scale[2, :3] == 0.25) and np.all(scale[:, 3] == 0.6)
     np.testing.assert_allclose(R[:3], V[:3] - np.einsum("ks,ksij->sij", scale[:2, :3], coh[:2, :3]), atol=1e-8)
     np.testing.assert_array_equal(R[3], V[3])
+
+
+def test_joint_scales_of_sources_apart_in_the_stack_ignore_the_unselected_between(rng):
+    """Sources 0 and 3 selected, 1 (bright, 20x) and 2 between them selected nowhere: the fit (which
+    takes the stack's rows 0..3 as one view) equals the independent least squares of 0 and 3 alone
+    against the data (1 and 2 in it),
+    leaves 1 and 2's scales and their flux in the residual, and equals the fit on a stack that is not
+    contiguous (the copied rows)."""
+    N, S = 16, 3
+    x = random_array(rng, N)
+    M = point_coherencies(x, random_directions(rng, 4), np.array([300.0, 6000.0, 50.0, 200.0]))
+    coh = np.broadcast_to(M[:, None], (4, S, N, N)).copy()
+    noise = 0.5 * (rng.normal(size=(S, N, N)) + 1j * rng.normal(size=(S, N, N)))
+    V = 0.8 * coh[0] + coh[1] + coh[2] + 1.3 * coh[3] + noise + np.conj(np.swapaxes(noise, 1, 2))
+    W = cross_weights(S, N).astype(float)
+    sel = np.zeros((4, S), bool)
+    sel[[0, 3]] = True
+    results = []
+    for stack in (coh, np.asfortranarray(coh)):
+        R = V.copy()
+        scale = np.array([[1.0] * S, [0.5] * S, [0.25] * S, [1.0] * S])
+        for s in (0, 3):
+            add_component(R, coh[s], np.ones((S, N), complex), -scale[s])
+        fit_scales(R, stack, W, scale, sel)
+        results.append((scale, R))
+        expect = _least_squares_scales(V, [coh[0], coh[3]], W)  # 1 and 2 stay in the data
+        np.testing.assert_allclose(scale[[0, 3]], expect, rtol=0, atol=1e-9)
+        assert np.all(scale[1] == 0.5) and np.all(scale[2] == 0.25)
+        np.testing.assert_allclose(R, V - scale[0][:, None, None] * coh[0] - scale[3][:, None, None] * coh[3],
+                                   atol=1e-8)
+    np.testing.assert_allclose(results[0][0], results[1][0], rtol=1e-12)
 
 
 def test_guard_refits_the_other_scales_once_a_peel_is_undone():

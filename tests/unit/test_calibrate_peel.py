@@ -2,7 +2,7 @@
 import numpy as np
 
 from mmflow.calibrate.baselines import from_matrix
-from mmflow.calibrate.peel import PEEL, SKIP, SUBTRACT, peel, peel_dense, select_modes
+from mmflow.calibrate.peel import MODEL, PEEL, SKIP, SUBTRACT, peel, peel_dense, select_modes
 from tests.peel_helpers import LAM, cross_weights, point_coherencies, random_array, random_directions
 
 def test_noiseless_multi_source_peel_fits_exactly_and_recovers_dd_gains(rng):
@@ -100,6 +100,35 @@ def test_baseline_layout_wrapper_matches_dense_and_warm_starts(rng):
     assert np.linalg.norm(sol.residual[:, cross]) < 1e-6 * np.linalg.norm(vis[:, cross])
     # the autocorrelations lose the sources too (subtraction acts on every baseline)
     assert np.linalg.norm(sol.residual[:, i == j]) < 1e-6 * np.linalg.norm(vis[:, i == j])
+
+
+def test_single_precision_solve_agrees_with_double_to_its_tolerance(rng):
+    """The stage's solve in complex64 (``dtype``; the same model copied to both polarisations, a batch
+    buffer reused and a short last batch) against complex128: the same modes and guard, DD gains and
+    scales within 1e-4 relative, the residual within 1e-5 of the data; ``solve_dtype`` keeps double
+    precision for a tolerance single precision cannot resolve."""
+    from mmflow.workflow.config import load_config
+    from mmflow.workflow.peel_solve import solve_dtype
+
+    N, T, n_src = 32, 7, 3
+    x = random_array(rng, N)
+    i, j = np.triu_indices(N)
+    pairs = np.stack([i, j], 1)
+    M = point_coherencies(x, random_directions(rng, n_src), np.array([5000.0, 800.0, 90.0]))
+    coh = np.broadcast_to(from_matrix(M, pairs)[:, None], (n_src, T, len(pairs))).copy()
+    g = np.exp(0.2j * rng.normal(size=(T, N, 2)))
+    vis = np.einsum("tbp,tb->tbp", g[:, i] * np.conj(g[:, j]), coh[0]) + 1.1 * coh[1][..., None] + 0.9 * coh[2][..., None]
+    vis = vis + 0.5 * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
+    modes = np.array([[PEEL] * T, [SUBTRACT] * T, [MODEL] * T])
+    kw = dict(dd_model="antenna", batch=3, passes=3, tol=1e-4, max_iter=50)
+    single = peel(vis, 1.0, coh.astype(np.complex64), pairs, N, modes, dtype=np.complex64, **kw)
+    double = peel(vis, 1.0, coh, pairs, N, modes, **kw)
+    assert np.array_equal(single.mode, double.mode) and np.array_equal(single.guard, double.guard)
+    np.testing.assert_allclose(single.scale, double.scale, rtol=1e-4)
+    np.testing.assert_allclose(single.dd_gains, double.dd_gains, rtol=0, atol=1e-4)
+    assert np.abs(single.residual - double.residual).max() < 1e-5 * np.abs(vis).max()
+    assert solve_dtype(load_config().peel) == np.complex64
+    assert solve_dtype(load_config(overrides=["peel.tol=1e-7"]).peel) == np.complex128
 
 
 def test_source_selection_by_elevation_and_apparent_flux():

@@ -70,20 +70,26 @@ def test_lsts_off_the_bin_grid_keep_their_exact_phase(small_telescope):
     assert np.abs(naive - ref).max() > 1e-3 * np.abs(ref).max()  # snapping to bin centres is wrong
 
 
-@pytest.mark.parametrize("path", ["every pair", "pair-wise"])
+@pytest.mark.parametrize("path", ["every pair", "pair-wise", "few points"])
 def test_blocked_threaded_simulator_matches_direct_sum(small_telescope, path, monkeypatch):
     """Pixel blocks, time threads, reversed pairs and signed fluxes against the sum of eq. 1, through
-    the rank-k product of every pair and through the pair-wise product of a few baselines."""
+    the rank-k product of every pair, through the pair-wise product of a few baselines and through
+    the per-baseline sum of a few points (a calibration model's sky); ``out`` filled in place."""
     from mmflow.conventions import enu_to_equatorial_matrix
     from mmflow.simulate import visibilities
 
+    n_points = 3 * visibilities.PIXEL_BLOCK + 17
     if path == "pair-wise":
         monkeypatch.setattr(visibilities, "_simulate_block", visibilities._simulate_pairs)
+    elif path == "few points":
+        n_points = visibilities.FEW_POINTS  # the default choice for so few: no patch needed
+        monkeypatch.setattr(visibilities, "few_pairs", lambda pairs, n: False)
+        monkeypatch.setattr(visibilities, "_simulate_block", None)  # must not be reached
     else:
         monkeypatch.setattr(visibilities, "_simulate_pairs", visibilities._simulate_block)
     tel, f = small_telescope, 40e6
     rng = np.random.default_rng(3)
-    vec = rng.normal(size=(3 * visibilities.PIXEL_BLOCK + 17, 3))
+    vec = rng.normal(size=(n_points, 3))
     vec /= np.linalg.norm(vec, axis=1)[:, None]
     pairs = np.array([[0, 1], [2, 0], [1, 1], [3, 2]])
     x = tel.layout.enu * f / 299792458.0
@@ -95,7 +101,9 @@ def test_blocked_threaded_simulator_matches_direct_sum(small_telescope, path, mo
             w = np.where(enu[:, 2] > 0, tel.beam.power_enu(enu, f) * flux, 0.0)
             ref = [np.sum(w * np.exp(2j * np.pi * enu @ (x[j] - x[i]))) for i, j in pairs]
             np.testing.assert_allclose(got[t], ref, rtol=1e-10, atol=1e-10 * np.abs(ref).max())
-        single = simulate_drift_scan(tel, f, lst, SkyPoints(vec, flux), pairs, dtype=np.complex64, threads=1)
+        single = np.empty((len(lst), len(pairs)), np.complex64)
+        assert simulate_drift_scan(tel, f, lst, SkyPoints(vec, flux), pairs, dtype=np.complex64, threads=1,
+                                   out=single) is single
         np.testing.assert_allclose(single, got, atol=2e-5 * np.abs(got).max())
 
 
