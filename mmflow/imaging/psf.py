@@ -332,11 +332,12 @@ def highpass_weights(lmax, l_cut, l_width):
     return 0.5 - 0.5 * np.cos(np.pi * x)
 
 
-def apply_l_weights(alm, lmax, weights):
-    """``w_l a_lm`` for a healpy-layout alm (``alm`` may have trailing columns)."""
+def apply_l_weights(alm, lmax, weights, out=None):
+    """``w_l a_lm`` for a healpy-layout alm (``alm`` may have trailing columns); ``out``: where it goes
+    (``alm`` itself weights in place: at lmax 1000 the PSF table's columns are 0.6 GB)."""
     ell = healpy.Alm.getlm(lmax)[0]
     w = np.asarray(weights)[ell]
-    return alm * (w if np.ndim(alm) == 1 else w[:, None])
+    return np.multiply(alm, w if np.ndim(alm) == 1 else w[:, None], out=out)
 
 
 def table_vectors(dec_rad, ra_rad=0.0):

@@ -240,6 +240,7 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
             continue
         cctx = sctx.for_task()
         keys = st.next_cycle(cctx, cycle)
+        release_freed_memory()  # the plan's maps and tables (CLEAN: ~1 GB at lmax 1000) back to the system
         if keys is None:
             log(f"[{st.name}] converged after {cycle} cycles")
             return results
