@@ -52,6 +52,8 @@ DIMENSIONS = {
     "quantity": "noise quantities (:data:`NOISE_FIELDS`)",
     "xyzf": "x, y, z of the unit vector (frame of date), flux in Jy",
     "pixel": "HEALPix pixels (RING)",
+    "sample": "sidereal angles 2 pi k / N, k = 0 .. N - 1, of a band-limited sky's drift scan",
+    "feed": "the feeds whose power beam a visibility is simulated through (one for a power beam)",
 }
 
 
@@ -60,7 +62,7 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
     ``ingest_plan`` (ingest: ``(row_time_jd, file_rows, antenna_numbers)``, :func:`mmflow.io.ingest.plan_arrays`)
     adds what ingest's tasks read instead of rescanning the files."""
     nbl, nf, n_ant, npol = len(pairs), len(freqs_hz), len(antenna_enu), len(attrs["pols"])
-    ch = (time_chunk, min(baseline_chunk, nbl), nf, npol)
+    ch = (time_chunk, min(baseline_chunk, nbl), 1, npol)  # one channel per chunk: a task of one channel reads it alone
     dims = ("time", "baseline", "freq", "pol")
     ncross = len(attrs.get("cross_pols") or [])
     cross = () if not ncross else (
@@ -330,18 +332,29 @@ def models_store(nf, n_src, n_comp, attrs):
     ), attrs, doc="Resolved source models fitted per frequency and source: the models stage.")
 
 
+def diffuse_store(nf, n_samples, nbl, n_feed, sample_block):
+    """The simulate stage's diffuse sky at the sampled sidereal angles
+    (:mod:`mmflow.simulate.drift_modes`): what its time chunks interpolate."""
+    return StoreSpec("diffuse.zarr", (
+        ArraySpec("samples", ("freq", "sample", "baseline", "feed"), (nf, n_samples, nbl, n_feed),
+                  (1, sample_block, nbl, n_feed), "complex128",
+                  doc="the diffuse sky's visibilities (Jy) at the sidereal angles ``2 pi k / N``, through each "
+                  "feed's power beam (one column for a power beam)"),
+    ), doc="A band-limited diffuse sky's drift scan at N sidereal angles: the simulate stage's first phase.")
+
+
 def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk):
     """The terrestrial stage's store."""
     return StoreSpec("terrestrial.zarr", (
-        ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, nf, nbl, npol),
+        ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "complex128", doc="weighted sum of the calibrated, peeled visibilities of each time chunk"),
-        ArraySpec("sum_weight", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, nf, nbl, npol),
+        ArraySpec("sum_weight", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "float64", doc="sum of their weights"),
         ArraySpec("patterns", ("freq", "component", "antenna", "pol"), (nf, n_comp, n_ant, npol),
                   (nf, n_comp, n_ant, npol), "complex128",
                   doc="``u_k`` of the rank-1 templates ``B_k = u_k u_k^H`` fitted to the average"),
         ArraySpec("amplitudes", ("time", "freq", "template", "pol"), (n_time, nf, n_comp ** 2, npol),
-                  (time_chunk, nf, n_comp ** 2, npol), "float64",
+                  (time_chunk, 1, n_comp ** 2, npol), "float64",
                   doc="real amplitude ``a_k(t)`` of each of the K^2 templates: ``u_k u_k^H``, then for k < l "
                   "``u_k u_l^H + u_l u_k^H`` and ``i (u_k u_l^H - u_l u_k^H)``"),
     ), doc="Signals that do not move with the sky: the terrestrial stage.")

@@ -30,13 +30,36 @@ def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=
     """
     pts = SkyPoints(np.zeros((0, 3)), np.zeros(0))
     if diffuse_lmax:
-        alm = kelvin_to_jy_per_sr(synthetic_sky_kelvin(freq_hz, diffuse_lmax, epoch_jd, seed=seed), freq_hz)
-        b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / 299792458.0
-        quad = diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
-        pts = pts + gauss_legendre_points(alm, diffuse_lmax, quad)
+        pts = pts + diffuse_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed, quad_oversample)
     for src in get_sources(list(sources)):
         pts = pts + source_points_date(src, freq_hz, epoch_jd)
     return pts
+
+
+def diffuse_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed=0, quad_oversample=48):
+    """The synthetic diffuse sky (:func:`mmflow.sky.diffuse.synthetic_sky_kelvin`, band limit
+    ``diffuse_lmax``) on its Gauss-Legendre grid (frame of date), exact for the sky times the longest
+    fringe (``diffuse_lmax + fringe band limit + quad_oversample``)."""
+    alm = kelvin_to_jy_per_sr(synthetic_sky_kelvin(freq_hz, diffuse_lmax, epoch_jd, seed=seed), freq_hz)
+    b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / 299792458.0
+    quad = diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
+    return gauss_legendre_points(alm, diffuse_lmax, quad)
+
+
+def feed_columns(telescope, corrupted):
+    """The telescopes a simulation's unpolarised sky is observed through: each feed's (its power beam)
+    for a corrupted simulation with a Jones beam, else the telescope itself (one column)."""
+    feeds = feed_telescopes(telescope) if corrupted else None
+    return feeds or [telescope]
+
+
+def drift_samples(telescope, freq_hz, points, lsts, corrupted):
+    """``(time, baseline, feed)`` visibilities of ``points`` at the sidereal angles ``lsts``, through
+    :func:`feed_columns` (what :func:`simulate_chunk` adds as ``extra`` once interpolated), summed in
+    single precision as :func:`simulate_chunk` sums its sky (rounding ~1e-5 of the largest
+    visibility, against radiometer noise ~3e-3 of it at 13 s and 24 kHz)."""
+    return np.stack([simulate_drift_scan(t, freq_hz, lsts, points, t.antenna_pairs(), np.complex64)
+                     for t in feed_columns(telescope, corrupted)], axis=-1)
 
 
 def source_points_date(source, freq_hz, epoch_jd, offset_rad=(0.0, 0.0), flux_scale=1.0):
@@ -55,7 +78,7 @@ def source_points_date(source, freq_hz, epoch_jd, offset_rad=(0.0, 0.0), flux_sc
 
 
 def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, corrupted=None, rows=None,
-                   system_jy=0.0):
+                   system_jy=0.0, extra=None):
     """Visibilities ``(time, baseline, freq, pol)`` complex64 of one time chunk, one sky per frequency.
 
     Uncorrupted, the one polarisation is Stokes I. With ``noise_rng``, radiometer noise
@@ -68,6 +91,9 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
     :func:`mmflow.simulate.corrupt.corrupted_visibilities`, each through its feed's power beam when
     the beam is an E-field beam (:func:`mmflow.telescope.jones.feed_telescopes`); ``rows`` are the chunk's
     integrations in the day; ``system_jy`` the receiver power of the corrupted autocorrelations.
+    ``extra``: per frequency visibilities ``(time, baseline)`` (``(time, baseline, feed)`` through each
+    feed's power beam) added to the sky's before corruption and noise (the diffuse sky interpolated
+    from its samples, :mod:`mmflow.simulate.drift_modes`).
     """
     pairs = telescope.antenna_pairs()
     n_pol = 1 if corrupted is None else 2
@@ -83,6 +109,8 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
 
     for fi, f in enumerate(telescope.freqs_hz):
         v = drift_scan(skies[fi], f, np.complex64)
+        if extra is not None:
+            v = (v + extra[fi]).astype(v.dtype)
         if corrupted is not None:
             day, dd_points, dd_vecs = corrupted[fi]
             dd = np.stack([drift_scan(p, f) for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex)

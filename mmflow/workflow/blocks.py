@@ -16,7 +16,7 @@ import numpy as np
 
 @dataclass
 class DataBlock:
-    """Visibilities of ``rows`` x ``columns`` of ``vis.zarr`` (corrected in place by ``apply``)."""
+    """Visibilities of ``rows`` x ``columns`` x ``channels`` of ``vis.zarr`` (corrected in place by ``apply``)."""
 
     vis: np.ndarray  # (time, baseline, freq, pol) complex128
     weights: np.ndarray  # (time, baseline, freq, pol) float
@@ -27,24 +27,36 @@ class DataBlock:
     lst: np.ndarray  # (time,) rad
     cross: np.ndarray = None  # (time, baseline, freq, cross_pol) complex128: xy, yx, where read
     cross_weights: np.ndarray = None  # like cross
+    channels: slice = None  # the block's channels in vis.zarr (its freq axis); None: every channel
+
+    def channel_indices(self):
+        """``(k, fi)`` for each channel of the block: its index ``k`` on the block's freq axis and ``fi``
+        in ``vis.zarr`` (the index every solution store and the telescope's frequencies use)."""
+        start = 0 if self.channels is None else self.channels.start
+        return [(k, start + k) for k in range(self.vis.shape[2])]
 
 
-def read_block(ctx, rows=slice(None), columns=slice(None), cross=False):
+def read_block(ctx, rows=slice(None), columns=slice(None), cross=False, channels=slice(None)):
     """Read a block of ``vis.zarr`` and apply, in pipeline order, the corrections of the enabled
     solve-then-apply stages before the reading stage (``ctx.corrections()``).
 
     ``cross``: also read the cross hands (``vis_cross``, ``weights_cross``; full-Stokes imaging);
-    a correction corrects them with the same per-feed solutions."""
+    a correction corrects them with the same per-feed solutions. ``channels``: a contiguous range
+    of channels (a task of one channel reads and corrects that channel only: ``vis.zarr`` holds one
+    channel per chunk, so its memory and work do not grow with the channels of the run)."""
     vg = ctx.open("vis.zarr")
-    nt, nbl = vg["vis"].shape[:2]
-    rows, columns = slice(*rows.indices(nt)), slice(*columns.indices(nbl))
-    block = DataBlock(ctx.read("vis.zarr", "vis", (rows, columns)).astype(np.complex128),
-                      ctx.read("vis.zarr", "weights", (rows, columns)).astype(float),
-                      vg["pairs"][columns], rows, columns, ctx.read("vis.zarr", "autos", (rows,)),
-                      ctx.read("vis.zarr", "lst", (rows,)))
+    nt, nbl, nf = vg["vis"].shape[:3]
+    rows, columns, channels = slice(*rows.indices(nt)), slice(*columns.indices(nbl)), slice(*channels.indices(nf))
+    if channels.step != 1 or channels.stop <= channels.start:
+        raise ValueError(f"read_block: channels {channels} is not a contiguous, non-empty range of the {nf} channels")
+    region = (rows, columns, channels)
+    block = DataBlock(ctx.read("vis.zarr", "vis", region).astype(np.complex128),
+                      ctx.read("vis.zarr", "weights", region).astype(float),
+                      vg["pairs"][columns], rows, columns, ctx.read("vis.zarr", "autos", (rows, slice(None), channels)),
+                      ctx.read("vis.zarr", "lst", (rows,)), channels=channels)
     if cross:
-        block.cross = ctx.read("vis.zarr", "vis_cross", (rows, columns)).astype(np.complex128)
-        block.cross_weights = ctx.read("vis.zarr", "weights_cross", (rows, columns)).astype(float)
+        block.cross = ctx.read("vis.zarr", "vis_cross", region).astype(np.complex128)
+        block.cross_weights = ctx.read("vis.zarr", "weights_cross", region).astype(float)
     for stage in ctx.corrections():
         stage.apply(ctx, block)
     return block

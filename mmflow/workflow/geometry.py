@@ -7,8 +7,11 @@ so they live here and no stage module imports another. The time chunks are in
 """
 from __future__ import annotations
 
-from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.conventions import SIDEREAL_DAY_S, is_full_stokes
 from mmflow.mmode.splits import split_shares
+
+#: sampled sidereal angles of an interpolated diffuse sky per task of the simulate stage's first phase
+DIFFUSE_SAMPLE_BLOCK = 8
 
 
 def mmax_of(cfg):
@@ -20,6 +23,13 @@ def n_bins_of(cfg, integration_s):
     """Sidereal bins of the m-mode transform: ``mmode.n_bins``, else
     ``N = round(T_sid / tau)`` for integrations of ``tau`` seconds (one bin per integration)."""
     return cfg.mmode.n_bins or int(round(SIDEREAL_DAY_S / integration_s))
+
+
+def interpolates_diffuse(cfg):
+    """Whether the simulate stage sums the diffuse sky at a few sidereal angles and interpolates it to
+    every integration (:mod:`mmflow.simulate.drift_modes`): every unpolarised simulation with a diffuse
+    sky (a full-Stokes one sums it at every integration)."""
+    return bool(cfg.sky.diffuse) and not is_full_stokes(cfg.imaging.stokes)
 
 
 def n_integrations(cfg):

@@ -58,14 +58,15 @@ def peel_coherencies(ctx, tel, fi, lst, pairs, names, dtype=np.complex128):
 
 
 def peel_components(ctx, block, fi, kinds):
-    """``sum_s f_s(t) h_si conj(h_sj) M^s_ij`` (time, bl, pol) of channel ``fi`` over the sources whose
-    mode is in ``kinds``, ``f`` being 1 (peeled) or the fitted scale (subtracted, modelled); only the
-    sources with such a mode somewhere in the block are computed. Reads only ``peel.zarr``."""
+    """``sum_s f_s(t) h_si conj(h_sj) M^s_ij`` (time, bl, pol) of channel ``fi`` (of ``vis.zarr``) over the
+    sources whose mode is in ``kinds``, ``f`` being 1 (peeled) or the fitted scale (subtracted,
+    modelled); only the sources with such a mode somewhere in the block are computed. Reads only
+    ``peel.zarr``."""
     tel = ctx.telescope()
     names = ctx.open("peel.zarr").attrs["sources"]
     region = (block.rows, slice(fi, fi + 1))
     mode = ctx.read("peel.zarr", "mode", region)[:, 0]  # (time, src, pol)
-    out = np.zeros(block.vis[:, :, fi].shape, complex)
+    out = np.zeros(block.vis.shape[:2] + block.vis.shape[3:], complex)  # (time, bl, pol)
     used = [s for s in range(len(names)) if np.isin(mode[:, s], kinds).any()]
     if not used:
         return out
@@ -86,4 +87,4 @@ def peel_components(ctx, block, fi, kinds):
 def modelled_sources(ctx, block):
     """The fitted ``peel.model_sources`` in a block, ``sum_s a_s(t) M^s_ij`` (time, bl, freq, pol): what
     a later fit (the terrestrial templates) holds out so that the catalogued sky does not bias it."""
-    return np.stack([peel_components(ctx, block, fi, (MODEL,)) for fi in range(block.vis.shape[2])], axis=2)
+    return np.stack([peel_components(ctx, block, fi, (MODEL,)) for _, fi in block.channel_indices()], axis=2)

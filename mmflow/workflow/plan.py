@@ -33,8 +33,11 @@ from mmflow.io.ingest import plan_ingest
 from mmflow.machine import gemm_gflops
 from mmflow.mmode.engine import plan_chunks, plan_groups
 from mmflow.mmode.transfer import fringe_bandlimit
+from mmflow.simulate.drift_modes import n_samples
+from mmflow.simulate.scene import feed_columns
 from mmflow.workflow.chunking import TIME_CHUNK
 from mmflow.workflow.context import build_telescope
+from mmflow.workflow.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
 from mmflow.workflow.pipeline import PIPELINE
 
 COSTS_FILE = Path(__file__).with_name("plan_costs.json")
@@ -64,7 +67,10 @@ class Geometry:
     gram_itemsize: int
     transfer_units: tuple  # per channel, per baseline group: sum_b sum_m (lmax_b - m + 1)^2 (Gram work)
     transfer_workspace: float  # bytes of one transfer task's grid tables and ring-Fourier workspace
-    n_sky_points: int = 0  # points the simulator sums (diffuse quadrature grid + sources)
+    n_sky_points: int = 0  # points the simulator sums per integration (sources; the diffuse grid if not interpolated)
+    n_diffuse_points: int = 0  # the diffuse sky's quadrature grid, summed at diffuse_samples sidereal angles
+    diffuse_samples: int = 0  # sidereal angles of an interpolated diffuse sky (0: none)
+    n_feed_columns: int = 1  # simulated through each feed's power beam (2) or one beam (1)
 
     @property
     def n_groups(self):
@@ -139,9 +145,19 @@ def stage_work(stage, g, cfg):
     if stage in ("simulate", "ingest"):
         units = T * g.n_bl * g.n_freq * (g.n_sky_points if stage == "simulate" else g.n_pol)
         w = vis_task
-        if stage == "simulate":  # one channel at a time: ~10 complex128 (time, bl, pol) temporaries (drift scans,
-            w += T * g.n_bl * g.n_pol * 160.0  # corruptions, noise; measured 2.8 GB at 256 antennas: docs/planning.md)
-        return n_tchunk, w, units, [vis_spec]
+        if stage == "ingest":
+            return n_tchunk, w, units, [vis_spec]
+        # one channel at a time: ~10 complex128 (time, bl, pol) temporaries (drift scans, corruptions, noise;
+        w += T * g.n_bl * g.n_pol * 160.0  # measured 2.8 GB at 256 antennas: docs/planning.md)
+        if not g.diffuse_samples:
+            return n_tchunk, w, units, [vis_spec]
+        # an interpolated diffuse sky: first its direct sums at the sampled angles (DIFFUSE_SAMPLE_BLOCK a task), then
+        # per time chunk its samples, their modes and their evaluation at the chunk's integrations
+        n_d = g.n_freq * -(-g.diffuse_samples // DIFFUSE_SAMPLE_BLOCK)
+        w += g.diffuse_samples * g.n_bl * g.n_feed_columns * 32.0 + T * g.n_bl * g.n_feed_columns * 16.0
+        total = n_tchunk * units + g.n_freq * g.diffuse_samples * g.n_bl * g.n_diffuse_points
+        spec = rs.diffuse_store(g.n_freq, g.diffuse_samples, g.n_bl, g.n_feed_columns, DIFFUSE_SAMPLE_BLOCK)
+        return n_tchunk + n_d, w, total / (n_tchunk + n_d), [vis_spec, spec]
     if stage == "calibrate":
         L = max(1, min(g.cal_interval or g.n_time, g.n_time))
         n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
@@ -158,13 +174,15 @@ def stage_work(stage, g, cfg):
         return max(1, g.n_models) * g.n_freq, vis_task, g.n_time * g.n_bl, []
     if stage == "peel":
         n_src = max(1, g.n_peel_sources)
-        w = T * g.n_bl * g.n_pol * (12.0 + 16.0 * n_src)
+        # its channel's corrected block (complex128 + float64), the sources' models (complex64, one for both
+        # hands) and a batch's antenna matrices (data, weights, residual and the models: 16 integrations x hands)
+        w = T * g.n_bl * (24.0 * g.n_pol + 8.0 * n_src) + (n_src + 3) * 16 * g.n_pol * g.n_ant ** 2 * 8.0
         spec = rs.peel_store(g.n_time, g.n_freq, n_src, g.n_ant, g.n_pol, TIME_CHUNK, {})
         return n_tchunk * g.n_freq, w, T * g.n_bl * g.n_pol * n_src, [spec]
-    if stage == "terrestrial":
+    if stage == "terrestrial":  # a task per channel and time chunk (both phases), reading its channel
         comp = cfg.terrestrial.components
         spec = rs.terrestrial_store(n_tchunk, g.n_time, g.n_freq, g.n_bl, comp, g.n_ant, g.n_pol, TIME_CHUNK)
-        return 2 * n_tchunk, vis_task, T * g.n_bl * g.n_freq * g.n_pol, [spec]
+        return 2 * n_tchunk * g.n_freq, vis_task / g.n_freq, T * g.n_bl * g.n_pol, [spec]
     if stage == "mmodes":
         bc = min(g.mmode_chunk, g.n_bl)
         # the corrected block (complex128 + float64) of every integration, and the peel stage's correction
@@ -265,14 +283,18 @@ def geometry(cfg):
     n_bl = len(tel.antenna_pairs())
     tplans = [_transfer_plan(tel, float(f), cfg, mmax) for f in freqs]
     nside = cfg.products.nside or default_nside(mm.lmax)
-    pts = _sky_points_count(cfg, tel, freqs) if cfg.source == "simulate" else 0
+    pts, n_diffuse = _sky_points_count(cfg, tel, freqs) if cfg.source == "simulate" else (0, 0)
+    interpolated = cfg.source == "simulate" and interpolates_diffuse(cfg)
+    n_feed = len(feed_columns(tel, cfg.corrupt.enabled)) if cfg.source == "simulate" else 1
     cal = cfg.calibrate
     # integrations per solve: an interval, or (solint_s null) the one track where the sources are highest
     interval = int(round((cal.solint_s if cal.solint_s else 60.0 * cal.track_min) / cfg.observation.integration_s))
     return Geometry(n_time=n_time, n_ant=tel.n_ant, n_bl=n_bl, n_freq=len(freqs), n_pol=n_pol, lmax=mm.lmax,
                     mmax=mmax, m_block=cfg.transfer.m_block, n_split=len(mm.splits), mmode_chunk=mm.baseline_chunk,
                     gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
-                    transfer_workspace=max(p[1] for p in tplans), n_sky_points=pts,
+                    transfer_workspace=max(p[1] for p in tplans),
+                    n_sky_points=pts + (0 if interpolated else n_diffuse), n_diffuse_points=n_diffuse,
+                    diffuse_samples=n_samples(cfg.sky.diffuse_lmax) if interpolated else 0, n_feed_columns=n_feed,
                     n_cal_sources=len(cal.sources) if cal.enabled else 0,
                     cal_screen_rounds=cal.screen_rounds if cal.enabled and set(cal.screen_sources) & set(cal.sources)
                     else 0,
@@ -282,16 +304,16 @@ def geometry(cfg):
 
 
 def _sky_points_count(cfg, tel, freqs):
-    """Points the simulator sums per integration: the diffuse sky's Gauss-Legendre grid
-    (``(q + 1) x (2 q + 1)``, ``q = diffuse_lmax + fringe band limit + quad_oversample``) plus sources."""
+    """Points the simulator sums: ``(sources, diffuse)``, the diffuse sky's Gauss-Legendre grid being
+    ``(q + 1) x (2 q + 1)``, ``q = diffuse_lmax + fringe band limit + quad_oversample`` (0 without one)."""
     s = cfg.sky
-    n = len(s.sources)
+    n = 0
     if s.diffuse:
         f = float(np.max(freqs))
         b = np.linalg.norm(tel.baselines_enu(), axis=1) * f / 299792458.0
         q = s.diffuse_lmax + fringe_bandlimit(b, tel.beam.lmax_hint) + s.quad_oversample
-        n += (q + 1) * (2 * q + 1)
-    return n
+        n = (q + 1) * (2 * q + 1)
+    return len(s.sources), n
 
 
 def plan(cfg, costs=None, peak_gflops=None):

@@ -25,6 +25,9 @@ RUN_DIR``): its configuration and, per stage, the task count, the largest task's
 worker's baseline and the mean seconds per task (and the SGEMM peak measured beside the run). ``--fit`` and ``--against`` take a record file
 wherever they take a run directory; the records the package's constants were fitted to lie in
 ``plan_runs/`` beside this module, so the constants can be refitted, and checked, without the runs.
+A record's ``superseded`` (``{stage: why}``) names the stages whose code has changed since the run
+measured them (the peel stage 4x faster, say): their figures no longer describe the code, and they
+enter neither the fit nor the check (:func:`samples`), while the record's other stages still do.
 """
 from __future__ import annotations
 
@@ -87,12 +90,15 @@ def record_config(rec):
 
 def samples(source):
     """``{stage: (W, U, memory_bytes, seconds_per_task)}`` measured in one finished run (its directory
-    or its record), ``W`` and ``U`` from the run's configuration by today's work model."""
+    or its record; not the record's ``superseded`` stages), ``W`` and ``U`` from the run's
+    configuration by today's work model."""
     rec = load_record(source)
     cfg = record_config(rec)
     g = geometry(cfg)
     out = {}
     for stage, m in rec["stages"].items():
+        if stage in rec.get("superseded", {}):  # measured with code since changed
+            continue
         try:
             _, w, u, _ = stage_work(stage, g, cfg)
         except KeyError:

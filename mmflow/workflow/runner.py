@@ -203,7 +203,11 @@ def _check_inputs(run, st, cfg, pipeline):
 def _repair_or_refuse(run, st, force, log):
     """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop.
 
-    A stage with cycles restarts from scratch: every later cycle depends on a damaged one.
+    Only the damaged tasks are recomputed, in a stage with cycles too: a later task read the damaged
+    chunk while it was intact (every read is checked against the chunk records), so what it wrote
+    stands, and a task rerun from the same inputs rewrites its chunk bit for bit. The checkpoint of
+    each cycle that holds a damaged task is forgotten with it, so that the cycle is planned again
+    (``next_cycle`` is deterministic) and runs just that task.
     """
     stage = st.name
     damaged = run.damaged_keys(stage)
@@ -216,10 +220,11 @@ def _repair_or_refuse(run, st, force, log):
                                 f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
                                 f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
     log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
-    if "_prepare" in damaged or st.next_cycle is not None:
+    if "_prepare" in damaged:
         run.reset_stage(stage)
-    else:
-        run.forget_keys(stage, list(damaged))
+        return
+    cycles = {TaskKey.parse(k).cycle for k in damaged if not k.startswith("cycle") and not k.startswith("_")}
+    run.forget_keys(stage, list(damaged) + [f"cycle{c:04d}" for c in cycles if c is not None])
 
 
 def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log):
@@ -357,7 +362,9 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
         counts = _counts(run, st)
         if any(counts.values()):
             log(f"[{st.name}] " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in counts.items() if v))
-        summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": len(keys), "counts": counts,
+        # every phase's tasks (a second phase's or a cycle's keys join the manifest as they are planned)
+        n_tasks = sum(1 for k in run.manifest(st.name)["keys"] if not k.startswith("cycle"))
+        summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": n_tasks, "counts": counts,
                    "tasks_run": sum(1 for r in results if not r.get("skipped")),
                    "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
                    "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),

@@ -43,6 +43,7 @@ LAYOUTS = {
     ("phase", "freq"): "{phase}{freq}",
     ("phase", "freq", "interval"): "{phase}{freq}_{interval:05d}",
     ("phase", "time"): "{phase}_t{time:05d}",
+    ("phase", "freq", "time"): "{phase}{freq}_t{time:05d}",
 }
 CYCLE = "c{cycle:04d}-"
 #: letters that open a layout or the cycle prefix: never a phase (``f1`` is a channel, not phase ``f``)

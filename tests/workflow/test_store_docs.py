@@ -41,7 +41,8 @@ def test_every_store_array_and_dimension_has_a_meaning():
 def test_chunk_rules_name_the_parameters():
     doc = stores_markdown()
     vis = doc.split("\n## vis.zarr\n")[1].split("\n## ")[0]
-    assert "| `vis` | (time, baseline, freq, pol) | (1000, 36, 2, 2) | (time_chunk, baseline_chunk, all, all) |" in vis
+    # one channel per chunk: a task of one channel reads it alone
+    assert "| `vis` | (time, baseline, freq, pol) | (1000, 36, 2, 2) | (time_chunk, baseline_chunk, 1, all) |" in vis
     alm = doc.split("\n## alm.zarr\n")[1].split("\n## ")[0]
     assert "| `alm` | (split, freq, m, l) | (3, 2, 41, 41) | (all, 1, m_block, all) | complex128 |" in alm
     assert "| `f{F}/gram_b{M0}` (10 arrays) | (group, m, l, l2) | (4, 10, 41, 41) | (1, all, all, all) |" in doc

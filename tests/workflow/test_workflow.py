@@ -63,13 +63,15 @@ def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
 
 def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
     """Completion markers are named by the task keys (:mod:`mmflow.workflow.task_key`): run
-    directories made by earlier versions resume only while these strings stay as they were."""
+    directories made by earlier versions resume only while these strings stay as they were. (Since
+    2026-11-27 a simulation with a diffuse sky has two phases, its samples ``d{F}_t{B}`` and then
+    the time chunks, named as a second phase's are: ``c0000-t00000``.)"""
     from mmflow.workflow.rundir import RunDir
 
     run_dir, _ = reference_run
     run = RunDir(run_dir)
     keys = {st: run.manifest(st)["keys"] for st in ("simulate", "mmodes", "transfer", "normal", "solve", "products")}
-    assert keys["simulate"] == ["t00000"]
+    assert keys["simulate"] == [f"d0_t{b:05d}" for b in range(6)] + ["c0000-t00000", "cycle0000"]
     assert keys["mmodes"][:2] == ["b00000", "b00001"]
     assert keys["transfer"][:2] == ["f0-g0000", "f0-g0001"]
     assert keys["normal"] == keys["solve"] == ["f0-m00000", "f0-m00008", "f0-m00016", "f0-m00024"]

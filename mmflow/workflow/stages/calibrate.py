@@ -119,11 +119,11 @@ def _task(ctx, key):
     c = ctx.cfg.calibrate
     fi, k = key.freq, key.interval
     t0, t1 = (int(x) for x in g["solve_rows"][k])
-    block = read_block(ctx, slice(t0, t1))
+    block = read_block(ctx, slice(t0, t1), channels=slice(fi, fi + 1))  # its channel only
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
     good = np.isfinite(block.lst)
-    vis, w = block.vis[good, :, fi], block.weights[good, :, fi]
+    vis, w = block.vis[good, :, 0], block.weights[good, :, 0]
     if c.ripple:
         vis, w = apply_ripple(vis, w, block.pairs, _ratio(ctx, fi)[t0:t1][good])
     lst, sources = block.lst[good], get_sources(c.sources)
@@ -196,16 +196,16 @@ def _apply(ctx, block):
     interpolate = bool(ctx.open("gains.zarr").attrs.get("interpolate", False))
     rows = np.arange(block.rows.start, block.rows.stop)
     ratio = ctx.read("gains.zarr", "ripple", (block.rows,)) if ctx.open("gains.zarr").attrs["ripple"] else None
-    for fi in range(block.vis.shape[2]):
-        v, w, autos = block.vis[:, :, fi], block.weights[:, :, fi], block.autos[:, :, fi]  # views: in place
+    for k, fi in block.channel_indices():
+        v, w, autos = block.vis[:, :, k], block.weights[:, :, k], block.autos[:, :, k]  # views: in place
         if ratio is not None:
             apply_ripple(v, w, block.pairs, ratio[:, fi], out=(v, w))
             autos = apply_gains_autos(autos, np.sqrt(ratio[:, fi]))
         g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
         apply_gains(v, w, block.pairs, g, fl, out=(v, w))
-        block.autos[:, :, fi] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
+        block.autos[:, :, k] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
         if block.cross is not None:  # xy, yx: feed p of antenna i, feed q of antenna j
-            cv, cw = block.cross[:, :, fi], block.cross_weights[:, :, fi]
+            cv, cw = block.cross[:, :, k], block.cross_weights[:, :, k]
             if ratio is not None:
                 apply_ripple(cv, cw, block.pairs, ratio[:, fi], feeds=CROSS_FEEDS, out=(cv, cw))
             apply_gains(cv, cw, block.pairs, g, fl, feeds=CROSS_FEEDS, out=(cv, cw))

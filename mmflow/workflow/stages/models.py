@@ -82,14 +82,15 @@ def _prepare(ctx):
     return [TaskKey(freq=fi, source=s) for fi in range(nf) for s in range(len(m.sources))]
 
 
-def _read_rows(ctx, rows):
-    """Calibrated data of the given rows (read chunk by chunk: never the whole day at once)."""
+def _read_rows(ctx, rows, fi):
+    """Calibrated data of channel ``fi`` at the given rows (read chunk by chunk: never the whole day at
+    once), ``(vis, weights)`` (time, bl, pol), ``lst`` and the pairs."""
     parts = []
     for c in np.unique(rows // TIME_CHUNK):
         sel = rows[rows // TIME_CHUNK == c]
-        block = read_block(ctx, slice(int(sel[0]), int(sel[-1]) + 1))
+        block = read_block(ctx, slice(int(sel[0]), int(sel[-1]) + 1), channels=slice(fi, fi + 1))
         k = sel - sel[0]
-        parts.append((block.vis[k], block.weights[k], block.lst[k]))
+        parts.append((block.vis[k, :, 0], block.weights[k, :, 0], block.lst[k]))
     return (np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]),
             np.concatenate([p[2] for p in parts]), block.pairs)
 
@@ -102,10 +103,10 @@ def _task(ctx, key):
     f = float(tel.freqs_hz[fi])
     rows, _ = _track(ctx, tel, ctx.open("vis.zarr")["lst"][:], name)
     rows = rows[np.unique(np.linspace(0, len(rows) - 1, min(len(rows), m.max_integrations)).round().astype(int))]
-    vis, weights, lst, pairs = _read_rows(ctx, rows)
+    vis, weights, lst, pairs = _read_rows(ctx, rows, fi)
     keep = solve_mask(tel, pairs, p.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
-    w = weights[:, :, fi].min(-1) * keep
-    data = vis[:, :, fi].mean(-1)  # unpolarised: the mean of the polarisations
+    w = weights.min(-1) * keep
+    data = vis.mean(-1)  # unpolarised: the mean of the polarisations
     # every removed and modelled source with a flux per integration; all but this one subtracted
     names = [name] + [n for n in list(p.sources) + list(p.model_sources) if n != name]
     srcs = get_sources(names)

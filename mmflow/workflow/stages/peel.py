@@ -71,12 +71,12 @@ def _prepare(ctx):
 def _task(ctx, key):
     fi = key.freq
     rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
-    block = read_block(ctx, rows)
+    block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
     tel = ctx.telescope()
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, peel_names(ctx.cfg.peel),
                            solve_dtype(ctx.cfg.peel))
     attrs = ctx.vis_attrs()
-    out = peel_solve(tel, fi, block.lst, block.pairs, block.vis[:, :, fi], block.weights[:, :, fi], coh,
+    out = peel_solve(tel, fi, block.lst, block.pairs, block.vis[:, :, 0], block.weights[:, :, 0], coh,
                      ctx.cfg.peel, float(attrs["epoch_jd"]), float(attrs["integration_s"]))
     g = ctx.open("peel.zarr", mode="r+")
     region = (rows, slice(fi, fi + 1))
@@ -95,8 +95,8 @@ def _task(ctx, key):
 def _apply(ctx, block):
     """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
     ``peel.zarr``, never the configuration); the modelled sources stay."""
-    for fi in range(block.vis.shape[2]):
-        block.vis[:, :, fi] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
+    for k, fi in block.channel_indices():
+        block.vis[:, :, k] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
 
 
 STAGE = Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",

@@ -6,6 +6,12 @@ With ``imaging.stokes: [I, Q, U, V]`` it writes the four linear correlations thr
 E-field beam, the sources polarised as ``sky.polarised`` says, corrupted or not (gains per feed,
 ``corrupt.leakage`` D-terms; :func:`mmflow.simulate.scene.simulate_polarised_chunk`; docs/stokes.md).
 
+A diffuse sky (``sky.diffuse``, unpolarised) is summed first at ``N = 2 L + 1 + margin``
+sidereal angles only (tasks ``d{F}_t{B}``, ``diffuse.zarr``): its drift scan is a trigonometric
+polynomial of degree ``L = sky.diffuse_lmax`` in the sidereal angle, so the time chunks (the second
+phase) interpolate it exactly to their integrations (:mod:`mmflow.simulate.drift_modes`) and sum
+only the catalogue's points themselves.
+
 Both data stages write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`): visibilities per
 polarisation (Stokes I alone for a clean simulation; XX and YY for a corrupted one or as ingested) in
 Jy in mmflow's sign convention, weights (0 = flagged), LSTs and times per integration, and
@@ -20,17 +26,21 @@ import numpy as np
 from mmflow.calibrate.coherency import source_vector_date
 from mmflow.conventions import drift_scan_lsts, drift_scan_times, is_full_stokes
 from mmflow.io.raw_files import RAW_DIR, raw_path, write_raw_chunk
-from mmflow.io.run_stores import vis_store
+from mmflow.io.run_stores import diffuse_store, vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
-from mmflow.simulate.scene import (joined, polarised_sky_points, polarised_source_points, simulate_chunk,
-                                   simulate_polarised_chunk, sky_points, source_points_date, unpolarised)
+from mmflow.simulate.drift_modes import coefficients_from_samples, evaluate_drift, n_samples, sample_lsts
+from mmflow.simulate.scene import (diffuse_points, drift_samples, feed_columns, joined, polarised_sky_points,
+                                   polarised_source_points, simulate_chunk, simulate_polarised_chunk, sky_points,
+                                   source_points_date, unpolarised)
 from mmflow.sky.sources import get_sources, resolved
 from mmflow.telescope.beam_factory import make_jones
 from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.context import build_telescope
 from mmflow.workflow.data_stage import layout_attrs, write_autos
-from mmflow.workflow.geometry import n_integrations
+from mmflow.workflow.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse, n_integrations
 from mmflow.workflow.stages.base import Stage
+from mmflow.workflow.task_key import TaskKey
+
 
 def _sim_prepare(ctx):
     cfg = ctx.cfg
@@ -47,7 +57,19 @@ def _sim_prepare(ctx):
         attrs.update(cross_pols=["xy", "yx"], pol_convention="avg")
     ctx.create(vis_store(n, tel.antenna_pairs(), tel.freqs_hz, tel.layout.enu, attrs, TIME_CHUNK,
                          cfg.mmode.baseline_chunk))
-    return time_keys(n)
+    if not interpolates_diffuse(cfg):
+        return time_keys(n)
+    # first phase: the diffuse sky at N sidereal angles, DIFFUSE_SAMPLE_BLOCK per task; then the time chunks
+    n_s = n_samples(cfg.sky.diffuse_lmax)
+    ctx.create(diffuse_store(len(tel.freqs_hz), n_s, len(tel.antenna_pairs()),
+                             len(feed_columns(tel, cfg.corrupt.enabled)), DIFFUSE_SAMPLE_BLOCK))
+    return [TaskKey(phase="d", freq=fi, time=b) for fi in range(len(tel.freqs_hz))
+            for b in range(-(-n_s // DIFFUSE_SAMPLE_BLOCK))]
+
+
+def _next_cycle(ctx, cycle):
+    """After the diffuse sky's samples, the time chunks (then done)."""
+    return time_keys(n_integrations(ctx.cfg)) if cycle == 0 and interpolates_diffuse(ctx.cfg) else None
 
 
 @lru_cache(maxsize=2)
@@ -61,7 +83,7 @@ def _skies(ctx):
     model = resolved if s.resolved else (lambda src: src)  # sky.resolved: Cyg A, Cas A as Gaussian components
     plain = tuple(model(x) for x in get_sources([n for n in s.sources if n not in dd]))
     full = is_full_stokes(cfg.imaging.stokes)
-    diffuse = s.diffuse_lmax if s.diffuse else None
+    diffuse = s.diffuse_lmax if s.diffuse and not interpolates_diffuse(cfg) else None  # else: interpolated
     if full:
         skies = [polarised_sky_points(tel, float(f), o.epoch_jd, diffuse, s.seed, plain, s.polarised, s.quad_oversample)
                  for f in tel.freqs_hz]
@@ -91,7 +113,34 @@ def _jones(ctx):
     return make_jones(ctx.cfg.beam.model_dump())
 
 
+def _diffuse_task(ctx, key):
+    """The diffuse sky of channel ``key.freq`` at the sampled sidereal angles of block ``key.time``."""
+    cfg = ctx.cfg
+    tel = build_telescope(cfg)
+    f = float(tel.freqs_hz[key.freq])
+    s = cfg.sky
+    lsts = sample_lsts(s.diffuse_lmax)[key.time * DIFFUSE_SAMPLE_BLOCK:(key.time + 1) * DIFFUSE_SAMPLE_BLOCK]
+    points = diffuse_points(tel, f, cfg.observation.epoch_jd, s.diffuse_lmax, s.seed, s.quad_oversample)
+    samples = drift_samples(tel, f, points, lsts, cfg.corrupt.enabled)
+    rows = slice(key.time * DIFFUSE_SAMPLE_BLOCK, key.time * DIFFUSE_SAMPLE_BLOCK + len(lsts))
+    ctx.write(ctx.open("diffuse.zarr", mode="r+"), "samples", (slice(key.freq, key.freq + 1), rows), samples[None])
+    return {"diffuse_samples": len(lsts)}
+
+
+def _diffuse_at(ctx, lst):
+    """Per channel the diffuse sky interpolated to the sidereal angles ``lst`` (``simulate_chunk``'s ``extra``)."""
+    g = ctx.open("diffuse.zarr")
+    out = []
+    for fi in range(g["samples"].shape[0]):
+        v = evaluate_drift(coefficients_from_samples(ctx.read("diffuse.zarr", "samples", (slice(fi, fi + 1),))[0]),
+                           lst, ctx.cfg.sky.diffuse_lmax)
+        out.append(v[..., 0] if v.shape[-1] == 1 else v)
+    return out
+
+
 def _sim_task(ctx, key):
+    if key.phase == "d":
+        return _diffuse_task(ctx, key)
     cfg = ctx.cfg
     o = cfg.observation
     n = n_integrations(cfg)
@@ -116,7 +165,9 @@ def _sim_task(ctx, key):
         ctx.write(g, "vis_cross", rows, cross)
         ctx.write(g, "weights_cross", rows, np.ones(cross.shape, np.float32))
     else:
-        vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy)
+        extra = _diffuse_at(ctx, lst) if interpolates_diffuse(cfg) else None
+        vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy,
+                             extra)
     weights = np.ones(vis.shape, np.float32)
     if o.raw_files:
         _write_raw(ctx, tel, t0, time_jd, vis, cross if full else None)
@@ -142,7 +193,8 @@ def _write_raw(ctx, tel, t0, time_jd, vis, cross):
 
 STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk",
                            "imaging.stokes"), (),
-               ("vis.zarr", RAW_DIR), _sim_prepare, _sim_task, enabled=lambda cfg: cfg.source == "simulate",
+               ("vis.zarr", "diffuse.zarr", RAW_DIR), _sim_prepare, _sim_task, next_cycle=_next_cycle,
+               enabled=lambda cfg: cfg.source == "simulate",
                description="time-domain drift-scan simulation (independent of transfer matrices), "
                "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "
                "correlations of a polarised sky through the E-field beam")
