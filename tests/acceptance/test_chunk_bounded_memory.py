@@ -8,7 +8,6 @@ at its start (``mmflow.workflow.resources``), grows by less than 10 % when the i
 (The m-mode corner turn holds every integration of its baseline chunk by design: it is bounded by
 ``mmode.baseline_chunk``, and the plan says so.)
 """
-import pytest
 
 from mmflow.workflow.config import load_config
 from mmflow.workflow.rundir import RunDir
