@@ -151,13 +151,13 @@ def stage_work(stage, g, cfg):
         w += T * g.n_bl * g.n_pol * 160.0  # measured 2.8 GB at 256 antennas: docs/planning.md)
         if not g.diffuse_samples:
             return n_tchunk, w, units, [vis_spec]
-        # an interpolated diffuse sky: first its direct sums at the sampled angles (DIFFUSE_SAMPLE_BLOCK a task), then
-        # per time chunk its samples, their modes and their evaluation at the chunk's integrations
+        # an interpolated diffuse sky: first its direct sums at the sampled angles (DIFFUSE_SAMPLE_BLOCK a task:
+        # their time is diffuse_sum_seconds'), then per time chunk its samples, their modes and their evaluation
+        # at the chunk's integrations (the units: the time chunks')
         n_d = g.n_freq * -(-g.diffuse_samples // DIFFUSE_SAMPLE_BLOCK)
         w += g.diffuse_samples * g.n_bl * g.n_feed_columns * 32.0 + T * g.n_bl * g.n_feed_columns * 16.0
-        total = n_tchunk * units + g.n_freq * g.diffuse_samples * g.n_bl * g.n_diffuse_points
         spec = rs.diffuse_store(g.n_freq, g.diffuse_samples, g.n_bl, g.n_feed_columns, DIFFUSE_SAMPLE_BLOCK)
-        return n_tchunk + n_d, w, total / (n_tchunk + n_d), [vis_spec, spec]
+        return n_tchunk + n_d, w, units, [vis_spec, spec]
     if stage == "calibrate":
         L = max(1, min(g.cal_interval or g.n_time, g.n_time))
         n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
@@ -259,8 +259,27 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers):
         est.notes.append(f"assumes {g.clean_cycles} major cycles: their number depends on the sky")
     est.task_bytes = k["a"] * w + k["b"]
     per_task = (k["c"] * u + k["d"]) * costs["sgemm_gflops"] / peak_gflops
+    if stage == "simulate" and g.diffuse_samples:  # the time chunks by the fitted constants, the sums by their flops
+        sums = diffuse_sum_seconds(g, peak_gflops)
+        est.notes.append(f"the diffuse sky: {g.n_freq * g.diffuse_samples} direct sums, ~{sums / 60:.0f} min")
+        est.seconds = per_task * math.ceil(-(-g.n_time // TIME_CHUNK) / max(workers, 1)) + sums
+        return est
     est.seconds = per_task * math.ceil(tasks / max(workers, 1))
     return est
+
+
+#: the share of the SGEMM peak the diffuse sky's direct sums reach (the rank-k product over the antennas and
+#: the phasors' sines and cosines), measured 2026-11-27 at full scale: 138 sums of 1.58M points above the
+#: horizon at 256 antennas, 889 s of task time on the 2 workers of a 193 GFLOP/s VM
+DIFFUSE_SUM_FRACTION = 0.67
+
+
+def diffuse_sum_seconds(g, peak_gflops):
+    """Wall seconds of an interpolated diffuse sky's direct sums on the whole machine: per channel and
+    sampled angle ``(2 n_ant)^2 x n_up`` flops (``n_up``, half the quadrature grid, above the horizon), per
+    feed column, at :data:`DIFFUSE_SUM_FRACTION` of the SGEMM peak ``peak_gflops``."""
+    flops = g.n_freq * g.diffuse_samples * g.n_feed_columns * (2.0 * g.n_ant) ** 2 * g.n_diffuse_points / 2
+    return flops / (DIFFUSE_SUM_FRACTION * peak_gflops * 1e9)
 
 
 def geometry(cfg):
@@ -305,14 +324,15 @@ def geometry(cfg):
 
 def _sky_points_count(cfg, tel, freqs):
     """Points the simulator sums: ``(sources, diffuse)``, the diffuse sky's Gauss-Legendre grid being
-    ``(q + 1) x (2 q + 1)``, ``q = diffuse_lmax + fringe band limit + quad_oversample`` (0 without one)."""
+    ``(q // 2 + 2) x (q + 2)``, ``q = diffuse_lmax + fringe band limit + quad_oversample``
+    (:func:`mmflow.simulate.visibilities.gauss_legendre_points`; 0 without one)."""
     s = cfg.sky
     n = 0
     if s.diffuse:
         f = float(np.max(freqs))
         b = np.linalg.norm(tel.baselines_enu(), axis=1) * f / 299792458.0
         q = s.diffuse_lmax + fringe_bandlimit(b, tel.beam.lmax_hint) + s.quad_oversample
-        n = (q + 1) * (2 * q + 1)
+        n = (q // 2 + 2) * (q + 2)
     return len(s.sources), n
 
 

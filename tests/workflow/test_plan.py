@@ -126,6 +126,21 @@ def test_the_paper_channel_needs_its_gram(tmp_path):
     assert 1e9 < g.transfer_workspace < 4e9  # grid tables + ring-Fourier buffers (~3 GB measured with the Gram)
 
 
+def test_the_diffuse_skys_sums_are_timed_by_their_flops(tmp_path):
+    """The paper's channel with the diffuse sky (band limit 64): the plan counts the simulator's grid as
+    gauss_legendre_points builds it (1,257 x 2,513 points), plans its 138 sums in 18 tasks beside the 26
+    time chunks, and times the stage within 50 % of the measured full-scale telescope step (625 s on the
+    2 workers at SGEMM 193 GFLOP/s, docs/performance.md)."""
+    from mmflow.workflow.config import load_config
+
+    cfg = load_config("workflows/paper-scale.yaml", ["sky.diffuse=true", f"run.directory={tmp_path}"])
+    g = geometry(cfg)
+    assert g.n_diffuse_points == 1257 * 2513 and g.diffuse_samples == 138
+    est = next(e for e in plan(cfg, peak_gflops=193.0)["stages"] if e["stage"] == "simulate")
+    assert est["tasks"] == 26 + 18
+    assert abs(est["seconds"] / 625.1 - 1) <= 0.5, est["seconds"]
+
+
 def test_memory_prediction_against_a_measured_run(measured_run):
     """Each stage's largest task (memory above its worker's baseline) within 50 % of the measured one, or
     within 100 MB where tasks hold less than ~200 MB (caches, allocator arenas and the simulator's sky
