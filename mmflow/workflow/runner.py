@@ -247,7 +247,8 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         keys = st.next_cycle(cctx, cycle)
         release_freed_memory()  # the plan's maps and tables (CLEAN: ~1 GB at lmax 1000) back to the system
         if keys is None:
-            log(f"[{st.name}] converged after {cycle} cycles")
+            log(f"[{st.name}] converged after {cycle} cycles" if st.kind == "iterative"
+                else f"[{st.name}] {cycle + 1} phases done")  # a solve or map stage's second phase
             return results
         ckeys = [replace(k, cycle=cycle).format() for k in keys]
         run.add_keys(st.name, ckeys + [mark])
