@@ -41,9 +41,14 @@ def diffuse_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed=0, quad_over
     ``diffuse_lmax``) on its Gauss-Legendre grid (frame of date), exact for the sky times the longest
     fringe (``diffuse_lmax + fringe band limit + quad_oversample``)."""
     alm = kelvin_to_jy_per_sr(synthetic_sky_kelvin(freq_hz, diffuse_lmax, epoch_jd, seed=seed), freq_hz)
+    return gauss_legendre_points(alm, diffuse_lmax, diffuse_quad_lmax(telescope, freq_hz, diffuse_lmax, quad_oversample))
+
+
+def diffuse_quad_lmax(telescope, freq_hz, diffuse_lmax, quad_oversample=48):
+    """Band limit of the diffuse sky's quadrature: ``diffuse_lmax + fringe band limit + quad_oversample``,
+    the fringe's of the longest baseline at ``freq_hz``."""
     b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / 299792458.0
-    quad = diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
-    return gauss_legendre_points(alm, diffuse_lmax, quad)
+    return diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
 
 
 def feed_columns(telescope, corrupted):

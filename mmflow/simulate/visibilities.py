@@ -58,14 +58,19 @@ def healpix_points(hpx_map_jy_sr):
     return SkyPoints(vec, np.asarray(hpx_map_jy_sr, float) * 4 * np.pi / npix)
 
 
+def gauss_legendre_shape(quad_lmax):
+    """``(ntheta, nphi)`` of the Gauss-Legendre grid :func:`gauss_legendre_points` samples a sky on to be
+    exact to ``quad_lmax`` (one ring and one meridian more than the minimum)."""
+    return quad_lmax // 2 + 2, quad_lmax + 2
+
+
 def gauss_legendre_points(alm_jy_sr, lmax, quad_lmax):
     """A band-limited sky (a_lm, Jy/sr) sampled on a Gauss-Legendre grid exact to ``quad_lmax``.
 
     The quadrature ``sum_p w_p I(r_p) f(r_p)`` is exact for integrands of total band
     limit ``<= quad_lmax`` (``ntheta = quad_lmax // 2 + 1``, ``nphi = quad_lmax + 1``).
     """
-    ntheta = quad_lmax // 2 + 2
-    nphi = quad_lmax + 2
+    ntheta, nphi = gauss_legendre_shape(quad_lmax)
     sky = ducc0.sht.synthesis_2d(alm=np.asarray(alm_jy_sr, np.complex128)[None], spin=0, lmax=lmax,
                                  geometry="GL", ntheta=ntheta, nphi=nphi)[0]
     theta = ducc0.misc.GL_thetas(ntheta)

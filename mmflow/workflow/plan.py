@@ -34,7 +34,8 @@ from mmflow.machine import gemm_gflops
 from mmflow.mmode.engine import plan_chunks, plan_groups
 from mmflow.mmode.transfer import fringe_bandlimit
 from mmflow.simulate.drift_modes import n_samples
-from mmflow.simulate.scene import feed_columns
+from mmflow.simulate.scene import diffuse_quad_lmax, feed_columns
+from mmflow.simulate.visibilities import gauss_legendre_shape
 from mmflow.workflow.chunking import TIME_CHUNK
 from mmflow.workflow.context import build_telescope
 from mmflow.workflow.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
@@ -323,17 +324,15 @@ def geometry(cfg):
 
 
 def _sky_points_count(cfg, tel, freqs):
-    """Points the simulator sums: ``(sources, diffuse)``, the diffuse sky's Gauss-Legendre grid being
-    ``(q // 2 + 2) x (q + 2)``, ``q = diffuse_lmax + fringe band limit + quad_oversample``
-    (:func:`mmflow.simulate.visibilities.gauss_legendre_points`; 0 without one)."""
+    """Points the simulator sums: ``(sources, diffuse)``, the diffuse sky's grid as the simulator builds it at
+    the highest channel (:func:`mmflow.simulate.scene.diffuse_quad_lmax`,
+    :func:`mmflow.simulate.visibilities.gauss_legendre_shape`; 0 without one)."""
     s = cfg.sky
-    n = 0
-    if s.diffuse:
-        f = float(np.max(freqs))
-        b = np.linalg.norm(tel.baselines_enu(), axis=1) * f / 299792458.0
-        q = s.diffuse_lmax + fringe_bandlimit(b, tel.beam.lmax_hint) + s.quad_oversample
-        n = (q // 2 + 2) * (q + 2)
-    return len(s.sources), n
+    if not s.diffuse:
+        return len(s.sources), 0
+    q = diffuse_quad_lmax(tel, float(np.max(freqs)), s.diffuse_lmax, s.quad_oversample)
+    ntheta, nphi = gauss_legendre_shape(q)
+    return len(s.sources), ntheta * nphi
 
 
 def plan(cfg, costs=None, peak_gflops=None):
