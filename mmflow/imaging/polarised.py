@@ -39,7 +39,9 @@ from mmflow.conventions import m_slice, n_alm
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.solvers import floored_penalty
-from mmflow.mmode.polarised import CORRELATIONS, STOKES, polarised_transfer_blocks
+from mmflow.mmode.normal import herk_into, hermitian_full
+from mmflow.mmode.polarised import CORRELATIONS, STOKES
+from mmflow.mmode.polarised_transfer import baselines_per_pass, polarised_pass
 from mmflow.sky.harmonics import point_sources_alm
 
 
@@ -61,16 +63,6 @@ class PolarisedNormal:
     vhv: np.ndarray
 
 
-def stack_block(block):
-    """One m block of :func:`mmflow.mmode.polarised.polarised_transfer_blocks` as the matrix ``B_m``.
-
-    ``(n_corr, 4, rows, L)`` -> ``(n_corr rows, 4 L)``: row ``c rows + k`` is row k of
-    correlation c, column ``X L + (l - m)`` the harmonic ``l`` of Stokes X.
-    """
-    n_corr, n_x, rows, n_l = block.shape
-    return block.transpose(0, 2, 1, 3).reshape(n_corr * rows, n_x * n_l)
-
-
 def _data_rows(mmodes, m, index):
     """``(n_vec, n_corr rows)`` data of block m for baselines ``index``: per correlation ``V_m``
     then (``m > 0``) ``conj(V_{-m})``, from m-modes ``(n_vec, mmax + 1, 2, n_corr, n_bl)``."""
@@ -80,8 +72,12 @@ def _data_rows(mmodes, m, index):
 
 
 def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, correlations=CORRELATIONS,
-                                chunk_size=32):
+                                chunk_size=None, dtype=np.float64):
     """Stream over baseline chunks: ``G_m += B_m^H W B_m``, ``r_m += B_m^H W v_m``.
+
+    Each chunk's blocks come from the ring-FFT + GEMM path
+    (:func:`mmflow.mmode.polarised_transfer.polarised_pass`) and go, row-weighted by ``sqrt(W)``,
+    into one ``herk`` per m (:func:`mmflow.mmode.normal.herk_into`) on the thread that computed them.
 
     Parameters
     ----------
@@ -97,6 +93,11 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
         Inverse noise variance of each correlation's m-modes (default 1).
     correlations : sequence of str
         The correlations on the m-modes' correlation axis.
+    chunk_size : int, optional
+        Baselines per transfer pass (default
+        :func:`mmflow.mmode.polarised_transfer.baselines_per_pass`).
+    dtype : float64 or float32
+        Precision of the transfer blocks and of the accumulation (the Grams are returned complex128).
 
     Returns
     -------
@@ -114,20 +115,27 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
                              "give m-modes (mmax + 1, 2, n_corr, n_bl) with mmax >= lmax")
     n_vec = 0 if mm is None else mm.shape[0]
     w = np.ones((n_corr, nb)) if inv_var is None else np.broadcast_to(np.asarray(inv_var, float), (n_corr, nb))
-    gram = [np.zeros((4 * (lmax - m + 1),) * 2, np.complex128) for m in range(lmax + 1)]
+    cdtype = np.complex64 if np.dtype(dtype) == np.float32 else np.complex128
+    gram = [np.zeros((4 * (lmax - m + 1),) * 2, cdtype, order="F") for m in range(lmax + 1)]
     rhs = [np.zeros((n_vec, 4 * (lmax - m + 1)), np.complex128) for m in range(lmax + 1)]
     vhv = np.zeros((n_vec, lmax + 1))
+    chunk_size = chunk_size or baselines_per_pass(grid, n_corr, np.dtype(cdtype).itemsize)
     for start in range(0, nb, chunk_size):
         index = np.arange(start, min(start + chunk_size, nb))
-        blocks = polarised_transfer_blocks(grid, b[index], correlations)
-        for m, block in enumerate(blocks):
-            mat = stack_block(block)
-            wr = np.tile(w[:, index], (1, 1 if m == 0 else 2)).reshape(-1)  # rows: corr, (+m, -m), baseline
-            gram[m] += mat.conj().T @ (wr[:, None] * mat)
+
+        def consume(m, block):  # block (n_l, 4, n_corr, cols): rows (corr, +m / -m, baseline)
+            n_l, cols = block.shape[0], block.shape[-1]
+            sw = np.sqrt(np.tile(w[:, index], (1, cols // len(index)))).reshape(-1)
+            xs = block.transpose(1, 0, 2, 3).reshape(4 * n_l, n_corr * cols) * sw.astype(cdtype)
+            herk_into(gram[m], xs, n_corr * cols, 4 * n_l, n_corr * cols)
             if mm is not None:
                 v = _data_rows(mm, m, index)
-                rhs[m] += (v * wr) @ mat.conj()
-                vhv[:, m] += np.sum(wr * np.abs(v) ** 2, axis=1)
+                rhs[m] += (v * sw) @ xs.conj().T
+                vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)
+
+        polarised_pass(grid, b[index], consume, correlations=correlations, dtype=dtype)
+    for m in range(lmax + 1):  # one m at a time: never two whole Grams
+        gram[m] = hermitian_full(gram[m])
     return PolarisedNormal(lmax, gram, rhs, vhv)
 
 

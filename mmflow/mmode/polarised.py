@@ -38,8 +38,9 @@ Quadrature. The integrals are exact weighted sums on a Gauss-Legendre grid exact
 ``lmax + L_f`` (as the Stokes-I path), taken by ducc0's adjoint spin-0 / spin-2 transforms
 of the weighted kernel maps: for a complex map g, ``int g sY_lm = conj(int g^* sY_lm^*)``,
 and the transforms of real maps give every m through the reality relations.
-These are reference kernels (one transform per map): the ring-FFT + per-m GEMM fast path
-for full Stokes is not built yet (docs/stokes.md).
+These are the reference kernels (six transforms per baseline and correlation), the independent
+computation the fast path is tested against: :mod:`mmflow.mmode.polarised_transfer` computes the
+same coefficients by ring FFTs and per-m GEMMs, as the Stokes-I path does.
 """
 from __future__ import annotations
 
@@ -212,8 +213,9 @@ def polarised_coefficients(grid, b_wavelengths, corr):
                      -1j * (s_plus - s_minus), spin0_integrals(grid, fringe * k_v)])
 
 
-def polarised_transfer_blocks(grid, b_wavelengths, correlations=CORRELATIONS):
-    """Full-Stokes transfer blocks in the Stokes-I path's row layout, one per m.
+def reference_transfer_blocks(grid, b_wavelengths, correlations=CORRELATIONS):
+    """Full-Stokes transfer blocks in the Stokes-I path's row layout, one per m, by the reference kernels
+    (:func:`mmflow.mmode.polarised_transfer.polarised_transfer_blocks` is the fast path).
 
     Returns
     -------

@@ -2,7 +2,7 @@
 
 Each task reads the m-modes of the four correlations (``mmodes.zarr``'s ``mmodes_corr``, xx, yy,
 xy, yx), builds the full-Stokes transfer coefficients of every baseline through the E-field beam
-(:func:`mmflow.mmode.polarised.polarised_transfer_blocks`, the beam from ``beam``: type
+(:func:`mmflow.mmode.polarised_transfer.polarised_pass`, the beam from ``beam``: type
 ``short_dipole`` or a pyuvdata E-field beam), accumulates ``G_m = B_m^H W B_m`` and
 ``r_m = B_m^H W v_m`` over the ``4 (lmax - m + 1)`` unknowns ``[T; E; B; V]``
 (:func:`mmflow.imaging.polarised.accumulate_polarised_normal`, ``W`` the correlations' relative

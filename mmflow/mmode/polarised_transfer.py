@@ -1,0 +1,227 @@
+"""Full-Stokes transfer blocks through ring FFTs and per-m GEMMs (north/south folded).
+
+The coefficients of :mod:`mmflow.mmode.polarised` (correlation pq of baseline b against the sky's
+T, E, B and V harmonics) on the same Gauss-Legendre grid, computed as the Stokes-I path computes
+its own (:mod:`mmflow.mmode.transfer`). With ``F^X_{k,m} = sum_j f_b K_X(theta_k, phi_j) e^{i m phi_j}``
+the ring FFT of the fringe times each Stokes kernel ``K_X`` of the correlation (X = I, V, Q, U) and
+``W_lm, X_lm`` the spin-2 Legendre functions (:mod:`mmflow.mmode.spin_legendre`,
+``+-2_lambda = W +- X``)::
+
+    b^T_lm = sum_k w_k lambda_lm F^I_{k,m},          b^V_lm = sum_k w_k lambda_lm F^V_{k,m},
+    b^E_lm = -sum_k w_k (W_lm F^Q_{k,m} + i X_lm F^U_{k,m}),
+    b^B_lm =  sum_k w_k (W_lm F^U_{k,m} - i X_lm F^Q_{k,m}),
+
+which is :func:`mmflow.mmode.polarised.polarised_coefficients`' ``-(int h_+ 2Y + int h_- -2Y)`` and
+``-i (int h_+ 2Y - int h_- -2Y)`` with ``h_+- = f_b (K_Q +- i K_U) / 2`` written out. The stored
+``-m`` row ``(-1)^m conj(b^X_{l,-m})`` is the same sum with ``conj(F^X_{k,-m})`` in place of
+``F^X_{k,m}`` (``lambda_{l,-m} = (-1)^m lambda_lm``, ``W_{l,-m} = (-1)^m W_lm``,
+``X_{l,-m} = -(-1)^m X_lm``). Folding ring k with its mirror k': ``lambda`` and ``W`` take
+``F_k + F_k'`` on rows with ``l + m`` even and ``F_k - F_k'`` on odd rows; ``X`` the other way round.
+
+Per m and correlation that is six real GEMMs of the Stokes-I path's shape (``lambda`` on I and V,
+``W`` and ``X`` on Q and U) and four ring FFTs: a full-Stokes block costs ~24x a Stokes-I block's
+Legendre step, and its Gram (4x the rows, 4x the columns) ~64x its ``herk``
+(docs/stokes.md: measured by ``mmflow bench transfer --stokes IQUV``).
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import ducc0
+import numpy as np
+
+from mmflow.conventions import m_blocks
+from mmflow.mmode.polarised import CORRELATIONS, stokes_kernels
+from mmflow.mmode.spin_legendre import weighted_spin_tables
+from mmflow.threads import n_threads, single_threaded_blas
+
+#: Order of the kernels on the Fourier arrays' field axis: the spin-0 pair, then the spin-2 pair.
+FIELDS = ("I", "V", "Q", "U")
+#: Bytes one pass's Fourier arrays may hold; more m than fit are done in blocks, each block's ring
+#: FFTs recomputed (cheap next to the GEMMs: a few percent at lmax 1000).
+FOURIER_BUDGET_BYTES = 1024 * 2 ** 20
+
+
+def active_rings(grid):
+    """North-ring indices k whose ring or mirror ring sees a feed (the rest contribute nothing)."""
+    seen = np.any(np.abs(grid.jn) + np.abs(grid.je) > 0, axis=(0, 2))
+    half = len(grid.theta) // 2
+    return np.flatnonzero(seen[:half] | seen[::-1][:half])
+
+
+def ring_kernels(grid, k, correlations):
+    """``K_X`` of ring k for X in :data:`FIELDS` and each correlation: complex ``(n_phi, 4, n_corr)``."""
+    out = np.empty((grid.n_phi, 4, len(correlations)), complex)
+    for c, corr in enumerate(correlations):
+        k_i, k_q, k_u, k_v = stokes_kernels(grid.jn[:, k], grid.je[:, k], corr)
+        out[:, 0, c], out[:, 1, c], out[:, 2, c], out[:, 3, c] = k_i, k_v, k_q, k_u
+    return out
+
+
+def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None):
+    """``F_k +/- F_k'`` of every field and correlation for ``m0 <= m < m1`` and the active north rings.
+
+    Returns
+    -------
+    fsum, fdiff : complex ``(m1 - m0, 2, n_active, 2, n_corr, 2 n_b)``: axes 1 and 3 are the
+        field pairs (I, V) and (Q, U) of :data:`FIELDS` (each pair contiguous per m: one GEMM);
+        columns ``c < n_b`` hold ``F_{k,m}`` of baseline c, ``c >= n_b`` hold ``F_{k,-m}`` of baseline
+        ``c - n_b`` (conjugated after the GEMM, where the data are small).
+    rings : the active north rings (:func:`active_rings`)
+    """
+    b = np.asarray(b, float).reshape(-1, 3)
+    nb, nc, n = len(b), len(correlations), grid.n_phi
+    m0, m1 = m_range
+    rings = active_rings(grid)
+    shape = (m1 - m0, 2, len(rings), 2, nc, 2 * nb)
+    fsum, fdiff = np.empty(shape, cdtype), np.empty(shape, cdtype)
+    neg = (n - np.arange(m0, m1)) % n  # F_{-m} sits at index n - m (0 for m = 0)
+
+    def ring(i):
+        k = rings[i]
+        pair = []
+        for kk in (k, len(grid.theta) - 1 - k):
+            fringe = np.exp(2j * np.pi * (grid.vectors[kk] @ b.T))  # (n_phi, nb)
+            pair.append(ring_kernels(grid, kk, correlations)[..., None] * fringe[:, None, None, :])
+        for f, target in ((pair[0] + pair[1], fsum), (pair[0] - pair[1], fdiff)):
+            f = f.astype(cdtype, copy=False)
+            ducc0.fft.c2c(f, axes=(0,), forward=False, inorm=0, out=f, nthreads=1)
+            f = f.reshape(n, 2, 2, nc, nb)  # fields (I, V), (Q, U)
+            target[:, :, i, ..., :nb] = f[m0:m1]
+            target[:, :, i, ..., nb:] = f[neg]
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(max_workers=n_threads()) as pool:
+        list(pool.map(ring, range(len(rings))))
+    if timings is not None:
+        timings["fourier_s"] = timings.get("fourier_s", 0.0) + time.perf_counter() - t0
+    return fsum, fdiff, rings
+
+
+def fourier_bytes_per_m(grid, nb, n_corr, itemsize):
+    """Bytes of :func:`polarised_fourier`'s two arrays per m: ``2 x 2 x n_active x 2 x n_corr x 2 n_b``."""
+    return 2 * 2 * len(active_rings(grid)) * 2 * n_corr * 2 * nb * itemsize
+
+
+def fourier_m_block(grid, nb, n_corr, itemsize, budget=None):
+    """How many m one Fourier pass keeps so that its two arrays stay within ``budget`` bytes
+    (default :data:`FOURIER_BUDGET_BYTES`)."""
+    budget = FOURIER_BUDGET_BYTES if budget is None else budget
+    return max(1, int(budget // max(fourier_bytes_per_m(grid, nb, n_corr, itemsize), 1)))
+
+
+def baselines_per_pass(grid, n_corr, itemsize, budget=None):
+    """Baselines per :func:`polarised_pass`: about four Fourier m-blocks (:func:`fourier_m_block`) per
+    pass, 8 to 64. Each block recomputes the rings' FFTs; fewer baselines make narrower GEMMs and
+    lower-rank ``herk`` updates. Measured at lmax 1000 (float32, 16 baselines): 1.82 s per baseline at
+    8 per pass (five blocks), 1.86 s at 4, 2.7 s at 16 (docs/stokes.md)."""
+    budget = FOURIER_BUDGET_BYTES if budget is None else budget
+    all_m = fourier_bytes_per_m(grid, 1, n_corr, itemsize) * (grid.lmax + 1)
+    return int(np.clip(4 * budget // max(all_m, 1), 8, 64))
+
+
+def polarised_tables(grid, m, lmax_rows, rings, rdtype):
+    """Weighted ``w lambda``, ``w W``, ``w X`` on the active north rings, rows ``l = m..lmax_rows``,
+    each as its ``(even, odd)`` rows in ``l - m`` (contiguous views, ``rdtype``;
+    :func:`mmflow.mmode.spin_legendre.weighted_spin_tables`)."""
+    tabs = weighted_spin_tables(m, lmax_rows, grid.theta[rings], grid.weights[rings], rdtype)
+    ne = (lmax_rows - m) // 2 + 1
+    return [(t[:ne], t[ne:]) for t in tabs]
+
+
+def _folded_gemm(table, first, second, out):
+    """``out[even rows] = even @ first``, ``out[odd rows] = odd @ second`` for ``table = (even, odd)``
+    (rows ``l - m`` even and odd; complex data as real views: the tables are real)."""
+    even, odd = table
+    rdtype = even.dtype
+    a, b = first.reshape(first.shape[0], -1), second.reshape(second.shape[0], -1)
+    o = out.reshape(out.shape[0], -1)
+    np.matmul(even, a.view(rdtype), out=o[0::2].view(rdtype))
+    if len(odd):
+        np.matmul(odd, b.view(rdtype), out=o[1::2].view(rdtype))
+
+
+def polarised_block(s, d, tables, nb):
+    """One m's coefficients ``(n_out, 4, n_corr, 2 n_b)`` over STOKES (T, E, B, V), from that m's
+    Fourier arrays ``s, d`` (:func:`polarised_fourier`: ``(2, n_active, 2, n_corr, 2 n_b)``, pairs
+    (I, V) and (Q, U)) and the tables of :func:`polarised_tables`."""
+    lam, wt, xt = tables
+    n_out = lam[0].shape[0] + lam[1].shape[0]
+    shape = (n_out,) + s.shape[2:]
+    iv, w_qu, x_qu = (np.empty(shape, s.dtype) for _ in range(3))
+    _folded_gemm(lam, s[0], d[0], iv)
+    _folded_gemm(wt, s[1], d[1], w_qu)
+    _folded_gemm(xt, d[1], s[1], x_qu)
+    for a in (iv, w_qu, x_qu):
+        np.conjugate(a[..., nb:], out=a[..., nb:])
+    out = np.empty((n_out, 4) + s.shape[3:], s.dtype)
+    out[:, 0] = iv[:, 0]
+    out[:, 1] = -(w_qu[:, 0] + 1j * x_qu[:, 1])
+    out[:, 2] = w_qu[:, 1] - 1j * x_qu[:, 0]
+    out[:, 3] = iv[:, 1]
+    return out
+
+
+def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype=np.float64, lmax_rows=None,
+                   timings=None):
+    """Compute every m's full-Stokes block of baselines ``b`` and hand it to ``consume(m, block)``.
+
+    ``block`` is ``(n_out, 4, n_corr, cols)``, ``n_out = lmax_rows - m + 1`` (l = m..), axis 1
+    :data:`mmflow.mmode.polarised.STOKES`, ``cols = n_b`` for m = 0 and ``2 n_b`` otherwise (the
+    ``+m`` rows, then the ``-m`` rows ``(-1)^m conj(b^X_{l,-m})``). Runs of consecutive m run on
+    :func:`mmflow.threads.n_threads` threads with one BLAS thread each (the bits do not depend on
+    the thread count); ``consume`` is called on the thread that computed the block and may update
+    per-m state without locks. Returns ``consume``'s results in m order.
+    """
+    b = np.asarray(b, float).reshape(-1, 3)
+    nb = len(b)
+    lrows = grid.lmax if lmax_rows is None else min(int(lmax_rows), grid.lmax)
+    mmax = lrows if mmax is None else min(int(mmax), lrows)
+    rdtype = np.dtype(dtype)
+    cdtype = np.complex64 if rdtype == np.float32 else np.complex128
+    step = fourier_m_block(grid, nb, len(correlations), np.dtype(cdtype).itemsize)
+    results = []
+    for m0, m1 in m_blocks(mmax, step):
+        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings)
+        per_task = max(1, 512 // (lrows + 1))
+        tasks = [range(m, min(m + per_task, m1)) for m in range(m0, m1, per_task)]
+        t0 = time.perf_counter()
+        with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:
+            for res, tim in pool.map(lambda ms: _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume), tasks):
+                results.extend(res)
+                if timings is not None:
+                    for key, v in tim.items():
+                        timings[key] = timings.get(key, 0.0) + v
+        if timings is not None:
+            timings["mpool_s"] = timings.get("mpool_s", 0.0) + time.perf_counter() - t0
+        fourier = None  # freed before the next block's arrays: one block's at a time
+    return results
+
+
+def _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume):
+    """One pool task of :func:`polarised_pass`: the blocks of the m in ``ms`` handed to ``consume``."""
+    fsum, fdiff, rings = fourier
+    tim, res = {}, []
+    for m in ms:
+        t0 = time.perf_counter()
+        tables = polarised_tables(grid, m, lrows, rings, rdtype)
+        t1 = time.perf_counter()
+        block = polarised_block(fsum[m - m0], fdiff[m - m0], tables, nb)
+        t2 = time.perf_counter()
+        tim["tables_s"] = tim.get("tables_s", 0.0) + t1 - t0
+        tim["legendre_s"] = tim.get("legendre_s", 0.0) + t2 - t1
+        res.append(consume(m, block if m > 0 else block[..., :nb]))
+    return res, tim
+
+
+def polarised_transfer_blocks(grid, b_wavelengths, correlations=CORRELATIONS, dtype=np.float64):
+    """Full-Stokes transfer blocks in the Stokes-I path's row layout, one per m (the fast path of
+    :func:`mmflow.mmode.polarised.reference_transfer_blocks`: same layout, values to rounding).
+
+    Returns
+    -------
+    list over ``m = 0..lmax`` of complex arrays ``(n_corr, 4, rows, lmax - m + 1)``.
+    """
+    return polarised_pass(grid, b_wavelengths, lambda m, blk: np.ascontiguousarray(blk.transpose(2, 1, 3, 0)),
+                          correlations=correlations, dtype=dtype)
