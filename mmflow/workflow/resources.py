@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import resource
 import sys
+import tracemalloc
 
 _STATUS = "/proc/self/status"
 _CLEAR = "/proc/self/clear_refs"
@@ -56,6 +57,27 @@ def peak_rss_bytes():
         return kib * 1024
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak if sys.platform == "darwin" else peak * 1024  # bytes on macOS, KiB on Linux
+
+
+def reset_traced_peak():
+    """Start a task's reading of the memory Python and numpy allocate (``tracemalloc``, only when a
+    caller has started tracing it, e.g. a test): returns the bytes traced now, or None when not tracing.
+
+    Unlike the resident set, the traced peak does not depend on what the allocator kept from earlier
+    tasks or on one-off caches outside numpy: it is the task's own arrays (numpy registers its data
+    buffers with ``tracemalloc``; memory that compiled libraries allocate themselves is not traced).
+    """
+    if not tracemalloc.is_tracing():
+        return None
+    tracemalloc.reset_peak()
+    return tracemalloc.get_traced_memory()[0]
+
+
+def traced_peak_bytes(start):
+    """The traced peak since :func:`reset_traced_peak` returned ``start``, above it (None if not tracing)."""
+    if start is None or not tracemalloc.is_tracing():
+        return None
+    return tracemalloc.get_traced_memory()[1] - start
 
 
 def current_rss_bytes():

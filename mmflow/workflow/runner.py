@@ -33,7 +33,8 @@ from mmflow.workflow.context import Context
 from mmflow.workflow.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan import check_fits
-from mmflow.workflow.resources import current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss
+from mmflow.workflow.resources import (current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss, reset_traced_peak,
+                                       traced_peak_bytes)
 from mmflow.workflow.rundir import RunDir
 from mmflow.workflow.task_key import TaskKey
 
@@ -73,6 +74,7 @@ def run_task(ctx, pipeline, stage_name, key):
         release_freed_memory()
     reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.resources)
     rss_start = current_rss_bytes()
+    traced_start = reset_traced_peak()  # None unless the process traces its allocations (tracemalloc)
     t0 = time.time()
     stage = pipeline.stage(stage_name)
     tctx = ctx.for_stage(stage).for_task(keep_handles=True)
@@ -80,6 +82,8 @@ def run_task(ctx, pipeline, stage_name, key):
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start))
+    if traced_start is not None:
+        info["traced_peak_gb"] = gb(traced_peak_bytes(traced_start))
     run.check_holder(ctx.token)
     run.mark_done(stage_name, key, info, tctx.ledger.entries)
     return {"key": key, "skipped": False, **info}
