@@ -72,7 +72,7 @@ def _data_rows(mmodes, m, index):
 
 
 def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, correlations=CORRELATIONS,
-                                chunk_size=None, dtype=np.float64):
+                                chunk_size=None, dtype=np.float64, lmax_b=None):
     """Stream over baseline chunks: ``G_m += B_m^H W B_m``, ``r_m += B_m^H W v_m``.
 
     Each chunk's blocks come from the ring-FFT + GEMM path
@@ -98,6 +98,12 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
         :func:`mmflow.mmode.polarised_transfer.baselines_per_pass`).
     dtype : float64 or float32
         Precision of the transfer blocks and of the accumulation (the Grams are returned complex128).
+    lmax_b : ndarray (n_bl,), optional
+        Per-baseline lmax (:meth:`mmflow.telescope.Telescope.baseline_lmax`, as the Stokes-I path's
+        ``transfer.per_baseline_lmax``): a baseline's coefficients above it are zero, and its chunk's
+        blocks (baselines sorted by ``lmax_b``) stop at the chunk's largest (Legendre GEMMs and
+        ``herk`` over ``l <= lmax_c`` only; the ring FFTs stay on ``grid``). Its m-modes enter ``r_m``
+        and ``v^H W v`` for ``m <= lmax_c``.
 
     Returns
     -------
@@ -120,20 +126,34 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     rhs = [np.zeros((n_vec, 4 * (lmax - m + 1)), np.complex128) for m in range(lmax + 1)]
     vhv = np.zeros((n_vec, lmax + 1))
     chunk_size = chunk_size or baselines_per_pass(grid, n_corr, np.dtype(cdtype).itemsize)
+    lb = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b, int), lmax)
+    order = np.argsort(lb, kind="stable")  # chunks of like lmax_b: blocks stop at the chunk's largest
     for start in range(0, nb, chunk_size):
-        index = np.arange(start, min(start + chunk_size, nb))
+        index = order[start:start + chunk_size]
+        top = int(lb[index].max())
+        mask = np.arange(lmax + 1)[:, None] <= lb[index][None, :] if lb[index].min() < top else None
 
-        def consume(m, block):  # block (n_l, 4, n_corr, cols): rows (corr, +m / -m, baseline)
-            n_l, cols = block.shape[0], block.shape[-1]
+        def consume(m, block):  # block (n_l, 4, n_corr, cols): rows (corr, +m / -m, baseline), l = m..top
+            n_l, cols, big = block.shape[0], block.shape[-1], lmax - m + 1
+            if mask is not None:  # coefficients above a baseline's own lmax_b are zero
+                block = block * np.tile(mask[m:top + 1], (1, cols // len(index)))[:, None, None, :]
             sw = np.sqrt(np.tile(w[:, index], (1, cols // len(index)))).reshape(-1)
             xs = block.transpose(1, 0, 2, 3).reshape(4 * n_l, n_corr * cols) * sw.astype(cdtype)
-            herk_into(gram[m], xs, n_corr * cols, 4 * n_l, n_corr * cols)
+            if n_l == big:
+                herk_into(gram[m], xs, n_corr * cols, 4 * n_l, n_corr * cols)
+            else:  # l = m..top of each Stokes: the upper blocks (X <= Y) of a smaller Gram, added in place
+                part = herk_into(np.zeros((4 * n_l,) * 2, cdtype, order="F"), xs, n_corr * cols, 4 * n_l,
+                                 n_corr * cols)
+                for x in range(4):
+                    for y in range(x, 4):
+                        gram[m][x * big:x * big + n_l, y * big:y * big + n_l] += \
+                            part[x * n_l:(x + 1) * n_l, y * n_l:(y + 1) * n_l]
             if mm is not None:
                 v = _data_rows(mm, m, index)
-                rhs[m] += (v * sw) @ xs.conj().T
+                rhs[m].reshape(n_vec, 4, big)[:, :, :n_l] += ((v * sw) @ xs.conj().T).reshape(n_vec, 4, n_l)
                 vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)
 
-        polarised_pass(grid, b[index], consume, correlations=correlations, dtype=dtype)
+        polarised_pass(grid, b[index], consume, mmax=top, correlations=correlations, dtype=dtype, lmax_rows=top)
     for m in range(lmax + 1):  # one m at a time: never two whole Grams
         gram[m] = hermitian_full(gram[m])
     return PolarisedNormal(lmax, gram, rhs, vhv)

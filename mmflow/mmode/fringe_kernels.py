@@ -3,7 +3,8 @@
 :func:`fringe_folds` writes the beam-weighted fringes of a block of north rings and their
 mirror rings straight into the two FFT inputs ``A_n f_n +/- A_s f_s`` in one pass over memory,
 where numpy needs about ten (matmul, reduce, cast, sin, cos, two beam products, the mirror
-rotation, sum and difference).
+rotation, sum and difference); :func:`kernel_fringe_folds` does the same with complex kernels
+(every Stokes kernel of every correlation) for the full-Stokes path.
 
 The fringe phase ``t = b . r`` (turns) is formed and reduced to ``[-1/2, 1/2]`` in float64,
 then ``sin/cos(2 pi t)`` come from a quarter-turn reduction and Taylor polynomials in the
@@ -47,8 +48,9 @@ def _sincos_turns(t, s, c, two_pi, quarter):
 
 @lru_cache(maxsize=None)
 def _kernels(real_name):
-    """Compile :func:`fringe_folds` for float32 or float64 working precision (or load it from numba's
-    cache: the closure holds only numbers and numpy types, so its cache key is the same in every process)."""
+    """Compile :func:`fringe_folds` and :func:`kernel_fringe_folds` for float32 or float64 working precision
+    (or load them from numba's cache: the closures hold only numbers and numpy types, so their cache keys
+    are the same in every process)."""
     real = np.dtype(real_name).type
     cplx = np.complex64 if real is np.float32 else np.complex128
     n_terms = 6 if real is np.float32 else 9  # |y| <= pi/4: y^13/13! ~ 2e-11, y^19/19! ~ 1e-19
@@ -80,7 +82,48 @@ def _kernels(real_name):
                     out_sum[r, j, c] = cplx(complex(an * co + a_s * sr, an * s + a_s * si))
                     out_diff[r, j, c] = cplx(complex(an * co - a_s * sr, an * s - a_s * si))
 
-    return fringe_folds
+    @numba.njit(nogil=True, boundscheck=False, cache=True)
+    def kernel_folds(vec_n, vec_s, b_turns, kr_n, ki_n, kr_s, ki_s, out_sum, out_diff):
+        nphi, nf = kr_n.shape
+        nb = b_turns.shape[0]
+        fr = np.empty((4, nb), real)  # north re, im; south re, im
+        for j in range(nphi):
+            for c in range(nb):
+                for h, v in ((0, vec_n), (2, vec_s)):
+                    t = v[j, 0] * b_turns[c, 0] + v[j, 1] * b_turns[c, 1] + v[j, 2] * b_turns[c, 2]
+                    sn, co = _sincos_turns(real(t - np.rint(t)), sin_c, cos_c, two_pi, quarter)
+                    fr[h, c] = co
+                    fr[h + 1, c] = sn
+            for f in range(nf):
+                anr, ani, asr, asi = kr_n[j, f], ki_n[j, f], kr_s[j, f], ki_s[j, f]
+                for c in range(nb):
+                    nr = anr * fr[0, c] - ani * fr[1, c]
+                    ni = anr * fr[1, c] + ani * fr[0, c]
+                    sr = asr * fr[2, c] - asi * fr[3, c]
+                    si = asr * fr[3, c] + asi * fr[2, c]
+                    out_sum[j, f, c] = cplx(complex(nr + sr, ni + si))
+                    out_diff[j, f, c] = cplx(complex(nr - sr, ni - si))
+
+    return fringe_folds, kernel_folds
+
+
+def kernel_fringe_folds(vec_n, vec_s, b_turns, k_n, k_s, out_sum, out_diff):
+    """Complex kernels times the fringes of one north ring and its mirror, folded, for the full-Stokes path.
+
+    ``out_sum/out_diff[j, f, c] = K_n[j, f] e^{2 pi i b_c.r_n,j} +/- K_s[j, f] e^{2 pi i b_c.r_s,j}``
+    (:mod:`mmflow.mmode.polarised_transfer`: f runs over the Stokes kernels of every correlation).
+
+    Parameters
+    ----------
+    vec_n, vec_s : (nphi, 3) float64 directions of the two rings; b_turns : (nb, 3) float64 baselines
+    k_n, k_s : (nphi, nf) complex kernels on the two rings
+    out_sum, out_diff : (nphi, nf, nb) complex64 or complex128, written in full
+    """
+    real = out_sum.real.dtype
+    kern = _kernels(np.dtype(real).name)[1]
+    parts = [np.ascontiguousarray(p, real) for k in (k_n, k_s) for p in (k.real, k.imag)]
+    kern(np.ascontiguousarray(vec_n, float), np.ascontiguousarray(vec_s, float), np.ascontiguousarray(b_turns, float),
+         *parts, out_sum, out_diff)
 
 
 def fringe_folds(vec, b_turns, beam_n, beam_s, south_rot, out_sum, out_diff):
@@ -97,7 +140,7 @@ def fringe_folds(vec, b_turns, beam_n, beam_s, south_rot, out_sum, out_diff):
     south_rot : (nr, nb) complex, in the output precision
     out_sum, out_diff : (nr, nphi, nb) complex64 or complex128, written in full
     """
-    kern = _kernels(np.dtype(out_sum.real.dtype).name)
+    kern = _kernels(np.dtype(out_sum.real.dtype).name)[0]
     real = out_sum.real.dtype
     kern(vec, b_turns, beam_n, beam_s, np.ascontiguousarray(south_rot.real, real),
          np.ascontiguousarray(south_rot.imag, real), out_sum, out_diff)
@@ -105,7 +148,7 @@ def fringe_folds(vec, b_turns, beam_n, beam_s, south_rot, out_sum, out_diff):
 
 def sincos_turns(t, dtype=np.float64):
     """``(sin 2 pi t, cos 2 pi t)`` from the compiled polynomial, for testing."""
-    inner = _kernels(np.dtype(dtype).name)
+    inner = _kernels(np.dtype(dtype).name)[0]
     # reuse fringe_folds on a 1-ring, 1-point grid: direction (1, 0, 0), baselines (t, 0, 0)
     t = np.asarray(t, np.float64).ravel()
     out_s = np.empty((1, 1, len(t)), np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)

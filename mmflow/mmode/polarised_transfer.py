@@ -32,6 +32,7 @@ import ducc0
 import numpy as np
 
 from mmflow.conventions import m_blocks
+from mmflow.mmode.fringe_kernels import kernel_fringe_folds
 from mmflow.mmode.polarised import CORRELATIONS, stokes_kernels
 from mmflow.mmode.spin_legendre import weighted_spin_tables
 from mmflow.threads import n_threads, single_threaded_blas
@@ -39,7 +40,7 @@ from mmflow.threads import n_threads, single_threaded_blas
 #: Order of the kernels on the Fourier arrays' field axis: the spin-0 pair, then the spin-2 pair.
 FIELDS = ("I", "V", "Q", "U")
 #: Bytes one pass's Fourier arrays may hold; more m than fit are done in blocks, each block's ring
-#: FFTs recomputed (cheap next to the GEMMs: a few percent at lmax 1000).
+#: FFTs recomputed (a quarter of the time at lmax 1000 with 8 baselines a pass: docs/stokes.md).
 FOURIER_BUDGET_BYTES = 1024 * 2 ** 20
 
 
@@ -80,12 +81,11 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
 
     def ring(i):
         k = rings[i]
-        pair = []
-        for kk in (k, len(grid.theta) - 1 - k):
-            fringe = np.exp(2j * np.pi * (grid.vectors[kk] @ b.T))  # (n_phi, nb)
-            pair.append(ring_kernels(grid, kk, correlations)[..., None] * fringe[:, None, None, :])
-        for f, target in ((pair[0] + pair[1], fsum), (pair[0] - pair[1], fdiff)):
-            f = f.astype(cdtype, copy=False)
+        ks = len(grid.theta) - 1 - k  # the mirror ring
+        folded = np.empty((2, n, 4 * nc, nb), cdtype)
+        kernel_fringe_folds(grid.vectors[k], grid.vectors[ks], b, ring_kernels(grid, k, correlations).reshape(n, -1),
+                            ring_kernels(grid, ks, correlations).reshape(n, -1), folded[0], folded[1])
+        for f, target in ((folded[0], fsum), (folded[1], fdiff)):
             ducc0.fft.c2c(f, axes=(0,), forward=False, inorm=0, out=f, nthreads=1)
             f = f.reshape(n, 2, 2, nc, nb)  # fields (I, V), (Q, U)
             target[:, :, i, ..., :nb] = f[m0:m1]
@@ -114,8 +114,8 @@ def fourier_m_block(grid, nb, n_corr, itemsize, budget=None):
 def baselines_per_pass(grid, n_corr, itemsize, budget=None):
     """Baselines per :func:`polarised_pass`: about four Fourier m-blocks (:func:`fourier_m_block`) per
     pass, 8 to 64. Each block recomputes the rings' FFTs; fewer baselines make narrower GEMMs and
-    lower-rank ``herk`` updates. Measured at lmax 1000 (float32, 16 baselines): 1.82 s per baseline at
-    8 per pass (five blocks), 1.86 s at 4, 2.7 s at 16 (docs/stokes.md)."""
+    lower-rank ``herk`` updates. Measured at lmax 1000 (float32, 16 baselines, with numpy's ring
+    products): 1.82 s per baseline at 8 per pass (five blocks), 1.86 s at 4, 2.7 s at 16."""
     budget = FOURIER_BUDGET_BYTES if budget is None else budget
     all_m = fourier_bytes_per_m(grid, 1, n_corr, itemsize) * (grid.lmax + 1)
     return int(np.clip(4 * budget // max(all_m, 1), 8, 64))

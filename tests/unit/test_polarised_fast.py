@@ -74,15 +74,28 @@ def test_fast_blocks_equal_the_reference_kernels(correlations, monkeypatch):
         np.testing.assert_array_equal(g, h)
 
 
-def test_streamed_normal_equations_equal_the_dense_products():
+@pytest.mark.parametrize("per_baseline", [False, True])
+def test_streamed_normal_equations_equal_the_dense_products(per_baseline):
+    """With per-baseline lmax the dense products use the reference blocks with each baseline's
+    coefficients above its lmax_b zeroed, and its m-modes only up to its chunk's largest lmax_b."""
     grid, b = _setup(7, 24, seed=3)
     rng = np.random.default_rng(4)
     lmax, nc = grid.lmax, 4
     mm = rng.normal(size=(2, lmax + 3, 2, nc, len(b))) + 1j * rng.normal(size=(2, lmax + 3, 2, nc, len(b)))
     w = rng.uniform(0.5, 2.0, (nc, len(b)))
-    normal = accumulate_polarised_normal(grid, b, mm, w, chunk_size=3)
+    lmax_b = np.array([24, 9, 17, 5, 24, 12, 20]) if per_baseline else None
+    normal = accumulate_polarised_normal(grid, b, mm, w, chunk_size=3, lmax_b=lmax_b)
     blocks = reference_transfer_blocks(grid, b)
-    for m in (0, 1, 9, lmax):
+    if per_baseline:
+        # chunks of three by lmax_b: (5, 9, 12) -> 12, (17, 20, 24) -> 24, (24) -> 24
+        top = np.array([24, 12, 24, 12, 24, 12, 24])
+        for m, blk in enumerate(blocks):
+            ell = np.arange(m, lmax + 1)
+            blk *= (ell[None, :] <= lmax_b[:, None])[None, None, :, :] if m == 0 else \
+                np.tile(ell[None, :] <= lmax_b[:, None], (2, 1))[None, None]
+            live = top >= m  # a chunk's m-modes enter only its m <= lmax_c
+            mm[:, m, :, :, ~live] = 0
+    for m in (0, 1, 9, 13, lmax):
         blk = blocks[m]  # (corr, 4, rows, L)
         a = blk.transpose(0, 2, 1, 3).reshape(nc * blk.shape[2], -1)  # rows (corr, +-m, b), cols (X, l)
         wr = np.tile(w, (1, 1 if m == 0 else 2)).reshape(-1)

@@ -44,7 +44,8 @@ from mmflow.workflow.kernel_args import m_filters
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.task_key import TaskKey
 
-STOKES_CONFIG = ("mmode.lmax", "mmode.splits", "beam", "imaging", "transfer.noise_weighting", "clean")
+STOKES_CONFIG = ("mmode.lmax", "mmode.splits", "beam", "imaging", "transfer.noise_weighting", "transfer.per_baseline_lmax",
+                 "clean")
 
 
 def _v_decs(ctx):
@@ -77,7 +78,9 @@ def _task(ctx, key):
     grid = make_polarised_grid(tel.lat_rad, jones, freq, lmax,
                                fringe_bandlimit(np.linalg.norm(b, axis=1), jones.lmax_hint))
     # every data split through one factorisation: split 0 is the full data, the others its jackknives
-    normal = accumulate_polarised_normal(grid, b, mm[:, :lmax + 1, :, :, keep], w[:, keep], CORRELATIONS)
+    lmax_b = tel.baseline_lmax(freq, lmax, pairs[keep]) if cfg.transfer.per_baseline_lmax else None
+    normal = accumulate_polarised_normal(grid, b, mm[:, :lmax + 1, :, :, keep], w[:, keep], CORRELATIONS,
+                                         lmax_b=lmax_b)
     eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
     observe = PolarisedObserver(normal, eps, filters)  # factorised once: the solve, the leakage, the CLEAN of V
     splits = observe.solution()  # (split, 4, n_alm)
