@@ -163,10 +163,11 @@ def _worker_state(_):
     from mmflow.mmode import fringe_kernels, legendre
 
     # the imaging kernels compiled (or loaded from numba's cache) before the fork: the Legendre
-    # recurrence for float32 and float64 tables, the fringe kernel in both precisions
+    # recurrence for float32 and float64 tables, the fringe kernel in both precisions (not the full-Stokes
+    # kernel folds, compiled by the stokes stage where it runs)
     compiled = (legendre._kernel.cache_info().currsize == 1 and len(legendre._kernel().signatures) == 2
                 and fringe_kernels._kernels.cache_info().currsize == 2
-                and all(len(fringe_kernels._kernels(r).signatures) == 1 for r in ("float32", "float64")))
+                and all(len(fringe_kernels._kernels(r)[0].signatures) == 1 for r in ("float32", "float64")))
     return (os.getpid(), os.getppid(), "mmflow.workflow.pipeline" in sys.modules and compiled,
             os.environ.get("PYTHONHASHSEED"), os.environ.get("MMFLOW_WORKERS_PER_HOST"),
             {i["internal_api"]: i["num_threads"] for i in threadpool_info()})
