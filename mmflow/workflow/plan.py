@@ -419,6 +419,17 @@ SHRINK = {"simulate": "fewer channels per run (observation.freqs_mhz)",
           "clean": "a smaller transfer.m_block", "products": "a smaller products.nside"}
 
 
+def _disk_shrink(stage, cfg):
+    """The setting that shrinks a stage's stores on disk (the largest store names it in a refusal)."""
+    if stage == "transfer":
+        t = cfg.transfer
+        return ("transfer.mode=normal (no transfer blocks on disk)" if t.mode != "normal" else
+                f"fewer transfer.groups (now {t.groups}: each keeps a partial Gram per channel on disk)")
+    if stage == "clean" and cfg.clean.keep_factors:
+        return "clean.keep_factors=false (no Cholesky factors on disk)"
+    return "fewer channels per run (observation.freqs_mhz)"
+
+
 def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes=0):
     """Refuse, before any work, a run whose largest task exceeds a worker's memory or whose stores
     exceed the free disk: an :class:`mmflow.errors.InputError` naming the stage, the estimate, the
@@ -441,6 +452,6 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
         big = max(ests, key=lambda e: e.store_bytes)
         raise InputError(str(cfg.run.directory), "run.directory", f"the stores need up to {disk / 1e9:.2f} GB "
                          f"(`mmflow plan`; {big.stage} {big.store_bytes / 1e9:.2f} GB), more than the "
-                         f"{free:.2f} GB free there", "free disk space or set run.directory on a larger "
-                         "file system (transfer.mode=normal stores no transfer blocks)")
+                         f"{free:.2f} GB free there", f"{_disk_shrink(big.stage, cfg)}, free disk space, or set "
+                         "run.directory on a larger file system")
     return ests

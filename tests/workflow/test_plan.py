@@ -109,9 +109,27 @@ def test_a_task_larger_than_a_worker_is_refused_before_work(tmp_path):
     assert "stage simulate" in msg and "0.05 GB" in msg and "cluster.n_workers" in msg
     with pytest.raises(InputError) as info:
         check_fits(cfg, 64.0, ["simulate", "mmodes", "transfer"], free_disk=1e-6)
-    assert "run.directory" in str(info.value) and "GB free" in str(info.value)
+    msg = str(info.value)
+    assert "run.directory" in msg and "GB free" in msg
+    assert "simulate" in msg and "fewer channels per run" in msg  # the largest store's stage and its setting
     assert not (tmp_path / "r").exists()
     check_fits(cfg, 64.0, ["simulate", "mmodes", "transfer"])  # fits: no error
+
+
+def test_a_disk_refusal_names_the_setting_of_the_largest_store(tmp_path):
+    """The paper's two channels: the transfer stage's partial Grams (one per group and channel) are the
+    largest store; the refusal names transfer.groups (the run of 2026-11-27 met it: 80 GB against 75)."""
+    from mmflow.workflow.config import load_config
+
+    cfg = load_config("workflows/paper-scale.yaml", ["observation.freqs_mhz=[62.688, 73.152]",
+                                                     f"run.directory={tmp_path / 'r'}"])
+    with pytest.raises(InputError) as info:
+        check_fits(cfg, 64.0, ["transfer", "normal"], free_disk=40.0)
+    msg = str(info.value)
+    assert "transfer 44." in msg and "fewer transfer.groups (now 8" in msg
+    cfg = load_config("workflows/paper-scale.yaml", ["observation.freqs_mhz=[62.688, 73.152]", "transfer.groups=4",
+                                                     f"run.directory={tmp_path / 'r'}"])
+    assert sum(e.store_bytes for e in check_fits(cfg, 64.0, ["transfer"], free_disk=40.0)) < 25e9
 
 
 def test_the_paper_channel_needs_its_gram(tmp_path):
