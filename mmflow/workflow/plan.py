@@ -219,10 +219,10 @@ def stage_work(stage, g, cfg):
     if stage == "stokes":
         # the whole channel's Gram over [T, E, B, V] (complex128, full matrices) and its Cholesky factors,
         # one set for the solve, the leakage and the CLEAN of V (PolarisedObserver): two Grams;
-        # and the ring FFTs of one chunk of 32 baselines (polarised_fourier: 16 fields x (+m, -m) per
-        # ring and m, complex128, ~lmax / 2 north rings), in m-blocks within FOURIER_BUDGET_BYTES
+        # and the ring FFTs of one pass of at most 64 baselines (polarised_fourier: 16 fields x (+m, -m)
+        # per ring and m, complex128, ~lmax / 2 north rings), in m-blocks within FOURIER_BUDGET_BYTES
         gram = 2 * 16.0 * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
-        coef = min(FOURIER_BUDGET_BYTES, 2 * 16 * 2 * 32 * 16.0 * (g.lmax + 1) * (g.lmax // 2 + 2))
+        coef = min(FOURIER_BUDGET_BYTES, 2 * 16 * 2 * 64 * 16.0 * (g.lmax + 1) * (g.lmax // 2 + 2))
         c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
         spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                                (PSF_DECLINATIONS, g.clean_cycles, c.peaks_per_cycle) if c.enabled else None)
