@@ -285,9 +285,11 @@ def diffuse_sum_seconds(g, peak_gflops):
     return flops / (DIFFUSE_SUM_FRACTION * peak_gflops * 1e9)
 
 
-def geometry(cfg):
+def geometry(cfg, ingest=None):
     """The :class:`Geometry` of a configuration: from the telescope for a simulation, from the
-    files' metadata (no visibilities read) for ingested data."""
+    files' metadata (no visibilities read) for ingested data, or from ``ingest`` (an object with the
+    ingest plan's ``layout``, ``pairs``, ``n_time``, ``pols`` and ``freqs_hz``: a record's copy,
+    :func:`mmflow.workflow.plan_fit.record_ingest`) where the files are not at hand."""
     mm = cfg.mmode
     mmax = mm.mmax if mm.mmax is not None else mm.lmax
     itemsize = 8 if cfg.transfer.dtype == "float32" else 16
@@ -298,7 +300,7 @@ def geometry(cfg):
         n_pol = 2 if cfg.corrupt.enabled else 1
         freqs = tel.freqs_hz
     else:
-        plan = plan_ingest(cfg)
+        plan = plan_ingest(cfg) if ingest is None else ingest  # a record's copy of the files' plan
         tel = build_telescope(cfg, plan.layout)  # the files' array and baselines, not the config's telescope
         tel.pairs = np.asarray(plan.pairs)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)
@@ -337,7 +339,7 @@ def _sky_points_count(cfg, tel, freqs):
     return len(s.sources), ntheta * nphi
 
 
-def plan(cfg, costs=None, peak_gflops=None):
+def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     """Per enabled stage a :class:`StageEstimate`, and the run's totals against its limits.
 
     Returns
@@ -346,12 +348,12 @@ def plan(cfg, costs=None, peak_gflops=None):
         ``stages`` (list of estimates as dicts), ``task_slots`` (tasks running at once, by which each
         stage's per-task time is multiplied), ``total_store_gb``, ``largest_task`` (stage and GB),
         ``worker_memory_gb`` (the cluster's per-worker limit, or None) and ``free_disk_gb`` where
-        the run directory will be.
+        the run directory will be. ``ingest``: as in :func:`geometry`.
     """
     costs = costs or load_costs()
     if peak_gflops is None:
         peak_gflops = gemm_gflops(np.float32, n=768)
-    g = geometry(cfg)
+    g = geometry(cfg, ingest)
     workers = cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous" else 1
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]

@@ -33,10 +33,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
 from mmflow.errors import InputError
+from mmflow.io.ingest import plan_ingest
+from mmflow.telescope.layout import Layout
 from mmflow.workflow.config import WorkflowConfig, load_config
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan import WORKER_BASE_BYTES, geometry, plan, stage_work
@@ -63,8 +66,46 @@ def record(run_dir, sgemm_gflops=None, note=""):
             mem = max(i["peak_rss_gb"] - i["rss_start_gb"] for i in infos) * 1e9
             stages[stage] = {"tasks": len(infos), "task_memory_bytes": max(mem, 0.0),
                              "task_seconds": float(np.mean([i["seconds"] for i in infos]))}
-    return {"source": str(run_dir), "note": note, "sgemm_gflops": sgemm_gflops, "config": cfg.model_dump(mode="json"),
-            "stages": stages}
+    rec = {"source": str(run_dir), "note": note, "sgemm_gflops": sgemm_gflops, "config": cfg.model_dump(mode="json"),
+           "stages": stages}
+    if cfg.source == "ingest":
+        rec["ingest"] = ingest_geometry(plan_ingest(cfg))
+    return rec
+
+
+def ingest_geometry(plan):
+    """What the plan reads of an ingest plan (:class:`mmflow.io.ingest.IngestPlan`), JSON-able: a record of
+    an ingested run keeps it, so that it plans without the telescope's files (:func:`record_ingest`)."""
+    lay = plan.layout
+    pairs = np.asarray(plan.pairs)
+    every = _every_pair(len(lay.names))  # the usual case, kept as a word: 32,896 pairs at 256 antennas
+    return {"n_time": int(plan.n_time), "pols": list(plan.pols), "freqs_hz": [float(f) for f in plan.freqs_hz],
+            "pairs": EVERY_PAIR if pairs.shape == every.shape and np.array_equal(pairs, every) else pairs.tolist(),
+            "layout": {"names": list(lay.names), "enu": np.asarray(lay.enu).tolist(), "lat_deg": float(lay.lat_deg),
+                       "lon_deg": float(lay.lon_deg), "height_m": float(lay.height_m)}}
+
+
+#: a record's ``ingest.pairs`` when the files hold every pair ``i <= j`` of their antennas, in that order
+EVERY_PAIR = "every i <= j"
+
+
+def _every_pair(n):
+    i, j = np.triu_indices(n)
+    return np.stack([i, j], axis=1)
+
+
+def record_ingest(rec):
+    """A record's copy of its files' ingest plan (:func:`ingest_geometry`) for :func:`mmflow.workflow.plan.geometry`,
+    or None (a simulation, or a record without one: the files are read)."""
+    ing = rec.get("ingest")
+    if not ing:
+        return None
+    lay = ing["layout"]
+    layout = Layout(lay["names"], np.asarray(lay["enu"]), lay["lat_deg"], lay["lon_deg"], lay["height_m"],
+                    provenance=f"the record of {rec.get('source')}")
+    pairs = _every_pair(len(lay["names"])) if ing["pairs"] == EVERY_PAIR else np.asarray(ing["pairs"])
+    return SimpleNamespace(n_time=ing["n_time"], pols=ing["pols"], freqs_hz=np.asarray(ing["freqs_hz"]),
+                           pairs=pairs, layout=layout)
 
 
 def load_record(source):
@@ -94,7 +135,7 @@ def samples(source):
     configuration by today's work model."""
     rec = load_record(source)
     cfg = record_config(rec)
-    g = geometry(cfg)
+    g = geometry(cfg, record_ingest(rec))
     out = {}
     for stage, m in rec["stages"].items():
         if stage in rec.get("superseded", {}):  # measured with code since changed
@@ -211,7 +252,7 @@ def plan_against_run(run_dir, costs=None, peak_gflops=None):
     """
     rec = load_record(run_dir)
     cfg = record_config(rec)
-    res = plan(cfg, costs, peak_gflops or rec.get("sgemm_gflops"))
+    res = plan(cfg, costs, peak_gflops or rec.get("sgemm_gflops"), record_ingest(rec))
     workers = max(res["task_slots"], 1)  # the plan's stage time is its per-task time x ceil(tasks / workers)
     measured = samples(rec)
     rows = []

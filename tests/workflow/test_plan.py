@@ -253,6 +253,21 @@ def _worst_errors(costs, records):
     return worst
 
 
+def test_an_ingest_record_plans_without_its_files(tmp_path):
+    """A record of an ingested run keeps its files' ingest plan (times, pairs, layout, channels): it plans the
+    same with the files gone, so the records travel with the package (they read /work/runs before)."""
+    from mmflow.workflow.plan_fit import RECORDS_DIR, plan_against_run
+
+    src = RECORDS_DIR / "paper-scale-reduced-ingest.json"
+    rec = json.loads(src.read_text())
+    assert rec["ingest"]["pairs"] == "every i <= j" and rec["ingest"]["n_time"] == 828
+    rec["config"]["input"]["path"] = str(tmp_path / "gone" / "*.uvh5")
+    moved = tmp_path / "record.json"
+    moved.write_text(json.dumps(rec))
+    rows, _ = plan_against_run(moved, None, 200.0)
+    assert {"ingest", "calibrate", "transfer"} <= {r["stage"] for r in rows}
+
+
 def test_the_package_constants_are_fitted_to_its_records():
     """`plan_costs.json` is what `mmflow plan --fit` gives on the records in `plan_runs/` (the runs it
     names), at the median of their SGEMM peaks: refitted here from the records alone, its largest
