@@ -105,12 +105,12 @@ def simulate_chunk(telescope, lsts, skies, noise_rng=None, integration_s=None, c
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), n_pol), np.complex64)
     if noise_rng is not None:
         is_auto, ci, cj = auto_columns(pairs)
-    feeds = feed_telescopes(telescope) if corrupted is not None else None  # a Jones beam: each feed its own
+    columns = feed_columns(telescope, corrupted is not None)  # a corrupted Jones beam: each feed its own
 
     def drift_scan(points, f, dtype=np.complex128):
-        if feeds is None:
-            return simulate_drift_scan(telescope, f, lsts, points, pairs, dtype)
-        return np.stack([simulate_drift_scan(t, f, lsts, points, pairs, dtype) for t in feeds], axis=-1)
+        if len(columns) == 1:
+            return simulate_drift_scan(columns[0], f, lsts, points, pairs, dtype)
+        return np.stack([simulate_drift_scan(t, f, lsts, points, pairs, dtype) for t in columns], axis=-1)
 
     for fi, f in enumerate(telescope.freqs_hz):
         v = drift_scan(skies[fi], f, np.complex64)
