@@ -127,7 +127,7 @@ def main(argv=None):
 
 
 def _status(args):
-    from mmflow.workflow.runner import status  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.engine.runner import status  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     for name, s in status(args.run_dir).items():
         if s is None:
@@ -141,7 +141,7 @@ def _status(args):
 
 
 def _verify(args):
-    from mmflow.workflow.runner import verify  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.engine.runner import verify  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     bad = 0
     for name, problems in verify(args.run_dir, full=not args.quick).items():
@@ -155,7 +155,7 @@ def _verify(args):
 
 
 def _config(args):
-    from mmflow.workflow.config import schema_yaml  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.config.schema import schema_yaml  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     text = schema_yaml()
     if args.action == "init":
@@ -204,31 +204,31 @@ def _bench(args):
 
 
 def _plan(args):
-    from mmflow.workflow import plan as planmod  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.plan import planner as planmod  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     if args.fit:
         # deferred: scipy's BLAS and workflow modules (~3 s): `import mmflow.cli` stays light
         from mmflow.machine import gemm_gflops
-        from mmflow.workflow.plan_fit import fit_costs, reference_peak, write_costs
+        from mmflow.workflow.plan.fit import fit_costs, reference_peak, write_costs
 
         path = args.costs or planmod.COSTS_FILE
         write_costs(fit_costs(args.fit, reference_peak(args.fit, lambda: gemm_gflops(np.float32, n=768))), path)
         print(f"wrote {path}")
         return 0
     if args.record:
-        from mmflow.workflow.plan_fit import record  # deferred: workflow modules (~3 s)
+        from mmflow.workflow.plan.fit import record  # deferred: workflow modules (~3 s)
 
         print(json.dumps(record(args.record, args.peak), indent=1))
         return 0
     if args.against:
-        from mmflow.workflow.plan_fit import format_against, plan_against_run  # deferred: workflow modules (~3 s)
+        from mmflow.workflow.plan.fit import format_against, plan_against_run  # deferred: workflow modules (~3 s)
 
         rows, peak = plan_against_run(args.against, planmod.load_costs(args.costs) if args.costs else None,
                                       args.peak)
         print(json.dumps({"sgemm_gflops": peak, "stages": rows}, indent=2, default=float) if args.json
               else format_against(rows, peak))
         return 0
-    from mmflow.workflow.config import load_config  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.config.schema import load_config  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     cfg = load_config(args.workflow, args.overrides)
     res = planmod.plan(cfg, planmod.load_costs(args.costs) if args.costs else None, args.peak)
@@ -242,9 +242,9 @@ def _dispatch(args):
     if args.cmd in handlers:
         return handlers[args.cmd](args)
     # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
-    from mmflow.workflow.cluster import open_cluster
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.passes import run_with_passes
+    from mmflow.workflow.engine.cluster import open_cluster
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.engine.passes import run_with_passes
 
     cfg = load_config(args.workflow, args.overrides)
     only = None if args.cmd == "run" else [args.cmd]

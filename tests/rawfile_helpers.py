@@ -3,8 +3,8 @@ the store's layout."""
 import numpy as np
 import zarr
 
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 
 
 def ingest(path, run_dir, *extra):

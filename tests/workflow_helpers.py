@@ -10,7 +10,7 @@ import pytest
 import zarr
 
 from mmflow.errors import InputError
-from mmflow.workflow.config import load_config
+from mmflow.workflow.config.schema import load_config
 
 #: the repository root
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -43,13 +43,13 @@ def small_config(run_dir, *extra):
 
 def fork_run(src, dst, after):
     """``dst``: a copy of the run directory ``src`` with every stage after ``after`` forgotten and its
-    outputs removed (:meth:`mmflow.workflow.rundir.RunDir.reset_stage`), so that a run there
+    outputs removed (:meth:`mmflow.workflow.engine.rundir.RunDir.reset_stage`), so that a run there
     recomputes them from ``src``'s stages up to ``after``. Stages are deterministic: this is the
     directory a fresh run of ``src``'s configuration leaves once ``after`` is complete."""
     import shutil
 
     from mmflow.workflow.pipeline import ORDER
-    from mmflow.workflow.rundir import RunDir
+    from mmflow.workflow.engine.rundir import RunDir
 
     shutil.copytree(src, dst)
     for stage in ORDER[ORDER.index(after) + 1:]:

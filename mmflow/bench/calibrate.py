@@ -30,9 +30,9 @@ from mmflow.simulate.corrupt import gain_products
 from mmflow.sky.sources import get_sources
 from mmflow.telescope import ovro_lwa_layout
 from mmflow.threads import n_threads, single_threaded_blas, usable_cores
-from mmflow.workflow.config import load_config
-from mmflow.workflow.context import build_telescope
-from mmflow.workflow.peel_solve import peel_names, peel_solve, solve_dtype
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.stages.peel.solve import peel_names, peel_solve, solve_dtype
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
 N_CHANNELS_PAPER = 8
@@ -152,7 +152,7 @@ N_SIDEREAL_DAY = 6628  # 13 s integrations in a sidereal day: the paper-scale wo
 def peel_stage_rates(n_ant=256, n_int=32, rng=None):
     """The peel stage's computation on one channel's time chunk, without its reads and writes: the
     models of the paper-scale recipe's eleven sources (``source_coherencies``) and the stage's solve
-    (:func:`mmflow.workflow.peel_solve.peel_solve`: modes, screen basis, the batches' antenna
+    (:func:`mmflow.workflow.stages.peel.solve.peel_solve`: modes, screen basis, the batches' antenna
     matrices, the solve in its working precision, back to baselines), both polarisations, on data
     made of the same models with Cyg A and Cas A moved by a refractive offset (3' rms) plus noise,
     at LSTs where both are high. On one core, as a worker of mmflow's local cluster runs a task (one

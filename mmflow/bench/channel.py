@@ -43,10 +43,10 @@ from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit, ma
 from mmflow.telescope import Telescope, ovro_lwa_layout
 from mmflow.telescope.beams import SinElevationBeam
 from mmflow.threads import n_threads
-from mmflow.workflow.cluster import open_cluster
-from mmflow.workflow.config import load_config
-from mmflow.workflow.rundir import RunDir
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.cluster import open_cluster
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.rundir import RunDir
+from mmflow.workflow.engine.runner import run_workflow
 
 POOL_PHASES = ("tables_s", "legendre_s", "scale_s", "herk_s", "rhs_s")
 PAPER = {"layout": "paper-2017", "freq_mhz": 73.152, "lmax": 1000}

@@ -58,8 +58,8 @@ from mmflow.io.run_stores import vis_store
 from mmflow.offline import offline_site_registry
 from mmflow.telescope.layout import ovro_lwa_layout
 from mmflow.threads import n_threads
-from mmflow.workflow.chunking import TIME_CHUNK
-from mmflow.workflow.data_stage import layout_attrs
+from mmflow.workflow.engine.chunking import TIME_CHUNK
+from mmflow.workflow.engine.data_stage import layout_attrs
 
 #: the OVRO-LWA's MeasurementSets (the real file in tests/data): 109 channels of 24 kHz from 27.384 MHz
 OVRO_F0_HZ, OVRO_DF_HZ, OVRO_N_CHAN = 27.384e6, 24e3, 109

@@ -27,10 +27,10 @@ import numpy as np
 
 from mmflow.io.raw_files import RAW_DIR
 from mmflow.machine import gemm_gflops, machine
-from mmflow.workflow.cluster import open_cluster
-from mmflow.workflow.config import load_config
-from mmflow.workflow.plan import plan
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.cluster import open_cluster
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.plan.planner import plan
+from mmflow.workflow.engine.runner import run_workflow
 
 WORKFLOW = os.path.join(os.path.dirname(__file__), "..", "..", "workflows", "paper-scale.yaml")
 #: overrides of each scale: the reduced runs keep the whole sidereal day (fewer, longer integrations)

@@ -18,8 +18,8 @@ import numpy as np
 
 from mmflow.io.stores import checksum
 from mmflow.machine import gemm_gflops, machine
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 
 CASES = {
     "demo": ["observation.freqs_mhz=[40.0]"],

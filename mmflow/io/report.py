@@ -168,7 +168,7 @@ def summary_from_run(run_dir):
     present, the CLEAN images (restored, residual, model, noise) and PSF stamps with their
     FITS files, the CLEAN history and stop reason; for the run Table 1, the flux scale,
     astrometry, spectral-index products and the CLEAN history figure, as the products stage
-    writes them (:mod:`mmflow.workflow.products.science`).
+    writes them (:mod:`mmflow.workflow.stages.products.science`).
     """
     run = Path(run_dir)
     s = ReportSummary()

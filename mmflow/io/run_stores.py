@@ -179,7 +179,7 @@ def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
     ]
     return StoreSpec("normal.zarr", tuple(arrays), doc=(
         "Reduced normal equations: the normal stage sums the partials in a fixed pairwise tree "
-        "(:mod:`mmflow.workflow.reduce`), so the bits do not depend on the cluster."))
+        "(:mod:`mmflow.workflow.engine.reduce`), so the bits do not depend on the cluster."))
 
 
 def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):

@@ -5,7 +5,7 @@ Everything that depends on the order derives from :data:`PIPELINE`: the runner's
 (:meth:`mmflow.workflow.stages.base.Stage.corrections`: the enabled solve-then-apply stages
 before it) and the correction stores a ``reads_corrected`` stage declares as inputs. Tests
 build their own :class:`Pipeline` (a toy stage in place of one) and pass it to
-:func:`mmflow.workflow.runner.run_workflow`.
+:func:`mmflow.workflow.engine.runner.run_workflow`.
 """
 from __future__ import annotations
 

@@ -16,8 +16,8 @@ from mmflow.calibrate.baselines import antennas_short_of_baselines, auto_min_lam
 from mmflow.conventions import radec_to_vec
 from mmflow.errors import InputError
 from mmflow.sky.sources import CATALOG, get_sources
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import gaussian_power_beamfits, matvis_uvdata
 
 QUIET = dict(progress=False, log=lambda *a: None)

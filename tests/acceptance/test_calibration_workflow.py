@@ -20,8 +20,8 @@ import numpy as np
 import pytest
 import zarr
 
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import fork_run
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -136,7 +136,7 @@ def test_killed_peel_stage_resumes_bit_identical(maps, tmp_path, monkeypatch):
     calibrated data (:func:`tests.workflow_helpers.fork_run`) and resumes up to the m-modes, the
     last store compared."""
     from mmflow.workflow.pipeline import ORDER
-    from mmflow.workflow.rundir import RunDir
+    from mmflow.workflow.engine.rundir import RunDir
 
     real = RunDir.mark_done
     seen = []

@@ -4,7 +4,7 @@ The paper-scale workflow at reduced size (64 antennas, 2,080 baselines, the corr
 simulate -> calibrate -> peel -> terrestrial chain) over one sidereal day with 512 and then 1,024
 integrations (the calibration's solution interval kept at 64 integrations): the largest task of each
 stage, read as the peak of the memory its arrays take (``tracemalloc``, started here: the runner
-records ``traced_peak_gb`` per task, :func:`mmflow.workflow.resources.reset_traced_peak`), grows by
+records ``traced_peak_gb`` per task, :func:`mmflow.workflow.engine.resources.reset_traced_peak`), grows by
 less than 10 % when the integrations double; a task holding every integration would grow by ~100 %.
 The traced peak, unlike a resident-set reading, does not move with the allocator's state or the
 caches of the tests that ran before in the process. (The m-mode corner turn holds every integration
@@ -12,9 +12,9 @@ of its baseline chunk by design: it is bounded by ``mmode.baseline_chunk``, and 
 """
 import tracemalloc
 
-from mmflow.workflow.config import load_config
-from mmflow.workflow.rundir import RunDir
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.rundir import RunDir
+from mmflow.workflow.engine.runner import run_workflow
 
 STAGES = ("simulate", "calibrate", "peel", "terrestrial")
 DAY_S = 86164.0905

@@ -9,8 +9,8 @@ import time
 
 import pytest
 
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
 
 BIN = os.path.dirname(sys.executable)
@@ -118,7 +118,7 @@ def test_cli_joins_an_existing_scheduler(loopback_cluster, reference, tmp_path, 
     assert "dask dashboard:" in capsys.readouterr().out
     assert_identical(reference, read_outputs(run_dir))
     # the same run again on a local cluster: every stage is finished, so no cluster is started
-    # (mmflow.workflow.cluster.LazyClient: no worker processes, no batch jobs for a run with no work)
+    # (mmflow.workflow.engine.cluster.LazyClient: no worker processes, no batch jobs for a run with no work)
     rc = main(["run", "workflows/demo.yaml", *[o for o in SMALL if not o.startswith("cluster.")],
                f"run.directory={run_dir}", "--cluster", "local", "--no-progress"])
     out = capsys.readouterr().out
@@ -128,7 +128,7 @@ def test_cli_joins_an_existing_scheduler(loopback_cluster, reference, tmp_path, 
 
 @pytest.mark.parametrize("kind, marker", [("slurm", "#SBATCH"), ("pbs", "#PBS")])
 def test_jobqueue_cluster_from_workflow_options(kind, marker):
-    from mmflow.workflow.cluster import jobqueue_cluster
+    from mmflow.workflow.engine.cluster import jobqueue_cluster
 
     cfg = load_config("workflows/hpc-slurm.yaml", [f"cluster.kind={kind}",
                                                    "cluster.jobqueue={cores: 8, memory: 32GB, queue: normal, "
@@ -175,11 +175,11 @@ def _worker_state(_):
 
 def test_local_workers_fork_from_one_server_with_the_stages_imported(tmp_path):
     """A local cluster's workers are forks of one server process that imported the stages and loaded
-    the compiled imaging kernels once (mmflow.workflow.cluster.fork_workers_from_a_preloaded_server,
-    mmflow.workflow.worker_start) and see the environment dask
+    the compiled imaging kernels once (mmflow.workflow.engine.cluster.fork_workers_from_a_preloaded_server,
+    mmflow.workflow.engine.worker_start) and see the environment dask
     gives spawned workers: one BLAS thread until a task sets its budget, dask's hash seed, mmflow's
     per-host worker count. A cluster opened again in the same process forks from the same server."""
-    from mmflow.workflow.cluster import open_cluster
+    from mmflow.workflow.engine.cluster import open_cluster
 
     cfg = small_config(tmp_path / "r", "cluster.kind=local", "cluster.n_workers=2", "cluster.dashboard_address=:0")
     parents = set()
@@ -197,7 +197,7 @@ def test_local_workers_fork_from_one_server_with_the_stages_imported(tmp_path):
 def test_a_start_method_the_user_chose_is_kept(monkeypatch):
     import dask
 
-    from mmflow.workflow.cluster import START_METHOD, fork_workers_from_a_preloaded_server
+    from mmflow.workflow.engine.cluster import START_METHOD, fork_workers_from_a_preloaded_server
 
     monkeypatch.setenv("DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD", "spawn")
     with dask.config.set({START_METHOD: "spawn"}):

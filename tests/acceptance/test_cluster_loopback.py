@@ -4,8 +4,8 @@ from urllib.parse import urlparse
 
 import pytest
 
-from mmflow.workflow.cluster import dashboard_bind, memory_limit, open_cluster
-from mmflow.workflow.config import load_config
+from mmflow.workflow.engine.cluster import dashboard_bind, memory_limit, open_cluster
+from mmflow.workflow.config.schema import load_config
 
 
 def _listening(client):

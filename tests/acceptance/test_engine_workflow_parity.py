@@ -9,8 +9,8 @@ from mmflow.io.run_stores import gram_name
 from mmflow.imaging.solvers import solve_alm
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.noise import relative_weights
-from mmflow.workflow.context import _telescope
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.context import _telescope
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
 
 

@@ -13,8 +13,8 @@ import zarr
 from mmflow.analysis.peaks import measure_peak
 from mmflow.conventions import healpy_alm, radec_to_vec
 from mmflow.imaging.maps import alm_to_output_map
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import gaussian_power_beamfits, matvis_drift_scan
 
 SOURCES = ((60.0, 45.0, 500.0), (200.0, 30.0, 400.0), (300.0, 60.0, 450.0))

@@ -17,9 +17,9 @@ import pytest
 
 from mmflow.errors import MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError
-from mmflow.workflow.context import Context
-from mmflow.workflow.rundir import RunDir, RunLockedError
-from mmflow.workflow.runner import run_task, run_workflow, stage_fingerprints, verify
+from mmflow.workflow.engine.context import Context
+from mmflow.workflow.engine.rundir import RunDir, RunLockedError
+from mmflow.workflow.engine.runner import run_task, run_workflow, stage_fingerprints, verify
 from mmflow.workflow.pipeline import PIPELINE
 from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
 from tests.workflow_helpers import ROOT, interrupt_run
@@ -160,7 +160,7 @@ def test_lock_of_a_killed_driver_does_not_block(tmp_path):
     import json
     import signal
 
-    code = ("import os; from mmflow.workflow.rundir import RunDir; "
+    code = ("import os; from mmflow.workflow.engine.rundir import RunDir; "
             f"RunDir({str(tmp_path / 'run')!r}).acquire_lock(); os.kill(os.getpid(), 9)")
     child = subprocess.run([sys.executable, "-c", code], cwd=ROOT)
     assert child.returncode == -signal.SIGKILL  # killed while holding it
@@ -171,7 +171,7 @@ def test_lock_of_a_killed_driver_does_not_block(tmp_path):
     try:
         now = json.loads(run.lock_path.read_text())
         assert (now["pid"], now["token"]) == (os.getpid(), token) and token != dead["token"]
-        third = subprocess.run([sys.executable, "-c", "from mmflow.workflow.rundir import RunDir; "
+        third = subprocess.run([sys.executable, "-c", "from mmflow.workflow.engine.rundir import RunDir; "
                                 f"RunDir({str(tmp_path / 'run')!r}).acquire_lock()"], cwd=ROOT,
                                capture_output=True, text=True)
         assert third.returncode != 0 and f"pid {os.getpid()}" in third.stderr
@@ -197,7 +197,7 @@ def test_worker_that_cannot_see_the_run_directory_fails_with_the_fix(tmp_path):
 
 
 def test_relative_run_directory_is_made_absolute_by_the_driver(tmp_path, monkeypatch):
-    from mmflow.workflow.config import load_config
+    from mmflow.workflow.config.schema import load_config
 
     monkeypatch.chdir(tmp_path)
     cfg = load_config(os.path.join(ROOT, "workflows", "demo.yaml"), SMALL + ["run.directory=rel/run"])
@@ -275,7 +275,7 @@ def test_force_removes_only_files_mmflow_listed(ref, tmp_path):
 
 
 def test_product_names_are_unique_for_close_frequencies():
-    from mmflow.workflow.stages.products import frequency_tags
+    from mmflow.workflow.stages.products.stage import frequency_tags
 
     assert frequency_tags([40.0001e6, 40.0002e6]) == ["40.0001MHz", "40.0002MHz"]
     assert frequency_tags([40e6, 50e6]) == ["40.000MHz", "50.000MHz"]
@@ -295,7 +295,7 @@ def test_fingerprints_follow_what_stages_read():
 
 
 def test_reading_an_undeclared_setting_is_refused():
-    from mmflow.workflow.fingerprint import ConfigView, UndeclaredConfigRead
+    from mmflow.workflow.engine.fingerprint import ConfigView, UndeclaredConfigRead
 
     view = ConfigView(small_config("/tmp/x"), ("imaging.eps", "mmode"), "toy")
     assert view.imaging.eps == 0.01 and view.mmode.lmax == 24
@@ -306,7 +306,7 @@ def test_reading_an_undeclared_setting_is_refused():
 
 
 def test_changed_input_file_is_found_and_named(tmp_path):
-    from mmflow.workflow.fingerprint import file_digest
+    from mmflow.workflow.engine.fingerprint import file_digest
 
     f = tmp_path / "a.uvh5"
     f.write_bytes(b"0123456789")

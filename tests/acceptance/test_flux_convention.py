@@ -12,8 +12,8 @@ import zarr
 from mmflow.errors import InputError
 from mmflow.io.polarization import pol_factor
 from mmflow.sky.sources import get_sources
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import gaussian_power_beamfits, matvis_uvdata
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -75,7 +75,7 @@ def test_matvis_scan_cleaned_without_calibration_gives_the_simulated_fluxes(matv
     source within 2 % of the flux matvis simulated (it was ~0.5 before)."""
     from mmflow.conventions import radec_to_vec
     from mmflow.imaging import psf
-    from mmflow.workflow import clean_state as cs
+    from mmflow.workflow.engine import clean_state as cs
 
     root, sources = matvis_scan
     run_dir = tmp_path / "sum"

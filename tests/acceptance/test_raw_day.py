@@ -48,8 +48,8 @@ from mmflow.analysis.peaks import measure_peak
 from mmflow.conventions import radec_to_vec
 from mmflow.io.export import write_per_integration
 from mmflow.sky.sources import CATALOG, get_sources
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import ROOT
 
 pytest.importorskip("casacore")

@@ -13,7 +13,7 @@ import pytest
 
 from mmflow.analysis.fluxscale import peel_flux_factors
 from mmflow.io.report import check_report, png_size, summary_from_run
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)

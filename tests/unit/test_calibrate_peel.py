@@ -107,8 +107,8 @@ def test_single_precision_solve_agrees_with_double_to_its_tolerance(rng):
     buffer reused and a short last batch) against complex128: the same modes and guard, DD gains and
     scales within 1e-4 relative, the residual within 1e-5 of the data; ``solve_dtype`` keeps double
     precision for a tolerance single precision cannot resolve."""
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.peel_solve import solve_dtype
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.stages.peel.solve import solve_dtype
 
     N, T, n_src = 32, 7, 3
     x = random_array(rng, N)

@@ -2,7 +2,7 @@
 
 import pytest
 
-from mmflow.workflow.config import load_config
+from mmflow.workflow.config.schema import load_config
 from tests.workflow_helpers import DEMO, refused_problem
 
 ON = ["clean.enabled=true", "mmode.splits=[full, even, odd]"]

@@ -1,7 +1,7 @@
 """The science products' settings are refused before any work, naming the field, value and fix."""
 import pytest
 
-from mmflow.workflow.config import load_config
+from mmflow.workflow.config.schema import load_config
 from tests.workflow_helpers import DEMO, refused_problem
 
 CASES = [

@@ -5,8 +5,8 @@ directories are named by them, so a change here would make old runs unresumable.
 """
 import pytest
 
-from mmflow.workflow.chunking import TIME_CHUNK, chunk_rows, time_keys
-from mmflow.workflow.task_key import TaskKey
+from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
+from mmflow.workflow.engine.task_key import TaskKey
 
 LEGACY = [  # (key, the string earlier versions wrote), one per kind of task
     (TaskKey(time=3), "t00003"),  # simulate, ingest
@@ -33,7 +33,7 @@ def test_format_is_the_legacy_string_and_parse_inverts_it(key, legacy):
 
 
 def test_every_layout_round_trips_with_and_without_a_cycle():
-    from mmflow.workflow.task_key import LAYOUTS
+    from mmflow.workflow.engine.task_key import LAYOUTS
 
     values = dict(freq=4, time=11, bl_chunk=2, group=9, m_block=64, source=1, interval=300, phase="s")
     for names in LAYOUTS:

@@ -59,7 +59,7 @@ def test_opt_out_leaves_the_allocator_alone(monkeypatch):
 RELEASE = r"""
 import numpy as np
 from mmflow.allocator import keep_freed_memory, release_freed_memory
-from mmflow.workflow.resources import current_rss_bytes
+from mmflow.workflow.engine.resources import current_rss_bytes
 
 assert keep_freed_memory()
 arrays = [np.ones((20 << 20) // 8) for _ in range(60)]   # 1.2 GB of 20 MiB arrays: heap, not mmap

@@ -26,8 +26,8 @@ import numpy as np
 import pytest
 import zarr
 
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 
 QUIET = dict(progress=False, log=lambda *a: None)
 DEMO = "workflows/demo-calibrate.yaml"
@@ -57,7 +57,7 @@ def write_flagged_uvh5(sim_dir, out_dir, files=16):
     from tests.uvh5_helpers import write_blocks
 
     from mmflow.simulate.corrupt import to_uvdata, utc_at_lsts
-    from mmflow.workflow.context import build_telescope
+    from mmflow.workflow.engine.context import build_telescope
 
     cfg = load_config(DEMO, BASE)
     tel = build_telescope(cfg)

@@ -1,6 +1,6 @@
 """Tasks of one channel read and correct that channel only (issue 21: a task bounded by its chunk).
 
-``vis.zarr`` holds one channel per chunk, and :func:`mmflow.workflow.blocks.read_block` reads a
+``vis.zarr`` holds one channel per chunk, and :func:`mmflow.workflow.engine.blocks.read_block` reads a
 range of channels and applies every correction (calibrate, peel, terrestrial) with the solutions of
 those channels. Checked on the calibration demo's chain with two channels: a one-channel block
 equals that channel of the whole block, bit for bit, through every correction; the terrestrial
@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import zarr
 
-from mmflow.workflow import blocks
-from mmflow.workflow.config import load_config
-from mmflow.workflow.context import Context
+from mmflow.workflow.engine import blocks
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.context import Context
 from mmflow.workflow.pipeline import PIPELINE
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.runner import run_workflow
 
 CHAIN = ["observation.freqs_mhz=[40.0, 47.0]", "observation.integration_s=172.3281810",  # 512: two time chunks
          "telescope.radius_m=18", "mmode.lmax=20", "cluster.kind=synchronous"]
@@ -35,7 +35,7 @@ def chain(tmp_path_factory):
 
     mp = pytest.MonkeyPatch()
     for mod in ("calibrate", "peel", "terrestrial"):
-        mp.setattr(f"mmflow.workflow.stages.{mod}.read_block", spy)
+        mp.setattr(f"mmflow.workflow.stages.{mod}.stage.read_block", spy)
     try:
         run_workflow(cfg, only=UPTO, progress=False, log=lambda *a: None)
     finally:

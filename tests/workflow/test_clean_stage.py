@@ -18,10 +18,10 @@ from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.mmode.normal import hermitian_full
-from mmflow.workflow import clean_state as cs
-from mmflow.workflow.context import build_telescope
-from mmflow.workflow.rundir import RunDir
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine import clean_state as cs
+from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.engine.rundir import RunDir
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -208,7 +208,7 @@ def test_kill_in_the_middle_of_a_cycle_resumes_bit_identical(noisy, tmp_path, mo
 
 
 def verify(run_dir):
-    from mmflow.workflow.runner import verify as v
+    from mmflow.workflow.engine.runner import verify as v
 
     return v(run_dir)
 

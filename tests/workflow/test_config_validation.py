@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from mmflow.errors import InputError
-from mmflow.workflow.config import BEAM_PARAMS, WorkflowConfig, load_config, schema_yaml
-from mmflow.workflow.config_errors import ConfigError
+from mmflow.workflow.config.schema import BEAM_PARAMS, WorkflowConfig, load_config, schema_yaml
+from mmflow.workflow.config.errors import ConfigError
 from tests.workflow_helpers import ROOT, refused_problem
 
 DEMO = os.path.join(ROOT, "workflows", "demo.yaml")

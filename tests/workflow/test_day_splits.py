@@ -21,8 +21,8 @@ from mmflow.errors import InputError
 from mmflow.imaging import clean as ck
 from mmflow.imaging import jackknife
 from mmflow.mmode import splits as sp
-from mmflow.workflow.runner import run_workflow
-from mmflow.workflow import clean_state as cs
+from mmflow.workflow.engine.runner import run_workflow
+from mmflow.workflow.engine import clean_state as cs
 from tests.imaging_helpers import Imager
 from tests.workflow_helpers import SMALL, refused_problem, small_config
 
@@ -369,7 +369,7 @@ def test_refusals_name_the_splits_field(tmp_path):
 def _flagging(rows_flagged):
     """A ``read_block`` for the mmodes stage that flags the integrations ``rows_flagged(k)`` (bool of the
     row index): flags as the stage sees them after ingest or calibration (weights 0)."""
-    from mmflow.workflow.stages import mmodes as ms
+    from mmflow.workflow.stages.mmodes import stage as ms
 
     read = ms.read_block
 
@@ -387,7 +387,7 @@ def test_a_half_flagged_day_has_the_share_of_its_unflagged_samples(tmp_path):
     the shares f_k come from the flags, 0.4 / 0.4 / 0.2 (the LSTs alone say 1/3 each: on noise alone
     the jackknife variance would be 1.175x too high), and the clean stage's per-day sigma uses them.
     (That the estimator with these shares is unbiased is the Monte Carlo test above, weights 1, 1, 0.5.)"""
-    from mmflow.workflow.stages import mmodes as ms
+    from mmflow.workflow.stages.mmodes import stage as ms
 
     cfg = small_config(tmp_path / "flag", *DAYS3, "sky.noise=true", "mmode.splits=[full, day0, day1, day2]",
                        "mmode.n_bins=83", "clean.enabled=true")
@@ -411,7 +411,7 @@ def test_a_flagged_day_is_refused_not_imaged_as_zero(tmp_path):
     """Day 1 entirely flagged: its m-modes would be exactly 0 (then sigma^2 is the whole sky and CLEAN
     stops at once); the mmodes stage refuses it, naming the split and mmode.splits."""
     from mmflow.errors import CoverageError
-    from mmflow.workflow.stages import mmodes as ms
+    from mmflow.workflow.stages.mmodes import stage as ms
 
     cfg = small_config(tmp_path / "gone", *DAYS3, "mmode.splits=[full, day0, day1, day2]")
     with pytest.MonkeyPatch.context() as mp:
@@ -428,7 +428,7 @@ def test_split_masks_cache_is_safe_across_threads(monkeypatch):
     import threading
     import time
 
-    from mmflow.workflow.stages import mmodes as ms
+    from mmflow.workflow.stages.mmodes import stage as ms
 
     class SlowDict(dict):
         def __setitem__(self, key, value):

@@ -5,7 +5,7 @@ import numpy as np
 import zarr
 
 from mmflow.simulate.drift_modes import n_samples
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -17,7 +17,7 @@ def test_interpolated_diffuse_sky_equals_the_direct_sum(tmp_path, monkeypatch):
     run_workflow(cfg, only=("simulate",), **QUIET)
     d = zarr.open_group(str(tmp_path / "interp" / "diffuse.zarr"), mode="r")
     assert d["samples"].shape[:2] == (1, n_samples(cfg.sky.diffuse_lmax))
-    monkeypatch.setattr("mmflow.workflow.stages.simulate.interpolates_diffuse", lambda cfg: False)
+    monkeypatch.setattr("mmflow.workflow.stages.simulate.stage.interpolates_diffuse", lambda cfg: False)
     run_workflow(small_config(tmp_path / "direct", *extra), only=("simulate",), **QUIET)
     assert not (tmp_path / "direct" / "diffuse.zarr").exists()
     a = zarr.open_group(str(tmp_path / "interp" / "vis.zarr"), mode="r")["vis"][:]

@@ -16,8 +16,8 @@ import zarr
 from mmflow.analysis.peaks import measure_peak
 from mmflow.conventions import radec_to_vec
 from mmflow.errors import InputError, StaleOutputError
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow, status
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow, status
 from tests.uvh5_helpers import gaussian_power_beamfits, matvis_uvdata
 
 RA = [30, 120, 200, 290, 250, 75, 160, 330, 10]
@@ -190,8 +190,8 @@ def test_prior_pass_inside_one_run_equals_the_two_run_recipe_and_resumes_bit_ide
                                                                                       tmp_path, monkeypatch):
     """``mmode.prior_passes=1``: one run gives the second run's map of the two-run recipe bit for bit (and so
     meets the 0.05 FWHM the recipe meets); a run killed inside the pass's transfer stage resumes to it."""
-    from mmflow.workflow.passes import run_with_passes
-    from mmflow.workflow.rundir import RunDir
+    from mmflow.workflow.engine.passes import run_with_passes
+    from mmflow.workflow.engine.rundir import RunDir
 
     root, data = scene["root"], scene["files"]["blocks20"]
     one = tmp_path / "one"

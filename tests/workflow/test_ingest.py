@@ -7,8 +7,8 @@ import pytest
 from mmflow.analysis.peaks import measure_peak
 from mmflow.conventions import radec_to_vec
 from mmflow.errors import CoverageError, InputError
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import gaussian_power_beamfits, matvis_drift_scan
 
 SOURCES = ((60.0, 45.0, 500.0), (200.0, 30.0, 400.0), (300.0, 60.0, 450.0))
@@ -62,7 +62,7 @@ def test_plan_of_ingested_files_counts_their_array(scan, tmp_path):
     telescope section, which ingest ignores)."""
     from pyuvdata import UVData
 
-    from mmflow.workflow.plan import geometry
+    from mmflow.workflow.plan.planner import geometry
 
     d, paths = scan
     uv = UVData.from_file(str(paths[0]))
@@ -142,7 +142,7 @@ def test_missing_input_and_flagged_integrations(scan, tmp_path):
     uv.write_uvh5(str(flagged / "scan_000.uvh5"), clobber=True)
     summaries = run_workflow(_cfg(tmp_path / "r1", str(flagged / "*.uvh5"), "mmode.min_coverage=0.8"),
                              progress=False, log=lambda *a: None)
-    from mmflow.workflow.rundir import RunDir
+    from mmflow.workflow.engine.rundir import RunDir
 
     done = RunDir(tmp_path / "r1").task_infos("ingest")
     assert sum(x["fully_flagged_integrations"] for x in done.values()) == 24  # 140 integrations / 6 files

@@ -10,8 +10,8 @@ import zarr
 from mmflow.errors import InputError
 from mmflow.io.ingest import ingest_time_chunk
 from mmflow.io.polarization import stokes_i_recipe
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import JD_2023, gaussian_power_beamfits, matvis_uvdata
 
 YY_GAIN = 0.9

@@ -11,8 +11,8 @@ import pytest
 import zarr
 
 from mmflow.io.export import write_per_integration
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import JD_2023, gaussian_power_beamfits, matvis_uvdata, write_blocks
 
 pytest.importorskip("casacore")

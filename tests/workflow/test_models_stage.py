@@ -11,8 +11,8 @@ import zarr
 
 from mmflow.calibrate.source_models import GaussianComponent, fit_gaussian_components, flux_moments, source_uvw
 from mmflow.errors import InputError
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 
 QUIET = dict(progress=False, log=lambda *a: None)
 DEMO = "workflows/demo-calibrate.yaml"
@@ -29,9 +29,9 @@ def _cfg(path, *extra):
 
 def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     from mmflow.calibrate.coherency import source_coherencies
-    from mmflow.workflow.context import Context
+    from mmflow.workflow.engine.context import Context
     from mmflow.workflow.pipeline import PIPELINE
-    from mmflow.workflow.peel_models import peel_coherencies
+    from mmflow.workflow.engine.peel_models import peel_coherencies
     from mmflow.sky.sources import Source, get_sources
 
     cfg = _cfg(tmp_path / "run")
@@ -79,7 +79,7 @@ def test_a_track_too_short_is_refused_before_work(tmp_path):
 
 
 def test_models_without_peel_are_refused_by_the_config_check(tmp_path):
-    from mmflow.workflow.config_errors import ConfigError
+    from mmflow.workflow.config.errors import ConfigError
 
     with pytest.raises(ConfigError, match="models.enabled"):
         _cfg(tmp_path / "run", "peel.enabled=false")

@@ -11,8 +11,8 @@ import zarr
 
 from mmflow.errors import InputError
 from mmflow.workflow.pipeline import PIPELINE
-from mmflow.workflow.plan import check_fits, geometry, plan, stage_work
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.plan.planner import check_fits, geometry, plan, stage_work
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
 
 
@@ -25,7 +25,7 @@ def test_peak_rss_is_reset_and_follows_an_allocation():
 
     code = """if True:
         import numpy as np
-        from mmflow.workflow.resources import current_rss_bytes, peak_rss_bytes, reset_peak_rss
+        from mmflow.workflow.engine.resources import current_rss_bytes, peak_rss_bytes, reset_peak_rss
         big = np.ones(300_000_000 // 8)
         before = peak_rss_bytes()
         del big
@@ -51,7 +51,7 @@ def measured_run(tmp_path_factory):
     astropy's IERS table in mmflow's cache folder as on any machine after its first run (the one
     parse on a machine's first frame rotation, 30-45 MB measured, is not a task's working set: mmflow.offline)."""
     from mmflow.sky.frames import rotation_matrix
-    from mmflow.workflow.cluster import open_cluster
+    from mmflow.workflow.engine.cluster import open_cluster
 
     rotation_matrix("icrs", "date", 2457802.0)  # parses the table into the cache if it is not there
 
@@ -119,7 +119,7 @@ def test_a_task_larger_than_a_worker_is_refused_before_work(tmp_path):
 def test_a_disk_refusal_names_the_setting_of_the_largest_store(tmp_path):
     """The paper's two channels: the transfer stage's partial Grams (one per group and channel) are the
     largest store; the refusal names transfer.groups (the run of 2026-11-27 met it: 80 GB against 75)."""
-    from mmflow.workflow.config import load_config
+    from mmflow.workflow.config.schema import load_config
 
     cfg = load_config("workflows/paper-scale.yaml", ["observation.freqs_mhz=[62.688, 73.152]",
                                                      f"run.directory={tmp_path / 'r'}"])
@@ -134,7 +134,7 @@ def test_a_disk_refusal_names_the_setting_of_the_largest_store(tmp_path):
 
 def test_the_paper_channel_needs_its_gram(tmp_path):
     """At lmax 1000 in float32 the transfer task holds sum_m (lmax - m + 1)^2 complex64 (2.69 GB)."""
-    from mmflow.workflow.config import load_config
+    from mmflow.workflow.config.schema import load_config
 
     cfg = load_config("workflows/paper-scale.yaml", [f"run.directory={tmp_path}"])
     g = geometry(cfg)
@@ -149,7 +149,7 @@ def test_the_diffuse_skys_sums_are_timed_by_their_flops(tmp_path):
     gauss_legendre_points builds it (1,257 x 2,513 points), plans its 138 sums in 18 tasks beside the 26
     time chunks, and times the stage within 50 % of the measured full-scale telescope step (625 s on the
     2 workers at SGEMM 193 GFLOP/s, docs/performance.md)."""
-    from mmflow.workflow.config import load_config
+    from mmflow.workflow.config.schema import load_config
 
     cfg = load_config("workflows/paper-scale.yaml", ["sky.diffuse=true", f"run.directory={tmp_path}"])
     g = geometry(cfg)
@@ -164,7 +164,7 @@ def test_memory_prediction_against_a_measured_run(measured_run):
     within 100 MB where tasks hold less than ~200 MB (caches, allocator arenas and the simulator's sky
     synthesis are not in the working-set model). A guard against gross errors: issue 21's 25 % target
     holds on the runs the constants were fitted to (docs/performance.md), not yet on a run like this."""
-    from mmflow.workflow.plan_fit import samples
+    from mmflow.workflow.plan.fit import samples
 
     cfg, run_dir = measured_run
     meas = samples(run_dir)
@@ -183,8 +183,8 @@ def test_plan_against_a_finished_run_reports_measured_over_planned(measured_run,
     """`mmflow plan --against RUN_DIR`: per stage the task markers' mean seconds and largest memory
     beside the plan of the run's own configuration at the SGEMM peak given, as ratios."""
     from mmflow.cli import main
-    from mmflow.workflow.plan import WORKER_BASE_BYTES
-    from mmflow.workflow.plan_fit import plan_against_run, samples
+    from mmflow.workflow.plan.planner import WORKER_BASE_BYTES
+    from mmflow.workflow.plan.fit import plan_against_run, samples
 
     cfg, run_dir = measured_run
     rows, peak = plan_against_run(run_dir, peak_gflops=50.0)
@@ -212,7 +212,7 @@ def test_a_record_stands_for_its_run(measured_run, tmp_path, capsys):
     the fitted constants are the same from the record file as from the run directory; a fit's
     reference peak is the median of the peaks its records state."""
     from mmflow.cli import main
-    from mmflow.workflow.plan_fit import fit_costs, plan_against_run, reference_peak, samples
+    from mmflow.workflow.plan.fit import fit_costs, plan_against_run, reference_peak, samples
 
     cfg, run_dir = measured_run
     assert main(["plan", "x", "--record", str(run_dir), "--peak", "80"]) == 0
@@ -233,7 +233,7 @@ def test_a_record_stands_for_its_run(measured_run, tmp_path, capsys):
 
 
 def _records():
-    from mmflow.workflow.plan_fit import RECORDS_DIR
+    from mmflow.workflow.plan.fit import RECORDS_DIR
 
     return sorted(p.name for p in RECORDS_DIR.glob("*.json"))
 
@@ -241,7 +241,7 @@ def _records():
 def _worst_errors(costs, records):
     """Per stage the largest relative errors (memory with the worker's baseline, time) of ``costs`` over the
     records, each run at the constants' reference peak (what the fit minimises)."""
-    from mmflow.workflow.plan_fit import TIME_FLOOR_S, plan_against_run
+    from mmflow.workflow.plan.fit import TIME_FLOOR_S, plan_against_run
 
     worst = {}
     for rec in records:
@@ -256,7 +256,7 @@ def _worst_errors(costs, records):
 def test_an_ingest_record_plans_without_its_files(tmp_path):
     """A record of an ingested run keeps its files' ingest plan (times, pairs, layout, channels): it plans the
     same with the files gone, so the records travel with the package (they read /work/runs before)."""
-    from mmflow.workflow.plan_fit import RECORDS_DIR, plan_against_run
+    from mmflow.workflow.plan.fit import RECORDS_DIR, plan_against_run
 
     src = RECORDS_DIR / "paper-scale-reduced-ingest.json"
     rec = json.loads(src.read_text())
@@ -269,11 +269,11 @@ def test_an_ingest_record_plans_without_its_files(tmp_path):
 
 
 def test_the_package_constants_are_fitted_to_its_records():
-    """`plan_costs.json` is what `mmflow plan --fit` gives on the records in `plan_runs/` (the runs it
+    """`plan/costs.json` is what `mmflow plan --fit` gives on the records in `plan/records/` (the runs it
     names), at the median of their SGEMM peaks: refitted here from the records alone, its largest
     relative errors are the least a refit reaches (a linear programme's optimum need not be unique)."""
-    from mmflow.workflow.plan import load_costs
-    from mmflow.workflow.plan_fit import RECORDS_DIR, fit_costs, reference_peak
+    from mmflow.workflow.plan.planner import load_costs
+    from mmflow.workflow.plan.fit import RECORDS_DIR, fit_costs, reference_peak
 
     costs = load_costs()
     assert _records() and sorted(costs["fitted_on"]) == _records()
@@ -292,8 +292,8 @@ def test_the_plan_holds_on_each_measured_run(name):
     reduced ones of 1, 2 and 8 channels, the demo): each stage's largest task within 25 % in memory (with
     the worker's baseline) and its mean task time within 50 % (tasks above TIME_FLOOR_S), at the
     constants' reference SGEMM peak."""
-    from mmflow.workflow.plan import load_costs
-    from mmflow.workflow.plan_fit import RECORDS_DIR, TIME_FLOOR_S, plan_against_run
+    from mmflow.workflow.plan.planner import load_costs
+    from mmflow.workflow.plan.fit import RECORDS_DIR, TIME_FLOOR_S, plan_against_run
 
     rows, _ = plan_against_run(RECORDS_DIR / name, None, load_costs()["sgemm_gflops"])
     superseded = json.loads((RECORDS_DIR / name).read_text()).get("superseded", {})
@@ -309,7 +309,7 @@ def test_progress_says_how_long_the_stage_has_left():
     """Elapsed time per finished task times the tasks left: 10 s for 2 of 10 tasks -> ~40 s left."""
     import io
 
-    from mmflow.workflow.runner import _Progress
+    from mmflow.workflow.engine.runner import _Progress
 
     now = [100.0]
     out = io.StringIO()
@@ -326,7 +326,7 @@ def test_memory_slope_is_fitted_only_where_the_runs_span_the_scales():
     """Runs of one scale keep ``a = 1`` and the median excess (a slope fitted on small runs alone would
     be extrapolated 20x); a paper-scale run beside small ones fits the slope of what the working-set
     model leaves out (never below 1)."""
-    from mmflow.workflow.plan_fit import fit_memory
+    from mmflow.workflow.plan.fit import fit_memory
 
     w = np.array([2e8, 4e8, 3e9])
     a, b = fit_memory(w, 4.7 * w + 5e7)
@@ -343,7 +343,7 @@ def test_constants_are_the_lines_of_least_largest_relative_error():
     """The fit is held to what the plan is held to: the largest relative error over the runs is the
     least any line reaches (checked against a grid of lines); a least-squares line lets the largest run
     set the constants and misses the small ones."""
-    from mmflow.workflow.plan_fit import minimax_line
+    from mmflow.workflow.plan.fit import minimax_line
 
     x = np.array([1.0, 4.0, 300.0])
     y = np.array([1.0, 1.2, 110.0])  # a small task, a mid one and a paper-scale one (peel's shape)

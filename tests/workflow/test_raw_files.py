@@ -9,8 +9,8 @@ import pytest
 import zarr
 
 from mmflow.cli import main
-from mmflow.workflow.config import load_config
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import refused_problem
 
 QUIET = dict(progress=False, log=lambda *a: None)

@@ -4,8 +4,8 @@ import zarr
 
 from mmflow.sky.frames import source_enu
 from mmflow.simulate.corrupt import _sun_vector_date, sun_points
-from mmflow.workflow.context import build_telescope
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)

@@ -10,10 +10,10 @@ import pytest
 import zarr
 
 from mmflow.io.stores import ArraySpec, StoreSpec
-from mmflow.workflow.runner import run_workflow
+from mmflow.workflow.engine.runner import run_workflow
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.stages.base import Stage
-from mmflow.workflow.task_key import TaskKey
+from mmflow.workflow.engine.task_key import TaskKey
 from tests.workflow_helpers import small_config
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -145,7 +145,7 @@ UP_TO_CLEAN = ["simulate", "mmodes", "transfer", "normal", "solve", "clean"]  # 
 
 
 def test_iterative_stage_checkpoints_each_cycle_and_resumes_bit_identical(toy_stages, tmp_path, monkeypatch):
-    from mmflow.workflow.rundir import RunDir
+    from mmflow.workflow.engine.rundir import RunDir
 
     ref, run = tmp_path / "ref", tmp_path / "run"
     run_workflow(small_config(ref, "clean.enabled=true", "clean.rel_threshold=0.5", "clean.min_separation_deg=10"),

@@ -163,8 +163,8 @@ def test_simulated_polarised_sources_image_to_their_stokes_parameters(tmp_path):
     from mmflow.simulate.scene import polarised_sky_points
     from mmflow.sky.sources import get_sources
     from mmflow.telescope import ovro_lwa_layout
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.runner import run_workflow
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.engine.runner import run_workflow
 
     run_dir = tmp_path / "run"
     run_workflow(load_config(SIM[0], SIM[1:] + CLEAN_V + [f"run.directory={run_dir}"]), progress=False,
@@ -220,8 +220,8 @@ def test_jackknife_noise_of_each_stokes_map_is_the_noise_it_holds(tmp_path):
     from mmflow.simulate.scene import polarised_sky_points
     from mmflow.sky.sources import get_sources
     from mmflow.telescope import ovro_lwa_layout
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.runner import run_workflow
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.engine.runner import run_workflow
 
     run_dir = tmp_path / "run"
     args = SIM[1:] + ["sky.noise=true", "observation.channel_width_khz=0.000001", "mmode.splits=[full, even, odd]",
@@ -323,8 +323,8 @@ def test_corrupted_polarised_simulation_calibrates_to_the_stokes_i_of_the_truth(
     from mmflow.simulate.scene import polarised_sky_points
     from mmflow.sky.sources import get_sources
     from mmflow.telescope import ovro_lwa_layout
-    from mmflow.workflow.config import load_config
-    from mmflow.workflow.runner import run_workflow
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.engine.runner import run_workflow
 
     run_dir = tmp_path / "run"
     run_workflow(load_config(SIM[0], SIM[1:] + CORRUPT + [f"run.directory={run_dir}"]), progress=False,

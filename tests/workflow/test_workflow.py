@@ -13,8 +13,8 @@ import yaml
 
 from mmflow.cli import main
 from mmflow.errors import InputError, StaleOutputError
-from mmflow.workflow.config import load_config, schema_yaml
-from mmflow.workflow.runner import run_workflow, status
+from mmflow.workflow.config.schema import load_config, schema_yaml
+from mmflow.workflow.engine.runner import run_workflow, status
 from tests.workflow_helpers import ROOT, SMALL, assert_identical, fork_run, interrupt_run, read_outputs, small_config
 
 
@@ -62,11 +62,11 @@ def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
 
 
 def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
-    """Completion markers are named by the task keys (:mod:`mmflow.workflow.task_key`): run
+    """Completion markers are named by the task keys (:mod:`mmflow.workflow.engine.task_key`): run
     directories made by earlier versions resume only while these strings stay as they were. (Since
     2026-11-27 a simulation with a diffuse sky has two phases, its samples ``d{F}_t{B}`` and then
     the time chunks, named as a second phase's are: ``c0000-t00000``.)"""
-    from mmflow.workflow.rundir import RunDir
+    from mmflow.workflow.engine.rundir import RunDir
 
     run_dir, _ = reference_run
     run = RunDir(run_dir)
@@ -171,7 +171,7 @@ def test_reading_and_checking_a_workflow_imports_no_numerical_stack():
     import subprocess
     import sys
 
-    code = ("import sys; from mmflow.workflow.config import load_config\n"
+    code = ("import sys; from mmflow.workflow.config.schema import load_config\n"
             "load_config('workflows/demo-calibrate.yaml', ['imaging.method=tikhonov'])\n"
             "print(sorted(m for m in ('healpy', 'numba', 'matplotlib', 'ducc0', 'mmflow.mmode.transfer') "
             "if m in sys.modules))")
@@ -260,7 +260,7 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
     import zarr
 
     from mmflow.mmode.engine import GridCache, chunk_blocks, plan_chunks
-    from mmflow.workflow.context import Context
+    from mmflow.workflow.engine.context import Context
 
     run_dir = tmp_path / "run"
     quiet = ["telescope.radius_m=10", "observation.integration_s=13.0", "sky.sources=[]", "transfer.mode=store"]
@@ -321,7 +321,7 @@ def test_a_stage_task_opens_each_store_once_and_still_checks_every_chunk(referen
     import zarr
 
     from mmflow.io import stores
-    from mmflow.workflow.context import Context
+    from mmflow.workflow.engine.context import Context
     from mmflow.workflow.pipeline import PIPELINE
 
     run_dir, _ = reference_run

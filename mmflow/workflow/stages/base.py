@@ -6,13 +6,13 @@ and the corrections on read derive from it). Each stage module defines one ``STA
 A stage declares what it reads and writes; the runner derives everything else from that:
 
 * ``config``: dotted configuration paths it reads (enforced by
-  :class:`mmflow.workflow.fingerprint.ConfigView`); ``inputs``: stores it reads;
+  :class:`mmflow.workflow.engine.fingerprint.ConfigView`); ``inputs``: stores it reads;
   ``files``: a function giving the user files it reads. Together with its inputs'
   fingerprints these make its fingerprint.
 * ``outputs``: stores (``*.zarr``, removed whole by ``--force``) or folders whose files the
   tasks list in their markers (only those are ever removed).
 * ``prepare(ctx) -> keys`` runs once on the driver (create-or-validate its stores, list its
-  work keys, :class:`~mmflow.workflow.task_key.TaskKey` values; the keys may depend on the data and
+  work keys, :class:`~mmflow.workflow.engine.task_key.TaskKey` values; the keys may depend on the data and
   the configuration, never on the cluster); ``task(ctx, key)`` runs per key on the workers (``key``
   a ``TaskKey``; its completion marker is named by ``key.format()``); ``finalize(ctx)`` runs on the
   driver at the end.
@@ -22,7 +22,7 @@ A stage declares what it reads and writes; the runner derives everything else fr
 
 Kinds (``kind``): ``map`` (independent tasks over keys: time chunks, baseline groups,
 m blocks); ``reduce`` (each task sums its inputs in a fixed order with
-:func:`mmflow.workflow.reduce.ordered_tree_sum`, so results are bit-identical on any cluster);
+:func:`mmflow.workflow.engine.reduce.ordered_tree_sum`, so results are bit-identical on any cluster);
 ``solve`` (solve-then-apply: tasks solve over intervals independent of storage chunks and
 write small solution stores; ``apply(ctx, block)`` corrects data where they are next read,
 so a correction can never be applied twice and ``vis.zarr`` is never rewritten; a solve

@@ -1,0 +1,180 @@
+"""Where the graph runs: a local cluster, an existing scheduler, or SLURM/PBS via dask-jobqueue.
+
+A dask scheduler runs whatever code a client sends it, so a local cluster listens on the
+loopback interface only (scheduler, workers and dashboard on 127.0.0.1); ``cluster.expose:
+true`` opens them to the network (see docs/clusters.md for dask's TLS settings).
+"""
+from __future__ import annotations
+
+import os
+from contextlib import contextmanager
+
+from mmflow.errors import InputError
+
+LOOPBACK = "127.0.0.1"
+ALL_INTERFACES = "0.0.0.0"
+
+
+def bind_host(c):
+    """The interface a local scheduler and dashboard listen on: loopback unless ``expose``."""
+    return ALL_INTERFACES if c.expose else LOOPBACK
+
+
+def dashboard_bind(c):
+    """``cluster.dashboard_address`` with its host filled in (``':8787'`` -> ``'127.0.0.1:8787'``)."""
+    host, _, port = c.dashboard_address.rpartition(":")
+    return f"{host or bind_host(c)}:{port}"
+
+
+def memory_limit(text):
+    """``cluster.memory_limit`` as dask takes it: ``'auto'``, a fraction (float) or a byte string."""
+    try:
+        return float(text)
+    except ValueError:
+        return text
+
+
+#: dask's setting for how a local cluster's nanny starts its worker process
+START_METHOD = "distributed.worker.multiprocessing-method"
+#: what a local worker's server process imports once, before it forks each worker
+PRELOAD = ("distributed", "mmflow.workflow.engine.worker_start")
+
+
+def fork_workers_from_a_preloaded_server():
+    """Start local workers by forking a server process that imported mmflow's stages once.
+
+    With dask's default (``spawn``) every local worker is a new interpreter that imports numpy,
+    astropy, zarr and every stage (~3-5 s of CPU each, and again for every cluster a process
+    opens). With ``forkserver`` a server process imports :data:`PRELOAD` once (the stages and the
+    compiled imaging kernels: :mod:`mmflow.workflow.engine.worker_start`) and each worker is a fork of it (a cluster opened again in the same process starts in ~0.3 s instead of ~6 s).
+    The server is started here with dask's pre-spawn environment (``distributed.nanny.pre-spawn-
+    environ``: one BLAS/OpenMP thread, glibc's trim threshold; ``PYTHONHASHSEED``), which must be set
+    before numpy loads and which dask's nanny would otherwise set only in a spawned child. A start
+    method the user chose (the ``DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD`` environment
+    variable) is kept, as is dask's where Python has no ``forkserver`` (Windows). Idempotent; the
+    server lives until this process exits.
+    """
+    import multiprocessing  # deferred: as the forkserver below
+    import multiprocessing.forkserver as forkserver  # deferred: only local clusters start one
+
+    import dask  # deferred: as distributed in open_cluster
+    from distributed.utils import get_mp_context  # deferred: as above
+
+    if ("DASK_DISTRIBUTED__WORKER__MULTIPROCESSING_METHOD" in os.environ
+            or "forkserver" not in multiprocessing.get_all_start_methods()):  # Windows: spawn only
+        return
+    dask.config.set({START_METHOD: "forkserver"})
+    get_mp_context().set_forkserver_preload(list(PRELOAD))
+    env = {k: str(v) for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()}
+    env.setdefault("PYTHONHASHSEED", "6640")  # as dask's nanny sets it for spawned workers
+    saved = {k: os.environ.get(k) for k in env}
+    os.environ.update(env)
+    try:
+        forkserver.ensure_running()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def jobqueue_cluster(cfg, kind):
+    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
+
+    The scheduler has to listen on the cluster network (the workers run on other nodes);
+    its dashboard stays on loopback (reach it with an SSH tunnel) unless ``cluster.expose``.
+    Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
+    """
+    import dask_jobqueue  # deferred: dask_jobqueue takes 1-3 s to import (docs/performance.md), SLURM/PBS only
+
+    cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
+    opts = dict(cfg.cluster.jobqueue)
+    sched = dict(opts.get("scheduler_options") or {})
+    sched.setdefault("dashboard_address", dashboard_bind(cfg.cluster))
+    opts["scheduler_options"] = sched
+    # thread budget: the worker processes of one job share its cores (mmflow.threads.n_threads)
+    opts["job_script_prologue"] = list(opts.get("job_script_prologue") or []) + [
+        f"export MMFLOW_WORKERS_PER_HOST={int(opts.get('processes') or 1)}"]
+    return cls(**opts)
+
+
+class LazyClient:
+    """A ``distributed.Client`` that starts its cluster on first use.
+
+    A run with nothing to compute (every stage finished, or refused before any work: stale
+    settings, a bad input) starts no workers and submits no batch job; the dashboard link is
+    printed when the cluster starts. Any attribute of the client (``map``, ``gather``,
+    ``scheduler_info``, ...) starts it.
+    """
+
+    def __init__(self, start):
+        self._start = start
+        self._client = None
+        self._cluster = None
+
+    def __getattr__(self, name):  # only for names not found on this object: the client's
+        if name.startswith("_"):
+            raise AttributeError(name)
+        if self._client is None:
+            self._client, self._cluster = self._start()
+        return getattr(self._client, name)
+
+    def close(self):
+        if self._client is not None:
+            self._client.close()
+        if self._cluster is not None:
+            self._cluster.close()
+
+
+@contextmanager
+def open_cluster(cfg, scheduler=None, kind=None, log=print):
+    """Yield a client (a :class:`LazyClient`: the cluster starts when the first task is sent) or
+    None for the synchronous scheduler.
+
+    ``scheduler`` (or ``DASK_SCHEDULER_ADDRESS``) joins an existing cluster; ``kind`` overrides
+    ``cluster.kind``. Worker memory limits stay on: dask spills, pauses and restarts workers
+    that exceed them. A bad ``kind`` or a missing address is refused here, before any work.
+    """
+    c = cfg.cluster
+    kind = kind or ("address" if (scheduler or os.environ.get("DASK_SCHEDULER_ADDRESS")) else c.kind)
+    if kind == "synchronous":
+        yield None
+        return
+    addr = scheduler or c.address or os.environ.get("DASK_SCHEDULER_ADDRESS")
+    if kind == "address" and not addr:
+        raise InputError("cluster", "address", "no scheduler address",
+                         "pass --scheduler tcp://host:8786 or set DASK_SCHEDULER_ADDRESS")
+    if kind not in ("address", "local", "slurm", "pbs"):
+        raise InputError("cluster", "kind", f"unknown cluster kind '{kind}'", "use local, address, slurm or pbs")
+
+    def start():
+        from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
+
+        cluster = None
+        if kind == "address":
+            client = Client(addr)
+        elif kind == "local":
+            from distributed import LocalCluster  # deferred: as Client above
+
+            fork_workers_from_a_preloaded_server()
+            cluster = LocalCluster(n_workers=c.n_workers, threads_per_worker=c.threads_per_worker,
+                                   memory_limit=memory_limit(c.memory_limit), host=bind_host(c),
+                                   dashboard_address=dashboard_bind(c),
+                                   env={"MMFLOW_WORKERS_PER_HOST": str(c.n_workers)})  # thread budget per task
+            client = Client(cluster)
+            if c.expose:
+                log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
+                    "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
+        else:
+            cluster = jobqueue_cluster(cfg, kind)
+            cluster.scale(jobs=c.n_workers)
+            client = Client(cluster)
+        log(f"dask dashboard: {client.dashboard_link}")
+        return client, cluster
+
+    client = LazyClient(start)
+    try:
+        yield client
+    finally:
+        client.close()

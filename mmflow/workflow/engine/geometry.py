@@ -1,0 +1,48 @@
+"""The work geometry a run's settings and stores give: m range, sidereal bins, integrations, split shares.
+
+Stages share these (``mmodes`` and every stage after it use :func:`mmax_of`; ``ingest``'s check and
+the configuration checks :func:`n_bins_of`; ``clean`` and the CLEAN products :func:`split_fractions`),
+so they live here and no stage module imports another. The time chunks are in
+:mod:`mmflow.workflow.engine.chunking`.
+"""
+from __future__ import annotations
+
+from mmflow.conventions import SIDEREAL_DAY_S, is_full_stokes
+from mmflow.mmode.splits import split_shares
+
+#: sampled sidereal angles of an interpolated diffuse sky per task of the simulate stage's first phase
+DIFFUSE_SAMPLE_BLOCK = 8
+
+
+def mmax_of(cfg):
+    """The largest m imaged: ``mmode.mmax``, else ``mmode.lmax``."""
+    return cfg.mmode.mmax if cfg.mmode.mmax is not None else cfg.mmode.lmax
+
+
+def n_bins_of(cfg, integration_s):
+    """Sidereal bins of the m-mode transform: ``mmode.n_bins``, else
+    ``N = round(T_sid / tau)`` for integrations of ``tau`` seconds (one bin per integration)."""
+    return cfg.mmode.n_bins or int(round(SIDEREAL_DAY_S / integration_s))
+
+
+def interpolates_diffuse(cfg):
+    """Whether the simulate stage sums the diffuse sky at a few sidereal angles and interpolates it to
+    every integration (:mod:`mmflow.simulate.drift_modes`): every unpolarised simulation with a diffuse
+    sky (a full-Stokes one sums it at every integration)."""
+    return bool(cfg.sky.diffuse) and not is_full_stokes(cfg.imaging.stokes)
+
+
+def n_integrations(cfg):
+    """Integrations of a simulated scan: ``observation.n_integrations``, else one sidereal day's
+    ``round(T_sid / tau)``."""
+    o = cfg.observation
+    return o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
+
+
+def split_fractions(ctx, fi):
+    """``{split: f_k}`` at frequency ``fi``: each split's share of the unflagged samples, summed over
+    baselines (``mmodes.zarr``'s ``n_samples``, :func:`mmflow.mmode.splits.split_shares`): the ``f_k``
+    of the per-day jackknife and of the day/night map, for any stage that reads ``mmodes.zarr``."""
+    g = ctx.open("mmodes.zarr")
+    counts = ctx.read("mmodes.zarr", "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
+    return split_shares(counts, list(g.attrs["splits"]))

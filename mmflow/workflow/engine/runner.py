@@ -1,0 +1,461 @@
+"""Run stages in order on a dask client, resumably, under the run directory's lock.
+
+What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
+
+* one driver per run directory (an exclusive lock naming its holder; a killed holder's lock
+  is released by the kernel);
+* every stage's fingerprint comes from what it declares it reads (settings, input stores,
+  input files); stale outputs are refused before any work starts, with the settings that
+  changed, unless ``--force`` recomputes them;
+* work keys come from the data and the settings, never from the cluster, and a stage is
+  complete only when every key has its marker (named by :meth:`TaskKey.format`, the task
+  handed :meth:`TaskKey.parse` of that name);
+* inputs are checked against their producers' chunk records before they are read;
+* a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import replace
+from importlib.metadata import PackageNotFoundError, version
+
+import yaml
+import zarr
+
+from mmflow.allocator import keep_freed_memory, release_freed_memory
+from mmflow.errors import InputError, MmflowError, StaleOutputError
+from mmflow.io.stores import DamagedStoreError, verify_chunks
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.context import Context
+from mmflow.workflow.engine.fingerprint import StageFingerprint, config_values, stage_file_digests
+from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan.planner import check_fits
+from mmflow.workflow.engine.resources import (current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss, reset_traced_peak,
+                                       traced_peak_bytes)
+from mmflow.workflow.engine.rundir import RunDir
+from mmflow.workflow.engine.task_key import TaskKey
+
+PACKAGES = ("mmflow", "numpy", "scipy", "dask", "distributed", "zarr", "healpy", "astropy", "ducc0", "pyuvdata")
+
+
+def versions():
+    out = {}
+    for p in PACKAGES:
+        try:
+            out[p] = version(p)
+        except PackageNotFoundError:
+            out[p] = None
+    return out
+
+
+#: A worker resident above this when a task starts holds earlier tasks' freed memory (no result stays in a
+#: worker: tasks write stores): it is given back first (mmflow.allocator.release_freed_memory), so that a
+#: task's peak is its own working set on the worker's baseline.
+RELEASE_ABOVE_BYTES = 1.5e9
+
+
+def run_task(ctx, pipeline, stage_name, key):
+    """Worker side: skip if marked done, else compute, write, then mark (atomically).
+
+    ``key`` is the task's marker name (:meth:`TaskKey.format`); the stage's task gets the :class:`TaskKey`.
+    """
+    keep_freed_memory()  # dask workers start with a 64 kB trim threshold: every array a fresh mmap
+    run = ctx.run
+    run.check_holder(ctx.token)
+    if run.is_done(stage_name, key):
+        return {"key": key, "skipped": True}
+    delay = float(os.environ.get("MMFLOW_TASK_DELAY_S", "0") or 0)
+    if delay:  # a knob to slow tasks down: watch the dashboard, or test kills mid-stage
+        time.sleep(delay)
+    if current_rss_bytes() > RELEASE_ABOVE_BYTES:  # an earlier task's freed memory, still resident
+        release_freed_memory()
+    reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.engine.resources)
+    rss_start = current_rss_bytes()
+    traced_start = reset_traced_peak()  # None unless the process traces its allocations (tracemalloc)
+    t0 = time.time()
+    stage = pipeline.stage(stage_name)
+    tctx = ctx.for_stage(stage).for_task(keep_handles=True)
+    info = stage.task(tctx, TaskKey.parse(key)) or {}
+    info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
+                guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
+                rss_start_gb=gb(rss_start))
+    if traced_start is not None:
+        info["traced_peak_gb"] = gb(traced_peak_bytes(traced_start))
+    run.check_holder(ctx.token)
+    run.mark_done(stage_name, key, info, tctx.ledger.entries)
+    return {"key": key, "skipped": False, **info}
+
+
+def stage_fingerprints(cfg, run=None, pipeline=PIPELINE):
+    """``{stage: StageFingerprint}`` of every enabled stage (None for disabled ones)."""
+    fps = {}
+    for st in pipeline:
+        if not st.enabled(cfg):
+            fps[st.name] = None
+            continue
+        upstream = {}
+        for store in st.inputs:
+            prod = pipeline.producer_of(store, cfg)
+            if prod is not None and prod.name != st.name:
+                upstream[prod.name] = fps[prod.name].digest
+        files = st.files(cfg)
+        old = run.manifest(st.name) if run is not None else None
+        fps[st.name] = StageFingerprint(config_values(cfg, st.config), upstream,
+                                        stage_file_digests(files, old) if files else {})
+    return fps
+
+
+class _Progress:
+    """A one-line progress count with the time the stage has left: updated in place on a terminal,
+    a line per ~10 % otherwise. Time left = elapsed / done x remaining (tasks of a stage are alike)."""
+
+    def __init__(self, name, total, enabled, stream=sys.stdout, clock=time.monotonic):
+        self.name, self.total, self.stream, self.clock = name, total, stream, clock
+        self.enabled = enabled and total > 0
+        self.tty = enabled and stream.isatty()
+        self.last = -1
+        self.t0 = clock()
+
+    def text(self, done):
+        left = ""
+        if 0 < done < self.total:
+            s = (self.clock() - self.t0) / done * (self.total - done)
+            left = f", ~{s:.0f} s left" if s < 120 else f", ~{s / 60:.1f} min left"
+        return f"[{self.name}] {done}/{self.total} tasks{left}"
+
+    def update(self, done):
+        if not self.enabled:
+            return
+        if self.tty:
+            self.stream.write(f"\r{self.text(done)}\033[K")
+            self.stream.flush()
+        elif done * 10 // self.total > self.last * 10 // max(self.total, 1) or done == self.total:
+            self.stream.write(self.text(done) + "\n")
+        self.last = done
+
+    def close(self):
+        if self.enabled and self.tty:
+            self.stream.write("\n")
+
+
+def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
+    if not todo:
+        return []
+    bar = _Progress(name, len(todo), progress)
+    if client is None:
+        out = []
+        for k in todo:
+            out.append(run_task(ctx, pipeline, name, k))
+            bar.update(len(out))
+        bar.close()
+        return out
+    from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
+
+    futures = client.map(run_task, [ctx] * len(todo), [pipeline] * len(todo), [name] * len(todo), todo, pure=False,
+                         key=[f"{name}-{k}-{ctx.token}" for k in todo], retries=2)
+    no_worker_since = None
+    try:
+        while True:
+            try:
+                wait(futures, timeout=1.0)
+            except TimeoutError:
+                pass
+            done = sum(f.done() for f in futures)
+            bar.update(done)
+            if done == len(futures):
+                break
+            if client.scheduler_info().get("workers"):
+                no_worker_since = None
+            elif no_worker_since is None:
+                no_worker_since = time.time()
+            elif time.time() - no_worker_since > worker_wait_s:
+                raise MmflowError(
+                    f"stage '{name}': no dask worker for {worker_wait_s:g} s with {len(futures) - done} of "
+                    f"{len(futures)} tasks unfinished (workers died: memory, walltime, a crash?). Fix: start "
+                    "workers (check the cluster's logs), then rerun the same command: finished chunks are kept "
+                    "(cluster.worker_wait_s sets the wait)")
+    except BaseException:
+        client.cancel(futures)
+        raise
+    finally:
+        bar.close()
+    return client.gather(futures)
+
+
+def _check_inputs(run, st, cfg, pipeline):
+    """Every input store's producer is complete and its recorded chunks exist with their sizes."""
+    for store in st.inputs:
+        prod = pipeline.producer_of(store, cfg)
+        if prod is None or prod.name == st.name:
+            continue
+        s = run.stage_status(prod.name)
+        if s is None or not s["complete"]:
+            raise MmflowError(f"stage '{st.name}' needs stage '{prod.name}' complete in {run.path}: "
+                              f"run `mmflow run` (or `mmflow {prod.name}`) first")
+        problems = verify_chunks(run.path, run.chunk_index(prod.name), full=False)
+        if problems:
+            raise DamagedStoreError(f"stage '{st.name}' cannot start: the output of stage '{prod.name}' is "
+                                    f"damaged: {problems[0]}" + (f" (and {len(problems) - 1} more)"
+                                                                  if len(problems) > 1 else "")
+                                    + f". Fix: `mmflow run ... --force` recomputes stage '{prod.name}' "
+                                    f"(`mmflow verify {run.path}` lists every damaged chunk)")
+
+
+def _repair_or_refuse(run, st, force, log):
+    """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop.
+
+    Only the damaged tasks are recomputed, in a stage with cycles too: a later task read the damaged
+    chunk while it was intact (every read is checked against the chunk records), so what it wrote
+    stands, and a task rerun from the same inputs rewrites its chunk bit for bit. The checkpoint of
+    each cycle that holds a damaged task is forgotten with it, so that the cycle is planned again
+    (``next_cycle`` is deterministic) and runs just that task.
+    """
+    stage = st.name
+    damaged = run.damaged_keys(stage)
+    if not damaged:
+        return
+    first = next(iter(damaged.values()))[0]
+    n = sum(len(p) for p in damaged.values())
+    if not force:
+        raise DamagedStoreError(f"stage '{stage}' in {run.path} has {n} damaged chunk files (first: {first}). "
+                                f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
+                                f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
+    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
+    if "_prepare" in damaged:
+        run.reset_stage(stage)
+        return
+    cycles = {TaskKey.parse(k).cycle for k in damaged if not k.startswith("cycle") and not k.startswith("_")}
+    run.forget_keys(stage, list(damaged) + [f"cycle{c:04d}" for c in cycles if c is not None])
+
+
+def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log):
+    """Cycles of an iterative stage, each a map over the keys ``next_cycle`` returns, then a checkpoint.
+
+    ``next_cycle(ctx, cycle)`` runs on the driver, reads the state the previous cycles left in
+    the stage's stores, may write this cycle's plan (recorded in the cycle's checkpoint marker)
+    and returns the cycle's keys (:class:`TaskKey` values; the runner sets their ``cycle``), or None
+    when the loop has converged. A cycle whose checkpoint
+    exists is not run again, so a killed loop resumes at the first unfinished cycle; because
+    ``next_cycle`` is deterministic, a cycle interrupted half-way is planned identically again.
+    """
+    results, cycle = [], 0
+    while True:
+        mark = f"cycle{cycle:04d}"
+        if run.is_done(st.name, mark):
+            cycle += 1
+            continue
+        cctx = sctx.for_task()
+        keys = st.next_cycle(cctx, cycle)
+        release_freed_memory()  # the plan's maps and tables (CLEAN: ~1 GB at lmax 1000) back to the system
+        if keys is None:
+            log(f"[{st.name}] converged after {cycle} cycles" if st.kind == "iterative"
+                else f"[{st.name}] {cycle + 1} phases done")  # a solve or map stage's second phase
+            return results
+        ckeys = [replace(k, cycle=cycle).format() for k in keys]
+        run.add_keys(st.name, ckeys + [mark])
+        todo = [k for k in ckeys if not run.is_done(st.name, k)]
+        results += _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
+        run.mark_done(st.name, mark, {"cycle": cycle, "tasks": len(keys)}, cctx.ledger.entries)
+        cycle += 1
+
+
+def _kept_summary(run, st, todo):
+    """The recorded summary of a stage already complete with the same fingerprint (``begin_stage``
+    has refused any other), with ``kept: True`` and ``tasks_run: 0``; None when it has work left,
+    including a finalize whose marker ``_repair_or_refuse`` removed for a damaged file."""
+    recorded = None if todo else run.completion(st.name)  # no key left to do: no per-key scan again
+    if recorded is None or (st.finalize is not None and not run.is_done(st.name, "_finalize")):
+        return None
+    return dict(recorded, kept=True, tasks_run=0)
+
+
+def _counts(run, st):
+    """The stage's counters summed over every finished task (this run's and earlier ones)."""
+    infos = run.task_infos(st.name).values()
+    return {c: sum(int(i.get(c, 0) or 0) for i in infos) for c in st.counters}
+
+
+def _worker_peak(results):
+    """The largest peak resident memory (GB) of a worker process while one of this run's tasks ran
+    (None when every task was already done)."""
+    peaks = [r["peak_rss_gb"] for r in results if r.get("peak_rss_gb") is not None]
+    return max(peaks) if peaks else None
+
+
+def _stale_stages(run, fps, names):
+    return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
+
+
+def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print, pipeline=PIPELINE):
+    """Run every enabled stage (or just ``only``) of a workflow; return the per-stage summaries.
+
+    ``pipeline``: the stages in order (:data:`mmflow.workflow.pipeline.PIPELINE`; tests pass their own).
+    """
+    run = RunDir(cfg.run.directory)
+    run.path.mkdir(parents=True, exist_ok=True)
+    lock, token = run.acquire_lock()
+    logfile = open(run.path / "mmflow.log", "a")
+
+    def log_both(msg):
+        logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {msg}\n")
+        logfile.flush()
+        log(msg)
+
+    try:
+        return _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline)
+    except BaseException as exc:
+        logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} stopped: {type(exc).__name__}: {exc}\n")
+        raise
+    finally:
+        logfile.close()
+        lock.close()
+
+
+def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
+    stages = [st for st in pipeline if not only or st.name in only]
+    fps = stage_fingerprints(cfg, run, pipeline)
+    stale = _stale_stages(run, fps, [st.name for st in stages if st.task is not None])
+    if stale and not force:  # refuse before any work, naming what changed
+        st = stale[0]
+        raise _stale_error(run, st, fps[st], stale)
+    running = [st.name for st in stages if st.enabled(cfg)]
+    for st in stages:  # refuse inputs the run cannot use before any work
+        if st.check is not None and st.enabled(cfg):
+            st.check(cfg, running)
+    _check_resources(cfg, run, client, stages)
+    (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
+    (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions()}, indent=2))
+    ctx = Context(cfg.model_dump_json(), str(run.path), token)
+    worker_wait_s = float(getattr(cfg.cluster, "worker_wait_s", 300))
+    summaries = {}
+    for st in stages:
+        if not st.enabled(cfg):
+            if st.task is None or only:
+                log(f"[{st.name}] skipped: disabled ({st.description})")
+            continue
+        t0 = time.time()
+        reset_peak_rss()
+        fp = fps[st.name]
+        if force and run.is_stale(st.name, fp.digest):
+            log(f"[{st.name}] recomputing (--force): {fp.explain(run.manifest(st.name))}")
+            run.reset_stage(st.name)
+        _repair_or_refuse(run, st, force, log)
+        _check_inputs(run, st, cfg, pipeline)
+        sctx = ctx.for_stage(st)
+        pctx = sctx.for_task()
+        keys = [k.format() for k in st.prepare(pctx)]
+        todo = run.begin_stage(st.name, fp, keys, st.outputs)
+        kept = _kept_summary(run, st, todo)
+        if kept is not None:  # finished with these settings and inputs: nothing is recomputed or rewritten
+            summaries[st.name] = kept
+            log(f"[{st.name}] complete, kept: {len(keys)} tasks done (took {kept.get('wall_s')} s when it ran)")
+            continue
+        run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
+        _stamp_stores(run, st, cfg, fp.digest)
+        log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
+        results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
+        if st.next_cycle is not None:  # iterative stages, and solve stages with a second phase
+            results += _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
+        fin = None
+        if st.finalize:
+            fctx = sctx.for_task()
+            fin = st.finalize(fctx)
+            run.mark_done(st.name, "_finalize", fin, fctx.ledger.entries)
+        counts = _counts(run, st)
+        if any(counts.values()):
+            log(f"[{st.name}] " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in counts.items() if v))
+        # every phase's tasks (a second phase's or a cycle's keys join the manifest as they are planned)
+        n_tasks = sum(1 for k in run.manifest(st.name)["keys"] if not k.startswith("cycle"))
+        summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": n_tasks, "counts": counts,
+                   "tasks_run": sum(1 for r in results if not r.get("skipped")),
+                   "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
+                   "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),
+                   "guard_s": round(sum(r.get("guard_s", 0) for r in results), 3),
+                   "bytes_written": run.bytes_of(st.outputs), "finalize": fin,
+                   "worker_peak_rss_gb": _worker_peak(results),
+                   "driver_peak_rss_gb": gb(peak_rss_bytes())}
+        run.finish_stage(st.name, summary)
+        summaries[st.name] = summary
+        log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
+            f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
+    if only:
+        later = _stale_stages(run, stage_fingerprints(cfg, run, pipeline), list(pipeline.names))
+        if later:
+            log(f"stages now made from older inputs (STALE): {', '.join(later)}. Refresh them with "
+                f"`mmflow run WORKFLOW ... --force` (the same settings; up-to-date stages are kept)")
+    summary_path = run.path / "summary.json"
+    fresh = {k: v for k, v in summaries.items() if not v.get("kept")}  # kept stages keep their record
+    if fresh:
+        merged = json.loads(summary_path.read_text()) if summary_path.exists() else {}
+        merged.update(fresh)
+        summary_path.write_text(json.dumps(merged, indent=2))
+    return summaries
+
+
+def _worker_limit_gb(client):
+    """The smallest memory limit (GB) of the cluster's workers; the machine's memory in process
+    (no client); None when no worker has joined yet or none has a limit."""
+    if client is None:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
+    limits = [w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()]
+    limits = [x for x in limits if x > 0]
+    return min(limits) / 1e9 if limits else None
+
+
+def _check_resources(cfg, run, client, stages):
+    """Before any work: the largest task of each stage still to run against a worker's memory, and
+    the stores against the free disk (:func:`mmflow.workflow.plan.planner.check_fits`)."""
+    todo = [st for st in stages if st.enabled(cfg) and st.task is not None
+            and not (run.stage_status(st.name) or {}).get("complete")]
+    if todo:
+        check_fits(cfg, _worker_limit_gb(client), [st.name for st in todo],
+                   existing_bytes=run.bytes_of([o for st in todo for o in st.outputs]))
+
+
+def _stale_error(run, stage, fp, stale):
+    others = [s for s in stale if s != stage]
+    return StaleOutputError(
+        f"stage '{stage}' in {run.path} was made from other settings or inputs: {fp.explain(run.manifest(stage))}"
+        + (f" (stale too: {', '.join(others)})" if others else "")
+        + ". Fix: add --force to recompute it and the stages after it (up-to-date stages are kept), "
+        "or use a new directory with run.directory=...")
+
+
+def _stamp_stores(run, stage, cfg, fingerprint):
+    """Record the resolved configuration, versions and fingerprint in every zarr store a stage writes."""
+    for out in stage.outputs:
+        path = run.store(out)
+        if out.endswith(".zarr") and path.exists():
+            zarr.open_group(str(path), mode="r+").attrs.update(
+                {"mmflow": {"stage": stage.name, "fingerprint": fingerprint, "versions": versions(),
+                            "config": json.loads(cfg.model_dump_json())}})
+
+
+def status(run_path):
+    """Per stage: chunks done, complete, and stale (made from other settings than ``config.yaml``)."""
+    run = RunDir(run_path)
+    if not run.path.is_dir():
+        raise InputError(str(run.path), "run directory", "does not exist",
+                         "give the run.directory of a workflow that has run")
+    try:
+        fps = stage_fingerprints(load_config(run.path / "config.yaml"), run)
+    except InputError:  # no config.yaml, or one from another mmflow version: staleness unknown
+        fps = None
+    out = {}
+    for st in PIPELINE:
+        s = run.stage_status(st.name)
+        if s is not None:
+            s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
+        out[st.name] = s
+    return out
+
+
+def verify(run_path, full=True):
+    """``{stage: [problems]}``: missing markers, missing, truncated or changed chunk files."""
+    run = RunDir(run_path)
+    if not run.path.is_dir():
+        raise InputError(str(run.path), "run directory", "does not exist", "give an existing run directory")
+    return run.verify(list(PIPELINE.names), full)

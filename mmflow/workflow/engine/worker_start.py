@@ -1,0 +1,30 @@
+"""What a local cluster's worker server imports once, before it forks each worker.
+
+Importing this module imports every stage (:mod:`mmflow.workflow.pipeline`) and loads numba's
+compiler runtime and the imaging kernels every imaging run calls (the Legendre recurrence and the
+fringe kernel in both precisions) from numba's cache, compiling them on a machine's first run.
+Each worker is then a fork that shares them, so no worker task bears numba's ~45 MB runtime start
+(~0.5 s) or a compilation (~15 MB and 1-1.5 s per kernel, per worker, on a fresh installation):
+a task's measured memory is its working set, as :mod:`mmflow.workflow.plan.planner` models it, and the
+runtime sits in the worker's baseline (``WORKER_BASE_BYTES``). Workers started any other way
+(a job-queue cluster, ``dask worker``) load them in their first task instead; nothing else differs.
+"""
+import numpy as np
+
+import mmflow.workflow.pipeline  # noqa: F401  (the stages, imported once for every worker)
+from mmflow.mmode.fringe_kernels import sincos_turns
+from mmflow.mmode.legendre import weighted_legendre_table
+
+
+def load_compiled_kernels():
+    """Call each imaging kernel once on a few values, in every precision the transfer stage uses."""
+    theta = np.linspace(0.1, 3.0, 4)
+    for dtype in (np.float32, np.float64):
+        weighted_legendre_table(1, 4, theta, np.ones(4), dtype, 2)
+        sincos_turns(np.linspace(0.0, 1.0, 4), dtype)
+
+
+try:
+    load_compiled_kernels()
+except Exception:  # noqa: BLE001 -- a warm-up only: the first task that needs a kernel reports its error
+    pass

@@ -1,0 +1,99 @@
+"""The peel stage's solve of one channel's time chunk, from its visibilities and source models.
+
+Shared by the stage (:mod:`mmflow.workflow.stages.peel.stage`, which reads the block and writes
+``peel.zarr``) and ``mmflow bench calibrate`` (which times exactly this at the paper's scale):
+per integration it chooses whether each source is peeled, subtracted or only modelled
+(:func:`~mmflow.calibrate.peel.select_modes`, from its apparent flux and elevation), builds the
+screen model's phase basis, and peels (:func:`~mmflow.calibrate.peel.peel`, in single precision
+unless ``peel.tol`` asks for more: :func:`solve_dtype`);
+with ``peel.fit_positions`` it fits the subtracted sources' positions and peels again.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.calibrate.coherency import apparent_flux, source_vector_date
+from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
+from mmflow.calibrate.peel import SKIP, SUBTRACT, peel, select_modes
+from mmflow.calibrate.source_models import position_gains
+from mmflow.simulate.corrupt import gain_products
+from mmflow.sky.sources import get_sources
+from mmflow.workflow.engine.baseline_cuts import solve_mask
+
+#: the smallest ``peel.tol`` solved in single precision: a relative gain change (or a phase change in
+#: rad) of 1e-5 is ~100 float32 roundings; below it the solve runs in double precision
+SINGLE_PRECISION_TOL = 1e-5
+
+
+def solve_dtype(p):
+    """The working precision of the peel solve (:func:`mmflow.calibrate.peel.peel`'s ``dtype``):
+    complex64, which halves the memory traffic that bounds peeling, unless ``peel.tol`` is below
+    :data:`SINGLE_PRECISION_TOL` (the default 1e-4 is not)."""
+    return np.complex64 if p.tol >= SINGLE_PRECISION_TOL else np.complex128
+
+
+def peel_names(p):
+    """Every source the peel stage fits: the removed ones (``peel.sources``), then the modelled ones."""
+    return list(p.sources) + list(p.model_sources)
+
+
+def peel_solve(tel, fi, lst, pairs, vis, weights, coh, p, epoch_jd, integration_s):
+    """Peel one channel of a time chunk.
+
+    Parameters
+    ----------
+    tel : mmflow.telescope.Telescope
+    fi : int, the channel (``tel.freqs_hz[fi]``)
+    lst : ndarray (time,) sidereal angles (rad; NaN: a missing integration, skipped)
+    pairs : ndarray (bl, 2)
+    vis, weights : ndarray (time, bl, pol): the calibrated visibilities and their weights
+    coh : ndarray (n_src, time, bl): the models of :func:`peel_names` (in :func:`solve_dtype`)
+    p : the ``peel`` configuration
+    epoch_jd : float, the data's epoch; integration_s : float
+
+    Returns
+    -------
+    mmflow.calibrate.peel.PeelSolution, its DD gains of a subtracted source being the phase
+    gradient of its fitted position (``peel.fit_positions``; 1 otherwise)
+    """
+    f = float(tel.freqs_hz[fi])
+    good = np.isfinite(lst)
+    names = peel_names(p)
+    sources = get_sources(names)
+    flux, elev = apparent_flux(tel, f, np.where(good, lst, 0.0), sources, epoch_jd)
+    modes = select_modes(flux, elev, peelable=[n in p.peel for n in names],
+                         peel_min_elevation_deg=p.peel_min_elevation_deg, peel_min_flux_jy=p.peel_min_flux_jy,
+                         modelled=[n in p.model_sources for n in names])
+    modes[:, ~good] = SKIP
+    keep = solve_mask(tel, pairs, p.min_baseline_lambda, f)
+    solint = 1 if p.solint_s is None else max(1, int(round(p.solint_s / float(integration_s))))
+    basis = None
+    if p.dd_model == "screen":  # the phase per unit refractive offset of each source, per integration
+        vec = np.stack([source_vector_date(s, epoch_jd) for s in sources])
+        basis = screen_basis(tel.layout.enu, f, sky_tangents_enu(tel, np.where(good, lst, 0.0), vec))
+    kw = dict(dd_model=p.dd_model, screen_basis=basis, baseline_keep=keep, batch=p.batch, warm_start=p.warm_start,
+              passes=p.passes, tol=p.tol, max_iter=p.max_iter, guard=p.guard, solint=solint, dtype=solve_dtype(p))
+    out = peel(vis, weights, coh, pairs, tel.n_ant, modes, **kw)
+    h = np.ones(out.dd_gains.shape[:3], complex)  # (src, time, ant): subtracted sources at their positions
+    if p.fit_positions:
+        h = _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, epoch_jd)
+        coh = coh * gain_products(h[..., None], pairs)[..., 0]
+        out = peel(vis, weights, coh, pairs, tel.n_ant, modes, **kw)
+    sub = out.mode == SUBTRACT  # (src, time, pol): stored DD gains are the position gradient (1: catalogue)
+    out.dd_gains = np.where(sub[:, :, None, :], h[..., None], out.dd_gains)
+    return out
+
+
+def _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, epoch_jd):
+    """DD phase gradients (src, time, ant) of each subtracted source's fitted position per
+    integration (:func:`mmflow.calibrate.source_models.position_gains`) on the peeled data with the
+    source put back (mean of the polarisations; autos and short baselines unused); 1 elsewhere."""
+    h = np.ones(out.dd_gains.shape[:3], complex)
+    w = weights.min(-1) * keep * (pairs[:, 0] != pairs[:, 1])
+    for s, src in enumerate(sources):
+        sub = (out.mode[s] == SUBTRACT).any(-1) & good & (w.sum(1) > 0)  # a flagged integration: no fit
+        if not sub.any():
+            continue
+        data = (out.residual[sub] + out.scale[s][sub][:, None, :] * coh[s][sub][..., None]).mean(-1)
+        _, h[s, sub] = position_gains(tel, f, lst[sub], pairs, source_vector_date(src, epoch_jd), data, w[sub])
+    return h

@@ -1,0 +1,105 @@
+"""The ``peel`` stage (solve-then-apply): bright sources peeled or subtracted per integration.
+
+Tasks ``f{F}_t{K}`` run over channels and time chunks of ``vis.zarr``. Each reads its
+integrations calibrated (the corrections of the stages before it, :func:`read_block`), takes
+the model coherency of every ``peel.sources`` source through the beam at the data's epoch
+(:func:`mmflow.calibrate.coherency.source_coherencies`), chooses per integration whether a
+source is peeled (``peel.peel``, above ``peel.peel_min_elevation_deg``), subtracted with a
+fitted flux, or skipped (below the horizon) (:func:`mmflow.workflow.stages.peel.solve.peel_solve`, which
+``mmflow bench calibrate`` times, in single precision unless ``peel.tol`` < 1e-5); the ``peel.model_sources``
+are fitted with them (a flux scale per integration) and left in the data. It peels
+(:func:`mmflow.calibrate.peel.peel`: direction-dependent gains per source, in flux order, for
+``peel.passes`` passes; the guard subtracts instead where peeling removed less than
+``peel.guard`` of the measured flux). ``peel.dd_model`` chooses the DD gains: ``screen`` (the
+default) a refractive offset and a scintillation amplitude per source and integration
+(:mod:`mmflow.calibrate.dd_screen`, the offset's phase per antenna from the source's sky
+tangent plane at the data's epoch), ``antenna`` a free gain per antenna (Stefcal).
+``peel.solint_s`` shares a peeled source's offset (or DD gains) over an interval (amplitude
+still per integration); ``peel.fit_positions`` fits the
+subtracted sources' positions per integration and peels again with the moved models.
+``peel.zarr`` keeps per integration the DD gains (for a subtracted source: 1, or the phase
+gradient of its fitted position), flux scales, modes, the guard's fluxes and convergence.
+
+``apply`` subtracts, where a block is read, what peeling removed::
+
+    V_ij -= sum_{s peeled} h_si conj(h_sj) M^s_ij + sum_{s subtracted} a_s h_si conj(h_sj) M^s_ij
+
+(for a subtracted source ``h`` is 1, or with ``peel.fit_positions`` the phase gradient that
+moves it to its fitted position in that integration)
+
+with the same coherencies (recomputed for the block's baselines), so ``vis.zarr`` is never
+rewritten.
+
+With the ``models`` stage enabled, the sources it fitted are modelled by their fitted Gaussian
+components (``models.zarr``) instead of the catalogue's points, in the solve and in ``apply``
+alike: the peel stage copies them into ``peel.zarr``'s attribute ``fitted_models``, so ``apply``
+(run by every later reader) reads only ``peel.zarr``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.calibrate.peel import PEEL, SUBTRACT
+from mmflow.io.run_stores import PEEL_MODES, peel_store
+from mmflow.workflow.engine.baseline_cuts import check_baselines
+from mmflow.workflow.engine.blocks import read_block
+from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
+from mmflow.workflow.engine.peel_models import fitted_tables, peel_coherencies, peel_components
+from mmflow.workflow.stages.peel.solve import peel_names, peel_solve, solve_dtype
+from mmflow.workflow.stages.base import Stage
+
+
+def _prepare(ctx):
+    vg = ctx.open("vis.zarr")
+    nt, _, nf, npol = vg["vis"].shape
+    n_ant = vg["antenna_enu"].shape[0]
+    # with no baseline long enough every fit would be empty: refuse before any task
+    check_baselines(ctx.telescope(), vg["pairs"][:], ctx.cfg.peel.min_baseline_lambda, "peel.min_baseline_lambda")
+    names = peel_names(ctx.cfg.peel)
+    # the models stage's fits replace the catalogue's point models when it is enabled: an input
+    # whose producer's fingerprint then enters this stage's
+    fitted = {}
+    if ctx.producer("models.zarr") is not None:
+        fitted = fitted_tables(ctx.open("models.zarr"), names)
+    ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
+                          {"sources": names, "peeled": list(ctx.cfg.peel.peel),
+                           "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
+                           "modes": {n: i for i, n in enumerate(PEEL_MODES)}, "pols": vg.attrs["pols"]}))
+    return [k for fi in range(nf) for k in time_keys(nt, freq=fi)]
+
+
+def _task(ctx, key):
+    fi = key.freq
+    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
+    block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
+    tel = ctx.telescope()
+    coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, peel_names(ctx.cfg.peel),
+                           solve_dtype(ctx.cfg.peel))
+    attrs = ctx.vis_attrs()
+    out = peel_solve(tel, fi, block.lst, block.pairs, block.vis[:, :, 0], block.weights[:, :, 0], coh,
+                     ctx.cfg.peel, float(attrs["epoch_jd"]), float(attrs["integration_s"]))
+    g = ctx.open("peel.zarr", mode="r+")
+    region = (rows, slice(fi, fi + 1))
+
+    def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
+        return np.moveaxis(x, 0, 1)[:, None]
+
+    ctx.write(g, "dd_gains", region, per_time(out.dd_gains))
+    for name in ("scale", "mode", "guard", "measured", "removed", "converged"):
+        ctx.write(g, name, region, per_time(getattr(out, name)))
+    peeled = out.mode == PEEL
+    return {"peeled": int(peeled.sum()), "guard_fired": int(out.guard.sum()),
+            "not_converged": int((peeled & ~out.converged).sum())}
+
+
+def _apply(ctx, block):
+    """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
+    ``peel.zarr``, never the configuration); the modelled sources stay."""
+    for k, fi in block.channel_indices():
+        block.vis[:, :, k] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
+
+
+STAGE = Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
+               apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
+               counters=("peeled", "guard_fired", "not_converged"),
+               description="peel (DD gains) or subtract bright sources per integration (applied on read)")

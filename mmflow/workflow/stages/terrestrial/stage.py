@@ -1,0 +1,115 @@
+"""The ``terrestrial`` stage (solve-then-apply, two phases): signals that do not move with the sky.
+
+Paper section 5.4, on the calibrated and peeled data (the corrections of the stages before
+it, :func:`read_block`):
+
+1. tasks ``s{F}_t{K}`` sum each channel's time chunk's visibilities and weights per baseline with
+   the phase centre at zenith (drift-scan data as stored); the sky smears into rings over > 24 h, a
+   cross-talk pattern or a near-field emitter does not;
+2. the driver adds the sums in a fixed order (:func:`ordered_tree_sum`), and fits
+   ``terrestrial.components`` rank-1 patterns ``u_k`` to the average per channel and polarisation
+   (:func:`mmflow.calibrate.terrestrial.fit_templates`); the templates are the K^2 Hermitian
+   ``u_k u_l^H`` combinations (``u_k u_k^H`` alone for one component);
+3. tasks ``a{F}_t{K}`` fit a real amplitude per template and integration on baselines longer than
+   ``terrestrial.min_baseline_lambda`` (:func:`fit_amplitudes`) and report how much of the data
+   each template sees, ``||B^H v_t|| / (||B|| ||v_t||)`` (:func:`projection_fraction`).
+
+Both phases hold out the fitted ``peel.model_sources`` (:func:`mmflow.workflow.engine.peel_models.modelled_sources`):
+the catalogued sky left in the data would otherwise leak into the templates and, integration by
+integration, into their amplitudes.
+
+``apply`` subtracts ``sum_k a_k(t) B_k`` from a block where it is read. Every task reads and
+corrects one channel (:func:`read_block`'s ``channels``): its memory does not grow with the run's
+channels.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, projection_fraction, subtract_templates,
+                                          template_basis)
+from mmflow.io.run_stores import terrestrial_store
+from mmflow.workflow.engine.baseline_cuts import solve_mask
+from mmflow.workflow.engine.blocks import read_block
+from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
+from mmflow.workflow.engine.peel_models import modelled_sources
+from mmflow.workflow.engine.reduce import ordered_tree_sum
+from mmflow.workflow.stages.base import Stage
+
+
+def _prepare(ctx):
+    vg = ctx.open("vis.zarr")
+    nt, nbl, nf, npol = vg["vis"].shape
+    ctx.create(terrestrial_store(len(time_keys(nt)), nt, nf, nbl, ctx.cfg.terrestrial.components,
+                                 vg["antenna_enu"].shape[0], npol, TIME_CHUNK))
+    return _keys(nt, nf, "s")
+
+
+def _keys(nt, nf, phase):
+    """One task per channel and time chunk: ``{phase}{F}_t{K}``."""
+    return [k for fi in range(nf) for k in time_keys(nt, phase=phase, freq=fi)]
+
+
+def _templates(ctx, fi, pairs):
+    """The (K^2, bl, pol) templates of channel ``fi`` for ``pairs`` (:func:`template_basis` of its K patterns)."""
+    return template_basis(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
+
+
+def _task(ctx, key):
+    k, fi = key.time, key.freq
+    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
+    block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
+    if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
+        block.vis -= modelled_sources(ctx, block)
+    vis = block.vis[:, :, 0]  # (time, bl, pol)
+    g = ctx.open("terrestrial.zarr", mode="r+")
+    w = np.where(np.isfinite(block.lst)[:, None, None], block.weights[:, :, 0], 0.0)
+    region = (slice(k, k + 1), slice(fi, fi + 1))
+    if key.phase == "s":  # phase 1: weighted sums
+        v = np.where(w > 0, vis, 0)
+        ctx.write(g, "sum_vis", region, (w * v).sum(0)[None, None])
+        ctx.write(g, "sum_weight", region, w.sum(0)[None, None])
+        return {}
+    tel = ctx.telescope()  # phase 2: amplitudes per integration
+    B = _templates(ctx, fi, block.pairs)
+    keep = solve_mask(tel, block.pairs, ctx.cfg.terrestrial.min_baseline_lambda, float(tel.freqs_hz[fi]))
+    amps = fit_amplitudes(vis, w, B, keep)
+    seen = []
+    for c in range(B.shape[0]):
+        for p in range(B.shape[-1]):
+            v = vis[:, keep, p].T
+            if np.linalg.norm(v) > 0:
+                seen.append(projection_fraction(B[c, keep, p][:, None], v))
+    ctx.write(g, "amplitudes", (rows, slice(fi, fi + 1)), amps[:, None])
+    return {"max_projection_fraction": float(max(seen, default=0.0))}
+
+
+def _next_cycle(ctx, cycle):
+    """After the sums: fit the templates (driver), then the amplitudes (tasks); then done."""
+    if cycle > 0:
+        return None
+    t = ctx.cfg.terrestrial
+    g = ctx.open("terrestrial.zarr", mode="r+")
+    n, nf = g["sum_vis"].shape[:2]
+    pairs = ctx.open("vis.zarr")["pairs"][:]
+    patterns = np.zeros(g["patterns"].shape, complex)
+    for fi in range(nf):  # every cross baseline: the template is never extrapolated
+        total = ordered_tree_sum([g["sum_vis"][i, fi] for i in range(n)])  # (bl, pol)
+        weight = ordered_tree_sum([g["sum_weight"][i, fi] for i in range(n)])
+        mean = np.where(weight > 0, total / np.where(weight > 0, weight, 1), 0)
+        patterns[fi] = fit_templates(mean, weight, pairs, ctx.telescope().n_ant, t.components).patterns
+    ctx.write(g, "patterns", (slice(None),), patterns)
+    return _keys(ctx.open("vis.zarr")["lst"].shape[0], nf, "a")
+
+
+def _apply(ctx, block):
+    """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place."""
+    amps = ctx.read("terrestrial.zarr", "amplitudes", (block.rows,))  # (time, freq, K, pol)
+    for k, fi in block.channel_indices():
+        block.vis[:, :, k] = subtract_templates(block.vis[:, :, k], _templates(ctx, fi, block.pairs), amps[:, fi])
+
+
+STAGE = Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
+               _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
+               enabled=lambda cfg: cfg.terrestrial.enabled,
+               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration")
