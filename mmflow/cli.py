@@ -256,7 +256,7 @@ def _dispatch(args):
 
 def _report(cfg, summaries):
     """What a user checks first: where the maps are, their resolution, rms and fraction of modes, stage times."""
-    run = Path(cfg.run.directory).expanduser().absolute()
+    run = Path(cfg.run.directory).absolute()
     print("stage times: " + ", ".join(f"{k} kept ({v['tasks']} tasks done before)" if v.get("kept") else
                                       f"{k} {v['wall_s']} s ({v['tasks_run']}/{v['tasks']} tasks run)"
                                       for k, v in summaries.items()))

@@ -39,6 +39,7 @@ import numpy as np
 
 SIDEREAL_DAY_S = 86164.0905  # s: one turn of the sidereal angle
 TWO_PI = 2 * np.pi  # rad: one turn (of the sidereal angle, of an m-mode phase)
+SPEED_OF_LIGHT = 299792458.0  # m/s, exact (SI): every wavelength in mmflow is SPEED_OF_LIGHT / freq_hz
 #: the Stokes parameters of full-Stokes imaging, as ``imaging.stokes`` lists them
 FULL_STOKES = ("I", "Q", "U", "V")
 

@@ -1,9 +1,13 @@
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 os.environ.setdefault("MMFLOW_THREADS", "2")
+#: the suite's own cache (parsed IERS tables, numba's compiled kernels), inside the checkout's
+#: .pytest_cache (git-ignored): the tests never write to the user's ~/.cache/mmflow
+os.environ.setdefault("MMFLOW_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "mmflow"))
 
 
 #: the longest test files, longest first: started first, so that with ``-n 2 --dist loadfile

@@ -33,6 +33,7 @@ from mmflow.threads import n_threads, single_threaded_blas, usable_cores
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.stages.peel.solve import peel_names, peel_solve, solve_dtype
+from mmflow.conventions import SPEED_OF_LIGHT
 
 N_DAY = 7756  # 13 s integrations in the paper's 28 h
 N_CHANNELS_PAPER = 8
@@ -55,7 +56,7 @@ def _layout(n_ant):
 def _problem(n_ant, n_int, n_src, rng):
     """Point-source coherencies, DD gains (refraction + scintillation), data with noise."""
     enu, name = _layout(n_ant)
-    lam = 299792458.0 / FREQ
+    lam = SPEED_OF_LIGHT / FREQ
     d = rng.normal(size=(n_src, 3))
     d[:, 2] = np.abs(d[:, 2]) + 0.7
     d /= np.linalg.norm(d, axis=1)[:, None]
@@ -226,7 +227,7 @@ def screened_gain_rates(n_ant=256, n_int=100, rng=None):
     d = rng.normal(size=(4, 3))
     d[:, 2] = np.abs(d[:, 2]) + 0.7
     d /= np.linalg.norm(d, axis=1)[:, None]
-    b = (enu[j] - enu[i]) / (299792458.0 / FREQ)
+    b = (enu[j] - enu[i]) / (SPEED_OF_LIGHT / FREQ)
     flux = np.array([16000.0, 14000.0, 2500.0, 1800.0])
     coh = np.stack([np.broadcast_to(f * np.exp(2j * np.pi * b @ x), (n_int, len(i))) for f, x in zip(flux, d)])
     vis = np.repeat(coh.sum(0)[..., None], 2, -1) + 50 * rng.normal(size=(n_int, len(i), 2))

@@ -239,7 +239,7 @@ def _raw_cases(root, quick, keep):
     out = {"n_ant": n_ant, "n_baselines": int(uv.Nbls), "n_freq": OVRO_N_CHAN, "n_pol": 4, "integrations": n_time,
            "layout": f"OVRO-LWA core, first {n_ant} stands", "vis_units": uv.vis_units, "phase_frame": "fk5"}
     f_mhz = float(uv.freq_array.ravel()[RAW_CHANNEL]) / 1e6
-    write = _timed(lambda: out.update(paths=_write(uv, root / "ms", "ms", phase_frame="fk5")))
+    write = _timed(lambda: out.update(paths=_write(uv, root / "ms", "ms", phase_frame="fk5")))  # noqa: F821 (called before `del uv` below)
     paths = out.pop("paths")
     del uv
     out.update(channel_mhz=round(f_mhz, 6), write_s=round(write[0], 3), write_cpu_s=round(write[1], 3))

@@ -11,7 +11,7 @@ import numba
 import numpy as np
 
 from mmflow.errors import InputError
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 
 
 def check_pairs(pairs, n_ant):
@@ -109,7 +109,7 @@ MIN_BASELINES_PER_ANTENNA = 3
 def baseline_lengths(pairs, enu, freq_hz):
     """Baseline lengths in wavelengths, ``|x_j - x_i| / lambda`` (3-D), per pair."""
     pairs = np.asarray(pairs)
-    return np.linalg.norm(enu[pairs[:, 1]] - enu[pairs[:, 0]], axis=1) * freq_hz / C_LIGHT
+    return np.linalg.norm(enu[pairs[:, 1]] - enu[pairs[:, 0]], axis=1) * freq_hz / SPEED_OF_LIGHT
 
 
 def _required(n_cross, keep_fraction):

@@ -41,7 +41,7 @@ import numba
 import numpy as np
 
 from mmflow.calibrate.stefcal import run_rows
-from mmflow.sky.units import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.sky.frames import source_enu, tangent_basis
 
 
@@ -61,7 +61,7 @@ def screen_basis(enu_m, freq_hz, tangents_enu):
     ``enu_m`` (n_ant, 3) antenna positions (m); ``tangents_enu`` (..., 2, 3) two unit vectors
     perpendicular to the source (e.g. :func:`sky_tangents_enu`).
     """
-    lam = C_LIGHT / float(freq_hz)
+    lam = SPEED_OF_LIGHT / float(freq_hz)
     return -2 * np.pi / lam * np.einsum("...kl,al->...ak", np.asarray(tangents_enu, float), np.asarray(enu_m, float))
 
 

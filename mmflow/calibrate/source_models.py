@@ -26,7 +26,7 @@ from scipy.optimize import minimize
 
 from mmflow.simulate.corrupt import direction_dependent_gains
 from mmflow.sky.frames import source_enu, tangent_basis
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.threads import single_threaded_blas
 
 ARCMIN = np.pi / 180 / 60
@@ -39,7 +39,7 @@ def source_uvw(telescope, freq_hz, lsts, pairs, vec_date):
     e, n = tangent_basis(vec_date)
     basis = np.stack([e, n, vec_date])  # (3, 3) rows e, n, r0 in the frame of date
     enu_axes = source_enu(telescope, lsts, basis)  # (3, T, 3): each axis in ENU at each time
-    b = telescope.baselines_enu(pairs) * freq_hz / C_LIGHT  # (bl, 3)
+    b = telescope.baselines_enu(pairs) * freq_hz / SPEED_OF_LIGHT  # (bl, 3)
     uvw = np.einsum("bl,ktl->tbk", b, enu_axes)
     beam = telescope.beam.power_enu(enu_axes[2], freq_hz)
     return uvw, beam

@@ -445,7 +445,7 @@ def dense_problem(vis, model, weights, pairs, n_ant, solint, baseline_keep=None)
     pad = n_int * solint - T
 
     def dense(x, dtype):
-        x = np.nan_to_num(np.asarray(x, dtype)) if dtype != float else np.asarray(x, dtype)
+        x = np.nan_to_num(np.asarray(x, dtype)) if dtype != float else np.asarray(x, dtype)  # noqa: E721 (a numpy dtype equals float too)
         if pad:
             x = np.concatenate([x, np.zeros((pad,) + x.shape[1:], x.dtype)])
         x = x.reshape(n_int, solint * C, B, P)

@@ -29,8 +29,8 @@ from mmflow.io.file_data import FileData
 from mmflow.io.ms_index import ms_time_to_jd
 from mmflow.io.polarization import select_pols
 from mmflow.sky.frames import apparent_sidereal_time
+from mmflow.conventions import SPEED_OF_LIGHT
 
-SPEED_OF_LIGHT = 299792458.0  # m/s (astropy.constants.c)
 
 
 def read_ms_direct(path, pol_numbers, phased, site, lock=None, n_parallel=None):

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import ducc0
 import numpy as np
 
-from mmflow.conventions import enu_to_equatorial_matrix, m_blocks, unit_vectors
+from mmflow.conventions import SPEED_OF_LIGHT, enu_to_equatorial_matrix, m_blocks, unit_vectors
 from mmflow.mmode.fringe_kernels import fringe_folds
 from mmflow.mmode.legendre import weighted_legendre_table
 from mmflow.threads import n_threads, single_threaded_blas
@@ -321,4 +321,4 @@ def transfer_blocks(grid, b_wavelengths, lmax_b=None, mmax=None, dtype=np.float6
 def baselines_in_wavelengths(telescope, pairs, freq_hz):
     """Baseline vectors of ``pairs`` in the sky frame at ``phi = 0``, in wavelengths."""
     b_enu = telescope.baselines_enu(pairs)
-    return b_enu @ enu_to_equatorial_matrix(telescope.lat_rad).T * freq_hz / 299792458.0
+    return b_enu @ enu_to_equatorial_matrix(telescope.lat_rad).T * freq_hz / SPEED_OF_LIGHT

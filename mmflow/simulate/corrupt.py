@@ -47,7 +47,7 @@ from mmflow.import_thread import import_in_thread
 from mmflow.simulate.polarised import apply_leakage, correlation_noise
 from mmflow.simulate.visibilities import SkyPoints, thermal_noise
 from mmflow.sky.frames import apparent_sidereal_time, source_enu, tangent_basis
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 
 ARCMIN = np.pi / 180 / 60
 #: the feeds ``(p, q)`` of the correlations xx, yy, xy, yx (:func:`baseline_ends`)
@@ -173,7 +173,7 @@ def direction_dependent_gains(telescope, freq_hz, lsts, src_vec_date, offsets, f
     dr_date = offsets[..., 0:1] * e[:, None] + offsets[..., 1:2] * n[:, None]  # (src, time, 3)
     rots = source_enu(telescope, lsts, np.eye(3))  # (3, n_time, 3): row k = ENU of date axis k
     dr_enu = np.einsum("stk,ktl->stl", dr_date, rots)
-    lam = C_LIGHT / freq_hz
+    lam = SPEED_OF_LIGHT / freq_hz
     h = np.exp(-2j * np.pi * np.einsum("stl,al->sta", dr_enu, telescope.layout.enu) / lam)
     if flux_factor is not None:
         h *= np.sqrt(flux_factor)[..., None]
@@ -203,7 +203,7 @@ def near_field_rfi(enu, freq_hz, n_time, rng, distance_m=10e3, azimuth_deg=270.0
     az = np.deg2rad(azimuth_deg)
     p = distance_m * np.array([np.sin(az), np.cos(az), 0.0])
     d = np.linalg.norm(np.asarray(enu) - p, axis=1)
-    e = distance_m / d * np.exp(2j * np.pi * d * freq_hz / C_LIGHT)
+    e = distance_m / d * np.exp(2j * np.pi * d * freq_hz / SPEED_OF_LIGHT)
     z = rng.normal(size=n_time + 4 * correlation)
     k = np.exp(-0.5 * (np.arange(-2 * correlation, 2 * correlation + 1) / max(correlation, 1e-9)) ** 2)
     z = np.convolve(z, k / np.sqrt((k**2).sum()), mode="valid")[:n_time]

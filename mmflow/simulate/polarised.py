@@ -37,7 +37,7 @@ import numpy as np
 from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.errors import InputError
 from mmflow.simulate.visibilities import auto_columns, thermal_noise
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 
 #: Correlations in the default order of the output's correlation axis (x east, y north).
 CORRELATIONS = ("xx", "yy", "xy", "yx")
@@ -116,7 +116,7 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
         return full[:, [CORRELATIONS.index(c) for c in correlations]]
     pairs = telescope.antenna_pairs() if pairs is None else np.asarray(pairs)
     lsts = np.atleast_1d(np.asarray(lsts, float))
-    x_wl = telescope.layout.enu * (freq_hz / C_LIGHT)  # (n_ant, 3) wavelengths
+    x_wl = telescope.layout.enu * (freq_hz / SPEED_OF_LIGHT)  # (n_ant, 3) wavelengths
     e_n, e_e = north_east(sky.vectors)  # celestial frame, (n_src, 3)
     s_mat = coherency(sky.stokes_jy)  # (n_src, 2, 2)
     p_idx = np.array([_FEED[c[0]] for c in correlations])

@@ -17,6 +17,7 @@ from mmflow.sky.diffuse import synthetic_sky_kelvin
 from mmflow.sky.sources import epoch_year, get_sources
 from mmflow.sky.units import kelvin_to_jy_per_sr
 from mmflow.telescope.jones import feed_telescopes
+from mmflow.conventions import SPEED_OF_LIGHT
 
 
 def sky_points(telescope, freq_hz, epoch_jd, diffuse_lmax=None, seed=0, sources=(), quad_oversample=48):
@@ -47,7 +48,7 @@ def diffuse_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed=0, quad_over
 def diffuse_quad_lmax(telescope, freq_hz, diffuse_lmax, quad_oversample=48):
     """Band limit of the diffuse sky's quadrature: ``diffuse_lmax + fringe band limit + quad_oversample``,
     the fringe's of the longest baseline at ``freq_hz``."""
-    b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / 299792458.0
+    b = np.linalg.norm(telescope.baselines_enu(), axis=1) * freq_hz / SPEED_OF_LIGHT
     return diffuse_lmax + fringe_bandlimit(b, telescope.beam.lmax_hint) + quad_oversample
 
 

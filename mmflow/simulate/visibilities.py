@@ -24,7 +24,7 @@ from scipy.linalg import blas
 
 from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
 from mmflow.errors import InputError
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.threads import n_threads, single_threaded_blas
 
 
@@ -168,7 +168,7 @@ def _antenna_phases(telescope, freq_hz, rdtype):
     """Antenna positions in radians of phase per unit direction, ``2 pi x / lambda`` (n_ant, 3): the phase
     ``2 pi x.r`` is formed directly in the working precision (sin/cos reduce large arguments exactly,
     so reducing in turns first would not make a float32 phase any more accurate)."""
-    return (2 * np.pi * telescope.layout.enu / (C_LIGHT / freq_hz)).astype(rdtype)
+    return (2 * np.pi * telescope.layout.enu / (SPEED_OF_LIGHT / freq_hz)).astype(rdtype)
 
 
 def _expi(phase, ctype):

@@ -3,15 +3,15 @@
 Rayleigh-Jeans: ``I_nu [Jy/sr] = 2 k T nu^2 / c^2 / 1e-26``.
 """
 import numpy as np
+from mmflow.conventions import SPEED_OF_LIGHT
 
 K_BOLTZMANN = 1.380649e-23
-C_LIGHT = 299792458.0
 JY = 1e-26
 
 
 def jy_per_sr_per_kelvin(freq_hz):
     """Jy/sr of 1 K of Rayleigh-Jeans brightness temperature at ``freq_hz``."""
-    return 2 * K_BOLTZMANN * np.asarray(freq_hz, float) ** 2 / C_LIGHT**2 / JY
+    return 2 * K_BOLTZMANN * np.asarray(freq_hz, float) ** 2 / SPEED_OF_LIGHT**2 / JY
 
 
 def kelvin_to_jy_per_sr(temp_k, freq_hz):

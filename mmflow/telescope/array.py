@@ -8,12 +8,11 @@ from typing import Optional
 import numpy as np
 from astropy import units as u
 
-from mmflow.conventions import enu_to_equatorial_matrix
+from mmflow.conventions import SPEED_OF_LIGHT, enu_to_equatorial_matrix
 from mmflow.errors import InputError
 from mmflow.telescope.beams import Beam
 from mmflow.telescope.layout import Layout
 
-C_LIGHT = 299792458.0
 
 
 @dataclass
@@ -85,7 +84,7 @@ class Telescope:
         smooth beams (tested in ``tests/unit/test_transfer.py``).
         """
         b = np.linalg.norm(self.baselines_enu(pairs), axis=1)
-        est = np.ceil(1.1 * 2 * np.pi * b * freq_hz / C_LIGHT).astype(int) + int(self.beam.lmax_hint)
+        est = np.ceil(1.1 * 2 * np.pi * b * freq_hz / SPEED_OF_LIGHT).astype(int) + int(self.beam.lmax_hint)
         return np.minimum(est, lmax)
 
     def check_lmax(self, lmax, freq_hz=None):

@@ -26,7 +26,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2] / "mmflow"
 
 LAYERS = {"base": 0, "kernels": 1, "io": 2, "workflow": 3, "bench": 4, "cli": 5}
-BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.offline", "mmflow.threads", "mmflow.import_thread",
+BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.paths", "mmflow.offline", "mmflow.threads", "mmflow.import_thread",
                 "mmflow.allocator", "mmflow.machine", "mmflow.compiled_cache"}
 KERNEL_PACKAGES = ("telescope", "sky", "mmode", "imaging", "calibrate", "simulate", "analysis")
 

@@ -9,7 +9,7 @@ from mmflow.conventions import enu_to_equatorial_matrix, radec_to_vec
 from mmflow.sky.frames import rotation_matrix
 from mmflow.sky.sources import CATALOG, RESOLVED_COMPONENTS, resolved
 from mmflow.telescope import Telescope
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.telescope.beams import SinElevationBeam
 from mmflow.telescope.layout import ovro_lwa_layout
 
@@ -32,7 +32,7 @@ def analytic(tel, freq_hz, lsts, source, pairs):
     with ``kappa = k - i g``; what is left is third order (~1e-7 of the flux at 1.5 km and 73 MHz)."""
     R = rotation_matrix("icrs", "date", EPOCH)
     total = float(source.flux(freq_hz, 2000.0 + (EPOCH - 2451545.0) / 365.25))
-    b = (tel.layout.enu[pairs[:, 1]] - tel.layout.enu[pairs[:, 0]]) * freq_hz / C_LIGHT
+    b = (tel.layout.enu[pairs[:, 1]] - tel.layout.enu[pairs[:, 0]]) * freq_hz / SPEED_OF_LIGHT
     out = np.zeros((len(lsts), len(pairs)), complex)
     dec = np.deg2rad(source.dec_deg)
     delta = 1e-4

@@ -6,6 +6,7 @@ the command-line override), the field, the bad value and the fix.
 import inspect
 import os
 
+import numpy as np
 import pytest
 import yaml
 
@@ -170,6 +171,24 @@ def test_layout_file_alone_replaces_the_default_preset_and_validates(tmp_path):
     lay = _layout(tmp_path, [("A", 0, 0), ("B", 10, 0), ("C", 0, 12)])
     cfg = load_config(None, [f"telescope.layout_file={lay}", *SITE])
     assert cfg.telescope.preset is None and cfg.telescope.layout_file == str(lay)
+
+
+@pytest.mark.parametrize("written", ["~/arrays/layout.txt", "$MMFLOW_TEST_ARRAYS/layout.txt",
+                                     "${HOME}/arrays/layout.txt"])
+def test_a_layout_file_under_home_or_a_variable_is_read_by_the_check_and_the_run_alike(tmp_path, monkeypatch, written):
+    """``~`` and variables expand once, when the configuration is read: the checks and the telescope the
+    stages build read the same file (before, only the check expanded ``~`` and the run died on it)."""
+    from mmflow.workflow.engine.context import build_telescope
+
+    (tmp_path / "arrays").mkdir()
+    lay = _layout(tmp_path / "arrays", [("A", 0, 0), ("B", 10, 0), ("C", 0, 12)])
+    monkeypatch.setenv("HOME", str(tmp_path))
+    monkeypatch.setenv("MMFLOW_TEST_ARRAYS", str(tmp_path / "arrays"))
+    cfg = load_config(None, [f"telescope.layout_file={written}", *SITE])
+    assert cfg.telescope.layout_file == str(lay)
+    tel = build_telescope(cfg)
+    assert list(tel.layout.names) == ["A", "B", "C"]
+    np.testing.assert_allclose(tel.layout.enu[1] - tel.layout.enu[0], [10, 0, 0], atol=1e-9)
 
 
 def test_preset_and_layout_file_together_are_refused(tmp_path):

@@ -255,7 +255,7 @@ def _worst_errors(costs, records):
 
 def test_an_ingest_record_plans_without_its_files(tmp_path):
     """A record of an ingested run keeps its files' ingest plan (times, pairs, layout, channels): it plans the
-    same with the files gone, so the records travel with the package (they read /work/runs before)."""
+    same with the files gone, so the records travel with the package (they read the runs' files before)."""
     from mmflow.workflow.plan.fit import RECORDS_DIR, plan_against_run
 
     src = RECORDS_DIR / "paper-scale-reduced-ingest.json"

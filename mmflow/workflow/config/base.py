@@ -1,7 +1,11 @@
 """What every section of the workflow schema shares: strict sections and common value checks."""
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+from typing import Annotated
+
+from pydantic import AfterValidator, BaseModel, ConfigDict
+
+from mmflow.paths import expand_path
 
 from mmflow.workflow.config.errors import BadValue
 
@@ -19,3 +23,8 @@ def power_of_two(v):
 
 #: schema annotation of fields that take catalogue source names
 CATALOG_NAMES = {"allowed": "names from mmflow.sky.sources.CATALOG"}
+
+
+#: a path setting: ``~`` and environment variables expanded when the configuration is read
+#: (:func:`mmflow.paths.expand_path`), so every reader of the field gets the same path
+UserPath = Annotated[str, AfterValidator(expand_path)]

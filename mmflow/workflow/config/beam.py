@@ -10,7 +10,7 @@ from typing import Literal, Optional
 
 from pydantic import ConfigDict, Field, model_validator
 
-from mmflow.workflow.config.base import Section
+from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.errors import BadValue
 
 
@@ -67,7 +67,7 @@ class PyUVDataBeamParams(Section):
     """pyuvdata: a beam file pyuvdata reads, or one of pyuvdata's analytic beams (give file or class)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, populate_by_name=True)
-    file: Optional[str] = Field(None, description="beamfits / MWA / CST file (power or E-field beam).")
+    file: Optional[UserPath] = Field(None, description="beamfits / MWA / CST file (power or E-field beam).")
     class_: Optional[Literal[PYUVDATA_ANALYTIC]] = Field(None, alias="class",
                                                          description="pyuvdata.analytic_beam class, instead of file.")
     params: dict = Field(default_factory=dict, description="Arguments of that class (e.g. {diameter: 14.0}).")

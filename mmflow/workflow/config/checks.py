@@ -9,7 +9,6 @@ before any work.
 from __future__ import annotations
 
 import ipaddress
-import os
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +24,7 @@ from mmflow.workflow.config.beam import BEAM_PARAMS
 from mmflow.workflow.config.errors import Problem, from_pydantic, nearest, show
 from mmflow.workflow.engine.geometry import n_bins_of, n_integrations
 from mmflow.workflow.engine.prior_run import prior_run_problems
+from mmflow.paths import expand_path
 
 
 def beam_problems(beam):
@@ -51,7 +51,7 @@ def beam_problems(beam):
 
 
 def _exists(path):
-    return Path(os.path.expanduser(os.path.expandvars(path))).exists()
+    return Path(expand_path(path)).exists()
 
 
 def _telescope_problems(cfg):
@@ -90,7 +90,7 @@ def _selection_problems(cfg):
             full = ovro_lwa_layout(t.preset)
             lay = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
         else:
-            full = load_layout(os.path.expanduser(t.layout_file), t.lat_deg, t.lon_deg)
+            full = load_layout(t.layout_file, t.lat_deg, t.lon_deg)
             lay = full.select(t.stands, t.radius_m)
     except InputError as exc:
         loc = ("telescope", "stands") if exc.field == "stands" else ("telescope", "layout_file")
@@ -199,7 +199,7 @@ def _value_problems(cfg):
     if im.prior_map is not None and not _exists(im.prior_map):
         out.append(Problem(("imaging", "prior_map"), im.prior_map, "file not found",
                            "give the path of a HEALPix FITS map"))
-    run_dir = Path(os.path.expanduser(cfg.run.directory))
+    run_dir = Path(cfg.run.directory)
     if run_dir.exists() and not run_dir.is_dir():
         out.append(Problem(("run", "directory"), cfg.run.directory, "is a file, not a directory",
                            "give a new or existing directory for the run"))

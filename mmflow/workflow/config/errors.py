@@ -131,6 +131,8 @@ def yaml_error(where, exc):
 def _typename(ann):
     origin = typing.get_origin(ann)
     args = typing.get_args(ann)
+    if origin is typing.Annotated:  # a type with validators (a path, a baseline cut): name the type
+        return _typename(args[0])
     if origin is typing.Literal:
         return "one of " + " | ".join(str(a) for a in args)
     if origin is typing.Union:

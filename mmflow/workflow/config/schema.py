@@ -4,7 +4,6 @@ Override any key from the command line with ``section.key=value`` (values parsed
 """
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -13,7 +12,7 @@ from pydantic import BaseModel, Field, ValidationError, field_validator, model_v
 
 from mmflow.errors import InputError
 from mmflow.mmode.splits import split_kind
-from mmflow.workflow.config.base import Section, power_of_two
+from mmflow.workflow.config.base import Section, UserPath, power_of_two
 from mmflow.workflow.config.beam import BEAM_PARAMS, BeamConfig
 from mmflow.workflow.config.calibration import (CalibrateConfig, CorruptConfig, ModelsConfig, PeelConfig,
                                                TerrestrialConfig)
@@ -24,7 +23,7 @@ from mmflow.workflow.config.errors import BadValue, Origins, allowed_text, from_
 class RunConfig(Section):
     """Where outputs go."""
 
-    directory: str = Field("runs/demo", description="Run directory (zarr stores, maps, status markers).",
+    directory: UserPath = Field("runs/demo", description="Run directory (zarr stores, maps, status markers).",
                            json_schema_extra={"allowed": "a non-empty path"})
     name: str = Field("mmflow-run", description="A label stored with every output.")
 
@@ -42,7 +41,7 @@ class TelescopeConfig(Section):
     preset: Optional[Literal["core", "full", "paper-2017", "leda512-2013"]] = Field(
         "core", description="OVRO-LWA preset from the real stand positions (give null, or just a "
         "layout_file, to use the file).")
-    layout_file: Optional[str] = Field(None, description="Text layout 'name east north [up]' (metres).")
+    layout_file: Optional[UserPath] = Field(None, description="Text layout 'name east north [up]' (metres).")
     lat_deg: Optional[float] = Field(None, ge=-90, le=90, description="Site latitude for layout_file (degrees north).")
     lon_deg: Optional[float] = Field(None, ge=-180, le=360,
                                      description="Site longitude for layout_file (degrees east).")
@@ -113,7 +112,7 @@ class SkyConfig(Section):
 class InputConfig(Section):
     """Existing data for the ingest stage."""
 
-    path: Optional[str] = Field(None, description="File or glob of UVH5 / uvfits / MS files.")
+    path: Optional[UserPath] = Field(None, description="File or glob of UVH5 / uvfits / MS files.")
     format: Optional[Literal["uvh5", "uvfits", "ms"]] = Field(None, description="Force a format.")
     on_bad_file: Literal["error", "skip"] = Field("error", description="Stop, or log and count a skip.")
     nonfinite: Literal["error", "flag"] = Field(
@@ -159,7 +158,7 @@ class MmodeConfig(Section):
     coverage_policy: Literal["drop", "downweight"] = Field(
         "drop", description="Baselines whose sidereal coverage is below min_coverage: dropped (weight 0) or "
         "down-weighted by coverage / min_coverage; counted and logged either way.")
-    prior_run: Optional[str] = Field(
+    prior_run: Optional[UserPath] = Field(
         None, description="Run directory of a finished earlier run of the same data (same lmax, channels and "
         "epoch): its solved map's model visibilities are the prior of each baseline's m-mode fit, filling what "
         "flagged time leaves unmeasured (a second pass; docs/mmodes.md). Run it in a new run.directory. "
@@ -183,7 +182,7 @@ class MmodeConfig(Section):
     def _prior_path(cls, v):
         if v is not None and not v.strip():
             raise BadValue("the prior run directory is empty", "give an earlier run's run.directory, or null")
-        return None if v is None else os.path.expanduser(os.path.expandvars(v))
+        return v
 
     @field_validator("splits")
     @classmethod
@@ -485,10 +484,6 @@ def load_config(path=None, overrides=()):
     data = _read_file(path, origins) if path else {}
     for item in overrides:
         _apply_override(data, item, origins)
-    for sec, key in (("run", "directory"), ("input", "path")):
-        val = data.get(sec, {}).get(key) if isinstance(data.get(sec), dict) else None
-        if isinstance(val, str):
-            data[sec][key] = os.path.expanduser(os.path.expandvars(val))
     problems, cfg = [], None
     try:
         cfg = WorkflowConfig.model_validate(data)

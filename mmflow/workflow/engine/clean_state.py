@@ -219,6 +219,8 @@ def clean_result(g, fi, opts, n=None):
         vecs.append(v)
         flux.append(f)
         cyc.append(np.full(len(f), c, int))
-    cat = (lambda xs, shape: np.concatenate(xs) if xs else np.zeros(shape))
+    def cat(xs, shape):
+        return np.concatenate(xs) if xs else np.zeros(shape)
+
     return (ck.CleanState(None, cat(vecs, (0, 3)), cat(flux, (0,)), cat(cyc, (0,)).astype(int), peaks[:n], n),
             opts.stop(peaks[:n], thr))

@@ -17,7 +17,6 @@ later stage stale.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +27,7 @@ from mmflow.conventions import healpy_alm
 from mmflow.errors import InputError
 from mmflow.io.stores import open_checked
 from mmflow.workflow.engine.rundir import RunDir
+from mmflow.paths import expand_path
 
 FIELD = "mmode.prior_run"
 ALM = "alm.zarr"
@@ -48,7 +48,7 @@ class PriorRun:
 
 
 def resolve(path):
-    return Path(os.path.expanduser(os.path.expandvars(str(path)))).absolute()
+    return Path(expand_path(path)).absolute()
 
 
 def pass_directory(run_directory, k):

@@ -30,6 +30,7 @@ from pathlib import Path
 
 from mmflow.errors import MmflowError, StaleOutputError
 from mmflow.io.stores import dir_size, verify_chunks
+from mmflow.paths import expand_path
 
 
 EXTRA_MARKERS = ["_prepare", "_finalize"]  # what the driver wrote around a stage's tasks
@@ -57,7 +58,7 @@ class RunDir:
     """Paths, markers and the lock of one run (always an absolute path)."""
 
     def __init__(self, path):
-        self.path = Path(path).expanduser().absolute()
+        self.path = Path(expand_path(path)).absolute()
 
     def store(self, name):
         return self.path / name

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mmflow.conventions import FULL_STOKES, SIDEREAL_DAY_S, is_full_stokes, m_blocks
+from mmflow.conventions import SPEED_OF_LIGHT, FULL_STOKES, SIDEREAL_DAY_S, is_full_stokes, m_blocks
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
 from mmflow.io import run_stores as rs
@@ -41,6 +41,7 @@ from mmflow.workflow.engine.chunking import TIME_CHUNK
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
 from mmflow.workflow.pipeline import PIPELINE
+from mmflow.paths import expand_path
 
 COSTS_FILE = Path(__file__).with_name("costs.json")
 #: A worker process's resident memory before any task (interpreter, numpy, dask, zarr, pyuvdata, the stages;
@@ -117,7 +118,7 @@ def _transfer_plan(tel, freq_hz, cfg, mmax):
     units = []
     for group in plan_groups(chunks, t.groups):
         units.append(sum(len(c.index) * _gram_work(c.lmax, mmax) for c in group))
-    b = np.linalg.norm(tel.baselines_enu(), axis=1).max() * freq_hz / 299792458.0
+    b = np.linalg.norm(tel.baselines_enu(), axis=1).max() * freq_hz / SPEED_OF_LIGHT
     n_theta = (lmax + int(fringe_bandlimit(np.array([b]), tel.beam.lmax_hint))) // 2 + 2
     real = 4 if t.dtype == "float32" else 8
     tables = n_theta / 2 * (lmax + 1) * (lmax + 2) / 2 * real
@@ -385,7 +386,7 @@ def worker_memory_gb(cfg):
 
 def free_disk_gb(run_directory):
     """Free bytes (GB) on the file system that holds (or will hold) the run directory."""
-    p = Path(run_directory).expanduser().absolute()
+    p = Path(expand_path(run_directory)).absolute()
     while not p.exists():
         p = p.parent
     st = os.statvfs(p)

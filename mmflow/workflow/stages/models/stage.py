@@ -40,7 +40,7 @@ from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxe
 from mmflow.errors import InputError
 from mmflow.io.run_stores import MODEL_COLUMNS, models_store
 from mmflow.sky.sources import epoch_year, get_sources
-from mmflow.telescope.array import C_LIGHT
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.workflow.engine.baseline_cuts import solve_mask
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK
@@ -122,7 +122,7 @@ def _task(ctx, key):
         data = data * np.exp(-2j * np.pi * (uvw[..., 0] * off[:, :1] + uvw[..., 1] * off[:, 1:]))
     size = float(m.size_arcmin.get(name, DEFAULT_SIZE_ARCMIN))
     start = symmetric_start(int(m.components.get(name, 1)), size, total)
-    longest = np.linalg.norm(tel.baselines_enu(pairs)[keep], axis=1).max() * f / C_LIGHT
+    longest = np.linalg.norm(tel.baselines_enu(pairs)[keep], axis=1).max() * f / SPEED_OF_LIGHT
     aperture = m.aperture_arcmin or max(2 / longest / ARCMIN, 2 * 0.75 * size)
     step = m.step_arcmin or aperture / 8
     point = [GaussianComponent(0.0, 0.0, total, 0.0, 0.0, 0.0)]

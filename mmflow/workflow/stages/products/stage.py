@@ -15,7 +15,7 @@ import json
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm, is_full_stokes
+from mmflow.conventions import SPEED_OF_LIGHT, healpy_alm, is_full_stokes
 from mmflow.imaging import maps as imaging_maps
 from mmflow.imaging.lcurve import lcurve_corner
 from mmflow.imaging.sky_mask import observed_sky_mask
@@ -103,7 +103,7 @@ def _resolution_deg(vis, freq_hz, lmax):
     """The finer of the lmax limit (180 / lmax degrees) and the longest baseline's lambda / b."""
     enu, pairs = vis["antenna_enu"][:], vis["pairs"][:]
     b_max = float(np.linalg.norm(enu[pairs[:, 1]] - enu[pairs[:, 0]], axis=1).max())
-    return float(max(180.0 / lmax, np.degrees(299792458.0 / freq_hz / b_max) if b_max > 0 else 0.0))
+    return float(max(180.0 / lmax, np.degrees(SPEED_OF_LIGHT / freq_hz / b_max) if b_max > 0 else 0.0))
 
 
 #: per stage in maps/summary.json's ``stages``: what the stage cost
