@@ -84,17 +84,36 @@ def assert_identical(a, b):
 
 def interrupt_run(run_dir, stage, sig, extra=(), base=("workflows/demo.yaml", *SMALL)):
     """Start a CLI run (``mmflow run *base *extra``) in a subprocess and send ``sig`` once ``stage`` has
-    finished its first chunk."""
+    finished its first chunk, and check that the signal is what ended it there.
+
+    Fails (instead of "resuming" a run that never got to ``stage``) when the child exits before that
+    point (refused, crashed or finished early), when ``stage`` was already complete when the signal was
+    sent, or when the child did not end by the signal (SIGKILL: killed; SIGINT: KeyboardInterrupt, exit
+    -2 or 130).
+    """
     args = [sys.executable, "-m", "mmflow.cli", "run", *base, *extra, f"run.directory={run_dir}", "--no-progress"]
     env = dict(os.environ, MMFLOW_TASK_DELAY_S="0.2")
     # the child gets SIGINT's default action (Python's KeyboardInterrupt): a pytest-xdist worker
     # ignores SIGINT, and an ignored signal is inherited across exec
-    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    proc = subprocess.Popen(args, cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     marker_dir = run_dir / "_status" / stage
     deadline = time.time() + 120
-    while time.time() < deadline and not (marker_dir.exists() and any(marker_dir.glob("[!_]*.done"))):
+    while (time.time() < deadline and proc.poll() is None
+           and not (marker_dir.exists() and any(marker_dir.glob("[!_]*.done")))):
         time.sleep(0.05)
+    if proc.poll() is not None:
+        raise AssertionError(f"the run ended (exit {proc.returncode}) before stage {stage!r} finished a chunk:\n"
+                             + proc.stderr.read().decode(errors="replace")[-2000:])
+    if not any(marker_dir.glob("[!_]*.done")):
+        proc.kill()
+        proc.wait(timeout=60)
+        raise AssertionError(f"stage {stage!r} finished no chunk in 120 s")
+    complete_before = (marker_dir / "complete.json").exists()
     proc.send_signal(sig)
     proc.wait(timeout=60)
+    proc.stderr.close()
+    assert not complete_before, f"stage {stage!r} was already complete when {sig!r} was sent"
+    ended_by = {signal.SIGKILL: {-signal.SIGKILL}, signal.SIGINT: {-signal.SIGINT, 130}}.get(sig, {-sig})
+    assert proc.returncode in ended_by, f"the run exited {proc.returncode}, not by {sig!r}"
     assert not (run_dir / "_status" / "products" / "complete.json").exists()

@@ -295,6 +295,42 @@ def test_stage_modules_import_no_other_stage():
     assert not bad, "\n" + "\n".join(bad)
 
 
+def test_every_stage_is_a_package_that_owns_its_stage_and_cost_model():
+    """``stages/<name>/`` for every stage of the pipeline (no loose stage modules), each defining
+    ``STAGE`` with its cost model; the planner asks the stage, never branches on its name."""
+    import importlib
+
+    from mmflow.workflow.pipeline import PIPELINE
+
+    stages_dir = ROOT / "workflow" / "stages"
+    packages = sorted(p.name for p in stages_dir.iterdir() if (p / "__init__.py").exists())
+    assert packages == sorted(PIPELINE.names)
+    assert sorted(p.name for p in stages_dir.glob("*.py")) == ["__init__.py", "base.py"]
+    for st in PIPELINE.stages:
+        own = importlib.import_module(f"mmflow.workflow.stages.{st.name}").STAGE
+        assert own.name == st.name and own.cost is st.cost and own.task is st.task
+        assert st.cost is not None and callable(st.cost.work), f"stage {st.name} has no cost model"
+
+
+def test_no_comparison_with_a_stage_name_outside_the_pipeline():
+    """``if stage == "clean"`` elsewhere is a second copy of what the stage itself should say."""
+    import re
+
+    from mmflow.workflow.pipeline import PIPELINE
+
+    names = "|".join(PIPELINE.names)
+    pattern = re.compile(r"\bstage(?:\.name|_name)?\s*(?:==|!=|in|not in)\s*[(\[{]?\s*[\"'](%s)[\"']" % names)
+    bad = []
+    for path in ROOT.rglob("*.py"):
+        if path.name == "pipeline.py":
+            continue
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            code = line.split("#", 1)[0]
+            if pattern.search(code) and not code.lstrip().startswith("for "):  # a test, not a loop
+                bad.append(f"{path.relative_to(ROOT.parent)}:{i}: {line.strip()}")
+    assert not bad, "branches on a stage's name (give the stage the behaviour instead):\n" + "\n".join(bad)
+
+
 # --- the checker itself can fail -------------------------------------------------------------
 
 def test_walker_finds_a_deferred_cycle_and_an_upward_import(tmp_path):

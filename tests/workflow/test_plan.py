@@ -152,8 +152,10 @@ def test_the_diffuse_skys_sums_are_timed_by_their_flops(tmp_path):
     from mmflow.workflow.config.schema import load_config
 
     cfg = load_config("workflows/paper-scale.yaml", ["sky.diffuse=true", f"run.directory={tmp_path}"])
-    g = geometry(cfg)
-    assert g.n_diffuse_points == 1257 * 2513 and g.diffuse_samples == 138
+    from mmflow.workflow.stages.simulate.cost import sky_sizes
+
+    sky = sky_sizes(geometry(cfg), cfg)
+    assert sky.diffuse_points == 1257 * 2513 and sky.diffuse_samples == 138
     est = next(e for e in plan(cfg, peak_gflops=193.0)["stages"] if e["stage"] == "simulate")
     assert est["tasks"] == 26 + 18
     assert abs(est["seconds"] / 625.1 - 1) <= 0.5, est["seconds"]

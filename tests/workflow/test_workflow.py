@@ -142,6 +142,12 @@ def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_pat
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
+def test_the_interrupt_helper_fails_when_the_child_never_reaches_the_stage(tmp_path):
+    """A run refused before any work is not "interrupted and resumed": the helper says so."""
+    with pytest.raises(AssertionError, match=r"ended \(exit 2\) before stage 'transfer'"):
+        interrupt_run(tmp_path / "refused", "transfer", signal.SIGKILL, extra=["mmode.lmax=-1"])
+
+
 def test_single_stage_subcommand_needs_its_inputs(tmp_path, capsys):
     rc = main(["solve", "workflows/demo.yaml", *SMALL, f"run.directory={tmp_path / 'r'}"])
     assert rc == 2

@@ -65,6 +65,7 @@ class Stage:
     counters: tuple = ()  # numeric fields of the tasks' infos summed, stored and logged per stage
     check: Optional[Callable] = None  # check(cfg, names of the stages this run executes), before any work
     reads_corrected: bool = False
+    cost: Optional[object] = None  # its cost model (mmflow.workflow.plan.work.Cost: work, shrink settings)
     upstream: tuple = field(default=(), repr=False)
 
     def __post_init__(self):

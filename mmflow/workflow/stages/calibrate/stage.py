@@ -48,6 +48,7 @@ from mmflow.sky.sources import get_sources
 from mmflow.telescope.jones import feed_telescopes
 from mmflow.workflow.engine.baseline_cuts import check_baselines, resolved_cuts, solve_mask
 from mmflow.workflow.engine.blocks import read_block
+from mmflow.workflow.stages.calibrate.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -219,4 +220,4 @@ def _apply(ctx, block):
 STAGE = Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.calibrate.enabled,
                counters=("not_converged", "flagged_antennas", "antennas_without_data", "screened_integrations"),
-               description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)")
+               description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)", cost=COST)

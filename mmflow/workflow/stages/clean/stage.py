@@ -36,6 +36,7 @@ from mmflow.workflow.engine.clean_state import (active, block_operators_from_gra
                                          jackknife_splits, psf_alm_columns, psf_decs_deg, residual_alm, split_alm,
                                          stored_operators)
 from mmflow.workflow.engine.geometry import mmax_of
+from mmflow.workflow.stages.clean.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -207,4 +208,4 @@ def _finalize(ctx):
 
 STAGE = Stage("clean", CLEAN_CONFIG, ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"), ("clean.zarr",), _prepare,
                _task, _finalize, enabled=lambda cfg: cfg.clean.enabled, kind="iterative", next_cycle=_next_cycle,
-               description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold")
+               description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold", cost=COST)

@@ -15,6 +15,7 @@ from mmflow.io.run_stores import vis_store
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.data_stage import VIS_ARRAYS, layout_attrs, write_autos
 from mmflow.workflow.engine.geometry import n_bins_of
+from mmflow.workflow.stages.ingest.cost import COST
 from mmflow.workflow.stages.base import Stage
 
 CROSS_ARRAYS = ("vis_cross", "weights_cross")
@@ -75,4 +76,4 @@ STAGE = Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_w
                ("vis.zarr",),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
                counters=("fully_flagged_integrations", "nonfinite_flagged"),
-               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files")
+               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files", cost=COST)

@@ -41,6 +41,7 @@ from mmflow.mmode.transform import bin_coverage, sidereal_bins, split_bins
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.geometry import mmax_of, n_bins_of
 from mmflow.workflow.engine.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
+from mmflow.workflow.stages.mmodes.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -328,4 +329,4 @@ STAGE = Stage("mmodes", ("mmode", "beam", "imaging.stokes"), ("vis.zarr",), ("mm
                _finalize,
                reads_corrected=True, counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
                          "fits_with_prior"), files=prior_files,
-               description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk")
+               description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk", cost=COST)

@@ -44,6 +44,7 @@ from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.workflow.engine.baseline_cuts import solve_mask
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK
+from mmflow.workflow.stages.models.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -145,4 +146,4 @@ def _task(ctx, key):
 STAGE = Stage("models", ("models", "peel.sources", "peel.model_sources", "peel.min_baseline_lambda", "beam"),
                ("vis.zarr", "gains.zarr"), ("models.zarr",), _prepare, _task, kind="solve",
                enabled=lambda cfg: cfg.models.enabled, counters=("fits",),
-               description="resolved source models (Gaussian components) fitted to the calibrated data")
+               description="resolved source models (Gaussian components) fitted to the calibrated data", cost=COST)

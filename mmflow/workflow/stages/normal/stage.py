@@ -10,6 +10,7 @@ from mmflow.conventions import m_blocks
 from mmflow.io.run_stores import gram_name, normal_store
 from mmflow.workflow.engine.reduce import ordered_tree_sum
 from mmflow.workflow.engine.geometry import mmax_of
+from mmflow.workflow.stages.normal.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -46,4 +47,4 @@ def _normal_task(ctx, key):
 
 STAGE = Stage("normal", ("mmode.lmax", "mmode.mmax", "transfer.m_block"), ("partials.zarr",), ("normal.zarr",),
                _normal_prepare, _normal_task, kind="reduce",
-               description="sum partial normal equations over baseline groups (fixed-order tree), per m block")
+               description="sum partial normal equations over baseline groups (fixed-order tree), per m block", cost=COST)

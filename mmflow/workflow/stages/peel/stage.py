@@ -46,6 +46,7 @@ from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.peel_models import fitted_tables, peel_coherencies, peel_components
 from mmflow.workflow.stages.peel.solve import peel_names, peel_solve, solve_dtype
+from mmflow.workflow.stages.peel.cost import COST
 from mmflow.workflow.stages.base import Stage
 
 
@@ -102,4 +103,4 @@ def _apply(ctx, block):
 STAGE = Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
                counters=("peeled", "guard_fired", "not_converged"),
-               description="peel (DD gains) or subtract bright sources per integration (applied on read)")
+               description="peel (DD gains) or subtract bright sources per integration (applied on read)", cost=COST)

@@ -26,6 +26,7 @@ from mmflow.workflow.engine.geometry import mmax_of
 from mmflow.workflow.stages.products.clean import clean_history_figure, clean_products, table1_row
 from mmflow.workflow.stages.products.science import channel_science, finalize_science
 from mmflow.workflow.stages.products.stokes import stokes_products
+from mmflow.workflow.stages.products.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -140,4 +141,4 @@ STAGE = Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging"
                ("maps",),
                _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
-               "flux scale, spectral index, astrometry; HTML report")
+               "flux scale, spectral index, astrometry; HTML report", cost=COST)

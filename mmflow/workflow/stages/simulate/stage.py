@@ -38,6 +38,7 @@ from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.engine.data_stage import layout_attrs, write_autos
 from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse, n_integrations
+from mmflow.workflow.stages.simulate.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -197,4 +198,4 @@ STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt",
                enabled=lambda cfg: cfg.source == "simulate",
                description="time-domain drift-scan simulation (independent of transfer matrices), "
                "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "
-               "correlations of a polarised sky through the E-field beam")
+               "correlations of a polarised sky through the E-field beam", cost=COST)

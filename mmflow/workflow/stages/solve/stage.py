@@ -21,6 +21,7 @@ from mmflow.sky.frames import rotate_alm, rotation_matrix
 from mmflow.threads import n_threads, single_threaded_blas
 from mmflow.workflow.engine.geometry import mmax_of
 from mmflow.workflow.engine.kernel_args import m_filters
+from mmflow.workflow.stages.solve.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -86,4 +87,4 @@ def _prior_files(cfg):
 
 
 STAGE = Stage("solve", SOLVE_CONFIG, ("vis.zarr", "normal.zarr"), ("alm.zarr",), _solve_prepare, _solve_task,
-               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block")
+               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block", cost=COST)

@@ -41,6 +41,7 @@ from mmflow.sky import units
 from mmflow.telescope.beam_factory import make_jones
 from mmflow.workflow.engine.clean_state import clean_nside, clean_options, jackknife_sigma, jackknife_splits, psf_decs_deg
 from mmflow.workflow.engine.kernel_args import m_filters
+from mmflow.workflow.stages.stokes.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -135,4 +136,4 @@ def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe)
 STAGE = Stage("stokes", STOKES_CONFIG, ("vis.zarr", "mmodes.zarr"), ("stokes.zarr",), _prepare, _task,
               enabled=lambda cfg: is_full_stokes(cfg.imaging.stokes),
               description="full-Stokes transfer coefficients (E-field beam), normal equations over T, E, B, V and "
-              "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)")
+              "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)", cost=COST)

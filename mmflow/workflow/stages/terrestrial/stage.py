@@ -34,6 +34,7 @@ from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.peel_models import modelled_sources
 from mmflow.workflow.engine.reduce import ordered_tree_sum
+from mmflow.workflow.stages.terrestrial.cost import COST
 from mmflow.workflow.stages.base import Stage
 
 
@@ -112,4 +113,4 @@ def _apply(ctx, block):
 STAGE = Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
                _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
                enabled=lambda cfg: cfg.terrestrial.enabled,
-               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration")
+               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration", cost=COST)

@@ -20,6 +20,7 @@ from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
 from mmflow.workflow.engine.geometry import mmax_of
+from mmflow.workflow.stages.transfer.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -119,4 +120,4 @@ def _block_writer(ctx, fi, chunks, bc):
 
 STAGE = Stage("transfer", TRANSFER_CONFIG, ("vis.zarr", "mmodes.zarr"), ("partials.zarr", "transfer.zarr"),
                _transfer_prepare, _transfer_task,
-               description="transfer blocks + herk into partial normal equations per fixed baseline group")
+               description="transfer blocks + herk into partial normal equations per fixed baseline group", cost=COST)

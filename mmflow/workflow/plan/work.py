@@ -1,0 +1,183 @@
+"""What every stage's cost model shares: the run's :class:`Geometry`, the :class:`Work` a stage returns,
+the :class:`Cost` a stage declares, and the sizes of the arrays more than one stage allocates.
+
+Each stage package owns its cost model (``mmflow/workflow/stages/<name>/cost.py``, a :class:`Cost` passed
+to its ``Stage``); the planner (:mod:`mmflow.workflow.plan.planner`) iterates the pipeline and never
+branches on a stage's name. A cost model counts, from the geometry and the configuration alone:
+
+- ``tasks``: the stage's task count;
+- ``working_set_bytes`` ``W``: the largest task's arrays, from the element sizes below;
+- ``units`` ``U``: the largest task's work (samples, flops, Gram updates, by the stage's own measure);
+- ``stores``: the :class:`mmflow.io.run_stores.StoreSpec` of the stores it writes.
+
+The fitted constants (``costs.json``, :mod:`mmflow.workflow.plan.fit`) turn ``W`` into a task's memory
+``a W + b`` and ``U`` into its time ``c U + d``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, NamedTuple, Optional
+
+import numpy as np
+
+from mmflow.conventions import SPEED_OF_LIGHT, m_blocks
+from mmflow.io import run_stores as rs
+from mmflow.mmode.engine import plan_chunks, plan_groups
+from mmflow.mmode.transfer import fringe_bandlimit
+from mmflow.workflow.engine.chunking import TIME_CHUNK
+
+#: bytes of one visibility sample as the data stages write it: complex64 visibility + float32 weight
+VIS_SAMPLE_BYTES = 8.0 + 4.0
+#: bytes of one sample of a corrected block as stages read it: complex128 visibility + float64 weight
+CORRECTED_SAMPLE_BYTES = 16.0 + 8.0
+#: bytes of a complex128 element (Gram blocks, m-modes, models in double precision)
+COMPLEX128_BYTES = 16.0
+#: declinations of CLEAN's PSF table (the clean stage and the CLEAN of V in the stokes stage)
+PSF_DECLINATIONS = 16
+#: CLEAN's major cycles are data-dependent (until the threshold): the plan assumes this many
+EXPECTED_CLEAN_CYCLES = 40
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """The sizes of a run every stage's work follows from (integrations, baselines, channels, ...).
+
+    ``tel`` (the telescope with the run's baselines) and ``freqs_hz`` let a stage count what only it
+    needs (the simulator's sky points, a calibration's solution intervals); ``transfer_units`` is the
+    transfer stage's partition of the Gram work into baseline groups, which the normal stage reduces.
+    """
+
+    n_time: int
+    n_ant: int
+    n_bl: int
+    n_freq: int
+    n_pol: int
+    lmax: int
+    mmax: int
+    m_block: int
+    n_split: int
+    mmode_chunk: int
+    gram_itemsize: int
+    transfer_units: tuple  # per channel, per baseline group: sum_b sum_m (lmax_b - m + 1)^2 (Gram work)
+    transfer_workspace: float  # bytes of one transfer task's grid tables and ring-Fourier workspace
+    npix: int = 0
+    tel: object = field(default=None, compare=False, repr=False)
+    freqs_hz: tuple = ()
+
+    @property
+    def n_groups(self):
+        """Baseline groups of the transfer stage (partial normal equations per channel)."""
+        return max(len(u) for u in self.transfer_units)
+
+    @property
+    def gram_dtype(self):
+        return "complex64" if self.gram_itemsize == 8 else "complex128"
+
+    @property
+    def n_time_chunks(self):
+        """Time chunks of :data:`TIME_CHUNK` integrations (:mod:`mmflow.workflow.engine.chunking`)."""
+        return -(-self.n_time // TIME_CHUNK)
+
+    @property
+    def chunk_integrations(self):
+        """Integrations of the largest time chunk."""
+        return min(TIME_CHUNK, self.n_time)
+
+    @property
+    def vis_task_bytes(self):
+        """One time chunk of every channel's visibilities and weights as written (``vis.zarr``)."""
+        return self.chunk_integrations * self.n_bl * self.n_freq * self.n_pol * VIS_SAMPLE_BYTES
+
+
+class Work(NamedTuple):
+    """A stage's work from the geometry: ``(tasks, working_set_bytes, units, stores)``."""
+
+    tasks: int
+    working_set_bytes: float
+    units: float
+    stores: list
+
+
+@dataclass(frozen=True)
+class Cost:
+    """A stage's cost model.
+
+    Parameters
+    ----------
+    work : callable
+        ``work(g, cfg) -> Work``.
+    shrink : str or callable
+        The setting that shrinks the stage's largest task (``shrink(cfg) -> str`` where it depends on
+        the configuration), named when the task does not fit a worker.
+    disk_shrink : str or callable
+        The setting that shrinks the stage's stores on disk, named when they do not fit the disk.
+    seconds : callable, optional
+        ``seconds(g, cfg, per_task, workers, peak_gflops) -> seconds``, for a stage whose wall time is
+        not ``per_task`` times its rounds of tasks (the simulator's diffuse sums).
+    notes : callable, optional
+        ``notes(g, cfg, peak_gflops) -> [str]``: what the plan assumes for this stage.
+    """
+
+    work: Callable
+    shrink: object = "fewer channels per run (observation.freqs_mhz)"
+    disk_shrink: object = "fewer channels per run (observation.freqs_mhz)"
+    seconds: Optional[Callable] = None
+    notes: Optional[Callable] = None
+
+    def shrink_setting(self, cfg):
+        return self.shrink(cfg) if callable(self.shrink) else self.shrink
+
+    def disk_shrink_setting(self, cfg):
+        return self.disk_shrink(cfg) if callable(self.disk_shrink) else self.disk_shrink
+
+
+def vis_spec(g):
+    """The ``vis.zarr`` the data stages write, sized by the geometry."""
+    return rs.vis_store(g.n_time, np.zeros((g.n_bl, 2), int), np.zeros(g.n_freq), np.zeros((g.n_ant, 3)),
+                        {"pols": ["p"] * g.n_pol}, TIME_CHUNK, g.mmode_chunk)
+
+
+def expected_clean_cycles(cfg):
+    """The major cycles the plan assumes for CLEAN (0 when it is off)."""
+    return min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) if cfg.clean.enabled else 0
+
+
+def gram_bytes(lmax, mmax, itemsize):
+    """The Gram accumulators of one channel, ``sum_m (lmax - m + 1)^2`` elements (~lmax^3 / 3)."""
+    return float(sum((lmax - m + 1) ** 2 for m in range(mmax + 1))) * itemsize
+
+
+def gram_work(lmax_c, mmax):
+    """``sum_{m <= min(mmax, lmax_c)} (lmax_c - m + 1)^2``: one baseline's Gram updates."""
+    n = np.arange(lmax_c - min(mmax, lmax_c) + 1, lmax_c + 2, dtype=float)
+    return float(np.sum(n * n))
+
+
+def block_sum(lmax, mmax, m_block, power):
+    """Largest ``sum_{m in block} (lmax - m + 1)^power`` over the m blocks (the first block)."""
+    return max(float(sum((lmax - m + 1) ** power for m in range(m0, m1))) for m0, m1 in m_blocks(mmax, m_block))
+
+
+def n_m_blocks(g):
+    """The m blocks of the per-m stages."""
+    return len(m_blocks(g.mmax, g.m_block))
+
+
+def transfer_plan(tel, freq_hz, cfg, mmax):
+    """Per baseline group of one channel (the transfer stage's own :func:`plan_chunks` and
+    :func:`plan_groups`) its Gram work ``sum_chunks n_c sum_{m <= lmax_c} (lmax_c - m + 1)^2``, and the
+    workspace of a task: float tables ``n_theta / 2 x (lmax + 1)(lmax + 2) / 2`` of the grid exact to
+    ``lmax + fringe band limit`` (:func:`mmflow.mmode.transfer.make_grid`) and the ring-Fourier
+    buffers ``2 x (mmax + 1) x n_theta / 2 x 2 n_chunk`` complex of the longest baselines' chunk."""
+    t = cfg.transfer
+    lmax = cfg.mmode.lmax
+    chunks, _ = plan_chunks(tel, freq_hz, lmax, t.baseline_chunk, t.per_baseline_lmax)
+    units = []
+    for group in plan_groups(chunks, t.groups):
+        units.append(sum(len(c.index) * gram_work(c.lmax, mmax) for c in group))
+    b = np.linalg.norm(tel.baselines_enu(), axis=1).max() * freq_hz / SPEED_OF_LIGHT
+    n_theta = (lmax + int(fringe_bandlimit(np.array([b]), tel.beam.lmax_hint))) // 2 + 2
+    real = 4 if t.dtype == "float32" else 8
+    tables = n_theta / 2 * (lmax + 1) * (lmax + 2) / 2 * real
+    fourier = 2 * (mmax + 1) * n_theta / 2 * 2 * t.baseline_chunk * 2 * real
+    return tuple(units), tables + fourier

@@ -1,0 +1,99 @@
+"""The simulate stage's cost: per time chunk every channel's visibilities of the sky's points, and with
+an interpolated diffuse sky first its direct sums at the sampled sidereal angles.
+
+Memory of a time-chunk task: the chunk's ``vis.zarr`` block and, one channel at a time,
+:data:`TEMPORARIES` complex128 ``(time, baseline, pol)`` arrays (drift scans, corruptions, noise;
+measured 2.8 GB at 256 antennas, docs/planning.md).
+"""
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+
+from mmflow.io import run_stores as rs
+from mmflow.simulate.drift_modes import n_samples
+from mmflow.simulate.scene import diffuse_quad_lmax, feed_columns
+from mmflow.simulate.visibilities import gauss_legendre_shape
+from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, vis_spec
+
+#: complex128 (time, baseline, pol) temporaries of one channel (drift scans, corruptions, noise)
+TEMPORARIES = 10
+#: bytes per sampled angle, baseline and feed column of the diffuse sky's samples and their modes
+DIFFUSE_SAMPLE_BYTES = 2 * COMPLEX128_BYTES
+#: the share of the SGEMM peak the diffuse sky's direct sums reach (the rank-k product over the antennas and
+#: the phasors' sines and cosines), measured at full scale: 138 sums of 1.58M points above the horizon at
+#: 256 antennas, 889 s of task time on the 2 workers of a 193 GFLOP/s VM (docs/performance.md)
+DIFFUSE_SUM_FRACTION = 0.67
+
+
+class SkySizes(NamedTuple):
+    """What the simulator sums: points per integration, the diffuse grid, its sampled angles, feed columns."""
+
+    points: int  # sources, and the diffuse grid when it is not interpolated
+    diffuse_points: int  # the diffuse sky's quadrature grid
+    diffuse_samples: int  # sidereal angles of an interpolated diffuse sky (0: none)
+    feed_columns: int  # simulated through each feed's power beam (2) or one beam (1)
+
+
+def sky_sizes(g, cfg):
+    """The :class:`SkySizes` of a simulation: the diffuse sky's grid as the simulator builds it at the
+    highest channel (:func:`mmflow.simulate.scene.diffuse_quad_lmax`,
+    :func:`mmflow.simulate.visibilities.gauss_legendre_shape`)."""
+    s = cfg.sky
+    n_diffuse = 0
+    if s.diffuse:
+        q = diffuse_quad_lmax(g.tel, float(np.max(g.freqs_hz)), s.diffuse_lmax, s.quad_oversample)
+        ntheta, nphi = gauss_legendre_shape(q)
+        n_diffuse = ntheta * nphi
+    interpolated = interpolates_diffuse(cfg)
+    return SkySizes(len(s.sources) + (0 if interpolated else n_diffuse), n_diffuse,
+                    n_samples(s.diffuse_lmax) if interpolated else 0, len(feed_columns(g.tel, cfg.corrupt.enabled)))
+
+
+def work(g, cfg):
+    sky = sky_sizes(g, cfg)
+    T = g.chunk_integrations
+    units = T * g.n_bl * g.n_freq * sky.points
+    w = g.vis_task_bytes
+    w += T * g.n_bl * g.n_pol * (TEMPORARIES * COMPLEX128_BYTES)
+    if not sky.diffuse_samples:
+        return Work(g.n_time_chunks, w, units, [vis_spec(g)])
+    # an interpolated diffuse sky: first its direct sums at the sampled angles (DIFFUSE_SAMPLE_BLOCK a task:
+    # their time is diffuse_sum_seconds'), then per time chunk its samples, their modes and their evaluation
+    # at the chunk's integrations (the units: the time chunks')
+    n_d = g.n_freq * -(-sky.diffuse_samples // DIFFUSE_SAMPLE_BLOCK)
+    w += (sky.diffuse_samples * g.n_bl * sky.feed_columns * DIFFUSE_SAMPLE_BYTES
+          + T * g.n_bl * sky.feed_columns * COMPLEX128_BYTES)
+    spec = rs.diffuse_store(g.n_freq, sky.diffuse_samples, g.n_bl, sky.feed_columns, DIFFUSE_SAMPLE_BLOCK)
+    return Work(g.n_time_chunks + n_d, w, units, [vis_spec(g), spec])
+
+
+def diffuse_sum_seconds(g, cfg, peak_gflops):
+    """Wall seconds of an interpolated diffuse sky's direct sums on the whole machine: per channel and
+    sampled angle ``(2 n_ant)^2 x n_up`` flops (``n_up``, half the quadrature grid, above the horizon), per
+    feed column, at :data:`DIFFUSE_SUM_FRACTION` of the SGEMM peak ``peak_gflops``."""
+    sky = sky_sizes(g, cfg)
+    flops = g.n_freq * sky.diffuse_samples * sky.feed_columns * (2.0 * g.n_ant) ** 2 * sky.diffuse_points / 2
+    return flops / (DIFFUSE_SUM_FRACTION * peak_gflops * 1e9)
+
+
+def seconds(g, cfg, per_task, workers, peak_gflops):
+    """The time chunks by the fitted constants, the diffuse sky's sums by their flops."""
+    rounds = math.ceil(g.n_time_chunks / max(workers, 1))
+    if not sky_sizes(g, cfg).diffuse_samples:
+        return per_task * math.ceil(work(g, cfg).tasks / max(workers, 1))
+    return per_task * rounds + diffuse_sum_seconds(g, cfg, peak_gflops)
+
+
+def notes(g, cfg, peak_gflops):
+    sky = sky_sizes(g, cfg)
+    if not sky.diffuse_samples:
+        return []
+    sums = diffuse_sum_seconds(g, cfg, peak_gflops)
+    return [f"the diffuse sky: {g.n_freq * sky.diffuse_samples} direct sums, ~{sums / 60:.0f} min"]
+
+
+COST = Cost(work, seconds=seconds, notes=notes)

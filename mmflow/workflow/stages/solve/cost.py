@@ -1,0 +1,20 @@
+"""The solve stage's cost: a task per channel and m block factoring its Gram block (complex128; the
+units: ``sum_m (lmax - m + 1)^3``, Cholesky's flops)."""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.io import run_stores as rs
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, block_sum, n_m_blocks
+
+#: eps values of an L-curve (``alm.zarr`` eps_grid)
+LCURVE_POINTS = 200
+
+
+def work(g, cfg):
+    blk2 = block_sum(g.lmax, g.mmax, g.m_block, 2)
+    spec = rs.alm_store(g.n_freq, g.lmax, g.mmax, g.m_block, g.n_split, np.zeros(LCURVE_POINTS))
+    return Work(g.n_freq * n_m_blocks(g), blk2 * COMPLEX128_BYTES, block_sum(g.lmax, g.mmax, g.m_block, 3), [spec])
+
+
+COST = Cost(work, shrink="a smaller transfer.m_block")

@@ -1,0 +1,28 @@
+"""The transfer stage's cost: a task per channel and baseline group holding its partial Gram (one
+channel's ``sum_m (lmax - m + 1)^2`` elements) and its workspace (grid tables and ring-Fourier buffers:
+:func:`mmflow.workflow.plan.work.transfer_plan`); the units: the group's Gram updates."""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.io import run_stores as rs
+from mmflow.workflow.plan.work import Cost, Work, gram_bytes
+
+
+def work(g, cfg):
+    gram = gram_bytes(g.lmax, g.mmax, g.gram_itemsize) + g.transfer_workspace
+    per_group = max(max(u) for u in g.transfer_units)
+    out = [rs.partials_store(g.n_freq, g.n_groups, g.lmax, g.mmax, g.m_block, g.n_split, g.gram_dtype)]
+    if cfg.transfer.mode == "store":
+        out.append(rs.transfer_store(g.n_freq, g.n_bl, g.lmax, g.mmax, cfg.transfer.baseline_chunk,
+                                     g.gram_dtype, [np.zeros(g.n_bl, int)] * g.n_freq))
+    return Work(sum(len(u) for u in g.transfer_units), gram, per_group, out)
+
+
+def disk_shrink(cfg):
+    t = cfg.transfer
+    return ("transfer.mode=normal (no transfer blocks on disk)" if t.mode != "normal" else
+            f"fewer transfer.groups (now {t.groups}: each keeps a partial Gram per channel on disk)")
+
+
+COST = Cost(work, shrink="transfer.dtype=float32 (half the Gram)", disk_shrink=disk_shrink)
