@@ -307,6 +307,40 @@ def test_the_plan_holds_on_each_measured_run(name):
             assert abs(1 / r["time_ratio"] - 1) <= 0.5, (r["stage"], r["planned_task_s"], r["measured_task_s"])
 
 
+def test_the_plan_holds_on_each_run_with_constants_fitted_without_it():
+    """Leave-one-out: for every record, the constants fitted to the *other* records plan it. Where the
+    others span the held-out task's size (its W within theirs, so the line interpolates), its largest
+    task's memory is within 35 % and its mean task time within 50 %. Measured: 54 such (run, stage)
+    pairs, the worst memory 30.6 % (the full-scale ingest run's transfer) and 27.8 % (its products), all
+    others within 25 %; outside the span (the demo below every other run, one ingest run against the
+    other) the line extrapolates and is not judged (docs/planning.md)."""
+    from mmflow.workflow.plan.planner import load_costs
+    from mmflow.workflow.plan.fit import RECORDS_DIR, TIME_FLOOR_S, fit_costs, plan_against_run, samples
+
+    costs = load_costs()
+    names, peak = costs["fitted_on"], costs["sgemm_gflops"]
+    measured = {n: samples(RECORDS_DIR / n) for n in names}
+    judged, out = 0, []
+    for name in names:
+        others = [n for n in names if n != name]
+        rows, _ = plan_against_run(RECORDS_DIR / name, fit_costs([RECORDS_DIR / n for n in others], peak), peak)
+        for r in rows:
+            st = r["stage"]
+            w_others = [measured[o][st][0] for o in others if st in measured[o]]
+            u_others = [measured[o][st][1] for o in others if st in measured[o]]
+            w, u = measured[name][st][:2]
+            if len(w_others) >= 2 and min(w_others) <= w <= max(w_others):
+                judged += 1
+                if abs(1 / r["memory_ratio"] - 1) > 0.35:
+                    out.append(f"{name} {st}: memory {r['planned_task_gb']:.3f} GB planned, "
+                               f"{r['measured_task_gb']:.3f} measured")
+            if (len(u_others) >= 2 and min(u_others) <= u <= max(u_others) and r["planned_task_s"] is not None
+                    and r["measured_task_s"] >= TIME_FLOOR_S and abs(1 / r["time_ratio"] - 1) > 0.5):
+                out.append(f"{name} {st}: {r['planned_task_s']:.2f} s planned, {r['measured_task_s']:.2f} measured")
+    assert judged >= 40, judged
+    assert not out, "\n".join(out)
+
+
 def test_progress_says_how_long_the_stage_has_left():
     """Elapsed time per finished task times the tasks left: 10 s for 2 of 10 tasks -> ~40 s left."""
     import io
