@@ -1,5 +1,5 @@
-"""The scene of the full-Stokes imaging tests (tests/unit/test_polarised_imaging.py and
-test_matvis_polarised.py): 20 antennas within 12 m at 40 MHz (baselines <= 3 wavelengths), short
+"""The scene of the full-Stokes imaging tests (tests/unit/imaging/test_polarised.py and
+telescope/test_jones_matvis.py): 20 antennas within 12 m at 40 MHz (baselines <= 3 wavelengths), short
 dipoles with a cos^3 horizon taper, 300 integrations over a sidereal day, lmax 32."""
 import numpy as np
 

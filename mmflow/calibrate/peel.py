@@ -16,7 +16,7 @@ diag(g_s)`` its DD gains and ``a_s`` a real fitted flux scale. Two models of the
   array (paper section 3.4: refraction and scintillation), and with 3 parameters instead of
   ``2 N - 1`` the fit leaves the unmodelled sky in the data: on 40 antennas within 70 m at
   50 MHz, peeling Cyg A and Cas A keeps 98.4-99.7 % of a 100 Jy source 27-33 deg from Cyg A,
-  against 75-87 % with per-antenna gains (``tests/unit/test_peel_unmodelled.py``).
+  against 75-87 % with per-antenna gains (``tests/unit/calibrate/test_peel_unmodelled.py``).
 * ``antenna``: a free complex gain per antenna (Stefcal), as TTCal's ``peel``; for phase
   structure that is not a gradient (an array larger than the ionospheric patch).
 

@@ -397,7 +397,7 @@ def chunk_mmodes(binned, bin_weight, mmax, offset=None, band_limit=None, splits=
     w = np.asarray(bin_weight, float)
     if sigma2 is not None and prior is None and _uniform_on_grid(w, offset):
         # every bin filled with equal weight on the bin grid: the least-squares fit is the plain
-        # transform (to 1e-12, tests/unit/test_mmode_gaps.py) -- take it directly (one FFT per split)
+        # transform (to 1e-12, tests/unit/mmode/test_gapfill.py) -- take it directly (one FFT per split)
 
         sigma2 = np.broadcast_to(np.asarray(sigma2, float), (binned.shape[1],)).copy()
         mm = split_mmode_transform(binned, mmax, None, splits)

@@ -18,7 +18,7 @@ The ``lambda_lm`` come from :func:`mmflow.mmode.legendre.legendre_table` (scaled
 underflow at any lmax); the ``1 / sin^2 theta`` terms are finite on Gauss-Legendre rings, which
 never touch a pole, but cancel there: the absolute error grows to ~``1e-16 / sin^2 theta`` on the
 polar rings (2e-11 of the functions' O(1) peak at lmax 1000, far below float32 transfer blocks).
-Tested against ducc0's spin-2 synthesis at lmax 1000 (``tests/unit/test_polarised_fast.py``).
+Tested against ducc0's spin-2 synthesis at lmax 1000 (``tests/unit/mmode/test_polarised_fast.py``).
 """
 from __future__ import annotations
 

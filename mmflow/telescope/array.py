@@ -81,7 +81,7 @@ class Telescope:
 
         The beam term is the floor: even an autocorrelation has structure on the beam's
         scale. Coefficients beyond ``lmax_b`` are below ~1e-6 of the baseline's peak for
-        smooth beams (tested in ``tests/unit/test_transfer.py``).
+        smooth beams (tested in ``tests/unit/mmode/test_transfer.py``).
         """
         b = np.linalg.norm(self.baselines_enu(pairs), axis=1)
         est = np.ceil(1.1 * 2 * np.pi * b * freq_hz / SPEED_OF_LIGHT).astype(int) + int(self.beam.lmax_hint)

@@ -25,5 +25,5 @@ def test_interpolated_diffuse_sky_equals_the_direct_sum(tmp_path, monkeypatch):
     assert a.shape == b.shape and np.abs(b).max() > 0
     # the direct path sums the sky in single precision (simulate_chunk): its rounding, ~1.7e-5 of the
     # largest visibility here, bounds the difference; the interpolation's own residue is ~1e-6
-    # (tests/unit/test_drift_modes.py, against a double-precision direct sum)
+    # (tests/unit/simulate/test_drift_modes.py, against a double-precision direct sum)
     assert np.abs(a - b).max() < 5e-5 * np.abs(b).max()

@@ -1,7 +1,7 @@
 """Full-Stokes m-mode imaging of data from an independent simulator (issue 22): matvis 1.3 with
 ``polarized=True`` (all four correlations) through an analytic E-field dipole.
 
-The scene of ``tests/unit/test_polarised_imaging.py`` (20 antennas within 12 m, 40 MHz, 300
+The scene of ``tests/unit/imaging/test_polarised.py`` (20 antennas within 12 m, 40 MHz, 300
 integrations over one sidereal day, lmax 32, the same four unpolarised sources 2-47 deg from the
 zenith at transit, the same eps), simulated by matvis instead of mmflow: sources in ICRS, times in
 UTC, astropy's apparent alt-az at every integration. matvis is given the beam mmflow images with,
