@@ -1,6 +1,6 @@
 """The IAU signs of Q, U and V (issue 39, item 1), anchored outside mmflow's simulator and coherency.
 
-The visibilities here are written from first principles by this file alone: a real electric
+The visibilities here are written from first principles by tests/polarised_fields.py: a real electric
 field ``E(t)`` of known geometry in 3-D (east, north, up), linear along a position angle or
 rotating from north through east (IAU V > 0: the sense in which the receiver, looking at the
 source, sees the vector turn from north to east), delayed to each antenna (``E(x, t) = E(t +
@@ -32,10 +32,9 @@ from mmflow.simulate.polarised import PolarisedPoints, simulate_polarised_drift_
 from mmflow.telescope import Telescope
 from mmflow.telescope.array import C_LIGHT
 from mmflow.telescope.jones import ShortDipoleJones
+from tests.polarised_fields import N_SAMPLES, TAPER, channel, correlate, dipoles, field_parts
 from tests.polarised_scene import EPS_I, EPS_POL, FREQ, LMAX, N_LST, NSIDE, peak_near, scene_layout
 
-TAPER = 3.0
-N_SAMPLES = 16  # samples of one period: the DFT of a sinusoid is exact for >= 3
 #: the test sources: (name, RA deg, Dec offset from the latitude deg, IAU (I, Q, U, V) in Jy)
 #: at transit the first three are at the zenith, the last three at 45 deg elevation (south)
 KINDS = {"V": (1.0, 0.0, 0.0, 1.0), "Q": (1.0, 1.0, 0.0, 0.0), "U": (1.0, 0.0, 1.0, 0.0)}
@@ -43,69 +42,20 @@ SOURCES = [(k, ra, ddec) for ddec, ras in ((0.0, (0.0, 120.0, 240.0)), (-45.0, (
            for k, ra in zip(KINDS, ras)]
 
 
-def north_east_enu(r_eq, rot):
-    """Celestial north (towards the pole, tangent) and east (``north x r``, towards increasing RA)
-    at the direction ``r_eq`` (celestial frame), as ENU vectors with ``r_eq = rot @ r_enu``."""
-    pole = np.array([0.0, 0.0, 1.0])
-    n = pole - r_eq[2] * r_eq
-    n /= np.linalg.norm(n)
-    return n @ rot, np.cross(n, r_eq) @ rot
-
-
-def field(kind, e_n, e_e, wt):
-    """The real field (3, n_t) of unit-I source ``kind`` at phases ``wt = w t``: +Q along north, +U along
-    position angle 45 deg (north through east), +V turning from north (wt = 0) to east (wt = pi / 2).
-
-    Amplitudes: with ``S = <A A^H>`` of the phasors, ``I = (S_NN + S_EE) / 2`` is 1.
-    """
-    c, s = np.cos(wt), np.sin(wt)
-    if kind == "Q":
-        return np.sqrt(2.0) * np.outer(e_n, c)
-    if kind == "U":
-        return np.outer(e_n + e_e, c)
-    return np.outer(e_n, c) + np.outer(e_e, s)
-
-
-def dipoles(r_enu):
-    """Short dipoles along east (x) and north (y), ``d - (d . r) r``, times ``cos(za)^TAPER``: (2, 3)."""
-    d = np.eye(3)[:2]
-    return (d - np.outer(d @ r_enu, r_enu)) * r_enu[2] ** TAPER
-
-
-def channel(v, wt):
-    """Complex amplitude of the real voltages ``v (..., n_t)`` at ``w``: ``2 <v exp(+i w t)>`` (the sign
-    that gives mmflow's fringe, checked in :func:`test_time_domain_correlator_has_mmflows_fringe`)."""
-    return 2 * np.mean(v * np.exp(1j * wt), axis=-1)
-
-
-def correlate(layout_enu, freq_hz, lat_rad, lsts, sources, pairs):
-    """``V_pq`` of every pair (i, j) and correlation [xx, yy, xy, yx] for each LST: ``(n_t, 4, n_bl)``.
-
-    Per source (sources add incoherently), the field is sampled over one period at each antenna
-    with its delay, projected on the dipoles and channelised; ``V = <v_ip conj(v_jq)>``.
-    """
-    w = 2 * np.pi * freq_hz
-    wt = 2 * np.pi * np.arange(N_SAMPLES) / N_SAMPLES
-    out = np.zeros((len(lsts), 4, len(pairs)), complex)
-    corr = [(0, 0), (1, 1), (0, 1), (1, 0)]
-    for t, phi in enumerate(lsts):
-        rot = enu_to_equatorial_matrix(lat_rad, phi)
-        for kind, r_eq in sources:
-            r = r_eq @ rot
-            if r[2] <= 0:
-                continue
-            e_n, e_e = north_east_enu(r_eq, rot)
-            delay = layout_enu @ r / C_LIGHT  # (n_ant,) s: E(x, t) = E(t + x.r / c)
-            fld = np.stack([field(kind, e_n, e_e, wt + w * tau) for tau in delay])  # (ant, 3, n_t)
-            volt = channel(np.einsum("pk,akt->apt", dipoles(r), fld), wt)  # (ant, feed)
-            for c, (p, q) in enumerate(corr):
-                out[t, c] += volt[pairs[:, 0], p] * np.conj(volt[pairs[:, 1], q])
-    return out
+def test_fields_of_the_pure_states():
+    """The helper's fields are the textbook ones: +Q along north (amplitude sqrt 2), +U along position
+    angle 45 deg, +V north at t = 0 turning to east a quarter period later."""
+    e_n, e_e = np.eye(3)[1], np.eye(3)[0]
+    wt = np.array([0.0, np.pi / 2])
+    (q,), (u,), (v,) = (field_parts(KINDS[k], e_n, e_e, wt) for k in "QUV")
+    np.testing.assert_allclose(q, np.sqrt(2) * np.c_[e_n, 0 * e_n], atol=1e-15)
+    np.testing.assert_allclose(u, np.c_[e_n + e_e, 0 * e_n], atol=1e-15)
+    np.testing.assert_allclose(v, np.c_[e_n, e_e], atol=1e-15)
 
 
 def _sources():
     lat = scene_layout().lat_deg
-    return [(k, radec_to_vec(np.deg2rad(ra), np.deg2rad(lat + dd))) for k, ra, dd in SOURCES]
+    return [(KINDS[k], radec_to_vec(np.deg2rad(ra), np.deg2rad(lat + dd))) for k, ra, dd in SOURCES]
 
 
 def test_time_domain_correlator_has_mmflows_fringe():
@@ -115,7 +65,7 @@ def test_time_domain_correlator_has_mmflows_fringe():
     lay = scene_layout(4, 6.0)
     pairs = np.array([[0, 1], [2, 3], [1, 3]])
     r_eq = radec_to_vec(np.deg2rad(20.0), np.deg2rad(lay.lat_deg - 30.0))
-    vis = correlate(lay.enu, FREQ, np.deg2rad(lay.lat_deg), [0.4], [("U", r_eq)], pairs)[0]
+    vis = correlate(lay.enu, FREQ, np.deg2rad(lay.lat_deg), [0.4], [(KINDS["U"], r_eq)], pairs)[0]
     r = r_eq @ enu_to_equatorial_matrix(np.deg2rad(lay.lat_deg), 0.4)
     b = lay.enu[pairs[:, 1]] - lay.enu[pairs[:, 0]]
     fringe = np.exp(2j * np.pi * (b @ r) * FREQ / C_LIGHT)
@@ -137,7 +87,7 @@ def test_simulator_matches_time_domain_fields(kind, elevation):
     lat = np.deg2rad(lay.lat_deg)
     r_eq = radec_to_vec(0.7, lat + np.deg2rad(elevation - 90.0))
     pairs = np.array([(i, j) for i in range(lay.n_ant) for j in range(i, lay.n_ant)])
-    ours = correlate(lay.enu, FREQ, lat, [0.7], [(kind, r_eq)], pairs)
+    ours = correlate(lay.enu, FREQ, lat, [0.7], [(KINDS[kind], r_eq)], pairs)
     jones = ShortDipoleJones(horizon_taper=TAPER)
     tel = Telescope(lay, jones.power_beam(), [FREQ])
     theirs = simulate_polarised_drift_scan(tel, jones, FREQ, [0.7], PolarisedPoints(r_eq, KINDS[kind]), pairs=pairs)
@@ -152,8 +102,8 @@ def test_simulator_matches_time_domain_fields(kind, elevation):
 def test_time_domain_fields_are_pyradiosky_stokes(alt_az):
     """pyradiosky's local coherency of a SkyModel with Stokes (I, Q, U, V) (``coherency_calc``, on its
     alt/az basis ``(e_za, e_az)``, azimuth north through east; pyradiosky's Stokes with pyuvsim's fringe,
-    ``exp(+2 pi i (x_j - x_i) . r / lambda)``, mmflow's) equals ``<A A^H>`` of this file's time-domain
-    +Q, +U and +V fields on that basis, north being the ICRS pole's direction there: an outside
+    ``exp(+2 pi i (x_j - x_i) . r / lambda)``, mmflow's) equals ``<A A^H>`` of the time-domain
+    +Q, +U, +V fields and a partially polarised one on that basis, north being the ICRS pole's direction there: an outside
     reference agrees with the fields (and so with the signs tested above), at the zenith and at
     45 and 30 deg elevation where the basis is turned from north by the parallactic angle."""
     import astropy.units as u
@@ -174,12 +124,14 @@ def test_time_domain_fields_are_pyradiosky_stokes(alt_az):
     e_za = np.array([np.sin(alt) * np.sin(az), np.sin(alt) * np.cos(az), -np.cos(alt)])
     e_az = np.array([np.cos(az), -np.sin(az), 0.0])
     wt = 2 * np.pi * np.arange(N_SAMPLES) / N_SAMPLES
-    for kind, stokes in KINDS.items():
+    for kind, stokes in list(KINDS.items()) + [("partial", (1.0, 0.3, -0.2, 0.25))]:
         sky = SkyModel(name=["s"], skycoord=src, stokes=np.array(stokes).reshape(4, 1, 1) * u.Jy, spectral_type="flat")
         sky.update_positions(time, loc)
         theirs = 2 * sky.coherency_calc()[:, :, 0, 0].value  # pyradiosky: (1 / 2) [[I + Q, U - iV], [U + iV, I - Q]]
-        a = channel(field(kind, e_n, np.cross(e_n, r), wt), wt)  # (3,) phasor of E(t) = Re[A exp(-i w t)]
-        ours = np.outer([a @ e_za, a @ e_az], np.conj([a @ e_za, a @ e_az]))
+        ours = 0
+        for fld in field_parts(stokes, e_n, np.cross(e_n, r), wt):  # incoherent parts add
+            a = channel(fld, wt)  # (3,) phasor of E(t) = Re[A exp(-i w t)]
+            ours = ours + np.outer([a @ e_za, a @ e_az], np.conj([a @ e_za, a @ e_az]))
         # to 1e-3 (measured <= 1e-4): pyradiosky turns the basis by one rotation fitted to the frame's axes,
         # astropy's pole here carries aberration (~20"); a wrong sign of V, U or Q is a difference of 1 or 2
         np.testing.assert_allclose(ours, theirs, atol=1e-3, err_msg=kind)
@@ -203,7 +155,7 @@ def imaged():
     scale = max(np.abs(np.diag(g)).max() for g in normal.gram)
     eps = (EPS_I * scale, EPS_POL * scale)
     vecs = np.array([v for _, v in src])
-    stokes = np.array([KINDS[k] for k, _ in src])
+    stokes = np.array([st for st, _ in src])
     truth = expected_alm(normal, point_source_stokes_alm(vecs, stokes, LMAX), eps)[0]
     return (src, stokes, stokes_maps(solve_polarised(normal, eps)[0], NSIDE, LMAX),
             stokes_maps(truth, NSIDE, LMAX))
@@ -217,7 +169,7 @@ def test_polarised_sources_image_with_the_iau_signs(imaged, index):
     of the truth imaged through the same operator (with V's old sign it was -1 times it), angle within
     2 deg, the other Stokes parameters (and Q for +U) < 5 % of it."""
     src, stokes, maps, ref = imaged
-    kind, vec = src[index]
+    kind, vec = SOURCES[index][0], src[index][1]
     s = "IQUV".index(kind)
     got, want = peak_near(maps[s], vec), peak_near(ref[s], vec)
     pix = hp.vec2pix(NSIDE, *vec)
