@@ -37,6 +37,7 @@ from mmflow.io.run_stores import CLEAN_STOPS
 from mmflow.sky import units
 from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow import clean_state as cs
+from mmflow.workflow.task_key import TaskKey
 
 #: the polarised fraction is shown only where I exceeds this fraction of the map's I peak
 POLFRAC_MIN_I = 0.05
@@ -148,6 +149,8 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
         info["noise"] = noise
     # the largest leakage of the unpolarised sky into each of Q, U, V, relative to the I peak
     info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
+    # whether the solve images polarised fractions as they are (the stokes task's polarisation_response)
+    info["polarisation"] = ctx.run.task_infos("stokes").get(TaskKey(freq=fi).format(), {}).get("polarisation")
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():
