@@ -29,7 +29,8 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import is_full_stokes, padded_alm
-from mmflow.imaging.polarised import PolarisedObserver, accumulate_polarised_normal, stokes_eps
+from mmflow.imaging.polarised import (PolarisedObserver, accumulate_polarised_normal, polarisation_response,
+                                      stokes_eps)
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
 from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
@@ -52,6 +53,13 @@ STOKES_CONFIG = ("mmode.lmax", "mmode.splits", "beam", "imaging", "transfer.nois
 def _v_decs(ctx):
     """The V PSF table's declinations (as the Stokes-I CLEAN's: :func:`psf_decs_deg`)."""
     return psf_decs_deg(float(ctx.vis_attrs()["lat_deg"]), ctx.cfg.clean.psf_dec_step_deg)
+
+
+def _response_decs(lat_rad):
+    """Declinations of :func:`~mmflow.imaging.polarised.polarisation_response`'s test sources: the latitude
+    and 20, 40 deg either side of it (transits at >= 50 deg elevation), at most 85 deg from the equator."""
+    decs = np.rad2deg(lat_rad) + np.array([-40.0, -20.0, 0.0, 20.0, 40.0])
+    return np.deg2rad(np.unique(np.clip(decs, -85.0, 85.0)))
 
 
 def _prepare(ctx):
@@ -94,7 +102,8 @@ def _task(ctx, key):
     ctx.write(out, "alm", (slice(None), slice(fi, fi + 1)),
               np.stack([padded_alm(a, lmax, n_m) for a in splits])[:, None])
     ctx.write(out, "leakage", (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
-    info = {"baselines": int(len(keep)), "eps": list(eps)}
+    info = {"baselines": int(len(keep)), "eps": list(eps),
+            "polarisation": polarisation_response(observe, _response_decs(tel.lat_rad), clean_nside(cfg))}
     if cfg.clean.enabled:
         info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, tel.lat_rad, observe)
     return info
