@@ -202,5 +202,23 @@ def cluster_kind(client):
     return getattr(client, "kind", None) or "address"
 
 
+#: the job options of a SLURM/PBS cluster that say what it ran on
+JOB_OPTIONS = ("cores", "memory", "processes", "walltime", "queue", "account")
+
+
+def cluster_record(cfg, client):
+    """The cluster a run runs on, as ``run.json`` keeps it for the report (nothing is asked of the cluster,
+    which starts only when the first task is sent): its kind and the shape the configuration gives it."""
+    kind = cluster_kind(client)
+    c = cfg.cluster
+    if kind in ("synchronous", "address"):  # one process; a cluster made elsewhere, whose shape is not ours
+        return {"kind": kind}
+    if kind == "local":
+        return {"kind": kind, "workers": c.n_workers, "threads_per_worker": c.threads_per_worker,
+                "memory_limit": str(c.memory_limit)}
+    job = dict(c.jobqueue or {})
+    return {"kind": kind, "jobs": c.n_workers, "job": {k: job[k] for k in JOB_OPTIONS if job.get(k) is not None}}
+
+
 #: the process's board: the runner writes it, the page reads it
 BOARD = RunBoard()

@@ -29,7 +29,7 @@ from mmflow.allocator import keep_freed_memory, release_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.config.schema import load_config
-from mmflow.workflow.dashboard.board import BOARD, cluster_kind
+from mmflow.workflow.dashboard.board import BOARD, cluster_kind, cluster_record
 from mmflow.workflow.engine.context import Context
 from mmflow.workflow.engine.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.pipeline import PIPELINE
@@ -338,7 +338,8 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
     BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],
                     plan, slots)
     (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
-    (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions()}, indent=2))
+    (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions(),
+                                                   "cluster": cluster_record(cfg, client)}, indent=2))
     ctx = Context(cfg.model_dump_json(), str(run.path), token)
     worker_wait_s = float(getattr(cfg.cluster, "worker_wait_s", 300))
     summaries = {}
