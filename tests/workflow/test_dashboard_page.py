@@ -120,3 +120,19 @@ def test_durations_keep_a_small_runs_tenths():
 
     assert [_duration(s) for s in (0.0286, 6.13, 0, 45, 300, 9000)] == ["0.03 s", "6.1 s", "0 s", "45 s", "5.0 min",
                                                                         "2.5 h"]
+
+
+@pytest.mark.parametrize("bound, scheduler, link", [
+    ("127.0.0.1", "tcp://10.1.2.3:8786", "http://127.0.0.1:8787/status"),  # SLURM: scheduler on the network
+    ("0.0.0.0", "tcp://10.1.2.3:8786", "http://10.1.2.3:8787/status"),  # expose: any address; the scheduler's
+    ("::1", "tcp://[::1]:8786", "http://[::1]:8787/status")])
+def test_dashboard_link_is_where_the_dashboard_is_bound(bound, scheduler, link):
+    from mmflow.workflow.dashboard.page import dashboard_link
+
+    cluster = SimpleNamespace(scheduler=SimpleNamespace(address=scheduler,
+                                                        http_server=SimpleNamespace(address=bound, port=8787)))
+    client = SimpleNamespace(dashboard_link="http://10.1.2.3:8787/status")  # dask's: the scheduler's host
+    assert dashboard_link(cluster, client) == link
+    assert dashboard_link(cluster, client, "mmflow") == link.replace("/status", "/mmflow")
+    # a scheduler elsewhere (joined by address): dask's link is all there is
+    assert dashboard_link(None, client, "mmflow") == "http://10.1.2.3:8787/mmflow"
