@@ -113,6 +113,9 @@ def test_page_before_any_run_and_after_a_stop():
     b.end_run("KeyboardInterrupt: <ctrl-c>")
     page = render_page(page_state(b.snapshot(), []))
     assert "stopped: KeyboardInterrupt: &lt;ctrl-c&gt;" in page and _cells(page, "stages")[0][2] == "stopped"
+    b.end_run("InputError: refused", "/other")  # a run refused before it began: its refusal, not the last run
+    s = b.snapshot()
+    assert (s["run_dir"], s["error"], s["stages"]) == ("/other", "InputError: refused", [])
 
 
 def test_durations_keep_a_small_runs_tenths():

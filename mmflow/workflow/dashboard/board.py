@@ -146,9 +146,13 @@ class RunBoard:
             r.state, r.wall_s = "done", float(wall_s)
             r.done = max(r.done, r.total or 0)
 
-    def end_run(self, error=None):
-        """The run ended: finished (``error`` None) or stopped with ``error`` (text)."""
+    def end_run(self, error=None, run_dir=None):
+        """The run in ``run_dir`` ended: finished (``error`` None) or stopped with ``error`` (text). A run
+        refused before it began (no :meth:`begin_run`) replaces the previous run's figures by its refusal."""
         with self._lock:
+            if run_dir is not None and str(run_dir) != self.run_dir:
+                self._reset()
+                self.run_dir, self.started = str(run_dir), self.clock()
             self.ended, self.error = self.clock(), error
             for r in self.stages.values():
                 if r.state == "running":
@@ -163,7 +167,7 @@ class RunBoard:
             return {"run_dir": self.run_dir, "cluster": self.cluster, "slots": self.slots,
                     "worker_base_gb": self.worker_base_gb, "started": self.started,
                     "ended": self.ended, "error": self.error, "now": self.clock(),
-                    "stages": [asdict(r) for r in self.stages.values()]}
+                    "stages": [{k: v for k, v in asdict(r).items() if k != "batch_base"} for r in self.stages.values()]}
 
 
 def seconds_left(snapshot, slots=None):

@@ -117,8 +117,7 @@ def _stage_rows(state):
     for k, r in enumerate(state["stages"], 1):
         total = r["total"] if r["total"] is not None else r["planned_tasks"]
         frac = r["done"] / total if total else (1.0 if r["state"] in ("done", "kept") else 0.0)
-        one = {k: v for k, v in r.items() if k != "batch_base"}
-        left, _ = seconds_left({"stages": [one], "slots": slots})
+        left, _ = seconds_left({"stages": [r], "slots": slots})
         elapsed = r["wall_s"] if r["wall_s"] is not None else (
             state["now"] - r["started"] if r["started"] is not None and r["state"] == "running" else None)
         left_text = "0 s" if r["state"] in ("done", "kept") else (

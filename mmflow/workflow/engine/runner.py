@@ -311,10 +311,10 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
 
     try:
         summaries = _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline)
-        BOARD.end_run()
+        BOARD.end_run(run_dir=run.path)
         return summaries
     except BaseException as exc:
-        BOARD.end_run(f"{type(exc).__name__}: {exc}")
+        BOARD.end_run(f"{type(exc).__name__}: {exc}", run.path)
         logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} stopped: {type(exc).__name__}: {exc}\n")
         raise
     finally:
