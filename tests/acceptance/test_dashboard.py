@@ -146,3 +146,18 @@ def test_the_mmflow_page_renders_the_run_in_headless_chromium(tmp_path, chromium
     (worker,) = _table(after, "workers")
     memory, limit = float(worker[4]), float(worker[6])
     assert worker[1].startswith("tcp://127.0.0.1:") and 0.05 < memory < limit
+
+
+def test_a_fresh_install_and_the_image_have_the_dashboard():
+    """bokeh (dask's dashboard) is one of mmflow's dependencies; the docker image installs the ``ms`` extra
+    (python-casacore, MeasurementSet input) as well."""
+    import tomllib
+
+    from tests.workflow_helpers import ROOT
+
+    with open(f"{ROOT}/pyproject.toml", "rb") as fh:
+        project = tomllib.load(fh)["project"]
+    assert any(d.replace(" ", "").startswith("bokeh>=3.1") for d in project["dependencies"])
+    assert any(d.startswith("python-casacore") for d in project["optional-dependencies"]["ms"])
+    with open(f"{ROOT}/docker/Dockerfile") as fh:
+        assert "RUN pip install .'[ms]'" in fh.read()
