@@ -324,8 +324,8 @@ def cluster_text(c):
         return f"{n} {word}" + ("" if n == 1 else "s")
 
     if kind == "local":
-        return (f"on a local cluster: {count(c.get('workers'), 'worker')} of {count(c.get('threads_per_worker'), 'thread')}"
-                f", memory limit {c.get('memory_limit')} each")
+        return (f"on a local cluster: {count(c.get('workers'), 'worker')} of "
+                f"{count(c.get('threads_per_worker'), 'thread')}, memory limit {c.get('memory_limit')} each")
     job = ", ".join(f"{k} {v}" for k, v in (c.get("job") or {}).items())
     return f"on a {kind.upper()} cluster: {count(c.get('jobs'), 'job')}" + (f" ({job})" if job else "")
 

@@ -94,7 +94,8 @@ class RunBoard:
         plan = {e.stage: e for e in estimates}
         with self._lock:
             self._reset()
-            self.run_dir, self.cluster, self.slots, self.started = str(run_dir), cluster, max(int(slots), 1), self.clock()
+            self.run_dir, self.cluster, self.started = str(run_dir), cluster, self.clock()
+            self.slots = max(int(slots), 1)
             self.worker_base_gb = WORKER_BASE_BYTES / 1e9
             for name in stage_names:
                 e = plan.get(name)
@@ -112,7 +113,8 @@ class RunBoard:
         """A stage begins with ``total`` tasks of which ``done`` finished in an earlier run."""
         with self._lock:
             r = self._row(name)
-            r.total, r.done, r.batch_base, r.state, r.started = int(total), int(done), int(done), "running", self.clock()
+            r.total, r.done, r.batch_base = int(total), int(done), int(done)
+            r.state, r.started = "running", self.clock()
 
     def keep_stage(self, name, total):
         """A stage finished before with the same settings: nothing of it runs."""
