@@ -83,6 +83,7 @@ def page_state(snapshot, workers):
 
 
 def _duration(s):
+    """Seconds as ``mmflow plan`` prints them (s, min, h), with the tenths of a small run's tasks."""
     if s is None:
         return "?"
     s = float(s)
@@ -91,11 +92,8 @@ def _duration(s):
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.1f} h"
 
 
-def _gb(b):
-    return f"{b / 1e9:.2f}"
-
-
 def _bar(frac, cls=""):
+    """A horizontal bar filled to ``frac`` (0-1); ``cls``: ``over`` (red) or ``kept`` (grey)."""
     w = max(0.0, min(float(frac), 1.0)) * 100
     return f'<span class="track"><span class="fill {cls}" style="width:{w:.0f}%"></span></span>'
 
