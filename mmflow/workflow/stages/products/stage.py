@@ -12,6 +12,7 @@ Table-1 rows); with ``imaging.stokes: [I, Q, U, V]`` the full-Stokes maps
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 
@@ -23,6 +24,7 @@ from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollwei
 from mmflow.io.report import summary_from_run, write_report
 from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow.engine.geometry import mmax_of
+from mmflow.workflow.engine.resources import gb, peak_rss_bytes
 from mmflow.workflow.stages.products.clean import clean_history_figure, clean_products, table1_row
 from mmflow.workflow.stages.products.science import channel_science, finalize_science
 from mmflow.workflow.stages.products.stokes import stokes_products
@@ -111,6 +113,20 @@ def _resolution_deg(vis, freq_hz, lmax):
 COST_KEYS = ("wall_s", "tasks", "tasks_run", "task_s", "worker_peak_rss_gb", "driver_peak_rss_gb", "bytes_written")
 
 
+def _cost_so_far(ctx):
+    """This stage's :data:`COST_KEYS` as the report is written, before the stage completes: its tasks (each
+    one's recorded seconds and worker peak), wall time since the runner began it (its ``_prepare`` marker),
+    the driver's peak so far and the maps written so far; ``until`` says where the count stops."""
+    run = ctx.run
+    infos = list(run.task_infos("products").values())
+    peaks = [i["peak_rss_gb"] for i in infos if i.get("peak_rss_gb") is not None]
+    began = run.marker("products", "_prepare")
+    return {"wall_s": round(time.time() - began.stat().st_mtime, 2) if began.exists() else None,
+            "tasks": len(infos), "tasks_run": len(infos), "task_s": round(sum(i.get("seconds", 0) for i in infos), 3),
+            "worker_peak_rss_gb": max(peaks) if peaks else None, "driver_peak_rss_gb": gb(peak_rss_bytes()),
+            "bytes_written": run.bytes_of(["maps"]), "until": "the report"}
+
+
 def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
     tags = frequency_tags(ctx.open("vis.zarr")["freqs_hz"][:])
@@ -127,6 +143,7 @@ def _products_finalize(ctx):
     out.update(finalize_science(ctx, parts, tags))
     # what each stage before this one cost (issue 21): the run records it, the map's summary keeps it
     out["stages"] = {name: {k: st.get(k) for k in COST_KEYS} for name, st in ctx.run.stage_summaries().items()}
+    out["stages"]["products"] = _cost_so_far(ctx)
     (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
 
