@@ -13,7 +13,7 @@ import pytest
 
 from mmflow.workflow.engine.cluster import jobqueue_cluster, open_cluster
 from mmflow.workflow.config.schema import load_config
-from mmflow.workflow.dashboard.page import dashboard_link, serve_page
+from mmflow.workflow.engine.dashboard.page import dashboard_link, serve_page
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.engine.runner import run_workflow
 

@@ -4,8 +4,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from mmflow.workflow.dashboard.board import RunBoard, cluster_kind, seconds_left
-from mmflow.workflow.dashboard.page import page_state, render_page
+from mmflow.workflow.engine.dashboard.board import RunBoard, cluster_kind, seconds_left
+from mmflow.workflow.engine.dashboard.page import page_state, render_page
 from mmflow.workflow.plan.planner import WORKER_BASE_BYTES
 
 
@@ -119,7 +119,7 @@ def test_page_before_any_run_and_after_a_stop():
 
 
 def test_durations_keep_a_small_runs_tenths():
-    from mmflow.workflow.dashboard.page import _duration
+    from mmflow.workflow.engine.dashboard.page import _duration
 
     assert [_duration(s) for s in (0.0286, 6.13, 0, 45, 300, 9000)] == ["0.03 s", "6.1 s", "0 s", "45 s", "5.0 min",
                                                                         "2.5 h"]
@@ -130,7 +130,7 @@ def test_durations_keep_a_small_runs_tenths():
     ("0.0.0.0", "tcp://10.1.2.3:8786", "http://10.1.2.3:8787/status"),  # expose: any address; the scheduler's
     ("::1", "tcp://[::1]:8786", "http://[::1]:8787/status")])
 def test_dashboard_link_is_where_the_dashboard_is_bound(bound, scheduler, link):
-    from mmflow.workflow.dashboard.page import dashboard_link
+    from mmflow.workflow.engine.dashboard.page import dashboard_link
 
     cluster = SimpleNamespace(scheduler=SimpleNamespace(address=scheduler,
                                                         http_server=SimpleNamespace(address=bound, port=8787)))

@@ -152,7 +152,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
     def start():
         from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
-        from mmflow.workflow.dashboard.page import dashboard_link, serve_page  # deferred: as Client
+        from mmflow.workflow.engine.dashboard.page import dashboard_link, serve_page  # deferred: as Client
 
         serve_page()  # mmflow's page (/mmflow) on the dashboard of a scheduler started here
         cluster = None

@@ -29,7 +29,7 @@ from mmflow.allocator import keep_freed_memory, release_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.config.schema import load_config
-from mmflow.workflow.dashboard.board import BOARD, cluster_kind, cluster_record
+from mmflow.workflow.engine.dashboard.board import BOARD, cluster_kind, cluster_record
 from mmflow.workflow.engine.context import Context
 from mmflow.workflow.engine.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.pipeline import PIPELINE

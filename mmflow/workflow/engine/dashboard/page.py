@@ -16,7 +16,7 @@ import dask
 from distributed.http.utils import RequestHandler
 from distributed.utils import format_dashboard_link, get_ip
 
-from mmflow.workflow.dashboard.board import BOARD, seconds_left
+from mmflow.workflow.engine.dashboard.board import BOARD, seconds_left
 
 #: dask's list of modules whose ``routes`` its scheduler serves
 ROUTES_KEY = "distributed.scheduler.http.routes"
