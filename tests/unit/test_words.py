@@ -1,7 +1,7 @@
 """Words that stay true: every ``mmflow.`` dotted reference in the docs and docstrings resolves, and no
 tracked file holds a path of the machine that wrote it.
 
-A rename that leaves ``mmflow.workflow.plan.stage_work`` (now plan.planner) in ``docs/planning.md`` sends the next reader to
+A rename that leaves ``mmflow.workflow.old_module.gone`` in ``docs/planning.md`` sends the next reader to
 nothing; these tests name every such reference with its file and line.
 """
 from __future__ import annotations
