@@ -239,7 +239,8 @@ class PolarisedObserver:
             self.blocks.append((keep, sla.cho_factor(g, overwrite_a=True, check_finite=False)))
 
     def solve(self, rhs_of_m):
-        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``: alm ``(n_vec, 4, n_alm)``."""
+        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``:
+        alm ``(n_vec, 4, n_alm)``."""
         n_vec = len(rhs_of_m(0))
         out = np.zeros((n_vec, 4, n_alm(self.lmax)), np.complex128)
         for m, block in enumerate(self.blocks):

@@ -260,28 +260,80 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
     """The calibrate stage's store (``n_src``: the calibration sources, ``attrs["sources"]``)."""
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
-    return StoreSpec("gains.zarr", (
-        ArraySpec("flux_factor", ("interval", "freq", "source", "pol"), (n_interval, nf, n_src, npol),
-                  (1, 1, n_src, npol), "float64", np.nan,
-                  doc="each calibration source's flux over its catalogue model in the interval: 1 for the "
-                  "unscreened ones and, on average, for those setting the scale; measured for calibrate.measure_flux; 0 "
-                  "where a screened source gave no model power (below the horizon)"),
-        ArraySpec("gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"),
-        ArraySpec("flags", sol, (n_interval, nf, n_ant, npol), per, "bool",
-                  doc="no data, not finite, or not converged"),
-        ArraySpec("chi2", sol, (n_interval, nf, n_ant, npol), per, "float64",
-                  doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)"),
-        ArraySpec("iterations", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "int32",
-                  doc="Stefcal iterations"),
-        ArraySpec("converged", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "bool",
-                  doc="Stefcal converged"),
-        ArraySpec("ripple", ("time", "freq", "antenna", "pol"), (n_time, nf, n_ant, npol), (n_time, 1, n_ant, npol),
-                  "float64", doc="autocorrelation ripple ratio ``r(t)`` per integration (1 where not corrected)"),
-        ArraySpec("solve_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=solve_rows,
-                  doc="the integrations each interval was solved on"),
-        ArraySpec("apply_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=apply_rows,
-                  doc="the integrations each interval's gains correct"),
-    ), attrs, doc="Direction-independent calibration of the calibrate stage: gains per solution interval.")
+    return StoreSpec(
+        "gains.zarr",
+        (
+            ArraySpec(
+                "flux_factor",
+                ("interval", "freq", "source", "pol"),
+                (n_interval, nf, n_src, npol),
+                (1, 1, n_src, npol),
+                "float64",
+                np.nan,
+                doc="each calibration source's flux over its catalogue model in the interval: 1 for the "
+                "unscreened ones and, on average, for those setting the scale; measured for calibrate.measure_flux; 0 "
+                "where a screened source gave no model power (below the horizon)",
+            ),
+            ArraySpec(
+                "gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"
+            ),
+            ArraySpec(
+                "flags", sol, (n_interval, nf, n_ant, npol), per, "bool", doc="no data, not finite, or not converged"
+            ),
+            ArraySpec(
+                "chi2",
+                sol,
+                (n_interval, nf, n_ant, npol),
+                per,
+                "float64",
+                doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)",
+            ),
+            ArraySpec(
+                "iterations",
+                ("interval", "freq", "pol"),
+                (n_interval, nf, npol),
+                (1, 1, npol),
+                "int32",
+                doc="Stefcal iterations",
+            ),
+            ArraySpec(
+                "converged",
+                ("interval", "freq", "pol"),
+                (n_interval, nf, npol),
+                (1, 1, npol),
+                "bool",
+                doc="Stefcal converged",
+            ),
+            ArraySpec(
+                "ripple",
+                ("time", "freq", "antenna", "pol"),
+                (n_time, nf, n_ant, npol),
+                (n_time, 1, n_ant, npol),
+                "float64",
+                doc="autocorrelation ripple ratio ``r(t)`` per integration (1 where not corrected)",
+            ),
+            ArraySpec(
+                "solve_rows",
+                ("interval", "edge"),
+                (n_interval, 2),
+                (n_interval, 2),
+                "int64",
+                data=solve_rows,
+                doc="the integrations each interval was solved on",
+            ),
+            ArraySpec(
+                "apply_rows",
+                ("interval", "edge"),
+                (n_interval, 2),
+                (n_interval, 2),
+                "int64",
+                data=apply_rows,
+                doc="the integrations each interval's gains correct",
+            ),
+        ),
+        attrs,
+        doc="Direction-independent calibration of the calibrate stage: gains per solution interval.",
+    )
 
 
 #: names of the codes of peel.zarr's ``mode`` (the values of :mod:`mmflow.calibrate.peel`'s SKIP ... MODEL)

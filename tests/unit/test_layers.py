@@ -3,7 +3,8 @@
 The layers, lowest first (docs/architecture.md):
 
 0. ``base``: ``mmflow/__init__.py``, ``conventions``, ``errors``, ``offline``, ``compiled_cache``, ``threads``,
-   ``allocator``, ``machine``, ``import_thread`` -- numbers, exceptions and process settings every layer shares; numpy only.
+   ``allocator``, ``machine``, ``import_thread`` -- numbers, exceptions and process settings every layer shares;
+   numpy only.
 1. ``kernels``: ``telescope``, ``sky``, ``mmode``, ``imaging``, ``calibrate``, ``simulate``,
    ``analysis`` -- numpy/scipy, no dask, no configuration, no files of a run.
 2. ``io``: reading and writing data, stores, reports.
@@ -26,8 +27,18 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2] / "mmflow"
 
 LAYERS = {"base": 0, "kernels": 1, "io": 2, "workflow": 3, "bench": 4, "cli": 5}
-BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.paths", "mmflow.offline", "mmflow.threads", "mmflow.import_thread",
-                "mmflow.allocator", "mmflow.machine", "mmflow.compiled_cache"}
+BASE_MODULES = {
+    "mmflow",
+    "mmflow.conventions",
+    "mmflow.errors",
+    "mmflow.paths",
+    "mmflow.offline",
+    "mmflow.threads",
+    "mmflow.import_thread",
+    "mmflow.allocator",
+    "mmflow.machine",
+    "mmflow.compiled_cache",
+}
 KERNEL_PACKAGES = ("telescope", "sky", "mmode", "imaging", "calibrate", "simulate", "analysis")
 
 # --- the graph -------------------------------------------------------------------------------
