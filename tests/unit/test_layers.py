@@ -342,6 +342,25 @@ def test_no_comparison_with_a_stage_name_outside_the_pipeline():
     assert not bad, "branches on a stage's name (give the stage the behaviour instead):\n" + "\n".join(bad)
 
 
+def test_stores_are_named_through_their_declaration():
+    """No ``"*.zarr"`` string in the package but the declarations of :data:`mmflow.io.run_stores.STORES`:
+    readers and writers name a store as ``STORES.gains``, so a renamed or misspelt store fails at import."""
+    import io
+    import re
+    import tokenize
+
+    bad = []
+    for path in ROOT.rglob("*.py"):
+        toks = tokenize.generate_tokens(io.StringIO(path.read_text()).readline)
+        for tok in toks:
+            if tok.type == tokenize.STRING and re.fullmatch(r"[rbu]?([\"'])\w+\.zarr\1", tok.string):
+                line = tok.line.strip()
+                if path.name == "run_stores.py" and "= StoreName(" in line:
+                    continue
+                bad.append(f"{path.relative_to(ROOT.parent)}:{tok.start[0]}: {line}")
+    assert not bad, "store names as literals (use mmflow.io.run_stores.STORES):\n" + "\n".join(bad)
+
+
 # --- the checker itself can fail -------------------------------------------------------------
 
 def test_walker_finds_a_deferred_cycle_and_an_upward_import(tmp_path):
