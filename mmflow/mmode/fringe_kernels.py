@@ -18,6 +18,7 @@ from functools import lru_cache
 
 import numba
 import numpy as np
+from mmflow.conventions import complex_dtype
 
 
 def _taylor(odd, n_terms):
@@ -54,7 +55,7 @@ def _kernels(real_name):
     (or load them from numba's cache: the closures hold only numbers and numpy types, so their cache keys
     are the same in every process)."""
     real = np.dtype(real_name).type
-    cplx = np.complex64 if real is np.float32 else np.complex128
+    cplx = complex_dtype(real).type
     n_terms = 6 if real is np.float32 else 9  # |y| <= pi/4: y^13/13! ~ 2e-11, y^19/19! ~ 1e-19
     sin_c = tuple(real(c) for c in (_taylor(True, n_terms) + [0.0] * 9)[:9])
     cos_c = tuple(real(c) for c in (_taylor(False, n_terms) + [0.0] * 9)[:9])
@@ -153,7 +154,7 @@ def sincos_turns(t, dtype=np.float64):
     inner = _kernels(np.dtype(dtype).name)[0]
     # reuse fringe_folds on a 1-ring, 1-point grid: direction (1, 0, 0), baselines (t, 0, 0)
     t = np.asarray(t, np.float64).ravel()
-    out_s = np.empty((1, 1, len(t)), np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
+    out_s = np.empty((1, 1, len(t)), complex_dtype(dtype).type)
     out_d = np.empty_like(out_s)
     b = np.zeros((len(t), 3))
     b[:, 0] = t

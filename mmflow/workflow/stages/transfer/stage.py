@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from mmflow.conventions import m_blocks
+from mmflow.conventions import m_blocks, complex_dtype
 from mmflow.io.run_stores import STORES, gram_name, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
@@ -36,7 +36,7 @@ def _plan(ctx, fi):
 
 
 def _acc_dtype(cfg):
-    return "complex64" if cfg.transfer.dtype == "float32" else "complex128"
+    return complex_dtype(cfg.transfer.dtype).name
 
 
 def _transfer_prepare(ctx):
@@ -52,7 +52,7 @@ def _transfer_prepare(ctx):
     if cfg.transfer.mode == "store":
         orders = [np.concatenate([c.index for c in p[1]]).astype("int64") for p in plans]
         ctx.create(transfer_store(nf, len(tel.antenna_pairs()), lmax, mmax, cfg.transfer.baseline_chunk,
-                                  "complex64" if cfg.transfer.dtype == "float32" else "complex128", orders))
+                                  complex_dtype(cfg.transfer.dtype).name, orders))
     return [TaskKey(freq=fi, group=k) for fi, p in enumerate(plans) for k in range(n_groups)]
 
 
