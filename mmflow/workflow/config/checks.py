@@ -18,7 +18,7 @@ from mmflow.conventions import SIDEREAL_DAY_S, drift_scan_lsts, is_full_stokes
 from mmflow.errors import InputError
 from mmflow.mmode.splits import day_index, day_splits, jackknife_kind, sidereal_times_jd, split_problems
 from mmflow.sky.sources import CATALOG
-from mmflow.telescope import load_layout, ovro_lwa_layout
+from mmflow.telescope.layout import selected_layout
 from mmflow.telescope.beam_factory import make_beam, make_jones
 from mmflow.workflow.config.beam import BEAM_PARAMS
 from mmflow.workflow.config.errors import Problem, from_pydantic, nearest, show
@@ -86,12 +86,8 @@ def _selection_problems(cfg):
     """Build the antenna selection as the simulate stage will, and check it."""
     t = cfg.telescope
     try:
-        if t.layout_file is None:
-            full = ovro_lwa_layout(t.preset)
-            lay = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
-        else:
-            full = load_layout(t.layout_file, t.lat_deg, t.lon_deg)
-            lay = full.select(t.stands, t.radius_m)
+        full, lay = selected_layout(t.preset, t.layout_file, t.lat_deg, t.lon_deg, t.radius_m, t.stands,
+                                    t.max_antennas)
     except InputError as exc:
         loc = ("telescope", "stands") if exc.field == "stands" else ("telescope", "layout_file")
         return [Problem(loc, None, f"{exc.what}: {exc.problem}", exc.fix)]

@@ -18,9 +18,9 @@ import zarr
 
 from mmflow.errors import InputError, MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
-from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
+from mmflow.telescope import Telescope
 from mmflow.telescope.beam_factory import make_beam
-from mmflow.telescope.layout import Layout
+from mmflow.telescope.layout import Layout, selected_layout
 from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.fingerprint import ConfigView
 from mmflow.workflow.engine.rundir import RunDir
@@ -182,12 +182,10 @@ def build_telescope(cfg, layout=None):
     """Telescope from the config (``telescope``, ``beam``, ``observation``), or from an ingested layout."""
     t = cfg.telescope
     if layout is None:
-        if t.preset is not None and t.layout_file is None:
-            layout = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
-        else:
-            if t.layout_file is None or t.lat_deg is None or t.lon_deg is None:
-                raise InputError("workflow", "telescope.layout_file", "no layout given",
-                                 "set telescope.preset, or layout_file with lat_deg and lon_deg")
-            layout = load_layout(t.layout_file, t.lat_deg, t.lon_deg).select(t.stands, t.radius_m)
+        if t.layout_file is not None and (t.lat_deg is None or t.lon_deg is None):
+            raise InputError("workflow", "telescope.layout_file", "no layout given",
+                             "set telescope.preset, or layout_file with lat_deg and lon_deg")
+        _, layout = selected_layout(t.preset, t.layout_file, t.lat_deg, t.lon_deg, t.radius_m, t.stands,
+                                    t.max_antennas)
     return Telescope(layout, make_beam(cfg.beam.model_dump()), np.asarray(cfg.observation.simulated_freqs_mhz()) * 1e6,
                      cfg.observation.integration_s, t.include_autos, cfg.observation.channel_width_khz * 1e3)
