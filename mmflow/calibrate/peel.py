@@ -439,7 +439,7 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
     dtype : complex64 or complex128
         Working precision of the solve: each batch's antenna matrices (data, models, residual) are
         formed in it. complex64 halves the memory traffic that bounds peeling (``mmflow bench
-        calibrate`` times it so); it resolves a ``tol`` down to ~1e-5 (:data:`SINGLE_TOL`).
+        calibrate`` times it so); it resolves a ``tol`` down to ~1e-5 (the peel stage's ``SINGLE_PRECISION_TOL``).
 
     Returns
     -------
