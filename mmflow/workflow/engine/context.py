@@ -178,6 +178,11 @@ def _telescope(beam_json, run_path):
     return tel
 
 
+def run_telescope(cfg, run_path):
+    """The telescope stored with a run's visibilities (as :meth:`TaskContext.telescope`), outside a stage."""
+    return _telescope(cfg.beam.model_dump_json(), str(run_path))
+
+
 def build_telescope(cfg, ingest=None):
     """Telescope from the config (``telescope``, ``beam``, ``observation``), or for ingested data from
     ``ingest`` (the ingest plan, or a record's copy: its ``layout`` and ``freqs_hz``); its channels are

@@ -38,6 +38,12 @@ def run_freqs_hz(cfg, ingest=None):
     return np.asarray(cfg.observation.simulated_freqs_mhz(), float) * 1e6
 
 
+def fit_bins(splits, n_bins):
+    """The bins of the smallest data split, which bound every baseline's m-mode fit: half of them less
+    one for even / odd splits, else ``n_bins - 1`` (band limits up to half of it)."""
+    return n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
+
+
 def interpolates_diffuse(cfg):
     """Whether the simulate stage sums the diffuse sky at a few sidereal angles and interpolates it to
     every integration (:mod:`mmflow.simulate.drift_modes`): every unpolarised simulation with a diffuse
