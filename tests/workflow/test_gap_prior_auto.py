@@ -125,30 +125,3 @@ def test_unflagged_and_randomly_flagged_runs_make_no_pass_and_are_unchanged(scen
     print(f"5 % random, defaults: {shift.round(5)} FWHM")
     assert shift.max() < 0.01
 
-
-def test_unbridged_gaps_against_nyquist_intervals():
-    """A gap is bridged while it is shorter than ``N / (2 M_b + 1)`` bins, the band limit's sample spacing."""
-    from mmflow.mmode.gapfill import longest_gap, unbridged_gaps
-
-    n = 60
-    w = np.ones((n, 4))
-    w[55:, 0] = w[:3, 0] = 0  # 8 bins across phi = 0
-    w[10:14, 1] = 0  # 4 bins
-    w[:, 2] = 0  # no data: dropped, not counted
-    w[::7, 3] = 0  # single bins
-    np.testing.assert_array_equal(longest_gap(w), [8, 4, n, 1])
-    # M_b = 5: 60 / 11 = 5.45 bins per Nyquist interval; 3: 8.6, 8: 3.5, 30: 0.98
-    np.testing.assert_array_equal(unbridged_gaps(w, 5), [True, False, False, False])
-    np.testing.assert_array_equal(unbridged_gaps(w, [3, 8, 3, 30]), [False, True, False, True])
-
-
-def test_bin_occupancy_is_the_binned_weight_of_sidereal_bins():
-    """The driver's occupancy (no values summed) marks the bins ``sidereal_bins`` fills, over several days."""
-    from mmflow.mmode.transform import bin_occupancy, sidereal_bins
-
-    rng = np.random.default_rng(1)
-    lst = np.sort(rng.uniform(0, 4 * np.pi, 900))
-    good = rng.random((900, 30, 2)) > 0.3
-    good[100:300] = False
-    _, bin_weight, _ = sidereal_bins(lst, good.astype(complex), good.astype(float), 200, 0.0)
-    np.testing.assert_array_equal(bin_occupancy(lst, good, 200), bin_weight > 0)
