@@ -22,7 +22,7 @@ from mmflow.telescope.layout import selected_layout
 from mmflow.telescope.beam_factory import make_beam, make_jones
 from mmflow.workflow.config.beam import BEAM_PARAMS
 from mmflow.workflow.config.errors import Problem, from_pydantic, nearest, show
-from mmflow.workflow.engine.geometry import n_bins_of, n_integrations
+from mmflow.workflow.engine.geometry import n_bins_of, n_integrations, run_freqs_hz
 from mmflow.workflow.engine.prior_run import prior_run_problems
 from mmflow.paths import expand_path
 
@@ -119,8 +119,8 @@ def _beam_build_problems(cfg):
                         "give the path of a beam file pyuvdata reads")]
     try:
         beam = make_beam(spec)
-        for f in (cfg.observation.simulated_freqs_mhz() if cfg.source == "simulate" else cfg.observation.freqs_mhz or []):
-            beam.check_frequency(f * 1e6)
+        for f in _run_freqs_hz(cfg):
+            beam.check_frequency(f)
     except InputError as exc:
         loc = ("observation", "freqs_mhz") if exc.field in ("frequency", "freq_array") else ("beam",)
         return [Problem(loc, None, f"beam type {show(spec.get('type'))}: {exc.problem}", exc.fix)]
@@ -128,6 +128,19 @@ def _beam_build_problems(cfg):
         return [Problem(("beam", "params"), spec.get("params"), f"pyuvdata cannot build the beam ({exc})",
                         "give the arguments of that pyuvdata.analytic_beam class")]
     return []
+
+
+def _run_freqs_hz(cfg):
+    """The run's channels as its telescope takes them (:func:`mmflow.workflow.engine.geometry.run_freqs_hz`); none
+    where the input files cannot be planned (the ingest stage's check reports why, naming the files)."""
+    if cfg.source != "ingest":
+        return run_freqs_hz(cfg)
+    from mmflow.io.ingest import plan_ingest  # deferred: reading a simulation's config imports no numerics
+
+    try:
+        return run_freqs_hz(cfg, plan_ingest(cfg))
+    except InputError:
+        return []
 
 
 def _value_problems(cfg):

@@ -5,10 +5,10 @@ Override any key from the command line with ``section.key=value`` (values parsed
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, Field, ValidationError, field_validator, model_validator
 
 from mmflow.errors import InputError
 from mmflow.mmode.splits import split_kind
@@ -55,6 +55,15 @@ class TelescopeConfig(Section):
     stands: Optional[list[str]] = Field(None, min_length=2, description="Keep only these stand names.")
     max_antennas: Optional[int] = Field(None, ge=2, description="Keep the first N stands after the other cuts.")
     include_autos: bool = Field(True, description="Use autocorrelations as baselines of length 0.")
+
+
+def _prior_passes(v):
+    """``auto`` or a number of passes 0..3."""
+    if v == "auto":
+        return v
+    if isinstance(v, bool) or not isinstance(v, (int, str)) or not str(v).strip().isdigit() or int(v) > 3:
+        raise BadValue("not auto or a whole number of passes 0 to 3", "use auto (the default), or 0, 1, 2 or 3")
+    return int(v)
 
 
 class ObservationConfig(Section):
@@ -170,15 +179,24 @@ class MmodeConfig(Section):
         "flagged time leaves unmeasured (a second pass; docs/mmodes.md). Run it in a new run.directory. "
         "null: no prior (gaps held at 0).", json_schema_extra={"allowed": "null or a run directory"})
 
-    prior_passes: int = Field(
-        0, ge=0, le=3, description="Automatic prior passes inside one run (docs/mmodes.md): after the "
-        "calibration stages, m-modes -> solve run in RUN/prior0 (least squares alone), and each later pass, "
-        "the run's own m-modes among them, fits flagged time with the map before it as its prior "
-        "(mmode.prior_run done for you; each pass resumable). 0: none.")
+    prior_passes: Annotated[Union[Literal["auto"], int], BeforeValidator(_prior_passes)] = Field(
+        "auto", description="Prior passes inside one run (docs/mmodes.md): after the calibration stages, m-modes "
+        "-> solve run in RUN/prior0 (least squares alone), and each later pass, the run's own m-modes among them, "
+        "fits flagged time with the map before it as its prior (mmode.prior_run done for you; each pass "
+        "resumable). 'auto': passes only where flagged time leaves a baseline a gap longer than its band limit "
+        "bridges (one Nyquist interval, N / (2 M_b + 1) sidereal bins), until the map changes by less than "
+        "prior_tolerance, at most prior_max_passes; none without such gaps (and none with prior_run). 0: none.",
+        json_schema_extra={"allowed": "auto, or 0 to 3", "fingerprint_as": 0})
+    prior_tolerance: float = Field(
+        0.02, gt=0, description="'auto' prior passes stop when the map's alm (every channel, first split) changes "
+        "by less than this from one pass to the next: ||a_k - a_(k-1)|| / ||a_k||.",
+        json_schema_extra={"fingerprint": False})
+    prior_max_passes: int = Field(3, ge=1, le=6, description="The most 'auto' prior passes (each costs the imaging "
+                                  "stages once more).", json_schema_extra={"fingerprint": False})
 
     @model_validator(mode="after")
     def _one_prior(self):
-        if self.prior_passes and self.prior_run is not None:
+        if self.prior_passes != "auto" and self.prior_passes and self.prior_run is not None:
             raise BadValue("mmode.prior_passes and mmode.prior_run both give a prior",
                            "use prior_passes (passes inside this run) or prior_run (an earlier run), not both")
         return self

@@ -103,7 +103,7 @@ def geometry(cfg, ingest=None):
         freqs = tel.freqs_hz
     else:
         plan = plan_ingest(cfg) if ingest is None else ingest  # a record's copy of the files' plan
-        tel = build_telescope(cfg, plan.layout)  # the files' array and baselines, not the config's telescope
+        tel = build_telescope(cfg, plan)  # the files' array, channels and baselines, not the config's telescope
         tel.pairs = np.asarray(plan.pairs)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)
     n_bl = len(tel.antenna_pairs())

@@ -39,7 +39,7 @@ from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_mask
     sun_elevation_deg
 from mmflow.mmode.transform import bin_coverage, sidereal_bins, split_bins
 from mmflow.workflow.engine.blocks import read_block
-from mmflow.workflow.engine.geometry import mmax_of, n_bins_of
+from mmflow.workflow.engine.geometry import fit_bins, mmax_of, n_bins_of
 from mmflow.workflow.engine.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
 from mmflow.workflow.stages.mmodes.cost import COST
 from mmflow.workflow.stages.base import Stage
@@ -140,7 +140,7 @@ def _task(ctx, key):
     sigma2 = None if per_pol is None else stokes_i_variance(np.stack(per_pol, axis=-1))
     tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
     # the bins of the smallest split bound the fit: half of them for even / odd
-    n_fit = n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
+    n_fit = fit_bins(splits, n_bins)
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((nf, vis.shape[1]))
     n_samples = np.zeros((len(splits), nf, vis.shape[1]), np.int64)
