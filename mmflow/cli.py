@@ -246,7 +246,8 @@ def _dispatch(args):
     from mmflow.workflow.config.schema import load_config
     from mmflow.workflow.engine.passes import run_with_passes
 
-    cfg = load_config(args.workflow, args.overrides)
+    # --cluster is cluster.kind, recorded as such in the run's config.yaml
+    cfg = load_config(args.workflow, [*args.overrides, *([f"cluster.kind={args.cluster}"] if args.cluster else [])])
     only = None if args.cmd == "run" else [args.cmd]
     with open_cluster(cfg, args.scheduler, args.cluster) as client:
         summaries = run_with_passes(cfg, client, only=only, force=args.force, progress=not args.no_progress)

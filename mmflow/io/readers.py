@@ -31,7 +31,7 @@ from mmflow.offline import offline_site_registry
 
 _CASACORE_LOCK = threading.Lock()  # casacore's table cache is not thread-safe
 
-__all__ = ["FileData", "file_kind", "read_file", "read_metadata"]
+__all__ = ["FileData", "file_kind", "read_file", "read_metadata", "unflagged_nonfinite"]
 
 
 def file_kind(path, fmt=None):
@@ -93,6 +93,22 @@ def read_file(path, fmt=None, info=None, site=None):
     if np.any(scale != 1.0):
         out.vis = out.vis * scale[None, :, None]
     return out
+
+
+def unflagged_nonfinite(path, fmt, info, site):
+    """``(n, size)``: the unflagged NaN/inf samples among the ``size`` samples an ingest task keeps of one
+    file (:func:`read_file`'s polarisations and rows), or None where the file has no direct read (uvfits:
+    its ingest task checks it). UVH5 files (any phase state) are read with h5py and MeasurementSets with
+    python-casacore, without pyuvdata; the unit scale and the unprojection are finite factors, so they
+    are not needed to tell whether a sample is finite."""
+    kind = file_kind(path, fmt)
+    if kind == "uvh5":
+        out = _read_uvh5_direct(path, _wanted(info, "indices"), len(info["pol_indices"]))
+    elif kind == "ms" and site is not None:
+        out = read_ms_direct(path, _wanted(info, "numbers"), False, site, _CASACORE_LOCK, len(info["pol_numbers"]))
+    else:
+        return None
+    return int(np.count_nonzero(~np.isfinite(out.vis) & ~out.flags)), int(out.vis.size)
 
 
 def _wanted(info, what):
