@@ -86,7 +86,9 @@ def test_nan_input_refused_before_the_cluster_starts_and_fixed_without_force(nan
 
 def test_nan_scan_names_every_file_and_runs_only_for_a_stage_with_work(scan, tmp_path, monkeypatch):
     from mmflow.io import ingest as ingest_mod
+    from mmflow.io import readers
 
+    monkeypatch.setattr(readers, "SCAN_BLOCK_BYTES", 7 * 16)  # 7 rows at a time (one channel, one hand)
     uv, _ = scan
     times = np.unique(uv.time_array)
     day = tmp_path / "day"
@@ -232,10 +234,13 @@ def test_cluster_option_is_recorded_as_cluster_kind(monkeypatch):
         pass
 
     def open_cluster(cfg, scheduler=None, kind=None):
-        seen["kind"] = cfg.cluster.kind
+        seen.update(kind=cfg.cluster.kind, address=cfg.cluster.address)
         raise Stop
 
     monkeypatch.setattr("mmflow.workflow.engine.cluster.open_cluster", open_cluster)
     with pytest.raises(Stop):
         cli.main(["run", "workflows/demo.yaml", "--cluster", "slurm"])
     assert seen["kind"] == "slurm"  # the configuration the run writes to config.yaml
+    with pytest.raises(Stop):
+        cli.main(["run", "workflows/demo.yaml", "--scheduler", "tcp://127.0.0.1:8786"])
+    assert seen["kind"] == "address" and seen["address"] == "tcp://127.0.0.1:8786"

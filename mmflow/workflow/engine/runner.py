@@ -496,8 +496,9 @@ def status(run_path):
     out = {}
     for st in PIPELINE:
         s = run.stage_status(st.name)
-        if s is not None:
-            s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
+        if s is not None:  # stale: results made from other settings (a stage without any starts afresh)
+            s["stale"] = None if fps is None else (bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
+                                                   and run.has_results(st.name))
         out[st.name] = s
     return out
 
