@@ -8,6 +8,7 @@ import getpass
 import os
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -126,9 +127,14 @@ def _calls(ctx):
 
 
 def _toy_bad_input(ctx, key):
+    """The chunks from ``TOY_GOOD_FROM`` on (default: none) take a second, then write; the others are bad."""
     with open(_calls(ctx), "a") as fh:
         fh.write(f"{key.interval}\n")
-    raise InputError("toy.uvh5", "data_array", f"chunk {key.interval} is bad", "fix the file")
+    k = key.interval
+    if k < int(os.environ.get("TOY_GOOD_FROM", "99")):
+        raise InputError("toy.uvh5", "data_array", f"chunk {k} is bad", "fix the file")
+    time.sleep(1.0)
+    ctx.write(ctx.open("toy.zarr", mode="r+"), "x", (slice(k, k + 1),), np.array([float(k)]))
 
 
 def _toy_crash(ctx, key):
@@ -147,21 +153,40 @@ def _toy(task):
                                   enabled=lambda cfg: cfg.source == "simulate", description="toy"))
 
 
-def test_input_error_in_a_task_fails_once_without_traceback_and_leaves_no_store(tmp_path, capfd):
+def _run_on_local_cluster(run_dir, threads):
     from distributed import Client, LocalCluster
 
-    run_dir = tmp_path / "run"
-    with LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as cluster, \
+    with LocalCluster(n_workers=1, threads_per_worker=threads, processes=False, dashboard_address=":0") as cluster, \
             Client(cluster) as client:
-        with pytest.raises(InputError, match=r"toy.uvh5: field 'data_array': chunk \d is bad. Fix: fix the file"):
+        with pytest.raises(InputError, match=r"toy.uvh5: field 'data_array': chunk 0 is bad. Fix: fix the file"):
             run_workflow(small_config(run_dir), client=client, only=["simulate"], pipeline=_toy(_toy_bad_input),
                          **QUIET)
-    calls = (tmp_path / "calls.txt").read_text().split()
-    assert len(calls) == len(set(calls)) and len(calls) >= 1  # each task at most once: never retried
+        files = sorted(run_dir.rglob("*"))
+        time.sleep(1.5)
+        assert sorted(run_dir.rglob("*")) == files  # no task of the stage still runs: nothing written since
+    return (run_dir.parent / "calls.txt").read_text().split()
+
+
+def test_input_error_in_a_task_fails_once_without_traceback_and_leaves_no_store(tmp_path, capfd):
+    run_dir = tmp_path / "run"
+    calls = _run_on_local_cluster(run_dir, threads=1)  # every chunk is bad
+    assert calls.count("0") == 1 and len(calls) == len(set(calls))  # each task at most once: never retried
     err = capfd.readouterr().err
     assert "Compute Failed" not in err and "Traceback" not in err, err
     assert not (run_dir / "toy.zarr").exists() and not (run_dir / "_status").exists()  # no half-made store
     assert {"mmflow.log", "config.yaml", "run.json"} >= set(os.listdir(run_dir))
+
+
+def test_a_stage_stopped_by_an_input_error_waits_for_its_running_tasks(tmp_path, capfd, monkeypatch):
+    monkeypatch.setenv("TOY_GOOD_FROM", "1")  # chunk 0 is bad, chunk 1 runs beside it for a second
+    run_dir = tmp_path / "run"
+    calls = _run_on_local_cluster(run_dir, threads=2)
+    assert calls.count("0") == 1 and len(calls) == len(set(calls))
+    assert "Compute Failed" not in capfd.readouterr().err
+    run = RunDir(run_dir)
+    assert run.has_results("simulate")  # chunk 1 ran to its end and was recorded: the stage keeps it
+    problems = run.verify(["simulate"])["simulate"]
+    assert problems and all(p.startswith("chunk key ") and p.endswith(": not done") for p in problems), problems
 
 
 def test_a_stage_that_never_finished_a_task_reruns_with_other_settings_without_force(tmp_path, monkeypatch):

@@ -199,6 +199,9 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
                     f"{len(futures)} tasks unfinished (workers died: memory, walltime, a crash?). Fix: start "
                     "workers (check the cluster's logs), then rerun the same command: finished chunks are kept "
                     "(cluster.worker_wait_s sets the wait)")
+    except InputError:  # the stage stops: no task of it may still write when the driver tidies up
+        _cancel_and_wait(client, futures, f"{name}-", ctx.token)
+        raise
     except BaseException:
         client.cancel(futures)
         raise
@@ -206,6 +209,25 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
         bar.close()
     client.gather([f for f in futures if f.status != "finished"])  # raises a task's error (after its retries)
     return [results[k] for k in range(len(futures))]
+
+
+#: how long a stage stopped by an input error waits for its tasks already running to end
+STOP_WAIT_S = 600.0
+
+
+def _running(prefix, token, dask_worker=None):
+    """The keys of a run's tasks still running on a worker (a cancelled task runs on to its end)."""
+    return [ts.key for ts in dask_worker.state.all_running_tasks
+            if str(ts.key).startswith(prefix) and str(ts.key).endswith(token)]
+
+
+def _cancel_and_wait(client, futures, prefix, token, wait_s=STOP_WAIT_S):
+    """Cancel a stage's tasks, then wait (up to ``wait_s``) for those already running: dask cannot
+    interrupt a running task, and a store must not be removed while a task still writes to it."""
+    client.cancel(futures)
+    end = time.monotonic() + wait_s
+    while time.monotonic() < end and any(client.run(_running, prefix, token).values()):
+        time.sleep(0.2)
 
 
 def _gather_stage(client, futures, results):
