@@ -76,7 +76,7 @@ def test_nan_input_refused_before_the_cluster_starts_and_fixed_without_force(nan
     assert "Fix: flag them in the file, or set input.nonfinite=flag" in err
     assert sorted(os.listdir(run_dir)) == ["mmflow.log"]  # no store, no record: the log alone
     assert "stopped: InputError" in (run_dir / "mmflow.log").read_text()
-    # the fix the message names, without --force (the ingest stage alone: the scan is 8 integrations)
+    # the fix the message names, without --force (the ingest stage: 8 integrations cannot make m-modes)
     rc, out, err = _mmflow("ingest", *args, "input.nonfinite=flag", "--cluster", "synchronous")
     assert rc == 0, err
     assert "nonfinite flagged: 1" in out
@@ -151,6 +151,18 @@ class Crash(BaseException):
 def _toy(task):
     return PIPELINE.replace(Stage("simulate", ("mmode.baseline_chunk",), (), ("toy.zarr",), _toy_prepare, task,
                                   enabled=lambda cfg: cfg.source == "simulate", description="toy"))
+
+
+def test_every_input_error_survives_the_trip_from_a_worker():
+    import pickle
+
+    from mmflow.errors import CoverageError
+
+    for exc in (InputError("f.uvh5", "data_array", "bad", "fix it"), CoverageError("d", "input.path", "short", "more"),
+                ConfigError([("a.yaml, line 2", "mmode.lmax", "-1 is not allowed", "set it >= 1"),
+                             ("a.yaml, line 3", "imaging.eps", "0 is not allowed", "set it > 0")])):
+        back = pickle.loads(pickle.dumps(exc))
+        assert type(back) is type(exc) and str(back) == str(exc) and back.field == exc.field
 
 
 def _run_on_local_cluster(run_dir, threads):
