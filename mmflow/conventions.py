@@ -29,6 +29,11 @@ Sidereal day
 
 Stokes parameters
     ``imaging.stokes`` is ``[I]`` or the full set :data:`FULL_STOKES` (:func:`is_full_stokes`).
+    IAU (1974): Q > 0 for an electric field north-south, angles from north through east, V > 0
+    for the field rotating from north through east as the receiver sees it. With the fringe
+    above (``V_ij = <E_i E_j*>``, ``exp(+2 pi i b.r / lambda)``, i.e. fields ``Re[A exp(-i w t)]``)
+    the coherency on ``(e_N, e_E)`` is ``[[I + Q, U - iV], [U + iV, I - Q]]``
+    (:data:`STOKES_COHERENCY`, :func:`stokes_coherency`; derivation in docs/conventions.md).
 
 Units
     Visibilities in Jy; beams are power responses, 1 at zenith; transfer matrices map
@@ -42,11 +47,28 @@ TWO_PI = 2 * np.pi  # rad: one turn (of the sidereal angle, of an m-mode phase)
 SPEED_OF_LIGHT = 299792458.0  # m/s, exact (SI): every wavelength in mmflow is SPEED_OF_LIGHT / freq_hz
 #: the Stokes parameters of full-Stokes imaging, as ``imaging.stokes`` lists them
 FULL_STOKES = ("I", "Q", "U", "V")
+#: ``sigma_X``: the coherency ``<A A^H>`` on the sky basis ``(e_N, e_E)`` of unit IAU Stokes X, X = I, Q, U, V,
+#: for field phasors ``A`` of ``E(t) = Re[A exp(-i w t)]`` (the time dependence that mmflow's fringe
+#: ``exp(+2 pi i b.r / lambda)`` with ``V_ij = <E_i E_j*>`` implies). IAU +V (``E`` turning from north
+#: through east) is ``A = (1, i)``: ``A_N conj(A_E) = -i``, hence the ``-i`` of ``sigma_V[0, 1]``.
+STOKES_COHERENCY = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1j], [1j, 0]]], complex)
 
 
 def is_full_stokes(stokes):
     """True when ``stokes`` (``imaging.stokes``) asks for I, Q, U and V."""
     return tuple(stokes) == FULL_STOKES
+
+
+def stokes_coherency(stokes):
+    """The sky's coherency ``S = sum_X X sigma_X`` on ``(e_N, e_E)`` of IAU Stokes ``(..., [I, Q, U, V])``::
+
+        S = <E E^H> = [[I + Q, U - iV],
+                       [U + iV, I - Q]]
+
+    in mmflow's ``avg`` normalisation (an unpolarised source of flux I gives ``S = I 1``) and
+    fringe convention (:data:`STOKES_COHERENCY`). Returns complex ``(..., 2, 2)``.
+    """
+    return np.tensordot(np.asarray(stokes, float), STOKES_COHERENCY, axes=([-1], [0]))
 
 
 def drift_scan_lsts(start_lst_rad, integration_s, index):

@@ -36,6 +36,45 @@ def find_chromium():
     return None
 
 
+def install_chromium(timeout=900):
+    """Path of a Chromium binary: one found, else Debian's ``chromium`` installed with apt-get.
+
+    Returns ``(path, None)``, or ``(None, why)`` where no binary is found and none can be
+    installed (not root, no apt-get, or the install failed: its last output line).
+    """
+    exe = find_chromium()
+    if exe:
+        return exe, None
+    if not shutil.which("apt-get"):
+        return None, "no Chromium binary and no apt-get to install Debian's `chromium` (or set MMFLOW_CHROMIUM)"
+    if os.geteuid() != 0:
+        return None, "no Chromium binary, and installing Debian's `chromium` needs root (or set MMFLOW_CHROMIUM)"
+    env = dict(os.environ, DEBIAN_FRONTEND="noninteractive")
+    for cmd in (["apt-get", "install", "-y", "-q", "chromium"], ["apt-get", "update", "-q"],
+                ["apt-get", "install", "-y", "-q", "chromium"]):  # an update only where the lists are stale
+        try:
+            r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+        except subprocess.TimeoutExpired:
+            return None, f"`{' '.join(cmd)}` took over {timeout} s"
+        if r.returncode == 0 and cmd[1] == "install":
+            break
+    exe = find_chromium()
+    if exe is None:
+        tail = (r.stderr or r.stdout).strip().splitlines()[-1:] or ["no output"]
+        return None, f"Debian's `chromium` could not be installed: {tail[0]}"
+    return exe, None
+
+
+def dump_dom(exe, url, timeout=60.0):
+    """The DOM of ``url`` once loaded, as ``chromium --dump-dom`` prints it (serialized HTML)."""
+    with tempfile.TemporaryDirectory(prefix="mmflow-chromium-") as profile:
+        r = subprocess.run([exe, *FLAGS, f"--user-data-dir={profile}", "--dump-dom", url], capture_output=True,
+                           text=True, timeout=timeout, stdin=subprocess.DEVNULL)
+    if r.returncode != 0:
+        raise RuntimeError(f"chromium --dump-dom {url}: exit {r.returncode}: {r.stderr[-500:]}")
+    return r.stdout
+
+
 class Chromium:
     """A headless Chromium attached to one page, driven over the DevTools pipe."""
 

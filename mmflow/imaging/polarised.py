@@ -239,7 +239,8 @@ class PolarisedObserver:
             self.blocks.append((keep, sla.cho_factor(g, overwrite_a=True, check_finite=False)))
 
     def solve(self, rhs_of_m):
-        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``: alm ``(n_vec, 4, n_alm)``."""
+        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``:
+        alm ``(n_vec, 4, n_alm)``."""
         n_vec = len(rhs_of_m(0))
         out = np.zeros((n_vec, 4, n_alm(self.lmax)), np.complex128)
         for m, block in enumerate(self.blocks):
@@ -288,3 +289,60 @@ def stokes_maps(alm, nside, lmax):
     alm = np.asarray(alm, np.complex128)
     i, q, u_h = healpy.alm2map(alm[:3], nside, lmax=lmax, pol=True)
     return np.stack([i, q, -u_h, healpy.alm2map(alm[3], nside, lmax=lmax)])
+
+
+#: what :func:`polarisation_response` calls measured: each test fraction recovered within this of 1 ...
+RESPONSE_TOLERANCE = 0.05
+#: ... and the unpolarised test source's Q, U, V below this fraction of its I
+LEAKAGE_TOLERANCE = 0.005
+
+
+def polarisation_response(observe, decs_rad, nside, fraction=0.1):
+    """What the solve makes of polarised point sources: the resolution matrix at test sources.
+
+    At each declination (RA 0, frame of date) four noiseless point sources are imaged through
+    ``observe`` (:class:`PolarisedObserver`, the run's operator, eps and filters): unpolarised
+    ``(1, 0, 0, 0)`` and ``(1, f, 0, 0)``, ``(1, 0, f, 0)``, ``(1, 0, 0, f)``. At the source's pixel::
+
+        leakage  = max(|Q_0|, |U_0|, |V_0|) / I_0            (the unpolarised source)
+        ratio_X  = (X_X / I_X - X_0 / I_0) / f,   X = Q, U, V  (1: the fraction imaged as it is)
+
+    Parameters
+    ----------
+    observe : PolarisedObserver
+    decs_rad : sequence of float
+    nside : int
+        HEALPix resolution of the maps the values are read from (``>= lmax / 2`` or so).
+    fraction : float
+        The test sources' polarised fraction ``f``.
+
+    Returns
+    -------
+    dict: ``dec_deg``, ``leakage``, ``ratio_q``, ``ratio_u``, ``ratio_v`` (lists over declinations),
+    ``measured`` (every ratio within :data:`RESPONSE_TOLERANCE` of 1 and every leakage below
+    :data:`LEAKAGE_TOLERANCE`) and ``note`` (why not, when not).
+    """
+    lmax = observe.lmax
+    decs = np.asarray(decs_rad, float).reshape(-1)
+    vec = np.stack([np.cos(decs), np.zeros_like(decs), np.sin(decs)], axis=-1)
+    tests = np.vstack([np.eye(4)[0]] + [np.eye(4)[0] + fraction * np.eye(4)[k] for k in (1, 2, 3)])
+    truth = np.stack([point_source_stokes_alm(v, t, lmax) for v in vec for t in tests])
+    images = observe(truth).reshape(len(decs), 4, 4, -1)
+    out = {"dec_deg": np.rad2deg(decs).round(3).tolist(), "fraction": float(fraction), "leakage": [],
+           "ratio_q": [], "ratio_u": [], "ratio_v": []}
+    for d, v in enumerate(vec):
+        pix = healpy.vec2pix(nside, *v)
+        at = np.stack([stokes_maps(images[d, k], nside, lmax)[:, pix] for k in range(4)])  # (test, IQUV)
+        frac = at[:, 1:] / at[:, :1]
+        out["leakage"].append(float(np.abs(frac[0]).max()))
+        for k, name in enumerate(("ratio_q", "ratio_u", "ratio_v")):
+            out[name].append(float((frac[k + 1, k] - frac[0, k]) / fraction))
+    ratios = np.array([out[n] for n in ("ratio_q", "ratio_u", "ratio_v")])
+    worst_ratio = float(ratios.flat[np.argmax(np.abs(ratios - 1))])
+    worst_leak = float(max(out["leakage"]))
+    out["measured"] = bool(abs(worst_ratio - 1) <= RESPONSE_TOLERANCE and worst_leak < LEAKAGE_TOLERANCE)
+    out["note"] = "" if out["measured"] else (
+        f"the array does not measure polarisation at this lmax and eps: Q, U, V fractions image at "
+        f"{worst_ratio:.2f} of the truth (worst test declination) and an unpolarised source leaks "
+        f"{worst_leak:.2%} of I into Q, U, V; the polarised maps are not fractions of the sky")
+    return out

@@ -22,6 +22,13 @@ from healpy.newvisufunc import projview
 from mmflow.analysis import table1
 from mmflow.imaging.lcurve import lcurve_corner
 
+#: Header keywords of every polarised map: IAU (1974) Stokes parameters, the polarisation angle
+#: from north through east and V > 0 for the field turning from north through east as the
+#: receiver sees it, with the coherency ``[[I + Q, U - iV], [U + iV, I - Q]]`` on (north, east)
+#: under mmflow's fringe (:func:`mmflow.conventions.stokes_coherency`; docs/conventions.md).
+POLARISATION_KEYWORDS = {"POLCCONV": "IAU", "POLANGLE": "from north through east",
+                         "VSIGN": "IAU: V>0 E turns N through E seen by receiver"}
+
 
 def tmp_sibling(path):
     """A hidden per-process temporary file beside ``path``: written there, then renamed onto ``path``."""

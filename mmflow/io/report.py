@@ -28,7 +28,7 @@ import io
 import json
 import os
 from dataclasses import asdict, dataclass, field, fields
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from html.parser import HTMLParser
 from pathlib import Path, PurePosixPath
 
@@ -82,6 +82,10 @@ class ReportSummary:
     created : str
         ISO time stamp (default: now, UTC).
     versions : dict package -> version (the run's ``run.json``).
+    cluster : dict
+        What the run ran on (the run's ``run.json``): ``kind`` (``local``, ``slurm``, ``pbs``, ``address``,
+        ``synchronous``) and the shape it was given (``workers``, ``threads_per_worker``, ``memory_limit``;
+        ``jobs`` and their ``job`` options).
     channels : list of ChannelProducts, one per frequency.
     table1 : list of dict
         Rows of :func:`mmflow.analysis.table1.table1_row` (keys ``freq_mhz``,
@@ -116,6 +120,7 @@ class ReportSummary:
     run_name: str = ""
     created: str = ""
     versions: dict = field(default_factory=dict)
+    cluster: dict = field(default_factory=dict)
     channels: list = field(default_factory=list)
     table1: list = field(default_factory=list)
     table1_files: dict = field(default_factory=dict)
@@ -174,10 +179,12 @@ def summary_from_run(run_dir):
     s = ReportSummary()
     meta = _read_json(run / "run.json") or {}
     s.run_name, s.versions = meta.get("name", run.name) or run.name, meta.get("versions", {})
+    s.cluster = meta.get("cluster") or {}
     top = _read_json(run / "maps" / "summary.json") or {}
     stages = top.get("stages") or _read_json(run / "summary.json") or {}  # the products stage's copy, or the run's
-    for name, st in stages.items():
-        s.stage_times.append({"stage": name, **{k: st.get(k) for k in STAGE_COLUMNS}})
+    for name, st in stages.items():  # the products stage's row counts up to the report (its "until")
+        label = f"{name} (until {st['until']})" if st.get("until") else name
+        s.stage_times.append({"stage": label, **{k: st.get(k) for k in STAGE_COLUMNS}})
     for info in top.get("maps", []):
         s.channels.append(_channel(run, info, s))
     t1 = top.get("table1") or {}
@@ -269,14 +276,58 @@ def _esc(x):
     return html.escape(str(x), quote=True)
 
 
-def _fmt(v):
+#: Julian date 2451545.0 is 2000-01-01 12:00 (a run's epochs are UTC Julian dates)
+_J2000 = (2451545.0, datetime(2000, 1, 1, 12, tzinfo=timezone.utc))
+
+
+def jd_text(jd):
+    """A Julian date in full and as a UTC date: ``'2458000.50000 (2017-09-04 00:00:00 UTC)'``."""
+    when = _J2000[1] + timedelta(days=float(jd) - _J2000[0])
+    return f"{float(jd):.5f} ({when:%Y-%m-%d %H:%M:%S} UTC)"
+
+
+def mhz_text(hz):
+    """A frequency in MHz with three decimals, more where the channel needs them: ``'40.000 MHz'``."""
+    mhz = float(hz) / 1e6
+    text = f"{mhz:.3f}"
+    if abs(float(text) - mhz) > 1e-9 * max(abs(mhz), 1.0):
+        text = f"{mhz:.9f}".rstrip("0")
+    return f"{text} MHz"
+
+
+def _fmt(v, key=""):
+    """A value as the report prints it; ``key`` (the value's name) picks dates (``*_jd``) and frequencies
+    (``*_hz``), which a 4-digit float would hide (``2.458e+06``, ``4e+07``)."""
     if isinstance(v, bool) or v is None:
         return "" if v is None else str(v)
+    if isinstance(v, (int, float)) and str(key).endswith("_jd"):
+        return jd_text(v)
+    if isinstance(v, (int, float)) and str(key).endswith("_hz"):
+        return mhz_text(v)
     if isinstance(v, float):
-        return f"{v:.4g}"
+        return f"{v:.6g}" if 1e4 <= abs(v) < 1e6 else f"{v:.4g}"
     if isinstance(v, (dict, list, tuple)):
         return json.dumps(v)
     return str(v)
+
+
+def cluster_text(c):
+    """What a run ran on, in words (:attr:`ReportSummary.cluster`); empty where the run did not record it."""
+    kind = c.get("kind")
+    if not kind:
+        return ""
+    if kind == "synchronous":
+        return "in one process (dask's synchronous scheduler)"
+    if kind == "address":
+        return "on a dask cluster joined by its address"
+    def count(n, word):
+        return f"{n} {word}" + ("" if n == 1 else "s")
+
+    if kind == "local":
+        return (f"on a local cluster: {count(c.get('workers'), 'worker')} of "
+                f"{count(c.get('threads_per_worker'), 'thread')}, memory limit {c.get('memory_limit')} each")
+    job = ", ".join(f"{k} {v}" for k, v in (c.get("job") or {}).items())
+    return f"on a {kind.upper()} cluster: {count(c.get('jobs'), 'job')}" + (f" ({job})" if job else "")
 
 
 class _Writer:
@@ -325,13 +376,13 @@ def _table(rows, columns=None, left=("name", "stage", "reference", "key", "label
     columns = columns or list(dict.fromkeys(k for r in rows for k in r))
     cls = lambda c: ' class="l"' if c in left else ""  # noqa: E731
     head = "".join(f"<th{cls(c)}>{_esc(c)}</th>" for c in columns)
-    body = "".join("<tr>" + "".join(f"<td{cls(c)}>{_esc(_fmt(r.get(c)))}</td>" for c in columns) + "</tr>"
+    body = "".join("<tr>" + "".join(f"<td{cls(c)}>{_esc(_fmt(r.get(c), c))}</td>" for c in columns) + "</tr>"
                    for r in rows)
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
 def _facts(d):
-    rows = "".join(f'<tr><th class="l">{_esc(k)}</th><td class="l">{_esc(_fmt(v))}</td></tr>' for k, v in d.items())
+    rows = "".join(f'<tr><th class="l">{_esc(k)}</th><td class="l">{_esc(_fmt(v, k))}</td></tr>' for k, v in d.items())
     return f"<table>{rows}</table>" if rows else ""
 
 
@@ -365,7 +416,7 @@ def _timings(rows):
     body = ""
     for r in rows:
         w = 200.0 * float(r.get("wall_s") or 0) / top
-        body += "<tr>" + "".join(f'<td{" class=l" if c == "stage" else ""}>{_esc(_fmt(r.get(c)))}</td>'
+        body += "<tr>" + "".join(f'<td{" class=l" if c == "stage" else ""}>{_esc(_fmt(r.get(c), c))}</td>'
                                  for c in cols)
         body += f'<td class="l"><span class="bar" style="width:{w:.0f}px"></span></td></tr>'
     total = sum(float(r.get("wall_s") or 0) for r in rows)
@@ -422,7 +473,9 @@ def render_report(summary, report_path, run_dir=None, embed=False):
     page = (f'<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
             f'<meta name="viewport" content="width=device-width, initial-scale=1">'
             f"<title>{_esc(s.title)}</title><style>{_CSS}</style></head><body>"
-            f"<h1>{_esc(s.title)}</h1><p>run <b>{_esc(s.run_name)}</b>, report written {_esc(created)}</p>"
+            f"<h1>{_esc(s.title)}</h1><p>run <b>{_esc(s.run_name)}</b>"
+            + (f' <span id="cluster">{_esc(cluster_text(s.cluster))}</span>' if s.cluster else "")
+            + f", report written {_esc(created)}</p>"
             f"{notes}<nav>{nav}</nav>" + "".join(body for _, _, body in sections) + "</body></html>\n")
     return page, w.missing
 

@@ -33,8 +33,10 @@ def _sincos_turns(t, s, c, two_pi, quarter):
     q = np.rint(t * 4)
     y = (t - q * quarter) * two_pi  # |y| <= pi/4
     y2 = y * y
-    sn = y * (s[0] + y2 * (s[1] + y2 * (s[2] + y2 * (s[3] + y2 * (s[4] + y2 * (s[5] + y2 * (s[6] + y2 * (s[7]
-                                                                                                       + y2 * s[8]))))))))
+    sn = y * (
+        s[0]
+        + y2 * (s[1] + y2 * (s[2] + y2 * (s[3] + y2 * (s[4] + y2 * (s[5] + y2 * (s[6] + y2 * (s[7] + y2 * s[8])))))))
+    )
     cs = c[0] + y2 * (c[1] + y2 * (c[2] + y2 * (c[3] + y2 * (c[4] + y2 * (c[5] + y2 * (c[6] + y2 * (c[7]
                                                                                                  + y2 * c[8])))))))
     qi = int(q) & 3  # rotate by q quarter turns

@@ -6,8 +6,12 @@ for an electric field along north-south and the polarisation angle is measured f
 through east. The sky's coherency on that basis, normalised as mmflow's ``avg`` convention
 (an unpolarised sky gives ``V_xx = V_yy = I`` through unit feeds), is::
 
-    S = <E E^H> = [[I + Q, U + iV],
-                   [U - iV, I - Q]]       (Hamaker & Bregman 1996; XY = U + iV for X north)
+    S = <E E^H> = [[I + Q, U - iV],
+                   [U + iV, I - Q]]       (:func:`mmflow.conventions.stokes_coherency`)
+
+(V > 0: the field turning from north through east as the receiver sees it; with this fringe,
+``exp(+2 pi i b . r)``, the fields are ``Re[A exp(-i w t)]``, the conjugate of Hamaker & Bregman's
+``XY = U + iV`` for X north under ``exp(-2 pi i b . r)``: docs/conventions.md).
 
 Correlation pq of baseline ``b = x_j - x_i`` (wavelengths, sky frame at ``phi = 0``), feed p
 of antenna i and q of antenna j, with ``J_p = (J_pN, J_pE)`` the feed's response on that basis
@@ -15,7 +19,9 @@ of antenna i and q of antenna j, with ``J_p = (J_pN, J_pE)`` the feed's response
 
     V_pq = int f_b J_p S J_q^H dOmega = int f_b (K_I I + K_Q Q + K_U U + K_V V) dOmega,
     K_I = J_pN J_qN^* + J_pE J_qE^*,    K_Q = J_pN J_qN^* - J_pE J_qE^*,
-    K_U = J_pN J_qE^* + J_pE J_qN^*,    K_V = i (J_pN J_qE^* - J_pE J_qN^*).
+    K_U = J_pN J_qE^* + J_pE J_qN^*,    K_V = -i (J_pN J_qE^* - J_pE J_qN^*),
+
+i.e. ``K_X = sum_ab sigma_X[a, b] J_pa J_qb^*`` with ``sigma_X`` of :data:`mmflow.conventions.STOKES_COHERENCY`.
 
 Harmonics. I and V are spin 0: ``I = sum T_lm Y_lm``, ``V = sum V_lm Y_lm``. Q and U go
 through healpy's spin-2 convention, which is the COSMO one (``U_h = -U``):
@@ -49,7 +55,7 @@ from dataclasses import dataclass
 import ducc0
 import numpy as np
 
-from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.conventions import STOKES_COHERENCY, enu_to_equatorial_matrix, unit_vectors
 from mmflow.mmode.transfer import QuadratureGrid
 
 #: Stokes parameters of the transfer coefficients, in the order of their axis.
@@ -103,13 +109,14 @@ def feed_projections(jones, lat_rad, vectors, freq_hz, phi=0.0):
 
 
 def stokes_kernels(jn, je, corr):
-    """``(K_I, K_Q, K_U, K_V)`` of correlation ``corr`` (e.g. ``"xy"``): ``J_p S J_q^H`` per Stokes."""
+    """``(K_I, K_Q, K_U, K_V)`` of correlation ``corr`` (e.g. ``"xy"``): ``J_p S J_q^H`` per Stokes,
+    ``K_X = sum_ab sigma_X[a, b] J_pa J_qb^*`` on ``(a, b) in (N, E)`` with the coherency of unit
+    Stokes X, ``sigma_X`` (:data:`mmflow.conventions.STOKES_COHERENCY`, the simulator's too)."""
     p, q = _FEED[corr[0]], _FEED[corr[1]]
-    nn = jn[p] * np.conj(jn[q])
-    ee = je[p] * np.conj(je[q])
-    ne = jn[p] * np.conj(je[q])
-    en = je[p] * np.conj(jn[q])
-    return nn + ee, nn - ee, ne + en, 1j * (ne - en)
+    jp = np.stack([jn[p], je[p]])
+    jq = np.conj(np.stack([jn[q], je[q]]))
+    outer = jp[:, None] * jq[None, :]  # [a, b, ...] = J_pa J_qb^*
+    return tuple(np.tensordot(STOKES_COHERENCY, outer, axes=([1, 2], [0, 1])))
 
 
 def make_polarised_grid(lat_rad, jones, freq_hz, lmax, fringe_lmax):

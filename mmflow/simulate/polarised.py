@@ -6,14 +6,16 @@ pair ``(i, j)`` (baseline ``b = x_j - x_i``, ENU, metres) and feeds ``p`` of ant
 
     V_pq(phi) = sum_s J_p(r_s) S_s J_q(r_s)^H exp(2 pi i b . r_s / lambda),
 
-    S_s = [[I + Q, U + iV],
-           [U - iV, I - Q]]     on the sky basis (e_N, e_E) of source s,
+    S_s = [[I + Q, U - iV],
+           [U + iV, I - Q]]     on the sky basis (e_N, e_E) of source s,
 
 in mmflow's ``avg`` normalisation (an unpolarised source of flux I gives ``V_xx = |J_x|^2 I``)
 and the IAU convention: Q > 0 is a north-south electric field, the polarisation angle
-``chi = atan2(U, Q) / 2`` runs from north through east (Hamaker & Bregman 1996, XY = U + iV
-for X north). ``e_N`` is the unit tangent towards the celestial pole of date and
-``e_E = e_N x r`` (towards increasing RA); both are derived here from their definition.
+``chi = atan2(U, Q) / 2`` runs from north through east, V > 0 is the field turning from north
+through east as the receiver sees it (:func:`mmflow.conventions.stokes_coherency`, the one
+definition the imager's kernels use too; the sign of V follows from the fringe's time
+dependence, docs/conventions.md). ``e_N`` is the unit tangent towards the celestial pole of
+date and ``e_E = e_N x r`` (towards increasing RA); both are derived here from their definition.
 
 This module is the independent check of :mod:`mmflow.mmode.polarised`: it shares only the
 Jones beam evaluation (:meth:`mmflow.telescope.jones.JonesBeam.jones_enu`, ENU vectors) and
@@ -34,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mmflow.conventions import enu_to_equatorial_matrix
+from mmflow.conventions import enu_to_equatorial_matrix, stokes_coherency
 from mmflow.errors import InputError
 from mmflow.simulate.visibilities import auto_columns, thermal_noise
 from mmflow.conventions import SPEED_OF_LIGHT
@@ -79,9 +81,9 @@ def north_east(vectors):
 
 
 def coherency(stokes_jy):
-    """``S = [[I + Q, U + iV], [U - iV, I - Q]]`` of each source, shape ``(n, 2, 2)`` on (N, E)."""
-    i, q, u, v = np.asarray(stokes_jy, float).T
-    return np.stack([np.stack([i + q, u + 1j * v], -1), np.stack([u - 1j * v, i - q], -1)], -2)
+    """``S = [[I + Q, U - iV], [U + iV, I - Q]]`` of each source, shape ``(n, 2, 2)`` on (N, E)
+    (:func:`mmflow.conventions.stokes_coherency`)."""
+    return stokes_coherency(np.asarray(stokes_jy, float).reshape(-1, 4))
 
 
 def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=None, correlations=CORRELATIONS,

@@ -112,7 +112,9 @@ def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.comp
     if out is None:
         out = np.empty((len(lsts), len(pairs)), np.complex128)
     elif out.shape != (len(lsts), len(pairs)) or out.dtype.kind != "c":
-        raise ValueError(f"simulate_drift_scan: out is {out.dtype} {out.shape}, not complex ({len(lsts)}, {len(pairs)})")
+        raise ValueError(
+            f"simulate_drift_scan: out is {out.dtype} {out.shape}, not complex ({len(lsts)}, {len(pairs)})"
+        )
     if threads is None and len(lsts) * max(1, len(sky.flux_jy)) * len(telescope.layout.enu) ** 2 < SERIAL_WORK:
         threads = 1  # a few points (a calibration model): starting threads costs more than the work
     threads = max(1, min(n_threads() if threads is None else threads, len(lsts)))

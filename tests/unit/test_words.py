@@ -1,7 +1,7 @@
 """Words that stay true: every ``mmflow.`` dotted reference in the docs and docstrings resolves, and no
 tracked file holds a path of the machine that wrote it.
 
-A rename that leaves ``mmflow.workflow.plan.stage_work`` in ``docs/planning.md`` sends the next reader to
+A rename that leaves ``mmflow.workflow.old_module.gone`` in ``docs/planning.md`` sends the next reader to
 nothing; these tests name every such reference with its file and line.
 """
 from __future__ import annotations
@@ -91,7 +91,9 @@ def test_no_machine_paths_in_tracked_files():
             text = p.read_text()
         except UnicodeDecodeError:
             continue
-        bad += [f"{p.relative_to(ROOT)}:{i}" for i, line in enumerate(text.splitlines(), 1) if MACHINE_PATH.search(line)]
+        bad += [
+            f"{p.relative_to(ROOT)}:{i}" for i, line in enumerate(text.splitlines(), 1) if MACHINE_PATH.search(line)
+        ]
     assert not bad, "machine paths (use paths relative to the repository or a run directory):\n" + "\n".join(bad)
 
 

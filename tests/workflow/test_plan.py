@@ -91,13 +91,24 @@ def test_every_stage_records_its_cost(measured_run):
     for name, s in summary.items():
         assert s["wall_s"] > 0 and s["tasks"] > 0 and s["bytes_written"] > 0, name
         assert 0.05 < s["worker_peak_rss_gb"] < 8 and 0.05 < s["driver_peak_rss_gb"] < 8, name
-    # the map's summary keeps every stage before products, as recorded when each finished
+    # the map's summary keeps every stage before products, as recorded when each finished, and products
+    # itself up to the report (its tasks done, its finalize not)
     kept = json.loads((run_dir / "maps" / "summary.json").read_text())["stages"]
-    assert list(kept) == [n for n in summary if n != "products"]
+    assert list(kept) == list(summary)
     for name, s in kept.items():
+        if name == "products":
+            continue
         assert {k: s[k] for k in ("wall_s", "tasks", "worker_peak_rss_gb", "bytes_written")} == \
             {k: summary[name][k] for k in ("wall_s", "tasks", "worker_peak_rss_gb", "bytes_written")}, name
-    assert "worker_peak_rss_gb" in (run_dir / "maps" / "report.html").read_text()
+    prod, done = kept["products"], summary["products"]
+    assert prod["until"] == "the report" and prod["tasks"] == done["tasks"] == prod["tasks_run"]
+    assert 0 < prod["task_s"] <= prod["wall_s"] <= done["wall_s"] and 0.05 < prod["worker_peak_rss_gb"] < 8
+    report = (run_dir / "maps" / "report.html").read_text()
+    assert "worker_peak_rss_gb" in report and "products (until the report)" in report
+    # the report names the cluster the run ran on
+    assert json.loads((run_dir / "run.json").read_text())["cluster"] == {
+        "kind": "local", "workers": 1, "threads_per_worker": 1, "memory_limit": "auto"}
+    assert "on a local cluster: 1 worker of 1 thread, memory limit auto each" in report
 
 
 def test_a_task_larger_than_a_worker_is_refused_before_work(tmp_path):

@@ -177,3 +177,43 @@ def test_report_renders_in_headless_chromium(run_dir, tmp_path, embed):
     assert n_scripts == 0 and title.startswith("Report of <script>")  # escaped text, not an element
     assert all(u.startswith(("file:", "data:", "about:")) for u in urls), urls
     assert width <= 1300  # figures scale to the page, no horizontal overflow at 1280 px
+
+
+def test_report_names_the_cluster_and_prints_dates_and_frequencies_readably(run_dir, tmp_path):
+    """The run's cluster (run.json) in the header; an epoch as its full Julian date and UTC date, a frequency
+    in MHz (a 4-digit float hid both: 2.458e+06, 4e+07); the products stage's own row in the timings."""
+    run = tmp_path / "run"
+    shutil.copytree(run_dir, run)
+    meta = json.loads((run / "run.json").read_text())
+    meta["cluster"] = {"kind": "slurm", "jobs": 2, "job": {"cores": 1, "memory": "4GB", "walltime": "00:30:00"}}
+    (run / "run.json").write_text(json.dumps(meta))
+    top = json.loads((run / "maps" / "summary.json").read_text())
+    top["maps"][0].update(epoch_jd=2458000.5, map_rms=12345.6)
+    top["maps"][1]["freq_hz"] = 60.0244e6
+    top["stages"] = {"mmodes": {"wall_s": 12.5, "tasks": 4, "tasks_run": 4},
+                     "products": {"wall_s": 2.0, "tasks": 2, "tasks_run": 2, "until": "the report"}}
+    top["flux_scale"] = {"rows": [{"name": "Cyg A", "freq_hz": 40e6, "measured_jy": 2.1e4, "model_jy": 2.0e4,
+                                   "ratio": 1.05, "reference": "test"}]}
+    (run / "maps" / "summary.json").write_text(json.dumps(top))
+    s = summary_from_run(run)
+    assert s.cluster["kind"] == "slurm"
+    assert [r["stage"] for r in s.stage_times] == ["mmodes", "products (until the report)"]
+    write_report(run / "report.html", s)
+    page = (run / "report.html").read_text()
+    assert '<span id="cluster">on a SLURM cluster: 2 jobs (cores 1, memory 4GB, walltime 00:30:00)</span>' in page
+    assert "2458000.50000 (2017-09-04 00:00:00 UTC)" in page and "2.458e+06" not in page
+    assert "<td class=\"l\">40.000 MHz</td>" in page and "<td class=\"l\">60.0244 MHz</td>" in page
+    assert "<td>40.000 MHz</td>" in page and "4e+07" not in page  # the flux-scale table's column too
+    assert "12345.6" in page and "products (until the report)" in page
+    assert check_report(run / "report.html") == []
+
+
+@pytest.mark.parametrize("cluster, text", [
+    ({"kind": "local", "workers": 2, "threads_per_worker": 1, "memory_limit": "auto"},
+     "on a local cluster: 2 workers of 1 thread, memory limit auto each"),
+    ({"kind": "synchronous"}, "in one process (dask's synchronous scheduler)"),
+    ({"kind": "address"}, "on a dask cluster joined by its address"), ({}, "")])
+def test_cluster_in_words(cluster, text):
+    from mmflow.io.report import cluster_text
+
+    assert cluster_text(cluster) == text

@@ -85,9 +85,16 @@ def test_stokes_maps_equal_the_true_sky_imaged_and_follow_iau(scan, reference):
     _, lay, sky = scan
     summary = json.loads((reference / "maps" / "summary_40.000MHz.json").read_text())["stokes"]
     assert max(summary["leakage_max_fraction"].values()) < 0.005, summary
+    pol = summary["polarisation"]  # the resolution matrix at test sources (tests/unit/imaging/test_polarised_response.py)
+    ratios = np.array([pol[f"ratio_{x}"] for x in "quv"])
+    print("polarisation response:", pol)
+    assert len(pol["dec_deg"]) == 5 and ratios.shape == (3, 5)
+    assert pol["measured"] == bool(np.abs(ratios - 1).max() <= 0.05 and max(pol["leakage"]) < 0.005)
+    assert (pol["note"] == "") == pol["measured"]
     path = reference / "maps" / "stokes_40.000MHz.fits"
     maps = np.array(hp.read_map(str(path), field=None))
-    assert fits.getheader(path, 1)["POLCCONV"] == "IAU"
+    head = fits.getheader(path, 1)
+    assert (head["POLCCONV"], head["VSIGN"][:4]) == ("IAU", "IAU:")
     maps = np.where(maps == hp.UNSEEN, 0.0, maps)
     ref = _truth_imaged(reference, lay, sky, 0)
     p_map = np.hypot(maps[1], maps[2])

@@ -108,10 +108,11 @@ class LazyClient:
     ``scheduler_info``, ...) starts it.
     """
 
-    def __init__(self, start):
+    def __init__(self, start, kind=None):
         self._start = start
         self._client = None
         self._cluster = None
+        self.kind = kind  # the cluster's kind, as the dashboard and the report name it
 
     def __getattr__(self, name):  # only for names not found on this object: the client's
         if name.startswith("_"):
@@ -151,6 +152,9 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
     def start():
         from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
+        from mmflow.workflow.engine.dashboard.page import dashboard_link, serve_page  # deferred: as Client
+
+        serve_page()  # mmflow's page (/mmflow) on the dashboard of a scheduler started here
         cluster = None
         if kind == "address":
             client = Client(addr)
@@ -170,10 +174,11 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
             cluster = jobqueue_cluster(cfg, kind)
             cluster.scale(jobs=c.n_workers)
             client = Client(cluster)
-        log(f"dask dashboard: {client.dashboard_link}")
+        log(f"dask dashboard: {dashboard_link(cluster, client)}" + (
+            f" (mmflow's page: {dashboard_link(cluster, client, 'mmflow')})" if cluster is not None else ""))
         return client, cluster
 
-    client = LazyClient(start)
+    client = LazyClient(start, kind)
     try:
         yield client
     finally:

@@ -24,6 +24,7 @@ from mmflow.telescope.layout import Layout
 from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.fingerprint import ConfigView
 from mmflow.workflow.engine.rundir import RunDir
+from mmflow.io.run_stores import STORES
 
 
 class NonFiniteOutputError(MmflowError):
@@ -153,7 +154,7 @@ class TaskContext(Context):
         return _telescope(self.cfg.beam.model_dump_json(), self.run_path)
 
     def vis_attrs(self):
-        return zarr.open_group(str(self.run.store("vis.zarr")), mode="r").attrs.asdict()
+        return zarr.open_group(str(self.run.store(STORES.vis)), mode="r").attrs.asdict()
 
 
 def _fmt(region):
@@ -167,7 +168,7 @@ def _parse(js):
 
 @lru_cache(maxsize=8)
 def _telescope(beam_json, run_path):
-    g = zarr.open_group(str(RunDir(run_path).store("vis.zarr")), mode="r")
+    g = zarr.open_group(str(RunDir(run_path).store(STORES.vis)), mode="r")
     a = g.attrs.asdict()
     layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],
                     a["height_m"], a.get("layout_provenance", ""))

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from mmflow.conventions import SIDEREAL_DAY_S, is_full_stokes
 from mmflow.mmode.splits import split_shares
+from mmflow.io.run_stores import STORES
 
 #: sampled sidereal angles of an interpolated diffuse sky per task of the simulate stage's first phase
 DIFFUSE_SAMPLE_BLOCK = 8
@@ -43,6 +44,6 @@ def split_fractions(ctx, fi):
     """``{split: f_k}`` at frequency ``fi``: each split's share of the unflagged samples, summed over
     baselines (``mmodes.zarr``'s ``n_samples``, :func:`mmflow.mmode.splits.split_shares`): the ``f_k``
     of the per-day jackknife and of the day/night map, for any stage that reads ``mmodes.zarr``."""
-    g = ctx.open("mmodes.zarr")
-    counts = ctx.read("mmodes.zarr", "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
+    g = ctx.open(STORES.mmodes)
+    counts = ctx.read(STORES.mmodes, "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
     return split_shares(counts, list(g.attrs["splits"]))

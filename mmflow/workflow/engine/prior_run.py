@@ -28,9 +28,10 @@ from mmflow.errors import InputError
 from mmflow.io.stores import open_checked
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.paths import expand_path
+from mmflow.io.run_stores import STORES
 
 FIELD = "mmode.prior_run"
-ALM = "alm.zarr"
+ALM = STORES.alm
 EPOCH_TOL_DAYS = 1.0  # precession over a day: 0.14 arcsec
 RECIPE = "mmflow run CFG.yaml; mmflow run CFG.yaml run.directory=RUN-pass1 mmode.prior_run=RUN"
 
@@ -92,7 +93,7 @@ def _describe(path):
         return None, (f"holds no finished {ALM} (its solve stage has not completed)", again)
     try:
         alm = zarr.open_group(str(path / ALM), mode="r")["alm"]
-        vis = zarr.open_group(str(path / "vis.zarr"), mode="r")
+        vis = zarr.open_group(str(path / STORES.vis), mode="r")
         freqs, epoch = np.asarray(vis["freqs_hz"][:], float), float(vis.attrs["epoch_jd"])
     except (KeyError, OSError, ValueError) as exc:
         return None, (f"its {ALM} or vis.zarr cannot be read ({exc})", again)

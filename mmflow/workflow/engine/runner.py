@@ -34,6 +34,7 @@ from mmflow.allocator import keep_freed_memory, release_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
 from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.dashboard.board import BOARD, cluster_kind, cluster_record
 from mmflow.workflow.engine.context import Context
 from mmflow.workflow.engine.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.pipeline import PIPELINE
@@ -164,11 +165,13 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
     if not todo:
         return []
     bar = _Progress(name, len(todo), progress)
+    BOARD.begin_batch(name)
     if client is None:
         out = []
         for k in todo:
             out.append(run_task(ctx, pipeline, name, k))
             bar.update(len(out))
+            BOARD.progress(name, len(out))
         bar.close()
         return out
     from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
@@ -187,6 +190,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
             done = sum(f.done() for f in futures)
             _gather_stage(client, futures, results)  # every task done by now: its result, or its input error
             bar.update(done)
+            BOARD.progress(name, done)
             if done == len(futures):
                 break
             if client.scheduler_info().get("workers"):
@@ -315,6 +319,7 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         ckeys = [replace(k, cycle=cycle).format() for k in keys]
         run.add_keys(st.name, ckeys + [mark])
         todo = [k for k in ckeys if not run.is_done(st.name, k)]
+        BOARD.add_tasks(st.name, len(ckeys), len(ckeys) - len(todo))
         results += _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
         run.mark_done(st.name, mark, {"cycle": cycle, "tasks": len(keys)}, cctx.ledger.entries)
         cycle += 1
@@ -369,8 +374,11 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         log(msg)
 
     try:
-        return _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline)
+        summaries = _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline)
+        BOARD.end_run(run_dir=run.path)
+        return summaries
     except BaseException as exc:
+        BOARD.end_run(f"{type(exc).__name__}: {exc}", run.path)
         logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} stopped: {type(exc).__name__}: {exc}\n")
         if isinstance(exc, InputError):  # no half-made store: a stage none of whose tasks finished is forgotten
             for st in pipeline:
@@ -398,9 +406,13 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
     for st in stages:  # then the checks that read the input data, for the stages with tasks to do
         if st.scan is not None and st.enabled(cfg) and _has_work(run, st.name, fps[st.name]):
             st.scan(cfg)
-    _check_resources(cfg, run, client, stages)
+    plan = _check_resources(cfg, run, client, stages)
+    slots = 1 if client is None else cfg.cluster.n_workers * cfg.cluster.threads_per_worker  # as mmflow plan counts
+    BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],
+                    plan, slots)
     (run.path / "config.yaml").write_text(yaml.safe_dump(json.loads(cfg.model_dump_json()), sort_keys=False))
-    (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions()}, indent=2))
+    (run.path / "run.json").write_text(json.dumps({"name": cfg.run.name, "versions": versions(),
+                                                   "cluster": cluster_record(cfg, client)}, indent=2))
     ctx = Context(cfg.model_dump_json(), str(run.path), token)
     worker_wait_s = float(getattr(cfg.cluster, "worker_wait_s", 300))
     summaries = {}
@@ -422,9 +434,11 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
         pctx = sctx.for_task()
         keys = [k.format() for k in st.prepare(pctx)]
         todo = run.begin_stage(st.name, fp, keys, st.outputs)
+        BOARD.begin_stage(st.name, len(keys), len(keys) - len(todo))
         kept = _kept_summary(run, st, todo)
         if kept is not None:  # finished with these settings and inputs: nothing is recomputed or rewritten
             summaries[st.name] = kept
+            BOARD.keep_stage(st.name, len(keys))
             log(f"[{st.name}] complete, kept: {len(keys)} tasks done (took {kept.get('wall_s')} s when it ran)")
             continue
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
@@ -452,6 +466,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
                    "worker_peak_rss_gb": _worker_peak(results),
                    "driver_peak_rss_gb": gb(peak_rss_bytes())}
         run.finish_stage(st.name, summary)
+        BOARD.finish_stage(st.name, summary["wall_s"])
         summaries[st.name] = summary
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
             f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
@@ -481,12 +496,14 @@ def _worker_limit_gb(client):
 
 def _check_resources(cfg, run, client, stages):
     """Before any work: the largest task of each stage still to run against a worker's memory, and
-    the stores against the free disk (:func:`mmflow.workflow.plan.planner.check_fits`)."""
+    the stores against the free disk (:func:`mmflow.workflow.plan.planner.check_fits`); returns the plan of those
+    stages (:class:`mmflow.workflow.plan.planner.StageEstimate`, one task slot each), for the dashboard."""
     todo = [st for st in stages if st.enabled(cfg) and st.task is not None
             and not (run.stage_status(st.name) or {}).get("complete")]
-    if todo:
-        check_fits(cfg, _worker_limit_gb(client), [st.name for st in todo],
-                   existing_bytes=run.bytes_of([o for st in todo for o in st.outputs]))
+    if not todo:
+        return []
+    return check_fits(cfg, _worker_limit_gb(client), [st.name for st in todo],
+                      existing_bytes=run.bytes_of([o for st in todo for o in st.outputs]))
 
 
 def _stale_error(run, stage, fp, stale):

@@ -55,14 +55,15 @@ def setup():
 
 def test_simulator_follows_iau_and_avg_conventions():
     """A source at the zenith seen by an autocorrelation: V_yy = I + Q, V_xx = I - Q (y north),
-    V_xy = U - iV, V_yx = U + iV; and (xx + yy) / 2 of an unpolarised sky is the scalar
+    V_xy = U + iV, V_yx = U - iV (IAU V under mmflow's fringe; U - iV before issue 39, the sign of the
+    opposite fringe: tests/unit/imaging/test_stokes_sign.py); and (xx + yy) / 2 of an unpolarised sky is the scalar
     simulator's visibility through the derived power beam (flux convention ``avg``)."""
     jones = ShortDipoleJones()
     tel = Telescope(scene_layout(6, 6.0), jones.power_beam(), [FREQ])
     zenith = enu_to_equatorial_matrix(tel.lat_rad) @ np.array([0.0, 0.0, 1.0])
     vis = simulate_polarised_drift_scan(tel, jones, FREQ, [0.0], PolarisedPoints(zenith, [1.0, 0.3, 0.2, 0.1]),
                                         pairs=np.array([[0, 0], [1, 1]]))
-    np.testing.assert_allclose(vis[0], [[0.7, 0.7], [1.3, 1.3], [0.2 - 0.1j] * 2, [0.2 + 0.1j] * 2], atol=1e-12)
+    np.testing.assert_allclose(vis[0], [[0.7, 0.7], [1.3, 1.3], [0.2 + 0.1j] * 2, [0.2 - 0.1j] * 2], atol=1e-12)
     vecs, flux = radec_vectors(UNPOL_RADEC), UNPOL_I
     lst = np.linspace(0, 2 * np.pi, 17)
     pol = simulate_polarised_drift_scan(tel, jones, FREQ, lst, PolarisedPoints(vecs, np.c_[flux, np.zeros((4, 3))]))

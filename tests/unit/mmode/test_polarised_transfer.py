@@ -72,13 +72,18 @@ def test_uvbeam_efield_wrapper_interpolates_the_dipole():
 
 
 def test_iau_convention_at_zenith():
-    """At zenith x (east) sees E_E, y (north) E_N: V_yy = I + Q, V_xx = I - Q, V_xy = U - iV."""
+    """At zenith x (east) sees E_E, y (north) E_N: V_yy = I + Q, V_xx = I - Q, V_xy = <E_E E_N*> = U + iV.
+
+    (IAU +V, the field turning north through east, under mmflow's fringe ``exp(+2 pi i b.r)``:
+    phasor ``(A_N, A_E) = (1, i)`` of ``Re[A exp(-i w t)]``, so ``<E_E E_N*> = +i``; before issue 39
+    this asserted U - iV, the sign of the opposite fringe. tests/unit/imaging/test_stokes_sign.py checks
+    it against fields written in the time domain.)"""
     zen = enu_to_equatorial_matrix(LAT) @ np.array([0.0, 0.0, 1.0])
     jn, je = feed_projections(ShortDipoleJones(), LAT, zen[None], FREQ)
     stokes = np.array([1.0, 0.3, 0.2, 0.1])  # I, Q, U, V
     resp = {c: np.array(stokes_kernels(jn, je, c))[:, 0] @ stokes for c in CORRELATIONS}
     np.testing.assert_allclose([resp["yy"], resp["xx"], resp["xy"], resp["yx"]],
-                               [1.3, 0.7, 0.2 - 0.1j, 0.2 + 0.1j], atol=1e-12)
+                               [1.3, 0.7, 0.2 + 0.1j, 0.2 - 0.1j], atol=1e-12)
 
 
 def test_unpolarised_T_coefficients_equal_the_stokes_I_path():
@@ -120,10 +125,11 @@ def _feeds_on_sky(jones, vec, phi=0.0):
 
 
 def _brute_visibility(feeds, fringe_domega, corr, stokes):
-    """sum_pix J_p S J_q^H e^{2 pi i b.r} dOmega, S = [[I + Q, U + iV], [U - iV, I - Q]] on (north, east)."""
+    """sum_pix J_p S J_q^H e^{2 pi i b.r} dOmega, S = [[I + Q, U - iV], [U + iV, I - Q]] on (north, east)
+    (IAU V under this fringe: docs/conventions.md)."""
     i, q, u, v = stokes
     (pn, pe), (qn, qe) = feeds[FEED[corr[0]]], np.conj(feeds[FEED[corr[1]]])
-    resp = pn * (i + q) * qn + pn * (u + 1j * v) * qe + pe * (u - 1j * v) * qn + pe * (i - q) * qe
+    resp = pn * (i + q) * qn + pn * (u - 1j * v) * qe + pe * (u + 1j * v) * qn + pe * (i - q) * qe
     return np.sum(resp * fringe_domega)
 
 

@@ -9,7 +9,9 @@ Stokes-I engine on ``(xx + yy) / 2``), so a map difference is the D-terms' effec
 
 First order in d, for an unpolarised source seen at the zenith (``xx = yy = I``,
 ``xy = yx = 0``): ``xy' = (d_ix - conj(d_jy)) I``, ``yx' = (conj(d_jx) - d_iy) I``, i.e. in the
-feed frame ``U = Re <d_x - d_y> I``, ``V = -Im <d_x + d_y> I`` (``<>``: the array mean; the
+feed frame ``U = Re <d_x - d_y> I``, ``V = +Im <d_x + d_y> I`` (from ``xy = U + iV``, ``yx = U - iV`` at
+the zenith, the IAU sign under mmflow's fringe, docs/conventions.md; ``-Im`` before issue 39,
+which had ``xy = U - iV``; ``<>``: the array mean; the
 antenna-to-antenna scatter is not a sky and is imaged like noise) and ``Q = 0``. V does not
 depend on the frame: the V leak of the array-mean D-terms is that V imaged through the same
 operator.
@@ -138,12 +140,12 @@ def test_stokes_i_peaks_survive_uncalibrated_dterms(setup):
 def test_dterms_leak_i_into_q_u_v_at_the_d_level(setup):
     """Unpolarised sky, map with D-terms minus map without (scene eps): Q, U, V within one FWHM
     of each source are a few tenths of a percent to ~2.5 % of its I peak, < 3 max|d| (measured
-    max|d| ~ 5 %). V: the array-mean D-terms give ``V = -Im <d_x + d_y> I`` imaged through the
+    max|d| ~ 5 %). V: the array-mean D-terms give ``V = +Im <d_x + d_y> I`` imaged through the
     same operator to 5 % (measured <= 2.2 %) at every source (2-47 deg from the zenith); the
     random D-terms give that sign and 0.5-3 times it (scatter on top; measured 1.3-1.8)."""
     d, sky = setup["d"], setup["skies"]["unpol"]
     maps = setup["full"][EPS_I]
-    v_pred = -np.mean(d[:, 0] + d[:, 1]).imag
+    v_pred = np.mean(d[:, 0] + d[:, 1]).imag
     eps = (EPS_I * setup["scale"], EPS_POL * setup["scale"])
     stokes = np.c_[np.zeros((len(sky.vectors), 3)), v_pred * sky.stokes_jy[:, 0]]
     v_imaged = stokes_maps(expected_alm(setup["normal"], point_source_stokes_alm(sky.vectors, stokes, LMAX),

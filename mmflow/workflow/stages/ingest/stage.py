@@ -12,7 +12,7 @@ import glob
 
 from mmflow.errors import CoverageError
 from mmflow.io.ingest import ingest_time_chunk, plan_arrays, plan_ingest, refuse_nonfinite, sidereal_coverage
-from mmflow.io.run_stores import vis_store
+from mmflow.io.run_stores import STORES, vis_store
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.data_stage import VIS_ARRAYS, layout_attrs, write_autos
 from mmflow.workflow.engine.geometry import n_bins_of
@@ -69,9 +69,9 @@ def _ingest_prepare(ctx):
 
 
 def _ingest_task(ctx, key):
-    g = ctx.open("vis.zarr", mode="r+")
+    g = ctx.open(STORES.vis, mode="r+")
     t0, t1 = chunk_rows(key, g["lst"].shape[0])
-    info = ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), t0, t1)
+    info = ingest_time_chunk(ctx.cfg, ctx.run.store(STORES.vis), t0, t1)
     rows = (slice(t0, t1),)
     for name in VIS_ARRAYS + tuple(CROSS_ARRAYS if "vis_cross" in g else ()):  # ingest writes the rows itself
         ctx.ledger.record(g[name], rows)
@@ -81,7 +81,7 @@ def _ingest_task(ctx, key):
 
 STAGE = Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz",
                           "calibrate.enabled"), (),
-               ("vis.zarr",),
+               (STORES.vis,),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
                scan=_ingest_scan,
                counters=("fully_flagged_integrations", "nonfinite_flagged"),

@@ -12,6 +12,7 @@ Table-1 rows); with ``imaging.stokes: [I, Q, U, V]`` the full-Stokes maps
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 
@@ -23,12 +24,14 @@ from mmflow.io.export import write_healpix_fits, write_lcurve_png, write_mollwei
 from mmflow.io.report import summary_from_run, write_report
 from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow.engine.geometry import mmax_of
+from mmflow.workflow.engine.resources import gb, peak_rss_bytes
 from mmflow.workflow.stages.products.clean import clean_history_figure, clean_products, table1_row
 from mmflow.workflow.stages.products.science import channel_science, finalize_science
 from mmflow.workflow.stages.products.stokes import stokes_products
 from mmflow.workflow.stages.products.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
+from mmflow.io.run_stores import STORES
 
 
 def frequency_tags(freqs_hz):
@@ -43,20 +46,20 @@ def frequency_tags(freqs_hz):
 
 def _products_prepare(ctx):
     (ctx.run.path / "maps").mkdir(parents=True, exist_ok=True)
-    return [TaskKey(freq=fi) for fi in range(ctx.open("alm.zarr")["alm"].shape[1])]
+    return [TaskKey(freq=fi) for fi in range(ctx.open(STORES.alm)["alm"].shape[1])]
 
 
 def _products_task(ctx, key):
     cfg = ctx.cfg
     fi = key.freq
-    vis = ctx.open("vis.zarr")
+    vis = ctx.open(STORES.vis)
     freqs = vis["freqs_hz"][:]
     f, epoch, lat = float(freqs[fi]), float(vis.attrs["epoch_jd"]), float(vis.attrs["lat_deg"])
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    alm = healpy_alm(ctx.read("alm.zarr", "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
-    lc = ctx.read("alm.zarr", "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
-    frac = ctx.read("alm.zarr", "fraction_above", (slice(fi, fi + 1),))[0]
-    eps = ctx.read("alm.zarr", "eps_grid")
+    alm = healpy_alm(ctx.read(STORES.alm, "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
+    lc = ctx.read(STORES.alm, "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
+    frac = ctx.read(STORES.alm, "fraction_above", (slice(fi, fi + 1),))[0]
+    eps = ctx.read(STORES.alm, "eps_grid")
     p = cfg.products
     nside = p.nside or 2 * imaging_maps.default_nside(lmax)
     # through the module: tests/acceptance/test_faults.py replaces alm_to_output_map there
@@ -111,9 +114,23 @@ def _resolution_deg(vis, freq_hz, lmax):
 COST_KEYS = ("wall_s", "tasks", "tasks_run", "task_s", "worker_peak_rss_gb", "driver_peak_rss_gb", "bytes_written")
 
 
+def _cost_so_far(ctx):
+    """This stage's :data:`COST_KEYS` as the report is written, before the stage completes: its tasks (each
+    one's recorded seconds and worker peak), wall time since the runner began it (its ``_prepare`` marker),
+    the driver's peak so far and the maps written so far; ``until`` says where the count stops."""
+    run = ctx.run
+    infos = list(run.task_infos("products").values())
+    peaks = [i["peak_rss_gb"] for i in infos if i.get("peak_rss_gb") is not None]
+    began = run.marker("products", "_prepare")
+    return {"wall_s": round(time.time() - began.stat().st_mtime, 2) if began.exists() else None,
+            "tasks": len(infos), "tasks_run": len(infos), "task_s": round(sum(i.get("seconds", 0) for i in infos), 3),
+            "worker_peak_rss_gb": max(peaks) if peaks else None, "driver_peak_rss_gb": gb(peak_rss_bytes()),
+            "bytes_written": run.bytes_of(["maps"]), "until": "the report"}
+
+
 def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
-    tags = frequency_tags(ctx.open("vis.zarr")["freqs_hz"][:])
+    tags = frequency_tags(ctx.open(STORES.vis)["freqs_hz"][:])
     parts = [json.loads((maps / f"summary_{t}.json").read_text()) for t in tags]
     out = {"maps": parts}
     if ctx.cfg.clean.enabled:
@@ -127,6 +144,7 @@ def _products_finalize(ctx):
     out.update(finalize_science(ctx, parts, tags))
     # what each stage before this one cost (issue 21): the run records it, the map's summary keeps it
     out["stages"] = {name: {k: st.get(k) for k in COST_KEYS} for name, st in ctx.run.stage_summaries().items()}
+    out["stages"]["products"] = _cost_so_far(ctx)
     (maps / "summary.json").write_text(json.dumps(out, indent=2))
     ctx.ledger.record_file(maps / "summary.json")
 
@@ -137,7 +155,7 @@ def _products_finalize(ctx):
 
 STAGE = Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
                             "transfer.noise_weighting", "transfer.m_block", "clean", "peel.enabled"),
-               ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr", "stokes.zarr", "clean.zarr", "peel.zarr"),
+               (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm, STORES.stokes, STORES.clean, STORES.peel),
                ("maps",),
                _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "

@@ -32,11 +32,12 @@ from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.jackknife import noise_realisation, split_variance
 from mmflow.imaging.maps import stokes_alm_to_output_maps
-from mmflow.io.export import write_healpix_fits, write_mollweide_png
-from mmflow.io.run_stores import CLEAN_STOPS
+from mmflow.io.export import POLARISATION_KEYWORDS, write_healpix_fits, write_mollweide_png
+from mmflow.io.run_stores import STORES, CLEAN_STOPS
 from mmflow.sky import units
 from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow.engine import clean_state as cs
+from mmflow.workflow.engine.task_key import TaskKey
 
 #: the polarised fraction is shown only where I exceeds this fraction of the map's I peak
 POLFRAC_MIN_I = 0.05
@@ -48,12 +49,12 @@ def _maps(ctx, name, fi, nside, unit=None, split=None):
     ``split``, an index of ``mmode.splits``, for ``alm``) in ``products.frame`` and ``unit``."""
     cfg = ctx.cfg
     lmax, p = cfg.mmode.lmax, cfg.products
-    vis = ctx.open("vis.zarr")
+    vis = ctx.open(STORES.vis)
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
     if split is None:
-        padded = ctx.read("stokes.zarr", name, (slice(fi, fi + 1),))[0]  # (4, m, l)
+        padded = ctx.read(STORES.stokes, name, (slice(fi, fi + 1),))[0]  # (4, m, l)
     else:
-        padded = ctx.read("stokes.zarr", name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
+        padded = ctx.read(STORES.stokes, name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
     alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
     maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, unit or p.unit, nside)
     ctx.check_finite(f"maps/{name} of channel {fi}", maps)
@@ -83,8 +84,8 @@ def stokes_noise(ctx, fi, nside, mask, full):
 def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     """Write the CLEAN of V of channel ``fi`` (``vclean_<tag>.fits``) and return its summary entry."""
     p = ctx.cfg.products
-    g = ctx.open("stokes.zarr")
-    vis = ctx.open("vis.zarr")
+    g = ctx.open(STORES.stokes)
+    vis = ctx.open(STORES.vis)
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
     rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
     n_cyc = int(g["v_n_cycles"][fi])
@@ -97,8 +98,8 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
                                                          ck.model_map(comps[:, :3], comps[:, 3], nside, rot))]
     ctx.check_finite(f"maps/vclean of channel {fi}", np.stack(cols))
     path = f"maps/vclean_{tag}.fits"
-    write_healpix_fits(ctx.run.path / path, np.stack(cols), dict(meta, STOKES="V", CLEANCYC=n_cyc), mask=mask,
-                       column_names=["V_RESTORED", "V_RESIDUAL", "V_MODEL"])
+    write_healpix_fits(ctx.run.path / path, np.stack(cols), dict(meta, STOKES="V", CLEANCYC=n_cyc, **POLARISATION_KEYWORDS),
+                       mask=mask, column_names=["V_RESTORED", "V_RESIDUAL", "V_MODEL"])
     ctx.ledger.record_file(ctx.run.path / path)
     info = {"fits": path, "cycles": n_cyc, "components": int(len(comps)), "flux_jy": float(comps[:, 3].sum()),
             "stop": CLEAN_STOPS[int(g["v_stop"][fi])], "threshold_jy_sr": float(g["v_threshold"][fi]),
@@ -124,7 +125,7 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     """Write the full-Stokes maps of channel ``fi`` and return their summary entries."""
     maps_dir = ctx.run.path / "maps"
     iquv, leak = _maps(ctx, "alm", fi, nside, split=0), _maps(ctx, "leakage", fi, nside)
-    pmeta = dict(meta, STOKES="IQUV", POLCCONV="IAU", POLCONV="avg")
+    pmeta = dict(meta, STOKES="IQUV", POLCONV="avg", **POLARISATION_KEYWORDS)
     files = {"stokes_fits": f"maps/stokes_{tag}.fits", "leakage_fits": f"maps/leakage_{tag}.fits",
              "polfrac_fits": f"maps/polfrac_{tag}.fits"}
     write_healpix_fits(ctx.run.path / files["stokes_fits"], iquv, pmeta, mask=mask, column_names=COLUMNS)
@@ -148,6 +149,8 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
         info["noise"] = noise
     # the largest leakage of the unpolarised sky into each of Q, U, V, relative to the I peak
     info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
+    # whether the solve images polarised fractions as they are (the stokes task's polarisation_response)
+    info["polarisation"] = ctx.run.task_infos("stokes").get(TaskKey(freq=fi).format(), {}).get("polarisation")
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():
