@@ -9,6 +9,7 @@ before any work.
 from __future__ import annotations
 
 import ipaddress
+import re
 from pathlib import Path
 
 import numpy as np
@@ -296,6 +297,13 @@ def _cluster_problems(c):
     if c.kind == "address" and c.address is not None and "://" not in c.address and ":" not in c.address:
         out.append(Problem(("cluster", "address"), c.address, "not a scheduler address",
                            "write e.g. tcp://host:8786"))
+    logs = c.jobqueue.get("log_directory")
+    unset = re.search(r"\$\{?\w+\}?", logs) if isinstance(logs, str) and c.kind in ("slurm", "pbs") else None
+    if unset:  # the schema expanded every variable that is set (mmflow.paths.expand_path)
+        out.append(Problem(("cluster", "jobqueue", "log_directory"), logs,
+                           f"{unset.group(0)} is not set in this environment (SLURM and PBS do not expand "
+                           "variables in their job options: a directory would be named so)",
+                           "set the variable before running mmflow, or write the path out"))
     return out
 
 

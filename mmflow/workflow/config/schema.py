@@ -12,6 +12,7 @@ from pydantic import BaseModel, BeforeValidator, Field, ValidationError, field_v
 
 from mmflow.errors import InputError
 from mmflow.mmode.splits import split_kind
+from mmflow.paths import expand_path
 from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.beam import BEAM_PARAMS, BeamConfig
 from mmflow.workflow.config.calibration import CorruptConfig
@@ -272,6 +273,13 @@ class ClusterConfig(Section):
     @classmethod
     def _memory(cls, v):
         return check_memory_limit(v)
+
+    @field_validator("jobqueue")
+    @classmethod
+    def _jobqueue(cls, v):
+        if isinstance(v.get("log_directory"), str):  # SLURM and PBS do not expand their #SBATCH / #PBS lines
+            v = {**v, "log_directory": expand_path(v["log_directory"])}
+        return v
 
     @field_validator("dashboard_address", mode="before")
     @classmethod
