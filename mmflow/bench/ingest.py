@@ -53,7 +53,7 @@ from pyuvdata.utils import ECEF_from_ENU
 
 from mmflow.io import ingest
 from mmflow.io.export import write_per_integration
-from mmflow.io.ingest import plan_ingest
+from mmflow.workflow.engine.ingest_plan import ingest_plan, ingest_rows
 from mmflow.io.run_stores import vis_store
 from mmflow.offline import offline_site_registry
 from mmflow.telescope.layout import ovro_lwa_layout
@@ -154,12 +154,12 @@ def _cfg(pattern, freqs_mhz=None, n_avg=1, calibrate=False):
 def _ingest(cfg, run_dir, keep=False):
     """mmflow's ingest as the stage runs it: plan and store, then the tasks over time chunks.
     Returns ``((wall, CPU) of the plan, (wall, CPU) of the tasks)``; ``run_dir`` is removed unless ``keep``."""
-    ingest._plan.cache_clear()
+    ingest.plan_ingest.cache_clear()
     n_threads()  # its first call imports distributed (docs/performance.md): a worker has it loaded already
     found = {}
 
     def prepare():
-        plan = found["plan"] = ingest.plan_ingest(cfg)
+        plan = found["plan"] = ingest_plan(cfg)
         spec = vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu,
                          {**layout_attrs(plan.layout), "source": "ingest", "epoch_jd": plan.epoch_jd,
                           "files": plan.files, "skipped_files": plan.skipped, "integration_s": plan.integration_s,
@@ -170,7 +170,7 @@ def _ingest(cfg, run_dir, keep=False):
 
     def tasks():
         for r0 in range(0, found["plan"].n_time, TIME_CHUNK):
-            ingest.ingest_time_chunk(cfg, found["store"], r0, r0 + TIME_CHUNK)
+            ingest_rows(cfg, found["store"], r0, r0 + TIME_CHUNK)
 
     plan_t, tasks_t = _timed(prepare), _timed(tasks)
     if not keep:
@@ -191,7 +191,7 @@ def _measure(paths, cfg, run_dir, select=False, keep=False):
     raw = _raw_read(paths)
     out = {"files": n, "mb": round(mb, 2), **_rates("raw", raw, n, mb, "raw_read_s")}
     if select:
-        chans = [int(c) for c in plan_ingest(cfg).file_info[0]["blocks"][0]]
+        chans = [int(c) for c in ingest_plan(cfg).file_info[0]["blocks"][0]]
         sel = _raw_read(paths, chans, len(chans))
         out.update(file_channels=chans, **_rates("raw_select", sel, n, mb, "raw_select_read_s"))
     passes = [_ingest(cfg, run_dir, keep and k == 1) for k in range(2)]

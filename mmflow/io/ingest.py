@@ -72,16 +72,6 @@ class IngestPlan:
         return self.file_info[0].get("cross_pols", [])
 
 
-def plan_ingest(cfg):
-    """The ingest plan of ``cfg.input`` (cached: the stage's check and its prepare share it).
-    Units other than Jy / K sr are accepted only when ``calibrate.enabled``."""
-    calibrated_here = bool(getattr(getattr(cfg, "calibrate", None), "enabled", False))
-    want = getattr(getattr(cfg, "observation", None), "freqs_mhz", None)
-    return _plan(cfg.input.path, cfg.input.format, cfg.input.on_bad_file, calibrated_here,
-                 None if want is None else tuple(want), int(getattr(cfg.input, "average_channels", 1)),
-                 bool(getattr(cfg.input, "cross_hands", True)), str(getattr(cfg.input, "pol_convention", "auto")))
-
-
 #: endings of the files (or MeasurementSet directories) pyuvdata reads, for a directory given as input.path
 DATA_SUFFIXES = (".uvh5", ".h5", ".hdf5", ".uvfits", ".fits", ".ms")
 
@@ -215,8 +205,31 @@ def _channel_plan(good, metas, want_mhz, n_avg):
 
 
 @lru_cache(maxsize=4)
-def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, cross_hands=True,
-          pol_convention="auto"):
+def plan_ingest(pattern, fmt=None, on_bad="error", calibrated_here=False, want_mhz=None, n_avg=1, cross_hands=True,
+                pol_convention="auto"):
+    """The ingest plan of the files ``pattern`` matches (every file's metadata and checks; cached: a
+    stage's check and its prepare share it). Plain arguments: the workflow passes its ``input`` settings
+    (:func:`mmflow.workflow.engine.ingest_plan.ingest_plan`).
+
+    Parameters
+    ----------
+    pattern : str
+        A file, a glob, or a directory of data files (``input.path``).
+    fmt : str, optional
+        Force a format (``uvh5``, ``uvfits``, ``ms``).
+    on_bad : str
+        ``"error"`` stops at a file that cannot be used, ``"skip"`` logs and counts it.
+    calibrated_here : bool
+        Units other than Jy / K sr are accepted only when the run calibrates.
+    want_mhz : tuple of float, optional
+        The channels to keep (nearest), else every channel.
+    n_avg : int
+        Channels averaged into one.
+    cross_hands : bool
+        Keep xy, yx beside the parallel hands.
+    pol_convention : str
+        ``auto`` (the file's own), ``sum`` or ``avg``.
+    """
     files = _files(pattern)
     fast = None
     kinds = {file_kind(f, fmt) for f in files}
@@ -327,12 +340,14 @@ def _time_key(jd):
     return checks.time_key(jd)
 
 
-def ingest_time_chunk(cfg, store_path, row0, row1):
+def ingest_time_chunk(store_path, row0, row1, *, fmt=None, nonfinite="error", conjugate=False):
     """Read the files holding rows ``row0..row1`` (from the plan in the store) and write those rows.
 
     Nothing is written if any of the files has unflagged NaN/inf samples (unless
     ``input.nonfinite`` is ``"flag"``: they are then flagged, counted and logged). Flagged
     non-finite samples are stored as 0 with weight 0, so ``vis.zarr`` holds only finite numbers.
+    ``fmt``, ``nonfinite``, ``conjugate``: the workflow's ``input.format``, ``input.nonfinite`` and
+    ``input.conjugate``.
     """
     g = zarr.open_group(str(store_path), mode="r+")
     files = g.attrs["files"]
@@ -344,7 +359,7 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     n, nbl, nf, npol = len(row_time), len(pairs), len(freqs), g["vis"].shape[3]
     npar = npol
     npol += g["vis_cross"].shape[3] if "vis_cross" in g else 0  # the cross hands follow the Stokes-I hands
-    mode = getattr(cfg.input, "nonfinite", "error")
+    mode = nonfinite
     chunk_keys = _time_key(row_time)
     index = _index_lookup(ant_numbers)
     na = len(ant_numbers)
@@ -355,7 +370,7 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
     site = (g.attrs["lat_deg"], g.attrs["lon_deg"], g.attrs["height_m"]) if "lat_deg" in g.attrs else None
 
     def one(fi):
-        return read_file(files[fi], cfg.input.format, None if infos is None else infos[fi], site)
+        return read_file(files[fi], fmt, None if infos is None else infos[fi], site)
 
     with ThreadPoolExecutor(max(1, min(n_threads(), len(fis)))) as ex:
         parts = list(ex.map(one, fis))
@@ -387,7 +402,7 @@ def ingest_time_chunk(cfg, store_path, row0, row1):
                     x[swap] = x[swap][:, :, perm]
             elif npol > npar:  # the other cross hand is not in the file
                 fl[swap, :, npar:] = True
-        if cfg.input.conjugate:
+        if conjugate:
             v = np.conj(v)
         vis[r[:, None], b[:, None], out[None, :]] = v
         wts[r[:, None], b[:, None], out[None, :]] = np.where(fl | ~finite, 0.0, ns)

@@ -83,13 +83,13 @@ def test_real_file_ingested_offline_equals_pyuvdata_read_and_unprojection(files,
 def test_layouts_of_the_real_files(files, offline):
     """OVRO_MMA: 20 of 256 antennas hold data; LWASV: astropy does not know it, so pyuvdata places it
     at the mean of its antenna positions (near the LWA-SV station, Sevilleta, New Mexico)."""
-    from mmflow.io.ingest import _plan
+    from mmflow.io.ingest import plan_ingest
 
-    _plan.cache_clear()
-    ovro = _plan(str(files["ovro"]), None, "error", True)
+    plan_ingest.cache_clear()
+    ovro = plan_ingest(str(files["ovro"]), None, "error", True)
     assert len(ovro.ant_numbers) == 20 and ovro.freqs_hz.size == 109 and ovro.n_time == 1
     assert ovro.file_info[0]["phase"] == "phased" and ovro.file_info[0]["vis_units"] == "uncalib"
-    lwasv = _plan(str(files["lwasv"]), None, "error", True)
+    lwasv = plan_ingest(str(files["lwasv"]), None, "error", True)
     assert abs(lwasv.layout.lat_deg - 34.348) < 0.01 and abs(lwasv.layout.lon_deg + 106.886) < 0.01
 
 

@@ -2,7 +2,6 @@
 units, antenna positions and site, duplicated rows, unflagged NaN/inf. Data: matvis through pyuvdata,
 recorded in 2023, two linear polarisations with different gains and flags."""
 import os
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -216,9 +215,8 @@ def test_unflagged_nonfinite_refused_before_writing_or_flagged_and_counted(uv, t
     assert np.all(np.isfinite(v)) and list(np.flatnonzero(w == 0)) == [5, 9, 12]
     # a task checks the same samples, and refuses before it writes (formats the plan cannot scan: uvfits)
     before = g["vis"][:]
-    cfg = SimpleNamespace(input=SimpleNamespace(format=None, conjugate=False, nonfinite="error"))
     with pytest.raises(InputError, match=r"nonfinite.uvh5.*2 unflagged samples are NaN or inf"):
-        ingest_time_chunk(cfg, run_dir / "vis.zarr", 0, 256)
+        ingest_time_chunk(run_dir / "vis.zarr", 0, 256, nonfinite="error")
     assert np.array_equal(g["vis"][:], before)
 
 
@@ -250,9 +248,9 @@ def test_uvh5_plan_reads_one_file_with_pyuvdata_the_rest_with_h5py_and_checks_ea
         shutil.copytree(d, bad)
         with h5py.File(bad / "int_3.uvh5", "r+") as f:
             edit(f["Header"])
-        ingest._plan.cache_clear()
+        ingest.plan_ingest.cache_clear()
         with pytest.raises(InputError, match=match):
-            ingest._plan(str(bad / "*.uvh5"), None, "error")
+            ingest.plan_ingest(str(bad / "*.uvh5"), None, "error")
 
     def move_antenna(h):
         h["antenna_positions"][2, 1] += 0.05
@@ -282,7 +280,7 @@ def test_uvh5_plan_reads_one_file_with_pyuvdata_the_rest_with_h5py_and_checks_ea
     refused(r"int_3.uvh5.*vis_units.*'uncalib'", uncalibrated, "uncal")
     refused(r"int_3.uvh5.*phase_center_catalog \(cat_type=sidereal\).*unproject_phase", phased, "phased")
     refused(r"int_3.uvh5.*duplicated \(time, baseline\) rows: rows 1 and 2", duplicate_row, "dup")
-    ingest._plan.cache_clear()  # a readable file with repeated rows is refused as that, never skipped as unreadable
+    ingest.plan_ingest.cache_clear()  # a readable file with repeated rows is refused as that, never skipped as unreadable
     with pytest.raises(InputError) as info:
-        ingest._plan(str(tmp_path / "dup" / "*.uvh5"), None, "skip")
+        ingest.plan_ingest(str(tmp_path / "dup" / "*.uvh5"), None, "skip")
     assert "duplicated" in str(info.value) and "cannot read" not in str(info.value)

@@ -134,9 +134,9 @@ def test_ms_plan_reads_one_file_with_pyuvdata_the_rest_with_casacore_and_checks_
         bad = tmp_path / name
         shutil.copytree(d, bad)
         edit(str(bad / "int_0003.ms"))
-        ingest._plan.cache_clear()
+        ingest.plan_ingest.cache_clear()
         with pytest.raises(InputError, match=match):
-            ingest._plan(str(bad / "*.ms"), None, "error")
+            ingest.plan_ingest(str(bad / "*.ms"), None, "error")
 
     def move_antenna(p):
         with table(p + "/ANTENNA", readonly=False, ack=False) as t:
@@ -154,9 +154,9 @@ def test_ms_plan_reads_one_file_with_pyuvdata_the_rest_with_casacore_and_checks_
     refused(r"int_0003.ms.*vis_units.*'uncalib'", uncalibrated, "uncal")
     refused(r"int_0003.ms.*duplicated \(time, baseline\) rows: rows 1 and 2", duplicate_row, "dup")
     shutil.copytree(d / "int_0001.ms", d / "int_0001_copy.ms")
-    ingest._plan.cache_clear()
+    ingest.plan_ingest.cache_clear()
     with pytest.raises(InputError, match=r"time_array.*also in"):
-        ingest._plan(str(d / "*.ms"), None, "error")
+        ingest.plan_ingest(str(d / "*.ms"), None, "error")
 
 
 @pytest.mark.parametrize("convention", ["keyword", "history"])

@@ -136,10 +136,10 @@ def _run_freqs_hz(cfg):
     where the input files cannot be planned (the ingest stage's check reports why, naming the files)."""
     if cfg.source != "ingest":
         return run_freqs_hz(cfg)
-    from mmflow.io.ingest import plan_ingest  # deferred: reading a simulation's config imports no numerics
+    from mmflow.workflow.engine.ingest_plan import ingest_plan  # deferred: reading a simulation's config imports no numerics
 
     try:
-        return run_freqs_hz(cfg, plan_ingest(cfg))
+        return run_freqs_hz(cfg, ingest_plan(cfg))
     except InputError:
         return []
 

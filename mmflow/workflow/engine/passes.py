@@ -85,7 +85,9 @@ def run_with_passes(cfg, client=None, only=None, force=False, progress=True, log
     if only or not n:
         return run_workflow(cfg, client, only, force, progress, log, pipeline)
     up = _upstream(cfg, pipeline)
-    summaries = run_workflow(cfg, client, [st.name for st in up], force, progress, log, pipeline) if up else {}
+    planned = [st.name for st in pipeline if st.enabled(cfg)]  # checked as one run, before any work
+    summaries = run_workflow(cfg, client, [st.name for st in up], force, progress, log, pipeline,
+                             planned=planned) if up else {}
     need = unbridged_baselines(cfg, log) if auto else None
     root = pass_directory(cfg.run.directory, 0).parent
     k = 0

@@ -358,10 +358,14 @@ def _stale_stages(run, fps, names):
     return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
 
-def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print, pipeline=PIPELINE):
+def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=print, pipeline=PIPELINE,
+                 planned=None):
     """Run every enabled stage (or just ``only``) of a workflow; return the per-stage summaries.
 
     ``pipeline``: the stages in order (:data:`mmflow.workflow.pipeline.PIPELINE`; tests pass their own).
+    ``planned``: the names of every stage the whole run will execute, when this call runs only some of
+    them (the prior passes run the stages in parts): the stages' checks then judge the inputs for all of
+    them before any work, as one call would.
     """
     run = RunDir(cfg.run.directory)
     run.path.mkdir(parents=True, exist_ok=True)
@@ -374,7 +378,7 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         log(msg)
 
     try:
-        summaries = _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline)
+        summaries = _run_locked(cfg, run, token, client, only, force, progress, log_both, pipeline, planned)
         BOARD.end_run(run_dir=run.path)
         return summaries
     except BaseException as exc:
@@ -391,7 +395,7 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         lock.close()
 
 
-def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
+def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, planned=None):
     stages = [st for st in pipeline if not only or st.name in only]
     fps = stage_fingerprints(cfg, run, pipeline)
     stale = [n for n in _stale_stages(run, fps, [st.name for st in stages if st.task is not None])
@@ -399,7 +403,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
     if stale and not force:  # refuse before any work, naming what changed
         st = stale[0]
         raise _stale_error(run, st, fps[st], stale)
-    running = [st.name for st in stages if st.enabled(cfg)]
+    running = list(planned) if planned else [st.name for st in stages if st.enabled(cfg)]
     for st in stages:  # refuse inputs the run cannot use before any work
         if st.check is not None and st.enabled(cfg):
             st.check(cfg, running)

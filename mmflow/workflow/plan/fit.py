@@ -38,7 +38,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from mmflow.errors import InputError
-from mmflow.io.ingest import plan_ingest
+from mmflow.workflow.engine.ingest_plan import ingest_plan
 from mmflow.telescope.layout import Layout
 from mmflow.workflow.config.schema import WorkflowConfig, load_config
 from mmflow.workflow.pipeline import PIPELINE
@@ -69,7 +69,7 @@ def record(run_dir, sgemm_gflops=None, note=""):
     rec = {"source": str(run_dir), "note": note, "sgemm_gflops": sgemm_gflops, "config": cfg.model_dump(mode="json"),
            "stages": stages}
     if cfg.source == "ingest":
-        rec["ingest"] = ingest_geometry(plan_ingest(cfg))
+        rec["ingest"] = ingest_geometry(ingest_plan(cfg))
     return rec
 
 

@@ -28,10 +28,10 @@ import numpy as np
 from mmflow.conventions import complex_dtype
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
-from mmflow.io.ingest import plan_ingest
 from mmflow.machine import gemm_gflops
 from mmflow.paths import expand_path
 from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.engine.ingest_plan import ingest_plan
 from mmflow.workflow.engine.geometry import mmax_of, n_integrations
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.work import Geometry, transfer_plan
@@ -102,7 +102,7 @@ def geometry(cfg, ingest=None):
         n_pol = 2 if cfg.corrupt.enabled else 1
         freqs = tel.freqs_hz
     else:
-        plan = plan_ingest(cfg) if ingest is None else ingest  # a record's copy of the files' plan
+        plan = ingest_plan(cfg) if ingest is None else ingest  # a record's copy of the files' plan
         tel = build_telescope(cfg, plan)  # the files' array, channels and baselines, not the config's telescope
         tel.pairs = np.asarray(plan.pairs)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)

@@ -11,7 +11,8 @@ from __future__ import annotations
 import glob
 
 from mmflow.errors import CoverageError
-from mmflow.io.ingest import ingest_time_chunk, plan_arrays, plan_ingest, refuse_nonfinite, sidereal_coverage
+from mmflow.io.ingest import plan_arrays, refuse_nonfinite, sidereal_coverage
+from mmflow.workflow.engine.ingest_plan import ingest_plan, ingest_rows
 from mmflow.io.run_stores import STORES, vis_store
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.data_stage import VIS_ARRAYS, layout_attrs, write_autos
@@ -31,7 +32,7 @@ def input_files(cfg):
 
 
 def _ingest_check(cfg, running):
-    plan = plan_ingest(cfg)
+    plan = ingest_plan(cfg)
     if "mmodes" not in running:
         return
     n_bins = n_bins_of(cfg, plan.integration_s)
@@ -51,11 +52,11 @@ def _ingest_scan(cfg):
     """Unflagged NaN/inf samples refused before any task (``input.nonfinite=error``; with ``flag`` the
     tasks flag and count them)."""
     if cfg.input.nonfinite == "error":
-        refuse_nonfinite(plan_ingest(cfg), cfg.input.format)
+        refuse_nonfinite(ingest_plan(cfg), cfg.input.format)
 
 
 def _ingest_prepare(ctx):
-    plan = plan_ingest(ctx.cfg)
+    plan = ingest_plan(ctx.cfg)
     width = getattr(plan, "channel_width_hz", None)
     attrs = dict(layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files), pols=plan.pols,
                  cross_pols=plan.cross_pols, pol_convention=plan.file_info[0]["pol_convention_used"],
@@ -71,7 +72,7 @@ def _ingest_prepare(ctx):
 def _ingest_task(ctx, key):
     g = ctx.open(STORES.vis, mode="r+")
     t0, t1 = chunk_rows(key, g["lst"].shape[0])
-    info = ingest_time_chunk(ctx.cfg, ctx.run.store(STORES.vis), t0, t1)
+    info = ingest_rows(ctx.cfg, ctx.run.store(STORES.vis), t0, t1)
     rows = (slice(t0, t1),)
     for name in VIS_ARRAYS + tuple(CROSS_ARRAYS if "vis_cross" in g else ()):  # ingest writes the rows itself
         ctx.ledger.record(g[name], rows)
