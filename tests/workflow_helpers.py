@@ -17,10 +17,19 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEMO = os.path.join(ROOT, "workflows", "demo.yaml")
 
 SMALL = [
-    "telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.integration_s=344.6563620",
-    "sky.diffuse=true", "sky.diffuse_lmax=16", "sky.quad_oversample=16", "mmode.lmax=24",
-    "mmode.baseline_chunk=64", "transfer.baseline_chunk=32", "transfer.m_block=8", "products.nside=32",
-    "products.flux_scale=false",  # its 14-panel figure costs ~2 s a run; tests/acceptance/test_science_products.py covers it
+    "telescope.radius_m=20",
+    "observation.freqs_mhz=[40.0]",
+    "observation.integration_s=344.6563620",
+    "sky.diffuse=true",
+    "sky.diffuse_lmax=16",
+    "sky.quad_oversample=16",
+    "mmode.lmax=24",
+    "mmode.baseline_chunk=64",
+    "transfer.baseline_chunk=32",
+    "transfer.m_block=8",
+    "products.nside=32",
+    # the flux scale's 14-panel figure costs ~2 s a run; tests/acceptance/test_science_products.py covers it
+    "products.flux_scale=false",
     "cluster.kind=synchronous",
 ]
 

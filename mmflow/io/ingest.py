@@ -2,7 +2,8 @@
 
 The plan reads every file's metadata once (no data): with pyuvdata, files read concurrently,
 or, for many UVH5 / MS files, pyuvdata for the first and only the header datasets / columns it
-needs for the rest (``mmflow.io.uvh5_index``, ``mmflow.io.ms_index``). It checks them (``mmflow.io.checks``: same frequencies, antenna numbers, antenna positions and
+needs for the rest (``mmflow.io.uvh5_index``, ``mmflow.io.ms_index``). It checks them (``mmflow.io.checks``: same
+frequencies, antenna numbers, antenna positions and
 site; drift or zenith-phased data; units Jy or K sr; no duplicated (time, baseline) row inside a
 file or integration across files; a polarisation set that holds Stokes I), orders integrations
 by time and stores each row's time and file in ``vis.zarr`` with what each task needs per file

@@ -54,7 +54,9 @@ def test_matvis_uvh5_drift_scan_images_sources_at_their_icrs_positions(scan, tmp
                  log=lambda *a: None)
     wrong = healpy.read_map(str(tmp_path / "conj" / "maps" / "map_40.000MHz.fits"))
     v = radec_to_vec(np.deg2rad(SOURCES[0][0]), np.deg2rad(SOURCES[0][1]))
-    assert measure_peak(wrong, v, np.deg2rad(12))["offset_rad"] > measure_peak(hmap, v, np.deg2rad(12))["fwhm_rad"] * 0.3
+    assert (
+        measure_peak(wrong, v, np.deg2rad(12))["offset_rad"] > measure_peak(hmap, v, np.deg2rad(12))["fwhm_rad"] * 0.3
+    )
 
 
 def test_plan_of_ingested_files_counts_their_array(scan, tmp_path):

@@ -174,7 +174,9 @@ def test_antenna_positions_and_site_compared_across_files(uv, tmp_path):
     moved = b.copy()
     moved.telescope.antenna_positions[3] += [0.0, 0.05, 0.0]
     write(moved, d / "b.uvh5", run_check=False)
-    with pytest.raises(InputError, match=r"b.uvh5.*antenna_positions.*antenna 3 is 0.050 m from its position in .*a.uvh5"):
+    with pytest.raises(
+        InputError, match=r"b.uvh5.*antenna_positions.*antenna 3 is 0.050 m from its position in .*a.uvh5"
+    ):
         ingest(tmp_path / "run", str(d / "*.uvh5"))
     site = b.copy()
     site.telescope.location = site.telescope.location.__class__.from_geocentric(
@@ -205,7 +207,9 @@ def test_unflagged_nonfinite_refused_before_writing_or_flagged_and_counted(uv, t
     bad.flag_array[12, 0, 0] = True  # a flagged NaN: allowed (each hand is kept, so its own flag counts)
     p = write(bad, tmp_path / "nan" / "nonfinite.uvh5", run_check=False)
     run_dir = tmp_path / "run"
-    with pytest.raises(InputError, match=r"nonfinite.uvh5.*data_array.*2 unflagged samples are NaN or inf.*nonfinite=flag"):
+    with pytest.raises(
+        InputError, match=r"nonfinite.uvh5.*data_array.*2 unflagged samples are NaN or inf.*nonfinite=flag"
+    ):
         ingest(run_dir, str(p))
     assert sorted(os.listdir(run_dir)) == ["mmflow.log"]  # refused by the plan's scan: no store, no record
     g = ingest(run_dir, str(p), "input.nonfinite=flag")  # the fix, without --force
@@ -280,7 +284,8 @@ def test_uvh5_plan_reads_one_file_with_pyuvdata_the_rest_with_h5py_and_checks_ea
     refused(r"int_3.uvh5.*vis_units.*'uncalib'", uncalibrated, "uncal")
     refused(r"int_3.uvh5.*phase_center_catalog \(cat_type=sidereal\).*unproject_phase", phased, "phased")
     refused(r"int_3.uvh5.*duplicated \(time, baseline\) rows: rows 1 and 2", duplicate_row, "dup")
-    ingest.plan_ingest.cache_clear()  # a readable file with repeated rows is refused as that, never skipped as unreadable
+    # a readable file with repeated rows is refused as that, never skipped as unreadable
+    ingest.plan_ingest.cache_clear()
     with pytest.raises(InputError) as info:
         ingest.plan_ingest(str(tmp_path / "dup" / "*.uvh5"), None, "skip")
     assert "duplicated" in str(info.value) and "cannot read" not in str(info.value)

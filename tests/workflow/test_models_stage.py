@@ -103,14 +103,19 @@ def test_free_amplitudes_fit_a_scintillating_source(tmp_path):
     tel = Telescope(Layout([f"a{k}" for k in range(32)], np.stack([r * np.sin(a), r * np.cos(a), 0 * r], 1),
                            37.24, -118.28), SinElevationBeam(1.5), [74e6])
     truth = [GaussianComponent(-8.0, 3.0, 600.0, 9.0, 5.0, 30.0), GaussianComponent(10.0, -4.0, 400.0, 7.0, 6.0, -50.0)]
-    src = Source("t", 300.0, 40.0, Spectrum("power_law", (1000.0, 74e6, 0.0)), [c.as_source_component(1000.0) for c in truth])
+    src = Source(
+        "t", 300.0, 40.0, Spectrum("power_law", (1000.0, 74e6, 0.0)), [c.as_source_component(1000.0) for c in truth]
+    )
     pairs = tel.antenna_pairs()
     pairs = pairs[pairs[:, 0] != pairs[:, 1]]
     lsts = np.deg2rad(300.0 + np.linspace(-7.5, 7.5, 10))
     amp = 1 + 0.4 * rng.uniform(-1, 1, len(lsts))
     vis = simulate_drift_scan(tel, 74e6, lsts, source_points_date(src, 74e6, 2451545.0), pairs) * amp[:, None]
     uvw, beam = source_uvw(tel, 74e6, lsts, pairs, source_vector_date(src, 2451545.0))
-    start = [GaussianComponent(-5.0, 5.0, 500.0, 12.0, 8.0, 10.0), GaussianComponent(12.0, -1.0, 500.0, 9.0, 9.0, -20.0)]
+    start = [
+        GaussianComponent(-5.0, 5.0, 500.0, 12.0, 8.0, 10.0),
+        GaussianComponent(12.0, -1.0, 500.0, 9.0, 9.0, -20.0),
+    ]
     fit, res = fit_gaussian_components(vis, np.ones(vis.shape), uvw, beam, start, reference_flux=1000.0,
                                        free_amplitudes=True)
     mu, M = flux_moments(fit)

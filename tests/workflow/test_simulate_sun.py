@@ -36,6 +36,8 @@ def test_sun_only_sky_peaks_at_its_transit_with_the_beam_weighted_disc_flux(tmp_
             enu = source_enu(tel, lst[r:r + 1], sun.vectors)[:, 0]  # (n_points, 3)
             expect = np.sum(tel.beam.power_enu(enu, float(f)) * sun.flux_jy * (enu[:, 2] > 0))
             assert abs(v[r, fi] - expect) <= 1e-4 * sun.flux_jy.sum() + 1e-6 * abs(expect), (r, fi, v[r, fi], expect)
-    el = np.array([source_enu(tel, lst[r:r + 1], _sun_vector_date(float(t[r]))[None])[0, 0, 2] for r in range(len(lst))])
+    el = np.array(
+        [source_enu(tel, lst[r : r + 1], _sun_vector_date(float(t[r]))[None])[0, 0, 2] for r in range(len(lst))]
+    )
     assert abs(int(np.argmax(v[:, 0])) - int(np.argmax(el))) <= 1
     assert v[:, 1].max() > v[:, 0].max() > 0

@@ -85,7 +85,9 @@ def test_stokes_maps_equal_the_true_sky_imaged_and_follow_iau(scan, reference):
     _, lay, sky = scan
     summary = json.loads((reference / "maps" / "summary_40.000MHz.json").read_text())["stokes"]
     assert max(summary["leakage_max_fraction"].values()) < 0.005, summary
-    pol = summary["polarisation"]  # the resolution matrix at test sources (tests/unit/imaging/test_polarised_response.py)
+    pol = summary[
+        "polarisation"
+    ]  # the resolution matrix at test sources (tests/unit/imaging/test_polarised_response.py)
     ratios = np.array([pol[f"ratio_{x}"] for x in "quv"])
     print("polarisation response:", pol)
     assert len(pol["dec_deg"]) == 5 and ratios.shape == (3, 5)

@@ -136,7 +136,9 @@ def _run_freqs_hz(cfg):
     where the input files cannot be planned (the ingest stage's check reports why, naming the files)."""
     if cfg.source != "ingest":
         return run_freqs_hz(cfg)
-    from mmflow.workflow.engine.ingest_plan import ingest_plan  # deferred: reading a simulation's config imports no numerics
+    from mmflow.workflow.engine.ingest_plan import (
+        ingest_plan,
+    )  # deferred: reading a simulation's config imports no numerics
 
     try:
         return run_freqs_hz(cfg, ingest_plan(cfg))
@@ -252,8 +254,14 @@ def _prior_run_problems(cfg):
     epoch; ingested data are checked by the mmodes stage once their channels and epoch are known)."""
     mm, ob = cfg.mmode, cfg.observation
     sim = cfg.source == "simulate"
-    found = prior_run_problems(mm.prior_run, mm.lmax, mm.lmax if mm.mmax is None else mm.mmax, cfg.run.directory,
-                               np.asarray(ob.simulated_freqs_mhz()) * 1e6 if sim else None, ob.epoch_jd if sim else None)
+    found = prior_run_problems(
+        mm.prior_run,
+        mm.lmax,
+        mm.lmax if mm.mmax is None else mm.mmax,
+        cfg.run.directory,
+        np.asarray(ob.simulated_freqs_mhz()) * 1e6 if sim else None,
+        ob.epoch_jd if sim else None,
+    )
     return [Problem(("mmode", "prior_run"), mm.prior_run, problem, fix) for problem, fix in found]
 
 

@@ -142,7 +142,9 @@ class TaskKey:
     __str__ = format
 
     def __repr__(self):
-        set_ = ", ".join(f"{f.name}={getattr(self, f.name)!r}" for f in fields(self) if getattr(self, f.name) is not None)
+        set_ = ", ".join(
+            f"{f.name}={getattr(self, f.name)!r}" for f in fields(self) if getattr(self, f.name) is not None
+        )
         return f"TaskKey({set_})"
 
     @classmethod

@@ -22,7 +22,8 @@ by it.
 
 A run's measurements outlive its directory as a *record* (:func:`record`, ``mmflow plan --record
 RUN_DIR``): its configuration and, per stage, the task count, the largest task's memory above its
-worker's baseline and the mean seconds per task (and the SGEMM peak measured beside the run). ``--fit`` and ``--against`` take a record file
+worker's baseline and the mean seconds per task (and the SGEMM peak measured beside the run). ``--fit`` and
+``--against`` take a record file
 wherever they take a run directory; the records the package's constants were fitted to lie in
 ``plan/records/`` beside this module, so the constants can be refitted, and checked, without the runs.
 A record's ``superseded`` (``{stage: why}``) names the stages whose code has changed since the run
@@ -95,7 +96,8 @@ def _every_pair(n):
 
 
 def record_ingest(rec):
-    """A record's copy of its files' ingest plan (:func:`ingest_geometry`) for :func:`mmflow.workflow.plan.planner.geometry`,
+    """A record's copy of its files' ingest plan
+    (:func:`ingest_geometry`) for :func:`mmflow.workflow.plan.planner.geometry`,
     or None (a simulation, or a record without one: the files are read)."""
     ing = rec.get("ingest")
     if not ing:
@@ -164,7 +166,9 @@ def minimax_line(x, y, offset=0.0, slope=(0.0, None)):
     x, y = np.asarray(x, float), np.asarray(y, float)
     d = y + offset
     lo, hi = (slope, slope) if np.isscalar(slope) else slope
-    a_ub = np.concatenate([np.stack([x / d, 1 / d, -np.ones_like(x)], 1), np.stack([-x / d, -1 / d, -np.ones_like(x)], 1)])
+    a_ub = np.concatenate(
+        [np.stack([x / d, 1 / d, -np.ones_like(x)], 1), np.stack([-x / d, -1 / d, -np.ones_like(x)], 1)]
+    )
     b_ub = np.concatenate([y / d, -y / d])
     # unknowns in units of the data (slope x max(x) / max(y), intercept / max(y)): a well-scaled programme
     xs, ys = max(float(np.max(np.abs(x))), 1e-300), max(float(np.max(d)), 1e-300)
@@ -245,7 +249,8 @@ def plan_against_run(run_dir, costs=None, peak_gflops=None):
     Per task, as :func:`samples` measures them from the task markers (they survive resumes, so a
     run finished over several invocations counts every task): the mean seconds against the plan's
     ``c U + d`` (scaled from the constants' SGEMM peak to ``peak_gflops``, default the peak its record
-    states beside the run, else the peak measured now), and the largest task's memory above its worker's baseline, plus the plan's worker
+    states beside the run, else the peak measured now), and the largest task's memory above its worker's baseline, plus
+    the plan's worker
     baseline, against the plan's task memory. Returns ``(rows, peak_gflops)``; each row
     ``{stage, tasks, planned_task_s, measured_task_s, time_ratio, planned_task_gb, measured_task_gb,
     memory_ratio}`` (ratios measured / planned).

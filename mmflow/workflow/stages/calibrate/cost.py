@@ -33,7 +33,9 @@ def work(g, cfg):
     n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
     w = L * g.n_bl * g.n_pol * (VIS_SAMPLE_BYTES + COMPLEX128_BYTES * max(1, n_src))
     if rounds:  # the screened model, the masked data and weights; a batch's antenna matrices
-        w += L * g.n_bl * g.n_pol * SCREEN_SAMPLE_BYTES + SCREEN_BATCH_MATRICES * COMPLEX128_BYTES * g.n_pol * g.n_ant ** 2
+        w += (
+            L * g.n_bl * g.n_pol * SCREEN_SAMPLE_BYTES + SCREEN_BATCH_MATRICES * COMPLEX128_BYTES * g.n_pol * g.n_ant**2
+        )
     spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                           np.zeros((n_int, 2), int), {}, n_src=max(1, n_src))
     units = L * g.n_bl * g.n_pol * max(1, n_src) * (1 + 4 * rounds)

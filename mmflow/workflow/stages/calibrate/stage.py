@@ -82,13 +82,26 @@ def _prepare(ctx):
                          "calibrate.ripple=false")
     check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda, "calibrate.min_baseline_lambda")
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
-    ctx.create(gains_store(len(solve), nf, tel.n_ant, npol, nt, solve, apply,
-                           {"sources": list(ctx.cfg.calibrate.sources), "pols": vg.attrs["pols"],
-                            "ripple": bool(ctx.cfg.calibrate.ripple),
-                            "interpolate": bool(ctx.cfg.calibrate.interpolate),
-                            "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
-                            "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda)},
-                           n_src=len(ctx.cfg.calibrate.sources)))
+    ctx.create(
+        gains_store(
+            len(solve),
+            nf,
+            tel.n_ant,
+            npol,
+            nt,
+            solve,
+            apply,
+            {
+                "sources": list(ctx.cfg.calibrate.sources),
+                "pols": vg.attrs["pols"],
+                "ripple": bool(ctx.cfg.calibrate.ripple),
+                "interpolate": bool(ctx.cfg.calibrate.interpolate),
+                "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
+                "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda),
+            },
+            n_src=len(ctx.cfg.calibrate.sources),
+        )
+    )
     keys = [TaskKey(phase="r", freq=fi) for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [TaskKey(phase="g", freq=fi, interval=k) for fi in range(nf) for k in range(len(solve))]
 

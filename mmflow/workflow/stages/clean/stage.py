@@ -10,7 +10,8 @@ computed by those kernels, this module only maps them over m blocks and cycles:
 * ``next_cycle`` on the driver: at cycle 0 fit the PSF table (:func:`psf.fit_psf_columns`)
   and the jackknife noise and threshold (:mod:`mmflow.imaging.jackknife`, from the even and
   odd splits of ``alm.zarr``, else from its ``day<k>`` splits); then, per frequency not yet
-  stopped (:func:`clean.stop_reason`), synthesise the residual map and pick this cycle's components (:func:`clean.plan_cycle`);
+  stopped (:func:`clean.stop_reason`), synthesise the residual map and pick this cycle's components
+  (:func:`clean.plan_cycle`);
 * cycle tasks, one per (frequency, m block): ``residual[c + 1] = residual[c] - observe(x)``
   (:func:`clean.observe_and_subtract`), ``x`` the block of the cycle's components' alm;
 * finalize: the restored map (frame of date) per frequency.
@@ -31,10 +32,24 @@ from mmflow.imaging import psf
 from mmflow.imaging.jackknife import beam_noise
 from mmflow.io.run_stores import STORES, CLEAN_STOPS, NOISE_FIELDS, clean_store
 from mmflow.sky import units
-from mmflow.workflow.engine.clean_state import (active, block_operators_from_gram, clean_nside, clean_options, clean_result,
-                                         clean_table, cycle_block, factors_of, highpass, jackknife_sigma,
-                                         jackknife_splits, psf_alm_columns, psf_decs_deg, residual_alm, split_alm,
-                                         stored_operators)
+from mmflow.workflow.engine.clean_state import (
+    active,
+    block_operators_from_gram,
+    clean_nside,
+    clean_options,
+    clean_result,
+    clean_table,
+    cycle_block,
+    factors_of,
+    highpass,
+    jackknife_sigma,
+    jackknife_splits,
+    psf_alm_columns,
+    psf_decs_deg,
+    residual_alm,
+    split_alm,
+    stored_operators,
+)
 from mmflow.workflow.engine.geometry import mmax_of
 from mmflow.workflow.stages.clean.cost import COST
 from mmflow.workflow.stages.base import Stage
@@ -206,6 +221,17 @@ def _finalize(ctx):
     return out
 
 
-STAGE = Stage("clean", CLEAN_CONFIG, (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm), (STORES.clean,), _prepare,
-               _task, _finalize, enabled=lambda cfg: cfg.clean.enabled, kind="iterative", next_cycle=_next_cycle,
-               description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold", cost=COST)
+STAGE = Stage(
+    "clean",
+    CLEAN_CONFIG,
+    (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm),
+    (STORES.clean,),
+    _prepare,
+    _task,
+    _finalize,
+    enabled=lambda cfg: cfg.clean.enabled,
+    kind="iterative",
+    next_cycle=_next_cycle,
+    description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold",
+    cost=COST,
+)

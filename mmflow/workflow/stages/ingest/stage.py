@@ -58,12 +58,20 @@ def _ingest_scan(cfg):
 def _ingest_prepare(ctx):
     plan = ingest_plan(ctx.cfg)
     width = getattr(plan, "channel_width_hz", None)
-    attrs = dict(layout_attrs(plan.layout), source="ingest", epoch_jd=plan.epoch_jd, files=list(plan.files), pols=plan.pols,
-                 cross_pols=plan.cross_pols, pol_convention=plan.file_info[0]["pol_convention_used"],
-                 pol_factor=plan.file_info[0]["pol_factor"],
-                 skipped_files=list(plan.skipped), integration_s=plan.integration_s,
-                 channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3,
-                 ingest_file_info=plan.file_info)
+    attrs = dict(
+        layout_attrs(plan.layout),
+        source="ingest",
+        epoch_jd=plan.epoch_jd,
+        files=list(plan.files),
+        pols=plan.pols,
+        cross_pols=plan.cross_pols,
+        pol_convention=plan.file_info[0]["pol_convention_used"],
+        pol_factor=plan.file_info[0]["pol_factor"],
+        skipped_files=list(plan.skipped),
+        integration_s=plan.integration_s,
+        channel_width_hz=float(width) if width is not None else ctx.cfg.observation.channel_width_khz * 1e3,
+        ingest_file_info=plan.file_info,
+    )
     ctx.create(vis_store(plan.n_time, plan.pairs, plan.freqs_hz, plan.layout.enu, attrs, TIME_CHUNK,
                          ctx.cfg.mmode.baseline_chunk, plan_arrays(plan)))
     return time_keys(plan.n_time)
@@ -80,10 +88,18 @@ def _ingest_task(ctx, key):
     return info
 
 
-STAGE = Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz",
-                          "calibrate.enabled"), (),
-               (STORES.vis,),
-               _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
-               scan=_ingest_scan,
-               counters=("fully_flagged_integrations", "nonfinite_flagged"),
-               description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files", cost=COST)
+STAGE = Stage(
+    "ingest",
+    ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz", "calibrate.enabled"),
+    (),
+    (STORES.vis,),
+    _ingest_prepare,
+    _ingest_task,
+    enabled=lambda cfg: cfg.source == "ingest",
+    files=input_files,
+    check=_ingest_check,
+    scan=_ingest_scan,
+    counters=("fully_flagged_integrations", "nonfinite_flagged"),
+    description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files",
+    cost=COST,
+)

@@ -20,7 +20,9 @@ def work(g, cfg):
     n_sub = len(cfg.peel.sources) if cfg.peel.enabled else 0
     per_time = bc * g.n_freq * g.n_pol * CORRECTED_SAMPLE_BYTES
     if n_sub:
-        per_time += bc * COMPLEX128_BYTES * (n_sub + PEEL_TEMPORARIES * g.n_pol) + DD_GAIN_BYTES * n_sub * g.n_ant * g.n_pol
+        per_time += (
+            bc * COMPLEX128_BYTES * (n_sub + PEEL_TEMPORARIES * g.n_pol) + DD_GAIN_BYTES * n_sub * g.n_ant * g.n_pol
+        )
     w = g.n_time * per_time + g.n_split * g.n_freq * (g.mmax + 1) * 2 * bc * COMPLEX128_BYTES
     spec = rs.mmodes_store(g.n_split, g.n_freq, g.mmax, g.n_bl, g.mmode_chunk, {},
                            len(FULL_STOKES) if is_full_stokes(cfg.imaging.stokes) else 0)

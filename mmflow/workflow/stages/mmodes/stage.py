@@ -325,8 +325,17 @@ def _finalize(ctx):
     return {"baselines_short_of_min_coverage": short}
 
 
-STAGE = Stage("mmodes", ("mmode", "beam", "imaging.stokes"), (STORES.vis,), (STORES.mmodes,), _prepare, _task,
-               _finalize,
-               reads_corrected=True, counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
-                         "fits_with_prior"), files=prior_files,
-               description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk", cost=COST)
+STAGE = Stage(
+    "mmodes",
+    ("mmode", "beam", "imaging.stokes"),
+    (STORES.vis,),
+    (STORES.mmodes,),
+    _prepare,
+    _task,
+    _finalize,
+    reads_corrected=True,
+    counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data", "fits_with_prior"),
+    files=prior_files,
+    description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk",
+    cost=COST,
+)

@@ -24,11 +24,13 @@ The aperture radius defaults to twice the fringe spacing of the longest baseline
 least twice the start's extent): an aperture much smaller than the synthesised beam measures one
 number, the residual at the centre, and leaves the shape unconstrained.
 
-Offsets are east/north on the tangent plane of the frame of date; :func:`mmflow.workflow.engine.peel_models.fitted_sources` turns
+Offsets are east/north on the tangent plane of the frame of date;
+:func:`mmflow.workflow.engine.peel_models.fitted_sources` turns
 them into :class:`mmflow.sky.sources.Source` components (east/north of the ICRS position: the
 frames' north differ by < 0.1 deg, < 0.01' on these offsets). ``models.zarr`` (see
 :func:`mmflow.io.run_stores.models_store`) is read by the peel stage, which copies the fits into
-``peel.zarr``'s attributes (:func:`mmflow.workflow.engine.peel_models.fitted_tables`) for its tasks and its ``apply`` alike.
+``peel.zarr``'s attributes
+(:func:`mmflow.workflow.engine.peel_models.fitted_tables`) for its tasks and its ``apply`` alike.
 """
 from __future__ import annotations
 
@@ -140,7 +142,11 @@ def _task(ctx, key):
     ctx.write(g, "cost", region, np.array([[[res_point["fun_start"], res["fun_start"], res.fun]]]))
     ctx.write(g, "iterations", region, np.array([[int(res.nit)]]))
     ctx.write(g, "n_integrations", region, np.array([[len(rows)]]))
-    return {"fits": 1, "iterations": int(res.nit), "improvement_db": float(10 * np.log10(res.fun / res_point["fun_start"]))}
+    return {
+        "fits": 1,
+        "iterations": int(res.nit),
+        "improvement_db": float(10 * np.log10(res.fun / res_point["fun_start"])),
+    }
 
 
 STAGE = Stage("models", ("models", "peel.sources", "peel.model_sources", "peel.min_baseline_lambda", "beam"),

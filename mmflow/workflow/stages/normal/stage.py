@@ -45,6 +45,14 @@ def _normal_task(ctx, key):
     return {"m": [m0, m1]}
 
 
-STAGE = Stage("normal", ("mmode.lmax", "mmode.mmax", "transfer.m_block"), (STORES.partials,), (STORES.normal,),
-               _normal_prepare, _normal_task, kind="reduce",
-               description="sum partial normal equations over baseline groups (fixed-order tree), per m block", cost=COST)
+STAGE = Stage(
+    "normal",
+    ("mmode.lmax", "mmode.mmax", "transfer.m_block"),
+    (STORES.partials,),
+    (STORES.normal,),
+    _normal_prepare,
+    _normal_task,
+    kind="reduce",
+    description="sum partial normal equations over baseline groups (fixed-order tree), per m block",
+    cost=COST,
+)

@@ -41,8 +41,13 @@ class PeelConfig(Section):
     min_baseline_lambda: BaselineCut = Field("auto", description="Solve on baselines longer than this "
                                              "(wavelengths); " + AUTO_CUT, json_schema_extra=CUT_ALLOWED)
     passes: int = Field(3, ge=1, description="Passes over the sources.")
-    tol: float = Field(1e-4, gt=0, lt=1, description="Stefcal tolerance of the DD gains (the screen model's: "
-                       "largest antenna phase change, rad); the solve runs in single precision unless it is below 1e-5.")
+    tol: float = Field(
+        1e-4,
+        gt=0,
+        lt=1,
+        description="Stefcal tolerance of the DD gains (the screen model's: "
+        "largest antenna phase change, rad); the solve runs in single precision unless it is below 1e-5.",
+    )
     max_iter: int = Field(30, ge=1, description="Stefcal iterations per pass.")
     guard: Optional[float] = Field(0.9, gt=0, le=1, description="Subtract instead when peeling removed less than "
                                    "this fraction of the measured flux; null: off.")

@@ -100,7 +100,17 @@ def _apply(ctx, block):
         block.vis[:, :, k] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
 
 
-STAGE = Stage("peel", ("peel", "beam"), (STORES.vis, STORES.gains, STORES.models), (STORES.peel,), _prepare, _task, kind="solve",
-               apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
-               counters=("peeled", "guard_fired", "not_converged"),
-               description="peel (DD gains) or subtract bright sources per integration (applied on read)", cost=COST)
+STAGE = Stage(
+    "peel",
+    ("peel", "beam"),
+    (STORES.vis, STORES.gains, STORES.models),
+    (STORES.peel,),
+    _prepare,
+    _task,
+    kind="solve",
+    apply=_apply,
+    enabled=lambda cfg: cfg.peel.enabled,
+    counters=("peeled", "guard_fired", "not_converged"),
+    description="peel (DD gains) or subtract bright sources per integration (applied on read)",
+    cost=COST,
+)

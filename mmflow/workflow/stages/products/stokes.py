@@ -98,8 +98,13 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
                                                          ck.model_map(comps[:, :3], comps[:, 3], nside, rot))]
     ctx.check_finite(f"maps/vclean of channel {fi}", np.stack(cols))
     path = f"maps/vclean_{tag}.fits"
-    write_healpix_fits(ctx.run.path / path, np.stack(cols), dict(meta, STOKES="V", CLEANCYC=n_cyc, **POLARISATION_KEYWORDS),
-                       mask=mask, column_names=["V_RESTORED", "V_RESIDUAL", "V_MODEL"])
+    write_healpix_fits(
+        ctx.run.path / path,
+        np.stack(cols),
+        dict(meta, STOKES="V", CLEANCYC=n_cyc, **POLARISATION_KEYWORDS),
+        mask=mask,
+        column_names=["V_RESTORED", "V_RESIDUAL", "V_MODEL"],
+    )
     ctx.ledger.record_file(ctx.run.path / path)
     info = {"fits": path, "cycles": n_cyc, "components": int(len(comps)), "flux_jy": float(comps[:, 3].sum()),
             "stop": CLEAN_STOPS[int(g["v_stop"][fi])], "threshold_jy_sr": float(g["v_threshold"][fi]),
@@ -113,7 +118,8 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
 
 
 def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
-    """``(sqrt(Q^2 + U^2) / I, V / I)`` where ``I > min_i_fraction`` x the I peak (of the ``mask``ed sky), NaN elsewhere."""
+    """``(sqrt(Q^2 + U^2) / I, V / I)`` where ``I > min_i_fraction`` x the I peak (of the ``mask``ed sky), NaN
+    elsewhere."""
     i, q, u, v = iquv
     seen = np.ones(i.shape, bool) if mask is None else np.asarray(mask, bool)
     good = seen & (i > min_i_fraction * np.max(i[seen]))

@@ -1,4 +1,5 @@
-"""The ``simulate`` stage: the demo's drift scan (what it shares with ``ingest``: :mod:`mmflow.workflow.engine.data_stage`).
+"""The ``simulate`` stage: the demo's drift scan (what it shares with ``ingest``:
+:mod:`mmflow.workflow.engine.data_stage`).
 
 With ``sky.resolved`` Cyg A and Cas A are simulated as their Gaussian components
 (:func:`mmflow.sky.sources.resolved`), sampled by Gauss-Hermite quadrature (:meth:`Source.points`).
@@ -192,10 +193,17 @@ def _write_raw(ctx, tel, t0, time_jd, vis, cross):
     ctx.ledger.record_file(path)
 
 
-STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk",
-                           "imaging.stokes"), (),
-               (STORES.vis, STORES.diffuse, RAW_DIR), _sim_prepare, _sim_task, next_cycle=_next_cycle,
-               enabled=lambda cfg: cfg.source == "simulate",
-               description="time-domain drift-scan simulation (independent of transfer matrices), "
-               "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "
-               "correlations of a polarised sky through the E-field beam", cost=COST)
+STAGE = Stage(
+    "simulate",
+    ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk", "imaging.stokes"),
+    (),
+    (STORES.vis, STORES.diffuse, RAW_DIR),
+    _sim_prepare,
+    _sim_task,
+    next_cycle=_next_cycle,
+    enabled=lambda cfg: cfg.source == "simulate",
+    description="time-domain drift-scan simulation (independent of transfer matrices), "
+    "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "
+    "correlations of a polarised sky through the E-field beam",
+    cost=COST,
+)

@@ -40,14 +40,27 @@ from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.sky import units
 from mmflow.telescope.beam_factory import make_jones
-from mmflow.workflow.engine.clean_state import clean_nside, clean_options, jackknife_sigma, jackknife_splits, psf_decs_deg
+from mmflow.workflow.engine.clean_state import (
+    clean_nside,
+    clean_options,
+    jackknife_sigma,
+    jackknife_splits,
+    psf_decs_deg,
+)
 from mmflow.workflow.engine.kernel_args import m_filters
 from mmflow.workflow.stages.stokes.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
-STOKES_CONFIG = ("mmode.lmax", "mmode.splits", "beam", "imaging", "transfer.noise_weighting", "transfer.per_baseline_lmax",
-                 "clean")
+STOKES_CONFIG = (
+    "mmode.lmax",
+    "mmode.splits",
+    "beam",
+    "imaging",
+    "transfer.noise_weighting",
+    "transfer.per_baseline_lmax",
+    "clean",
+)
 
 
 def _v_decs(ctx):
@@ -142,7 +155,15 @@ def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe)
             "threshold_jy_sr": float(res["threshold"])}
 
 
-STAGE = Stage("stokes", STOKES_CONFIG, (STORES.vis, STORES.mmodes), (STORES.stokes,), _prepare, _task,
-              enabled=lambda cfg: is_full_stokes(cfg.imaging.stokes),
-              description="full-Stokes transfer coefficients (E-field beam), normal equations over T, E, B, V and "
-              "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)", cost=COST)
+STAGE = Stage(
+    "stokes",
+    STOKES_CONFIG,
+    (STORES.vis, STORES.mmodes),
+    (STORES.stokes,),
+    _prepare,
+    _task,
+    enabled=lambda cfg: is_full_stokes(cfg.imaging.stokes),
+    description="full-Stokes transfer coefficients (E-field beam), normal equations over T, E, B, V and "
+    "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)",
+    cost=COST,
+)

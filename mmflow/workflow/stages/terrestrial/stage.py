@@ -110,7 +110,17 @@ def _apply(ctx, block):
         block.vis[:, :, k] = subtract_templates(block.vis[:, :, k], _templates(ctx, fi, block.pairs), amps[:, fi])
 
 
-STAGE = Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), (STORES.vis, STORES.gains, STORES.peel), (STORES.terrestrial,),
-               _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
-               enabled=lambda cfg: cfg.terrestrial.enabled,
-               description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration", cost=COST)
+STAGE = Stage(
+    "terrestrial",
+    ("terrestrial", "beam", "peel.enabled", "peel.model_sources"),
+    (STORES.vis, STORES.gains, STORES.peel),
+    (STORES.terrestrial,),
+    _prepare,
+    _task,
+    kind="solve",
+    apply=_apply,
+    next_cycle=_next_cycle,
+    enabled=lambda cfg: cfg.terrestrial.enabled,
+    description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration",
+    cost=COST,
+)
