@@ -7,9 +7,12 @@ true`` opens them to the network (see docs/clusters.md for dask's TLS settings).
 from __future__ import annotations
 
 import os
+import socket
 from contextlib import contextmanager
+from urllib.parse import urlparse
 
 from mmflow.errors import InputError
+from mmflow.workflow.batch import JobWatch, cluster_interface, job_options, refuse_impossible
 
 LOOPBACK = "127.0.0.1"
 ALL_INTERFACES = "0.0.0.0"
@@ -79,24 +82,64 @@ def fork_workers_from_a_preloaded_server():
                 os.environ[k] = v
 
 
-def jobqueue_cluster(cfg, kind):
+def interface_address(name):
+    """The IPv4 address of this machine's network interface ``name``; an InputError naming the
+    interfaces there are when it has none (``cluster.interface``, checked before any job is submitted)."""
+    import psutil  # deferred: a dependency of distributed, needed only by SLURM/PBS clusters
+
+    addrs = psutil.net_if_addrs()
+    ipv4 = [a.address for a in addrs.get(name, []) if a.family == socket.AF_INET]
+    if ipv4:
+        return ipv4[0]
+    have = ", ".join(f"{n} ({a.address})" for n, lst in sorted(addrs.items()) for a in lst
+                     if a.family == socket.AF_INET)
+    raise InputError("cluster", "cluster.interface", f"this machine has no interface '{name}' with an IPv4 address",
+                     f"name the interface of the network the compute nodes share with this machine: {have}")
+
+
+def jobqueue_cluster(cfg, kind, log=print):
     """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
 
-    The scheduler has to listen on the cluster network (the workers run on other nodes);
-    its dashboard stays on loopback (reach it with an SSH tunnel) unless ``cluster.expose``.
-    Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
+    The scheduler has to listen on the cluster network (the workers run on other nodes): on
+    ``cluster.interface`` (handed to the scheduler only: a worker finds its own address by
+    routing to it); its dashboard stays on loopback (reach it with an SSH tunnel) unless
+    ``cluster.expose``. What ``cluster.jobqueue`` leaves out is sized from the plan and the
+    partition (:func:`mmflow.workflow.batch.job_options`), and a job no node can hold is refused
+    here. Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
     """
     import dask_jobqueue  # deferred: dask_jobqueue takes 1-3 s to import (docs/performance.md), SLURM/PBS only
 
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
-    opts = dict(cfg.cluster.jobqueue)
+    opts, sizes = job_options(cfg, kind, log)
+    refuse_impossible(opts, kind, sizes)
     sched = dict(opts.get("scheduler_options") or {})
     sched.setdefault("dashboard_address", dashboard_bind(cfg.cluster))
+    if cfg.cluster.interface:
+        interface_address(cfg.cluster.interface)
+        sched["interface"] = cfg.cluster.interface
+    elif "interface" not in sched and "host" not in sched:
+        found = cluster_interface(kind)
+        if found:
+            sched["interface"] = found[0]
+            log(f"cluster.interface unset: the scheduler listens on {found[0]} ({found[1]}), this machine's "
+                f"interface on the network of the {kind} nodes (sinfo)")
     opts["scheduler_options"] = sched
     # thread budget: the worker processes of one job share its cores (mmflow.threads.n_threads)
     opts["job_script_prologue"] = list(opts.get("job_script_prologue") or []) + [
         f"export MMFLOW_WORKERS_PER_HOST={int(opts.get('processes') or 1)}"]
     return cls(**opts)
+
+
+def dashboard_link(client, cluster):
+    """The dashboard's URL at the address its server really listens on (dask prints the
+    scheduler's host, where a jobqueue cluster's dashboard may listen on loopback only)."""
+    http = getattr(getattr(cluster, "scheduler", None), "http_server", None)
+    for sock in getattr(http, "_sockets", {}).values():
+        host, port = sock.getsockname()[:2]
+        if host in ("0.0.0.0", "::"):
+            host = urlparse(client.scheduler.address).hostname
+        return f"http://{host}:{port}/status"
+    return client.dashboard_link
 
 
 class LazyClient:
@@ -112,12 +155,22 @@ class LazyClient:
         self._start = start
         self._client = None
         self._cluster = None
+        self._watch = None  # a :class:`mmflow.workflow.batch.JobWatch` for SLURM/PBS workers
+
+    def queue_state(self, log=None):
+        """The worker jobs' :class:`mmflow.workflow.batch.QueueState` (lost jobs logged with ``log``
+        and replaced); None for a cluster without a batch queue or not started."""
+        if self._watch is None or self._client is None:
+            return None
+        if log is not None:
+            self._watch.log = log
+        return self._watch.poll(self._client)
 
     def __getattr__(self, name):  # only for names not found on this object: the client's
         if name.startswith("_"):
             raise AttributeError(name)
         if self._client is None:
-            self._client, self._cluster = self._start()
+            self._client, self._cluster, self._watch = self._start()
         return getattr(self._client, name)
 
     def close(self):
@@ -151,7 +204,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
     def start():
         from distributed import Client  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
-        cluster = None
+        cluster = watch = None
         if kind == "address":
             client = Client(addr)
         elif kind == "local":
@@ -167,11 +220,13 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
                 log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
                     "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
         else:
-            cluster = jobqueue_cluster(cfg, kind)
+            cluster = jobqueue_cluster(cfg, kind, log)
             cluster.scale(jobs=c.n_workers)
             client = Client(cluster)
-        log(f"dask dashboard: {client.dashboard_link}")
-        return client, cluster
+            watch = JobWatch(cluster, kind, c.n_workers, cluster._dummy_job.log_directory, log=log)
+            log(f"{kind}: {c.n_workers} worker jobs submitted; the scheduler listens on {client.scheduler.address}")
+        log(f"dask dashboard: {dashboard_link(client, cluster)}")
+        return client, cluster, watch
 
     client = LazyClient(start)
     try:
