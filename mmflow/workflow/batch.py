@@ -13,6 +13,7 @@ import ipaddress
 import math
 import os
 import re
+import shlex
 import socket
 import subprocess
 import time
@@ -21,7 +22,7 @@ from pathlib import Path
 
 from mmflow.errors import InputError
 
-#: a job's share of its walltime kept free at the end: workers retire before it (at most 5 min)
+#: a job's share of its walltime kept free at the end: workers retire before it
 RETIRE_FRACTION = 0.2
 #: lines of a worker's log that say why it could not reach the scheduler
 CONNECT_ERROR = re.compile(r"(OSError|Timed out|timed out|unreachable|refused|Could not connect|CommClosedError)")
@@ -108,13 +109,15 @@ def _seconds(walltime):
 
 def lifetime_args(walltime):
     """``dask worker`` options that retire a worker before its job's walltime: ``--lifetime`` a
-    :data:`RETIRE_FRACTION` (at most 5 min) short of it, staggered so that the workers of jobs
-    started together do not all leave at once; ``[]`` when the walltime is unknown."""
+    :data:`RETIRE_FRACTION` of it short (at least 20 s, at most 10 min or half the walltime),
+    staggered by a quarter of that so that the workers of jobs started together do not all leave
+    at once; ``[]`` when the walltime is unknown."""
     total = _seconds(walltime)
     if not total:
         return []
-    margin = min(300.0, max(RETIRE_FRACTION * total, 6.0))
-    return ["--lifetime", f"{max(total - margin, 1):.0f}s", "--lifetime-stagger", f"{margin / 2:.0f}s"]
+    # a worker starts some seconds into its job and takes some to close: at least 20 s to spare
+    margin = min(600.0, total / 2, max(RETIRE_FRACTION * total, 20.0))
+    return ["--lifetime", f"{max(total - margin, 1):.0f}s", "--lifetime-stagger", f"{margin / 4:.0f}s"]
 
 
 def largest_task_gb(cfg):
@@ -203,7 +206,7 @@ class QueueState:
     """What the batch system says about a run's worker jobs (:meth:`JobWatch.poll`)."""
 
     pending: list = field(default_factory=list)  # (job id, reason)
-    running: list = field(default_factory=list)  # job ids started, their worker not (yet) connected
+    running: list = field(default_factory=list)  # job ids started, their worker not (yet) joined: starting
     fatal: str | None = None  # why no worker can join (one could not reach the scheduler: its own error)
 
     def waiting(self):
@@ -238,6 +241,8 @@ class JobWatch:
         self.connected = {}  # job name -> job id of a job whose worker joined the scheduler
         self.started = {}  # job id -> time it was first seen running
         self.last, self.state, self.failed_starts = 0.0, QueueState(), 0
+        self.left = set()  # jobs whose worker left the scheduler (logged once)
+        self.scaled = time.time()  # the cluster was scaled when it started
 
     def _jobs(self):
         return {name: job.job_id for name, job in list(self.cluster.workers.items()) if getattr(job, "job_id", None)}
@@ -270,7 +275,8 @@ class JobWatch:
                 continue
             hits = [ln.strip() for ln in lines if CONNECT_ERROR.search(ln)]
             if hits:
-                return f"{hits[-1]} ({path})"
+                cause = next((h for h in hits if "Errno" in h and h != hits[-1]), None)  # e.g. Connection refused
+                return f"{hits[-1]}{f' ({cause})' if cause else ''} (log: {path})"
         return None
 
     def poll(self, client, force=False):
@@ -289,15 +295,20 @@ class JobWatch:
             state, reason = queue.get(job_id, ("GONE", ""))
             if any(w == name or w.startswith(f"{name}-") for w in joined):
                 self.connected[name] = job_id
+                self.left.discard(name)
             elif name in self.connected:
+                if name not in self.left:
+                    self.left.add(name)
+                    self.log(f"worker of job {job_id} lost: it left the scheduler (job {state.lower()} per "
+                             f"{'squeue' if self.kind == 'slurm' else 'qstat'}); its tasks go to the other workers")
                 if state == "RUNNING" and name in self.cluster.workers:
-                    continue  # its worker left; dask-jobqueue closes the job after its lost-worker timeout
-                self.log(f"worker job {job_id} lost (job {state.lower()}; its worker had joined): "
-                         "submitting a replacement")
+                    continue  # dask-jobqueue cancels the job after its lost-worker timeout
+                self.log(f"worker job {job_id} ended ({state.lower()}): submitting a replacement")
                 del self.connected[name]
-                self._drop(name)
+                self.left.discard(name)
+                self._drop(name, job_id)
             elif state == "PENDING":
-                st.pending.append((job_id, reason or "queued"))
+                st.pending.append((job_id, "just submitted" if reason in ("", "None") else reason))
             elif state == "RUNNING":
                 self.started.setdefault(job_id, now)
                 st.running.append(job_id)
@@ -306,8 +317,6 @@ class JobWatch:
                     st.fatal = self._unreachable(client, job_id, err)
             elif name in self.cluster.workers:  # ended without its worker ever joining
                 err = self.error_in_log(job_id)
-                self.log(f"worker job {job_id} ended ({state.lower()}) before its worker joined"
-                         + (f": {err}" if err else "") + "; submitting a replacement")
                 self.failed_starts += 1
                 if err and not joined:
                     st.fatal = self._unreachable(client, job_id, err)
@@ -315,17 +324,32 @@ class JobWatch:
                     st.fatal = (f"{self.failed_starts} worker jobs ended before their worker joined (last: job "
                                 f"{job_id}{': ' + err if err else ''}). Fix: read the jobs' logs in "
                                 f"{self.log_directory}")
-                self._drop(name)
-        if len(self.cluster.workers) < self.n_jobs:
-            self.cluster.scale(jobs=self.n_jobs)  # dask-jobqueue submits the missing jobs
+                if st.fatal:
+                    continue
+                self.log(f"worker job {job_id} ended ({state.lower()}) before its worker joined"
+                         + (f": {err}" if err else "") + "; submitting a replacement")
+                self._drop(name, job_id)
+        if len(self.cluster.workers) < self.n_jobs:  # dask-jobqueue closed a lost job itself
+            self._scale()
         self.state = st
         return st
 
-    def _drop(self, name):
-        """Forget a dead job so that scaling to ``n_jobs`` submits a new one in its place."""
+    def _drop(self, name, job_id):
+        """Cancel and forget a dead job (one the batch system requeued too) so that scaling to
+        ``n_jobs`` submits a new one in its place."""
+        _call([*shlex.split(self.cluster._dummy_job.cancel_command), job_id])
         self.cluster.workers.pop(name, None)
         self.cluster.worker_spec.pop(name, None)
-        self.cluster.scale(jobs=self.n_jobs)
+        # a new name: dask's own handling of the lost worker closes whatever job holds the old one
+        self.cluster._i = getattr(self.cluster, "_i", 0) + 1
+        self._scale(force=True)
+
+    def _scale(self, force=False):
+        """Scale to ``n_jobs``: dask-jobqueue submits the jobs missing (at most every 10 s unless
+        ``force``: a submission in flight is not yet among the cluster's jobs)."""
+        if force or time.time() - self.scaled > 10:
+            self.scaled = time.time()
+            self.cluster.scale(jobs=self.n_jobs)
 
     def _unreachable(self, client, job_id, err):
         return (f"worker job {job_id} could not reach the scheduler at {client.scheduler.address}: {err}. "

@@ -182,8 +182,8 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
                 if waiting:
                     log(f"[{name}] {waiting}")
                 said = waiting
-            if client.scheduler_info().get("workers") or (waiting and not queue.running):
-                no_worker_since = None  # queued jobs are not dead workers: SLURM/PBS waits may be long
+            if client.scheduler_info().get("workers") or (queue is not None and (queue.pending or queue.running)):
+                no_worker_since = None  # queued or starting jobs are not dead workers: SLURM/PBS waits may be long
             elif no_worker_since is None:
                 no_worker_since = time.time()
             elif time.time() - no_worker_since > worker_wait_s:
