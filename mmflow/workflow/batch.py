@@ -243,25 +243,26 @@ class JobWatch:
         self.last, self.state, self.failed_starts = 0.0, QueueState(), 0
         self.left = set()  # jobs whose worker left the scheduler (logged once)
         self.scaled = time.time()  # the cluster was scaled when it started
+        self.node_of = {}  # job id -> the node it ran on
 
     def _jobs(self):
         return {name: job.job_id for name, job in list(self.cluster.workers.items()) if getattr(job, "job_id", None)}
 
     def _queue(self, ids):
-        """``{job id: (state, reason)}`` of the jobs the batch system still lists."""
+        """``{job id: (state, reason, node)}`` of the jobs the batch system still lists."""
         if not ids:
             return {}
         if self.kind == "slurm":
-            out = _call(["squeue", "-h", "-o", "%i|%T|%r", "-j", ",".join(ids)]) or ""
-            rows = [line.split("|") for line in out.splitlines() if line.count("|") == 2]
-            return {i: ("RUNNING" if s in ("RUNNING", "COMPLETING") else s, r) for i, s, r in rows}
+            out = _call(["squeue", "-h", "-o", "%i|%T|%r|%N", "-j", ",".join(ids)]) or ""
+            rows = [line.split("|") for line in out.splitlines() if line.count("|") == 3]
+            return {i: ("RUNNING" if s in ("RUNNING", "COMPLETING") else s, r, n) for i, s, r, n in rows}
         out = _call(["qstat", *ids]) or ""
         states = {}
         for line in out.splitlines():
             parts = line.split()
             if parts and parts[0].split(".")[0] in ids and len(parts) >= 5:
                 states[parts[0].split(".")[0]] = ({"R": "RUNNING", "Q": "PENDING", "H": "PENDING"}.get(
-                    parts[4], parts[4]), "queued")
+                    parts[4], parts[4]), "queued", "")
         return states
 
     def error_in_log(self, job_id):
@@ -292,18 +293,24 @@ class JobWatch:
         queue = self._queue(list(jobs.values()))
         st = QueueState()
         for name, job_id in jobs.items():
-            state, reason = queue.get(job_id, ("GONE", ""))
+            state, reason, node = queue.get(job_id, ("GONE", "", ""))
+            if node and state == "RUNNING":
+                self.node_of[job_id] = node  # kept once the job has ended
+            node = self.node_of.get(job_id, "")
+            where = f" on {node}" if node else ""
             if any(w == name or w.startswith(f"{name}-") for w in joined):
                 self.connected[name] = job_id
                 self.left.discard(name)
             elif name in self.connected:
                 if name not in self.left:
                     self.left.add(name)
-                    self.log(f"worker of job {job_id} lost: it left the scheduler (job {state.lower()} per "
+                    self.log(f"worker of job {job_id}{where} lost: it left the scheduler (job {state.lower()} per "
                              f"{'squeue' if self.kind == 'slurm' else 'qstat'}); its tasks go to the other workers")
                 if state == "RUNNING" and name in self.cluster.workers:
                     continue  # dask-jobqueue cancels the job after its lost-worker timeout
-                self.log(f"worker job {job_id} ended ({state.lower()}): submitting a replacement")
+                self.log(f"worker job {job_id}{where} "
+                         + ("cancelled after its worker was lost" if state == "RUNNING" else f"ended ({state.lower()})")
+                         + ": submitting a replacement")
                 del self.connected[name]
                 self.left.discard(name)
                 self._drop(name, job_id)
@@ -326,7 +333,7 @@ class JobWatch:
                                 f"{self.log_directory}")
                 if st.fatal:
                     continue
-                self.log(f"worker job {job_id} ended ({state.lower()}) before its worker joined"
+                self.log(f"worker job {job_id}{where} ended ({state.lower()}) before its worker joined"
                          + (f": {err}" if err else "") + "; submitting a replacement")
                 self._drop(name, job_id)
         if len(self.cluster.workers) < self.n_jobs:  # dask-jobqueue closed a lost job itself

@@ -160,7 +160,7 @@ def test_a_node_killed_mid_transfer_is_survived(slurm, reference, tmp_path, monk
             join()
     try:
         assert killed, "no transfer task was seen in flight"
-        assert any("lost" in line for line in logs), logs
+        assert any(f"on {killed[0]} lost" in line for line in logs), logs
         assert_identical(reference, read_outputs(run_dir))
     finally:
         if killed:
