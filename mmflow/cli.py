@@ -247,6 +247,8 @@ def _dispatch(args):
     from mmflow.workflow.passes import run_with_passes
 
     cfg = load_config(args.workflow, args.overrides)
+    if args.cluster:  # the run's config.yaml records the cluster it ran on
+        cfg = cfg.model_copy(update={"cluster": cfg.cluster.model_copy(update={"kind": args.cluster})})
     only = None if args.cmd == "run" else [args.cmd]
     with open_cluster(cfg, args.scheduler, args.cluster) as client:
         summaries = run_with_passes(cfg, client, only=only, force=args.force, progress=not args.no_progress)

@@ -7,6 +7,7 @@ import time
 from urllib.parse import urlparse
 
 import pytest
+import yaml
 
 from mmflow.cli import main
 from mmflow.workflow.cluster import open_cluster
@@ -76,6 +77,7 @@ def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0, out[-3000:]
     assert f"listens on {slurm.bridge}" in out and "cores 1, memory" in out, out[:3000]
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["cluster"]["kind"] == "slurm"
     assert_identical(reference, read_outputs(run_dir))
 
 
