@@ -1,7 +1,10 @@
 """mmflow on a real SLURM cluster of three nodes, each a network namespace with a hostname of its own
 (tests/cluster/conftest.py): workers reach the driver's scheduler over the cluster's bridge, the run
 directory is the shared filesystem, and every map is compared bit for bit with a synchronous run."""
+import os
 import socket
+import subprocess
+import sys
 import threading
 import time
 from urllib.parse import urlparse
@@ -12,7 +15,7 @@ import yaml
 from mmflow.cli import main
 from mmflow.workflow.cluster import open_cluster
 from mmflow.workflow.passes import run_with_passes
-from tests.workflow_helpers import SMALL, assert_identical, read_outputs, small_config
+from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
 
 pytestmark = [pytest.mark.slow, pytest.mark.cluster]
 
@@ -207,3 +210,22 @@ def test_a_worker_that_cannot_reach_the_scheduler_is_reported_with_its_error(slu
     while not _no_jobs(slurm) and time.time() < deadline:
         time.sleep(0.5)
     assert _no_jobs(slurm)
+
+
+def test_the_driver_as_a_batch_job(slurm, reference, tmp_path):
+    """workflows/slurm-driver.sbatch: the driver on a node submits its worker jobs from there, its
+    scheduler listens on that node's interface on the nodes' network, the maps are bit-identical."""
+    run_dir, log = tmp_path / "run", tmp_path / "driver-%j.log"
+    env = dict(os.environ, PATH=os.pathsep.join([os.path.dirname(sys.executable), os.environ["PATH"]]))
+    out = subprocess.run(["sbatch", "--mem=1200M", f"--output={log}", "workflows/slurm-driver.sbatch",
+                          *WORKFLOW, f"run.directory={run_dir}"], cwd=ROOT, env=env, capture_output=True,
+                         text=True, check=True).stdout
+    job = out.split()[-1]
+    deadline = time.time() + 300
+    while slurm.slurm("squeue", "-h", "-j", job, check=False).strip() and time.time() < deadline:
+        time.sleep(1)
+    text = (tmp_path / f"driver-{job}.log").read_text()
+    assert "stage times:" in text, text[-3000:]
+    listens = text.split("the scheduler listens on tcp://")[1].split(":")[0]
+    assert listens in {slurm.address(n) for n in slurm.nodes}, text[:2000]  # on the driver's node
+    assert_identical(reference, read_outputs(run_dir))
