@@ -11,7 +11,9 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
   complete only when every key has its marker (named by :meth:`TaskKey.format`, the task
   handed :meth:`TaskKey.parse` of that name);
 * inputs are checked against their producers' chunk records before they are read;
-* a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage.
+* a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage (SLURM/PBS:
+  only while no worker job is queued or starting; a worker that cannot reach the scheduler stops
+  the run with its own error, :class:`mmflow.workflow.batch.JobWatch`).
 """
 from __future__ import annotations
 

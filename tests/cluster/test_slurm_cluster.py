@@ -138,7 +138,7 @@ def test_a_drained_node_longer_than_worker_wait_s_then_resumed(slurm, reference,
 def test_a_node_killed_mid_transfer_is_survived(slurm, reference, tmp_path, monkeypatch):
     """slurmd and every process of a node with a task in flight killed mid-transfer: the tasks go to
     the other workers, the loss is logged, the run finishes without a rerun, bit-identical."""
-    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "1")  # the jobs' workers get it through sbatch's environment
+    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "0.5")  # the jobs' workers get it through sbatch's environment
     run_dir = tmp_path / "run"
     cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=3", "cluster.dashboard_address=:0",
                        f"cluster.interface={slurm.bridge}", JOB)
@@ -176,7 +176,7 @@ def test_a_node_killed_mid_transfer_is_survived(slurm, reference, tmp_path, monk
 def test_a_run_longer_than_its_jobs_walltime_finishes(slurm, reference, tmp_path, monkeypatch):
     """Jobs of a 1-minute walltime, a run of more than a minute of work for its one worker: each
     worker retires before its walltime (--lifetime with a stagger), a new job takes over."""
-    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "3")  # 21 tasks: > 60 s of work
+    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "2.5")  # 21 tasks: > 50 s of work, a worker lives 40 +- 5 s
     run_dir = tmp_path / "run"
     cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=1", "cluster.dashboard_address=:0",
                        "cluster.jobqueue={cores: 1, memory: 1GB, walltime: '00:01:00'}")
