@@ -8,7 +8,8 @@ machine. The run directory is shared (one filesystem), as on a cluster with a sh
 
 * ``munged`` runs on the host with a key and socket of its own (a unix socket: every namespace
   reaches it through the filesystem);
-* ``slurmctld`` runs on the host side, listening on the bridge address;
+* ``slurmctld`` runs in a network namespace (and hostname) of its own on the same bridge, so that
+  it listens on no interface of the host;
 * each ``slurmd`` is started by ``nsenter --net=/run/netns/NODE unshare --uts``: ``ip netns exec``
   remounts /sys, and slurmd 22.05 then exits with "No filesystem mounted on /sys/fs/cgroup".
 
@@ -22,13 +23,14 @@ import ipaddress
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import time
 from pathlib import Path
 
 #: Debian packages the cluster needs, and a program each provides
 PACKAGES = {"slurm-wlm": "slurmctld", "munge": "munged", "iproute2": "ip"}
+#: the controller's hostname (in its UTS namespace)
+CONTROLLER = "mmctl"
 #: the private range the cluster's /24 is taken from (the first one no route or address uses)
 SUBNETS = ipaddress.ip_network("10.213.0.0/16")
 
@@ -87,12 +89,6 @@ def _free_subnet():
     raise RuntimeError(f"no free /24 in {SUBNETS}")
 
 
-def _free_port(host):
-    with socket.socket() as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]
-
-
 class NamespacedSlurm:
     """A SLURM controller and ``n_nodes`` compute nodes of ``cpus`` CPUs and ``memory_mb`` MB each.
 
@@ -120,8 +116,17 @@ class NamespacedSlurm:
     # -- names ----------------------------------------------------------------------------
     @property
     def host_address(self):
-        """The bridge's address: where the controller and the driver's scheduler listen."""
+        """The bridge's address: where a driver on the host side listens for the workers."""
         return str(self.subnet[1])
+
+    @property
+    def ctl_address(self):
+        """The controller's address (in its own namespace)."""
+        return str(self.subnet[2])
+
+    @property
+    def ctl_ns(self):
+        return f"{self.tag}ctl"
 
     def address(self, node):
         return str(self.subnet[10 + self.nodes.index(node)])
@@ -140,7 +145,7 @@ class NamespacedSlurm:
             self._network()
             self._munge()
             self._write_conf()
-            self._spawn("slurmctld", ["slurmctld", "-D", "-i", "-f", str(self.conf)])
+            self._spawn_in("slurmctld", self.ctl_ns, CONTROLLER, f"slurmctld -D -i -f {self.conf}")
             for node in self.nodes:
                 self.start_node(node)
             self.wait_idle(self.nodes, timeout)
@@ -155,18 +160,23 @@ class NamespacedSlurm:
         self.links.append(self.bridge)
         _run("ip", "addr", "add", f"{self.host_address}/24", "dev", self.bridge)
         _run("ip", "link", "set", self.bridge, "up")
+        self._namespace(self.ctl_ns, "x", self.ctl_address)
         for i, node in enumerate(self.nodes):
-            ns, host_end, node_end = self.ns(node), f"{self.tag}h{i}", f"{self.tag}c{i}"
-            _run("ip", "netns", "add", ns)
-            self.netns.append(ns)
-            _run("ip", "link", "add", host_end, "type", "veth", "peer", "name", node_end)
-            self.links.append(host_end)
-            _run("ip", "link", "set", host_end, "master", self.bridge)
-            _run("ip", "link", "set", host_end, "up")
-            _run("ip", "link", "set", node_end, "netns", ns)
-            _run("ip", "-n", ns, "addr", "add", f"{self.address(node)}/24", "dev", node_end)
-            _run("ip", "-n", ns, "link", "set", node_end, "up")
-            _run("ip", "-n", ns, "link", "set", "lo", "up")  # no default route: the bridge's /24 only
+            self._namespace(self.ns(node), str(i), self.address(node))
+
+    def _namespace(self, ns, suffix, address):
+        """A network namespace joined to the bridge by a veth pair, ``address`` on its end."""
+        host_end, ns_end = f"{self.tag}h{suffix}", f"{self.tag}c{suffix}"
+        _run("ip", "netns", "add", ns)
+        self.netns.append(ns)
+        _run("ip", "link", "add", host_end, "type", "veth", "peer", "name", ns_end)
+        self.links.append(host_end)
+        _run("ip", "link", "set", host_end, "master", self.bridge)
+        _run("ip", "link", "set", host_end, "up")
+        _run("ip", "link", "set", ns_end, "netns", ns)
+        _run("ip", "-n", ns, "addr", "add", f"{address}/24", "dev", ns_end)
+        _run("ip", "-n", ns, "link", "set", ns_end, "up")
+        _run("ip", "-n", ns, "link", "set", "lo", "up")  # no default route: the bridge's /24 only
 
     def _munge(self):
         d = self.root / "munge"
@@ -189,12 +199,11 @@ class NamespacedSlurm:
         state.mkdir()
         for node in self.nodes:
             (self.root / node / "spool").mkdir(parents=True)
-        self.ctld_port = _free_port(self.host_address)
         r = self.root
         lines = [
             "ClusterName=mmflowtest",
-            f"SlurmctldHost={socket.gethostname().split('.')[0]}({self.host_address})",
-            f"SlurmctldPort={self.ctld_port}", "SlurmdPort=6818",  # each node its own namespace: one port
+            f"SlurmctldHost={CONTROLLER}({self.ctl_address})",  # every daemon its own namespace: default ports
+            "SlurmctldPort=6817", "SlurmdPort=6818",
             "SlurmUser=root", "SlurmdUser=root",
             f"AuthInfo=socket={self.munge_socket}",
             f"StateSaveLocation={state}", f"SlurmctldPidFile={r / 'slurmctld.pid'}",
@@ -216,9 +225,13 @@ class NamespacedSlurm:
 
     def start_node(self, node):
         """Start ``node``'s slurmd in its network namespace, with its own hostname."""
-        script = f"hostname {node} && exec slurmd -D -N {node} -f {self.conf}"
-        self._spawn(f"slurmd-{node}", ["nsenter", f"--net=/run/netns/{self.ns(node)}", "unshare", "--uts",
-                                      "sh", "-c", script])
+        self._spawn_in(f"slurmd-{node}", self.ns(node), node, f"slurmd -D -N {node} -f {self.conf}")
+
+    def _spawn_in(self, name, ns, hostname, command):
+        """Start ``command`` in network namespace ``ns`` with a hostname of its own (the process's
+        PID is the daemon's: nsenter, unshare and sh each exec the next)."""
+        self._spawn(name, ["nsenter", f"--net=/run/netns/{ns}", "unshare", "--uts", "sh", "-c",
+                           f"hostname {hostname} && exec {command}"])
 
     def _spawn(self, name, argv):
         log = open(self.root / f"{name}.out", "ab")
@@ -229,7 +242,11 @@ class NamespacedSlurm:
 
     def node_pids(self, node):
         """Every process in ``node``'s network namespace (its slurmd, job steps and workers)."""
-        out = _run("ip", "netns", "pids", self.ns(node), check=False).stdout.split()
+        return self._pids(self.ns(node))
+
+    @staticmethod
+    def _pids(ns):
+        out = _run("ip", "netns", "pids", ns, check=False).stdout.split()
         return [int(p) for p in out if p.isdigit()]
 
     def kill_node(self, node):
@@ -258,6 +275,11 @@ class NamespacedSlurm:
                     p.kill()
                     p.wait()
         for ns in self.netns:
+            for pid in self._pids(ns):  # anything a daemon left there (all of it started by this cluster)
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
             _run("ip", "netns", "del", ns, check=False)  # its veth end goes with it, and so the host end
         self.netns = []
         for link in self.links[::-1]:
