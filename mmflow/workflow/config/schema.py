@@ -265,7 +265,12 @@ class ClusterConfig(Section):
     expose: bool = Field(False, description="Listen on all network interfaces (scheduler and dashboard); "
                          "default: 127.0.0.1 only. See docs/clusters.md for TLS.")
     worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long "
-                                 "(workers died: memory, walltime); finished chunks are kept for a rerun.")
+                                 "while no worker job is queued or starting (SLURM/PBS: those are waited for); finished "
+                                 "chunks are kept for a rerun.")
+    interface: Optional[str] = Field(None, description="SLURM/PBS: the network interface (e.g. ib0, eth1) the "
+                                     "scheduler listens on, the one the compute nodes reach this machine on; "
+                                     "unset: the interface on the SLURM nodes' network (sinfo), else dask's guess "
+                                     "(the default route's). See docs/clusters.md.")
     jobqueue: dict = Field(default_factory=dict,
                            description="dask-jobqueue cluster options (cores, memory, queue, ...).")
 

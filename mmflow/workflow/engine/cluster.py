@@ -7,9 +7,11 @@ true`` opens them to the network (see docs/clusters.md for dask's TLS settings).
 from __future__ import annotations
 
 import os
+import socket
 from contextlib import contextmanager
 
 from mmflow.errors import InputError
+from mmflow.workflow.engine.batch import JobWatch, cluster_interface, job_options, refuse_impossible
 
 LOOPBACK = "127.0.0.1"
 ALL_INTERFACES = "0.0.0.0"
@@ -79,19 +81,47 @@ def fork_workers_from_a_preloaded_server():
                 os.environ[k] = v
 
 
-def jobqueue_cluster(cfg, kind):
+def interface_address(name):
+    """The IPv4 address of this machine's network interface ``name``; an InputError naming the
+    interfaces there are when it has none (``cluster.interface``, checked before any job is submitted)."""
+    import psutil  # deferred: a dependency of distributed, needed only by SLURM/PBS clusters
+
+    addrs = psutil.net_if_addrs()
+    ipv4 = [a.address for a in addrs.get(name, []) if a.family == socket.AF_INET]
+    if ipv4:
+        return ipv4[0]
+    have = ", ".join(f"{n} ({a.address})" for n, lst in sorted(addrs.items()) for a in lst
+                     if a.family == socket.AF_INET)
+    raise InputError("cluster", "cluster.interface", f"this machine has no interface '{name}' with an IPv4 address",
+                     f"name the interface of the network the compute nodes share with this machine: {have}")
+
+
+def jobqueue_cluster(cfg, kind, log=print):
     """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
 
-    The scheduler has to listen on the cluster network (the workers run on other nodes);
-    its dashboard stays on loopback (reach it with an SSH tunnel) unless ``cluster.expose``.
-    Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
+    The scheduler has to listen on the cluster network (the workers run on other nodes): on
+    ``cluster.interface`` (handed to the scheduler only: a worker finds its own address by
+    routing to it); its dashboard stays on loopback (reach it with an SSH tunnel) unless
+    ``cluster.expose``. What ``cluster.jobqueue`` leaves out is sized from the plan and the
+    partition (:func:`mmflow.workflow.engine.batch.job_options`), and a job no node can hold is refused
+    here. Nothing is submitted until the cluster is scaled; ``cluster.job_script()`` shows the script.
     """
     import dask_jobqueue  # deferred: dask_jobqueue takes 1-3 s to import (docs/performance.md), SLURM/PBS only
 
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
-    opts = dict(cfg.cluster.jobqueue)
+    opts, sizes = job_options(cfg, kind, log)
+    refuse_impossible(opts, kind, sizes)
     sched = dict(opts.get("scheduler_options") or {})
     sched.setdefault("dashboard_address", dashboard_bind(cfg.cluster))
+    if cfg.cluster.interface:
+        interface_address(cfg.cluster.interface)
+        sched["interface"] = cfg.cluster.interface
+    elif "interface" not in sched and "host" not in sched:
+        found = cluster_interface(kind)
+        if found:
+            sched["interface"] = found[0]
+            log(f"cluster.interface unset: the scheduler listens on {found[0]} ({found[1]}), this machine's "
+                f"interface on the network of the {kind} nodes (sinfo)")
     opts["scheduler_options"] = sched
     # thread budget: the worker processes of one job share its cores (mmflow.threads.n_threads)
     opts["job_script_prologue"] = list(opts.get("job_script_prologue") or []) + [
@@ -113,12 +143,22 @@ class LazyClient:
         self._client = None
         self._cluster = None
         self.kind = kind  # the cluster's kind, as the dashboard and the report name it
+        self._watch = None  # a :class:`mmflow.workflow.engine.batch.JobWatch` for SLURM/PBS workers
+
+    def queue_state(self, log=None):
+        """The worker jobs' :class:`mmflow.workflow.engine.batch.QueueState` (lost jobs logged with ``log``
+        and replaced); None for a cluster without a batch queue or not started."""
+        if self._watch is None or self._client is None:
+            return None
+        if log is not None:
+            self._watch.log = log
+        return self._watch.poll(self._client)
 
     def __getattr__(self, name):  # only for names not found on this object: the client's
         if name.startswith("_"):
             raise AttributeError(name)
         if self._client is None:
-            self._client, self._cluster = self._start()
+            self._client, self._cluster, self._watch = self._start()
         return getattr(self._client, name)
 
     def close(self):
@@ -155,7 +195,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
         from mmflow.workflow.engine.dashboard.page import dashboard_link, serve_page  # deferred: as Client
 
         serve_page()  # mmflow's page (/mmflow) on the dashboard of a scheduler started here
-        cluster = None
+        cluster = watch = None
         if kind == "address":
             client = Client(addr)
         elif kind == "local":
@@ -171,12 +211,14 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
                 log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
                     "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
         else:
-            cluster = jobqueue_cluster(cfg, kind)
+            cluster = jobqueue_cluster(cfg, kind, log)
             cluster.scale(jobs=c.n_workers)
             client = Client(cluster)
+            watch = JobWatch(cluster, kind, c.n_workers, cluster._dummy_job.log_directory, log=log)
+            log(f"{kind}: {c.n_workers} worker jobs submitted; the scheduler listens on {client.scheduler.address}")
         log(f"dask dashboard: {dashboard_link(cluster, client)}" + (
             f" (mmflow's page: {dashboard_link(cluster, client, 'mmflow')})" if cluster is not None else ""))
-        return client, cluster
+        return client, cluster, watch
 
     client = LazyClient(start, kind)
     try:

@@ -16,7 +16,9 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
   complete only when every key has its marker (named by :meth:`TaskKey.format`, the task
   handed :meth:`TaskKey.parse` of that name);
 * inputs are checked against their producers' chunk records before they are read;
-* a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage.
+* a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage (SLURM/PBS:
+  only while no worker job is queued or starting; a worker that cannot reach the scheduler stops
+  the run with its own error, :class:`mmflow.workflow.engine.batch.JobWatch`).
 """
 from __future__ import annotations
 
@@ -161,7 +163,14 @@ class _Progress:
             self.stream.write("\n")
 
 
-def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
+def _queue_state(client, log):
+    """The worker jobs' queue state of a SLURM/PBS cluster (:class:`mmflow.workflow.engine.batch.QueueState`),
+    None for any other client."""
+    poll = getattr(type(client), "queue_state", None)
+    return poll(client, log) if poll is not None else None
+
+
+def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=print):
     if not todo:
         return []
     bar = _Progress(name, len(todo), progress)
@@ -180,7 +189,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
                          retries=2)
     results = {}
-    no_worker_since = None
+    no_worker_since = said = None
     try:
         while True:
             try:
@@ -193,8 +202,16 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
             BOARD.progress(name, done)
             if done == len(futures):
                 break
-            if client.scheduler_info().get("workers"):
-                no_worker_since = None
+            queue = _queue_state(client, log)
+            if queue is not None and queue.fatal:
+                raise MmflowError(f"stage '{name}': {queue.fatal}")
+            waiting = queue.waiting() if queue is not None else None
+            if waiting != said:
+                if waiting:
+                    log(f"[{name}] {waiting}")
+                said = waiting
+            if client.scheduler_info().get("workers") or (queue is not None and (queue.pending or queue.running)):
+                no_worker_since = None  # queued or starting jobs are not dead workers: SLURM/PBS waits may be long
             elif no_worker_since is None:
                 no_worker_since = time.time()
             elif time.time() - no_worker_since > worker_wait_s:
@@ -320,7 +337,7 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         run.add_keys(st.name, ckeys + [mark])
         todo = [k for k in ckeys if not run.is_done(st.name, k)]
         BOARD.add_tasks(st.name, len(ckeys), len(ckeys) - len(todo))
-        results += _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
+        results += _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s, log)
         run.mark_done(st.name, mark, {"cycle": cycle, "tasks": len(keys)}, cctx.ledger.entries)
         cycle += 1
 
@@ -448,7 +465,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
         _stamp_stores(run, st, cfg, fp.digest)
         log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
-        results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s)
+        results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s, log)
         if st.next_cycle is not None:  # iterative stages, and solve stages with a second phase
             results += _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
         fin = None

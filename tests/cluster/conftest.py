@@ -1,0 +1,29 @@
+"""The cluster tier: a real SLURM cluster of three nodes, each a network namespace of its own
+(:mod:`tests.cluster.slurm_netns`), started once per session. Skipped, saying why, where it cannot
+start (not root, no network namespaces, no slurm-wlm/munge and no apt-get to install them)."""
+import pytest
+
+from tests.cluster.slurm_netns import NamespacedSlurm, unavailable
+
+
+@pytest.fixture(scope="session")
+def slurm_session(tmp_path_factory):
+    """A started :class:`NamespacedSlurm` (3 nodes of 2 CPUs, 3000 MB), stopped (every process by
+    PID, the namespaces, veths and bridge deleted) at the end of the session."""
+    why = unavailable()
+    if why:
+        pytest.skip(f"no namespaced SLURM cluster: {why}")
+    cluster = NamespacedSlurm(tmp_path_factory.mktemp("slurm"), n_nodes=3, cpus=2, memory_mb=3000)
+    cluster.start()
+    try:
+        yield cluster
+    finally:
+        cluster.stop()
+
+
+@pytest.fixture
+def slurm(slurm_session, monkeypatch):
+    """The session's cluster, with SLURM_CONF pointing SLURM's commands (and so dask-jobqueue's
+    sbatch, squeue, scancel) at it for this test only: other tests in the same process see no SLURM."""
+    monkeypatch.setenv("SLURM_CONF", str(slurm_session.conf))
+    return slurm_session

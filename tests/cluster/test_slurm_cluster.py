@@ -1,0 +1,231 @@
+"""mmflow on a real SLURM cluster of three nodes, each a network namespace with a hostname of its own
+(tests/cluster/conftest.py): workers reach the driver's scheduler over the cluster's bridge, the run
+directory is the shared filesystem, and every map is compared bit for bit with a synchronous run."""
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from urllib.parse import urlparse
+
+import pytest
+import yaml
+
+from mmflow.cli import main
+from mmflow.workflow.engine.cluster import open_cluster
+from mmflow.workflow.engine.passes import run_with_passes
+from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
+
+pytestmark = [pytest.mark.slow, pytest.mark.cluster]
+
+#: the reduced workflow's settings without its cluster.kind
+WORKFLOW = ["workflows/demo.yaml", *[o for o in SMALL if not o.startswith("cluster.")]]
+#: one small job per worker (nodes have 2 CPUs and 3000 MB)
+JOB = 'cluster.jobqueue={cores: 1, memory: 1GB, walltime: "00:10:00"}'
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("sref") / "run"
+    run_with_passes(small_config(run_dir), progress=False, log=lambda *a: None)
+    return read_outputs(run_dir)
+
+
+def _no_jobs(slurm):
+    return slurm.slurm("squeue", "-h", "-o", "%i %T").strip() == ""
+
+
+def test_workflow_on_three_nodes_matches_a_local_run(slurm, reference, tmp_path):
+    """Three worker jobs spread over the nodes; the scheduler listens on cluster.interface (the
+    bridge), the dashboard link printed is where the dashboard listens; maps bit-identical."""
+    run_dir = tmp_path / "run"
+    cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=3", "cluster.dashboard_address=:0",
+                       f"cluster.interface={slurm.bridge}", JOB)
+    logs = []
+    with open_cluster(cfg, log=logs.append) as client:
+        client.wait_for_workers(3, timeout=120)
+        hosts = client.run(socket.gethostname)  # each node's UTS namespace: its own hostname
+        addresses = {a.split("://")[1].rsplit(":", 1)[0] for a in hosts}
+        run_with_passes(cfg, client, progress=False, log=logs.append)
+        assert client.scheduler.address.startswith(f"tcp://{slurm.host_address}:")
+        link = next(line for line in logs if line.startswith("dask dashboard:")).split()[-1]
+        host, port = urlparse(link).hostname, urlparse(link).port
+        assert host == "127.0.0.1", link  # the jobqueue dashboard listens on loopback only (cluster.expose)
+        socket.create_connection((host, port), timeout=5).close()  # and really listens there
+    assert len(set(hosts.values())) >= 2 and set(hosts.values()) <= set(slurm.nodes), hosts
+    assert addresses <= {slurm.address(n) for n in slurm.nodes}, addresses  # over the bridge, not loopback
+    assert_identical(reference, read_outputs(run_dir))
+
+
+def test_an_impossible_request_is_refused_before_any_submission(slurm, tmp_path, capsys):
+    rc = main(["run", *WORKFLOW, f"run.directory={tmp_path / 'run'}", "--cluster", "slurm", "--no-progress",
+               "cluster.jobqueue={cores: 64, memory: 500GB}"])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert "cluster.jobqueue.cores" in err and "at most 2 CPUs" in err, err
+    assert _no_jobs(slurm)
+    rc = main(["run", *WORKFLOW, f"run.directory={tmp_path / 'run'}", "--cluster", "slurm", "--no-progress",
+               "cluster.jobqueue={cores: 1, memory: 500GB}"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "cluster.jobqueue.memory" in err, err
+    assert _no_jobs(slurm)
+
+
+def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys):
+    """No cluster setting but --cluster slurm: job cores and memory from the plan and sinfo, the
+    scheduler on the interface of the nodes' network (sinfo's node addresses)."""
+    run_dir = tmp_path / "run"
+    rc = main(["run", *WORKFLOW, f"run.directory={run_dir}", "--cluster", "slurm", "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0, out[-3000:]
+    assert f"listens on {slurm.bridge}" in out and "cores 1, memory" in out, out[:3000]
+    assert yaml.safe_load((run_dir / "config.yaml").read_text())["cluster"]["kind"] == "slurm"
+    assert_identical(reference, read_outputs(run_dir))
+
+
+def _in_background(fn):
+    """Run ``fn`` in a thread; its exception (if any) is re-raised by the returned join()."""
+    errors = []
+
+    def target():
+        try:
+            fn()
+        except BaseException as e:  # re-raised in the test's thread
+            errors.append(e)
+
+    t = threading.Thread(target=target, daemon=True)
+    t.start()
+
+    def join():
+        t.join(120)
+        if errors:
+            raise errors[0]
+    return join
+
+
+def test_a_drained_node_longer_than_worker_wait_s_then_resumed(slurm, reference, tmp_path):
+    """The only node the job may use is drained for 3x worker_wait_s: the job is queued, not a dead
+    worker; the run says what it waits for, and finishes once the node is resumed."""
+    node, wait_s = slurm.nodes[-1], 3
+    run_dir = tmp_path / "run"
+    cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=1", "cluster.dashboard_address=:0",
+                       f"cluster.worker_wait_s={wait_s}", "cluster.jobqueue={cores: 1, memory: 1GB, walltime: "
+                       f"'00:10:00', job_extra_directives: ['--nodelist={node}']}}")
+    logs = []
+    slurm.slurm("scontrol", "update", f"nodename={node}", "state=drain", "reason=mmflow-test")
+
+    def resume_later():
+        deadline = time.time() + 60
+        while not any("waiting for 1 queued jobs" in line for line in logs) and time.time() < deadline:
+            time.sleep(0.2)
+        time.sleep(3 * wait_s)
+        slurm.slurm("scontrol", "update", f"nodename={node}", "state=resume")
+
+    join = _in_background(resume_later)
+    try:
+        with open_cluster(cfg, log=logs.append) as client:
+            run_with_passes(cfg, client, progress=False, log=logs.append)
+    finally:
+        join()
+        slurm.slurm("scontrol", "update", f"nodename={node}", "state=resume", check=False)
+    waiting = [line for line in logs if "waiting for 1 queued jobs (" in line]
+    assert waiting and "ReqNodeNotAvail" in waiting[0], logs
+    assert waiting[0] in (run_dir / "mmflow.log").read_text()
+    assert_identical(reference, read_outputs(run_dir))
+
+
+def test_a_node_killed_mid_transfer_is_survived(slurm, reference, tmp_path, monkeypatch):
+    """slurmd and every process of a node with a task in flight killed mid-transfer: the tasks go to
+    the other workers, the loss is logged, the run finishes without a rerun, bit-identical."""
+    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "0.5")  # the jobs' workers get it through sbatch's environment
+    run_dir = tmp_path / "run"
+    cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=3", "cluster.dashboard_address=:0",
+                       f"cluster.interface={slurm.bridge}", JOB)
+    logs, killed = [], []
+    with open_cluster(cfg, log=logs.append) as client:
+        client.wait_for_workers(3, timeout=120)
+        hosts = client.run(socket.gethostname)
+
+        def kill_a_busy_node():
+            deadline = time.time() + 120
+            while time.time() < deadline:
+                busy = [w for w, keys in client.processing().items()
+                        if any(str(k).startswith("transfer-") for k in keys)]
+                if busy:  # a transfer task in flight there
+                    killed.append(hosts[busy[0]])
+                    slurm.kill_node(hosts[busy[0]])
+                    return
+                time.sleep(0.05)
+
+        join = _in_background(kill_a_busy_node)
+        try:
+            run_with_passes(cfg, client, progress=False, log=logs.append)
+        finally:
+            join()
+    try:
+        assert killed, "no transfer task was seen in flight"
+        assert any(f"on {killed[0]} lost" in line for line in logs), logs
+        assert_identical(reference, read_outputs(run_dir))
+    finally:
+        if killed:
+            slurm.start_node(killed[0])
+            slurm.wait_idle(slurm.nodes, 60)
+
+
+def test_a_run_longer_than_its_jobs_walltime_finishes(slurm, reference, tmp_path, monkeypatch):
+    """Jobs of a 1-minute walltime, a run of more than a minute of work for its one worker: each
+    worker retires before its walltime (--lifetime with a stagger), a new job takes over."""
+    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "2.5")  # 21 tasks: > 50 s of work, a worker lives 40 +- 5 s
+    run_dir = tmp_path / "run"
+    cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=1", "cluster.dashboard_address=:0",
+                       "cluster.jobqueue={cores: 1, memory: 1GB, walltime: '00:01:00'}")
+    logs = []
+    t0 = time.time()
+    with open_cluster(cfg, log=logs.append) as client:
+        run_with_passes(cfg, client, progress=False, log=logs.append)
+    assert time.time() - t0 > 60
+    replaced = [line for line in logs if "submitting a replacement" in line]
+    assert replaced, logs
+    assert_identical(reference, read_outputs(run_dir))
+    job_logs = [p.read_text() for p in (run_dir / "cluster-logs").glob("*.err")]
+    assert any("worker-lifetime-reached" in text for text in job_logs)  # retired, then replaced
+    assert not any("DUE TO TIME LIMIT" in text for text in job_logs)  # before SLURM's walltime
+
+
+def test_a_worker_that_cannot_reach_the_scheduler_is_reported_with_its_error(slurm, tmp_path, capsys,
+                                                                              monkeypatch):
+    """The scheduler on an interface the nodes cannot reach (loopback: each node has its own): the run
+    stops naming the address the worker tried and the worker's own error (from its job's log), not
+    "workers died"."""
+    monkeypatch.setenv("DASK_DISTRIBUTED__COMM__TIMEOUTS__CONNECT", "3s")  # the workers give up sooner
+    rc = main(["run", *WORKFLOW, f"run.directory={tmp_path / 'run'}", "--cluster", "slurm", "--no-progress",
+               "cluster.interface=lo", "cluster.dashboard_address=:0",
+               "cluster.jobqueue={cores: 1, memory: 1GB, death_timeout: 15}"])
+    err = capsys.readouterr().err
+    assert rc != 0
+    assert "could not reach the scheduler at tcp://127.0.0.1:" in err and "cluster.interface" in err, err
+    assert "workers died" not in err
+    deadline = time.time() + 30
+    while not _no_jobs(slurm) and time.time() < deadline:
+        time.sleep(0.5)
+    assert _no_jobs(slurm)
+
+
+def test_the_driver_as_a_batch_job(slurm, reference, tmp_path):
+    """workflows/slurm-driver.sbatch: the driver on a node submits its worker jobs from there, its
+    scheduler listens on that node's interface on the nodes' network, the maps are bit-identical."""
+    run_dir, log = tmp_path / "run", tmp_path / "driver-%j.log"
+    env = dict(os.environ, PATH=os.pathsep.join([os.path.dirname(sys.executable), os.environ["PATH"]]))
+    out = subprocess.run(["sbatch", "--mem=1200M", f"--output={log}", "workflows/slurm-driver.sbatch",
+                          *WORKFLOW, f"run.directory={run_dir}"], cwd=ROOT, env=env, capture_output=True,
+                         text=True, check=True).stdout
+    job = out.split()[-1]
+    deadline = time.time() + 300
+    while slurm.slurm("squeue", "-h", "-j", job, check=False).strip() and time.time() < deadline:
+        time.sleep(1)
+    text = (tmp_path / f"driver-{job}.log").read_text()
+    assert "stage times:" in text, text[-3000:]
+    listens = text.split("the scheduler listens on tcp://")[1].split(":")[0]
+    assert listens in {slurm.address(n) for n in slurm.nodes}, text[:2000]  # on the driver's node
+    assert_identical(reference, read_outputs(run_dir))
