@@ -1,0 +1,289 @@
+"""A run laid onto a batch cluster's nodes: ``mmflow plan WORKFLOW --cluster slurm``.
+
+From the plan of every stage (:mod:`mmflow.workflow.plan.planner`: the largest task's memory, its time)
+and a node's cores and memory (:mod:`mmflow.workflow.plan.nodes`), per stage:
+
+- **the worker**: a standard worker is one core with a core's share of the node's memory; a stage whose
+  largest task (with a worker's baseline) needs more gets workers of ``k`` cores and ``k`` shares, the
+  fewest that hold it, so a node runs ``cores // k`` of them;
+- **the split**: a stage whose largest task needs more than a whole node is re-planned with the settings
+  its cost model offers (:attr:`mmflow.workflow.plan.work.Cost.split`: ``transfer.baseline_chunk``,
+  ``transfer.m_block``, ``mmode.baseline_chunk``, ...), in order, until it fits; the setting chosen is
+  stated, and applies to every stage (all are re-planned with it). Where even the last does not fit
+  the run is refused, naming the stage, its memory and the node's;
+- **the jobs**: one job per node and stage, of the stage's workers on that node (``cores``, ``memory``,
+  ``processes``), and a walltime of :data:`WALLTIME_MARGIN` times the stage's planned time on the
+  nodes plus :data:`JOB_START_S`;
+- **the nodes**: as given (``--nodes``), else the fewest whose planned wall time is within
+  :data:`NEAR_FASTEST` of the time with every stage's tasks in one round (at most the partition's nodes).
+
+Time: the constants were fitted on a machine of ``R`` task slots (one core each; ``R`` from the fit's
+records) whose SGEMM peak ``P`` was all of them, so a task on one core of a node of per-core peak ``p``
+takes ``(c U + d) (P / R) / p``; on a larger worker too (its task's kernels may use its ``k`` cores,
+:mod:`mmflow.threads`, but how well each stage's do is not measured: the plan's time is the one-core
+upper bound, so the walltime asked for is safe). ``p``: the node's SGEMM peak over its cores
+(``--node-peak``), else this machine's per core.
+"""
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+
+from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.errors import InputError
+from mmflow.workflow.config.schema import WorkflowConfig
+from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, geometry, load_costs,
+                                          task_seconds)
+
+#: the job's walltime against the stage's planned time (the plan is within 50 % in time: docs/planning.md)
+WALLTIME_MARGIN = 2.0
+#: seconds a job is given beyond its work: the worker's start (imports, numba's cache) and the stage's end
+JOB_START_S = 600.0
+#: walltimes are rounded up to this many seconds
+WALLTIME_STEP_S = 900
+#: the default node count: the fewest nodes whose wall time is within this factor of the fastest
+NEAR_FASTEST = 1.10
+#: the polarisations an ingest planned without its files keeps: the parallel hands (the cross hands,
+#: where the files hold them, ride beside them: ``vis.zarr``'s ``vis_cross``)
+LAYOUT_POLS = ("xx", "yy")
+
+
+def with_settings(cfg, settings):
+    """``cfg`` with dotted settings replaced (``{"transfer.m_block": 8}``), validated again."""
+    data = cfg.model_dump(mode="json")
+    for key, value in settings.items():
+        *path, last = key.split(".")
+        node = data
+        for part in path:
+            node = node[part]
+        node[last] = value
+    return WorkflowConfig.model_validate(data)
+
+
+def layout_ingest(cfg):
+    """An ingest plan (:func:`mmflow.workflow.plan.planner.geometry`'s ``ingest``) of the workflow's own
+    array without its files: the telescope's layout and baselines (``telescope``), one sidereal day of
+    ``observation.integration_s`` (or ``observation.n_integrations``), ``observation.freqs_mhz`` and
+    :data:`LAYOUT_POLS`. What ``--simulate-layout`` plans an ingesting workflow with."""
+    tel = build_telescope(cfg)
+    o = cfg.observation
+    n_time = o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
+    return SimpleNamespace(n_time=n_time, pols=list(LAYOUT_POLS), freqs_hz=np.asarray(tel.freqs_hz),
+                           pairs=np.asarray(tel.antenna_pairs()), layout=tel.layout)
+
+
+def reference_slots(costs):
+    """The task slots (workers x threads) of the runs the constants were fitted on: the median over
+    the fit's records in ``plan/records/`` (1 where none is found: tasks timed at the whole peak)."""
+    slots = []
+    for name in costs.get("fitted_on", []):
+        path = COSTS_FILE.parent / "records" / name
+        if path.is_file():
+            c = json.loads(path.read_text())["config"].get("cluster", {})
+            slots.append(c.get("n_workers", 1) * c.get("threads_per_worker", 1))
+    return float(np.median(slots)) if slots else 1.0
+
+
+def _worker_cores(need, node):
+    """Cores of the fewest core-shares of a node that hold ``need`` bytes (> the node's cores: no fit)."""
+    return max(1, math.ceil(need / node.core_memory_bytes - 1e-9))
+
+
+def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
+    """Per enabled stage its worker, its time on ``nodes`` nodes and what scales it (dicts)."""
+    rows = []
+    for st in PIPELINE:
+        if not st.enabled(cfg) or st.task is None:
+            continue
+        probe = estimate(st.name, g, cfg, costs, costs["sgemm_gflops"], 1)
+        need = probe.task_bytes + WORKER_BASE_BYTES
+        k = _worker_cores(need, node)
+        per_node = max(1, node.cores // k)
+        workers = nodes * per_node
+        est = estimate(st.name, g, cfg, costs, slots * core_gflops, workers, nodes * node.cores * core_gflops)
+        k_s = costs["stages"].get(st.name)
+        per_task = task_seconds(k_s, est.units_per_task, costs, slots * core_gflops) if k_s else 0.0
+        rounds = math.ceil(est.tasks / workers)
+        rows.append({"stage": st.name, "tasks": est.tasks, "task_gb": need / 1e9, "worker_cores": k,
+                     "workers_per_node": per_node, "worker_memory_gb": k * node.core_memory_bytes / 1e9,
+                     "fits": k <= node.cores, "per_task_s": per_task,
+                     "node_s": max(0.0, est.seconds - per_task * rounds) * nodes,  # the part that scales as 1/nodes
+                     "seconds": est.seconds, "store_gb": est.store_bytes / 1e9, "notes": est.notes})
+    return rows
+
+
+def stage_seconds(row, nodes):
+    """A stage's planned wall time on ``nodes`` nodes (its rounds of tasks, and its stage-wide sums)."""
+    return row["per_task_s"] * math.ceil(row["tasks"] / (nodes * row["workers_per_node"])) + row["node_s"] / nodes
+
+
+def _fastest_nodes(rows, node):
+    most = max(math.ceil(r["tasks"] / r["workers_per_node"]) for r in rows)
+    return min(most, node.count) if node.count else most
+
+
+def choose_nodes(rows, node):
+    """The fewest nodes whose wall time is within :data:`NEAR_FASTEST` of the fastest."""
+    most = _fastest_nodes(rows, node)
+    best = sum(stage_seconds(r, most) for r in rows)
+    return next(n for n in range(1, most + 1) if sum(stage_seconds(r, n) for r in rows) <= NEAR_FASTEST * best)
+
+
+def _split(cfg, row, node, replan):
+    """The first of the stage's split settings under which its largest task fits a node, with its row;
+    refused (an :class:`InputError` naming the limit) where none does."""
+    cost = PIPELINE.stage(row["stage"]).cost
+    tried, need = None, row["task_gb"]
+    for settings in cost.split_settings(cfg):
+        r = next(x for x in replan(with_settings(cfg, settings)) if x["stage"] == row["stage"])
+        if r["fits"]:
+            return settings
+        tried, need = settings, r["task_gb"]
+    last = (" even with " + ", ".join(f"{k}={v}" for k, v in tried.items())) if tried else " (no setting splits it)"
+    fix = f"{cost.shrink_setting(cfg)}, or nodes with more memory (--node-memory)"
+    raise InputError("workflow", f"stage {row['stage']}", f"its largest task needs ~{need:.2f} GB{last} "
+                     f"(`mmflow plan`), more than a node's {node.memory_bytes / 1e9:.2f} GB", fix)
+
+
+def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflops=None, ingest=None):
+    """The run laid onto nodes of ``node``'s size (see the module's docstring).
+
+    Parameters
+    ----------
+    cfg : WorkflowConfig
+    node : mmflow.workflow.plan.nodes.Node
+    nodes : int, optional
+        Nodes to plan on (default: :func:`choose_nodes`).
+    costs : dict, optional
+        The fitted constants (default: the package's).
+    peak_gflops : float, optional
+        This machine's SGEMM peak (measured where not given), for nodes of its per-core speed.
+    node_gflops : float, optional
+        A node's SGEMM peak, all its cores (overrides ``peak_gflops``).
+    ingest : object, optional
+        As :func:`mmflow.workflow.plan.planner.geometry`'s (e.g. :func:`layout_ingest`).
+
+    Returns
+    -------
+    dict
+        ``node``, ``nodes``, ``settings`` (the split settings chosen, dotted), ``stages`` (rows of
+        :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb``, ``node_memory_gb``
+        (the most a node holds at once), ``node_hours`` and ``core_gflops``.
+
+    Raises
+    ------
+    InputError
+        A stage's largest task fits no node even with the last of its split settings.
+    """
+    from mmflow.machine import gemm_gflops  # deferred: scipy's BLAS
+    from mmflow.threads import usable_cores
+
+    costs = costs or load_costs()
+    if node_gflops:
+        core = node_gflops / node.cores
+    else:
+        core = (peak_gflops or gemm_gflops(np.float32, n=768)) / usable_cores()
+    slots = reference_slots(costs)
+    geo = {}
+
+    def replan(c, n=1):
+        key = c.model_dump_json()
+        if key not in geo:
+            geo[key] = geometry(c, ingest)
+        return stage_rows(c, geo[key], node, n, core, costs, slots)
+
+    settings = {}
+    while True:
+        c = with_settings(cfg, settings)
+        rows = replan(c)
+        over = [r for r in rows if not r["fits"]]
+        if not over:
+            break
+        settings.update(_split(c, over[0], node, replan))
+    n = nodes or choose_nodes(rows, node)
+    rows = replan(c, n)
+    res = {"node": {"cores": node.cores, "memory_gb": node.memory_bytes / 1e9, "partition": node.partition,
+                    "source": node.source, "available": node.count},
+           "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
+           "store_gb": sum(r["store_gb"] for r in rows)}
+    res.update(totals(res, n))
+    res["jobs"] = job_shapes(res, n)
+    return res
+
+
+def totals(res, nodes):
+    """Wall time, the most memory a node holds at once and node-hours of a cluster plan on ``nodes``."""
+    secs = [stage_seconds(r, nodes) for r in res["stages"]]
+    peak = max(r["workers_per_node"] * r["task_gb"] for r in res["stages"])
+    return {"wall_s": sum(secs), "node_memory_gb": peak, "node_hours": sum(secs) * nodes / 3600}
+
+
+def _walltime(seconds):
+    s = math.ceil((seconds * WALLTIME_MARGIN + JOB_START_S) / WALLTIME_STEP_S) * WALLTIME_STEP_S
+    return f"{s // 3600:02d}:{s % 3600 // 60:02d}:00"
+
+
+def job_shapes(plan_result, nodes=None):
+    """The batch jobs of each stage of a :func:`cluster_plan` on ``nodes`` nodes (default: its own).
+
+    A pure function of the plan: the cluster code asks it for the jobs to submit.
+
+    Returns
+    -------
+    dict
+        ``{stage: {cores, memory, processes, worker_cores, walltime, count}}``: per node one job of
+        ``processes`` workers of ``worker_cores`` cores each (``cores`` in all) and ``memory``
+        (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs.
+    """
+    n = nodes or plan_result["nodes"]
+    core_mem = plan_result["node"]["memory_gb"] * 1e9 / plan_result["node"]["cores"]
+    out = {}
+    for r in plan_result["stages"]:
+        p, k = r["workers_per_node"], r["worker_cores"]
+        out[r["stage"]] = {"cores": p * k, "memory": f"{math.floor(p * k * core_mem / 1e6)}MB", "processes": p,
+                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": n}
+    return out
+
+
+def projection(cfg, node, nodes=(8, 64), **kw):
+    """A cluster plan projected onto several node counts (JSON-ready): per count the wall time, the
+    most memory a node holds at once, the stores and node-hours; for ``mmflow bench cluster``.
+
+    ``kw``: as :func:`cluster_plan` (``costs``, ``peak_gflops``, ``node_gflops``, ``ingest``).
+    """
+    res = cluster_plan(cfg, node, nodes[0], **kw)
+    out = {"node": res["node"], "settings": res["settings"], "core_gflops": res["core_gflops"],
+           "store_gb": res["store_gb"], "largest_task": max(res["stages"], key=lambda r: r["task_gb"])["task_gb"],
+           "nodes": {}}
+    for n in nodes:
+        out["nodes"][str(n)] = {**totals(res, n), "jobs": job_shapes(res, n)}
+    return out
+
+
+def format_cluster_plan(res):
+    """The cluster plan as a table: per stage tasks, task memory, worker, job shape and time; then totals."""
+    node = res["node"]
+    rows = [f"nodes of {node['cores']} cores, {node['memory_gb']:.1f} GB ({node['source']}"
+            + (f", partition {node['partition']}" if node["partition"] else "")
+            + (f", {node['available']} available" if node["available"] else "") + f"): planned on {res['nodes']}"]
+    if res["settings"]:
+        rows.append("split to fit a node: " + ", ".join(f"{k}={v}" for k, v in res["settings"].items()))
+    rows.append(f"{'stage':12s} {'tasks':>6s} {'task GB':>8s} {'worker':>13s} {'job (per node)':>27s} "
+                f"{'jobs':>5s} {'walltime':>9s} {'time':>9s}")
+    for r in res["stages"]:
+        j = res["jobs"][r["stage"]]
+        worker = f"{r['worker_cores']}c {r['worker_memory_gb']:.1f}GB"
+        job = f"{j['cores']}c {j['memory']} x{j['processes']}"
+        big = "  (larger workers)" if r["worker_cores"] > 1 else ""
+        rows.append(f"{r['stage']:12s} {r['tasks']:6d} {r['task_gb']:8.2f} {worker:>13s} {job:>27s} "
+                    f"{j['count']:5d} {j['walltime']:>9s} {duration(stage_seconds(r, res['nodes'])):>9s}{big}")
+    rows.append(f"total: {res['nodes']} nodes, ~{duration(res['wall_s'])} wall ({res['node_hours']:.0f} node-hours), "
+                f"{res['store_gb']:.1f} GB of stores on the shared file system, at most "
+                f"{res['node_memory_gb']:.1f} GB of a node's {node['memory_gb']:.1f} GB in use; "
+                f"{res['core_gflops']:.0f} SGEMM GFLOP/s per core")
+    return "\n".join(rows)
