@@ -73,6 +73,9 @@ def build_parser(stages=True):
     bc.add_argument("--partition", help="the SLURM partition whose nodes sinfo gives (default: the default one)")
     bc.add_argument("--node-peak", type=float, metavar="GFLOPS",
                     help="a node's SGEMM peak, all its cores (default: this machine's per core)")
+    bc.add_argument("--project", type=int, nargs="+", metavar="K",
+                    help="print, as JSON, the plan projected onto each of these node counts (wall time, a node's "
+                    "memory, stores, jobs)")
     st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
     vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and XXH3 checksum)")
@@ -256,7 +259,11 @@ def _plan(args):
         if args.cluster:
             from mmflow.workflow.plan import jobs, nodes  # deferred: workflow modules (~3 s)
 
-            node = nodes.node_size(args.node_cores, args.node_memory, args.partition)
+            node = nodes.node_size(args.node_cores, args.node_memory, args.partition, scheduler=args.cluster)
+            if args.project:
+                print(json.dumps(jobs.projection(cfg, node, args.project, costs=costs, peak_gflops=args.peak,
+                                                 node_gflops=args.node_peak, ingest=ingest), indent=2))
+                return 0
             res = jobs.cluster_plan(cfg, node, args.nodes, costs, args.peak, args.node_peak, ingest)
             print(json.dumps(res, indent=2, default=float) if args.json else jobs.format_cluster_plan(res))
             return 0

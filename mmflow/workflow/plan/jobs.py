@@ -11,8 +11,8 @@ and a node's cores and memory (:mod:`mmflow.workflow.plan.nodes`), per stage:
   ``transfer.m_block``, ``mmode.baseline_chunk``, ...), in order, until it fits; the setting chosen is
   stated, and applies to every stage (all are re-planned with it). Where even the last does not fit
   the run is refused, naming the stage, its memory and the node's;
-- **the jobs**: one job per node and stage, of the stage's workers on that node (``cores``, ``memory``,
-  ``processes``), and a walltime of :data:`WALLTIME_MARGIN` times the stage's planned time on the
+- **the jobs**: per stage one job per node it can fill, of the stage's workers on that node (``cores``,
+  ``memory``, ``processes``), and a walltime of :data:`WALLTIME_MARGIN` times the stage's planned time on the
   nodes plus :data:`JOB_START_S`;
 - **the nodes**: as given (``--nodes``), else the fewest whose planned wall time is within
   :data:`NEAR_FASTEST` of the time with every stage's tasks in one round (at most the partition's nodes).
@@ -216,11 +216,17 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
     return res
 
 
+def stage_jobs(row, nodes):
+    """Jobs (nodes) a stage uses on ``nodes`` nodes: no more than its tasks fill."""
+    return min(nodes, math.ceil(row["tasks"] / row["workers_per_node"]))
+
+
 def totals(res, nodes):
     """Wall time, the most memory a node holds at once and node-hours of a cluster plan on ``nodes``."""
-    secs = [stage_seconds(r, nodes) for r in res["stages"]]
-    peak = max(r["workers_per_node"] * r["task_gb"] for r in res["stages"])
-    return {"wall_s": sum(secs), "node_memory_gb": peak, "node_hours": sum(secs) * nodes / 3600}
+    rows = res["stages"]
+    hours = sum(stage_seconds(r, nodes) * stage_jobs(r, nodes) for r in rows) / 3600
+    peak = max(min(r["workers_per_node"], r["tasks"]) * r["task_gb"] for r in rows)
+    return {"wall_s": sum(stage_seconds(r, nodes) for r in rows), "node_memory_gb": peak, "node_hours": hours}
 
 
 def _walltime(seconds):
@@ -238,7 +244,7 @@ def job_shapes(plan_result, nodes=None):
     dict
         ``{stage: {cores, memory, processes, worker_cores, walltime, count}}``: per node one job of
         ``processes`` workers of ``worker_cores`` cores each (``cores`` in all) and ``memory``
-        (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs.
+        (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs (no more than the stage's tasks fill).
     """
     n = nodes or plan_result["nodes"]
     core_mem = plan_result["node"]["memory_gb"] * 1e9 / plan_result["node"]["cores"]
@@ -246,7 +252,7 @@ def job_shapes(plan_result, nodes=None):
     for r in plan_result["stages"]:
         p, k = r["workers_per_node"], r["worker_cores"]
         out[r["stage"]] = {"cores": p * k, "memory": f"{math.floor(p * k * core_mem / 1e6)}MB", "processes": p,
-                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": n}
+                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": stage_jobs(r, n)}
     return out
 
 

@@ -108,9 +108,10 @@ def read_sinfo():
     return out.stdout if out.returncode == 0 and out.stdout.strip() else None
 
 
-def node_size(cores=None, memory=None, partition=None, sinfo_text=None):
+def node_size(cores=None, memory=None, partition=None, sinfo_text=None, scheduler="slurm"):
     """The :class:`Node` to plan on: ``cores`` and ``memory`` (bytes, or text such as ``"128GB"``)
-    where given, the rest from ``sinfo`` (``sinfo_text``, else :func:`read_sinfo`).
+    where given, the rest from ``sinfo`` (``sinfo_text``, else :func:`read_sinfo`; SLURM's only: for
+    another ``scheduler`` both must be given).
 
     Raises
     ------
@@ -122,9 +123,11 @@ def node_size(cores=None, memory=None, partition=None, sinfo_text=None):
     mem = parse_bytes(memory) if isinstance(memory, str) else memory
     if cores is not None and mem is not None:
         return Node(int(cores), float(mem), None, partition, "given")
-    text = sinfo_text if sinfo_text is not None else read_sinfo()
+    text = sinfo_text if sinfo_text is not None else read_sinfo() if scheduler == "slurm" else None
     if text is None:
-        raise InputError("cluster", "node size", "no sinfo on this machine to read the nodes' cores and memory from",
+        why = ("no sinfo on this machine to read the nodes' cores and memory from" if scheduler == "slurm" else
+               f"the nodes' cores and memory are read from SLURM's sinfo only, not from {scheduler}")
+        raise InputError("cluster", "node size", why,
                          "give them: --node-cores 32 --node-memory 128GB (and --nodes to plan on)")
     found = node_from_sinfo(text, partition)
     source = "sinfo" if cores is None and mem is None else "sinfo and given"
