@@ -80,11 +80,13 @@ def test_job_shapes_of_the_demo_from_a_given_node_size():
     _fits_its_worker(res)
     shapes = jobs.job_shapes(res)
     assert set(shapes) == {r["stage"] for r in res["stages"]}
-    for stage, j in shapes.items():  # the demo's tasks are small: standard workers, whole-node jobs
-        assert (j["cores"], j["processes"], j["worker_cores"]) == (8, 8, 1) and 1 <= j["count"] <= 2
-        assert j["memory"] == "32000MB"
-        assert re.fullmatch(r"\d\d:[0-5]\d:00", j["walltime"])
     rows = {r["stage"]: r for r in res["stages"]}
+    for stage, j in shapes.items():  # the demo's tasks are small: standard workers (a core, 4 GB)
+        assert j["worker_cores"] == 1 and j["cores"] == j["processes"] and 1 <= j["count"] <= 2
+        assert j["processes"] == min(8, -(-rows[stage]["tasks"] // j["count"]))  # whole nodes where filled
+        assert j["memory"] == f"{j['processes'] * 4000}MB"
+        assert re.fullmatch(r"\d\d:[0-5]\d:00", j["walltime"])
+    assert shapes["simulate"]["processes"] == 8 and shapes["simulate"]["memory"] == "32000MB"
     for n in (1, 5):  # a pure function of the plan and a node count: no more jobs than the tasks fill
         for stage, j in jobs.job_shapes(res, n).items():
             assert j["count"] == min(n, -(-rows[stage]["tasks"] // 8))
@@ -101,7 +103,9 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     assert rows["transfer"]["worker_cores"] == 2  # 7.5 GB: two cores' share
     assert rows["mmodes"]["worker_cores"] == 1
     shapes = res["jobs"]
-    assert shapes["transfer"]["processes"] == 16 and shapes["mmodes"]["processes"] == 32
+    assert rows["transfer"]["workers_per_node"] == 16 and rows["mmodes"]["workers_per_node"] == 32
+    t = shapes["transfer"]  # its 8 tasks: one job of 8 workers of 2 cores, 8 GB each
+    assert (t["count"], t["processes"], t["worker_cores"], t["cores"], t["memory"]) == (1, 8, 2, 16, "64000MB")
     assert res["nodes"] >= 1 and res["wall_s"] > 0 and res["store_gb"] > 30
 
 

@@ -244,15 +244,17 @@ def job_shapes(plan_result, nodes=None):
     dict
         ``{stage: {cores, memory, processes, worker_cores, walltime, count}}``: per node one job of
         ``processes`` workers of ``worker_cores`` cores each (``cores`` in all) and ``memory``
-        (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs (no more than the stage's tasks fill).
+        (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs; neither more jobs nor more workers
+        in a job than the stage's tasks fill.
     """
     n = nodes or plan_result["nodes"]
     core_mem = plan_result["node"]["memory_gb"] * 1e9 / plan_result["node"]["cores"]
     out = {}
     for r in plan_result["stages"]:
-        p, k = r["workers_per_node"], r["worker_cores"]
+        count, k = stage_jobs(r, n), r["worker_cores"]
+        p = min(r["workers_per_node"], math.ceil(r["tasks"] / count))  # a job no larger than its tasks fill
         out[r["stage"]] = {"cores": p * k, "memory": f"{math.floor(p * k * core_mem / 1e6)}MB", "processes": p,
-                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": stage_jobs(r, n)}
+                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": count}
     return out
 
 
