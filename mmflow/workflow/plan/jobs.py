@@ -5,7 +5,8 @@ and a node's cores and memory (:mod:`mmflow.workflow.plan.nodes`), per stage:
 
 - **the worker**: a standard worker is one core with a core's share of the node's memory; a stage whose
   largest task (with a worker's baseline) needs more gets workers of ``k`` cores and ``k`` shares, the
-  fewest that hold it, so a node runs ``cores // k`` of them;
+  fewest that hold it below dask's kill threshold (:func:`terminate_fraction`), so a node runs
+  ``cores // k`` of them;
 - **the split**: a stage whose largest task needs more than a whole node is re-planned with the settings
   its cost model offers (:attr:`mmflow.workflow.plan.work.Cost.split`: ``transfer.baseline_chunk``,
   ``transfer.m_block``, ``mmode.baseline_chunk``, ...), in order, until it fits; the setting chosen is
@@ -89,20 +90,30 @@ def reference_slots(costs):
     return float(np.median(slots)) if slots else 1.0
 
 
-def _worker_cores(need, node):
-    """Cores of the fewest core-shares of a node that hold ``need`` bytes (> the node's cores: no fit)."""
-    return max(1, math.ceil(need / node.core_memory_bytes - 1e-9))
+def terminate_fraction():
+    """The share of its memory limit at which dask's nanny kills a worker
+    (``distributed.worker.memory.terminate``, 0.95 by default): a task must stay below it."""
+    import dask.config  # deferred: dask takes 0.3-0.8 s to import
+    import distributed  # noqa: F401  -- loads distributed's defaults into dask's configuration
+
+    return float(dask.config.get("distributed.worker.memory.terminate", 0.95) or 1.0)
+
+
+def _worker_cores(need, node, frac):
+    """Cores of the fewest core-shares of a node whose memory, below dask's ``frac``, holds ``need``
+    bytes (more than the node's cores: no fit)."""
+    return max(1, math.ceil(need / (node.core_memory_bytes * frac) - 1e-9))
 
 
 def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
     """Per enabled stage its worker, its time on ``nodes`` nodes and what scales it (dicts)."""
-    rows = []
+    rows, frac = [], terminate_fraction()
     for st in PIPELINE:
         if not st.enabled(cfg) or st.task is None:
             continue
         probe = estimate(st.name, g, cfg, costs, costs["sgemm_gflops"], 1)
         need = probe.task_bytes + WORKER_BASE_BYTES
-        k = _worker_cores(need, node)
+        k = _worker_cores(need, node, frac)
         per_node = max(1, node.cores // k)
         workers = nodes * per_node
         est = estimate(st.name, g, cfg, costs, slots * core_gflops, workers, nodes * node.cores * core_gflops)
@@ -147,7 +158,9 @@ def _split(cfg, row, node, replan):
     last = (" even with " + ", ".join(f"{k}={v}" for k, v in tried.items())) if tried else " (no setting splits it)"
     fix = f"{cost.shrink_setting(cfg)}, or nodes with more memory (--node-memory)"
     raise InputError("workflow", f"stage {row['stage']}", f"its largest task needs ~{need:.2f} GB{last} "
-                     f"(`mmflow plan`), more than a node's {node.memory_bytes / 1e9:.2f} GB", fix)
+                     f"(`mmflow plan`), more than the {node.memory_bytes * terminate_fraction() / 1e9:.2f} GB a worker may hold on "
+                     f"a node of {node.memory_bytes / 1e9:.2f} GB (dask stops a worker at "
+                     f"{terminate_fraction():.0%} of its memory)", fix)
 
 
 def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflops=None, ingest=None):
