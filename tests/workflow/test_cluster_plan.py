@@ -113,12 +113,13 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
 @pytest.mark.parametrize("setting, value, node_gb, stage", [
     ("mmode.baseline_chunk", 8192, 16, "mmodes"),
     ("transfer.m_block", 256, 16, "normal"),
+    ("transfer.baseline_chunk", 32, 7.5, "transfer"),  # the paper's channel's 7.47 GB transfer task
 ])
 def test_a_task_larger_than_a_node_is_split_by_replanning(setting, value, node_gb, stage):
     cfg = load_config(_wf("paper-scale.yaml"), [f"{setting}={value}"])
     node = Node(16, node_gb * GB)
     before = {r["stage"]: r for r in jobs.stage_rows(cfg, jobs.geometry(cfg), node, 1, 50.0, jobs.load_costs(), 2)}
-    assert before[stage]["task_gb"] > node_gb  # the setting as given does not fit a node
+    assert before[stage]["task_gb"] > node_gb * jobs.terminate_fraction()  # as given it does not fit a node
     res = _plan(cfg, node)
     chosen = res["settings"][setting]
     assert chosen < value and list(res["settings"]) == [setting]
