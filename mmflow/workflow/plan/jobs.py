@@ -38,8 +38,8 @@ from mmflow.errors import InputError
 from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.pipeline import PIPELINE
-from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, geometry, load_costs,
-                                          task_seconds)
+from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
+                                          load_costs, task_seconds)
 
 #: the job's walltime against the stage's planned time (the plan is within 50 % in time: docs/planning.md)
 WALLTIME_MARGIN = 2.0
@@ -156,11 +156,11 @@ def _split(cfg, row, node, replan):
             return settings
         tried, need = settings, r["task_gb"]
     last = (" even with " + ", ".join(f"{k}={v}" for k, v in tried.items())) if tried else " (no setting splits it)"
-    fix = f"{cost.shrink_setting(cfg)}, or nodes with more memory (--node-memory)"
-    raise InputError("workflow", f"stage {row['stage']}", f"its largest task needs ~{need:.2f} GB{last} "
-                     f"(`mmflow plan`), more than the {node.memory_bytes * terminate_fraction() / 1e9:.2f} GB a worker may hold on "
-                     f"a node of {node.memory_bytes / 1e9:.2f} GB (dask stops a worker at "
-                     f"{terminate_fraction():.0%} of its memory)", fix)
+    frac = terminate_fraction()
+    raise InputError("workflow", f"stage {row['stage']}", f"its largest task needs ~{need:.2f} GB{last} (`mmflow "
+                     f"plan`), more than the {node.memory_bytes * frac / 1e9:.2f} GB a worker may hold on a node of "
+                     f"{node.memory_bytes / 1e9:.2f} GB (dask stops a worker at {frac:.0%} of its memory)",
+                     f"{cost.shrink_setting(cfg)}, or nodes with more memory (--node-memory)")
 
 
 def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflops=None, ingest=None):
@@ -185,8 +185,9 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
     -------
     dict
         ``node``, ``nodes``, ``settings`` (the split settings chosen, dotted), ``stages`` (rows of
-        :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb``, ``node_memory_gb``
-        (the most a node holds at once), ``node_hours`` and ``core_gflops``.
+        :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb``, ``free_disk_gb``
+        (where ``run.directory`` will be: the shared file system where planned on a login node),
+        ``node_memory_gb`` (the most a node holds at once), ``node_hours`` and ``core_gflops``.
 
     Raises
     ------
@@ -210,20 +211,25 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
             geo[key] = geometry(c, ingest)
         return stage_rows(c, geo[key], node, n, core, costs, slots)
 
-    settings = {}
+    settings, split = {}, set()
     while True:
         c = with_settings(cfg, settings)
         rows = replan(c)
         over = [r for r in rows if not r["fits"]]
         if not over:
             break
+        if over[0]["stage"] in split:  # another stage's split undid it: its setting no longer helps
+            raise InputError("workflow", f"stage {over[0]['stage']}", f"its largest task needs "
+                             f"~{over[0]['task_gb']:.2f} GB with {settings}, more than a node holds",
+                             "nodes with more memory (--node-memory)")
+        split.add(over[0]["stage"])
         settings.update(_split(c, over[0], node, replan))
     n = nodes or choose_nodes(rows, node)
     rows = replan(c, n)
     res = {"node": {"cores": node.cores, "memory_gb": node.memory_bytes / 1e9, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
-           "store_gb": sum(r["store_gb"] for r in rows)}
+           "store_gb": sum(r["store_gb"] for r in rows), "free_disk_gb": free_disk_gb(cfg.run.directory)}
     res.update(totals(res, n))
     res["jobs"] = job_shapes(res, n)
     return res
@@ -303,8 +309,11 @@ def format_cluster_plan(res):
         big = "  (larger workers)" if r["worker_cores"] > 1 else ""
         rows.append(f"{r['stage']:12s} {r['tasks']:6d} {r['task_gb']:8.2f} {worker:>13s} {job:>27s} "
                     f"{j['count']:5d} {j['walltime']:>9s} {duration(stage_seconds(r, res['nodes'])):>9s}{big}")
-    rows.append(f"total: {res['nodes']} nodes, ~{duration(res['wall_s'])} wall ({res['node_hours']:.0f} node-hours), "
-                f"{res['store_gb']:.1f} GB of stores on the shared file system, at most "
-                f"{res['node_memory_gb']:.1f} GB of a node's {node['memory_gb']:.1f} GB in use; "
+    rows.append(f"total: {res['nodes']} nodes, ~{duration(res['wall_s'])} wall ({res['node_hours']:.0f} node-hours); "
+                f"a node holds at most {res['node_memory_gb']:.1f} GB of its {node['memory_gb']:.1f} GB; "
                 f"{res['core_gflops']:.0f} SGEMM GFLOP/s per core")
+    free = res["free_disk_gb"]
+    rows.append(f"disk: {res['store_gb']:.1f} GB of stores on the shared file system ("
+                + (f"{free:.1f} GB free where run.directory will be)" if free >= res["store_gb"] else
+                   f"only {free:.1f} GB free where run.directory will be: mmflow run refuses it there)"))
     return "\n".join(rows)
