@@ -179,3 +179,25 @@ def test_the_plan_without_cluster_is_unchanged(capsys):
     out = capsys.readouterr().out
     assert out.splitlines()[0].split() == ["stage", "tasks", "task", "GB", "store", "GB", "time"]
     assert "job" not in out and "nodes" not in out
+
+
+def test_the_cli_reads_the_nodes_from_sinfo_or_says_what_to_give(monkeypatch, capsys):
+    args = ["plan", _wf("demo.yaml"), "--cluster", "slurm", "--node-peak", "800", "--json"]
+    monkeypatch.setattr(nodes, "read_sinfo", lambda: None)
+    assert main(args) == 2
+    assert "--node-cores 32 --node-memory 128GB" in capsys.readouterr().err
+    monkeypatch.setattr(nodes, "read_sinfo", lambda: SINFO)  # as `sinfo -h -o '%c %m %D %P'` prints it
+    assert main(args) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["node"] == {"cores": 32, "memory_gb": 128000 * 1024 ** 2 / GB, "partition": "compute",
+                           "source": "sinfo", "available": 14}
+    assert 1 <= out["nodes"] <= 14  # no more nodes than the partition has
+    assert main(args + ["--partition", "bigmem"]) == 0
+    assert json.loads(capsys.readouterr().out)["node"]["cores"] == 128
+
+
+def test_an_ingesting_workflow_without_its_files_points_to_simulate_layout(capsys):
+    assert main(["plan", _wf("ovro-lwa-stage3.yaml"), "--cluster", "slurm", "--node-cores", "32",
+                 "--node-memory", "128GB", "--node-peak", "3150"]) == 2
+    err = capsys.readouterr().err
+    assert "input.path" in err and "--simulate-layout" in err
