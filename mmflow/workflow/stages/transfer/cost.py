@@ -25,16 +25,11 @@ def disk_shrink(cfg):
             f"fewer transfer.groups (now {t.groups}: each keeps a partial Gram per channel on disk)")
 
 
-def split(cfg):
-    """Single precision first (half the Gram), then fewer baselines per chunk (the ring-Fourier buffers)."""
-    first = {} if cfg.transfer.dtype == "float32" else {"transfer.dtype": "float32"}
-    return ([first] if first else []) + [{**first, **h} for h in halvings("transfer.baseline_chunk")(cfg)]
-
-
 def shrink(cfg):
     if cfg.transfer.dtype != "float32":
         return "transfer.dtype=float32 (half the Gram)"
     return "a lower mmode.lmax (the Gram and the grid tables grow as lmax^3)"
 
 
-COST = Cost(work, shrink=shrink, disk_shrink=disk_shrink, split=split)
+#: fewer baselines per chunk: smaller ring-Fourier buffers (the Gram and the grid tables stay)
+COST = Cost(work, shrink=shrink, disk_shrink=disk_shrink, split=halvings("transfer.baseline_chunk"))
