@@ -152,8 +152,10 @@ def test_the_352_antenna_array_fits_nodes_of_32_cores_and_128_gb(capsys):
 
 def test_a_projection_for_8_and_64_nodes_is_json():
     cfg = load_config(_wf("ovro-lwa-stage3.yaml"))
-    proj = jobs.projection(cfg, Node(32, 128 * GB), (8, 64), peak_gflops=PEAK, ingest=jobs.layout_ingest(cfg))
-    json.dumps(proj)
+    proj = jobs.array_projection((8, 64), peak_gflops=PEAK)  # what `mmflow bench cluster` states
+    assert json.loads(json.dumps(proj))["array"] == {"workflow": "ovro-lwa-stage3.yaml", "antennas": 352,
+                                                    "baselines": 62128, "integrations": 6628, "channels": 3,
+                                                    "lmax": 2000}
     eight, many = proj["nodes"]["8"], proj["nodes"]["64"]
     assert many["wall_s"] < eight["wall_s"] and many["node_hours"] > 0
     res = jobs.cluster_plan(cfg, Node(32, 128 * GB), 64, peak_gflops=PEAK, ingest=jobs.layout_ingest(cfg))

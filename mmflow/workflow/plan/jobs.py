@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -38,6 +39,7 @@ from mmflow.errors import InputError
 from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan.nodes import Node
 from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
                                           load_costs, task_seconds)
 
@@ -289,6 +291,27 @@ def projection(cfg, node, nodes=(8, 64), **kw):
            "nodes": {}}
     for n in nodes:
         out["nodes"][str(n)] = {**totals(res, n), "jobs": job_shapes(res, n)}
+    return out
+
+
+#: the OVRO-LWA's 352-antenna array as a workflow (its files not needed: :func:`layout_ingest`)
+ARRAY_WORKFLOW = Path(__file__).resolve().parents[3] / "workflows" / "ovro-lwa-stage3.yaml"
+#: the node :func:`array_projection` plans on by default: 32 cores and 128 GB (issue 38's example)
+ARRAY_NODE = Node(32, 128e9)
+
+
+def array_projection(nodes=(8, 64), node=ARRAY_NODE, workflow=ARRAY_WORKFLOW, overrides=(), **kw):
+    """:func:`projection` of the 352-antenna array (``workflow``: its workflow, planned on its own
+    layout without its files) onto ``nodes`` nodes of ``node``'s size, with the array's sizes: what
+    ``mmflow bench cluster`` states beside its measurements. ``kw``: as :func:`cluster_plan`."""
+    from mmflow.workflow.config.schema import load_config  # deferred: the schema's validators load dask
+
+    cfg = load_config(workflow, list(overrides))
+    ingest = layout_ingest(cfg)
+    out = projection(cfg, node, nodes, ingest=ingest, **kw)
+    out["array"] = {"workflow": Path(workflow).name, "antennas": len(ingest.layout.names),
+                    "baselines": len(ingest.pairs), "integrations": ingest.n_time,
+                    "channels": len(ingest.freqs_hz), "lmax": cfg.mmode.lmax}
     return out
 
 
