@@ -107,6 +107,8 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     assert rows["transfer"]["workers_per_node"] == 16 and rows["mmodes"]["workers_per_node"] == 32
     t = shapes["transfer"]  # its 8 tasks: one job of 8 workers of 2 cores, 8 GB each
     assert (t["count"], t["processes"], t["worker_cores"], t["cores"], t["memory"]) == (1, 8, 2, 16, "64000MB")
+    assert t["task_memory_bytes"] <= t["worker_memory_bytes"] * jobs.terminate_fraction()
+    assert t["task_memory_bytes"] == pytest.approx(rows["transfer"]["task_gb"] * GB, abs=1)
     assert res["nodes"] >= 1 and res["wall_s"] > 0 and res["store_gb"] > 30
 
 

@@ -263,10 +263,12 @@ def job_shapes(plan_result, nodes=None):
     Returns
     -------
     dict
-        ``{stage: {cores, memory, processes, worker_cores, walltime, count}}``: per node one job of
+        ``{stage: {cores, memory, processes, worker_cores, walltime, count, ...}}``: per node one job of
         ``processes`` workers of ``worker_cores`` cores each (``cores`` in all) and ``memory``
         (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs; neither more jobs nor more workers
-        in a job than the stage's tasks fill.
+        in a job than the stage's tasks fill. ``worker_memory_bytes`` (a worker's limit) and
+        ``task_memory_bytes`` (the stage's largest task with a worker's baseline) let the cluster code
+        route the tasks, e.g. as dask worker resources.
     """
     n = nodes or plan_result["nodes"]
     core_mem = plan_result["node"]["memory_gb"] * 1e9 / plan_result["node"]["cores"]
@@ -275,7 +277,9 @@ def job_shapes(plan_result, nodes=None):
         count, k = stage_jobs(r, n), r["worker_cores"]
         p = min(r["workers_per_node"], math.ceil(r["tasks"] / count))  # a job no larger than its tasks fill
         out[r["stage"]] = {"cores": p * k, "memory": f"{math.floor(p * k * core_mem / 1e6)}MB", "processes": p,
-                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": count}
+                           "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": count,
+                           "worker_memory_bytes": math.floor(k * core_mem),
+                           "task_memory_bytes": math.ceil(r["task_gb"] * 1e9)}
     return out
 
 
