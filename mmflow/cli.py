@@ -287,7 +287,10 @@ def _dispatch(args):
     from mmflow.workflow.config.schema import load_config
     from mmflow.workflow.engine.passes import run_with_passes
 
-    cfg = load_config(args.workflow, args.overrides)
+    # --cluster is cluster.kind (--scheduler: kind address), recorded as such in the run's config.yaml
+    chosen = [f"cluster.kind={args.cluster}"] if args.cluster else \
+        ["cluster.kind=address", f"cluster.address={args.scheduler}"] if args.scheduler else []
+    cfg = load_config(args.workflow, [*args.overrides, *chosen])
     only = None if args.cmd == "run" else [args.cmd]
     with open_cluster(cfg, args.scheduler, args.cluster) as client:
         summaries = run_with_passes(cfg, client, only=only, force=args.force, progress=not args.no_progress)

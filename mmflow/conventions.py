@@ -54,6 +54,16 @@ FULL_STOKES = ("I", "Q", "U", "V")
 STOKES_COHERENCY = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1j], [1j, 0]]], complex)
 
 
+def complex_dtype(dtype):
+    """The complex dtype of a working precision: ``complex64`` for float32 (or complex64), else ``complex128``.
+
+    The one rule for every array whose precision follows a real one (transfer matrices, Grams,
+    visibilities in a kernel's working precision); ``.type`` gives numpy's scalar type, ``.name`` the
+    string stored in zarr attributes.
+    """
+    return np.dtype(np.complex64) if np.dtype(dtype) in (np.float32, np.complex64) else np.dtype(np.complex128)
+
+
 def is_full_stokes(stokes):
     """True when ``stokes`` (``imaging.stokes``) asks for I, Q, U and V."""
     return tuple(stokes) == FULL_STOKES

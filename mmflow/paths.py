@@ -7,11 +7,15 @@ the same wherever they are read.
 """
 from __future__ import annotations
 
+import getpass
 import os
+import re
 
 
 def expand_path(path):
     """``path`` with ``$VAR`` / ``${VAR}`` and then ``~`` expanded (``os.path.expandvars``, ``expanduser``).
+    ``$USER`` where it is not set (containers, cron, some batch jobs) is the login name
+    (``getpass.getuser``), as ``~`` is the home directory without ``$HOME``.
 
     Parameters
     ----------
@@ -23,4 +27,13 @@ def expand_path(path):
     str
         The expanded path (not made absolute, not checked for existence).
     """
-    return os.path.expanduser(os.path.expandvars(os.fspath(path)))
+    text = os.fspath(path)
+    if "USER" not in os.environ and re.search(_USER, text):
+        try:
+            text = re.sub(_USER, getpass.getuser(), text)
+        except (OSError, KeyError):  # no login name either: left as written
+            pass
+    return os.path.expanduser(os.path.expandvars(text))
+
+
+_USER = r"\$(\{USER\}|USER\b)"

@@ -12,7 +12,7 @@ os.environ.setdefault("MMFLOW_CACHE_DIR", str(Path(__file__).resolve().parents[1
 
 #: the longest test files, longest first: started first, so that with ``-n 2 --dist loadfile
 #: --no-loadscope-reorder`` (``make test``) no long file is left running alone at the end (a scheduling
-#: hint; measured, docs/architecture.md). Without ``--no-loadscope-reorder`` xdist sorts the files by
+#: hint; measured, docs/performance.md). Without ``--no-loadscope-reorder`` xdist sorts the files by
 #: their number of tests and the one-test README tour (~3 min) started last.
 LONGEST_FIRST = ("test_readme.py", "test_raw_day.py", "test_calibration_workflow.py", "test_faults.py",
                  "test_workflow.py", "test_clean_stage.py", "test_cluster.py", "test_stokes_workflow.py",

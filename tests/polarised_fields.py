@@ -48,7 +48,9 @@ def field_parts(stokes, e_n, e_e, wt):
         uu = np.cos(chi) * e_n + np.sin(chi) * e_e
         vv = -np.sin(chi) * e_n + np.cos(chi) * e_e
         a = np.sqrt(2 * p)
-        parts.append(a * (np.cos(beta) * np.multiply.outer(uu, np.cos(wt)) + np.sin(beta) * np.multiply.outer(vv, np.sin(wt))))
+        parts.append(
+            a * (np.cos(beta) * np.multiply.outer(uu, np.cos(wt)) + np.sin(beta) * np.multiply.outer(vv, np.sin(wt)))
+        )
     if i - p > 1e-15 * i:
         parts += [np.sqrt(i - p) * np.multiply.outer(e, np.cos(wt)) for e in (e_n, e_e)]
     return parts

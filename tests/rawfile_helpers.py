@@ -16,7 +16,8 @@ def ingest(path, run_dir, *extra):
 
 def pyuvdata_reference(path, edit=None, pols=(-5, -6)):
     """pyuvdata's read, unprojected, polarisations ``pols`` (default xx, yy; then ``edit(uv)``, e.g. a
-    selection or an average), in the store's layout (integrations ascending, baselines as (i <= j) pairs of the antennas with data);
+    selection or an average), in the store's layout (integrations ascending, baselines as (i <= j) pairs of the
+    antennas with data);
     flagged or non-finite samples weigh 0 (non-finite ones are stored as 0)."""
     from pyuvdata import UVData
 

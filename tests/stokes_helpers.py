@@ -22,7 +22,8 @@ HORIZON_TAPER = 3.0
 
 
 def compact_layout(n_ant=10, radius_m=8.0):
-    """The full-Stokes scene's array (:func:`tests.polarised_scene.scene_layout`), ``n_ant`` antennas within ``radius_m``."""
+    """The full-Stokes scene's array (:func:`tests.polarised_scene.scene_layout`), ``n_ant`` antennas within
+    ``radius_m``."""
     return scene_layout(n_ant, radius_m)
 
 

@@ -25,10 +25,19 @@ def _telescope(lay, feeds=("x",)):
     from pyuvdata.utils import ECEF_from_ENU
 
     loc = EarthLocation.from_geodetic(lay.lon_deg * u.deg, lay.lat_deg * u.deg, lay.height_m * u.m)
-    ecef = ECEF_from_ENU(lay.enu, center_loc=loc) - np.array([loc.x.to_value('m'), loc.y.to_value('m'), loc.z.to_value('m')])
-    return Telescope.new("OVRO-LWA-test", loc, antenna_positions=ecef,
-                         antenna_names=[f"ANT{k:03d}" for k in range(lay.n_ant)], antenna_numbers=list(range(lay.n_ant)),
-                         instrument="mmflow-test", mount_type="fixed", feeds=list(feeds)), loc
+    ecef = ECEF_from_ENU(lay.enu, center_loc=loc) - np.array(
+        [loc.x.to_value("m"), loc.y.to_value("m"), loc.z.to_value("m")]
+    )
+    return Telescope.new(
+        "OVRO-LWA-test",
+        loc,
+        antenna_positions=ecef,
+        antenna_names=[f"ANT{k:03d}" for k in range(lay.n_ant)],
+        antenna_numbers=list(range(lay.n_ant)),
+        instrument="mmflow-test",
+        mount_type="fixed",
+        feeds=list(feeds),
+    ), loc
 
 
 def matvis_uvdata(beam, n_times=60, radius_m=12.0, freq_hz=40e6,
@@ -63,9 +72,20 @@ def matvis_uvdata(beam, n_times=60, radius_m=12.0, freq_hz=40e6,
     data = np.stack([xx * gains[p] for p in pols], axis=-1).astype(np.complex128)
     rng = np.random.default_rng(seed)
     flags = rng.random(data.shape) < flag_fraction
-    uv = UVData.new(freq_array=np.array([freq_hz]), polarization_array=np.atleast_1d(polstr2num(list(pols))), times=times.jd, telescope=tel,
-                    antpairs=antpairs, do_blt_outer=True, data_array=data, flag_array=flags,
-                    integration_time=dt, channel_width=24e3, vis_units="Jy", time_axis_faster_than_bls=False)
+    uv = UVData.new(
+        freq_array=np.array([freq_hz]),
+        polarization_array=np.atleast_1d(polstr2num(list(pols))),
+        times=times.jd,
+        telescope=tel,
+        antpairs=antpairs,
+        do_blt_outer=True,
+        data_array=data,
+        flag_array=flags,
+        integration_time=dt,
+        channel_width=24e3,
+        vis_units="Jy",
+        time_axis_faster_than_bls=False,
+    )
     uv._fix_autos()
     uv.pol_convention = "sum"  # matvis: an unpolarised source of S Jy gives XX = S B / 2
     return uv, lay

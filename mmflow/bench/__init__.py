@@ -19,7 +19,8 @@ MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workf
 
 
 def run(what, quick=False, **options):
-    """Run one benchmark; ``options`` are passed on to benchmarks that take them (``channel``, ``paper``, ``ingest``)."""
+    """Run one benchmark; ``options`` are passed on to benchmarks that take them (``channel``, ``paper``,
+    ``ingest``)."""
     name = MODULES[what]
     if what == "transfer":  # --stokes IQUV: full Stokes against Stokes I (:mod:`.stokes`)
         name = "stokes" if options.pop("stokes", "I") == "IQUV" else name

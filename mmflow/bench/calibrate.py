@@ -125,7 +125,9 @@ def peel_rates(n_ant=256, n_int=16, n_src=8, passes=5, rng=None, modes=None):
     R = V.copy()
     ones = np.ones(n_int)
     t_add = best_time(lambda: add_component(R, M[0], cold.dd_gains[0], ones))
-    t_add_np = best_time(lambda: np.add(R, cold.dd_gains[0][:, :, None] * M[0] * np.conj(cold.dd_gains[0])[:, None, :], out=R))
+    t_add_np = best_time(
+        lambda: np.add(R, cold.dd_gains[0][:, :, None] * M[0] * np.conj(cold.dd_gains[0])[:, None, :], out=R)
+    )
     resid = float(np.linalg.norm(cold.residual * W) / np.linalg.norm(V * W))
     per_cold, per_warm = t_cold / n_int, t_warm / n_int
     return {"n_ant": n_ant, "layout": name, "sources": n_src, "passes": passes, "integrations_per_call": n_int,
@@ -196,7 +198,9 @@ def _peel_stage_rates(n_ant, n_int, rng):
     basis = screen_basis(tel.layout.enu, 73.152e6, sky_tangents_enu(tel, lst, vec))  # (2, time, ant, 2)
     h = screen_gains(basis, np.deg2rad(3 / 60) * rng.normal(size=(2, n_int, 2)), np.ones((2, n_int)))
     vis = coh[2:].sum(0).astype(complex) + sum(coh[s] * gain_products(h[s][..., None], pairs)[..., 0] for s in (0, 1))
-    vis = np.repeat(vis[..., None], 2, -1) + 20 * (rng.normal(size=vis.shape + (2,)) + 1j * rng.normal(size=vis.shape + (2,)))
+    vis = np.repeat(vis[..., None], 2, -1) + 20 * (
+        rng.normal(size=vis.shape + (2,)) + 1j * rng.normal(size=vis.shape + (2,))
+    )
     weights = np.ones(vis.shape)
 
     def solve(n):

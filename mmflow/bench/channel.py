@@ -47,6 +47,7 @@ from mmflow.workflow.engine.cluster import open_cluster
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.runner import run_workflow
+from mmflow.conventions import complex_dtype
 
 POOL_PHASES = ("tables_s", "legendre_s", "scale_s", "herk_s", "rhs_s")
 PAPER = {"layout": "paper-2017", "freq_mhz": 73.152, "lmax": 1000}
@@ -156,7 +157,7 @@ def calibrate(dtype, lmaxes, nb=64):
         t0 = time.perf_counter()
         grid = make_grid(LAT, BEAM, 73.152e6, lg, fr)
         grid_s = time.perf_counter() - t0
-        acc = NormalAccumulator(lmax, lmax, np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
+        acc = NormalAccumulator(lmax, lmax, complex_dtype(dtype).type)
         vw = np.ones((1, 2 * n), acc.dtype)
         tim = {}
 
@@ -233,7 +234,7 @@ def _mean_lmax(tel, freq_hz, lmax, chunks):
 # ---------------------------------------------------------------- the measured run
 
 def measure_engine(tel, freq_hz, lmax, chunks, lmax_b, dtype, solve_stride=1, eps=0.01):
-    acc_dtype = np.complex64 if np.dtype(dtype) == np.float32 else np.complex128
+    acc_dtype = complex_dtype(dtype).type
     acc = NormalAccumulator(lmax, lmax, acc_dtype)
     n_bl = len(lmax_b)
     inv_var = np.ones(n_bl)

@@ -39,7 +39,9 @@ def to_matrix(vis, pairs, n_ant, fill=0.0, out=None):
     vis = np.asarray(vis)
     pairs = check_pairs(pairs, n_ant)
     if vis.ndim == 0 or vis.shape[-1] != len(pairs):
-        raise ValueError(f"visibilities of shape {vis.shape}: the last axis must hold the {len(pairs)} baselines of pairs")
+        raise ValueError(
+            f"visibilities of shape {vis.shape}: the last axis must hold the {len(pairs)} baselines of pairs"
+        )
     shape = vis.shape[:-1] + (n_ant, n_ant)
     if out is None:
         out = np.empty(shape, vis.dtype)
@@ -56,7 +58,8 @@ def to_matrix(vis, pairs, n_ant, fill=0.0, out=None):
 
 @numba.njit(nogil=True, cache=True)
 def _scatter_hermitian(rows, i, j, fill, out):
-    """``out[r] = fill``, ``out[r, j_k, i_k] = conj(rows[r, k])`` for every k, then ``out[r, i_k, j_k] = rows[r, k]``."""
+    """``out[r] = fill``, ``out[r, j_k, i_k] = conj(rows[r, k])`` for every k, then
+    ``out[r, i_k, j_k] = rows[r, k]``."""
     n = out.shape[1]
     for r in range(rows.shape[0]):
         m = out[r]

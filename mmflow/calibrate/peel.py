@@ -272,7 +272,9 @@ def peel_dense(V, coherencies, W, modes, g0=None, *, passes=3, tol=1e-4, max_ite
     g = np.ones((n_src, S, N), np.complex128) if g0 is None else np.array(g0, np.complex128, copy=True)
     offsets = np.full((n_src, S, 2), np.nan)
     if screen:
-        offsets = np.zeros((n_src, S, 2)) if offsets0 is None else np.nan_to_num(np.broadcast_to(offsets0, (n_src, S, 2)))
+        offsets = (
+            np.zeros((n_src, S, 2)) if offsets0 is None else np.nan_to_num(np.broadcast_to(offsets0, (n_src, S, 2)))
+        )
         g = screen_gains(screen_basis, offsets, np.ones((n_src, S)))
         screen_amp = np.ones((n_src, S))
         groups = _interval_groups(intervals, S)
@@ -437,7 +439,7 @@ def peel(vis, weights, coherencies, pairs, n_ant, modes, *, dd_model: str = "scr
     dtype : complex64 or complex128
         Working precision of the solve: each batch's antenna matrices (data, models, residual) are
         formed in it. complex64 halves the memory traffic that bounds peeling (``mmflow bench
-        calibrate`` times it so); it resolves a ``tol`` down to ~1e-5 (:data:`SINGLE_TOL`).
+        calibrate`` times it so); it resolves a ``tol`` down to ~1e-5 (the peel stage's ``SINGLE_PRECISION_TOL``).
 
     Returns
     -------

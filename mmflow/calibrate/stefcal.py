@@ -34,6 +34,7 @@ import numpy as np
 from mmflow.calibrate.baselines import check_pairs, to_matrix
 from mmflow.errors import InputError
 from mmflow.threads import n_threads
+from mmflow.conventions import complex_dtype
 
 DAMPING = ("half", "rk4", "none")
 
@@ -452,7 +453,7 @@ def dense_problem(vis, model, weights, pairs, n_ant, solint, baseline_keep=None)
         x = np.moveaxis(x, -1, 1).reshape(n_int * P, solint * C, B)
         return to_matrix(x, pairs, n_ant)
 
-    cdt = np.complex64 if vis.dtype == np.complex64 else np.complex128
+    cdt = complex_dtype(vis.dtype).type
     return dense(vis, cdt), dense(model, cdt), dense(w, np.float32 if cdt == np.complex64 else float)
 
 

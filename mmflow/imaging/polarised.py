@@ -35,7 +35,7 @@ import healpy
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.conventions import m_slice, n_alm
+from mmflow.conventions import m_slice, n_alm, complex_dtype
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.solvers import floored_penalty
@@ -121,7 +121,7 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
                              "give m-modes (mmax + 1, 2, n_corr, n_bl) with mmax >= lmax")
     n_vec = 0 if mm is None else mm.shape[0]
     w = np.ones((n_corr, nb)) if inv_var is None else np.broadcast_to(np.asarray(inv_var, float), (n_corr, nb))
-    cdtype = np.complex64 if np.dtype(dtype) == np.float32 else np.complex128
+    cdtype = complex_dtype(dtype).type
     gram = [np.zeros((4 * (lmax - m + 1),) * 2, cdtype, order="F") for m in range(lmax + 1)]
     rhs = [np.zeros((n_vec, 4 * (lmax - m + 1)), np.complex128) for m in range(lmax + 1)]
     vhv = np.zeros((n_vec, lmax + 1))
@@ -239,7 +239,8 @@ class PolarisedObserver:
             self.blocks.append((keep, sla.cho_factor(g, overwrite_a=True, check_finite=False)))
 
     def solve(self, rhs_of_m):
-        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``: alm ``(n_vec, 4, n_alm)``."""
+        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``:
+        alm ``(n_vec, 4, n_alm)``."""
         n_vec = len(rhs_of_m(0))
         out = np.zeros((n_vec, 4, n_alm(self.lmax)), np.complex128)
         for m, block in enumerate(self.blocks):

@@ -172,12 +172,22 @@ def nonfinite(vis, flagged, what, mode):
     bad = ~np.isfinite(vis) & ~flagged
     n = int(np.count_nonzero(bad))
     if n and mode != "flag":
-        raise InputError(what, "data_array", f"{n} unflagged samples are NaN or inf (of {vis.size})",
-                         "flag them in the file, or set input.nonfinite=flag to flag them at ingest (counted and "
-                         "logged)")
+        raise nonfinite_error(what, n, vis.size)
     if n:
         log.warning("%s: flagged %d unflagged NaN/inf samples (input.nonfinite=flag)", what, n)
     return bad, n
+
+
+def nonfinite_error(what, n, size, others=()):
+    """The :class:`InputError` for ``n`` unflagged NaN/inf samples (of ``size``) in the file ``what``;
+    ``others``: ``(file, n)`` of further files with them, named in the same message."""
+    more = ""
+    if others:
+        shown = ", ".join(f"{f} ({k})" for f, k in others[:3])
+        more = f"; so are samples of {len(others)} more file(s): {shown}" + (", ..." if len(others) > 3 else "")
+    return InputError(what, "data_array", f"{n} unflagged samples are NaN or inf (of {size}){more}",
+                      "flag them in the file, or set input.nonfinite=flag to flag them at ingest (counted and "
+                      "logged)")
 
 
 def file_info(uv, what, calibrated_here=False):

@@ -27,6 +27,7 @@ import logging
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 import zarr
@@ -35,7 +36,7 @@ from mmflow.errors import InputError
 from mmflow.io import checks, ms_index, uvh5_index
 from mmflow.io.channels import average_channels, frequency_sets, select_channels
 from mmflow.io.polarization import pol_factor
-from mmflow.io.readers import file_kind, read_file, read_metadata
+from mmflow.io.readers import file_kind, read_file, read_metadata, unflagged_nonfinite
 from mmflow.mmode.transform import bin_coverage
 from mmflow.sky.frames import apparent_sidereal_time
 from mmflow.telescope.layout import Layout
@@ -81,13 +82,35 @@ def plan_ingest(cfg):
                  bool(getattr(cfg.input, "cross_hands", True)), str(getattr(cfg.input, "pol_convention", "auto")))
 
 
+#: endings of the files (or MeasurementSet directories) pyuvdata reads, for a directory given as input.path
+DATA_SUFFIXES = (".uvh5", ".h5", ".hdf5", ".uvfits", ".fits", ".ms")
+
+
 def _files(pattern):
     if not pattern:
         raise InputError("workflow", "input.path", "no input path", "set input.path=/data/*.uvh5")
     files = sorted(globmod.glob(pattern)) or ([pattern] if "*" not in pattern else [])
     if not files:
         raise InputError(pattern, "input.path", "no files match", "check the path or glob")
+    if len(files) == 1:
+        _refuse_plain_directory(files[0])
     return files
+
+
+def _refuse_plain_directory(path):
+    """A directory given as ``input.path`` that is not a data set itself (a MeasurementSet's
+    ``table.dat``, a Miriad ``visdata``): refused naming what it holds, with the glob to give."""
+    p = Path(path)
+    if not p.is_dir() or (p / "table.dat").exists() or (p / "visdata").exists():
+        return
+    found = sorted(q.suffix.lower() for q in p.iterdir() if q.suffix.lower() in DATA_SUFFIXES)
+    if not found:
+        raise InputError(str(p), "input.path", f"no data files in {p} (a directory with no "
+                         f"{' / '.join(DATA_SUFFIXES)} file in it)",
+                         "point input.path at the data: a file, or a glob such as '/data/day/*.uvh5'")
+    common = max(set(found), key=found.count)
+    raise InputError(str(p), "input.path", f"a directory of {len(found)} data files, not a data file itself",
+                     f"give a glob of its files: input.path='{p / ('*' + common)}'")
 
 
 def _try_metadata(path, fmt):
@@ -253,6 +276,27 @@ def _plan(pattern, fmt, on_bad, calibrated_here=False, want_mhz=None, n_avg=1, c
     tint = float(np.median(np.asarray(ref.integration_time)))
     return IngestPlan(good, times, file_rows, len(times), freqs, width, pairs, ants, layout,
                       float(np.median(times)), tint, skipped, infos)
+
+
+def refuse_nonfinite(plan, fmt=None):
+    """Refuse unflagged NaN/inf samples before any task (``input.nonfinite=error``), naming every file
+    that has them: each planned file's kept samples read directly (concurrently; UVH5 with h5py,
+    MeasurementSets with python-casacore: :func:`mmflow.io.readers.unflagged_nonfinite`), as its task
+    would check them. Files without a direct read (uvfits) are left to their tasks.
+
+    Raises
+    ------
+    InputError
+        Naming the first file with such samples, their count, the other files and the fix.
+    """
+    site = (plan.layout.lat_deg, plan.layout.lon_deg, plan.layout.height_m)
+    with ThreadPoolExecutor(max(1, min(n_threads(), len(plan.files)))) as ex:
+        found = list(ex.map(lambda fi: unflagged_nonfinite(plan.files[fi], fmt, plan.file_info[fi], site),
+                            range(len(plan.files))))
+    bad = [(f, r) for f, r in zip(plan.files, found) if r is not None and r[0]]
+    if bad:
+        (first, (n, size)), others = bad[0], [(f, r[0]) for f, r in bad[1:]]
+        raise checks.nonfinite_error(first, n, size, others)
 
 
 def plan_arrays(plan):

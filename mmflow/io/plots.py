@@ -156,7 +156,9 @@ def _project(lon, lat, xsize):
         t -= (2 * t + np.sin(2 * t) - np.pi * np.sin(lat)) / (2 + 2 * np.cos(2 * t) + 1e-12)
     x = -2 * np.sqrt(2) * lon * np.cos(t) / np.pi
     y = np.sqrt(2) * np.sin(t)
-    return (x + 2 * np.sqrt(2)) / (4 * np.sqrt(2)) * xsize - 0.5, (np.sqrt(2) - y) / (2 * np.sqrt(2)) * (xsize // 2) - 0.5
+    return (x + 2 * np.sqrt(2)) / (4 * np.sqrt(2)) * xsize - 0.5, (np.sqrt(2) - y) / (2 * np.sqrt(2)) * (
+        xsize // 2
+    ) - 0.5
 
 
 # ----------------------------------------------------------------------------- spectral index

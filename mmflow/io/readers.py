@@ -31,7 +31,7 @@ from mmflow.offline import offline_site_registry
 
 _CASACORE_LOCK = threading.Lock()  # casacore's table cache is not thread-safe
 
-__all__ = ["FileData", "file_kind", "read_file", "read_metadata"]
+__all__ = ["FileData", "file_kind", "read_file", "read_metadata", "unflagged_nonfinite"]
 
 
 def file_kind(path, fmt=None):
@@ -95,6 +95,42 @@ def read_file(path, fmt=None, info=None, site=None):
     return out
 
 
+def unflagged_nonfinite(path, fmt, info, site):
+    """``(n, size)``: the unflagged NaN/inf samples among the ``size`` samples an ingest task keeps of one
+    file (:func:`read_file`'s polarisations and rows), or None where the file has no direct read (uvfits:
+    its ingest task checks it). UVH5 files (any phase state) are read with h5py and MeasurementSets with
+    python-casacore, without pyuvdata; the unit scale and the unprojection are finite factors, so they
+    are not needed to tell whether a sample is finite."""
+    kind = file_kind(path, fmt)
+    if kind == "uvh5":  # in blocks of rows: the driver's memory stays bounded whatever the file's size
+        pols = _wanted(info, "indices")
+        parts = (_read_uvh5_direct(path, pols, len(info["pol_indices"]), rows) for rows in _row_blocks(path, len(pols)))
+    elif kind == "ms" and site is not None:
+        parts = [read_ms_direct(path, _wanted(info, "numbers"), False, site, _CASACORE_LOCK, len(info["pol_numbers"]))]
+    else:
+        return None
+    n = size = 0
+    for out in parts:
+        n += int(np.count_nonzero(~np.isfinite(out.vis) & ~out.flags))
+        size += int(out.vis.size)
+    return n, size
+
+
+#: bytes of visibilities (complex128) :func:`unflagged_nonfinite` holds at a time of a UVH5 file
+SCAN_BLOCK_BYTES = 1 << 28
+
+
+def _row_blocks(path, n_pols):
+    """Slices of a UVH5 file's rows holding about :data:`SCAN_BLOCK_BYTES` of ``n_pols`` polarisations."""
+    import h5py  # deferred: as in _read_uvh5_direct
+
+    with h5py.File(str(path), "r") as f:
+        shape = f["Data"]["visdata"].shape
+    per_row = max(1, int(np.prod(shape[1:-1])) * n_pols * 16)
+    step = max(1, SCAN_BLOCK_BYTES // per_row)
+    return [slice(r, r + step) for r in range(0, shape[0], step)]
+
+
 def _wanted(info, what):
     """The polarisations to read: the Stokes-I hands, then the cross hands (``what``: "indices" along
     pyuvdata's axis or pyuvdata "numbers")."""
@@ -114,24 +150,25 @@ def _read_pyuvdata(path, fmt, info):
     return raw, info
 
 
-def _read_uvh5_direct(path, pol_indices, n_parallel):
+def _read_uvh5_direct(path, pol_indices, n_parallel, rows=slice(None)):
     """The UVH5 datasets themselves (format: pyuvdata docs, "UVH5 file format"): rows in file
-    order, ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex or an integer ``r``/``i`` compound.
+    order (``rows``: a slice of them; default all), ``visdata`` (Nblts, [1,] Nfreqs, Npols), complex
+    or an integer ``r``/``i`` compound.
     Autocorrelations' parallel hands (the first ``n_parallel`` of ``pol_indices``) are made real,
     as pyuvdata's ``fix_autos`` does on read."""
     import h5py  # deferred: h5py comes with pyuvdata (not a direct dependency), uvh5 files only
 
     with h5py.File(str(path), "r") as f:
         h, d = f["Header"], f["Data"]
-        time_jd = h["time_array"][()]
-        ant1, ant2 = h["ant_1_array"][()], h["ant_2_array"][()]
-        lst = h["lst_array"][()]
+        time_jd = h["time_array"][rows]
+        ant1, ant2 = h["ant_1_array"][rows], h["ant_2_array"][rows]
+        lst = h["lst_array"][rows]
         freqs = np.asarray(h["freq_array"][()], float).ravel()
         pols = list(pol_indices)
         lo, hi = min(pols), max(pols) + 1  # read the contiguous polarisation slab holding them
         data = d["visdata"]
         squeeze = data.ndim == 4
-        sl = (slice(None), 0, slice(None), slice(lo, hi)) if squeeze else (slice(None), slice(None), slice(lo, hi))
+        sl = (rows, 0, slice(None), slice(lo, hi)) if squeeze else (rows, slice(None), slice(lo, hi))
         vis = data[sl]
         if vis.dtype.names:
             vis = vis["r"].astype(np.float64) + 1j * vis["i"].astype(np.float64)

@@ -12,8 +12,47 @@ from __future__ import annotations
 
 import numpy as np
 
+from dataclasses import dataclass
+
 from mmflow.conventions import m_block_slice, m_blocks
 from mmflow.io.stores import ArraySpec, StoreSpec
+
+
+class StoreName(str):
+    """A store's name as the run directory holds it (``"vis.zarr"``), declared once in :data:`STORES`.
+
+    A ``str``: paths, markers and fingerprints see the same text as before; code names a store only
+    through :data:`STORES` (a test refuses ``"*.zarr"`` literals elsewhere), so a rename is one line
+    here and a misspelt store fails at import, not in a task.
+    """
+
+    __slots__ = ()
+
+
+@dataclass(frozen=True)
+class Stores:
+    """The stores of a run directory, by the stage that writes them (:mod:`mmflow.workflow.pipeline`)."""
+
+    vis: StoreName = StoreName("vis.zarr")  # simulate or ingest
+    gains: StoreName = StoreName("gains.zarr")  # calibrate
+    models: StoreName = StoreName("models.zarr")  # models
+    peel: StoreName = StoreName("peel.zarr")  # peel
+    terrestrial: StoreName = StoreName("terrestrial.zarr")  # terrestrial
+    diffuse: StoreName = StoreName("diffuse.zarr")  # simulate (an interpolated diffuse sky)
+    mmodes: StoreName = StoreName("mmodes.zarr")  # mmodes
+    transfer: StoreName = StoreName("transfer.zarr")  # transfer (transfer.mode: store)
+    partials: StoreName = StoreName("partials.zarr")  # transfer
+    normal: StoreName = StoreName("normal.zarr")  # normal
+    alm: StoreName = StoreName("alm.zarr")  # solve
+    stokes: StoreName = StoreName("stokes.zarr")  # stokes
+    clean: StoreName = StoreName("clean.zarr")  # clean
+
+    def __iter__(self):
+        return iter(vars(self).values())
+
+
+#: every store's name (``STORES.vis``, ``STORES.gains``, ...)
+STORES = Stores()
 
 #: what each dimension name of the stores below counts
 DIMENSIONS = {
@@ -72,7 +111,7 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
         ArraySpec("weights_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
                   "float32", doc="their weights, 0 = flagged"))
     planned = () if ingest_plan is None else _ingest_plan_arrays(*ingest_plan)
-    return StoreSpec("vis.zarr", (
+    return StoreSpec(STORES.vis, (
         ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64",
                   doc="visibilities, Jy, mmflow's sign convention (docs/conventions.md)"),
         ArraySpec("weights", dims, (n_time, nbl, nf, npol), ch, "float32", doc="weights, 0 = flagged"),
@@ -122,7 +161,7 @@ def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs, n_corr=0):
         ArraySpec("inv_var_corr", ("freq", "correlation", "baseline"), (nf, n_corr, nbl), (nf, n_corr, ch),
                   "float64", doc="inverse noise variance of each correlation's m-modes"),
     )
-    return StoreSpec("mmodes.zarr", (
+    return StoreSpec(STORES.mmodes, (
         ArraySpec("mmodes", ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
                   (n_split, nf, mmax + 1, 2, ch), "complex128",
                   doc="m-modes: ``[..., 0, b] = V_m``, ``[..., 1, b] = conj(V_-m)``"),
@@ -153,7 +192,7 @@ def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
                                 doc="the group's part of ``r_m = B^H N^-1 v``"))
         arrays.append(ArraySpec(f"f{fi}/vhv", ("group", "split", "m"), (n_groups, n_split, mmax + 1),
                                 (1, n_split, mmax + 1), "float64", doc="the group's part of ``v^H N^-1 v``"))
-    return StoreSpec("partials.zarr", tuple(arrays), doc=(
+    return StoreSpec(STORES.partials, tuple(arrays), doc=(
         "Partial normal equations of the transfer stage, per frequency F: one partial sum per fixed "
         "baseline group (``transfer.groups``), in the transfer precision (complex64 for "
         "``transfer.dtype`` float32)."))
@@ -177,7 +216,7 @@ def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
         ArraySpec("vhv", ("split", "freq", "m"), (n_split, nf, mmax + 1), (n_split, 1, m_block), "float64",
                   doc="``v^H N^-1 v`` (the L-curve's residual norm)"),
     ]
-    return StoreSpec("normal.zarr", tuple(arrays), doc=(
+    return StoreSpec(STORES.normal, tuple(arrays), doc=(
         "Reduced normal equations: the normal stage sums the partials in a fixed pairwise tree "
         "(:mod:`mmflow.workflow.engine.reduce`), so the bits do not depend on the cluster."))
 
@@ -185,7 +224,7 @@ def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
 def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     """The solve stage's store."""
     n_eps = len(eps_grid)
-    return StoreSpec("alm.zarr", (
+    return StoreSpec(STORES.alm, (
         ArraySpec("alm", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
                   (n_split, 1, m_block, lmax + 1), "complex128", doc="spherical-harmonic coefficients, Jy/sr, "
                   "frame of date"),
@@ -237,7 +276,7 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None):
                       doc=f"why the V CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "
                           "[clean.enabled]"),
         ]
-    return StoreSpec("stokes.zarr", tuple(arrays), {},
+    return StoreSpec(STORES.stokes, tuple(arrays), {},
                      doc="full-Stokes harmonics (imaging.stokes [I, Q, U, V]) and the CLEAN of V: the stokes stage.")
 
 
@@ -251,7 +290,7 @@ def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
             arrays.append(ArraySpec(f"f{fi}/B_m{m:05d}", ("pm", "baseline", "l"), (2, nbl, lmax - m + 1),
                                     (2, min(baseline_chunk, nbl), lmax - m + 1), dtype,
                                     doc="transfer block ``B_m`` in the order ``f{F}/order`` (the -m rows 0 at m = 0)"))
-    return StoreSpec("transfer.zarr", tuple(arrays), doc=(
+    return StoreSpec(STORES.transfer, tuple(arrays), doc=(
         "Transfer matrices, per frequency F and order M: written by the transfer stage only with "
         "``transfer.mode=store``."))
 
@@ -260,28 +299,80 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
     """The calibrate stage's store (``n_src``: the calibration sources, ``attrs["sources"]``)."""
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
-    return StoreSpec("gains.zarr", (
-        ArraySpec("flux_factor", ("interval", "freq", "source", "pol"), (n_interval, nf, n_src, npol),
-                  (1, 1, n_src, npol), "float64", np.nan,
-                  doc="each calibration source's flux over its catalogue model in the interval: 1 for the "
-                  "unscreened ones and, on average, for those setting the scale; measured for calibrate.measure_flux; 0 "
-                  "where a screened source gave no model power (below the horizon)"),
-        ArraySpec("gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"),
-        ArraySpec("flags", sol, (n_interval, nf, n_ant, npol), per, "bool",
-                  doc="no data, not finite, or not converged"),
-        ArraySpec("chi2", sol, (n_interval, nf, n_ant, npol), per, "float64",
-                  doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)"),
-        ArraySpec("iterations", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "int32",
-                  doc="Stefcal iterations"),
-        ArraySpec("converged", ("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol), "bool",
-                  doc="Stefcal converged"),
-        ArraySpec("ripple", ("time", "freq", "antenna", "pol"), (n_time, nf, n_ant, npol), (n_time, 1, n_ant, npol),
-                  "float64", doc="autocorrelation ripple ratio ``r(t)`` per integration (1 where not corrected)"),
-        ArraySpec("solve_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=solve_rows,
-                  doc="the integrations each interval was solved on"),
-        ArraySpec("apply_rows", ("interval", "edge"), (n_interval, 2), (n_interval, 2), "int64", data=apply_rows,
-                  doc="the integrations each interval's gains correct"),
-    ), attrs, doc="Direction-independent calibration of the calibrate stage: gains per solution interval.")
+    return StoreSpec(
+        STORES.gains,
+        (
+            ArraySpec(
+                "flux_factor",
+                ("interval", "freq", "source", "pol"),
+                (n_interval, nf, n_src, npol),
+                (1, 1, n_src, npol),
+                "float64",
+                np.nan,
+                doc="each calibration source's flux over its catalogue model in the interval: 1 for the "
+                "unscreened ones and, on average, for those setting the scale; measured for calibrate.measure_flux; 0 "
+                "where a screened source gave no model power (below the horizon)",
+            ),
+            ArraySpec(
+                "gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"
+            ),
+            ArraySpec(
+                "flags", sol, (n_interval, nf, n_ant, npol), per, "bool", doc="no data, not finite, or not converged"
+            ),
+            ArraySpec(
+                "chi2",
+                sol,
+                (n_interval, nf, n_ant, npol),
+                per,
+                "float64",
+                doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)",
+            ),
+            ArraySpec(
+                "iterations",
+                ("interval", "freq", "pol"),
+                (n_interval, nf, npol),
+                (1, 1, npol),
+                "int32",
+                doc="Stefcal iterations",
+            ),
+            ArraySpec(
+                "converged",
+                ("interval", "freq", "pol"),
+                (n_interval, nf, npol),
+                (1, 1, npol),
+                "bool",
+                doc="Stefcal converged",
+            ),
+            ArraySpec(
+                "ripple",
+                ("time", "freq", "antenna", "pol"),
+                (n_time, nf, n_ant, npol),
+                (n_time, 1, n_ant, npol),
+                "float64",
+                doc="autocorrelation ripple ratio ``r(t)`` per integration (1 where not corrected)",
+            ),
+            ArraySpec(
+                "solve_rows",
+                ("interval", "edge"),
+                (n_interval, 2),
+                (n_interval, 2),
+                "int64",
+                data=solve_rows,
+                doc="the integrations each interval was solved on",
+            ),
+            ArraySpec(
+                "apply_rows",
+                ("interval", "edge"),
+                (n_interval, 2),
+                (n_interval, 2),
+                "int64",
+                data=apply_rows,
+                doc="the integrations each interval's gains correct",
+            ),
+        ),
+        attrs,
+        doc="Direction-independent calibration of the calibrate stage: gains per solution interval.",
+    )
 
 
 #: names of the codes of peel.zarr's ``mode`` (the values of :mod:`mmflow.calibrate.peel`'s SKIP ... MODEL)
@@ -293,7 +384,7 @@ def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs):
     dims = ("time", "freq", "source", "pol")
     shape, ch = (n_time, nf, n_src, npol), (time_chunk, 1, n_src, npol)
     codes = ", ".join(f"{i} {name}" for i, name in enumerate(PEEL_MODES))
-    return StoreSpec("peel.zarr", (
+    return StoreSpec(STORES.peel, (
         ArraySpec("dd_gains", ("time", "freq", "source", "antenna", "pol"), (n_time, nf, n_src, n_ant, npol),
                   (time_chunk, 1, n_src, n_ant, npol), "complex128",
                   doc="direction-dependent gains (a subtracted source: 1, or the phase gradient of its fitted "
@@ -319,7 +410,7 @@ MODEL_COSTS = ("point", "start", "fitted")
 
 def models_store(nf, n_src, n_comp, attrs):
     """The models stage's store."""
-    return StoreSpec("models.zarr", (
+    return StoreSpec(STORES.models, (
         ArraySpec("components", ("freq", "source", "component", "column"), (nf, n_src, n_comp, len(MODEL_COLUMNS)),
                   (1, 1, n_comp, len(MODEL_COLUMNS)), "float64",
                   doc=f"fitted Gaussian components, columns {', '.join(MODEL_COLUMNS)} (offsets east/north of "
@@ -335,7 +426,7 @@ def models_store(nf, n_src, n_comp, attrs):
 def diffuse_store(nf, n_samples, nbl, n_feed, sample_block):
     """The simulate stage's diffuse sky at the sampled sidereal angles
     (:mod:`mmflow.simulate.drift_modes`): what its time chunks interpolate."""
-    return StoreSpec("diffuse.zarr", (
+    return StoreSpec(STORES.diffuse, (
         ArraySpec("samples", ("freq", "sample", "baseline", "feed"), (nf, n_samples, nbl, n_feed),
                   (1, sample_block, nbl, n_feed), "complex128",
                   doc="the diffuse sky's visibilities (Jy) at the sidereal angles ``2 pi k / N``, through each "
@@ -345,7 +436,7 @@ def diffuse_store(nf, n_samples, nbl, n_feed, sample_block):
 
 def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk):
     """The terrestrial stage's store."""
-    return StoreSpec("terrestrial.zarr", (
+    return StoreSpec(STORES.terrestrial, (
         ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "complex128", doc="weighted sum of the calibrated, peeled visibilities of each time chunk"),
         ArraySpec("sum_weight", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
@@ -400,6 +491,6 @@ def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_
                   doc=f"why CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "
                       "(-1: none)"),
     ]
-    return StoreSpec("clean.zarr", tuple(arrays), doc=(
+    return StoreSpec(STORES.clean, tuple(arrays), doc=(
         "The CLEAN stage's factors, PSFs, per-cycle state and results, per frequency F and m block M0 "
         "(healpy layout within the block)."))

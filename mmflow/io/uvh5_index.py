@@ -7,7 +7,8 @@ datasets it needs with h5py (the UVH5 format's ``Header``: ``time_array``, ``ant
 ``ant_2_array``, ``freq_array``, ``polarization_array``, ``vis_units``, ``antenna_numbers``,
 ``antenna_positions``, ``latitude``/``longitude``/``altitude`` and the ``phase_center_catalog``'s
 ``cat_type``), then checks each against the first (frequencies may differ: subbands, grouped
-by the plan): polarisations (so the same Stokes-I recipe), units and antenna numbers; absolute antenna positions and site within
+by the plan): polarisations (so the same Stokes-I recipe), units and antenna numbers; absolute antenna positions
+and site within
 ``checks.POSITION_TOL_M``; drift-scan (``unprojected``) data only; no duplicated (time, baseline)
 row. Times and antenna numbers are the header's own (pyuvdata reads them as they are);
 ``mmflow.io.ingest.index_agrees`` verifies that on the first file.

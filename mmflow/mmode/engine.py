@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mmflow.conventions import complex_dtype
 from mmflow.mmode.normal import NormalAccumulator
 from mmflow.mmode.transfer import (baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks, make_grid,
                                    transfer_pass)
@@ -211,7 +212,7 @@ def accumulate_normal_equations(telescope, freq_hz, mmodes, lmax, inv_var=None, 
     mmodes = np.asarray(mmodes)
     mm4 = mmodes if mmodes.ndim == 4 else mmodes[None]
     chunks, lmax_b = plan_chunks(telescope, freq_hz, lmax, chunk_size, per_baseline_lmax)
-    acc_dtype = acc_dtype or (np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
+    acc_dtype = acc_dtype or complex_dtype(dtype).type
     acc = NormalAccumulator(lmax, mm4.shape[1] - 1, acc_dtype, n_split=mm4.shape[0])
     w = np.ones(mm4.shape[3]) if inv_var is None else np.asarray(inv_var, float)
     return accumulate_chunks(acc, telescope, freq_hz, chunks, lmax_b, lambda c: mm4[..., c.index], w, dtype,

@@ -18,6 +18,7 @@ from functools import lru_cache
 
 import numba
 import numpy as np
+from mmflow.conventions import complex_dtype
 
 
 def _taylor(odd, n_terms):
@@ -33,8 +34,10 @@ def _sincos_turns(t, s, c, two_pi, quarter):
     q = np.rint(t * 4)
     y = (t - q * quarter) * two_pi  # |y| <= pi/4
     y2 = y * y
-    sn = y * (s[0] + y2 * (s[1] + y2 * (s[2] + y2 * (s[3] + y2 * (s[4] + y2 * (s[5] + y2 * (s[6] + y2 * (s[7]
-                                                                                                       + y2 * s[8]))))))))
+    sn = y * (
+        s[0]
+        + y2 * (s[1] + y2 * (s[2] + y2 * (s[3] + y2 * (s[4] + y2 * (s[5] + y2 * (s[6] + y2 * (s[7] + y2 * s[8])))))))
+    )
     cs = c[0] + y2 * (c[1] + y2 * (c[2] + y2 * (c[3] + y2 * (c[4] + y2 * (c[5] + y2 * (c[6] + y2 * (c[7]
                                                                                                  + y2 * c[8])))))))
     qi = int(q) & 3  # rotate by q quarter turns
@@ -52,7 +55,7 @@ def _kernels(real_name):
     (or load them from numba's cache: the closures hold only numbers and numpy types, so their cache keys
     are the same in every process)."""
     real = np.dtype(real_name).type
-    cplx = np.complex64 if real is np.float32 else np.complex128
+    cplx = complex_dtype(real).type
     n_terms = 6 if real is np.float32 else 9  # |y| <= pi/4: y^13/13! ~ 2e-11, y^19/19! ~ 1e-19
     sin_c = tuple(real(c) for c in (_taylor(True, n_terms) + [0.0] * 9)[:9])
     cos_c = tuple(real(c) for c in (_taylor(False, n_terms) + [0.0] * 9)[:9])
@@ -151,7 +154,7 @@ def sincos_turns(t, dtype=np.float64):
     inner = _kernels(np.dtype(dtype).name)[0]
     # reuse fringe_folds on a 1-ring, 1-point grid: direction (1, 0, 0), baselines (t, 0, 0)
     t = np.asarray(t, np.float64).ravel()
-    out_s = np.empty((1, 1, len(t)), np.complex64 if np.dtype(dtype) == np.float32 else np.complex128)
+    out_s = np.empty((1, 1, len(t)), complex_dtype(dtype).type)
     out_d = np.empty_like(out_s)
     b = np.zeros((len(t), 3))
     b[:, 0] = t

@@ -419,6 +419,42 @@ def _uniform_on_grid(bin_weight, offset):
             and (offset is None or not np.any(offset)))
 
 
+def longest_gap(bin_weight):
+    """The longest run of empty sidereal bins (``w_n = 0``) per baseline, the bins taken as a circle
+    (a gap across ``phi = 0`` is one gap): shape ``(n_bl,)``; ``N`` for a baseline without data.
+
+    ``bin_weight``: ``(N, n_bl)`` as for :func:`lsq_mmodes`. With ``last_n`` the latest filled bin at or
+    before ``n`` (a running maximum), the runs end at ``n - last_n``; the gap across ``phi = 0`` is
+    ``first + N - 1 - last`` (the first and last filled bins).
+    """
+    filled = np.asarray(bin_weight) > 0
+    n = filled.shape[0]
+    idx = np.arange(n)[:, None]
+    last = np.maximum.accumulate(np.where(filled, idx, -1), axis=0)
+    inner = np.max(idx - last, axis=0, initial=0)
+    first = np.argmax(filled, axis=0)
+    wrap = first + n - 1 - last[-1]
+    return np.where(filled.any(axis=0), np.maximum(inner, wrap), n)
+
+
+def unbridged_gaps(bin_weight, band_limit):
+    """Which baselines have a gap their band limit cannot bridge: a run of empty bins longer than one
+    Nyquist interval of the band-limited drift scan,
+
+        G_b > N / (2 M_b + 1),
+
+    ``G_b`` the longest gap (:func:`longest_gap`), ``M_b`` the band limit, ``N`` the bins. A shorter
+    gap lies between samples as close as the band limit needs: :func:`lsq_mmodes` recovers the
+    m-modes from the baseline's own data (5 % random flags: 1e-6, ``docs/mmodes.md``); in a longer one
+    the drift scan is not in the baseline's data and only a map's prior fills it. Baselines without
+    data are not counted (they are dropped). Returns a boolean array ``(n_bl,)``.
+    """
+    w = np.asarray(bin_weight)
+    gap = longest_gap(w)
+    mb = np.broadcast_to(np.asarray(band_limit, float), gap.shape)
+    return (gap * (2 * mb + 1) > w.shape[0]) & np.any(w > 0, axis=0)
+
+
 def refit_prior_m0(prior, binned, bin_weight, offset=None):
     """The prior with its ``m = 0`` term fitted to the data: the map's model for ``m != 0`` plus the constant
     that best matches the filled bins,

@@ -31,7 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import ducc0
 import numpy as np
 
-from mmflow.conventions import m_blocks
+from mmflow.conventions import m_blocks, complex_dtype
 from mmflow.mmode.fringe_kernels import kernel_fringe_folds
 from mmflow.mmode.polarised import CORRELATIONS, stokes_kernels
 from mmflow.mmode.spin_legendre import weighted_spin_tables
@@ -179,7 +179,7 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
     lrows = grid.lmax if lmax_rows is None else min(int(lmax_rows), grid.lmax)
     mmax = lrows if mmax is None else min(int(mmax), lrows)
     rdtype = np.dtype(dtype)
-    cdtype = np.complex64 if rdtype == np.float32 else np.complex128
+    cdtype = complex_dtype(rdtype).type
     step = fourier_m_block(grid, nb, len(correlations), np.dtype(cdtype).itemsize)
     results = []
     for m0, m1 in m_blocks(mmax, step):

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import ducc0
 import numpy as np
 
-from mmflow.conventions import SPEED_OF_LIGHT, enu_to_equatorial_matrix, m_blocks, unit_vectors
+from mmflow.conventions import SPEED_OF_LIGHT, enu_to_equatorial_matrix, m_blocks, unit_vectors, complex_dtype
 from mmflow.mmode.fringe_kernels import fringe_folds
 from mmflow.mmode.legendre import weighted_legendre_table
 from mmflow.threads import n_threads, single_threaded_blas
@@ -170,7 +170,7 @@ def fourier_stage(grid, b_wavelengths, mmax, dtype=np.float64, ring_block=1, tim
     the thread count.
     """
     b = np.asarray(b_wavelengths, float).reshape(-1, 3)
-    cdtype = np.complex64 if np.dtype(dtype) == np.float32 else np.complex128
+    cdtype = complex_dtype(dtype).type
     nn = len(grid.active)
     # fsum[m, k, c] = F_{k,m} + F_{k',m} for north ring k and its mirror k'; fdiff the difference.
     # Columns c < nb are the baselines, c >= nb the reversed baselines (the -m rows).

@@ -89,6 +89,21 @@ def bin_index(lsts, n_bins):
     return np.round(pos).astype(int) % n_bins, (pos - np.round(pos)) * TWO_PI / n_bins
 
 
+def bin_occupancy(lsts, good, n_bins):
+    """Which sidereal bins (:func:`bin_index`, the binning of :func:`sidereal_bins`) hold an unflagged
+    sample: ``(n_bins,) + good.shape[1:]`` booleans from ``good`` ``(n_time, ...)`` (True: weight > 0),
+    the ``bin_weight > 0`` of :func:`sidereal_bins` without summing values (one sort of the times)."""
+    good = np.asarray(good, bool)
+    out = np.zeros((n_bins,) + good.shape[1:], bool)
+    if not len(good):
+        return out
+    idx, _ = bin_index(lsts, n_bins)
+    order = np.argsort(idx, kind="stable")
+    bins, starts = np.unique(idx[order], return_index=True)
+    out[bins] = np.logical_or.reduceat(good[order], starts, axis=0)
+    return out
+
+
 def bin_coverage(lsts, n_bins):
     """Fraction of the ``n_bins`` sidereal bins (:func:`bin_index`) that hold at least one of the finite
     ``lsts``: the most of the sidereal day any baseline of those integrations can cover, flags aside."""

@@ -8,7 +8,7 @@ every baseline's visibility is a trigonometric polynomial of degree ``L`` in the
 
 whatever the beam and the baseline (the m-modes ``v_m``, paper eq. 4). Its values at
 ``N >= 2 L + 1`` equally spaced angles determine it, and a DFT of them gives the ``v_m``
-(:func:`drift_coefficients`); it is then evaluated at any sidereal angle (:func:`evaluate_drift`).
+(:func:`coefficients_from_samples`); it is then evaluated at any sidereal angle (:func:`evaluate_drift`).
 The simulator's direct sum over the sky's quadrature grid is so done ``N`` times instead of once per
 integration: for the paper's day (6,628 integrations) and ``L = 64``, 130 sums instead of 6,628.
 The samples come from :func:`mmflow.simulate.visibilities.simulate_drift_scan`, the same

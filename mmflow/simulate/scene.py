@@ -42,7 +42,9 @@ def diffuse_points(telescope, freq_hz, epoch_jd, diffuse_lmax, seed=0, quad_over
     ``diffuse_lmax``) on its Gauss-Legendre grid (frame of date), exact for the sky times the longest
     fringe (``diffuse_lmax + fringe band limit + quad_oversample``)."""
     alm = kelvin_to_jy_per_sr(synthetic_sky_kelvin(freq_hz, diffuse_lmax, epoch_jd, seed=seed), freq_hz)
-    return gauss_legendre_points(alm, diffuse_lmax, diffuse_quad_lmax(telescope, freq_hz, diffuse_lmax, quad_oversample))
+    return gauss_legendre_points(
+        alm, diffuse_lmax, diffuse_quad_lmax(telescope, freq_hz, diffuse_lmax, quad_oversample)
+    )
 
 
 def diffuse_quad_lmax(telescope, freq_hz, diffuse_lmax, quad_oversample=48):

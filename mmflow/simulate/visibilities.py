@@ -22,7 +22,7 @@ import healpy
 import numpy as np
 from scipy.linalg import blas
 
-from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors
+from mmflow.conventions import enu_to_equatorial_matrix, unit_vectors, complex_dtype
 from mmflow.errors import InputError
 from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.threads import n_threads, single_threaded_blas
@@ -112,7 +112,9 @@ def simulate_drift_scan(telescope, freq_hz, lsts, sky, pairs=None, dtype=np.comp
     if out is None:
         out = np.empty((len(lsts), len(pairs)), np.complex128)
     elif out.shape != (len(lsts), len(pairs)) or out.dtype.kind != "c":
-        raise ValueError(f"simulate_drift_scan: out is {out.dtype} {out.shape}, not complex ({len(lsts)}, {len(pairs)})")
+        raise ValueError(
+            f"simulate_drift_scan: out is {out.dtype} {out.shape}, not complex ({len(lsts)}, {len(pairs)})"
+        )
     if threads is None and len(lsts) * max(1, len(sky.flux_jy)) * len(telescope.layout.enu) ** 2 < SERIAL_WORK:
         threads = 1  # a few points (a calibration model): starting threads costs more than the work
     threads = max(1, min(n_threads() if threads is None else threads, len(lsts)))
@@ -148,7 +150,7 @@ def _simulate_pairs(telescope, freq_hz, lsts, sky, pairs, rdtype, out):
     x = _antenna_phases(telescope, freq_hz, rdtype)
     a, ea = np.unique(pairs[:, 0], return_inverse=True)
     b, eb = np.unique(pairs[:, 1], return_inverse=True)
-    ctype = np.complex64 if rdtype == np.float32 else np.complex128
+    ctype = complex_dtype(rdtype).type
     for t0 in range(0, len(lsts), TIME_BLOCK):
         phis = lsts[t0:t0 + TIME_BLOCK]
         r = np.stack([sky.vectors @ enu_to_equatorial_matrix(telescope.lat_rad, phi) for phi in phis])  # ENU
@@ -218,7 +220,7 @@ def _simulate_points(telescope, freq_hz, lsts, sky, pairs, rdtype, out):
     ``V_ij = sum_p w_p conj(z_ip) z_jp``, without the rank-k product's antenna-pair matrix (one time
     step at a time: the gathers of one step's phasors by antenna are faster than of several)."""
     x = _antenna_phases(telescope, freq_hz, rdtype)
-    ctype = np.complex64 if rdtype == np.float32 else np.complex128
+    ctype = complex_dtype(rdtype).type
     i, j = pairs[:, 0], pairs[:, 1]
     for t, phi in enumerate(lsts):
         rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_enu = M^T r_eq

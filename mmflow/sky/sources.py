@@ -128,7 +128,9 @@ class Source:
         vecs, fluxes = [], []
         fwhm = np.sqrt(8 * np.log(2))
         for comp in self.components:
-            ra0 = np.deg2rad(self.ra_deg) + np.deg2rad(comp.get("dra_arcmin", 0.0) / 60) / np.cos(np.deg2rad(self.dec_deg))
+            ra0 = np.deg2rad(self.ra_deg) + np.deg2rad(comp.get("dra_arcmin", 0.0) / 60) / np.cos(
+                np.deg2rad(self.dec_deg)
+            )
             dec0 = np.deg2rad(self.dec_deg + comp.get("ddec_arcmin", 0.0) / 60)
             smaj = np.deg2rad(comp["fwhm_major_arcmin"] / 60) / fwhm
             smin = np.deg2rad(comp.get("fwhm_minor_arcmin", comp["fwhm_major_arcmin"]) / 60) / fwhm

@@ -15,6 +15,8 @@ same Jones beam the full-Stokes transfer matrices use.
 """
 from __future__ import annotations
 
+import inspect
+
 from mmflow.errors import InputError
 from mmflow.telescope.beams import GaussianBeam, PyUVDataBeam, SinElevationBeam, ZernikeBeam
 from mmflow.telescope.jones import JonesPowerBeam, PyUVDataJones, ShortDipoleJones
@@ -52,18 +54,32 @@ def _build(spec, maker):
                          f"'{spec.get('type')}' ({exc})", "replace the whole section: beam={type: ..., ...}") from None
 
 
-def _pyuvdata_object(spec):
-    """The file path or the analytic-beam object of a ``pyuvdata`` spec (popping its keys)."""
-    if "file" in spec:
-        return spec.pop("file")
+def analytic_beam_class(cls_name):
+    """The class ``pyuvdata.analytic_beam.<cls_name>`` (refused when pyuvdata has none)."""
     from pyuvdata import analytic_beam  # deferred: pyuvdata takes 2-3.5 s to import (docs/performance.md)
 
-    cls_name = spec.pop("class", "GaussianBeam")
     cls = getattr(analytic_beam, cls_name, None)
     if cls is None:
         raise InputError("beam", "class", f"pyuvdata has no analytic beam '{cls_name}'",
                          "use e.g. GaussianBeam, AiryBeam, ShortDipoleBeam, UniformBeam")
-    return cls(**spec.pop("params", {}))
+    return cls
+
+
+def required_params(cls_name, params=()):
+    """The arguments of pyuvdata's analytic beam ``cls_name`` that its own signature requires (no
+    default) and ``params`` lacks, in signature order: ``AiryBeam`` needs ``diameter``;
+    ``ShortDipoleBeam`` and ``UniformBeam`` need nothing. (A class may check more itself, e.g.
+    ``GaussianBeam`` one of ``sigma`` and ``diameter``: its error is reported when the beam is built.)"""
+    sig = inspect.signature(analytic_beam_class(cls_name))
+    return [n for n, p in sig.parameters.items() if p.default is inspect.Parameter.empty
+            and p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD) and n not in params]
+
+
+def _pyuvdata_object(spec):
+    """The file path or the analytic-beam object of a ``pyuvdata`` spec (popping its keys)."""
+    if "file" in spec:
+        return spec.pop("file")
+    return analytic_beam_class(spec.pop("class", "GaussianBeam"))(**spec.pop("params", {}))
 
 
 def _make_beam(spec):

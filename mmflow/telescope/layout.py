@@ -213,3 +213,24 @@ def ovro_lwa_layout(preset="core", radius_m=None, stands=None, max_antennas=None
     if max_antennas is not None:
         lay = lay.select(np.arange(min(max_antennas, lay.n_ant)))
     return lay
+
+
+def selected_layout(preset=None, layout_file=None, lat_deg=None, lon_deg=None, radius_m=None, stands=None,
+                    max_antennas=None):
+    """The array a run uses, and the layout it is selected from: ``(full, selected)``.
+
+    An OVRO-LWA ``preset`` (cut by ``radius_m``, ``stands``, ``max_antennas``: :func:`ovro_lwa_layout`), or
+    a text ``layout_file`` at (``lat_deg``, ``lon_deg``) cut by ``stands`` and ``radius_m``. The one place
+    the telescope's stands are chosen: the configuration checks and the stages call it alike.
+    """
+    if layout_file is None:
+        if preset is None:
+            raise InputError("workflow", "telescope.layout_file", "no layout given",
+                             "set telescope.preset, or layout_file with lat_deg and lon_deg")
+        return (ovro_lwa_layout(preset),
+                ovro_lwa_layout(preset, radius_m=radius_m, stands=stands, max_antennas=max_antennas))
+    if lat_deg is None or lon_deg is None:
+        raise InputError("workflow", "telescope.layout_file", "no site given for the layout file",
+                         "set telescope.lat_deg and telescope.lon_deg")
+    full = load_layout(layout_file, lat_deg, lon_deg)
+    return full, full.select(stands, radius_m)

@@ -3,7 +3,8 @@
 The layers, lowest first (docs/architecture.md):
 
 0. ``base``: ``mmflow/__init__.py``, ``conventions``, ``errors``, ``offline``, ``compiled_cache``, ``threads``,
-   ``allocator``, ``machine``, ``import_thread`` -- numbers, exceptions and process settings every layer shares; numpy only.
+   ``allocator``, ``machine``, ``import_thread`` -- numbers, exceptions and process settings every layer shares;
+   numpy only.
 1. ``kernels``: ``telescope``, ``sky``, ``mmode``, ``imaging``, ``calibrate``, ``simulate``,
    ``analysis`` -- numpy/scipy, no dask, no configuration, no files of a run.
 2. ``io``: reading and writing data, stores, reports.
@@ -26,8 +27,18 @@ import pytest
 ROOT = Path(__file__).resolve().parents[2] / "mmflow"
 
 LAYERS = {"base": 0, "kernels": 1, "io": 2, "workflow": 3, "bench": 4, "cli": 5}
-BASE_MODULES = {"mmflow", "mmflow.conventions", "mmflow.errors", "mmflow.paths", "mmflow.offline", "mmflow.threads", "mmflow.import_thread",
-                "mmflow.allocator", "mmflow.machine", "mmflow.compiled_cache"}
+BASE_MODULES = {
+    "mmflow",
+    "mmflow.conventions",
+    "mmflow.errors",
+    "mmflow.paths",
+    "mmflow.offline",
+    "mmflow.threads",
+    "mmflow.import_thread",
+    "mmflow.allocator",
+    "mmflow.machine",
+    "mmflow.compiled_cache",
+}
 KERNEL_PACKAGES = ("telescope", "sky", "mmode", "imaging", "calibrate", "simulate", "analysis")
 
 # --- the graph -------------------------------------------------------------------------------
@@ -329,6 +340,25 @@ def test_no_comparison_with_a_stage_name_outside_the_pipeline():
             if pattern.search(code) and not code.lstrip().startswith("for "):  # a test, not a loop
                 bad.append(f"{path.relative_to(ROOT.parent)}:{i}: {line.strip()}")
     assert not bad, "branches on a stage's name (give the stage the behaviour instead):\n" + "\n".join(bad)
+
+
+def test_stores_are_named_through_their_declaration():
+    """No ``"*.zarr"`` string in the package but the declarations of :data:`mmflow.io.run_stores.STORES`:
+    readers and writers name a store as ``STORES.gains``, so a renamed or misspelt store fails at import."""
+    import io
+    import re
+    import tokenize
+
+    bad = []
+    for path in ROOT.rglob("*.py"):
+        toks = tokenize.generate_tokens(io.StringIO(path.read_text()).readline)
+        for tok in toks:
+            if tok.type == tokenize.STRING and re.fullmatch(r"[rbu]?([\"'])\w+\.zarr\1", tok.string):
+                line = tok.line.strip()
+                if path.name == "run_stores.py" and "= StoreName(" in line:
+                    continue
+                bad.append(f"{path.relative_to(ROOT.parent)}:{tok.start[0]}: {line}")
+    assert not bad, "store names as literals (use mmflow.io.run_stores.STORES):\n" + "\n".join(bad)
 
 
 # --- the checker itself can fail -------------------------------------------------------------

@@ -91,7 +91,9 @@ def test_no_machine_paths_in_tracked_files():
             text = p.read_text()
         except UnicodeDecodeError:
             continue
-        bad += [f"{p.relative_to(ROOT)}:{i}" for i, line in enumerate(text.splitlines(), 1) if MACHINE_PATH.search(line)]
+        bad += [
+            f"{p.relative_to(ROOT)}:{i}" for i, line in enumerate(text.splitlines(), 1) if MACHINE_PATH.search(line)
+        ]
     assert not bad, "machine paths (use paths relative to the repository or a run directory):\n" + "\n".join(bad)
 
 

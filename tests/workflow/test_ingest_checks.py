@@ -1,6 +1,7 @@
 """Ingest refuses or converts what it must not trust: polarisation labels (by number), phased data,
 units, antenna positions and site, duplicated rows, unflagged NaN/inf. Data: matvis through pyuvdata,
 recorded in 2023, two linear polarisations with different gains and flags."""
+import os
 from types import SimpleNamespace
 
 import numpy as np
@@ -11,6 +12,7 @@ from mmflow.errors import InputError
 from mmflow.io.ingest import ingest_time_chunk
 from mmflow.io.polarization import stokes_i_recipe
 from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.runner import run_workflow
 from tests.uvh5_helpers import JD_2023, gaussian_power_beamfits, matvis_uvdata
 
@@ -203,16 +205,21 @@ def test_unflagged_nonfinite_refused_before_writing_or_flagged_and_counted(uv, t
     bad.data_array[12, 0, 0] = np.nan
     bad.flag_array[12, 0, 0] = True  # a flagged NaN: allowed (each hand is kept, so its own flag counts)
     p = write(bad, tmp_path / "nan" / "nonfinite.uvh5", run_check=False)
+    run_dir = tmp_path / "run"
     with pytest.raises(InputError, match=r"nonfinite.uvh5.*data_array.*2 unflagged samples are NaN or inf.*nonfinite=flag"):
-        ingest(tmp_path / "run", str(p))
-    g = zarr.open_group(str(tmp_path / "run" / "vis.zarr"), mode="r")
-    assert not np.any(g["weights"][:]) and not np.any(g["vis"][:])  # nothing written
-    cfg = SimpleNamespace(input=SimpleNamespace(format=None, conjugate=False, nonfinite="flag"))
-    summary = ingest_time_chunk(cfg, tmp_path / "run" / "vis.zarr", 0, 256)
-    assert summary["nonfinite_flagged"] == 2
+        ingest(run_dir, str(p))
+    assert sorted(os.listdir(run_dir)) == ["mmflow.log"]  # refused by the plan's scan: no store, no record
+    g = ingest(run_dir, str(p), "input.nonfinite=flag")  # the fix, without --force
+    assert RunDir(run_dir).completion("ingest")["counts"]["nonfinite_flagged"] == 2
     v, w = _stokes_i(g)
     w, v = w[:, :, 0].ravel(), v[:, :, 0].ravel()  # rows in file order here
     assert np.all(np.isfinite(v)) and list(np.flatnonzero(w == 0)) == [5, 9, 12]
+    # a task checks the same samples, and refuses before it writes (formats the plan cannot scan: uvfits)
+    before = g["vis"][:]
+    cfg = SimpleNamespace(input=SimpleNamespace(format=None, conjugate=False, nonfinite="error"))
+    with pytest.raises(InputError, match=r"nonfinite.uvh5.*2 unflagged samples are NaN or inf"):
+        ingest_time_chunk(cfg, run_dir / "vis.zarr", 0, 256)
+    assert np.array_equal(g["vis"][:], before)
 
 
 def test_uvh5_plan_reads_one_file_with_pyuvdata_the_rest_with_h5py_and_checks_each(uv, tmp_path):

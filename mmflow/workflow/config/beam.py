@@ -10,6 +10,7 @@ from typing import Literal, Optional
 
 from pydantic import ConfigDict, Field, model_validator
 
+from mmflow.telescope.beam_factory import required_params
 from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.errors import BadValue
 
@@ -70,7 +71,8 @@ class PyUVDataBeamParams(Section):
     file: Optional[UserPath] = Field(None, description="beamfits / MWA / CST file (power or E-field beam).")
     class_: Optional[Literal[PYUVDATA_ANALYTIC]] = Field(None, alias="class",
                                                          description="pyuvdata.analytic_beam class, instead of file.")
-    params: dict = Field(default_factory=dict, description="Arguments of that class (e.g. {diameter: 14.0}).")
+    params: dict = Field(default_factory=dict, description="Arguments of that class (e.g. {diameter: 14.0}); "
+                         "{} for a class whose signature requires none (ShortDipoleBeam, UniformBeam).")
     normalize: bool = Field(False, description="Rescale to 1 at zenith (default: the beam's own normalisation).")
     lmax_hint: int = Field(48, ge=1, description="Angular band limit of the beam pattern.")
 
@@ -80,9 +82,11 @@ class PyUVDataBeamParams(Section):
             raise BadValue("give exactly one of 'file' and 'class'",
                            "beam={type: pyuvdata, file: beam.fits} or beam={type: pyuvdata, class: AiryBeam, "
                            "params: {diameter: 14.0}}")
-        if self.file is None and self.params == {} and self.class_ != "UniformBeam":
-            raise BadValue(f"pyuvdata's {self.class_} needs its size in 'params'",
-                           "e.g. params: {diameter: 14.0} (AiryBeam, GaussianBeam) or params: {sigma: 0.5}")
+        missing = [] if self.file is not None else required_params(self.class_, self.params)
+        if missing:
+            raise BadValue(f"pyuvdata's {self.class_} needs {', '.join(missing)} in 'params'",
+                           "e.g. params: {" + ", ".join(f"{n}: ..." for n in missing) + "} (pyuvdata.analytic_beam."
+                           f"{self.class_}'s arguments)")
         return self
 
 

@@ -9,6 +9,7 @@ before any work.
 from __future__ import annotations
 
 import ipaddress
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,11 +19,11 @@ from mmflow.conventions import SIDEREAL_DAY_S, drift_scan_lsts, is_full_stokes
 from mmflow.errors import InputError
 from mmflow.mmode.splits import day_index, day_splits, jackknife_kind, sidereal_times_jd, split_problems
 from mmflow.sky.sources import CATALOG
-from mmflow.telescope import load_layout, ovro_lwa_layout
+from mmflow.telescope.layout import selected_layout
 from mmflow.telescope.beam_factory import make_beam, make_jones
 from mmflow.workflow.config.beam import BEAM_PARAMS
 from mmflow.workflow.config.errors import Problem, from_pydantic, nearest, show
-from mmflow.workflow.engine.geometry import n_bins_of, n_integrations
+from mmflow.workflow.engine.geometry import n_bins_of, n_integrations, run_freqs_hz
 from mmflow.workflow.engine.prior_run import prior_run_problems
 from mmflow.paths import expand_path
 
@@ -86,12 +87,8 @@ def _selection_problems(cfg):
     """Build the antenna selection as the simulate stage will, and check it."""
     t = cfg.telescope
     try:
-        if t.layout_file is None:
-            full = ovro_lwa_layout(t.preset)
-            lay = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
-        else:
-            full = load_layout(t.layout_file, t.lat_deg, t.lon_deg)
-            lay = full.select(t.stands, t.radius_m)
+        full, lay = selected_layout(t.preset, t.layout_file, t.lat_deg, t.lon_deg, t.radius_m, t.stands,
+                                    t.max_antennas)
     except InputError as exc:
         loc = ("telescope", "stands") if exc.field == "stands" else ("telescope", "layout_file")
         return [Problem(loc, None, f"{exc.what}: {exc.problem}", exc.fix)]
@@ -123,8 +120,8 @@ def _beam_build_problems(cfg):
                         "give the path of a beam file pyuvdata reads")]
     try:
         beam = make_beam(spec)
-        for f in (cfg.observation.simulated_freqs_mhz() if cfg.source == "simulate" else cfg.observation.freqs_mhz or []):
-            beam.check_frequency(f * 1e6)
+        for f in _run_freqs_hz(cfg):
+            beam.check_frequency(f)
     except InputError as exc:
         loc = ("observation", "freqs_mhz") if exc.field in ("frequency", "freq_array") else ("beam",)
         return [Problem(loc, None, f"beam type {show(spec.get('type'))}: {exc.problem}", exc.fix)]
@@ -132,6 +129,19 @@ def _beam_build_problems(cfg):
         return [Problem(("beam", "params"), spec.get("params"), f"pyuvdata cannot build the beam ({exc})",
                         "give the arguments of that pyuvdata.analytic_beam class")]
     return []
+
+
+def _run_freqs_hz(cfg):
+    """The run's channels as its telescope takes them (:func:`mmflow.workflow.engine.geometry.run_freqs_hz`); none
+    where the input files cannot be planned (the ingest stage's check reports why, naming the files)."""
+    if cfg.source != "ingest":
+        return run_freqs_hz(cfg)
+    from mmflow.io.ingest import plan_ingest  # deferred: reading a simulation's config imports no numerics
+
+    try:
+        return run_freqs_hz(cfg, plan_ingest(cfg))
+    except InputError:
+        return []
 
 
 def _value_problems(cfg):
@@ -287,6 +297,13 @@ def _cluster_problems(c):
     if c.kind == "address" and c.address is not None and "://" not in c.address and ":" not in c.address:
         out.append(Problem(("cluster", "address"), c.address, "not a scheduler address",
                            "write e.g. tcp://host:8786"))
+    logs = c.jobqueue.get("log_directory")
+    unset = re.search(r"\$\{?\w+\}?", logs) if isinstance(logs, str) and c.kind in ("slurm", "pbs") else None
+    if unset:  # the schema expanded every variable that is set (mmflow.paths.expand_path)
+        out.append(Problem(("cluster", "jobqueue", "log_directory"), logs,
+                           f"{unset.group(0)} is not set in this environment (SLURM and PBS do not expand "
+                           "variables in their job options: a directory would be named so)",
+                           "set the variable before running mmflow, or write the path out"))
     return out
 
 

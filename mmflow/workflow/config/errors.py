@@ -41,6 +41,9 @@ class ConfigError(InputError):
         if len(lines) > 1:
             Exception.__init__(self, "\n".join(f"{w}: field '{f}': {p}. Fix: {x}" for w, f, p, x in lines))
 
+    def __reduce__(self):  # as InputError's: an input error a task reports travels back to the driver
+        return type(self), (self.problems,)
+
 
 class BadValue(ValueError):
     """Raised inside field validators: ``problem`` in words and the ``fix``."""

@@ -5,18 +5,25 @@ Override any key from the command line with ``section.key=value`` (values parsed
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional, Union
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, BeforeValidator, Field, ValidationError, field_validator, model_validator
 
 from mmflow.errors import InputError
 from mmflow.mmode.splits import split_kind
-from mmflow.workflow.config.base import Section, UserPath, power_of_two
+from mmflow.paths import expand_path
+from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.beam import BEAM_PARAMS, BeamConfig
-from mmflow.workflow.config.calibration import (CalibrateConfig, CorruptConfig, ModelsConfig, PeelConfig,
-                                               TerrestrialConfig)
+from mmflow.workflow.config.calibration import CorruptConfig
 from mmflow.workflow.config.checks import beam_problems, check_config
+from mmflow.workflow.stages.calibrate.settings import CalibrateConfig
+from mmflow.workflow.stages.clean.settings import CleanConfig
+from mmflow.workflow.stages.models.settings import ModelsConfig
+from mmflow.workflow.stages.peel.settings import PeelConfig
+from mmflow.workflow.stages.products.settings import ProductsConfig
+from mmflow.workflow.stages.terrestrial.settings import TerrestrialConfig
+from mmflow.workflow.stages.transfer.settings import TransferConfig
 from mmflow.workflow.config.errors import BadValue, Origins, allowed_text, from_pydantic, report, yaml_error
 
 
@@ -49,6 +56,15 @@ class TelescopeConfig(Section):
     stands: Optional[list[str]] = Field(None, min_length=2, description="Keep only these stand names.")
     max_antennas: Optional[int] = Field(None, ge=2, description="Keep the first N stands after the other cuts.")
     include_autos: bool = Field(True, description="Use autocorrelations as baselines of length 0.")
+
+
+def _prior_passes(v):
+    """``auto`` or a number of passes 0..3."""
+    if v == "auto":
+        return v
+    if isinstance(v, bool) or not isinstance(v, (int, str)) or not str(v).strip().isdigit() or int(v) > 3:
+        raise BadValue("not auto or a whole number of passes 0 to 3", "use auto (the default), or 0, 1, 2 or 3")
+    return int(v)
 
 
 class ObservationConfig(Section):
@@ -164,15 +180,24 @@ class MmodeConfig(Section):
         "flagged time leaves unmeasured (a second pass; docs/mmodes.md). Run it in a new run.directory. "
         "null: no prior (gaps held at 0).", json_schema_extra={"allowed": "null or a run directory"})
 
-    prior_passes: int = Field(
-        0, ge=0, le=3, description="Automatic prior passes inside one run (docs/mmodes.md): after the "
-        "calibration stages, m-modes -> solve run in RUN/prior0 (least squares alone), and each later pass, "
-        "the run's own m-modes among them, fits flagged time with the map before it as its prior "
-        "(mmode.prior_run done for you; each pass resumable). 0: none.")
+    prior_passes: Annotated[Union[Literal["auto"], int], BeforeValidator(_prior_passes)] = Field(
+        "auto", description="Prior passes inside one run (docs/mmodes.md): after the calibration stages, m-modes "
+        "-> solve run in RUN/prior0 (least squares alone), and each later pass, the run's own m-modes among them, "
+        "fits flagged time with the map before it as its prior (mmode.prior_run done for you; each pass "
+        "resumable). 'auto': passes only where flagged time leaves a baseline a gap longer than its band limit "
+        "bridges (one Nyquist interval, N / (2 M_b + 1) sidereal bins), until the map changes by less than "
+        "prior_tolerance, at most prior_max_passes; none without such gaps (and none with prior_run). 0: none.",
+        json_schema_extra={"allowed": "auto, or 0 to 3", "fingerprint_as": 0})
+    prior_tolerance: float = Field(
+        0.02, gt=0, description="'auto' prior passes stop when the map's alm (every channel, first split) changes "
+        "by less than this from one pass to the next: ||a_k - a_(k-1)|| / ||a_k||.",
+        json_schema_extra={"fingerprint": False})
+    prior_max_passes: int = Field(3, ge=1, le=6, description="The most 'auto' prior passes (each costs the imaging "
+                                  "stages once more).", json_schema_extra={"fingerprint": False})
 
     @model_validator(mode="after")
     def _one_prior(self):
-        if self.prior_passes and self.prior_run is not None:
+        if self.prior_passes != "auto" and self.prior_passes and self.prior_run is not None:
             raise BadValue("mmode.prior_passes and mmode.prior_run both give a prior",
                            "use prior_passes (passes inside this run) or prior_run (an earlier run), not both")
         return self
@@ -196,22 +221,6 @@ class MmodeConfig(Section):
         if not v or v[0] != "full" or len(set(v)) != len(v):
             raise BadValue("'full' must come first and each split once", "write e.g. mmode.splits=[full, even, odd]")
         return v
-
-
-class TransferConfig(Section):
-    """Transfer matrices and normal equations."""
-
-    mode: Literal["normal", "store"] = Field("normal", description="'normal': stream G_m; 'store': also write B_m.")
-    dtype: Literal["float32", "float64"] = Field("float64", description="Precision of the transfer matrices.")
-    baseline_chunk: int = Field(32, ge=1, description="Baselines per transfer chunk of the longest baselines "
-                                "(memory ~ chunk * lmax^2 * 16 B); shorter baselines share chunks up to 16x larger "
-                                "within the same memory.")
-    per_baseline_lmax: bool = Field(True, description="Cut each baseline's rows at its own band limit.")
-    m_block: int = Field(16, ge=1, description="m values per reduction / solve task.")
-    groups: int = Field(8, ge=1, description="Baseline groups of the transfer stage: tasks per frequency, and "
-                        "partial normal equations kept on disk (each ~ the Gram's size). Set >= the cluster's worker "
-                        "threads for parallelism. Results never depend on the cluster.")
-    noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
 
 
 class ImagingConfig(Section):
@@ -240,100 +249,6 @@ class ImagingConfig(Section):
         return v
 
 
-class CleanConfig(Section):
-    """m-mode CLEAN (docs/clean.md): PSF by declination, CLEAN to k x jackknife noise, maps, Table 1.
-
-    Major cycles over m blocks (paper section 2.4); restored, residual, model and noise maps and
-    PSF stamps in maps/ (products stage).
-    """
-
-    enabled: bool = Field(False, description="Run CLEAN after the solve.")
-    gain: float = Field(0.15, gt=0, le=1, description="Loop gain: each component takes this fraction of its peak.")
-    peaks_per_cycle: int = Field(256, ge=1, description="Peaks (components) picked per major cycle.")
-    min_separation_deg: float = Field(3.0, gt=0, lt=180, description="Least distance between the peaks of one "
-                                      "cycle (must exceed the PSF main lobe: at least 180 / lmax degrees).")
-    peak_fraction: float = Field(0.1, ge=0, lt=1, description="No component from a peak below this fraction of "
-                                 "the cycle's largest (0: the paper's N largest pixels).")
-    absolute: bool = Field(True, description="Rank peaks by |residual| (negative components allowed).")
-    threshold_sigma: float = Field(3.0, gt=0, description="Stop when the residual peak is below this many "
-                                   "jackknife noise sigmas (needs mmode.splits with even and odd, or day<k> "
-                                   "splits of data spanning two or more sidereal days).")
-    threshold: Optional[float] = Field(None, gt=0, description="Stop below this residual peak instead "
-                                       "(threshold_unit); null: threshold_sigma x the jackknife noise.")
-    threshold_unit: Literal["K", "Jy/sr"] = Field("K", description="Unit of threshold.")
-    rel_threshold: float = Field(0.0, ge=0, lt=1, description="Also stop below this fraction of the first "
-                                 "cycle's peak (0: off).")
-    max_cycles: int = Field(1000, ge=1, description="Stop after this many major cycles.")
-    stall_cycles: int = Field(10, ge=0, description="Stop when the best peak of the last this-many cycles is "
-                              "not stall_fraction below the best before them (0: off).")
-    stall_fraction: float = Field(0.1, ge=0, lt=1, description="See stall_cycles: 0.1 stops a residual falling "
-                                  "by less than ~1 % a cycle (calibration and ionospheric errors that point "
-                                  "components cannot describe), where a point source falls by the loop gain "
-                                  "(docs/clean.md).")
-    psf_dec_step_deg: float = Field(2.0, gt=0, le=30, description="Declination step of the PSF table (the PSF "
-                                    "depends only on declination; 0, +45 and +75 are always in it).")
-    highpass_lmin: Optional[int] = Field(None, ge=1, description="CLEAN only l above this (cosine ramp of "
-                                         "highpass_width below it), leaving the smooth sky out (null: off).")
-    highpass_width: int = Field(8, ge=0, description="Width in l of the high-pass ramp.")
-    nside: Optional[int] = Field(None, description="HEALPix nside of the residual maps CLEAN picks peaks in "
-                                 "(default twice the default for lmax).",
-                                 json_schema_extra={"allowed": "a power of two (1, 2, 4, ..., 2^29), or null"})
-    keep_factors: bool = Field(True, description="Store the Cholesky factors of G + eps I per m block "
-                               "(clean.zarr, the Gram's size) instead of refactorising every cycle.")
-
-    @field_validator("nside")
-    @classmethod
-    def _nside(cls, v):
-        return power_of_two(v)
-
-
-class ProductsConfig(Section):
-    """Maps, plots, science products (flux scale, spectral index, astrometry), HTML report.
-
-    See docs/products.md.
-    """
-
-    nside: Optional[int] = Field(None, description="Output HEALPix nside (default from lmax).",
-                                 json_schema_extra={"allowed": "a power of two (1, 2, 4, ..., 2^29), or null"})
-    frame: Literal["icrs", "galactic", "date"] = Field("icrs", description="Coordinate frame of the maps.")
-    unit: Literal["K", "Jy/sr"] = Field("K", description="Brightness temperature or intensity.")
-    png: bool = Field(True, description="Also write Mollweide and L-curve PNGs.")
-    flux_scale: bool = Field(True, description="Measure the catalogue sources' fluxes in each channel's map "
-                             "(disc sum minus annulus median over the PSF's, per source) and plot them against "
-                             "their published spectra.")
-    flux_scale_sources: Optional[list[str]] = Field(None, description="Catalogue sources to measure (null: every "
-                                                    "catalogue source the array sees; peeled sources are taken "
-                                                    "from their peel fluxes).",
-                                                    json_schema_extra={"allowed": "names from "
-                                                                       "mmflow.sky.sources.CATALOG, or null"})
-    flux_disc_fwhm: float = Field(0.8, gt=0, description="Radius of the flux disc, in PSF FWHMs at the source.")
-    flux_annulus_fwhm: tuple[float, float] = Field((1.2, 2.0), description="Inner and outer radius of the "
-                                                   "background annulus, in PSF FWHMs.",
-                                                   json_schema_extra={"allowed": "[inner, outer] with "
-                                                                      "flux_disc_fwhm <= inner < outer"})
-    spectral_index: bool = Field(True, description="With >= 2 channels: T-T spectral index (beta, R^2) maps between "
-                                 "the lowest and highest; with >= 3 a three-colour Mollweide scaled by nu^2.5.")
-    spectral_index_radius_deg: float = Field(10.0, gt=0, le=90, description="Radius of the T-T regions.")
-    spectral_index_nside: int = Field(32, description="nside of the beta and R^2 maps (the T-T inputs are "
-                                      "averaged to twice this).",
-                                      json_schema_extra={"allowed": "a power of two (1, 2, 4, ..., 2^29)"})
-    astrometry: Optional[Literal["catalog"]] = Field(None, description="Astrometric registration against the "
-                                                     "source catalogue (positions before and after a fitted "
-                                                     "rotation; null: off).")
-    astrometry_axis: Literal["any", "z"] = Field("any", description="Rotation fitted by the registration: any "
-                                                 "small rotation, or about the pole only (an RA / clock shift).")
-
-    @field_validator("spectral_index_nside")
-    @classmethod
-    def _si_nside(cls, v):
-        return power_of_two(v)
-
-    @field_validator("nside")
-    @classmethod
-    def _nside(cls, v):
-        return power_of_two(v)
-
-
 class ClusterConfig(Section):
     """Where the dask graph runs."""
 
@@ -358,6 +273,13 @@ class ClusterConfig(Section):
     @classmethod
     def _memory(cls, v):
         return check_memory_limit(v)
+
+    @field_validator("jobqueue")
+    @classmethod
+    def _jobqueue(cls, v):
+        if isinstance(v.get("log_directory"), str):  # SLURM and PBS do not expand their #SBATCH / #PBS lines
+            v = {**v, "log_directory": expand_path(v["log_directory"])}
+        return v
 
     @field_validator("dashboard_address", mode="before")
     @classmethod

@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from mmflow.io.run_stores import STORES
 
 
 @dataclass
@@ -44,19 +45,19 @@ def read_block(ctx, rows=slice(None), columns=slice(None), cross=False, channels
     a correction corrects them with the same per-feed solutions. ``channels``: a contiguous range
     of channels (a task of one channel reads and corrects that channel only: ``vis.zarr`` holds one
     channel per chunk, so its memory and work do not grow with the channels of the run)."""
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     nt, nbl, nf = vg["vis"].shape[:3]
     rows, columns, channels = slice(*rows.indices(nt)), slice(*columns.indices(nbl)), slice(*channels.indices(nf))
     if channels.step != 1 or channels.stop <= channels.start:
         raise ValueError(f"read_block: channels {channels} is not a contiguous, non-empty range of the {nf} channels")
     region = (rows, columns, channels)
-    block = DataBlock(ctx.read("vis.zarr", "vis", region).astype(np.complex128),
-                      ctx.read("vis.zarr", "weights", region).astype(float),
-                      vg["pairs"][columns], rows, columns, ctx.read("vis.zarr", "autos", (rows, slice(None), channels)),
-                      ctx.read("vis.zarr", "lst", (rows,)), channels=channels)
+    block = DataBlock(ctx.read(STORES.vis, "vis", region).astype(np.complex128),
+                      ctx.read(STORES.vis, "weights", region).astype(float),
+                      vg["pairs"][columns], rows, columns, ctx.read(STORES.vis, "autos", (rows, slice(None), channels)),
+                      ctx.read(STORES.vis, "lst", (rows,)), channels=channels)
     if cross:
-        block.cross = ctx.read("vis.zarr", "vis_cross", region).astype(np.complex128)
-        block.cross_weights = ctx.read("vis.zarr", "weights_cross", region).astype(float)
+        block.cross = ctx.read(STORES.vis, "vis_cross", region).astype(np.complex128)
+        block.cross_weights = ctx.read(STORES.vis, "weights_cross", region).astype(float)
     for stage in ctx.corrections():
         stage.apply(ctx, block)
     return block

@@ -20,7 +20,7 @@ from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
-from mmflow.io.run_stores import gram_name
+from mmflow.io.run_stores import STORES, gram_name
 from mmflow.mmode.normal import hermitian_full
 from mmflow.mmode.splits import day_splits, jackknife_kind
 from mmflow.workflow.engine.geometry import split_fractions
@@ -64,7 +64,7 @@ def block_operators_from_gram(ctx, fi, m0, m1):
     """:class:`psf.BlockOperator` of each m of a block, factorised from ``normal.zarr``'s Gram."""
     cfg = ctx.cfg
     lmax, eps, keeps = cfg.mmode.lmax, cfg.imaging.eps, kept_coefficients(cfg, m0, m1)
-    grams = ctx.read("normal.zarr", gram_name(fi, m0))
+    grams = ctx.read(STORES.normal, gram_name(fi, m0))
 
     def one(m):
         n = lmax - m + 1
@@ -78,9 +78,9 @@ def stored_operators(ctx, fi, m0, m1):
     leaves a coupling ``G_kf``: m = 1)."""
     cfg = ctx.cfg
     lmax, keeps = cfg.mmode.lmax, kept_coefficients(cfg, m0, m1)
-    chol = ctx.read("clean.zarr", f"f{fi}/chol_b{m0:05d}")
+    chol = ctx.read(STORES.clean, f"f{fi}/chol_b{m0:05d}")
     partial = [m for m in range(m0, m1) if keeps[m].any() and not keeps[m].all()]
-    grams = ctx.read("normal.zarr", gram_name(fi, m0)) if partial else None
+    grams = ctx.read(STORES.normal, gram_name(fi, m0)) if partial else None
     return operators_from_factors(chol, keeps, cfg.imaging.eps, lmax, m0, m1,
                                   lambda m: hermitian_full(grams[m - m0, :lmax - m + 1, :lmax - m + 1]))
 
@@ -160,7 +160,7 @@ def psf_alm_columns(g, fi, lmax, blocks):
 
 def split_alm(ctx, fi, lmax, mmax):
     """``{split name: healpy alm}`` of the solved maps of one frequency."""
-    alm = ctx.read("alm.zarr", "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
+    alm = ctx.read(STORES.alm, "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
     return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
 
 

@@ -18,12 +18,14 @@ import zarr
 
 from mmflow.errors import InputError, MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
-from mmflow.telescope import Telescope, load_layout, ovro_lwa_layout
+from mmflow.telescope import Telescope
 from mmflow.telescope.beam_factory import make_beam
-from mmflow.telescope.layout import Layout
+from mmflow.telescope.layout import Layout, selected_layout
 from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.fingerprint import ConfigView
+from mmflow.workflow.engine.geometry import run_freqs_hz
 from mmflow.workflow.engine.rundir import RunDir
+from mmflow.io.run_stores import STORES
 
 
 class NonFiniteOutputError(MmflowError):
@@ -153,7 +155,7 @@ class TaskContext(Context):
         return _telescope(self.cfg.beam.model_dump_json(), self.run_path)
 
     def vis_attrs(self):
-        return zarr.open_group(str(self.run.store("vis.zarr")), mode="r").attrs.asdict()
+        return zarr.open_group(str(self.run.store(STORES.vis)), mode="r").attrs.asdict()
 
 
 def _fmt(region):
@@ -167,7 +169,7 @@ def _parse(js):
 
 @lru_cache(maxsize=8)
 def _telescope(beam_json, run_path):
-    g = zarr.open_group(str(RunDir(run_path).store("vis.zarr")), mode="r")
+    g = zarr.open_group(str(RunDir(run_path).store(STORES.vis)), mode="r")
     a = g.attrs.asdict()
     layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],
                     a["height_m"], a.get("layout_provenance", ""))
@@ -177,16 +179,22 @@ def _telescope(beam_json, run_path):
     return tel
 
 
-def build_telescope(cfg, layout=None):
-    """Telescope from the config (``telescope``, ``beam``, ``observation``), or from an ingested layout."""
+def run_telescope(cfg, run_path):
+    """The telescope stored with a run's visibilities (as :meth:`TaskContext.telescope`), outside a stage."""
+    return _telescope(cfg.beam.model_dump_json(), str(run_path))
+
+
+def build_telescope(cfg, ingest=None):
+    """Telescope from the config (``telescope``, ``beam``, ``observation``), or for ingested data from
+    ``ingest`` (the ingest plan, or a record's copy: its ``layout`` and ``freqs_hz``); its channels are
+    :func:`mmflow.workflow.engine.geometry.run_freqs_hz`."""
     t = cfg.telescope
+    layout = None if ingest is None else ingest.layout
     if layout is None:
-        if t.preset is not None and t.layout_file is None:
-            layout = ovro_lwa_layout(t.preset, radius_m=t.radius_m, stands=t.stands, max_antennas=t.max_antennas)
-        else:
-            if t.layout_file is None or t.lat_deg is None or t.lon_deg is None:
-                raise InputError("workflow", "telescope.layout_file", "no layout given",
-                                 "set telescope.preset, or layout_file with lat_deg and lon_deg")
-            layout = load_layout(t.layout_file, t.lat_deg, t.lon_deg).select(t.stands, t.radius_m)
-    return Telescope(layout, make_beam(cfg.beam.model_dump()), np.asarray(cfg.observation.simulated_freqs_mhz()) * 1e6,
+        if t.layout_file is not None and (t.lat_deg is None or t.lon_deg is None):
+            raise InputError("workflow", "telescope.layout_file", "no layout given",
+                             "set telescope.preset, or layout_file with lat_deg and lon_deg")
+        _, layout = selected_layout(t.preset, t.layout_file, t.lat_deg, t.lon_deg, t.radius_m, t.stands,
+                                    t.max_antennas)
+    return Telescope(layout, make_beam(cfg.beam.model_dump()), run_freqs_hz(cfg, ingest),
                      cfg.observation.integration_s, t.include_autos, cfg.observation.channel_width_khz * 1e3)

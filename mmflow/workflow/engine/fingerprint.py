@@ -68,13 +68,26 @@ class ConfigView:
 
 
 def config_values(cfg, paths):
-    """``{path: value}`` of the declared dotted paths (sections dumped whole)."""
+    """``{path: value}`` of the declared dotted paths (sections dumped whole, less what a field's
+    ``json_schema_extra`` exempts: ``"fingerprint": False`` leaves the field out, ``"fingerprint_as": v``
+    records ``v`` whatever its value -- for settings that reach a stage's output only through an
+    input file the fingerprint digests, e.g. ``mmode.prior_passes`` through the prior's alm, ``v``
+    the value runs recorded before the exemption, so that their fingerprints stay)."""
     out = {}
     for p in paths:
         obj = cfg
         for part in p.split("."):
             obj = getattr(obj, part)
-        out[p] = obj.model_dump(mode="json") if isinstance(obj, BaseModel) else obj
+        out[p] = _section_values(obj) if isinstance(obj, BaseModel) else obj
+    return out
+
+
+def _section_values(section):
+    """A section's dump with its fields' fingerprint exemptions applied (:func:`config_values`)."""
+    extras = {name: f.json_schema_extra for name, f in type(section).model_fields.items()
+              if isinstance(f.json_schema_extra, dict)}
+    out = section.model_dump(mode="json", exclude={n for n, e in extras.items() if e.get("fingerprint") is False})
+    out.update({n: e["fingerprint_as"] for n, e in extras.items() if "fingerprint_as" in e})
     return out
 
 

@@ -7,8 +7,11 @@ so they live here and no stage module imports another. The time chunks are in
 """
 from __future__ import annotations
 
+import numpy as np
+
 from mmflow.conventions import SIDEREAL_DAY_S, is_full_stokes
 from mmflow.mmode.splits import split_shares
+from mmflow.io.run_stores import STORES
 
 #: sampled sidereal angles of an interpolated diffuse sky per task of the simulate stage's first phase
 DIFFUSE_SAMPLE_BLOCK = 8
@@ -23,6 +26,23 @@ def n_bins_of(cfg, integration_s):
     """Sidereal bins of the m-mode transform: ``mmode.n_bins``, else
     ``N = round(T_sid / tau)`` for integrations of ``tau`` seconds (one bin per integration)."""
     return cfg.mmode.n_bins or int(round(SIDEREAL_DAY_S / integration_s))
+
+
+def run_freqs_hz(cfg, ingest=None):
+    """The run's channels (Hz), as its telescope holds them and the beam must cover: for ingested data
+    those of ``ingest``, the ingest plan (:func:`mmflow.io.ingest.plan_ingest`, or a plan record's copy):
+    the channels the ingest selects from the files (every channel, or the one nearest each of
+    ``observation.freqs_mhz``, averaged with ``input.average_channels``); a simulation's (``ingest``
+    None) ``observation.freqs_mhz``, 40 MHz when null."""
+    if ingest is not None:
+        return np.asarray(ingest.freqs_hz, float)
+    return np.asarray(cfg.observation.simulated_freqs_mhz(), float) * 1e6
+
+
+def fit_bins(splits, n_bins):
+    """The bins of the smallest data split, which bound every baseline's m-mode fit: half of them less
+    one for even / odd splits, else ``n_bins - 1`` (band limits up to half of it)."""
+    return n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
 
 
 def interpolates_diffuse(cfg):
@@ -43,6 +63,6 @@ def split_fractions(ctx, fi):
     """``{split: f_k}`` at frequency ``fi``: each split's share of the unflagged samples, summed over
     baselines (``mmodes.zarr``'s ``n_samples``, :func:`mmflow.mmode.splits.split_shares`): the ``f_k``
     of the per-day jackknife and of the day/night map, for any stage that reads ``mmodes.zarr``."""
-    g = ctx.open("mmodes.zarr")
-    counts = ctx.read("mmodes.zarr", "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
+    g = ctx.open(STORES.mmodes)
+    counts = ctx.read(STORES.mmodes, "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
     return split_shares(counts, list(g.attrs["splits"]))

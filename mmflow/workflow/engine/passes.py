@@ -12,6 +12,13 @@ the two-run recipe did by hand:
    ``k - 1``'s map as the prior;
 3. the rest of the pipeline runs in ``RUN`` with the last pass's map as its prior.
 
+``auto`` (the default) chooses ``n``: 0 where no baseline's flagged time leaves a gap longer than its
+band limit bridges (:func:`unbridged_baselines`; the run is then the run without passes), else passes
+until the map changes by less than ``mmode.prior_tolerance`` (:func:`map_change`), at most
+``mmode.prior_max_passes``; the count is recorded in ``RUN/prior_passes.json``
+(:func:`mmflow.workflow.engine.prior_run.auto_passes`). ``mmode.prior_run`` (an earlier run as the prior)
+makes no pass.
+
 Each pass is a run directory of its own, with its lock, fingerprints and per-chunk markers, so a
 kill anywhere resumes where it stopped, bit-identically; recomputing a pass makes everything after
 it stale (the prior's ``alm.zarr/alm`` is in each ``mmodes`` fingerprint). The transfer stage runs
@@ -19,11 +26,21 @@ once per pass: a pass costs about as much as the imaging stages of the run.
 """
 from __future__ import annotations
 
+import json
 import os
 
-from mmflow.workflow.engine.prior_run import pass_directory
+import numpy as np
+import zarr
+
+from mmflow.io.polarization import stokes_i
+from mmflow.mmode.gapfill import unbridged_gaps
+from mmflow.mmode.transform import bin_occupancy
+from mmflow.workflow.engine.context import run_telescope
+from mmflow.workflow.engine.geometry import fit_bins, n_bins_of
+from mmflow.workflow.engine.prior_run import ALM, auto_record, pass_directory, resolve
 from mmflow.workflow.engine.runner import run_workflow
 from mmflow.workflow.pipeline import PIPELINE
+from mmflow.io.run_stores import STORES
 
 #: the stages of a prior pass: from the m-modes to the solved map
 PASS_STAGES = ("mmodes", "transfer", "normal", "solve")
@@ -56,14 +73,23 @@ def pass_config(cfg, k):
 
 def run_with_passes(cfg, client=None, only=None, force=False, progress=True, log=print, pipeline=PIPELINE):
     """:func:`mmflow.workflow.engine.runner.run_workflow`, with ``mmode.prior_passes`` passes before the
-    stages from ``mmodes`` on; returns the run's summaries (each pass's under ``prior<k>/<stage>``)."""
-    n = cfg.mmode.prior_passes
-    if not n or only:
+    stages from ``mmodes`` on; returns the run's summaries (each pass's under ``prior<k>/<stage>``).
+
+    ``auto`` (the default; :func:`unbridged_baselines` decides): no pass where no baseline has a gap its band
+    limit cannot bridge (the run is the run without passes); else passes ``k = 0, 1, ...`` until the map
+    changes by less than ``mmode.prior_tolerance`` (:func:`map_change`), at most ``mmode.prior_max_passes``,
+    the count recorded in ``RUN/prior_passes.json`` for the stages that take the last pass's map."""
+    mm = cfg.mmode
+    auto = mm.prior_passes == "auto"
+    n = 0 if mm.prior_run is not None else mm.prior_max_passes if auto else mm.prior_passes
+    if only or not n:
         return run_workflow(cfg, client, only, force, progress, log, pipeline)
     up = _upstream(cfg, pipeline)
     summaries = run_workflow(cfg, client, [st.name for st in up], force, progress, log, pipeline) if up else {}
+    need = unbridged_baselines(cfg, log) if auto else None
     root = pass_directory(cfg.run.directory, 0).parent
-    for k in range(n):
+    k = 0
+    while need != 0 and k < n:
         pcfg = pass_config(cfg, k)
         pdir = pass_directory(cfg.run.directory, k)
         for st in up:  # the earlier stages' stores and records, shared
@@ -74,6 +100,55 @@ def run_with_passes(cfg, client=None, only=None, force=False, progress=True, log
             + (f" with pass {k - 1}'s map as the prior" if k else " (least squares alone)"))
         done = run_workflow(pcfg, client, list(PASS_STAGES), force, progress, log, pipeline)
         summaries.update({f"prior{k}/{name}": s for name, s in done.items()})
+        k += 1
+        if auto and k > 1:
+            change = map_change(pass_directory(cfg.run.directory, k - 2), pdir)
+            log(f"[prior pass {k - 1}] the map changed by {change:.4f} (mmode.prior_tolerance {mm.prior_tolerance:g})")
+            if change < mm.prior_tolerance:
+                break
+    if auto:
+        _write_json(auto_record(cfg.run.directory), {"passes": k, "baselines_with_unbridged_gaps": need})
     rest = [st.name for st in pipeline if st.enabled(cfg) and st.name not in {u.name for u in up}]
     summaries.update(run_workflow(cfg, client, rest, force, progress, log, pipeline))
     return summaries
+
+
+def _write_json(path, value):
+    """``value`` as JSON at ``path``, replaced whole (a kill leaves the old record or the new)."""
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(value))
+    os.replace(tmp, path)
+
+
+def map_change(before, after):
+    """``||a_k - a_(k-1)|| / ||a_k||`` of the solved alm (first split, every channel) of two passes' run
+    directories: how much a pass changed the map."""
+    a0, a1 = (zarr.open_group(str(d / ALM), mode="r")["alm"][0] for d in (before, after))
+    return float(np.linalg.norm(a1 - a0) / max(np.linalg.norm(a1), np.finfo(float).tiny))
+
+
+def unbridged_baselines(cfg, log=print):
+    """Baseline fits (per channel) whose flagged time leaves a gap their band limit cannot bridge
+    (:func:`mmflow.mmode.gapfill.unbridged_gaps`: longer than ``N / (2 M_b + 1)`` sidereal bins), from
+    the weights of ``RUN/vis.zarr`` binned as the ``mmodes`` stage bins them (Stokes I: flagged where
+    either hand is; the flags of the input, before calibration's). Reads the weights one baseline chunk at
+    a time; 0: ``auto`` makes no prior pass."""
+    run = resolve(cfg.run.directory)
+    vis = zarr.open_group(str(run / STORES.vis), mode="r")
+    lst = vis["lst"][:]
+    good_t = np.isfinite(lst)
+    n_bins = n_bins_of(cfg, vis.attrs["integration_s"])
+    half = fit_bins(cfg.mmode.splits, n_bins) // 2
+    tel, freqs, pairs = run_telescope(cfg, run), vis["freqs_hz"][:], vis["pairs"][:]
+    weights = vis["weights"]
+    step = weights.chunks[1]
+    count = 0
+    for start in range(0, weights.shape[1], step):
+        cols = slice(start, min(weights.shape[1], start + step))
+        _, w = stokes_i(*(weights[:, cols][good_t],) * 2)  # (time, bl, freq)
+        filled = bin_occupancy(lst[good_t], w > 0, n_bins)
+        for fi, f in enumerate(freqs):
+            count += int(unbridged_gaps(filled[:, :, fi], tel.baseline_lmax(f, half, pairs[cols])).sum())
+    log(f"[prior passes] auto: {count} baseline fit(s) with a gap longer than the band limit bridges"
+        + (": no prior pass" if not count else ": prior passes until the map settles"))
+    return count

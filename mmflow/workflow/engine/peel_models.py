@@ -12,6 +12,7 @@ from mmflow.calibrate.peel import MODEL, PEEL
 from mmflow.calibrate.source_models import GaussianComponent
 from mmflow.simulate.corrupt import gain_products
 from mmflow.sky.sources import Source, get_sources
+from mmflow.io.run_stores import STORES
 
 
 def fitted_tables(g, names):
@@ -28,7 +29,7 @@ def fitted_sources(ctx, fi, names):
     """Catalogue sources ``names`` for channel ``fi``, those the models stage fitted (``peel.zarr``'s
     attribute ``fitted_models``) with their fitted components. Reads only ``peel.zarr``."""
     srcs = get_sources(list(names))
-    fitted = ctx.open("peel.zarr").attrs.get("fitted_models", {})
+    fitted = ctx.open(STORES.peel).attrs.get("fitted_models", {})
     out = []
     for s in srcs:
         if s.name not in fitted:
@@ -63,15 +64,15 @@ def peel_components(ctx, block, fi, kinds):
     modelled); only the sources with such a mode somewhere in the block are computed. Reads only
     ``peel.zarr``."""
     tel = ctx.telescope()
-    names = ctx.open("peel.zarr").attrs["sources"]
+    names = ctx.open(STORES.peel).attrs["sources"]
     region = (block.rows, slice(fi, fi + 1))
-    mode = ctx.read("peel.zarr", "mode", region)[:, 0]  # (time, src, pol)
+    mode = ctx.read(STORES.peel, "mode", region)[:, 0]  # (time, src, pol)
     out = np.zeros(block.vis.shape[:2] + block.vis.shape[3:], complex)  # (time, bl, pol)
     used = [s for s in range(len(names)) if np.isin(mode[:, s], kinds).any()]
     if not used:
         return out
-    scale = ctx.read("peel.zarr", "scale", region)[:, 0]
-    h = ctx.read("peel.zarr", "dd_gains", region)[:, 0]  # (time, src, ant, pol)
+    scale = ctx.read(STORES.peel, "scale", region)[:, 0]
+    h = ctx.read(STORES.peel, "dd_gains", region)[:, 0]  # (time, src, ant, pol)
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used])
     for k, s in enumerate(used):
         f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)

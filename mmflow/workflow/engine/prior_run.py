@@ -17,6 +17,7 @@ later stage stale.
 """
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,9 +29,11 @@ from mmflow.errors import InputError
 from mmflow.io.stores import open_checked
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.paths import expand_path
+from mmflow.io.run_stores import STORES
 
 FIELD = "mmode.prior_run"
-ALM = "alm.zarr"
+ALM = STORES.alm
+AUTO_RECORD = "prior_passes.json"
 EPOCH_TOL_DAYS = 1.0  # precession over a day: 0.14 arcsec
 RECIPE = "mmflow run CFG.yaml; mmflow run CFG.yaml run.directory=RUN-pass1 mmode.prior_run=RUN"
 
@@ -56,15 +59,30 @@ def pass_directory(run_directory, k):
     return resolve(run_directory) / f"prior{k}"
 
 
+def auto_record(run_directory):
+    """``RUN/prior_passes.json``: what ``mmode.prior_passes: auto`` decided (:mod:`mmflow.workflow.engine.passes`)."""
+    return resolve(run_directory) / AUTO_RECORD
+
+
+def auto_passes(run_directory):
+    """The passes ``mmode.prior_passes: auto`` made for a run (0 where it has made no decision yet)."""
+    try:
+        return int(json.loads(auto_record(run_directory).read_text())["passes"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
+
+
 def effective_prior(mm, run_directory):
     """The run whose map is a run's prior: ``mmode.prior_run``, or with ``mmode.prior_passes = n`` the
-    run's last automatic pass ``RUN/prior<n-1>`` (:mod:`mmflow.workflow.engine.passes`); None: no prior.
+    run's last automatic pass ``RUN/prior<n-1>`` (:mod:`mmflow.workflow.engine.passes`; ``auto``: the passes
+    it recorded); None: no prior.
 
     ``mm``: the ``mmode`` section; ``run_directory``: the run's directory (where its passes live)."""
     if mm.prior_run is not None:
         return mm.prior_run
-    if mm.prior_passes:
-        return str(pass_directory(run_directory, mm.prior_passes - 1))
+    n = auto_passes(run_directory) if mm.prior_passes == "auto" else mm.prior_passes
+    if n:
+        return str(pass_directory(run_directory, n - 1))
     return None
 
 
@@ -92,7 +110,7 @@ def _describe(path):
         return None, (f"holds no finished {ALM} (its solve stage has not completed)", again)
     try:
         alm = zarr.open_group(str(path / ALM), mode="r")["alm"]
-        vis = zarr.open_group(str(path / "vis.zarr"), mode="r")
+        vis = zarr.open_group(str(path / STORES.vis), mode="r")
         freqs, epoch = np.asarray(vis["freqs_hz"][:], float), float(vis.attrs["epoch_jd"])
     except (KeyError, OSError, ValueError) as exc:
         return None, (f"its {ALM} or vis.zarr cannot be read ({exc})", again)

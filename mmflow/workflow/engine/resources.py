@@ -8,8 +8,8 @@ it ends, so ``peak_rss`` of a task is the most its worker process held while the
 baseline). The driver does the same around each stage.
 
 Where the counter cannot be reset (another OS, a locked-down ``/proc``), the reading falls back
-to ``ru_maxrss``, the process's lifetime peak, and :func:`peak_rss_is_resettable` says so, so a
-summary never passes a lifetime peak off as a stage's.
+to ``ru_maxrss``, the process's lifetime peak, and :func:`reset_peak_rss` returns False: the
+readings are then upper bounds (the runner does not mark them; on Linux >= 4.0 they are exact).
 """
 from __future__ import annotations
 

@@ -97,6 +97,14 @@ class RunDir:
         fh.flush()
         return fh, token
 
+    def release_if_unused(self):
+        """Remove the lock file and ``_status`` when the run recorded nothing else there (a run refused
+        before any work leaves only its log). Called by the lock's holder before it closes the lock."""
+        status = self.lock_path.parent
+        if status.is_dir() and [p.name for p in status.iterdir()] == [self.lock_path.name]:
+            self.lock_path.unlink()
+            status.rmdir()
+
     def check_holder(self, token):
         """Fail a task whose driver no longer holds the run (another run took the directory over)."""
         if not self.path.is_dir():
@@ -137,6 +145,14 @@ class RunDir:
         """True when the stage has stored outputs made from another fingerprint."""
         old = self.manifest(stage)
         return old is not None and old["fingerprint"] != fingerprint
+
+    def has_results(self, stage):
+        """True when the stage has finished a task (its marker exists), its finalize, or completed. A
+        stage that has none holds no result (at most the empty stores its prepare made): it may start
+        afresh with other settings."""
+        man = self.manifest(stage)
+        return man is not None and (self.completion(stage) is not None
+                                    or any(self.is_done(stage, k) for k in list(man["keys"]) + ["_finalize"]))
 
     def begin_stage(self, stage, fp, keys, outputs):
         """Write the manifest (or refuse stale outputs); return the keys still to do.

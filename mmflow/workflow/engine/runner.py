@@ -6,7 +6,12 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
   is released by the kernel);
 * every stage's fingerprint comes from what it declares it reads (settings, input stores,
   input files); stale outputs are refused before any work starts, with the settings that
-  changed, unless ``--force`` recomputes them;
+  changed, unless ``--force`` recomputes them; a stage none of whose tasks finished holds no
+  result, and starts afresh with other settings without ``--force``;
+* an error that is the input's (:class:`mmflow.errors.InputError`) is found before any work
+  where a check can find it (the stages' ``check`` and ``scan``); raised in a task, it fails that
+  task once (never retried, no worker traceback) and stops the run; a stage none of whose tasks
+  finished leaves no store behind, and a run refused before any work leaves only its log;
 * work keys come from the data and the settings, never from the cluster, and a stage is
   complete only when every key has its marker (named by :meth:`TaskKey.format`, the task
   handed :meth:`TaskKey.parse` of that name);
@@ -90,6 +95,20 @@ def run_task(ctx, pipeline, stage_name, key):
     return {"key": key, "skipped": False, **info}
 
 
+def run_task_reporting_input_errors(ctx, pipeline, stage_name, key):
+    """:func:`run_task` as dask workers run it: an error that is the input's (:class:`InputError` and
+    its kin) comes back as the task's result, ``{"key": key, "input_error": exc}``, instead of being raised.
+
+    Dask retries a task that raises (``retries``) and its worker logs each attempt with a traceback
+    ("Compute Failed"); a bad input fails the same way every time, so it is reported once and never
+    retried. The driver raises it (:func:`_gather_stage`) and stops the stage.
+    """
+    try:
+        return run_task(ctx, pipeline, stage_name, key)
+    except InputError as exc:
+        return {"key": key, "input_error": exc}
+
+
 def stage_fingerprints(cfg, run=None, pipeline=PIPELINE):
     """``{stage: StageFingerprint}`` of every enabled stage (None for disabled ones)."""
     fps = {}
@@ -157,8 +176,10 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
         return out
     from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
-    futures = client.map(run_task, [ctx] * len(todo), [pipeline] * len(todo), [name] * len(todo), todo, pure=False,
-                         key=[f"{name}-{k}-{ctx.token}" for k in todo], retries=2)
+    futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
+                         [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
+                         retries=2)
+    results = {}
     no_worker_since = None
     try:
         while True:
@@ -167,6 +188,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
             except TimeoutError:
                 pass
             done = sum(f.done() for f in futures)
+            _gather_stage(client, futures, results)  # every task done by now: its result, or its input error
             bar.update(done)
             BOARD.progress(name, done)
             if done == len(futures):
@@ -181,12 +203,48 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s):
                     f"{len(futures)} tasks unfinished (workers died: memory, walltime, a crash?). Fix: start "
                     "workers (check the cluster's logs), then rerun the same command: finished chunks are kept "
                     "(cluster.worker_wait_s sets the wait)")
+    except InputError:  # the stage stops: no task of it may still write when the driver tidies up
+        _cancel_and_wait(client, futures, f"{name}-", ctx.token)
+        raise
     except BaseException:
         client.cancel(futures)
         raise
     finally:
         bar.close()
-    return client.gather(futures)
+    client.gather([f for f in futures if f.status != "finished"])  # raises a task's error (after its retries)
+    return [results[k] for k in range(len(futures))]
+
+
+#: how long a stage stopped by an input error waits for its tasks already running to end
+STOP_WAIT_S = 600.0
+
+
+def _running(prefix, token, dask_worker=None):
+    """The keys of a run's tasks still running on a worker (a cancelled task runs on to its end)."""
+    return [ts.key for ts in dask_worker.state.all_running_tasks
+            if str(ts.key).startswith(prefix) and str(ts.key).endswith(token)]
+
+
+def _cancel_and_wait(client, futures, prefix, token, wait_s=STOP_WAIT_S):
+    """Cancel a stage's tasks, then wait (up to ``wait_s``) for those already running: dask cannot
+    interrupt a running task, and a store must not be removed while a task still writes to it."""
+    client.cancel(futures)
+    end = time.monotonic() + wait_s
+    try:
+        while time.monotonic() < end and any(client.run(_running, prefix, token).values()):
+            time.sleep(0.2)
+    except Exception:  # a worker lost meanwhile (nothing of it runs on): the input error is what to report
+        pass
+
+
+def _gather_stage(client, futures, results):
+    """Fetch the results of the tasks finished since the last call into ``results`` (``{index: result}``);
+    raise the first input error a task reported (:func:`run_task_reporting_input_errors`)."""
+    new = [k for k, f in enumerate(futures) if k not in results and f.status == "finished"]
+    for k, r in zip(new, client.gather([futures[k] for k in new]) if new else []):
+        if "input_error" in r:
+            raise r["input_error"]
+        results[k] = r
 
 
 def _check_inputs(run, st, cfg, pipeline):
@@ -290,6 +348,12 @@ def _worker_peak(results):
     return max(peaks) if peaks else None
 
 
+def _has_work(run, name, fp):
+    """True when the stage has tasks to do: it is not complete, or complete with other settings."""
+    s = run.stage_status(name)
+    return s is None or not s["complete"] or s["fingerprint"] != fp.digest
+
+
 def _stale_stages(run, fps, names):
     return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
@@ -316,6 +380,11 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
     except BaseException as exc:
         BOARD.end_run(f"{type(exc).__name__}: {exc}", run.path)
         logfile.write(f"{time.strftime('%Y-%m-%dT%H:%M:%S')} stopped: {type(exc).__name__}: {exc}\n")
+        if isinstance(exc, InputError):  # no half-made store: a stage none of whose tasks finished is forgotten
+            for st in pipeline:
+                if run.manifest(st.name) is not None and not run.has_results(st.name):
+                    run.reset_stage(st.name)
+        run.release_if_unused()  # nothing recorded (refused before any work): the log alone stays
         raise
     finally:
         logfile.close()
@@ -325,7 +394,8 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
 def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
     stages = [st for st in pipeline if not only or st.name in only]
     fps = stage_fingerprints(cfg, run, pipeline)
-    stale = _stale_stages(run, fps, [st.name for st in stages if st.task is not None])
+    stale = [n for n in _stale_stages(run, fps, [st.name for st in stages if st.task is not None])
+             if run.has_results(n)]  # a stage that never finished a task starts afresh
     if stale and not force:  # refuse before any work, naming what changed
         st = stale[0]
         raise _stale_error(run, st, fps[st], stale)
@@ -333,6 +403,9 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
     for st in stages:  # refuse inputs the run cannot use before any work
         if st.check is not None and st.enabled(cfg):
             st.check(cfg, running)
+    for st in stages:  # then the checks that read the input data, for the stages with tasks to do
+        if st.scan is not None and st.enabled(cfg) and _has_work(run, st.name, fps[st.name]):
+            st.scan(cfg)
     plan = _check_resources(cfg, run, client, stages)
     slots = 1 if client is None else cfg.cluster.n_workers * cfg.cluster.threads_per_worker  # as mmflow plan counts
     BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],
@@ -351,8 +424,9 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline):
         t0 = time.time()
         reset_peak_rss()
         fp = fps[st.name]
-        if force and run.is_stale(st.name, fp.digest):
-            log(f"[{st.name}] recomputing (--force): {fp.explain(run.manifest(st.name))}")
+        if run.is_stale(st.name, fp.digest) and (force or not run.has_results(st.name)):
+            why = "recomputing (--force)" if force else "no task had finished: starting afresh"
+            log(f"[{st.name}] {why}: {fp.explain(run.manifest(st.name))}")
             run.reset_stage(st.name)
         _repair_or_refuse(run, st, force, log)
         _check_inputs(run, st, cfg, pipeline)
@@ -464,8 +538,9 @@ def status(run_path):
     out = {}
     for st in PIPELINE:
         s = run.stage_status(st.name)
-        if s is not None:
-            s["stale"] = None if fps is None else bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
+        if s is not None:  # stale: results made from other settings (a stage without any starts afresh)
+            s["stale"] = None if fps is None else (bool(fps.get(st.name)) and s["fingerprint"] != fps[st.name].digest
+                                                   and run.has_results(st.name))
         out[st.name] = s
     return out
 

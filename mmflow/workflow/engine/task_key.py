@@ -19,7 +19,7 @@ fields                                 string                stages
 ``freq, m_block``                      ``f1-m00032``         normal, solve, clean: channel and first m
 ``phase, freq``                        ``r1``                calibrate: ripple of a channel
 ``phase, freq, interval``              ``g1_00007``          calibrate: gains of a solution interval
-``phase, time``                        ``s_t00003``          terrestrial: sums (``s``), amplitudes (``a``)
+``phase, freq, time``                  ``s1_t00003``         terrestrial: sums (``s``), amplitudes (``a``)
 =====================================  ====================  ==========================================
 
 Any of them may carry a cycle: ``c0002-f1-m00032`` is that task in cycle 2 of an iterative

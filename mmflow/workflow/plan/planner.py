@@ -25,13 +25,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.conventions import complex_dtype
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
 from mmflow.io.ingest import plan_ingest
 from mmflow.machine import gemm_gflops
 from mmflow.paths import expand_path
 from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.engine.geometry import mmax_of, n_integrations
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.work import Geometry, transfer_plan
 
@@ -100,17 +101,16 @@ def geometry(cfg, ingest=None):
     ingest plan's ``layout``, ``pairs``, ``n_time``, ``pols`` and ``freqs_hz``: a record's copy,
     :func:`mmflow.workflow.plan.fit.record_ingest`) where the files are not at hand."""
     mm = cfg.mmode
-    mmax = mm.mmax if mm.mmax is not None else mm.lmax
-    itemsize = 8 if cfg.transfer.dtype == "float32" else 16
+    mmax = mmax_of(cfg)
+    itemsize = complex_dtype(cfg.transfer.dtype).itemsize
     if cfg.source == "simulate":
         tel = build_telescope(cfg)
-        o = cfg.observation
-        n_time = o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
+        n_time = n_integrations(cfg)
         n_pol = 2 if cfg.corrupt.enabled else 1
         freqs = tel.freqs_hz
     else:
         plan = plan_ingest(cfg) if ingest is None else ingest  # a record's copy of the files' plan
-        tel = build_telescope(cfg, plan.layout)  # the files' array and baselines, not the config's telescope
+        tel = build_telescope(cfg, plan)  # the files' array, channels and baselines, not the config's telescope
         tel.pairs = np.asarray(plan.pairs)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)
     n_bl = len(tel.antenna_pairs())

@@ -19,6 +19,8 @@ A stage declares what it reads and writes; the runner derives everything else fr
 * ``check(cfg, stage_names)``, optional, runs on the driver before the run does any work (before
   any stage's prepare), knowing which stages the run will execute: it refuses inputs the run
   cannot use (an ingested observation too short to make m-modes) instead of failing stages later.
+* ``scan(cfg)``, optional, a check that reads the input data (non-finite samples): run after the
+  checks, before any work and before the cluster starts, but only when the stage has tasks to do.
 
 Kinds (``kind``): ``map`` (independent tasks over keys: time chunks, baseline groups,
 m blocks); ``reduce`` (each task sums its inputs in a fixed order with
@@ -64,6 +66,7 @@ class Stage:
     next_cycle: Optional[Callable] = None
     counters: tuple = ()  # numeric fields of the tasks' infos summed, stored and logged per stage
     check: Optional[Callable] = None  # check(cfg, names of the stages this run executes), before any work
+    scan: Optional[Callable] = None  # scan(cfg): reads the input data, before any work, when the stage has any
     reads_corrected: bool = False
     cost: Optional[object] = None  # its cost model (mmflow.workflow.plan.work.Cost: work, shrink settings)
     upstream: tuple = field(default=(), repr=False)

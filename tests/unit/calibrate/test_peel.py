@@ -61,7 +61,9 @@ def test_guard_turns_a_wrong_model_into_a_subtraction(rng):
     x = random_array(rng, N)
     d = random_directions(rng, 1)
     point = np.broadcast_to(point_coherencies(x, d, np.array([1000.0]))[:, None], (1, S, N, N)).copy()
-    wrong = np.broadcast_to(point_coherencies(x, d, np.array([1000.0]), [np.deg2rad(3.0)])[:, None], (1, S, N, N)).copy()
+    wrong = np.broadcast_to(
+        point_coherencies(x, d, np.array([1000.0]), [np.deg2rad(3.0)])[:, None], (1, S, N, N)
+    ).copy()
     g = np.exp(0.2j * rng.normal(size=(S, N)))
     V = g[:, :, None] * point[0] * np.conj(g)[:, None, :]
     W = cross_weights(S, N)
@@ -93,7 +95,9 @@ def test_baseline_layout_wrapper_matches_dense_and_warm_starts(rng):
     w = np.ones(vis.shape)
     w[2, 7] = 0
     vis[2, 7] = np.nan  # a flagged sample may hold anything
-    sol = peel(vis, w, coh, pairs, N, modes, dd_model="antenna", warm_start=True, batch=2, passes=8, tol=1e-12, max_iter=1000)
+    sol = peel(
+        vis, w, coh, pairs, N, modes, dd_model="antenna", warm_start=True, batch=2, passes=8, tol=1e-12, max_iter=1000
+    )
     assert sol.dd_gains.shape == (n_src, T, N, 2) and sol.residual.shape == vis.shape
     cross = (i != j) & (np.arange(len(pairs)) != 7)
     assert np.isfinite(sol.dd_gains).all()
@@ -117,7 +121,9 @@ def test_single_precision_solve_agrees_with_double_to_its_tolerance(rng):
     M = point_coherencies(x, random_directions(rng, n_src), np.array([5000.0, 800.0, 90.0]))
     coh = np.broadcast_to(from_matrix(M, pairs)[:, None], (n_src, T, len(pairs))).copy()
     g = np.exp(0.2j * rng.normal(size=(T, N, 2)))
-    vis = np.einsum("tbp,tb->tbp", g[:, i] * np.conj(g[:, j]), coh[0]) + 1.1 * coh[1][..., None] + 0.9 * coh[2][..., None]
+    vis = (
+        np.einsum("tbp,tb->tbp", g[:, i] * np.conj(g[:, j]), coh[0]) + 1.1 * coh[1][..., None] + 0.9 * coh[2][..., None]
+    )
     vis = vis + 0.5 * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
     modes = np.array([[PEEL] * T, [SUBTRACT] * T, [MODEL] * T])
     kw = dict(dd_model="antenna", batch=3, passes=3, tol=1e-4, max_iter=50)
@@ -212,7 +218,10 @@ def test_interval_dd_gains_fit_a_screen_shared_over_the_interval_with_amplitude_
 
     one = peel_dense(V + faint, M, W, np.full((1, T), PEEL), passes=5, tol=1e-10, max_iter=500)
     four = peel_dense(V + faint, M, W, np.full((1, T), PEEL), passes=5, tol=1e-10, max_iter=500, intervals=intervals)
-    print(f"faint source kept: per integration {kept(one.residual):.4f}, 4-integration intervals {kept(four.residual):.4f}")
+    print(
+        f"faint source kept: per integration {kept(one.residual):.4f}, "
+        f"4-integration intervals {kept(four.residual):.4f}"
+    )
     assert 1 - kept(four.residual) < 0.5 * (1 - kept(one.residual))
 
 

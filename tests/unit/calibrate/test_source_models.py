@@ -45,7 +45,10 @@ def test_two_gaussian_source_parameters_recovered(tel):
     # the analytic model agrees with the simulator's sampled components
     model = gaussian_visibilities(uvw, beam, truth)
     assert np.linalg.norm(model - vis) < 2e-3 * np.linalg.norm(vis)
-    start = [GaussianComponent(-5.0, 5.0, 500.0, 12.0, 8.0, 10.0), GaussianComponent(12.0, -1.0, 500.0, 9.0, 9.0, -20.0)]
+    start = [
+        GaussianComponent(-5.0, 5.0, 500.0, 12.0, 8.0, 10.0),
+        GaussianComponent(12.0, -1.0, 500.0, 9.0, 9.0, -20.0),
+    ]
     fit, res = fit_gaussian_components(vis, np.ones(vis.shape), uvw, beam, start, reference_flux=total)
     for f, t in zip(fit, truth):
         assert abs(f.x_arcmin - t.x_arcmin) < 0.3 and abs(f.y_arcmin - t.y_arcmin) < 0.3

@@ -98,7 +98,9 @@ def test_two_components_removed_and_sky_m_ge_2_unchanged(drift):
             flicker_left[name].append(np.linalg.norm(_m_ge_2(clean - v_sky, keep)) / np.linalg.norm(_m_ge_2(inj, keep)))
         left = np.linalg.norm((clean - v_sky)[:, keep]) / np.linalg.norm(inj[:, keep])
         # limited by the sky's m = 0 part, which a stationary template cannot tell from pickup
-        sky_mean = np.linalg.norm(zenith_average(v_sky, 1.0)[0][keep]) / np.linalg.norm(zenith_average(inj, 1.0)[0][keep])
+        sky_mean = np.linalg.norm(zenith_average(v_sky, 1.0)[0][keep]) / np.linalg.norm(
+            zenith_average(inj, 1.0)[0][keep]
+        )
         assert left < 2 * sky_mean, (seed, left, sky_mean)
         # removing K^2 real directions from each n_bl-dimensional v_t takes ~sqrt(K^2 / n_bl) of the sky's
         # m >= 2 content with it (the paper's ||B^H v|| / (||B|| ||v||) ~ 0.035 is this number)

@@ -48,7 +48,8 @@ def solved():
 def test_v_clean_recovers_each_v_source_flux_and_subtracts_from_all_four_stokes(solved):
     """CLEANed to 0.2 % of the brightest V: the components within two V-PSF FWHM of each V source add up to
     its true V to 2 % (measured 0.04-1.2 %; the I -> V leakage of this solve is 1e-14 at the sources), none
-    appear within half a FWHM of the unpolarised sources, the residual V peak is at the threshold, and the residual of every
+    appear within half a FWHM of the unpolarised sources, the residual V peak is at the threshold, and the residual of
+    every
     Stokes parameter is the dirty solve minus the solve's image of the V model (linearity: one subtraction
     of all components at once gives the same, to 1e-9)."""
     n, eps, alm, sky = solved["normal"], solved["eps"], solved["alm"], solved["sky"]

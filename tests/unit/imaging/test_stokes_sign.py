@@ -103,7 +103,8 @@ def test_time_domain_fields_are_pyradiosky_stokes(alt_az):
     """pyradiosky's local coherency of a SkyModel with Stokes (I, Q, U, V) (``coherency_calc``, on its
     alt/az basis ``(e_za, e_az)``, azimuth north through east; pyradiosky's Stokes with pyuvsim's fringe,
     ``exp(+2 pi i (x_j - x_i) . r / lambda)``, mmflow's) equals ``<A A^H>`` of the time-domain
-    +Q, +U, +V fields and a partially polarised one on that basis, north being the ICRS pole's direction there: an outside
+    +Q, +U, +V fields and a partially polarised one on that basis, north being the ICRS pole's direction there: an
+    outside
     reference agrees with the fields (and so with the signs tested above), at the zenith and at
     45 and 30 deg elevation where the basis is turned from north by the parallactic angle."""
     import astropy.units as u

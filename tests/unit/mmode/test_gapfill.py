@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from mmflow.errors import InputError
-from mmflow.mmode.gapfill import _from_layout, lsq_mmodes, relative_rms, zero_filled_error
+from mmflow.mmode.gapfill import _from_layout, longest_gap, lsq_mmodes, relative_rms, unbridged_gaps, zero_filled_error
 from mmflow.mmode.transfer import fringe_bandlimit
-from mmflow.mmode.transform import mmode_transform, sidereal_bins
+from mmflow.mmode.transform import bin_occupancy, mmode_transform, sidereal_bins
 
 F_HZ, MMAX, N_BINS = 40e6, 160, 512
 STANDS = ["LWA-112", "LWA-113", "LWA-114", "LWA-115", "LWA-161", "LWA-293"]
@@ -294,3 +294,27 @@ def test_power_beyond_mmax_is_fitted_not_folded_in(drift):
     print("power beyond m = 60 (relative)", beyond.round(3))
     wide = beyond > 0.05  # measured: clipped errors 0.03-0.05 there
     assert wide.sum() >= 4 and np.all(e_clip[wide] > 0.01) and np.all(e_clip[wide] > 1e3 * e_full[wide])
+
+
+def test_unbridged_gaps_against_nyquist_intervals():
+    """A gap is bridged while it is shorter than ``N / (2 M_b + 1)`` bins, the band limit's sample spacing."""
+    n = 60
+    w = np.ones((n, 4))
+    w[55:, 0] = w[:3, 0] = 0  # 8 bins across phi = 0
+    w[10:14, 1] = 0  # 4 bins
+    w[:, 2] = 0  # no data: dropped, not counted
+    w[::7, 3] = 0  # single bins
+    np.testing.assert_array_equal(longest_gap(w), [8, 4, n, 1])
+    # M_b = 5: 60 / 11 = 5.45 bins per Nyquist interval; 3: 8.6, 8: 3.5, 30: 0.98
+    np.testing.assert_array_equal(unbridged_gaps(w, 5), [True, False, False, False])
+    np.testing.assert_array_equal(unbridged_gaps(w, [3, 8, 3, 30]), [False, True, False, True])
+
+
+def test_bin_occupancy_is_the_binned_weight_of_sidereal_bins():
+    """The driver's occupancy (no values summed) marks the bins ``sidereal_bins`` fills, over several days."""
+    rng = np.random.default_rng(1)
+    lst = np.sort(rng.uniform(0, 4 * np.pi, 900))
+    good = rng.random((900, 30, 2)) > 0.3
+    good[100:300] = False
+    _, bin_weight, _ = sidereal_bins(lst, good.astype(complex), good.astype(float), 200, 0.0)
+    np.testing.assert_array_equal(bin_occupancy(lst, good, 200), bin_weight > 0)

@@ -56,7 +56,9 @@ def test_dd_gains_move_a_source_by_its_refractive_offset(small_telescope):
     h = direction_dependent_gains(tel, freq, lsts, source_vector_date(src, EPOCH)[None], off)
     moved = dd_visibilities(coh, h, pairs)
     for t in range(3):
-        direct = simulate_drift_scan(tel, freq, lsts[t:t + 1], source_points_date(src, freq, EPOCH, off[0, t]), pairs)[0]
+        direct = simulate_drift_scan(
+            tel, freq, lsts[t : t + 1], source_points_date(src, freq, EPOCH, off[0, t]), pairs
+        )[0]
         # the phase gradient moves the fringe (to first order in the offset); the beam stays
         # the one at the catalogue position, so the amplitude ratio is one number per time
         ratio = moved[t] / direct

@@ -43,7 +43,7 @@ from mmflow.calibrate.gain_apply import apply_gains, apply_gains_autos
 from mmflow.calibrate.stefcal import best_track
 from mmflow.errors import InputError
 from mmflow.io.polarization import CROSS_FEEDS
-from mmflow.io.run_stores import gains_store
+from mmflow.io.run_stores import STORES, gains_store
 from mmflow.sky.sources import get_sources
 from mmflow.telescope.jones import feed_telescopes
 from mmflow.workflow.engine.baseline_cuts import check_baselines, resolved_cuts, solve_mask
@@ -72,12 +72,12 @@ def _intervals(ctx, tel, lst, integration_s):
 
 
 def _prepare(ctx):
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     nt, _, nf, npol = vg["vis"].shape
     lst = vg["lst"][:]
     tel = ctx.telescope()
     if ctx.cfg.calibrate.ripple and not np.isfinite(vg["autos"][:]).any():
-        raise InputError(str(ctx.run.store("vis.zarr")), "autos", "no autocorrelations: the ripple correction "
+        raise InputError(str(ctx.run.store(STORES.vis)), "autos", "no autocorrelations: the ripple correction "
                          "needs them", "ingest autocorrelations (telescope.include_autos), or set "
                          "calibrate.ripple=false")
     check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda, "calibrate.min_baseline_lambda")
@@ -100,10 +100,10 @@ def _ratio(ctx, fi):
     """Ripple ratio ``(time, antenna, pol)`` of channel ``fi`` from the autocorrelations."""
     key = (str(ctx.run_path), fi, ctx.cfg.calibrate.ripple_smooth_min, ctx.config_json)
     if key not in _RIPPLE:
-        autos = ctx.read("vis.zarr", "autos", (slice(None), slice(None), slice(fi, fi + 1)))[:, :, 0]
+        autos = ctx.read(STORES.vis, "autos", (slice(None), slice(None), slice(fi, fi + 1)))[:, :, 0]
         finite = np.isfinite(autos)
         ratio, _ = ripple_ratio(np.where(finite, autos, 0.0), finite.astype(float),
-                                ctx.open("vis.zarr").attrs["integration_s"], key[2] * 60.0)
+                                ctx.open(STORES.vis).attrs["integration_s"], key[2] * 60.0)
         if len(_RIPPLE) >= 4:
             _RIPPLE.clear()
         _RIPPLE[key] = ratio
@@ -111,7 +111,7 @@ def _ratio(ctx, fi):
 
 
 def _task(ctx, key):
-    g = ctx.open("gains.zarr", mode="r+")
+    g = ctx.open(STORES.gains, mode="r+")
     if key.phase == "r":
         fi = key.freq
         ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
@@ -173,7 +173,7 @@ def _stop_if_too_many_flagged(ctx, sol, has_data, f, rows, c):
     med_ok = float(np.median(chi2[ok])) if ok.any() else float("nan")
     listed = ", ".join(str(names[a]) for a in np.flatnonzero(flagged)[:20])
     more = f" and {int(flagged.sum()) - 20} more" if flagged.sum() > 20 else ""
-    raise InputError(str(ctx.run.store("gains.zarr")), "calibrate",
+    raise InputError(str(ctx.run.store(STORES.gains)), "calibrate",
                      f"the gain solution at {f / 1e6:.3f} MHz (integrations {rows[0]}-{rows[1] - 1}) flagged "
                      f"{int(flagged.sum())} of the {n_data} antennas with data ({listed}{more}) as outliers or "
                      f"unconverged, more than calibrate.max_flagged_fraction={c.max_flagged_fraction:g} (the "
@@ -191,12 +191,12 @@ def _apply(ctx, block):
 
     Reads only ``gains.zarr`` (never the configuration: the reading stage's fingerprint covers
     the store)."""
-    gains = ctx.read("gains.zarr", "gains")  # (interval, freq, antenna, pol): small
-    flags = ctx.read("gains.zarr", "flags")
-    apply_rows, solve_rows = ctx.read("gains.zarr", "apply_rows"), ctx.read("gains.zarr", "solve_rows")
-    interpolate = bool(ctx.open("gains.zarr").attrs.get("interpolate", False))
+    gains = ctx.read(STORES.gains, "gains")  # (interval, freq, antenna, pol): small
+    flags = ctx.read(STORES.gains, "flags")
+    apply_rows, solve_rows = ctx.read(STORES.gains, "apply_rows"), ctx.read(STORES.gains, "solve_rows")
+    interpolate = bool(ctx.open(STORES.gains).attrs.get("interpolate", False))
     rows = np.arange(block.rows.start, block.rows.stop)
-    ratio = ctx.read("gains.zarr", "ripple", (block.rows,)) if ctx.open("gains.zarr").attrs["ripple"] else None
+    ratio = ctx.read(STORES.gains, "ripple", (block.rows,)) if ctx.open(STORES.gains).attrs["ripple"] else None
     for k, fi in block.channel_indices():
         v, w, autos = block.vis[:, :, k], block.weights[:, :, k], block.autos[:, :, k]  # views: in place
         if ratio is not None:
@@ -210,14 +210,14 @@ def _apply(ctx, block):
             if ratio is not None:
                 apply_ripple(cv, cw, block.pairs, ratio[:, fi], feeds=CROSS_FEEDS, out=(cv, cw))
             apply_gains(cv, cw, block.pairs, g, fl, feeds=CROSS_FEEDS, out=(cv, cw))
-    if ctx.open("gains.zarr").attrs.get("flag_autos", False):
+    if ctx.open(STORES.gains).attrs.get("flag_autos", False):
         autos = block.pairs[:, 0] == block.pairs[:, 1]
         block.weights[:, autos] = 0.0
         if block.cross is not None:
             block.cross_weights[:, autos] = 0.0
 
 
-STAGE = Stage("calibrate", ("calibrate", "beam"), ("vis.zarr",), ("gains.zarr",), _prepare, _task, kind="solve",
+STAGE = Stage("calibrate", ("calibrate", "beam"), (STORES.vis,), (STORES.gains,), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.calibrate.enabled,
                counters=("not_converged", "flagged_antennas", "antennas_without_data", "screened_integrations"),
                description="autocorrelation ripple + Stefcal gains per solution interval (applied on read)", cost=COST)

@@ -29,7 +29,7 @@ from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.jackknife import beam_noise
-from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS, clean_store
+from mmflow.io.run_stores import STORES, CLEAN_STOPS, NOISE_FIELDS, clean_store
 from mmflow.sky import units
 from mmflow.workflow.engine.clean_state import (active, block_operators_from_gram, clean_nside, clean_options, clean_result,
                                          clean_table, cycle_block, factors_of, highpass, jackknife_sigma,
@@ -58,7 +58,7 @@ def _geometry(ctx):
 def _prepare(ctx):
     cfg = ctx.cfg
     lmax, mmax, blocks = _geometry(ctx)
-    nf = ctx.open("alm.zarr")["alm"].shape[1]
+    nf = ctx.open(STORES.alm)["alm"].shape[1]
     n_dec = len(psf_decs_deg(_lat(ctx), cfg.clean.psf_dec_step_deg))
     ctx.create(clean_store(nf, lmax, mmax, cfg.transfer.m_block, n_dec, cfg.clean.max_cycles,
                            cfg.clean.peaks_per_cycle, 12 * clean_nside(cfg) ** 2, cfg.clean.keep_factors))
@@ -82,7 +82,7 @@ def _setup_task(ctx, key):
     fi, m0 = key.freq, key.m_block
     lmax, _, blocks = _geometry(ctx)
     m1 = dict(blocks)[m0]
-    g = ctx.open("clean.zarr", mode="r+")
+    g = ctx.open(STORES.clean, mode="r+")
     t0 = time.perf_counter()
     ops = block_operators_from_gram(ctx, fi, m0, m1)
     t_factor = time.perf_counter() - t0
@@ -92,7 +92,7 @@ def _setup_task(ctx, key):
     decs = np.deg2rad(psf_decs_deg(_lat(ctx), cfg.clean.psf_dec_step_deg))
     ctx.write(g, f"f{fi}/psf_b{m0:05d}", (), psf.psf_columns(ops, lmax, psf.table_vectors(decs), m0, m1))
     t_psf = time.perf_counter() - t0
-    dirty = _ml_to_block(ctx.read("alm.zarr", "alm", (slice(0, 1), slice(fi, fi + 1), slice(m0, m1)))[0, 0],
+    dirty = _ml_to_block(ctx.read(STORES.alm, "alm", (slice(0, 1), slice(fi, fi + 1), slice(m0, m1)))[0, 0],
                          lmax, m0, m1)
     w = highpass(cfg)
     if w is not None:
@@ -110,11 +110,11 @@ def _cycle_task(ctx, key):
     t0 = time.perf_counter()
     ops = stored_operators(ctx, fi, m0, m1) if cfg.clean.keep_factors else block_operators_from_gram(ctx, fi, m0, m1)
     t_ops = time.perf_counter() - t0
-    rows = ctx.read("clean.zarr", "components", (slice(fi, fi + 1), slice(c, c + 1)))[0, 0]
+    rows = ctx.read(STORES.clean, "components", (slice(fi, fi + 1), slice(c, c + 1)))[0, 0]
     name = f"f{fi}/residual_b{m0:05d}"
-    resid = ctx.read("clean.zarr", name, (slice(c, c + 1),))[0]
+    resid = ctx.read(STORES.clean, name, (slice(c, c + 1),))[0]
     new, t = cycle_block(resid, rows, ops, lmax, m0, m1, highpass(cfg))
-    ctx.write(ctx.open("clean.zarr", mode="r+"), name, (slice(c + 1, c + 2),), new[None])
+    ctx.write(ctx.open(STORES.clean, mode="r+"), name, (slice(c + 1, c + 2),), new[None])
     return {"m": [m0, m1], "operators_s": round(t_ops, 4), "components_s": round(t["components"], 4),
             "observe_s": round(t["observe"], 4)}
 
@@ -131,7 +131,7 @@ def _setup_tables(ctx, g):
     w = highpass(cfg)
     nside = clean_nside(cfg)
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(np.deg2rad(_lat(ctx))))
-    freqs = ctx.read("vis.zarr", "freqs_hz")
+    freqs = ctx.read(STORES.vis, "freqs_hz")
     for fi in range(g["threshold"].shape[0]):
         jk = jackknife_splits(ctx, fi)
         cols = psf_alm_columns(g, fi, lmax, blocks)
@@ -161,7 +161,7 @@ def _setup_tables(ctx, g):
 def _next_cycle(ctx, cycle):
     cfg = ctx.cfg
     lmax, _, blocks = _geometry(ctx)
-    g = ctx.open("clean.zarr", mode="r+")
+    g = ctx.open(STORES.clean, mode="r+")
     if cycle == 0:
         _setup_tables(ctx, g)
     opts, nside = clean_options(cfg.clean), clean_nside(cfg)
@@ -184,7 +184,7 @@ def _next_cycle(ctx, cycle):
 def _finalize(ctx):
     cfg = ctx.cfg
     lmax, mmax, blocks = _geometry(ctx)
-    g = ctx.open("clean.zarr", mode="r+")
+    g = ctx.open(STORES.clean, mode="r+")
     opts, nside, w = clean_options(cfg.clean), clean_nside(cfg), highpass(cfg)
     out = {}
     for fi in range(g["threshold"].shape[0]):
@@ -206,6 +206,6 @@ def _finalize(ctx):
     return out
 
 
-STAGE = Stage("clean", CLEAN_CONFIG, ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"), ("clean.zarr",), _prepare,
+STAGE = Stage("clean", CLEAN_CONFIG, (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm), (STORES.clean,), _prepare,
                _task, _finalize, enabled=lambda cfg: cfg.clean.enabled, kind="iterative", next_cycle=_next_cycle,
                description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold", cost=COST)

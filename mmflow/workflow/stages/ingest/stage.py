@@ -1,7 +1,8 @@
 """The ``ingest`` stage: UVH5 / uvfits / MeasurementSet files read with pyuvdata into ``vis.zarr``.
 
 Its ``check`` runs the plan (every file's metadata and checks, :func:`mmflow.io.ingest.plan_ingest`)
-before the run does any work, and, when the run goes on to the m-mode stage, refuses an
+before the run does any work (and its ``scan``, when the stage has tasks to do, refuses unflagged
+NaN/inf samples: :func:`mmflow.io.ingest.refuse_nonfinite`), and, when the run goes on to the m-mode stage, refuses an
 observation whose integrations cannot cover ``mmode.min_coverage`` of the sidereal bins (a single
 13 s snapshot, say): m-modes need a drift scan over (most of) a sidereal day.
 """
@@ -10,8 +11,8 @@ from __future__ import annotations
 import glob
 
 from mmflow.errors import CoverageError
-from mmflow.io.ingest import ingest_time_chunk, plan_arrays, plan_ingest, sidereal_coverage
-from mmflow.io.run_stores import vis_store
+from mmflow.io.ingest import ingest_time_chunk, plan_arrays, plan_ingest, refuse_nonfinite, sidereal_coverage
+from mmflow.io.run_stores import STORES, vis_store
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
 from mmflow.workflow.engine.data_stage import VIS_ARRAYS, layout_attrs, write_autos
 from mmflow.workflow.engine.geometry import n_bins_of
@@ -46,6 +47,13 @@ def _ingest_check(cfg, running):
                          "(`mmflow ingest`, `mmflow calibrate`)")
 
 
+def _ingest_scan(cfg):
+    """Unflagged NaN/inf samples refused before any task (``input.nonfinite=error``; with ``flag`` the
+    tasks flag and count them)."""
+    if cfg.input.nonfinite == "error":
+        refuse_nonfinite(plan_ingest(cfg), cfg.input.format)
+
+
 def _ingest_prepare(ctx):
     plan = plan_ingest(ctx.cfg)
     width = getattr(plan, "channel_width_hz", None)
@@ -61,9 +69,9 @@ def _ingest_prepare(ctx):
 
 
 def _ingest_task(ctx, key):
-    g = ctx.open("vis.zarr", mode="r+")
+    g = ctx.open(STORES.vis, mode="r+")
     t0, t1 = chunk_rows(key, g["lst"].shape[0])
-    info = ingest_time_chunk(ctx.cfg, ctx.run.store("vis.zarr"), t0, t1)
+    info = ingest_time_chunk(ctx.cfg, ctx.run.store(STORES.vis), t0, t1)
     rows = (slice(t0, t1),)
     for name in VIS_ARRAYS + tuple(CROSS_ARRAYS if "vis_cross" in g else ()):  # ingest writes the rows itself
         ctx.ledger.record(g[name], rows)
@@ -73,7 +81,8 @@ def _ingest_task(ctx, key):
 
 STAGE = Stage("ingest", ("input", "mmode.baseline_chunk", "observation.channel_width_khz", "observation.freqs_mhz",
                           "calibrate.enabled"), (),
-               ("vis.zarr",),
+               (STORES.vis,),
                _ingest_prepare, _ingest_task, enabled=lambda cfg: cfg.source == "ingest", files=input_files, check=_ingest_check,
+               scan=_ingest_scan,
                counters=("fully_flagged_integrations", "nonfinite_flagged"),
                description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files", cost=COST)

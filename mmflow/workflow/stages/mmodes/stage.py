@@ -31,7 +31,7 @@ import numpy as np
 from mmflow.conventions import is_full_stokes
 from mmflow.errors import CoverageError, InputError
 from mmflow.io.polarization import CROSS_FEEDS, stokes_i, stokes_i_variance
-from mmflow.io.run_stores import mmodes_store
+from mmflow.io.run_stores import STORES, mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance
 from mmflow.mmode.polarised import CORRELATIONS
@@ -39,7 +39,7 @@ from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_mask
     sun_elevation_deg
 from mmflow.mmode.transform import bin_coverage, sidereal_bins, split_bins
 from mmflow.workflow.engine.blocks import read_block
-from mmflow.workflow.engine.geometry import mmax_of, n_bins_of
+from mmflow.workflow.engine.geometry import fit_bins, mmax_of, n_bins_of
 from mmflow.workflow.engine.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
 from mmflow.workflow.stages.mmodes.cost import COST
 from mmflow.workflow.stages.base import Stage
@@ -48,7 +48,7 @@ from mmflow.workflow.engine.task_key import TaskKey
 
 def _prepare(ctx):
     cfg = ctx.cfg
-    vis = ctx.open("vis.zarr")
+    vis = ctx.open(STORES.vis)
     nt, nbl, nf = vis["vis"].shape[:3]
     mmax, n_bins = mmax_of(cfg), n_bins_of(cfg, vis.attrs["integration_s"])
     splits = list(cfg.mmode.splits)
@@ -72,7 +72,7 @@ def _check_correlations(ctx, vis):
     """Full Stokes needs both parallel hands and both cross hands in ``vis.zarr``."""
     pols, cross = list(vis.attrs.get("pols", [])), list(vis.attrs.get("cross_pols") or [])
     if len(pols) != 2 or len(cross) != 2:
-        raise InputError(str(ctx.run.store("vis.zarr")), "cross_pols",
+        raise InputError(str(ctx.run.store(STORES.vis)), "cross_pols",
                          f"polarisations {pols} and cross hands {cross}: imaging.stokes [I, Q, U, V] needs the four "
                          "correlations xx, yy, xy, yx",
                          "ingest files that hold XX, YY, XY and YX (input.cross_hands true), or set imaging.stokes=[I]")
@@ -114,23 +114,23 @@ def _check_time_splits(ctx, vis, splits, n_bins):
     if problems:
         name, problem, fix = problems[0]
         more = f" (and {len(problems) - 1} more)" if len(problems) > 1 else ""
-        raise InputError(str(ctx.run.store("vis.zarr")), "mmode.splits", f"'{name}': {problem}{more}", fix)
+        raise InputError(str(ctx.run.store(STORES.vis)), "mmode.splits", f"'{name}': {problem}{more}", fix)
     present = np.unique(days[days >= 0])
     return {"n_days": int(present.max()) + 1 if present.size else 0, "days": [int(d) for d in present]}
 
 
 def _task(ctx, key):
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     nt, nbl, nf = vg["vis"].shape[:3]
     ch = vg["vis"].chunks[1]
     i = key.bl_chunk
     cols = slice(i * ch, min(nbl, (i + 1) * ch))
-    full_stokes = "mmodes_corr" in ctx.open("mmodes.zarr")
+    full_stokes = "mmodes_corr" in ctx.open(STORES.mmodes)
     block = read_block(ctx, slice(None), cols, cross=full_stokes)  # all integrations, corrected
     good_t = np.isfinite(block.lst)
     vis, w = stokes_i(block.vis[good_t], block.weights[good_t])
     lst = block.lst[good_t]
-    g = ctx.open("mmodes.zarr", mode="r+")
+    g = ctx.open(STORES.mmodes, mode="r+")
     mmax, n_bins, splits = g.attrs["mmax"], g.attrs["n_bins"], g.attrs["splits"]
     bin_splits = [s for s in splits if not is_time_split(s)]
     masks = {s: m[good_t] for s, m in _time_splits(ctx, vg, splits)[3].items()} if len(bin_splits) < len(splits) \
@@ -140,7 +140,7 @@ def _task(ctx, key):
     sigma2 = None if per_pol is None else stokes_i_variance(np.stack(per_pol, axis=-1))
     tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
     # the bins of the smallest split bound the fit: half of them for even / odd
-    n_fit = n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
+    n_fit = fit_bins(splits, n_bins)
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
     inv_var = np.zeros((nf, vis.shape[1]))
     n_samples = np.zeros((len(splits), nf, vis.shape[1]), np.int64)
@@ -204,7 +204,7 @@ class _SplitFit:
     def __init__(self, ctx, lst, masks, splits, n_bins, mmax):
         self.ctx, self.lst, self.masks, self.splits, self.n_bins, self.mmax = ctx, lst, masks, splits, n_bins, mmax
         self.bin_splits = [s for s in splits if not is_time_split(s)]
-        self.src = str(ctx.run.store("vis.zarr"))
+        self.src = str(ctx.run.store(STORES.vis))
         self.max_iterations = 0
 
     def __call__(self, vis, weights, band, sigma2, out, prior=None):
@@ -278,7 +278,7 @@ def _radiometer_sigma2(ctx, vg, autos, pairs, feeds):
     if noise == "auto" and not set(np.unique(pairs)) <= set(have):
         return None, "data"
     return [radiometer_variance({a: mean[a, :, p] for a in have}, pairs, vg.attrs["channel_width_hz"],
-                                vg.attrs["integration_s"], str(ctx.run.store("vis.zarr")),
+                                vg.attrs["integration_s"], str(ctx.run.store(STORES.vis)),
                                 {a: mean[a, :, q] for a in have}) for p, q in feeds], "radiometer"
 
 
@@ -287,7 +287,7 @@ def _check_day(ctx, lst, n_bins, min_coverage):
     day's drift scan."""
     coverage = bin_coverage(lst, n_bins)
     if coverage < min_coverage:
-        raise CoverageError(str(ctx.run.store("vis.zarr")), "lst", f"the integrations cover only {coverage:.1%} "
+        raise CoverageError(str(ctx.run.store(STORES.vis)), "lst", f"the integrations cover only {coverage:.1%} "
                             f"of the {n_bins} sidereal bins (need {min_coverage:.0%})",
                             "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
 
@@ -306,17 +306,17 @@ def _finalize(ctx):
     integrations cover the day (:func:`_check_day`, before any task), so the flags do: the input's or
     the corrections' (antennas a calibration flagged)."""
     infos = ctx.run.task_infos("mmodes").values()
-    nf = ctx.open("mmodes.zarr")["inv_var"].shape[0]
+    nf = ctx.open(STORES.mmodes)["inv_var"].shape[0]
     total = nf * sum(int(i.get("baselines", 0)) for i in infos)
     short = sum(int(i.get(k, 0)) for i in infos
                 for k in ("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data"))
     if total and short > total / 2:
         cfg = ctx.cfg
         cal = ""
-        if "gains.zarr" in ctx.stage.inputs and ctx.producer("gains.zarr") is not None:
-            flags = ctx.read("gains.zarr", "flags")
+        if STORES.gains in ctx.stage.inputs and ctx.producer(STORES.gains) is not None:
+            flags = ctx.read(STORES.gains, "flags")
             cal = f"; the calibrate stage flagged {np.mean(flags):.1%} of its antenna solutions (gains.zarr 'flags')"
-        raise CoverageError(str(ctx.run.store("vis.zarr")), "weights",
+        raise CoverageError(str(ctx.run.store(STORES.vis)), "weights",
                             f"{short} of {total} baselines (summed over channels) keep less than "
                             f"{cfg.mmode.min_coverage:.0%} of the sidereal day after their flags, though the "
                             f"integrations cover the day: the flags, not the observation, are short{cal}",
@@ -325,7 +325,7 @@ def _finalize(ctx):
     return {"baselines_short_of_min_coverage": short}
 
 
-STAGE = Stage("mmodes", ("mmode", "beam", "imaging.stokes"), ("vis.zarr",), ("mmodes.zarr",), _prepare, _task,
+STAGE = Stage("mmodes", ("mmode", "beam", "imaging.stokes"), (STORES.vis,), (STORES.mmodes,), _prepare, _task,
                _finalize,
                reads_corrected=True, counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data",
                          "fits_with_prior"), files=prior_files,

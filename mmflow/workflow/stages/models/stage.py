@@ -38,7 +38,7 @@ from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source
 from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
                                             fit_point_position, pack_components, source_uvw, symmetric_start)
 from mmflow.errors import InputError
-from mmflow.io.run_stores import MODEL_COLUMNS, models_store
+from mmflow.io.run_stores import STORES, MODEL_COLUMNS, models_store
 from mmflow.sky.sources import epoch_year, get_sources
 from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.workflow.engine.baseline_cuts import solve_mask
@@ -65,14 +65,14 @@ def _track(ctx, tel, lst, name):
 
 def _prepare(ctx):
     m = ctx.cfg.models
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     nf = vg["vis"].shape[2]
     tel = ctx.telescope()
     lst = vg["lst"][:]
     for name in m.sources:  # refuse before any work
         _, minutes = _track(ctx, tel, lst, name)
         if minutes < m.min_track_min:
-            raise InputError(str(ctx.run.store("vis.zarr")), "models.min_track_min",
+            raise InputError(str(ctx.run.store(STORES.vis)), "models.min_track_min",
                              f"{name} is above {m.min_elevation_deg:g} deg elevation for {minutes:.1f} min of the "
                              f"data, less than models.min_track_min = {m.min_track_min:g} min",
                              "give data covering a longer track, or lower models.min_track_min or "
@@ -102,7 +102,7 @@ def _task(ctx, key):
     name = m.sources[si]
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
-    rows, _ = _track(ctx, tel, ctx.open("vis.zarr")["lst"][:], name)
+    rows, _ = _track(ctx, tel, ctx.open(STORES.vis)["lst"][:], name)
     rows = rows[np.unique(np.linspace(0, len(rows) - 1, min(len(rows), m.max_integrations)).round().astype(int))]
     vis, weights, lst, pairs = _read_rows(ctx, rows, fi)
     keep = solve_mask(tel, pairs, p.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
@@ -131,7 +131,7 @@ def _task(ctx, key):
                                            free_amplitudes=True, maxiter=1)
     comps, res = fit_gaussian_components(data, w, uvw, beam, start, aperture_arcmin=aperture, step_arcmin=step,
                                          reference_flux=total, free_amplitudes=True, maxiter=m.maxiter)
-    g = ctx.open("models.zarr", mode="r+")
+    g = ctx.open(STORES.models, mode="r+")
     n_max = g["components"].shape[2]
     table = np.zeros((n_max, len(MODEL_COLUMNS)))
     table[:len(comps)] = pack_components(comps).reshape(len(comps), -1)
@@ -144,6 +144,6 @@ def _task(ctx, key):
 
 
 STAGE = Stage("models", ("models", "peel.sources", "peel.model_sources", "peel.min_baseline_lambda", "beam"),
-               ("vis.zarr", "gains.zarr"), ("models.zarr",), _prepare, _task, kind="solve",
+               (STORES.vis, STORES.gains), (STORES.models,), _prepare, _task, kind="solve",
                enabled=lambda cfg: cfg.models.enabled, counters=("fits",),
                description="resolved source models (Gaussian components) fitted to the calibrated data", cost=COST)

@@ -40,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.peel import PEEL, SUBTRACT
-from mmflow.io.run_stores import PEEL_MODES, peel_store
+from mmflow.io.run_stores import STORES, PEEL_MODES, peel_store
 from mmflow.workflow.engine.baseline_cuts import check_baselines
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
@@ -51,7 +51,7 @@ from mmflow.workflow.stages.base import Stage
 
 
 def _prepare(ctx):
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     nt, _, nf, npol = vg["vis"].shape
     n_ant = vg["antenna_enu"].shape[0]
     # with no baseline long enough every fit would be empty: refuse before any task
@@ -60,8 +60,8 @@ def _prepare(ctx):
     # the models stage's fits replace the catalogue's point models when it is enabled: an input
     # whose producer's fingerprint then enters this stage's
     fitted = {}
-    if ctx.producer("models.zarr") is not None:
-        fitted = fitted_tables(ctx.open("models.zarr"), names)
+    if ctx.producer(STORES.models) is not None:
+        fitted = fitted_tables(ctx.open(STORES.models), names)
     ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
                           {"sources": names, "peeled": list(ctx.cfg.peel.peel),
                            "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
@@ -71,7 +71,7 @@ def _prepare(ctx):
 
 def _task(ctx, key):
     fi = key.freq
-    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
+    rows = slice(*chunk_rows(key, ctx.open(STORES.vis)["lst"].shape[0]))
     block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
     tel = ctx.telescope()
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, peel_names(ctx.cfg.peel),
@@ -79,7 +79,7 @@ def _task(ctx, key):
     attrs = ctx.vis_attrs()
     out = peel_solve(tel, fi, block.lst, block.pairs, block.vis[:, :, 0], block.weights[:, :, 0], coh,
                      ctx.cfg.peel, float(attrs["epoch_jd"]), float(attrs["integration_s"]))
-    g = ctx.open("peel.zarr", mode="r+")
+    g = ctx.open(STORES.peel, mode="r+")
     region = (rows, slice(fi, fi + 1))
 
     def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
@@ -100,7 +100,7 @@ def _apply(ctx, block):
         block.vis[:, :, k] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
 
 
-STAGE = Stage("peel", ("peel", "beam"), ("vis.zarr", "gains.zarr", "models.zarr"), ("peel.zarr",), _prepare, _task, kind="solve",
+STAGE = Stage("peel", ("peel", "beam"), (STORES.vis, STORES.gains, STORES.models), (STORES.peel,), _prepare, _task, kind="solve",
                apply=_apply, enabled=lambda cfg: cfg.peel.enabled,
                counters=("peeled", "guard_fired", "not_converged"),
                description="peel (DD gains) or subtract bright sources per integration (applied on read)", cost=COST)

@@ -34,7 +34,7 @@ from mmflow.imaging import psf
 from mmflow.imaging.jackknife import beam_noise, day_night_difference, masked_rms, noise_realisation
 from mmflow.io.export import psf_stamp_header, write_healpix_fits, write_image_fits, write_mollweide_png, write_psf_png
 from mmflow.io.plots import write_clean_history_png
-from mmflow.io.run_stores import CLEAN_STOPS, NOISE_FIELDS
+from mmflow.io.run_stores import STORES, CLEAN_STOPS, NOISE_FIELDS
 from mmflow.sky import units
 from mmflow.sky.diffuse import alm_to_map
 from mmflow.sky.frames import rotate_alm, rotation_matrix
@@ -67,7 +67,7 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     cfg = ctx.cfg
     p, lmax, mmax = cfg.products, cfg.mmode.lmax, mmax_of(cfg)
     blocks = m_blocks(mmax, cfg.transfer.m_block)
-    g = ctx.open("clean.zarr")
+    g = ctx.open(STORES.clean)
     maps_dir = ctx.run.path / "maps"
     rot = _rotate_to(p.frame, epoch)
     state, reason = cs.clean_result(g, fi, cs.clean_options(cfg.clean), int(g["n_cycles"][fi]))
@@ -202,9 +202,9 @@ def _write_stamps(ctx, g, fi, tag, freq, table, lmax, blocks, png, header, write
 def table1_row(ctx, fi, freq, info):
     """Table 1's row of one channel from the CLEAN products' info and ``alm.zarr``."""
     cfg = ctx.cfg
-    g = ctx.open("clean.zarr")
+    g = ctx.open(STORES.clean)
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    frac = ctx.read("alm.zarr", "fraction_above", (slice(fi, fi + 1),))[0][: mmax + 1]
+    frac = ctx.read(STORES.alm, "fraction_above", (slice(fi, fi + 1),))[0][: mmax + 1]
     n_m = lmax - np.arange(mmax + 1) + 1  # each m's Gram size: the fraction over every singular value
     width = float(ctx.vis_attrs().get("channel_width_hz", 0.0))
     noise = {"kelvin": info["noise"]["kelvin"], "mjy_per_beam": info["noise"]["mjy_per_beam"]}

@@ -53,6 +53,7 @@ from mmflow.sky.sources import CATALOG, epoch_year, get_sources
 from mmflow.workflow.engine import clean_state as cs
 from mmflow.workflow.engine.clean_state import jackknife_splits, split_alm
 from mmflow.workflow.engine.geometry import mmax_of
+from mmflow.io.run_stores import STORES
 
 NOISE_ROTATIONS = 8  # noise realisations for the flux errors: 2 x this (turned jackknife maps and negatives)
 FLUX_COLUMNS = ("name", "freq_hz", "measured_jy", "measured_err_jy", "model_jy", "ratio", "clean_jy", "method",
@@ -81,13 +82,13 @@ def psf_at(ctx, fi, vecs_date):
 def _peel_rows(ctx, fi, freq, epoch_year, wanted):
     """Flux rows of the sources ``peel.zarr`` removed (peeled or subtracted), from the peel solutions;
     the modelled sources (``peel.model_sources``) stay in the data and are measured in the map."""
-    g = ctx.open("peel.zarr")
+    g = ctx.open(STORES.peel)
     kept = set(g.attrs.get("modelled", []))
     index = {n: s for s, n in enumerate(g.attrs["sources"]) if n not in kept}  # store column of each
     names = list(index)
-    mode = ctx.read("peel.zarr", "mode", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, pol)
-    scale = ctx.read("peel.zarr", "scale", (slice(None), slice(fi, fi + 1)))[:, 0]
-    gains = ctx.read("peel.zarr", "dd_gains", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, ant, pol)
+    mode = ctx.read(STORES.peel, "mode", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, pol)
+    scale = ctx.read(STORES.peel, "scale", (slice(None), slice(fi, fi + 1)))[:, 0]
+    gains = ctx.read(STORES.peel, "dd_gains", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, ant, pol)
     rows = []
     for src in get_sources(names):
         if wanted is not None and src.name not in wanted:
@@ -185,7 +186,7 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
 
 def _clean_components(ctx, fi):
     """CLEAN's components of one channel (frame of date): ``(vecs, fluxes)``."""
-    g = ctx.open("clean.zarr")
+    g = ctx.open(STORES.clean)
     state, _ = cs.clean_result(g, fi, cs.clean_options(ctx.cfg.clean), int(g["n_cycles"][fi]))
     return state.comp_vec, state.comp_flux
 

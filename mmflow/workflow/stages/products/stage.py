@@ -31,6 +31,7 @@ from mmflow.workflow.stages.products.stokes import stokes_products
 from mmflow.workflow.stages.products.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
+from mmflow.io.run_stores import STORES
 
 
 def frequency_tags(freqs_hz):
@@ -45,20 +46,20 @@ def frequency_tags(freqs_hz):
 
 def _products_prepare(ctx):
     (ctx.run.path / "maps").mkdir(parents=True, exist_ok=True)
-    return [TaskKey(freq=fi) for fi in range(ctx.open("alm.zarr")["alm"].shape[1])]
+    return [TaskKey(freq=fi) for fi in range(ctx.open(STORES.alm)["alm"].shape[1])]
 
 
 def _products_task(ctx, key):
     cfg = ctx.cfg
     fi = key.freq
-    vis = ctx.open("vis.zarr")
+    vis = ctx.open(STORES.vis)
     freqs = vis["freqs_hz"][:]
     f, epoch, lat = float(freqs[fi]), float(vis.attrs["epoch_jd"]), float(vis.attrs["lat_deg"])
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    alm = healpy_alm(ctx.read("alm.zarr", "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
-    lc = ctx.read("alm.zarr", "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
-    frac = ctx.read("alm.zarr", "fraction_above", (slice(fi, fi + 1),))[0]
-    eps = ctx.read("alm.zarr", "eps_grid")
+    alm = healpy_alm(ctx.read(STORES.alm, "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
+    lc = ctx.read(STORES.alm, "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
+    frac = ctx.read(STORES.alm, "fraction_above", (slice(fi, fi + 1),))[0]
+    eps = ctx.read(STORES.alm, "eps_grid")
     p = cfg.products
     nside = p.nside or 2 * imaging_maps.default_nside(lmax)
     # through the module: tests/acceptance/test_faults.py replaces alm_to_output_map there
@@ -129,7 +130,7 @@ def _cost_so_far(ctx):
 
 def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
-    tags = frequency_tags(ctx.open("vis.zarr")["freqs_hz"][:])
+    tags = frequency_tags(ctx.open(STORES.vis)["freqs_hz"][:])
     parts = [json.loads((maps / f"summary_{t}.json").read_text()) for t in tags]
     out = {"maps": parts}
     if ctx.cfg.clean.enabled:
@@ -154,7 +155,7 @@ def _products_finalize(ctx):
 
 STAGE = Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging", "products",
                             "transfer.noise_weighting", "transfer.m_block", "clean", "peel.enabled"),
-               ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr", "stokes.zarr", "clean.zarr", "peel.zarr"),
+               (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm, STORES.stokes, STORES.clean, STORES.peel),
                ("maps",),
                _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "

@@ -33,7 +33,7 @@ from mmflow.imaging import psf
 from mmflow.imaging.jackknife import noise_realisation, split_variance
 from mmflow.imaging.maps import stokes_alm_to_output_maps
 from mmflow.io.export import POLARISATION_KEYWORDS, write_healpix_fits, write_mollweide_png
-from mmflow.io.run_stores import CLEAN_STOPS
+from mmflow.io.run_stores import STORES, CLEAN_STOPS
 from mmflow.sky import units
 from mmflow.sky.frames import rotation_matrix
 from mmflow.workflow.engine import clean_state as cs
@@ -49,12 +49,12 @@ def _maps(ctx, name, fi, nside, unit=None, split=None):
     ``split``, an index of ``mmode.splits``, for ``alm``) in ``products.frame`` and ``unit``."""
     cfg = ctx.cfg
     lmax, p = cfg.mmode.lmax, cfg.products
-    vis = ctx.open("vis.zarr")
+    vis = ctx.open(STORES.vis)
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
     if split is None:
-        padded = ctx.read("stokes.zarr", name, (slice(fi, fi + 1),))[0]  # (4, m, l)
+        padded = ctx.read(STORES.stokes, name, (slice(fi, fi + 1),))[0]  # (4, m, l)
     else:
-        padded = ctx.read("stokes.zarr", name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
+        padded = ctx.read(STORES.stokes, name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
     alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
     maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, unit or p.unit, nside)
     ctx.check_finite(f"maps/{name} of channel {fi}", maps)
@@ -84,8 +84,8 @@ def stokes_noise(ctx, fi, nside, mask, full):
 def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     """Write the CLEAN of V of channel ``fi`` (``vclean_<tag>.fits``) and return its summary entry."""
     p = ctx.cfg.products
-    g = ctx.open("stokes.zarr")
-    vis = ctx.open("vis.zarr")
+    g = ctx.open(STORES.stokes)
+    vis = ctx.open(STORES.vis)
     f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
     rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
     n_cyc = int(g["v_n_cycles"][fi])

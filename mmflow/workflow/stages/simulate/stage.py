@@ -26,7 +26,7 @@ import numpy as np
 from mmflow.calibrate.coherency import source_vector_date
 from mmflow.conventions import drift_scan_lsts, drift_scan_times, is_full_stokes
 from mmflow.io.raw_files import RAW_DIR, raw_path, write_raw_chunk
-from mmflow.io.run_stores import diffuse_store, vis_store
+from mmflow.io.run_stores import STORES, diffuse_store, vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
 from mmflow.simulate.drift_modes import coefficients_from_samples, evaluate_drift, n_samples, sample_lsts
 from mmflow.simulate.scene import (diffuse_points, drift_samples, feed_columns, joined, polarised_sky_points,
@@ -124,16 +124,16 @@ def _diffuse_task(ctx, key):
     points = diffuse_points(tel, f, cfg.observation.epoch_jd, s.diffuse_lmax, s.seed, s.quad_oversample)
     samples = drift_samples(tel, f, points, lsts, cfg.corrupt.enabled)
     rows = slice(key.time * DIFFUSE_SAMPLE_BLOCK, key.time * DIFFUSE_SAMPLE_BLOCK + len(lsts))
-    ctx.write(ctx.open("diffuse.zarr", mode="r+"), "samples", (slice(key.freq, key.freq + 1), rows), samples[None])
+    ctx.write(ctx.open(STORES.diffuse, mode="r+"), "samples", (slice(key.freq, key.freq + 1), rows), samples[None])
     return {"diffuse_samples": len(lsts)}
 
 
 def _diffuse_at(ctx, lst):
     """Per channel the diffuse sky interpolated to the sidereal angles ``lst`` (``simulate_chunk``'s ``extra``)."""
-    g = ctx.open("diffuse.zarr")
+    g = ctx.open(STORES.diffuse)
     out = []
     for fi in range(g["samples"].shape[0]):
-        v = evaluate_drift(coefficients_from_samples(ctx.read("diffuse.zarr", "samples", (slice(fi, fi + 1),))[0]),
+        v = evaluate_drift(coefficients_from_samples(ctx.read(STORES.diffuse, "samples", (slice(fi, fi + 1),))[0]),
                            lst, ctx.cfg.sky.diffuse_lmax)
         out.append(v[..., 0] if v.shape[-1] == 1 else v)
     return out
@@ -158,7 +158,7 @@ def _sim_task(ctx, key):
         mid = float(np.median(time_jd))
         sun = [sun_points(mid, float(f)) for f in tel.freqs_hz]
         skies = [joined([sky, unpolarised(x)]) if full else sky + x for sky, x in zip(skies, sun)]
-    g = ctx.open("vis.zarr", mode="r+")
+    g = ctx.open(STORES.vis, mode="r+")
     rows = (slice(t0, t1),)
     if full:
         vis, cross = simulate_polarised_chunk(tel, _jones(ctx.for_stage(ctx.stage)), lst, skies, rng, o.integration_s,
@@ -194,7 +194,7 @@ def _write_raw(ctx, tel, t0, time_jd, vis, cross):
 
 STAGE = Stage("simulate", ("telescope", "beam", "observation", "sky", "corrupt", "mmode.baseline_chunk",
                            "imaging.stokes"), (),
-               ("vis.zarr", "diffuse.zarr", RAW_DIR), _sim_prepare, _sim_task, next_cycle=_next_cycle,
+               (STORES.vis, STORES.diffuse, RAW_DIR), _sim_prepare, _sim_task, next_cycle=_next_cycle,
                enabled=lambda cfg: cfg.source == "simulate",
                description="time-domain drift-scan simulation (independent of transfer matrices), "
                "optionally corrupted (gains, DD effects, terrestrial signals); with imaging.stokes [I, Q, U, V] the four "

@@ -34,7 +34,7 @@ from mmflow.imaging.polarised import (PolarisedObserver, accumulate_polarised_no
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
 from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
-from mmflow.io.run_stores import CLEAN_STOPS, stokes_store
+from mmflow.io.run_stores import STORES, CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
@@ -63,7 +63,7 @@ def _response_decs(lat_rad):
 
 
 def _prepare(ctx):
-    mg = ctx.open("mmodes.zarr")
+    mg = ctx.open(STORES.mmodes)
     n_split, nf, n_m = mg["mmodes_corr"].shape[:3]
     c = ctx.cfg.clean
     v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
@@ -74,11 +74,11 @@ def _prepare(ctx):
 def _task(ctx, key):
     cfg = ctx.cfg
     fi, lmax = key.freq, cfg.mmode.lmax
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     freq = float(vg["freqs_hz"][fi])
     pairs = vg["pairs"][:]
-    mm = ctx.read("mmodes.zarr", "mmodes_corr", (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, m, pm, corr, bl)
-    inv_var = ctx.read("mmodes.zarr", "inv_var_corr", (slice(fi, fi + 1),))[0]  # (corr, bl)
+    mm = ctx.read(STORES.mmodes, "mmodes_corr", (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, m, pm, corr, bl)
+    inv_var = ctx.read(STORES.mmodes, "inv_var_corr", (slice(fi, fi + 1),))[0]  # (corr, bl)
     w = relative_weights(inv_var) if cfg.transfer.noise_weighting else (inv_var > 0).astype(float)
     keep = np.flatnonzero(w.max(axis=0) > 0)  # baselines with data in some correlation
     jones = make_jones(cfg.beam.model_dump())
@@ -97,7 +97,7 @@ def _task(ctx, key):
     unpolarised = np.zeros_like(alm)
     unpolarised[0] = alm[0]
     leak = observe(unpolarised)[0]
-    out = ctx.open("stokes.zarr", mode="r+")
+    out = ctx.open(STORES.stokes, mode="r+")
     n_m = out["alm"].shape[3]
     ctx.write(out, "alm", (slice(None), slice(fi, fi + 1)),
               np.stack([padded_alm(a, lmax, n_m) for a in splits])[:, None])
@@ -142,7 +142,7 @@ def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe)
             "threshold_jy_sr": float(res["threshold"])}
 
 
-STAGE = Stage("stokes", STOKES_CONFIG, ("vis.zarr", "mmodes.zarr"), ("stokes.zarr",), _prepare, _task,
+STAGE = Stage("stokes", STOKES_CONFIG, (STORES.vis, STORES.mmodes), (STORES.stokes,), _prepare, _task,
               enabled=lambda cfg: is_full_stokes(cfg.imaging.stokes),
               description="full-Stokes transfer coefficients (E-field beam), normal equations over T, E, B, V and "
               "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)", cost=COST)

@@ -28,7 +28,7 @@ import numpy as np
 
 from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, projection_fraction, subtract_templates,
                                           template_basis)
-from mmflow.io.run_stores import terrestrial_store
+from mmflow.io.run_stores import STORES, terrestrial_store
 from mmflow.workflow.engine.baseline_cuts import solve_mask
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
@@ -39,7 +39,7 @@ from mmflow.workflow.stages.base import Stage
 
 
 def _prepare(ctx):
-    vg = ctx.open("vis.zarr")
+    vg = ctx.open(STORES.vis)
     nt, nbl, nf, npol = vg["vis"].shape
     ctx.create(terrestrial_store(len(time_keys(nt)), nt, nf, nbl, ctx.cfg.terrestrial.components,
                                  vg["antenna_enu"].shape[0], npol, TIME_CHUNK))
@@ -53,17 +53,17 @@ def _keys(nt, nf, phase):
 
 def _templates(ctx, fi, pairs):
     """The (K^2, bl, pol) templates of channel ``fi`` for ``pairs`` (:func:`template_basis` of its K patterns)."""
-    return template_basis(ctx.read("terrestrial.zarr", "patterns", (slice(fi, fi + 1),))[0], pairs)
+    return template_basis(ctx.read(STORES.terrestrial, "patterns", (slice(fi, fi + 1),))[0], pairs)
 
 
 def _task(ctx, key):
     k, fi = key.time, key.freq
-    rows = slice(*chunk_rows(key, ctx.open("vis.zarr")["lst"].shape[0]))
+    rows = slice(*chunk_rows(key, ctx.open(STORES.vis)["lst"].shape[0]))
     block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
     if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
         block.vis -= modelled_sources(ctx, block)
     vis = block.vis[:, :, 0]  # (time, bl, pol)
-    g = ctx.open("terrestrial.zarr", mode="r+")
+    g = ctx.open(STORES.terrestrial, mode="r+")
     w = np.where(np.isfinite(block.lst)[:, None, None], block.weights[:, :, 0], 0.0)
     region = (slice(k, k + 1), slice(fi, fi + 1))
     if key.phase == "s":  # phase 1: weighted sums
@@ -90,9 +90,9 @@ def _next_cycle(ctx, cycle):
     if cycle > 0:
         return None
     t = ctx.cfg.terrestrial
-    g = ctx.open("terrestrial.zarr", mode="r+")
+    g = ctx.open(STORES.terrestrial, mode="r+")
     n, nf = g["sum_vis"].shape[:2]
-    pairs = ctx.open("vis.zarr")["pairs"][:]
+    pairs = ctx.open(STORES.vis)["pairs"][:]
     patterns = np.zeros(g["patterns"].shape, complex)
     for fi in range(nf):  # every cross baseline: the template is never extrapolated
         total = ordered_tree_sum([g["sum_vis"][i, fi] for i in range(n)])  # (bl, pol)
@@ -100,17 +100,17 @@ def _next_cycle(ctx, cycle):
         mean = np.where(weight > 0, total / np.where(weight > 0, weight, 1), 0)
         patterns[fi] = fit_templates(mean, weight, pairs, ctx.telescope().n_ant, t.components).patterns
     ctx.write(g, "patterns", (slice(None),), patterns)
-    return _keys(ctx.open("vis.zarr")["lst"].shape[0], nf, "a")
+    return _keys(ctx.open(STORES.vis)["lst"].shape[0], nf, "a")
 
 
 def _apply(ctx, block):
     """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place."""
-    amps = ctx.read("terrestrial.zarr", "amplitudes", (block.rows,))  # (time, freq, K, pol)
+    amps = ctx.read(STORES.terrestrial, "amplitudes", (block.rows,))  # (time, freq, K, pol)
     for k, fi in block.channel_indices():
         block.vis[:, :, k] = subtract_templates(block.vis[:, :, k], _templates(ctx, fi, block.pairs), amps[:, fi])
 
 
-STAGE = Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), ("vis.zarr", "gains.zarr", "peel.zarr"), ("terrestrial.zarr",),
+STAGE = Stage("terrestrial", ("terrestrial", "beam", "peel.enabled", "peel.model_sources"), (STORES.vis, STORES.gains, STORES.peel), (STORES.terrestrial,),
                _prepare, _task, kind="solve", apply=_apply, next_cycle=_next_cycle,
                enabled=lambda cfg: cfg.terrestrial.enabled,
                description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration", cost=COST)

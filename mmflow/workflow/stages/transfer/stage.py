@@ -14,8 +14,8 @@ import time
 
 import numpy as np
 
-from mmflow.conventions import m_blocks
-from mmflow.io.run_stores import gram_name, partials_store, transfer_store
+from mmflow.conventions import m_blocks, complex_dtype
+from mmflow.io.run_stores import STORES, gram_name, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
@@ -36,7 +36,7 @@ def _plan(ctx, fi):
 
 
 def _acc_dtype(cfg):
-    return "complex64" if cfg.transfer.dtype == "float32" else "complex128"
+    return complex_dtype(cfg.transfer.dtype).name
 
 
 def _transfer_prepare(ctx):
@@ -44,7 +44,7 @@ def _transfer_prepare(ctx):
     tel = ctx.telescope()
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
     tel.check_lmax(lmax)
-    mg = ctx.open("mmodes.zarr")
+    mg = ctx.open(STORES.mmodes)
     n_split, nf = mg["mmodes"].shape[:2]
     plans = [_plan(ctx, fi) for fi in range(nf)]
     n_groups = max(len(p[3]) for p in plans)
@@ -52,7 +52,7 @@ def _transfer_prepare(ctx):
     if cfg.transfer.mode == "store":
         orders = [np.concatenate([c.index for c in p[1]]).astype("int64") for p in plans]
         ctx.create(transfer_store(nf, len(tel.antenna_pairs()), lmax, mmax, cfg.transfer.baseline_chunk,
-                                  "complex64" if cfg.transfer.dtype == "float32" else "complex128", orders))
+                                  complex_dtype(cfg.transfer.dtype).name, orders))
     return [TaskKey(freq=fi, group=k) for fi, p in enumerate(plans) for k in range(n_groups)]
 
 
@@ -68,8 +68,8 @@ def _transfer_task(ctx, key):
     # group's chunk order: chunk k's m-modes are columns starts[k]:starts[k + 1]
     cols = np.concatenate([c.index for c in group]) if group else np.zeros(0, int)
     starts = dict(zip((id(c) for c in group), np.cumsum([0] + [len(c.index) for c in group])))
-    mm_group = ctx.read("mmodes.zarr", "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0][..., cols]
-    inv_var = ctx.read("mmodes.zarr", "inv_var", (slice(fi, fi + 1),))[0]
+    mm_group = ctx.read(STORES.mmodes, "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0][..., cols]
+    inv_var = ctx.read(STORES.mmodes, "inv_var", (slice(fi, fi + 1),))[0]
     tim = {"read_s": time.perf_counter() - t0}
     inv_var = relative_weights(inv_var) if cfg.transfer.noise_weighting else np.ones_like(inv_var)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
@@ -83,7 +83,7 @@ def _transfer_task(ctx, key):
                       inv_var, dtype, GridCache(tel, f), on_block, timings=tim)
     tim["accumulate_s"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    pg = ctx.open("partials.zarr", mode="r+")
+    pg = ctx.open(STORES.partials, mode="r+")
     for m0, m1 in m_blocks(mmax, cfg.transfer.m_block):
         n0 = lmax - m0 + 1
         blk = np.zeros((1, m1 - m0, n0, n0), acc.dtype)
@@ -102,7 +102,7 @@ def _transfer_task(ctx, key):
 
 def _block_writer(ctx, fi, chunks, bc):
     """Write each transfer block of a chunk at its rows of ``transfer.zarr`` (chunks in lmax order)."""
-    store = ctx.open("transfer.zarr", mode="r+")
+    store = ctx.open(STORES.transfer, mode="r+")
     # chunks are contiguous in the lmax order and their sizes multiples of bc: rows stay chunk-aligned
     starts = np.concatenate([[0], np.cumsum([len(c.index) for c in chunks])])
     position = {id(c): int(starts[k]) for k, c in enumerate(chunks)}
@@ -118,6 +118,6 @@ def _block_writer(ctx, fi, chunks, bc):
     return write
 
 
-STAGE = Stage("transfer", TRANSFER_CONFIG, ("vis.zarr", "mmodes.zarr"), ("partials.zarr", "transfer.zarr"),
+STAGE = Stage("transfer", TRANSFER_CONFIG, (STORES.vis, STORES.mmodes), (STORES.partials, STORES.transfer),
                _transfer_prepare, _transfer_task,
                description="transfer blocks + herk into partial normal equations per fixed baseline group", cost=COST)
