@@ -108,25 +108,28 @@ def _worker_cores(need, node, frac):
 
 
 def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
-    """Per enabled stage its worker, its time on ``nodes`` nodes and what scales it (dicts)."""
-    rows, frac = [], terminate_fraction()
+    """Per enabled stage its worker, its time on ``nodes`` nodes and what scales it (dicts).
+
+    ``core_gflops``: a node's SGEMM peak per core; ``slots``: :func:`reference_slots`. A row's time on
+    any node count is :func:`stage_seconds`: ``per_task_s`` a round of tasks, and ``node_s`` (a
+    :attr:`Cost.seconds` hook's stage-wide sums, e.g. the diffuse sky's) over the nodes.
+    """
+    rows, frac, peak = [], terminate_fraction(), slots * core_gflops
+    total = nodes * node.cores * core_gflops
     for st in PIPELINE:
         if not st.enabled(cfg) or st.task is None:
             continue
-        probe = estimate(st.name, g, cfg, costs, costs["sgemm_gflops"], 1)
-        need = probe.task_bytes + WORKER_BASE_BYTES
+        est = estimate(st.name, g, cfg, costs, peak, 1, total)
+        need = est.task_bytes + WORKER_BASE_BYTES
         k = _worker_cores(need, node, frac)
-        per_node = max(1, node.cores // k)
-        workers = nodes * per_node
-        est = estimate(st.name, g, cfg, costs, slots * core_gflops, workers, nodes * node.cores * core_gflops)
         k_s = costs["stages"].get(st.name)
-        per_task = task_seconds(k_s, est.units_per_task, costs, slots * core_gflops) if k_s else 0.0
-        rounds = math.ceil(est.tasks / workers)
+        per_task = task_seconds(k_s, est.units_per_task, costs, peak) if k_s else 0.0
+        # the stage-wide part: what is left with every task in one round
+        wide = estimate(st.name, g, cfg, costs, peak, max(est.tasks, 1), total).seconds - per_task
         rows.append({"stage": st.name, "tasks": est.tasks, "task_gb": need / 1e9, "worker_cores": k,
-                     "workers_per_node": per_node, "worker_memory_gb": k * node.core_memory_bytes / 1e9,
-                     "fits": k <= node.cores, "per_task_s": per_task,
-                     "node_s": max(0.0, est.seconds - per_task * rounds) * nodes,  # the part that scales as 1/nodes
-                     "seconds": est.seconds, "store_gb": est.store_bytes / 1e9, "notes": est.notes})
+                     "workers_per_node": max(1, node.cores // k), "worker_memory_gb": k * node.core_memory_bytes / 1e9,
+                     "fits": k <= node.cores, "per_task_s": per_task, "node_s": max(0.0, wide) * nodes,
+                     "store_gb": est.store_bytes / 1e9, "notes": est.notes})
     return rows
 
 
