@@ -205,3 +205,16 @@ def test_an_ingesting_workflow_without_its_files_points_to_simulate_layout(capsy
                  "--node-memory", "128GB", "--node-peak", "3150"]) == 2
     err = capsys.readouterr().err
     assert "input.path" in err and "--simulate-layout" in err
+
+
+def test_the_workflows_own_jobqueue_is_checked_against_the_tasks():
+    cfg = load_config(_wf("hpc-slurm.yaml"))  # 64GB over 2 processes: workers of 32 GB
+    res = _plan(cfg, Node(16, 64 * GB))
+    assert res["configured_worker_gb"] == pytest.approx(32.0) and res["too_large_for_configured"] == []
+    assert "enough for every stage's task" in jobs.format_cluster_plan(res)
+    cfg = load_config(_wf("hpc-slurm.yaml"), ["cluster.jobqueue.processes=40", "cluster.jobqueue.memory=16GB"])
+    small = _plan(cfg, Node(16, 64 * GB))  # workers of 0.4 GB: below some of the demo's tasks
+    rows = {r["stage"]: r for r in small["stages"]}
+    big = [s for s, r in rows.items() if r["task_gb"] > 0.4 * jobs.terminate_fraction()]
+    assert small["too_large_for_configured"] == big and 0 < len(big) < len(rows)
+    assert f"too small for {', '.join(big)}" in jobs.format_cluster_plan(small)

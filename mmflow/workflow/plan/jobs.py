@@ -168,6 +168,18 @@ def _split(cfg, row, node, replan):
                      f"{cost.shrink_setting(cfg)}, or nodes with more memory (--node-memory)")
 
 
+def configured_worker_gb(cfg):
+    """The memory of a worker the workflow's own ``cluster.jobqueue`` asks for (``memory`` over
+    ``processes``), or None where it does not give both."""
+    from dask.utils import parse_bytes  # deferred: dask takes 0.3-0.8 s to import
+
+    jq = cfg.cluster.jobqueue or {}
+    if jq.get("memory") is None or jq.get("processes") is None:
+        return None
+    mem = parse_bytes(jq["memory"]) if isinstance(jq["memory"], str) else float(jq["memory"])
+    return mem / max(1, int(jq["processes"])) / 1e9
+
+
 def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflops=None, ingest=None):
     """The run laid onto nodes of ``node``'s size (see the module's docstring).
 
@@ -192,7 +204,9 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
         ``node``, ``nodes``, ``settings`` (the split settings chosen, dotted), ``stages`` (rows of
         :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb``, ``free_disk_gb``
         (where ``run.directory`` will be: the shared file system where planned on a login node),
-        ``node_memory_gb`` (the most a node holds at once), ``node_hours`` and ``core_gflops``.
+        ``node_memory_gb`` (the most a node holds at once), ``node_hours`` and ``core_gflops``; where the
+        workflow's ``cluster.jobqueue`` gives memory and processes, ``configured_worker_gb`` and the
+        stages whose tasks its workers cannot hold (``too_large_for_configured``).
 
     Raises
     ------
@@ -235,6 +249,11 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
            "store_gb": sum(r["store_gb"] for r in rows), "free_disk_gb": free_disk_gb(cfg.run.directory)}
+    configured = configured_worker_gb(cfg)
+    if configured is not None:
+        res["configured_worker_gb"] = configured
+        res["too_large_for_configured"] = [r["stage"] for r in rows
+                                           if r["task_gb"] > configured * terminate_fraction()]
     res.update(totals(res, n))
     res["jobs"] = job_shapes(res, n)
     return res
@@ -342,6 +361,11 @@ def format_cluster_plan(res):
     rows.append(f"total: {res['nodes']} nodes, ~{duration(res['wall_s'])} wall ({res['node_hours']:.0f} node-hours); "
                 f"a node holds at most {res['node_memory_gb']:.1f} GB of its {node['memory_gb']:.1f} GB; "
                 f"{res['core_gflops']:.0f} SGEMM GFLOP/s per core")
+    if "configured_worker_gb" in res:
+        big = res["too_large_for_configured"]
+        rows.append(f"the workflow's cluster.jobqueue: workers of {res['configured_worker_gb']:.1f} GB, "
+                    + (f"too small for {', '.join(big)}: ask for the jobs above" if big else
+                       "enough for every stage's task"))
     free = res["free_disk_gb"]
     rows.append(f"disk: {res['store_gb']:.1f} GB of stores on the shared file system ("
                 + (f"{free:.1f} GB free where run.directory will be)" if free >= res["store_gb"] else
