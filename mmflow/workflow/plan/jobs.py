@@ -34,10 +34,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.errors import InputError
 from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.context import build_telescope
+from mmflow.workflow.engine.geometry import n_integrations
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.nodes import Node
 from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
@@ -74,9 +74,7 @@ def layout_ingest(cfg):
     ``observation.integration_s`` (or ``observation.n_integrations``), ``observation.freqs_mhz`` and
     :data:`LAYOUT_POLS`. What ``--simulate-layout`` plans an ingesting workflow with."""
     tel = build_telescope(cfg)
-    o = cfg.observation
-    n_time = o.n_integrations or int(round(SIDEREAL_DAY_S / o.integration_s))
-    return SimpleNamespace(n_time=n_time, pols=list(LAYOUT_POLS), freqs_hz=np.asarray(tel.freqs_hz),
+    return SimpleNamespace(n_time=n_integrations(cfg), pols=list(LAYOUT_POLS), freqs_hz=np.asarray(tel.freqs_hz),
                            pairs=np.asarray(tel.antenna_pairs()), layout=tel.layout)
 
 
