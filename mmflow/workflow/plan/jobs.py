@@ -353,9 +353,9 @@ def format_cluster_plan(res):
         j = res["jobs"][r["stage"]]
         worker = f"{r['worker_cores']}c {r['worker_memory_gb']:.1f}GB"
         job = f"{j['cores']}c {j['memory']} x{j['processes']}"
-        big = "  (larger workers)" if r["worker_cores"] > 1 else ""
+        big = "  " + "; ".join((["larger workers"] if r["worker_cores"] > 1 else []) + r["notes"])
         rows.append(f"{r['stage']:12s} {r['tasks']:6d} {r['task_gb']:8.2f} {worker:>13s} {job:>27s} "
-                    f"{j['count']:5d} {j['walltime']:>9s} {duration(stage_seconds(r, res['nodes'])):>9s}{big}")
+                    f"{j['count']:5d} {j['walltime']:>9s} {duration(stage_seconds(r, res['nodes'])):>9s}{big}".rstrip())
     rows.append(f"total: {res['nodes']} nodes, ~{duration(res['wall_s'])} wall ({res['node_hours']:.0f} node-hours); "
                 f"a node holds at most {res['node_memory_gb']:.1f} GB of its {node['memory_gb']:.1f} GB; "
                 f"{res['core_gflops']:.0f} SGEMM GFLOP/s per core")
