@@ -15,7 +15,7 @@ from mmflow.cli import main
 from mmflow.errors import InputError
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.plan import jobs, nodes
-from mmflow.workflow.plan.nodes import Node, node_from_sinfo, node_size, parse_sinfo
+from mmflow.workflow.plan.nodes import MIB, Node, node_from_sinfo, node_size, parse_sinfo
 
 ROOT = Path(__file__).resolve().parents[2]
 PEAK = 197.0  # the constants' reference SGEMM peak (plan/costs.json)
@@ -75,6 +75,8 @@ def test_bad_sinfo_and_no_sinfo_are_refused_naming_the_options(monkeypatch):
 def test_job_shapes_of_the_demo_from_a_given_node_size():
     cfg = load_config(_wf("demo.yaml"))
     node = node_size(8, "32GB")
+    share = node.core_memory_bytes // MIB  # 29 whole GiB to a job (dask-jobqueue rounds --mem up to GiB), by 8
+    assert share * 8 <= 29 * 1024 and node.job_memory_bytes == 29 * 2 ** 30
     res = _plan(cfg, node, nodes=2)
     assert res["settings"] == {} and res["nodes"] == 2
     _fits_its_worker(res)
@@ -84,9 +86,9 @@ def test_job_shapes_of_the_demo_from_a_given_node_size():
     for stage, j in shapes.items():  # the demo's tasks are small: standard workers (a core, 4 GB)
         assert j["worker_cores"] == 1 and j["cores"] == j["processes"] and 1 <= j["count"] <= 2
         assert j["processes"] == min(8, -(-rows[stage]["tasks"] // j["count"]))  # whole nodes where filled
-        assert j["memory"] == f"{j['processes'] * 4000}MB"
+        assert j["memory"] == f"{j['processes'] * share}MiB"
         assert re.fullmatch(r"\d\d:[0-5]\d:00", j["walltime"])
-    assert shapes["simulate"]["processes"] == 8 and shapes["simulate"]["memory"] == "32000MB"
+    assert shapes["simulate"]["processes"] == 8 and shapes["simulate"]["memory"] == f"{8 * share}MiB"
     for n in (1, 5):  # a pure function of the plan and a node count: no more jobs than the tasks fill
         for stage, j in jobs.job_shapes(res, n).items():
             assert j["count"] == min(n, -(-rows[stage]["tasks"] // 8))
@@ -94,10 +96,11 @@ def test_job_shapes_of_the_demo_from_a_given_node_size():
 
 def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     cfg = load_config(_wf("paper-scale.yaml"))
-    res = _plan(cfg, Node(32, 128 * GB))
+    node = Node(32, 128 * GB)
+    res = _plan(cfg, node)
     _fits_its_worker(res)
     rows = {r["stage"]: r for r in res["stages"]}
-    core = 128 / 32
+    core = node.core_memory_bytes / GB
     frac = jobs.terminate_fraction()
     for r in rows.values():  # the fewest core-shares that hold the task below dask's kill threshold
         assert (r["worker_cores"] - 1) * core * frac < r["task_gb"] <= r["worker_cores"] * core * frac
@@ -106,20 +109,22 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     shapes = res["jobs"]
     assert rows["transfer"]["workers_per_node"] == 16 and rows["mmodes"]["workers_per_node"] == 32
     t = shapes["transfer"]  # its 8 tasks: one job of 8 workers of 2 cores, 8 GB each
-    assert (t["count"], t["processes"], t["worker_cores"], t["cores"], t["memory"]) == (1, 8, 2, 16, "64000MB")
+    assert (t["count"], t["processes"], t["worker_cores"], t["cores"]) == (1, 8, 2, 16)
+    assert t["memory"] == f"{16 * node.core_memory_bytes // MIB}MiB"
     assert t["task_memory_bytes"] <= t["worker_memory_bytes"] * jobs.terminate_fraction()
     assert t["task_memory_bytes"] == pytest.approx(rows["transfer"]["task_gb"] * GB, abs=1)
     assert res["nodes"] >= 1 and res["wall_s"] > 0 and res["store_gb"] > 30
 
 
-@pytest.mark.parametrize("setting, value, node_gb, stage", [
-    ("mmode.baseline_chunk", 8192, 16, "mmodes"),
-    ("transfer.m_block", 256, 16, "normal"),
-    ("transfer.baseline_chunk", 32, 7.5, "transfer"),  # the paper's channel's 7.47 GB transfer task
+@pytest.mark.parametrize("setting, value, node_bytes, stage", [
+    ("mmode.baseline_chunk", 8192, 16 * GB, "mmodes"),
+    ("transfer.m_block", 256, 16 * GB, "normal"),
+    ("transfer.baseline_chunk", 32, 7 * 2 ** 30, "transfer"),  # the paper's channel's 7.47 GB transfer task
 ])
-def test_a_task_larger_than_a_node_is_split_by_replanning(setting, value, node_gb, stage):
+def test_a_task_larger_than_a_node_is_split_by_replanning(setting, value, node_bytes, stage):
     cfg = load_config(_wf("paper-scale.yaml"), [f"{setting}={value}"])
-    node = Node(16, node_gb * GB)
+    node = Node(16, node_bytes)
+    node_gb = node.core_memory_bytes * node.cores / GB  # what its jobs may ask for
     before = {r["stage"]: r for r in jobs.stage_rows(cfg, jobs.geometry(cfg), node, 1, 50.0, jobs.load_costs(), 2)}
     assert before[stage]["task_gb"] > node_gb * jobs.terminate_fraction()  # as given it does not fit a node
     res = _plan(cfg, node)
@@ -174,7 +179,7 @@ def test_a_task_no_split_fits_is_refused_naming_the_limit():
         _plan(cfg, Node(32, 16 * GB), ingest=jobs.layout_ingest(cfg))
     msg = str(err.value)
     assert "stage transfer" in msg and "even with transfer.baseline_chunk=1" in msg
-    assert "the 15.20 GB a worker may hold on a node of 16.00 GB" in msg
+    assert "the 14.28 GB a worker may hold on a node of 16.00 GB" in msg  # 14 GiB to a job, 95 % of it
     assert "mmode.lmax" in msg and "--node-memory" in msg
 
 
@@ -194,7 +199,7 @@ def test_the_cli_reads_the_nodes_from_sinfo_or_says_what_to_give(monkeypatch, ca
     assert main(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["node"] == {"cores": 32, "memory_gb": 128000 * 1024 ** 2 / GB, "partition": "compute",
-                           "source": "sinfo", "available": 14}
+                           "source": "sinfo", "available": 14, "core_memory_bytes": 4000 * MIB}  # 125 GiB / 32
     assert 1 <= out["nodes"] <= 14  # no more nodes than the partition has
     assert main(args + ["--partition", "bigmem"]) == 0
     assert json.loads(capsys.readouterr().out)["node"]["cores"] == 128
@@ -218,3 +223,17 @@ def test_the_workflows_own_jobqueue_is_checked_against_the_tasks():
     big = [s for s, r in rows.items() if r["task_gb"] > 0.4 * jobs.terminate_fraction()]
     assert small["too_large_for_configured"] == big and 0 < len(big) < len(rows)
     assert f"too small for {', '.join(big)}" in jobs.format_cluster_plan(small)
+
+
+def test_every_job_dask_jobqueue_submits_fits_the_nodes_memory():
+    """dask-jobqueue asks SLURM for a job's memory rounded up to whole GiB (``#SBATCH --mem=126G``): a
+    job sized to a node's 128500 MB (not whole GiB) must still ask for no more than the node has."""
+    from dask.utils import parse_bytes
+    from dask_jobqueue.slurm import slurm_format_bytes_ceil
+
+    node = node_from_sinfo("32 128500 4 compute*\n")
+    res = _plan(load_config(_wf("paper-scale.yaml")), node)
+    for stage, j in res["jobs"].items():
+        mem = slurm_format_bytes_ceil(parse_bytes(j["memory"]))  # what the job script says
+        assert mem.endswith("G") and int(mem[:-1]) * 1024 <= 128500, (stage, j["memory"], mem)
+        assert parse_bytes(j["memory"]) / j["processes"] == j["worker_memory_bytes"]  # dask's worker limit

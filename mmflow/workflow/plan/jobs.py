@@ -39,7 +39,7 @@ from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.engine.geometry import n_integrations
 from mmflow.workflow.pipeline import PIPELINE
-from mmflow.workflow.plan.nodes import Node
+from mmflow.workflow.plan.nodes import MIB, Node
 from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
                                           load_costs, task_seconds)
 
@@ -160,9 +160,10 @@ def _split(cfg, row, node, replan):
         tried, need = settings, r["task_gb"]
     last = (" even with " + ", ".join(f"{k}={v}" for k, v in tried.items())) if tried else " (no setting splits it)"
     frac = terminate_fraction()
+    hold = node.core_memory_bytes * node.cores * frac / 1e9
     raise InputError("workflow", f"stage {row['stage']}", f"its largest task needs ~{need:.2f} GB{last} (`mmflow "
-                     f"plan`), more than the {node.memory_bytes * frac / 1e9:.2f} GB a worker may hold on a node of "
-                     f"{node.memory_bytes / 1e9:.2f} GB (dask stops a worker at {frac:.0%} of its memory)",
+                     f"plan`), more than the {hold:.2f} GB a worker may hold on a node of {node.memory_bytes / 1e9:.2f}"
+                     f" GB (whole GiB to a job; dask stops a worker at {frac:.0%} of its memory)",
                      f"{cost.shrink_setting(cfg)}, or nodes with more memory (--node-memory)")
 
 
@@ -243,7 +244,8 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
         settings.update(_split(c, over[0], node, replan))
     n = nodes or choose_nodes(rows, node)
     rows = replan(c, n)
-    res = {"node": {"cores": node.cores, "memory_gb": node.memory_bytes / 1e9, "partition": node.partition,
+    res = {"node": {"cores": node.cores, "memory_gb": node.memory_bytes / 1e9,
+                    "core_memory_bytes": node.core_memory_bytes, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
            "store_gb": sum(r["store_gb"] for r in rows), "free_disk_gb": free_disk_gb(cfg.run.directory)}
@@ -285,20 +287,20 @@ def job_shapes(plan_result, nodes=None):
     dict
         ``{stage: {cores, memory, processes, worker_cores, walltime, count, ...}}``: per node one job of
         ``processes`` workers of ``worker_cores`` cores each (``cores`` in all) and ``memory``
-        (dask-jobqueue's text, e.g. ``"128000MB"``), ``count`` jobs; neither more jobs nor more workers
+        (dask-jobqueue's text in whole MiB, e.g. ``"99200MiB"``), ``count`` jobs; neither more jobs nor more workers
         in a job than the stage's tasks fill. ``worker_memory_bytes`` (a worker's limit) and
         ``task_memory_bytes`` (the stage's largest task with a worker's baseline) let the cluster code
         route the tasks, e.g. as dask worker resources.
     """
     n = nodes or plan_result["nodes"]
-    core_mem = plan_result["node"]["memory_gb"] * 1e9 / plan_result["node"]["cores"]
+    core_mem = plan_result["node"]["core_memory_bytes"]  # whole MiB: a job asks for whole MiB
     out = {}
     for r in plan_result["stages"]:
         count, k = stage_jobs(r, n), r["worker_cores"]
         p = min(r["workers_per_node"], math.ceil(r["tasks"] / count))  # a job no larger than its tasks fill
-        out[r["stage"]] = {"cores": p * k, "memory": f"{math.floor(p * k * core_mem / 1e6)}MB", "processes": p,
+        out[r["stage"]] = {"cores": p * k, "memory": f"{p * k * core_mem // MIB}MiB", "processes": p,
                            "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": count,
-                           "worker_memory_bytes": math.floor(k * core_mem),
+                           "worker_memory_bytes": k * core_mem,
                            "task_memory_bytes": math.ceil(r["task_gb"] * 1e9)}
     return out
 

@@ -8,6 +8,7 @@ refuses, naming both, where neither is at hand.
 """
 from __future__ import annotations
 
+import math
 import shutil
 import subprocess
 from dataclasses import dataclass
@@ -17,8 +18,10 @@ from mmflow.errors import InputError
 
 #: the ``sinfo`` call whose output :func:`parse_sinfo` reads
 SINFO_COMMAND = ("sinfo", "-h", "-o", "%c %m %D %P")
-#: bytes of SLURM's memory unit (``%m``: megabytes)
+#: bytes of SLURM's memory unit (``%m``: megabytes, as SLURM counts them)
 SLURM_MB = 1024 ** 2
+MIB = 1024 ** 2
+GIB = 1024 ** 3
 
 
 @dataclass(frozen=True)
@@ -33,14 +36,17 @@ class Node:
     source: str = "given"
 
     @property
-    def core_memory_bytes(self):
-        """Memory per core: a standard worker's (one core)."""
-        return self.memory_bytes / self.cores
+    def job_memory_bytes(self):
+        """The most memory a job may ask for on the node: whole GiB (dask-jobqueue asks SLURM for a
+        job's memory rounded up to whole GiB, so a request a fraction above would exceed the node and
+        never start)."""
+        return math.floor(self.memory_bytes / GIB) * GIB
 
-    def describe(self):
-        where = f" of partition {self.partition}" if self.partition else ""
-        n = f", {self.count} in all" if self.count else ""
-        return f"{self.cores} cores, {self.memory_bytes / 1e9:.1f} GB{where} ({self.source}{n})"
+    @property
+    def core_memory_bytes(self):
+        """Memory per core, whole MiB: a standard worker's (one core); a job of ``n`` cores asks for
+        ``n`` of them, at most :attr:`job_memory_bytes`."""
+        return math.floor(self.job_memory_bytes / self.cores / MIB) * MIB
 
 
 def parse_sinfo(text):
