@@ -58,6 +58,24 @@ def build_parser(stages=True):
                     help="a finished run (directory or --record file): its configuration's plan beside what it "
                     "measured, per stage (the "
                     "workflow argument is ignored: give any)")
+    pl.add_argument("--simulate-layout", action="store_true",
+                    help="plan an ingesting workflow without its files: its own array (telescope), one sidereal "
+                    "day of observation.integration_s, observation.freqs_mhz, the parallel hands")
+    bc = pl.add_argument_group("cluster", "lay the run onto a batch cluster's nodes (docs/clusters.md, "
+                               "'Sizing jobs from the plan')")
+    bc.add_argument("--cluster", choices=("slurm", "pbs"),
+                    help="per stage the job shape (cores, memory, walltime) and count, the nodes, disk and wall time")
+    bc.add_argument("--node-cores", type=int, metavar="N", help="cores of a node (default: from sinfo)")
+    bc.add_argument("--node-memory", metavar="BYTES", help="memory a job may use on a node, e.g. 128GB "
+                    "(default: from sinfo)")
+    bc.add_argument("--nodes", type=int, metavar="K", help="nodes to plan on (default: the fewest within 10 %% "
+                    "of the fastest)")
+    bc.add_argument("--partition", help="the SLURM partition whose nodes sinfo gives (default: the default one)")
+    bc.add_argument("--node-peak", type=float, metavar="GFLOPS",
+                    help="a node's SGEMM peak, all its cores (default: this machine's per core)")
+    bc.add_argument("--project", type=int, nargs="+", metavar="K",
+                    help="print, as JSON, the plan projected onto each of these node counts (wall time, a node's "
+                    "memory, stores, jobs)")
     st = sub.add_parser("status", help="stages and chunks done in a run directory, STALE ones flagged")
     st.add_argument("run_dir")
     vf = sub.add_parser("verify", help="check every recorded chunk of a run directory (sizes and XXH3 checksum)")
@@ -231,7 +249,30 @@ def _plan(args):
     from mmflow.workflow.config.schema import load_config  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
 
     cfg = load_config(args.workflow, args.overrides)
-    res = planmod.plan(cfg, planmod.load_costs(args.costs) if args.costs else None, args.peak)
+    costs = planmod.load_costs(args.costs) if args.costs else None
+    ingest = None
+    if args.simulate_layout:
+        from mmflow.workflow.plan.jobs import layout_ingest  # deferred: workflow modules (~3 s)
+
+        ingest = layout_ingest(cfg)
+    try:
+        if args.cluster:
+            from mmflow.workflow.plan import jobs, nodes  # deferred: workflow modules (~3 s)
+
+            node = nodes.node_size(args.node_cores, args.node_memory, args.partition, scheduler=args.cluster)
+            if args.project:
+                print(json.dumps(jobs.projection(cfg, node, args.project, costs=costs, peak_gflops=args.peak,
+                                                 node_gflops=args.node_peak, ingest=ingest), indent=2))
+                return 0
+            res = jobs.cluster_plan(cfg, node, args.nodes, costs, args.peak, args.node_peak, ingest)
+            print(json.dumps(res, indent=2, default=float) if args.json else jobs.format_cluster_plan(res))
+            return 0
+        res = planmod.plan(cfg, costs, args.peak, ingest)
+    except InputError as exc:
+        if exc.field != "input.path" or ingest is not None:
+            raise
+        raise InputError(exc.what, exc.field, exc.problem, f"{exc.fix}; or plan the workflow's own array without "
+                         "its files: --simulate-layout") from None
     print(json.dumps(res, indent=2, default=float) if args.json else planmod.format_plan(res))
     return 0
 

@@ -67,8 +67,10 @@ def load_costs(path=COSTS_FILE):
     return json.loads(Path(path).read_text())
 
 
-def estimate(stage, g, cfg, costs, peak_gflops, workers):
-    """The :class:`StageEstimate` of one stage on ``workers`` concurrent task slots."""
+def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
+    """The :class:`StageEstimate` of one stage on ``workers`` concurrent task slots, its tasks timed at
+    the SGEMM peak ``peak_gflops`` and its stage-wide sums (a :attr:`Cost.seconds` hook's) at
+    ``total_gflops`` (default: the same; a cluster's is all its nodes')."""
     cost = PIPELINE.stage(stage).cost
     tasks, w, u, specs = cost.work(g, cfg)
     k = costs["stages"].get(stage)
@@ -78,14 +80,19 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers):
         est.task_bytes = w
         return est
     if cost.notes is not None:
-        est.notes.extend(cost.notes(g, cfg, peak_gflops))
+        est.notes.extend(cost.notes(g, cfg, total_gflops or peak_gflops))
     est.task_bytes = k["a"] * w + k["b"]
-    per_task = (k["c"] * u + k["d"]) * costs["sgemm_gflops"] / peak_gflops
+    per_task = task_seconds(k, u, costs, peak_gflops)
     if cost.seconds is not None:
-        est.seconds = cost.seconds(g, cfg, per_task, workers, peak_gflops)
+        est.seconds = cost.seconds(g, cfg, per_task, workers, total_gflops or peak_gflops)
     else:
         est.seconds = per_task * math.ceil(tasks / max(workers, 1))
     return est
+
+
+def task_seconds(k, units, costs, peak_gflops):
+    """Seconds of a task of ``units`` work by a stage's constants ``k``, at the SGEMM peak ``peak_gflops``."""
+    return (k["c"] * units + k["d"]) * costs["sgemm_gflops"] / peak_gflops
 
 
 def geometry(cfg, ingest=None):
@@ -173,18 +180,19 @@ def format_plan(res):
     """The plan as a table: per stage tasks, largest task (GB), stores (GB) and time; then totals."""
     rows = [f"{'stage':12s} {'tasks':>7s} {'task GB':>8s} {'store GB':>9s} {'time':>9s}"]
     for e in res["stages"]:
-        t = _duration(e["seconds"]) if e["seconds"] else "?"
+        t = duration(e["seconds"]) if e["seconds"] else "?"
         rows.append(f"{e['stage']:12s} {e['tasks']:7d} {(e['task_bytes'] + WORKER_BASE_BYTES) / 1e9:8.2f} "
                     f"{e['store_bytes'] / 1e9:9.3f} {t:>9s}" + (f"  ({'; '.join(e['notes'])})" if e["notes"] else ""))
     lt, wm = res["largest_task"], res["worker_memory_gb"]
     rows.append(f"total: {res['total_store_gb']:.3f} GB of stores ({res['free_disk_gb']:.1f} GB free), "
-                f"~{_duration(res['total_seconds'])} at {res['sgemm_gflops']:.0f} SGEMM GFLOP/s")
+                f"~{duration(res['total_seconds'])} at {res['sgemm_gflops']:.0f} SGEMM GFLOP/s")
     rows.append(f"largest task: {lt['stage']} {lt['gb']:.2f} GB (with a worker's baseline)"
                 + (f" against {wm:.2f} GB per worker" if wm else ""))
     return "\n".join(rows)
 
 
-def _duration(s):
+def duration(s):
+    """Seconds as text: ``45 s``, ``3.5 min``, ``2.1 h``."""
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.1f} h"
 
 

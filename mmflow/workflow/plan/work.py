@@ -116,6 +116,11 @@ class Cost:
         not ``per_task`` times its rounds of tasks (the simulator's diffuse sums).
     notes : callable, optional
         ``notes(g, cfg, peak_gflops) -> [str]``: what the plan assumes for this stage.
+    split : callable, optional
+        ``split(cfg) -> [{dotted.setting: value, ...}, ...]``: settings that shrink the largest task
+        without changing the science, each smaller than the one before (e.g. :func:`halvings`); the
+        cluster plan (:mod:`mmflow.workflow.plan.jobs`) re-plans with them, in order, until the task
+        fits a node. None: the task cannot be split (:attr:`shrink` names what to change instead).
     """
 
     work: Callable
@@ -123,12 +128,36 @@ class Cost:
     disk_shrink: object = "fewer channels per run (observation.freqs_mhz)"
     seconds: Optional[Callable] = None
     notes: Optional[Callable] = None
+    split: Optional[Callable] = None
+
+    def split_settings(self, cfg):
+        """The :attr:`split` candidates under ``cfg`` (``[]`` where the task cannot be split)."""
+        return list(self.split(cfg)) if self.split is not None else []
 
     def shrink_setting(self, cfg):
         return self.shrink(cfg) if callable(self.shrink) else self.shrink
 
     def disk_shrink_setting(self, cfg):
         return self.disk_shrink(cfg) if callable(self.disk_shrink) else self.disk_shrink
+
+
+def setting(cfg, key):
+    """The value of a dotted setting (``"transfer.baseline_chunk"``) of a configuration."""
+    value = cfg
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def halvings(key, floor=1):
+    """A :attr:`Cost.split`: ``key`` halved, then quartered, ... down to ``floor`` (integers)."""
+    def split(cfg):
+        v, out = int(setting(cfg, key)), []
+        while v // 2 >= floor:
+            v //= 2
+            out.append({key: v})
+        return out
+    return split
 
 
 def vis_spec(g):

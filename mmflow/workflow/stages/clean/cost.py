@@ -4,8 +4,8 @@ run, not ``clean.max_cycles`` (the plan assumes ``EXPECTED_CLEAN_CYCLES``)."""
 from __future__ import annotations
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import (COMPLEX128_BYTES, PSF_DECLINATIONS, Cost, Work, block_sum, expected_clean_cycles,
-                                       n_m_blocks)
+from mmflow.workflow.plan.work import (COMPLEX128_BYTES, Cost, PSF_DECLINATIONS, Work, block_sum,
+                                       expected_clean_cycles, halvings, n_m_blocks)
 
 
 def work(g, cfg):
@@ -28,4 +28,5 @@ def notes(g, cfg, peak_gflops):
     return [f"assumes {expected_clean_cycles(cfg)} major cycles: their number depends on the sky"]
 
 
-COST = Cost(work, shrink="a smaller transfer.m_block", disk_shrink=disk_shrink, notes=notes)
+COST = Cost(work, shrink="a smaller transfer.m_block", disk_shrink=disk_shrink, notes=notes,
+            split=halvings("transfer.m_block"))

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from mmflow.conventions import FULL_STOKES, is_full_stokes
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, halvings
 
 #: complex (time, baseline, pol) temporaries of the peel's correction on read
 PEEL_TEMPORARIES = 5
@@ -29,4 +29,4 @@ def work(g, cfg):
     return Work(-(-g.n_bl // bc), w, g.n_time * bc * g.n_freq * g.n_pol, [spec])
 
 
-COST = Cost(work, shrink="a smaller mmode.baseline_chunk")
+COST = Cost(work, shrink="a smaller mmode.baseline_chunk", split=halvings("mmode.baseline_chunk"))

@@ -3,7 +3,7 @@ of that block (complex128 block; the units: the block's elements times the group
 from __future__ import annotations
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, block_sum, n_m_blocks
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, block_sum, halvings, n_m_blocks
 
 
 def work(g, cfg):
@@ -12,4 +12,4 @@ def work(g, cfg):
     return Work(g.n_freq * n_m_blocks(g), blk2 * COMPLEX128_BYTES, blk2 * g.n_groups, [spec])
 
 
-COST = Cost(work, shrink="a smaller transfer.m_block")
+COST = Cost(work, shrink="a smaller transfer.m_block", split=halvings("transfer.m_block"))

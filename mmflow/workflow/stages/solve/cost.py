@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, block_sum, n_m_blocks
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, block_sum, halvings, n_m_blocks
 
 #: eps values of an L-curve (``alm.zarr`` eps_grid)
 LCURVE_POINTS = 200
@@ -17,4 +17,4 @@ def work(g, cfg):
     return Work(g.n_freq * n_m_blocks(g), blk2 * COMPLEX128_BYTES, block_sum(g.lmax, g.mmax, g.m_block, 3), [spec])
 
 
-COST = Cost(work, shrink="a smaller transfer.m_block")
+COST = Cost(work, shrink="a smaller transfer.m_block", split=halvings("transfer.m_block"))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import Cost, Work, gram_bytes
+from mmflow.workflow.plan.work import Cost, Work, gram_bytes, halvings
 
 
 def work(g, cfg):
@@ -25,4 +25,11 @@ def disk_shrink(cfg):
             f"fewer transfer.groups (now {t.groups}: each keeps a partial Gram per channel on disk)")
 
 
-COST = Cost(work, shrink="transfer.dtype=float32 (half the Gram)", disk_shrink=disk_shrink)
+def shrink(cfg):
+    if cfg.transfer.dtype != "float32":
+        return "transfer.dtype=float32 (half the Gram)"
+    return "a lower mmode.lmax (the Gram and the grid tables grow as lmax^3)"
+
+
+#: fewer baselines per chunk: smaller ring-Fourier buffers (the Gram and the grid tables stay)
+COST = Cost(work, shrink=shrink, disk_shrink=disk_shrink, split=halvings("transfer.baseline_chunk"))
