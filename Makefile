@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY      = $(VENV)/bin/python
 STAMP   = $(VENV)/.installed
 
-.PHONY: demo test test-fast bench docs install clean
+.PHONY: demo test test-fast lint bench docs install clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,10 +23,15 @@ demo: $(STAMP)
 	$(VENV)/bin/mmflow run workflows/demo-calibrate.yaml calibrate.enabled=false peel.enabled=false \
 	    terrestrial.enabled=false run.directory=runs/demo-calibrate-before --no-progress
 
-## Run the test suite: every tier (tests/unit, tests/workflow, tests/acceptance), two test files at a time
+## Lint: ruff (pyproject.toml's [tool.ruff]); make test runs it first
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+
+## Run the test suite: ruff first, then every tier (tests/unit, tests/workflow, tests/acceptance, tests/cluster:
+## a real SLURM cluster in network namespaces, skipped saying why without root), two test files at a time
 ## (pytest-xdist; a file's tests share one process and its fixtures; --no-loadscope-reorder keeps the
 ## longest files first, tests/conftest.py, where xdist would start the files with most tests first)
-test: $(STAMP)
+test: $(STAMP) lint
 	$(PY) -m pytest -q -n 2 --dist loadfile --no-loadscope-reorder
 
 ## The unit tier only (kernels on in-memory arrays)

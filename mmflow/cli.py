@@ -145,7 +145,7 @@ def main(argv=None):
 
 
 def _status(args):
-    from mmflow.workflow.engine.runner import status  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.engine.runner import status  # deferred: workflow modules (~3 s)
 
     for name, s in status(args.run_dir).items():
         if s is None:
@@ -159,7 +159,7 @@ def _status(args):
 
 
 def _verify(args):
-    from mmflow.workflow.engine.runner import verify  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.engine.runner import verify  # deferred: workflow modules (~3 s)
 
     bad = 0
     for name, problems in verify(args.run_dir, full=not args.quick).items():
@@ -173,7 +173,7 @@ def _verify(args):
 
 
 def _config(args):
-    from mmflow.workflow.config.schema import schema_yaml  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.config.schema import schema_yaml  # deferred: workflow modules (~3 s)
 
     text = schema_yaml()
     if args.action == "init":
@@ -222,7 +222,7 @@ def _bench(args):
 
 
 def _plan(args):
-    from mmflow.workflow.plan import planner as planmod  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.plan import planner as planmod  # deferred: workflow modules (~3 s)
 
     if args.fit:
         # deferred: scipy's BLAS and workflow modules (~3 s): `import mmflow.cli` stays light
@@ -246,7 +246,7 @@ def _plan(args):
         print(json.dumps({"sgemm_gflops": peak, "stages": rows}, indent=2, default=float) if args.json
               else format_against(rows, peak))
         return 0
-    from mmflow.workflow.config.schema import load_config  # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    from mmflow.workflow.config.schema import load_config  # deferred: workflow modules (~3 s)
 
     cfg = load_config(args.workflow, args.overrides)
     costs = planmod.load_costs(args.costs) if args.costs else None
@@ -282,7 +282,7 @@ def _dispatch(args):
                 "plan": _plan}
     if args.cmd in handlers:
         return handlers[args.cmd](args)
-    # deferred: workflow modules (~3 s): `import mmflow.cli` stays light
+    # deferred: workflow modules (~3 s)
     from mmflow.workflow.engine.cluster import open_cluster
     from mmflow.workflow.config.schema import load_config
     from mmflow.workflow.engine.passes import run_with_passes

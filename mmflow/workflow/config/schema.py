@@ -162,7 +162,8 @@ class MmodeConfig(Section):
     baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
     splits: list[str] = Field(
         ["full"], description="Data splits carried through m-modes, right-hand sides and alm (one transfer pass "
-        "for all; docs/mmodes.md; not given: [full], or [full, even, odd] when clean.enabled): 'full' first, then 'even' / 'odd' sidereal bins (jackknife halves), 'day<k>' "
+        "for all; docs/mmodes.md; not given: [full], or [full, even, odd] when clean.enabled): 'full' first, "
+        "then 'even' / 'odd' sidereal bins (jackknife halves), 'day<k>' "
         "the k-th sidereal day of the data (k = 0, 1, ...; per-day jackknife), 'day' / 'night' the integrations "
         "with the Sun above / below the horizon (a systematics check for data spanning months).",
         json_schema_extra={"allowed": "'full' first, then each of even | odd | day<k> (k = 0, 1, ...) | day | "
@@ -265,8 +266,8 @@ class ClusterConfig(Section):
     expose: bool = Field(False, description="Listen on all network interfaces (scheduler and dashboard); "
                          "default: 127.0.0.1 only. See docs/clusters.md for TLS.")
     worker_wait_s: float = Field(300.0, gt=0, description="Fail a stage that has had no worker for this long "
-                                 "while no worker job is queued or starting (SLURM/PBS: those are waited for); finished "
-                                 "chunks are kept for a rerun.")
+                                 "while no worker job is queued or starting (SLURM/PBS: those are waited for); "
+                                 "finished chunks are kept for a rerun.")
     interface: Optional[str] = Field(None, description="SLURM/PBS: the network interface (e.g. ib0, eth1) the "
                                      "scheduler listens on, the one the compute nodes reach this machine on; "
                                      "unset: the interface on the SLURM nodes' network (sinfo), else dask's guess "

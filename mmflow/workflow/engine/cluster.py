@@ -48,7 +48,8 @@ def fork_workers_from_a_preloaded_server():
     With dask's default (``spawn``) every local worker is a new interpreter that imports numpy,
     astropy, zarr and every stage (~3-5 s of CPU each, and again for every cluster a process
     opens). With ``forkserver`` a server process imports :data:`PRELOAD` once (the stages and the
-    compiled imaging kernels: :mod:`mmflow.workflow.engine.worker_start`) and each worker is a fork of it (a cluster opened again in the same process starts in ~0.3 s instead of ~6 s).
+    compiled imaging kernels: :mod:`mmflow.workflow.engine.worker_start`) and each worker is a fork of it
+    (a cluster opened again in the same process starts in ~0.3 s instead of ~6 s).
     The server is started here with dask's pre-spawn environment (``distributed.nanny.pre-spawn-
     environ``: one BLAS/OpenMP thread, glibc's trim threshold; ``PYTHONHASHSEED``), which must be set
     before numpy loads and which dask's nanny would otherwise set only in a spawned child. A start

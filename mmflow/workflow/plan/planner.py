@@ -2,7 +2,8 @@
 
 For every enabled stage the plan gives the number of tasks, the memory of its largest task, the
 bytes of the stores it writes and a time estimate. Each comes from a model of the stage's work
-(each stage's cost model, ``stages/<name>/cost.py``: :func:`stage_work`): the task's working set ``W`` (bytes of the arrays a task holds: its time
+(each stage's cost model, ``stages/<name>/cost.py``:
+:func:`stage_work`): the task's working set ``W`` (bytes of the arrays a task holds: its time
 chunk of visibilities, its baseline chunk over the day, its Gram accumulators, its m block) and
 its work units ``U`` (visibility-samples x sources, baselines x sum_m (lmax_b - m + 1)^2, ...),
 and from per-stage constants fitted to measured runs (:mod:`mmflow.workflow.plan.fit`, kept in
@@ -218,6 +219,7 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
         big = max(ests, key=lambda e: e.store_bytes)
         raise InputError(str(cfg.run.directory), "run.directory", f"the stores need up to {disk / 1e9:.2f} GB "
                          f"(`mmflow plan`; {big.stage} {big.store_bytes / 1e9:.2f} GB), more than the "
-                         f"{free:.2f} GB free there", f"{PIPELINE.stage(big.stage).cost.disk_shrink_setting(cfg)}, free disk space, or set "
+                         f"{free:.2f} GB free there",
+                         f"{PIPELINE.stage(big.stage).cost.disk_shrink_setting(cfg)}, free disk space, or set "
                          "run.directory on a larger file system")
     return ests
