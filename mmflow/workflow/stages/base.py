@@ -87,3 +87,17 @@ class Stage:
 def first_writer(stages, store, cfg):
     """The first of ``stages`` that is enabled under ``cfg`` and writes ``store`` (None if none)."""
     return next((s for s in stages if store in s.outputs and s.enabled(cfg)), None)
+
+
+def lazy_stage(package):
+    """A module ``__getattr__`` for a stage package that imports its ``stage`` module on first use of
+    ``STAGE``: the schema takes a stage's settings (``stages/<name>/settings.py``) without importing
+    the stage, which imports the schema."""
+    def __getattr__(name):
+        if name == "STAGE":
+            from importlib import import_module  # deferred: only when the stage itself is wanted
+
+            return import_module(f"{package}.stage").STAGE
+        raise AttributeError(f"module {package!r} has no attribute {name!r}")
+
+    return __getattr__

@@ -1,17 +1,6 @@
-"""The ``products`` stage: :data:`STAGE` (:mod:`mmflow.workflow.stages.products.stage`), its cost model
-(``cost.py``) and settings (``settings.py``).
+"""The ``products`` stage: :data:`STAGE` (:mod:`mmflow.workflow.stages.products.stage`, loaded on first use),
+its cost model (``cost.py``) and settings (``settings.py``)."""
+from mmflow.workflow.stages.base import lazy_stage
 
-``STAGE`` is imported on first use, so that the schema can take a stage's settings without importing the
-stage (which imports the schema).
-"""
-
-
-def __getattr__(name):
-    if name == "STAGE":
-        from mmflow.workflow.stages.products.stage import STAGE  # deferred: the stage imports the schema
-
-        return STAGE
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-
-
+__getattr__ = lazy_stage(__name__)
 __all__ = ["STAGE"]
