@@ -144,11 +144,14 @@ def _raw_read(paths, freq_chans=None, n_avg=1):
 
 
 def _cfg(pattern, freqs_mhz=None, n_avg=1, calibrate=False):
-    """The configuration sections the ingest plan and tasks read (``calibrate``: accept ``uncalib``)."""
-    return SimpleNamespace(
-        input=SimpleNamespace(path=pattern, format=None, on_bad_file="error", conjugate=False, nonfinite="error",
-                              average_channels=n_avg),
-        observation=SimpleNamespace(freqs_mhz=freqs_mhz), calibrate=SimpleNamespace(enabled=calibrate))
+    """The configuration sections the ingest plan and tasks read, the schema's own with its defaults
+    (``calibrate``: accept ``uncalib``)."""
+    from mmflow.workflow.config.schema import InputConfig, ObservationConfig  # deferred: as the workflow
+    from mmflow.workflow.stages.calibrate.settings import CalibrateConfig
+
+    return SimpleNamespace(input=InputConfig(path=pattern, average_channels=n_avg),
+                           observation=ObservationConfig(freqs_mhz=freqs_mhz),
+                           calibrate=CalibrateConfig(enabled=calibrate))
 
 
 def _ingest(cfg, run_dir, keep=False):
