@@ -81,11 +81,9 @@ def diffuse_sum_seconds(g, cfg, peak_gflops):
 
 
 def seconds(g, cfg, per_task, workers, peak_gflops):
-    """The time chunks by the fitted constants, the diffuse sky's sums by their flops."""
-    rounds = math.ceil(g.n_time_chunks / max(workers, 1))
-    if not sky_sizes(g, cfg).diffuse_samples:
-        return per_task * math.ceil(work(g, cfg).tasks / max(workers, 1))
-    return per_task * rounds + diffuse_sum_seconds(g, cfg, peak_gflops)
+    """The time chunks by the fitted constants, an interpolated diffuse sky's sums by their flops."""
+    chunks = per_task * math.ceil(g.n_time_chunks / max(workers, 1))
+    return chunks + (diffuse_sum_seconds(g, cfg, peak_gflops) if sky_sizes(g, cfg).diffuse_samples else 0.0)
 
 
 def notes(g, cfg, peak_gflops):
