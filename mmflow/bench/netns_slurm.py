@@ -100,6 +100,9 @@ class NamespacedSlurm:
         Compute nodes, each in a network namespace of its own.
     cpus, memory_mb : int
         Each node's CPUs and RealMemory as slurm.conf declares them.
+    tag : str, optional
+        Prefix of the namespaces, veths and bridge (at most 7 characters: interface names); default
+        ``mm<pid>``. Two clusters in one process need tags of their own.
     """
 
     def __init__(self, root, n_nodes=3, cpus=2, memory_mb=3000):
