@@ -105,9 +105,9 @@ class NamespacedSlurm:
         ``mm<pid>``. Two clusters in one process need tags of their own.
     """
 
-    def __init__(self, root, n_nodes=3, cpus=2, memory_mb=3000):
+    def __init__(self, root, n_nodes=3, cpus=2, memory_mb=3000, tag=None):
         self.root = Path(root)
-        self.tag = f"mm{os.getpid() % 100000}"
+        self.tag = tag or f"mm{os.getpid() % 100000}"
         self.n_nodes, self.cpus, self.memory_mb = n_nodes, cpus, memory_mb
         self.nodes = [f"node{i + 1}" for i in range(n_nodes)]
         self.procs = {}  # name -> Popen (munged, slurmctld, slurmd of each node)
