@@ -27,7 +27,9 @@ Beside them: ``projection``, :func:`mmflow.workflow.plan.jobs.array_projection` 
 on 8 and 64 nodes of 32 cores and 128 GB, and ``overhead_at_array_task_sizes``: the measured per-task
 overhead (dispatch gap and wrapper) against the array's planned task seconds, where the < 2 % target
 applies (the reduced workflow's tasks last milliseconds to a second: a fixed per-task cost is a large
-fraction of them); ``sgemm_gflops``, the machine's SGEMM peak measured in the same run.
+fraction of them); ``no_worker_computing_s``: the run's wall time with no task running on any worker
+(the driver's planning and finalisation between stages, which the array's stages amortise over minutes
+of tasks); ``sgemm_gflops``, the machine's SGEMM peak measured in the same run.
 
 Needs root and network namespaces (and slurm-wlm and munge, installed with apt-get where they can
 be): elsewhere the JSON says why it did not run. All nodes share this machine's CPUs: the
@@ -111,18 +113,29 @@ def stream_figures(stream):
             elif ss["action"] == "transfer":
                 transfers += 1
                 transfer_bytes += int(rec.get("nbytes") or 0)
+    spans_all = sorted(sp for spans in by_slot.values() for sp in spans)
+    busy, end = 0.0, None  # the union of the compute intervals: some worker computing
+    for a, b in spans_all:
+        if end is None or a > end:
+            busy += b - a
+            end = b
+        elif b > end:
+            busy += b - end
+            end = b
     gaps = []
     for spans in by_slot.values():
         spans.sort()
         gaps += [max(0.0, b[0] - a[1]) for a, b in zip(spans, spans[1:])]
-    return {"records": len(stream), "dask_compute_s": round(compute, 3), "dependency_transfers": transfers,
+    return {"records": len(stream), "dask_compute_s": round(compute, 3),
+            "any_worker_computing_s": round(busy, 3), "dependency_transfers": transfers,
             "dependency_transfer_bytes": transfer_bytes,
             "dispatch_gap_s": {"median": round(statistics.median(gaps), 5) if gaps else None,
                                "sum": round(sum(gaps), 3), "count": len(gaps)}}
 
 
-def run_on_slurm(slurm, n, overrides, directory, reference):
-    """The workflow on ``n`` nodes of ``slurm`` (one exclusive worker job each): the run's figures."""
+def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB"):
+    """The workflow on ``n`` nodes of ``slurm`` (one exclusive worker job each, of one core and
+    ``memory``): the run's figures."""
     from mmflow.workflow.config.schema import load_config  # deferred: the schema loads dask
     from mmflow.workflow.engine.cluster import open_cluster
     from mmflow.workflow.engine.passes import run_with_passes
@@ -130,8 +143,8 @@ def run_on_slurm(slurm, n, overrides, directory, reference):
     run_dir = Path(directory) / f"nodes{n}"
     cfg = load_config(DEMO, list(overrides) + [
         f"run.directory={run_dir}", "cluster.kind=slurm", f"cluster.n_workers={n}", "cluster.dashboard_address=:0",
-        f"cluster.interface={slurm.bridge}",
-        "cluster.jobqueue={cores: 1, memory: 1GB, walltime: '00:30:00', job_extra_directives: ['--exclusive']}"])
+        f"cluster.interface={slurm.bridge}", f"cluster.jobqueue={{cores: 1, memory: {memory}, walltime: '00:30:00',"
+        " job_extra_directives: ['--exclusive']}"])
     logs = []
     t_submit = time.time()
     with open_cluster(cfg, log=logs.append) as client:
@@ -153,7 +166,8 @@ def run_on_slurm(slurm, n, overrides, directory, reference):
             "workers_up_s": round(up, 2), "wall_s": round(wall, 2), "tasks": tasks, "task_s": round(task_s, 3),
             "overhead_fraction": round((wall * len(hosts) - task_s) / task_s, 4) if task_s else None,
             "overhead_per_task_s": round((wall * len(hosts) - task_s) / tasks, 4) if tasks else None,
-            **st, "wrapper_fraction": round(st["dask_compute_s"] / task_s - 1, 4) if task_s else None,
+            **st, "no_worker_computing_s": round(wall - st["any_worker_computing_s"], 3),
+            "wrapper_fraction": round(st["dask_compute_s"] / task_s - 1, 4) if task_s else None,
             "bytes_between_workers": between, "bytes_to_driver": to_driver, "store_bytes": stores,
             "identical": store_digests(run_dir) == reference}
 
@@ -207,7 +221,9 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None):
             os.environ["SLURM_CONF"] = str(slurm.conf)
             res["slurm"] = {"nodes": len(slurm.nodes), "cpus_per_node": slurm.cpus, "memory_mb": slurm.memory_mb,
                             "started_here": own, "network": str(slurm.subnet)}
-            res["runs"] = [run_on_slurm(slurm, n, overrides, root, reference) for n in nodes]
+            memory = "1GB" if quick else "2GB"
+            res["job"] = {"cores": 1, "memory": memory, "exclusive": True}
+            res["runs"] = [run_on_slurm(slurm, n, overrides, root, reference, memory) for n in nodes]
         finally:
             if saved is None:
                 os.environ.pop("SLURM_CONF", None)

@@ -145,6 +145,7 @@ class NamespacedSlurm:
     # -- start / stop ---------------------------------------------------------------------
     def start(self, timeout=60):
         try:
+            self.root.mkdir(parents=True, exist_ok=True)
             self._network()
             self._munge()
             self._write_conf()
