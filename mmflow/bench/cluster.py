@@ -28,8 +28,8 @@ on 8 and 64 nodes of 32 cores and 128 GB, and ``overhead_at_array_task_sizes``: 
 overhead (dispatch gap and wrapper) against the array's planned task seconds, where the < 2 % target
 applies (the reduced workflow's tasks last milliseconds to a second: a fixed per-task cost is a large
 fraction of them); ``no_worker_computing_s``: the run's wall time with no task running on any worker
-(the driver's planning and finalisation between stages, which the array's stages amortise over minutes
-of tasks); ``sgemm_gflops``, the machine's SGEMM peak measured in the same run.
+(the driver's planning and finalisation between stages), set per stage against the array's planned
+wall time (``stage_barriers_fraction_of_wall``); ``sgemm_gflops``, the machine's SGEMM peak measured in the same run.
 
 Needs root and network namespaces (and slurm-wlm and munge, installed with apt-get where they can
 be): elsewhere the JSON says why it did not run. All nodes share this machine's CPUs: the
@@ -159,11 +159,13 @@ def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB"):
         outgoing = client.run(_outgoing)
         workers = set(outgoing)
     tasks, task_s, stores = _totals(summaries)
+    stages = sum(1 for s in summaries.values() if s.get("tasks_run"))
     between = sum(b for log in outgoing.values() for who, b in log if who in workers)
     to_driver = sum(b for log in outgoing.values() for who, b in log if who not in workers)
     st = stream_figures(stream)
     return {"nodes": n, "workers": len(hosts), "hosts": sorted(set(hosts.values())),
-            "workers_up_s": round(up, 2), "wall_s": round(wall, 2), "tasks": tasks, "task_s": round(task_s, 3),
+            "workers_up_s": round(up, 2), "wall_s": round(wall, 2), "stages": stages,
+            "tasks": tasks, "task_s": round(task_s, 3),
             "overhead_fraction": round((wall * len(hosts) - task_s) / task_s, 4) if task_s else None,
             "overhead_per_task_s": round((wall * len(hosts) - task_s) / tasks, 4) if tasks else None,
             **st, "no_worker_computing_s": round(wall - st["any_worker_computing_s"], 3),
@@ -237,9 +239,15 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None):
     last = res["runs"][-1]
     gap = last["dispatch_gap_s"]["median"] or 0.0
     wrapper = max(0.0, last["dask_compute_s"] - last["task_s"]) / max(last["tasks"], 1)
+    barrier = last["no_worker_computing_s"] / max(last["stages"], 1)
+    n_stages = len(res["projection"]["stages"])
     res["overhead_at_array_task_sizes"] = {
         "measured_on": f"{last['nodes']} nodes", "dispatch_gap_s": gap, "wrapper_s": round(wrapper, 5),
-        **array_task_sizes(res["projection"], gap + wrapper)}
+        **array_task_sizes(res["projection"], gap + wrapper),
+        # the driver's time between stages (no worker computing), once per stage of the array's plan
+        "stage_barrier_s": round(barrier, 3),
+        "stage_barriers_fraction_of_wall": {n: barrier * n_stages / p["wall_s"]
+                                            for n, p in res["projection"]["nodes"].items()}}
     res["sgemm_gflops_after"] = gemm_gflops(np.float32)
     res["ran"] = True
     return res

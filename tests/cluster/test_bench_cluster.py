@@ -37,6 +37,8 @@ def test_bench_cluster_quick_on_one_two_and_three_nodes(slurm_session, tmp_path)
     assert set(proj["nodes"]) == {"8", "64"} and proj["array"]["antennas"] == 352
     over = res["overhead_at_array_task_sizes"]
     assert over["array_tasks"] > 0 and math.isfinite(over["fraction"]) and over["fraction"] >= 0
+    assert set(over["stage_barriers_fraction_of_wall"]) == {"8", "64"}
+    assert all(math.isfinite(f) and f >= 0 for f in over["stage_barriers_fraction_of_wall"].values())
 
 
 def test_bench_cluster_without_namespaces_says_why_and_exits_0(monkeypatch, capsys):
