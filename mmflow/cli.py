@@ -14,7 +14,7 @@ from mmflow.allocator import keep_freed_memory
 from mmflow.errors import InputError, MmflowError
 
 BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel", "table1",
-              "paper")
+              "paper", "cluster")
 
 
 def _common(p):

@@ -15,7 +15,7 @@ import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
            "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps",
-           "clean": "clean", "channel": "channel", "table1": "table1", "paper": "paper"}
+           "clean": "clean", "channel": "channel", "table1": "table1", "paper": "paper", "cluster": "cluster"}
 
 
 def run(what, quick=False, **options):

@@ -1,9 +1,9 @@
 """The cluster tier: a real SLURM cluster of three nodes, each a network namespace of its own
-(:mod:`tests.cluster.slurm_netns`), started once per session. Skipped, saying why, where it cannot
+(:mod:`mmflow.bench.netns_slurm`), started once per session. Skipped, saying why, where it cannot
 start (not root, no network namespaces, no slurm-wlm/munge and no apt-get to install them)."""
 import pytest
 
-from tests.cluster.slurm_netns import NamespacedSlurm, unavailable
+from mmflow.bench.netns_slurm import NamespacedSlurm, unavailable
 
 
 @pytest.fixture(scope="session")

@@ -307,13 +307,16 @@ def job_shapes(plan_result, nodes=None):
 
 def projection(cfg, node, nodes=(8, 64), **kw):
     """A cluster plan projected onto several node counts (JSON-ready): per count the wall time, the
-    most memory a node holds at once, the stores and node-hours; for ``mmflow bench cluster``.
+    most memory a node holds at once, the stores and node-hours, and per stage its tasks and their
+    planned seconds and memory (the task sizes a per-task overhead is set against); for ``mmflow bench cluster``.
 
     ``kw``: as :func:`cluster_plan` (``costs``, ``peak_gflops``, ``node_gflops``, ``ingest``).
     """
     res = cluster_plan(cfg, node, nodes[0], **kw)
     out = {"node": res["node"], "settings": res["settings"], "core_gflops": res["core_gflops"],
            "store_gb": res["store_gb"], "largest_task": max(res["stages"], key=lambda r: r["task_gb"])["task_gb"],
+           "stages": [{"stage": r["stage"], "tasks": r["tasks"], "per_task_s": r["per_task_s"],
+                       "task_gb": r["task_gb"]} for r in res["stages"]],
            "nodes": {}}
     for n in nodes:
         out["nodes"][str(n)] = {**totals(res, n), "jobs": job_shapes(res, n)}

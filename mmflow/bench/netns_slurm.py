@@ -100,11 +100,14 @@ class NamespacedSlurm:
         Compute nodes, each in a network namespace of its own.
     cpus, memory_mb : int
         Each node's CPUs and RealMemory as slurm.conf declares them.
+    tag : str, optional
+        Prefix of the namespaces, veths and bridge (at most 7 characters: interface names); default
+        ``mm<pid>``. Two clusters in one process need tags of their own.
     """
 
-    def __init__(self, root, n_nodes=3, cpus=2, memory_mb=3000):
+    def __init__(self, root, n_nodes=3, cpus=2, memory_mb=3000, tag=None):
         self.root = Path(root)
-        self.tag = f"mm{os.getpid() % 100000}"
+        self.tag = tag or f"mm{os.getpid() % 100000}"
         self.n_nodes, self.cpus, self.memory_mb = n_nodes, cpus, memory_mb
         self.nodes = [f"node{i + 1}" for i in range(n_nodes)]
         self.procs = {}  # name -> Popen (munged, slurmctld, slurmd of each node)
@@ -142,6 +145,7 @@ class NamespacedSlurm:
     # -- start / stop ---------------------------------------------------------------------
     def start(self, timeout=60):
         try:
+            self.root.mkdir(parents=True, exist_ok=True)
             self._network()
             self._munge()
             self._write_conf()

@@ -1,0 +1,253 @@
+"""``mmflow bench cluster``: the workflow on 1, 2 and 3 SLURM nodes, each a network namespace.
+
+A real SLURM 22.05 cluster of three nodes of 2 CPUs and 3000 MB (:mod:`mmflow.bench.netns_slurm`: each
+node a network namespace and hostname on a bridge of its own; every process stopped by PID, the
+namespaces and bridge deleted at the end, also on failure) runs the same workflow with one worker job
+per node (``--exclusive``) on 1, 2 and 3 nodes; a synchronous run in process is the reference. The
+workers reach the driver's scheduler over the bridge (``cluster.interface``), the run directory is the
+shared filesystem. Per run the JSON gives:
+
+* ``wall_s`` (the run, from the workers' arrival to its end; the job start is ``workers_up_s``),
+  ``tasks`` and ``task_s`` (mmflow's in-task seconds, from the run's ``summary.json``);
+* ``overhead_fraction``: ``(wall_s x workers - task_s) / task_s``, every second a worker slot spent
+  outside a task (driver-side planning and finalisation, stage barriers, idle slots when a stage has
+  fewer tasks than workers, dask) over task time: an upper bound of the scheduling overhead, and
+  ``overhead_per_task_s``, the same time per task;
+* from dask's task stream (``startstops``): ``dask_compute_s`` (dask's compute time of the tasks),
+  ``wrapper_fraction`` (``dask_compute_s / task_s - 1``: the task wrapper's markers and checks) and
+  ``dispatch_gap_s`` (median and sum of the gaps between consecutive tasks of a stage on one worker:
+  the scheduler's per-task latency while a worker has work queued);
+* ``bytes_between_workers``: bytes a worker sent to another worker (the workers'
+  ``transfer_outgoing_log``, requests from worker addresses) and the dependency transfers in the task
+  stream; ``bytes_to_driver`` (task results the driver gathered) beside ``store_bytes`` (what the
+  stages wrote to the shared filesystem);
+* ``identical``: every array of the run's stores bit-identical to the reference run's.
+
+Beside them: ``projection``, :func:`mmflow.workflow.plan.jobs.array_projection` of the 352-antenna array
+on 8 and 64 nodes of 32 cores and 128 GB, and ``overhead_at_array_task_sizes``: the measured per-task
+overhead (dispatch gap and wrapper) against the array's planned task seconds, where the < 2 % target
+applies (the reduced workflow's tasks last milliseconds to a second: a fixed per-task cost is a large
+fraction of them); ``no_worker_computing_s``: the run's wall time with no task running on any worker
+(the driver's planning and finalisation between stages), set per stage against the array's planned
+wall time (``stage_barriers_fraction_of_wall``); ``sgemm_gflops``, the machine's SGEMM peak measured in the same run.
+
+Needs root and network namespaces (and slurm-wlm and munge, installed with apt-get where they can
+be): elsewhere the JSON says why it did not run. All nodes share this machine's CPUs: the
+multi-node runs measure the cost of spreading, not a speed-up. ``--quick``: the demo at the test
+suite's small settings (lmax 24, one channel); without it the demo at lmax 64.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mmflow.bench.netns_slurm import NamespacedSlurm, unavailable
+from mmflow.io.run_stores import STORES
+from mmflow.machine import gemm_gflops, machine
+
+DEMO = Path(__file__).resolve().parents[2] / "workflows" / "demo.yaml"
+#: the demo at the test suite's small settings (tests/workflow_helpers.py SMALL, cluster aside)
+QUICK = ["telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.integration_s=344.6563620",
+         "sky.diffuse=true", "sky.diffuse_lmax=16", "sky.quad_oversample=16", "mmode.lmax=24",
+         "mmode.baseline_chunk=64", "transfer.baseline_chunk=32", "transfer.m_block=8", "products.nside=32",
+         "products.flux_scale=false"]
+#: the demo at lmax 64, one channel
+FULL = ["observation.freqs_mhz=[40.0]", "mmode.lmax=64", "products.flux_scale=false"]
+#: stores whose arrays are compared bit for bit with the reference run
+COMPARED = (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm, STORES.stokes)
+NODES = (1, 2, 3)
+
+
+def store_digests(run_dir):
+    """``{store/array: sha256 of its bytes, dtype and shape}`` of every array of the run's :data:`COMPARED` stores."""
+    import zarr  # deferred: zarr (~1 s)
+
+    out = {}
+    for store in COMPARED:
+        path = Path(run_dir) / store
+        if not path.exists():
+            continue
+
+        def walk(group, prefix):
+            for name, arr in group.arrays():
+                a = np.ascontiguousarray(arr[:])
+                h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
+                h.update(a.view(np.uint8).reshape(-1) if a.size else b"")
+                out[f"{prefix}/{name}"] = h.hexdigest()
+            for name, sub in group.groups():
+                walk(sub, f"{prefix}/{name}")
+
+        walk(zarr.open_group(str(path), mode="r"), store)
+    return out
+
+
+def _totals(summaries):
+    tasks = sum(s.get("tasks_run", 0) for s in summaries.values())
+    task_s = sum(s.get("task_s", 0.0) for s in summaries.values())
+    stores = sum(s.get("bytes_written", 0) or 0 for s in summaries.values())
+    return tasks, task_s, stores
+
+
+def _outgoing(dask_worker=None):
+    """A worker's outgoing transfers: ``[(requester, bytes), ...]`` (run on every worker)."""
+    return [(e["who"], int(e["total"])) for e in dask_worker.transfer_outgoing_log]
+
+
+def stream_figures(stream):
+    """Figures of dask's task stream: compute seconds, dependency transfers, dispatch gaps."""
+    compute, transfer_bytes, transfers = 0.0, 0, 0
+    by_slot = {}  # (worker, thread, stage) -> [(start, stop)]
+    for rec in stream:
+        stage = str(rec.get("key", "")).split("-")[0]
+        for ss in rec.get("startstops", ()):
+            if ss["action"] == "compute":
+                compute += ss["stop"] - ss["start"]
+                by_slot.setdefault((rec.get("worker"), rec.get("thread"), stage), []).append((ss["start"], ss["stop"]))
+            elif ss["action"] == "transfer":
+                transfers += 1
+                transfer_bytes += int(rec.get("nbytes") or 0)
+    spans_all = sorted(sp for spans in by_slot.values() for sp in spans)
+    busy, end = 0.0, None  # the union of the compute intervals: some worker computing
+    for a, b in spans_all:
+        if end is None or a > end:
+            busy += b - a
+            end = b
+        elif b > end:
+            busy += b - end
+            end = b
+    gaps = []
+    for spans in by_slot.values():
+        spans.sort()
+        gaps += [max(0.0, b[0] - a[1]) for a, b in zip(spans, spans[1:])]
+    return {"records": len(stream), "dask_compute_s": round(compute, 3),
+            "any_worker_computing_s": round(busy, 3), "dependency_transfers": transfers,
+            "dependency_transfer_bytes": transfer_bytes,
+            "dispatch_gap_s": {"median": round(statistics.median(gaps), 5) if gaps else None,
+                               "sum": round(sum(gaps), 3), "count": len(gaps)}}
+
+
+def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB"):
+    """The workflow on ``n`` nodes of ``slurm`` (one exclusive worker job each, of one core and
+    ``memory``): the run's figures."""
+    from mmflow.workflow.config.schema import load_config  # deferred: the schema loads dask
+    from mmflow.workflow.engine.cluster import open_cluster
+    from mmflow.workflow.engine.passes import run_with_passes
+
+    run_dir = Path(directory) / f"nodes{n}"
+    cfg = load_config(DEMO, list(overrides) + [
+        f"run.directory={run_dir}", "cluster.kind=slurm", f"cluster.n_workers={n}", "cluster.dashboard_address=:0",
+        f"cluster.interface={slurm.bridge}", f"cluster.jobqueue={{cores: 1, memory: {memory}, walltime: '00:30:00',"
+        " job_extra_directives: ['--exclusive']}"])
+    logs = []
+    t_submit = time.time()
+    with open_cluster(cfg, log=logs.append) as client:
+        client.wait_for_workers(n, timeout=300)
+        up = time.time() - t_submit
+        hosts = client.run(socket.gethostname)
+        client.get_task_stream(start=time.time())  # starts the scheduler's task-stream record
+        t0 = time.time()
+        summaries = run_with_passes(cfg, client, progress=False, log=logs.append)
+        wall = time.time() - t0
+        stream = client.get_task_stream(start=t0 - 1)
+        outgoing = client.run(_outgoing)
+        workers = set(outgoing)
+    tasks, task_s, stores = _totals(summaries)
+    stages = sum(1 for s in summaries.values() if s.get("tasks_run"))
+    between = sum(b for log in outgoing.values() for who, b in log if who in workers)
+    to_driver = sum(b for log in outgoing.values() for who, b in log if who not in workers)
+    st = stream_figures(stream)
+    return {"nodes": n, "workers": len(hosts), "hosts": sorted(set(hosts.values())),
+            "workers_up_s": round(up, 2), "wall_s": round(wall, 2), "stages": stages,
+            "tasks": tasks, "task_s": round(task_s, 3),
+            "overhead_fraction": round((wall * len(hosts) - task_s) / task_s, 4) if task_s else None,
+            "overhead_per_task_s": round((wall * len(hosts) - task_s) / tasks, 4) if tasks else None,
+            **st, "no_worker_computing_s": round(wall - st["any_worker_computing_s"], 3),
+            "wrapper_fraction": round(st["dask_compute_s"] / task_s - 1, 4) if task_s else None,
+            "bytes_between_workers": between, "bytes_to_driver": to_driver, "store_bytes": stores,
+            "identical": store_digests(run_dir) == reference}
+
+
+def array_task_sizes(proj, per_task_s):
+    """The per-task overhead ``per_task_s`` against the 352-antenna array's planned tasks: per stage
+    and over all tasks (``sum(tasks x overhead) / sum(tasks x planned seconds)``)."""
+    rows = [r for r in proj["stages"] if r["tasks"]]
+    total_tasks = sum(r["tasks"] for r in rows)
+    total_s = sum(r["tasks"] * r["per_task_s"] for r in rows)
+    return {"per_task_overhead_s": round(per_task_s, 5), "array_tasks": total_tasks,
+            "array_mean_task_s": round(total_s / total_tasks, 2) if total_tasks else None,
+            "fraction": per_task_s * total_tasks / total_s if total_s else None,
+            "target_fraction": 0.02,
+            "per_stage": {r["stage"]: {"tasks": r["tasks"], "planned_task_s": round(r["per_task_s"], 2),
+                                       "fraction": per_task_s / r["per_task_s"] if r["per_task_s"] else None}
+                          for r in rows}}
+
+
+def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None):
+    """Run the benchmark; ``slurm``: a started :class:`~mmflow.bench.netns_slurm.NamespacedSlurm` of at
+    least ``max(nodes)`` nodes (the tests' session cluster), else one is started here and stopped."""
+    overrides = QUICK if quick else FULL
+    res = {"machine": machine(), "workflow": {"file": "workflows/demo.yaml", "overrides": overrides,
+                                              "settings": "the test suite's small demo" if quick else
+                                              "the demo at lmax 64, one channel"}}
+    if slurm is None:
+        why = unavailable()
+        if why:
+            return {**res, "ran": False, "why": why}
+    res["sgemm_gflops"] = gemm_gflops(np.float32)
+    from mmflow.workflow.config.schema import load_config  # deferred: the schema loads dask
+    from mmflow.workflow.engine.passes import run_with_passes
+
+    saved = os.environ.get("SLURM_CONF")
+    with tempfile.TemporaryDirectory(prefix="mmflow-bench-cluster-", dir=directory) as root:
+        cfg = load_config(DEMO, list(overrides) + ["cluster.kind=synchronous", f"run.directory={root}/reference"])
+        t0 = time.time()
+        summaries = run_with_passes(cfg, None, progress=False, log=lambda *a: None)
+        tasks, task_s, stores = _totals(summaries)
+        res["reference"] = {"cluster": "synchronous, in process", "wall_s": round(time.time() - t0, 2),
+                            "tasks": tasks, "task_s": round(task_s, 3), "store_bytes": stores}
+        reference = store_digests(f"{root}/reference")
+        res["reference"]["arrays"] = len(reference)
+        own = slurm is None
+        try:
+            if own:
+                slurm = NamespacedSlurm(Path(root) / "slurm", n_nodes=max(nodes), cpus=2, memory_mb=3000,
+                                        tag=f"mb{os.getpid() % 100000}")
+                slurm.start()
+            os.environ["SLURM_CONF"] = str(slurm.conf)
+            res["slurm"] = {"nodes": len(slurm.nodes), "cpus_per_node": slurm.cpus, "memory_mb": slurm.memory_mb,
+                            "started_here": own, "network": str(slurm.subnet)}
+            memory = "1GB" if quick else "2GB"
+            res["job"] = {"cores": 1, "memory": memory, "exclusive": True}
+            res["runs"] = [run_on_slurm(slurm, n, overrides, root, reference, memory) for n in nodes]
+        finally:
+            if saved is None:
+                os.environ.pop("SLURM_CONF", None)
+            else:
+                os.environ["SLURM_CONF"] = saved
+            if own and slurm is not None:
+                slurm.stop()
+    from mmflow.workflow.plan.jobs import array_projection  # deferred: the planner's modules
+
+    res["projection"] = array_projection((8, 64), peak_gflops=res["sgemm_gflops"])
+    last = res["runs"][-1]
+    gap = last["dispatch_gap_s"]["median"] or 0.0
+    wrapper = max(0.0, last["dask_compute_s"] - last["task_s"]) / max(last["tasks"], 1)
+    barrier = last["no_worker_computing_s"] / max(last["stages"], 1)
+    n_stages = len(res["projection"]["stages"])
+    res["overhead_at_array_task_sizes"] = {
+        "measured_on": f"{last['nodes']} nodes", "dispatch_gap_s": gap, "wrapper_s": round(wrapper, 5),
+        **array_task_sizes(res["projection"], gap + wrapper),
+        # the driver's time between stages (no worker computing), once per stage of the array's plan
+        "stage_barrier_s": round(barrier, 3),
+        "stage_barriers_fraction_of_wall": {n: barrier * n_stages / p["wall_s"]
+                                            for n, p in res["projection"]["nodes"].items()}}
+    res["sgemm_gflops_after"] = gemm_gflops(np.float32)
+    res["ran"] = True
+    return res
