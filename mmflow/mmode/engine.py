@@ -84,13 +84,18 @@ class GridCache:
         self.build_s = 0.0
         self.builds = 0
 
-    def get(self, lmax, fringe_lmax, lmax_cap=None):
+    @staticmethod
+    def key(lmax, fringe_lmax, lmax_cap=None):
+        """``(lmax, fringe_lmax)`` of the grid a chunk gets: both rounded up to their buckets (class docstring)."""
         cap = lmax if lmax_cap is None else lmax_cap
         step = max(16, cap // 16)
         lmax = min(cap, int(step * np.ceil(lmax / step)))
         fstep = max(16, cap // 8)
-        fringe_lmax = int(fstep * np.ceil(fringe_lmax / fstep))
-        key = (lmax, fringe_lmax)
+        return lmax, int(fstep * np.ceil(fringe_lmax / fstep))
+
+    def get(self, lmax, fringe_lmax, lmax_cap=None):
+        key = self.key(lmax, fringe_lmax, lmax_cap)
+        lmax, fringe_lmax = key
         if key not in self._grids:
             if len(self._grids) >= self.max_items:
                 self._grids.pop(next(iter(self._grids)))

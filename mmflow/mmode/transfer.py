@@ -118,11 +118,16 @@ class TransferGrid(QuadratureGrid):
         return self._tables[key]
 
 
+def grid_rings(lmax, fringe_lmax):
+    """Rings of the Gauss-Legendre grid exact to ``lmax + fringe_lmax`` (even: rings pair up north/south)."""
+    n_theta = (lmax + fringe_lmax) // 2 + 2
+    return n_theta + n_theta % 2
+
+
 def make_grid(lat_rad, beam, freq_hz, lmax, fringe_lmax):
     """Build the quadrature grid exact to ``lmax + fringe_lmax`` and sample the beam on it."""
     quad = lmax + fringe_lmax
-    n_theta = quad // 2 + 2
-    n_theta += n_theta % 2  # even: rings pair up north/south
+    n_theta = grid_rings(lmax, fringe_lmax)
     n_phi = ducc0.fft.good_size(quad + 2)
     theta = ducc0.misc.GL_thetas(n_theta)
     weights = ducc0.misc.GL_weights(n_theta, n_phi)

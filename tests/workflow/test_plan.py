@@ -152,7 +152,7 @@ def test_the_paper_channel_needs_its_gram(tmp_path):
     assert g.n_bl == 32896 and g.n_time == 6628 and g.lmax == 1000
     _, w, _, _ = stage_work("transfer", g, cfg)
     assert w - g.transfer_workspace == pytest.approx(8 * 1001 * 1002 * 2003 / 6, rel=1e-12)
-    assert 1e9 < g.transfer_workspace < 4e9  # grid tables + ring-Fourier buffers (~3 GB measured with the Gram)
+    assert 1e9 < g.transfer_workspace < 4e9  # the group's m-modes, its widest chunk's tables, buffers, data: 3.6 GB
 
 
 def test_the_diffuse_skys_sums_are_timed_by_their_flops(tmp_path):

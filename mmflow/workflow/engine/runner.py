@@ -91,7 +91,9 @@ def run_task(ctx, pipeline, stage_name, key):
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start))
     if traced_start is not None:
-        info["traced_peak_gb"] = gb(traced_peak_bytes(traced_start))
+        traced = traced_peak_bytes(traced_start)
+        info["traced_peak_gb"] = gb(traced)
+        info["traced_peak_bytes"] = int(traced)  # exact: the GB figure of a small task is coarse
     run.check_holder(ctx.token)
     run.mark_done(stage_name, key, info, tctx.ledger.entries)
     return {"key": key, "skipped": False, **info}

@@ -120,7 +120,8 @@ def geometry(cfg, ingest=None):
     return Geometry(n_time=n_time, n_ant=tel.n_ant, n_bl=n_bl, n_freq=len(freqs), n_pol=n_pol, lmax=mm.lmax,
                     mmax=mmax, m_block=cfg.transfer.m_block, n_split=len(mm.splits), mmode_chunk=mm.baseline_chunk,
                     gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
-                    transfer_workspace=max(p[1] for p in tplans), npix=12 * nside ** 2, tel=tel,
+                    transfer_workspace=max(p[2] for p in tplans),
+                    transfer_read=max(p[1] for p in tplans), npix=12 * nside ** 2, tel=tel,
                     freqs_hz=tuple(float(f) for f in freqs))
 
 

@@ -22,8 +22,8 @@ import numpy as np
 
 from mmflow.conventions import SPEED_OF_LIGHT, m_blocks
 from mmflow.io import run_stores as rs
-from mmflow.mmode.engine import plan_chunks, plan_groups
-from mmflow.mmode.transfer import fringe_bandlimit
+from mmflow.mmode.engine import GridCache, plan_chunks, plan_groups
+from mmflow.mmode.transfer import fringe_bandlimit, grid_rings
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 
 #: bytes of one visibility sample as the data stages write it: complex64 visibility + float32 weight
@@ -59,7 +59,8 @@ class Geometry:
     mmode_chunk: int
     gram_itemsize: int
     transfer_units: tuple  # per channel, per baseline group: sum_b sum_m (lmax_b - m + 1)^2 (Gram work)
-    transfer_workspace: float  # bytes of one transfer task's grid tables and ring-Fourier workspace
+    transfer_workspace: float  # bytes of a transfer task besides its Gram while it accumulates (transfer_plan)
+    transfer_read: float = 0.0  # bytes of a transfer task's m-modes as it reads them, before its Gram
     npix: int = 0
     tel: object = field(default=None, compare=False, repr=False)
     freqs_hz: tuple = ()
@@ -192,21 +193,49 @@ def n_m_blocks(g):
     return len(m_blocks(g.mmax, g.m_block))
 
 
+#: bytes of an m-mode as ``mmodes.zarr`` holds it and the transfer task reads it (complex128)
+MMODE_BYTES = 16.0
+
+
 def transfer_plan(tel, freq_hz, cfg, mmax):
     """Per baseline group of one channel (the transfer stage's own :func:`plan_chunks` and
     :func:`plan_groups`) its Gram work ``sum_chunks n_c sum_{m <= lmax_c} (lmax_c - m + 1)^2``, and the
-    workspace of a task: float tables ``n_theta / 2 x (lmax + 1)(lmax + 2) / 2`` of the grid exact to
-    ``lmax + fringe band limit`` (:func:`mmflow.mmode.transfer.make_grid`) and the ring-Fourier
-    buffers ``2 x (mmax + 1) x n_theta / 2 x 2 n_chunk`` complex of the longest baselines' chunk."""
+    bytes of a task besides its Gram, ``(read, workspace)``, each the largest over the groups:
+
+    - ``read``: the channel's m-modes as the task reads them (every baseline, ``n_split x (mmax + 1)
+      x 2`` complex128 each) and the group's columns copied out of them, before the Gram exists;
+    - ``workspace``, while it accumulates: the group's m-modes and, of its largest chunk (chunks of
+      short baselines hold up to :data:`mmflow.mmode.engine.MAX_CHUNK_FACTOR` x
+      ``transfer.baseline_chunk`` baselines), on the chunk's own grid (:class:`mmflow.mmode.engine.GridCache`'s
+      buckets: ``l_g``, exact to ``l_g +`` its fringe band limit, ``n_theta`` rings,
+      :func:`mmflow.mmode.transfer.make_grid`; one grid held at a time) the float tables
+      ``n_theta / 2 x (l_g + 1)(l_g + 2) / 2``, the ring-Fourier buffers ``2 x (m_top + 1) x n_theta / 2
+      x 2 n_chunk`` complex, the chunk's m-modes (complex128) and their weighted copy
+      (:func:`mmflow.mmode.engine.add_chunk`, in the Gram's precision) and the row mask
+      ``(lmax + 1) x 2 n_chunk`` real."""
     t = cfg.transfer
     lmax = cfg.mmode.lmax
-    chunks, _ = plan_chunks(tel, freq_hz, lmax, t.baseline_chunk, t.per_baseline_lmax)
-    units = []
+    n_split = len(cfg.mmode.splits)
+    chunks, lmax_b = plan_chunks(tel, freq_hz, lmax, t.baseline_chunk, t.per_baseline_lmax)
+    real = 4 if t.dtype == "float32" else 8
+    cplx = 2 * real
+    hint = tel.beam.lmax_hint
+    lengths = np.linalg.norm(tel.baselines_enu(), axis=1) * freq_hz / SPEED_OF_LIGHT
+
+    def chunk_bytes(c):
+        glmax, fringe = GridCache.key(c.lmax, fringe_bandlimit(lengths[c.index], hint), lmax)
+        half_rings = grid_rings(glmax, fringe) / 2
+        m_top, nb = min(mmax, c.lmax), len(c.index)
+        tables = half_rings * (glmax + 1) * (glmax + 2) / 2 * real
+        fourier = 2 * (m_top + 1) * half_rings * 2 * nb * cplx
+        data = n_split * (m_top + 1) * 2 * nb * (MMODE_BYTES + cplx)
+        return tables + fourier + data + (lmax + 1) * 2 * nb * real
+
+    mode_bytes = n_split * (mmax + 1) * 2 * MMODE_BYTES  # one baseline's m-modes
+    units, read, work = [], 0.0, 0.0
     for group in plan_groups(chunks, t.groups):
         units.append(sum(len(c.index) * gram_work(c.lmax, mmax) for c in group))
-    b = np.linalg.norm(tel.baselines_enu(), axis=1).max() * freq_hz / SPEED_OF_LIGHT
-    n_theta = (lmax + int(fringe_bandlimit(np.array([b]), tel.beam.lmax_hint))) // 2 + 2
-    real = 4 if t.dtype == "float32" else 8
-    tables = n_theta / 2 * (lmax + 1) * (lmax + 2) / 2 * real
-    fourier = 2 * (mmax + 1) * n_theta / 2 * 2 * t.baseline_chunk * 2 * real
-    return tuple(units), tables + fourier
+        n = sum(len(c.index) for c in group)
+        read = max(read, mode_bytes * (len(lmax_b) + n))
+        work = max(work, mode_bytes * n + max(chunk_bytes(c) for c in group))
+    return tuple(units), read, work

@@ -1,6 +1,8 @@
-"""The transfer stage's cost: a task per channel and baseline group holding its partial Gram (one
-channel's ``sum_m (lmax - m + 1)^2`` elements) and its workspace (grid tables and ring-Fourier buffers:
-:func:`mmflow.workflow.plan.work.transfer_plan`); the units: the group's Gram updates."""
+"""The transfer stage's cost: a task per channel and baseline group; its peak is the larger of its read
+(the channel's m-modes, before its Gram exists) and its accumulation: its partial Gram (one channel's
+``sum_m (lmax - m + 1)^2`` elements) and its workspace (the group's m-modes, grid tables, and the widest
+chunk's ring-Fourier buffers and data: :func:`mmflow.workflow.plan.work.transfer_plan`); the units: the
+group's Gram updates."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +12,7 @@ from mmflow.workflow.plan.work import Cost, Work, gram_bytes, halvings
 
 
 def work(g, cfg):
-    gram = gram_bytes(g.lmax, g.mmax, g.gram_itemsize) + g.transfer_workspace
+    gram = max(gram_bytes(g.lmax, g.mmax, g.gram_itemsize) + g.transfer_workspace, g.transfer_read)
     per_group = max(max(u) for u in g.transfer_units)
     out = [rs.partials_store(g.n_freq, g.n_groups, g.lmax, g.mmax, g.m_block, g.n_split, g.gram_dtype)]
     if cfg.transfer.mode == "store":
