@@ -23,21 +23,13 @@ from mmflow.conventions import radec_to_vec
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.passes import run_with_passes
 from mmflow.workflow.engine.runner import stage_fingerprints
+from tests.gap_helpers import DEC, FLUX, RA, flag_blocks, sin_elevation_beamfits, write_flagged
 from tests.uvh5_helpers import matvis_uvdata
-from tests.workflow.test_gap_prior_workflow import DEC, FLUX, RA, _sin_elevation_beamfits, _write_flagged
 
 N_TIMES, LMAX = 256, 64
 QUIET = dict(progress=False, log=lambda *a: None)
 
 
-def _blocks(rng, fraction=0.2, n_blocks=4):
-    """``fraction`` of the integrations flagged in ``n_blocks`` blocks, one at random in each quarter."""
-    bad = np.zeros(N_TIMES, bool)
-    seg, length = N_TIMES // n_blocks, int(fraction / n_blocks * N_TIMES)
-    for k in range(n_blocks):
-        s = k * seg + rng.integers(0, seg - length)
-        bad[s:s + length] = True
-    return bad
 
 
 def _cfg(run_dir, data, *extra):
@@ -67,11 +59,11 @@ def _passes(run_dir):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("gap_auto")
-    beam = _sin_elevation_beamfits(root / "sin_el.fits")
+    beam = sin_elevation_beamfits(root / "sin_el.fits")
     uv, _ = matvis_uvdata(beam, n_times=N_TIMES, radius_m=25.0, sources=tuple(zip(RA, DEC, FLUX)))
-    files = {"none": _write_flagged(uv, root / "none.uvh5", np.zeros(N_TIMES, bool)),
-             "blocks20": _write_flagged(uv, root / "blocks20.uvh5", _blocks(np.random.default_rng(2))),
-             "random5": _write_flagged(uv, root / "random5.uvh5", np.random.default_rng(1).random(N_TIMES) < 0.05)}
+    files = {"none": write_flagged(uv, root / "none.uvh5", np.zeros(N_TIMES, bool)),
+             "blocks20": write_flagged(uv, root / "blocks20.uvh5", flag_blocks(np.random.default_rng(2), N_TIMES)),
+             "random5": write_flagged(uv, root / "random5.uvh5", np.random.default_rng(1).random(N_TIMES) < 0.05)}
     cfg = _cfg(root / "ref", files["none"])
     assert cfg.mmode.prior_passes == "auto"
     run_with_passes(cfg, **QUIET)

@@ -18,39 +18,17 @@ from mmflow.conventions import radec_to_vec
 from mmflow.errors import InputError, StaleOutputError
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.runner import run_workflow, status
-from tests.uvh5_helpers import gaussian_power_beamfits, matvis_uvdata
+from tests.gap_helpers import DEC, FLUX, RA, flag_blocks, sin_elevation_beamfits, write_flagged
+from tests.uvh5_helpers import matvis_uvdata
 
-RA = [30, 120, 200, 290, 250, 75, 160, 330, 10]
-DEC = [60, 20, 45, 5, 75, 35, 65, 30, 15]
-FLUX = [100.0, 80, 120, 5, 5, 5, 5, 5, 5]
 N_TIMES, LMAX = 384, 48
 QUIET = dict(progress=False, log=lambda *a: None)
 
 
-def _sin_elevation_beamfits(path, alpha=1.5):
-    """A UVBeam power beam sin(elevation)^alpha on a 1 x 0.5 degree grid (mmflow's sin_elevation beam)."""
-    uvb = gaussian_power_beamfits(path)
-    uvb.data_array[:] = (np.clip(np.cos(uvb.axis2_array), 0, None) ** alpha)[None, None, None, :, None]
-    uvb.write_beamfits(str(path), clobber=True)
-    return uvb
 
 
-def _write_flagged(uv, path, bad):
-    """``uv`` with every baseline of the integrations ``bad`` flagged, as one UVH5 file."""
-    out = uv.copy()
-    times = np.unique(out.time_array)
-    out.flag_array[bad[np.searchsorted(times, out.time_array)]] = True
-    out.write_uvh5(str(path), clobber=True, fix_autos=True)
-    return path
 
 
-def _blocks(rng, fraction=0.2, n_blocks=4):
-    bad = np.zeros(N_TIMES, bool)
-    seg, length = N_TIMES // n_blocks, int(fraction / n_blocks * N_TIMES)
-    for k in range(n_blocks):
-        s = k * seg + rng.integers(0, seg - length)
-        bad[s:s + length] = True
-    return bad
 
 
 def _cfg(run_dir, data, *extra):
@@ -70,11 +48,11 @@ def _map(run_dir):
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
     root = tmp_path_factory.mktemp("gap_prior")
-    beam = _sin_elevation_beamfits(root / "sin_el.fits")
+    beam = sin_elevation_beamfits(root / "sin_el.fits")
     uv, _ = matvis_uvdata(beam, n_times=N_TIMES, radius_m=18.0, sources=tuple(zip(RA, DEC, FLUX)))
-    files = {"none": _write_flagged(uv, root / "none.uvh5", np.zeros(N_TIMES, bool)),
-             "blocks20": _write_flagged(uv, root / "blocks20.uvh5", _blocks(np.random.default_rng(2))),
-             "random5": _write_flagged(uv, root / "random5.uvh5", np.random.default_rng(1).random(N_TIMES) < 0.05)}
+    files = {"none": write_flagged(uv, root / "none.uvh5", np.zeros(N_TIMES, bool)),
+             "blocks20": write_flagged(uv, root / "blocks20.uvh5", flag_blocks(np.random.default_rng(2), N_TIMES)),
+             "random5": write_flagged(uv, root / "random5.uvh5", np.random.default_rng(1).random(N_TIMES) < 0.05)}
     run_workflow(_cfg(root / "ref", files["none"]), **QUIET)
     ref = _map(root / "ref")
     vecs = [radec_to_vec(np.deg2rad(r), np.deg2rad(d)) for r, d in zip(RA, DEC)]
