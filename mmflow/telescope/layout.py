@@ -230,7 +230,7 @@ def selected_layout(preset=None, layout_file=None, lat_deg=None, lon_deg=None, r
         return (ovro_lwa_layout(preset),
                 ovro_lwa_layout(preset, radius_m=radius_m, stands=stands, max_antennas=max_antennas))
     if lat_deg is None or lon_deg is None:
-        raise InputError("workflow", "telescope.layout_file", "no site given for the layout file",
-                         "set telescope.lat_deg and telescope.lon_deg")
+        raise InputError("workflow", "telescope.layout_file", "no layout given",
+                         "set telescope.preset, or layout_file with lat_deg and lon_deg")
     full = load_layout(layout_file, lat_deg, lon_deg)
     return full, full.select(stands, radius_m)

@@ -16,7 +16,7 @@ from functools import lru_cache
 import numpy as np
 import zarr
 
-from mmflow.errors import InputError, MmflowError
+from mmflow.errors import MmflowError
 from mmflow.io.stores import ChunkLedger, open_checked
 from mmflow.telescope import Telescope
 from mmflow.telescope.beam_factory import make_beam
@@ -191,9 +191,6 @@ def build_telescope(cfg, ingest=None):
     t = cfg.telescope
     layout = None if ingest is None else ingest.layout
     if layout is None:
-        if t.layout_file is not None and (t.lat_deg is None or t.lon_deg is None):
-            raise InputError("workflow", "telescope.layout_file", "no layout given",
-                             "set telescope.preset, or layout_file with lat_deg and lon_deg")
         _, layout = selected_layout(t.preset, t.layout_file, t.lat_deg, t.lon_deg, t.radius_m, t.stands,
                                     t.max_antennas)
     return Telescope(layout, make_beam(cfg.beam.model_dump()), run_freqs_hz(cfg, ingest),

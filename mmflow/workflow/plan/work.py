@@ -34,6 +34,8 @@ CORRECTED_SAMPLE_BYTES = 16.0 + 8.0
 COMPLEX128_BYTES = 16.0
 #: declinations of CLEAN's PSF table (the clean stage and the CLEAN of V in the stokes stage)
 PSF_DECLINATIONS = 16
+#: the setting that shrinks every per-channel task and store
+FEWER_CHANNELS = "fewer channels per run (observation.freqs_mhz)"
 #: CLEAN's major cycles are data-dependent (until the threshold): the plan assumes this many
 EXPECTED_CLEAN_CYCLES = 40
 
@@ -125,8 +127,8 @@ class Cost:
     """
 
     work: Callable
-    shrink: object = "fewer channels per run (observation.freqs_mhz)"
-    disk_shrink: object = "fewer channels per run (observation.freqs_mhz)"
+    shrink: object = FEWER_CHANNELS
+    disk_shrink: object = FEWER_CHANNELS
     seconds: Optional[Callable] = None
     notes: Optional[Callable] = None
     split: Optional[Callable] = None

@@ -4,7 +4,7 @@ run, not ``clean.max_cycles`` (the plan assumes ``EXPECTED_CLEAN_CYCLES``)."""
 from __future__ import annotations
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import (COMPLEX128_BYTES, Cost, PSF_DECLINATIONS, Work, block_sum,
+from mmflow.workflow.plan.work import (COMPLEX128_BYTES, FEWER_CHANNELS, Cost, PSF_DECLINATIONS, Work, block_sum,
                                        expected_clean_cycles, halvings, n_m_blocks)
 
 
@@ -21,7 +21,7 @@ def work(g, cfg):
 def disk_shrink(cfg):
     if cfg.clean.keep_factors:
         return "clean.keep_factors=false (no Cholesky factors on disk)"
-    return "fewer channels per run (observation.freqs_mhz)"
+    return FEWER_CHANNELS
 
 
 def notes(g, cfg, peak_gflops):

@@ -52,7 +52,7 @@ def _transfer_prepare(ctx):
     if cfg.transfer.mode == "store":
         orders = [np.concatenate([c.index for c in p[1]]).astype("int64") for p in plans]
         ctx.create(transfer_store(nf, len(tel.antenna_pairs()), lmax, mmax, cfg.transfer.baseline_chunk,
-                                  complex_dtype(cfg.transfer.dtype).name, orders))
+                                  _acc_dtype(cfg), orders))
     return [TaskKey(freq=fi, group=k) for fi, p in enumerate(plans) for k in range(n_groups)]
 
 
