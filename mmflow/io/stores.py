@@ -22,6 +22,7 @@ meaning of every array (each spec's ``doc``) are declared in :mod:`mmflow.io.run
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -77,6 +78,18 @@ class StoreSpec:
     def nbytes(self):
         """Uncompressed bytes of every array: an upper bound of the store's size on disk."""
         return int(sum(np.prod(a.shape, dtype=float) * np.dtype(a.dtype).itemsize for a in self.arrays))
+
+    @property
+    def n_files(self):
+        """Files the store holds when every chunk is written: per array ``prod(ceil(shape / chunks))``
+        chunk files and its ``zarr.json``, and the group's ``zarr.json`` (zarr v3, one file a chunk).
+        What a shared file system's metadata servers count (Lustre, GPFS): ``docs/clusters.md``."""
+        return 1 + sum(1 + math.prod(-(-n // max(c, 1)) for n, c in zip(a.shape, a.chunks)) for a in self.arrays)
+
+    @property
+    def largest_chunk_bytes(self):
+        """Uncompressed bytes of the largest chunk of any array (0 for a store without arrays)."""
+        return int(max((math.prod(a.chunks) * np.dtype(a.dtype).itemsize for a in self.arrays), default=0))
 
     def create(self, root):
         """Create the store, or validate what exists; returns the open group (``r+``)."""

@@ -127,7 +127,8 @@ def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
         rows.append({"stage": st.name, "tasks": est.tasks, "task_gb": need / 1e9, "worker_cores": k,
                      "workers_per_node": max(1, node.cores // k), "worker_memory_gb": k * node.core_memory_bytes / 1e9,
                      "fits": k <= node.cores, "per_task_s": per_task, "node_s": max(0.0, wide) * nodes,
-                     "store_gb": est.store_bytes / 1e9, "notes": est.notes})
+                     "store_gb": est.store_bytes / 1e9, "store_files": est.store_files,
+                     "largest_chunk_mb": est.largest_chunk_bytes / 1e6, "notes": est.notes})
     return rows
 
 
@@ -248,7 +249,9 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
                     "core_memory_bytes": node.core_memory_bytes, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
-           "store_gb": sum(r["store_gb"] for r in rows), "free_disk_gb": free_disk_gb(cfg.run.directory)}
+           "store_gb": sum(r["store_gb"] for r in rows), "store_files": sum(r["store_files"] for r in rows),
+           "largest_chunk_mb": max(r["largest_chunk_mb"] for r in rows),
+           "free_disk_gb": free_disk_gb(cfg.run.directory)}
     configured = configured_worker_gb(cfg)
     if configured is not None:
         res["configured_worker_gb"] = configured
@@ -314,7 +317,8 @@ def projection(cfg, node, nodes=(8, 64), **kw):
     """
     res = cluster_plan(cfg, node, nodes[0], **kw)
     out = {"node": res["node"], "settings": res["settings"], "core_gflops": res["core_gflops"],
-           "store_gb": res["store_gb"], "largest_task": max(res["stages"], key=lambda r: r["task_gb"])["task_gb"],
+           "store_gb": res["store_gb"], "store_files": res["store_files"],
+           "largest_task": max(res["stages"], key=lambda r: r["task_gb"])["task_gb"],
            "stages": [{"stage": r["stage"], "tasks": r["tasks"], "per_task_s": r["per_task_s"],
                        "task_gb": r["task_gb"]} for r in res["stages"]],
            "nodes": {}}
@@ -370,7 +374,8 @@ def format_cluster_plan(res):
                     + (f"too small for {', '.join(big)}: ask for the jobs above" if big else
                        "enough for every stage's task"))
     free = res["free_disk_gb"]
-    rows.append(f"disk: {res['store_gb']:.1f} GB of stores on the shared file system ("
+    rows.append(f"disk: {res['store_gb']:.1f} GB of stores on the shared file system, {res['store_files']:,} files "
+                f"(chunks of at most {res['largest_chunk_mb']:.0f} MB; docs/clusters.md, shared file systems) ("
                 + (f"{free:.1f} GB free where run.directory will be)" if free >= res["store_gb"] else
                    f"only {free:.1f} GB free where run.directory will be: mmflow run refuses it there)"))
     return "\n".join(rows)

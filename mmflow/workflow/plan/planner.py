@@ -55,6 +55,8 @@ class StageEstimate:
     task_bytes: float = 0.0  # predicted peak memory of the largest task above the worker baseline
     seconds: float = 0.0  # predicted wall time of the stage on the cluster
     notes: list = field(default_factory=list)
+    store_files: int = 0  # files of its stores with every chunk written (StoreSpec.n_files)
+    largest_chunk_bytes: int = 0  # its stores' largest chunk, uncompressed
 
 
 def stage_work(stage, g, cfg):
@@ -75,7 +77,9 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     cost = PIPELINE.stage(stage).cost
     tasks, w, u, specs = cost.work(g, cfg)
     k = costs["stages"].get(stage)
-    est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)))
+    est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)),
+                        store_files=sum(s.n_files for s in specs),
+                        largest_chunk_bytes=max((s.largest_chunk_bytes for s in specs), default=0))
     if k is None:
         est.notes.append("no fitted constants: memory = working set, time unknown")
         est.task_bytes = w
