@@ -42,7 +42,7 @@ from mmflow.sky.harmonics import point_sources_alm
 from mmflow.telescope import Telescope, ovro_lwa_layout
 from mmflow.threads import n_threads
 from mmflow.workflow.engine import clean_state as clean_stage
-from mmflow.workflow.config.schema import TransferConfig
+from mmflow.workflow.stages.transfer.settings import TransferConfig
 
 L_SCALE = 0.7  # the synthetic Grams' D_ll falls as exp(-l^2 / 2 (L_SCALE lmax)^2)
 

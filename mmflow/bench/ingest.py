@@ -146,7 +146,8 @@ def _raw_read(paths, freq_chans=None, n_avg=1):
 def _cfg(pattern, freqs_mhz=None, n_avg=1, calibrate=False):
     """The configuration sections the ingest plan and tasks read, the schema's own with its defaults
     (``calibrate``: accept ``uncalib``)."""
-    from mmflow.workflow.config.schema import InputConfig, ObservationConfig  # deferred: as the workflow
+    from mmflow.workflow.config.schema import ObservationConfig  # deferred: as the workflow
+    from mmflow.workflow.stages.ingest.settings import InputConfig  # deferred: as the schema
     from mmflow.workflow.stages.calibrate.settings import CalibrateConfig
 
     return SimpleNamespace(input=InputConfig(path=pattern, average_channels=n_avg),

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel, products, simulate,
-                                    solve, stokes, terrestrial, transfer)
+from importlib import import_module
+
+from mmflow.workflow.stages import ORDER
 from mmflow.workflow.stages.base import first_writer
 
 _NAMED = {}
@@ -93,10 +94,5 @@ def named(name):
     return _NAMED[name]
 
 
-#: the stages of an mmflow run, in order
-PIPELINE = register(Pipeline.of(simulate.STAGE, ingest.STAGE, calibrate.STAGE, models.STAGE, peel.STAGE,
-                                terrestrial.STAGE, mmodes.STAGE, transfer.STAGE, normal.STAGE, solve.STAGE,
-                                stokes.STAGE, clean.STAGE, products.STAGE), "mmflow")
-
-#: the stage names in run order
-ORDER = PIPELINE.names
+#: the stages of an mmflow run, in order (:data:`mmflow.workflow.stages.ORDER`)
+PIPELINE = register(Pipeline.of(*(import_module(f"mmflow.workflow.stages.{name}").STAGE for name in ORDER)), "mmflow")

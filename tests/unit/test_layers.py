@@ -323,6 +323,33 @@ def test_every_stage_is_a_package_that_owns_its_stage_and_cost_model():
         assert st.cost is not None and callable(st.cost.work), f"stage {st.name} has no cost model"
 
 
+def test_the_schema_takes_each_stage_section_from_its_package():
+    """The workflow schema is the shared sections plus every stage package's ``SECTIONS``, in run
+    order, each class the package's own: no section is declared in ``config/`` for one stage."""
+    import importlib
+
+    from mmflow.workflow.config import schema
+    from mmflow.workflow.pipeline import PIPELINE
+    from mmflow.workflow.stages import ORDER
+
+    assert PIPELINE.names == ORDER
+    owned = {}
+    for name in ORDER:
+        path = ROOT / "workflow" / "stages" / name / "settings.py"
+        if path.exists():
+            module = importlib.import_module(f"mmflow.workflow.stages.{name}.settings")
+            assert module.SECTIONS, f"{path.name} of {name} declares no SECTIONS"
+            for section, cls in module.SECTIONS.items():
+                assert cls.__module__ == module.__name__ and section not in owned
+                owned[section] = cls
+    fields = schema.WorkflowConfig.model_fields
+    assert [k for k in fields if k in owned] == list(owned)  # run order
+    assert all(fields[k].annotation is c for k, c in owned.items())
+    shared = set(fields) - set(owned)
+    assert shared == {"run", "source", "telescope", "beam", "observation", "cluster"}
+    assert {"calibrate", "mmode", "imaging", "input", "sky", "corrupt"} <= set(owned)
+
+
 def test_no_comparison_with_a_stage_name_outside_the_pipeline():
     """``if stage == "clean"`` elsewhere is a second copy of what the stage itself should say."""
     import re

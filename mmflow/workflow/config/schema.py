@@ -4,26 +4,20 @@ Override any key from the command line with ``section.key=value`` (values parsed
 """
 from __future__ import annotations
 
+import importlib.util
+from importlib import import_module
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Union
+from typing import Literal, Optional
 
 import yaml
-from pydantic import BaseModel, BeforeValidator, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationError, create_model, field_validator
 
 from mmflow.errors import InputError
-from mmflow.mmode.splits import split_kind
 from mmflow.paths import expand_path
 from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.beam import BEAM_PARAMS, BeamConfig
-from mmflow.workflow.config.calibration import CorruptConfig
 from mmflow.workflow.config.checks import beam_problems, check_config
-from mmflow.workflow.stages.calibrate.settings import CalibrateConfig
-from mmflow.workflow.stages.clean.settings import CleanConfig
-from mmflow.workflow.stages.models.settings import ModelsConfig
-from mmflow.workflow.stages.peel.settings import PeelConfig
-from mmflow.workflow.stages.products.settings import ProductsConfig
-from mmflow.workflow.stages.terrestrial.settings import TerrestrialConfig
-from mmflow.workflow.stages.transfer.settings import TransferConfig
+from mmflow.workflow.stages import ORDER
 from mmflow.workflow.config.errors import BadValue, Origins, allowed_text, from_pydantic, report, yaml_error
 
 
@@ -58,15 +52,6 @@ class TelescopeConfig(Section):
     include_autos: bool = Field(True, description="Use autocorrelations as baselines of length 0.")
 
 
-def _prior_passes(v):
-    """``auto`` or a number of passes 0..3."""
-    if v == "auto":
-        return v
-    if isinstance(v, bool) or not isinstance(v, (int, str)) or not str(v).strip().isdigit() or int(v) > 3:
-        raise BadValue("not auto or a whole number of passes 0 to 3", "use auto (the default), or 0, 1, 2 or 3")
-    return int(v)
-
-
 class ObservationConfig(Section):
     """Frequencies and the drift scan that is simulated or expected."""
 
@@ -98,155 +83,6 @@ class ObservationConfig(Section):
         bad = [f for f in v if f <= 0]
         if bad:
             raise BadValue(f"non-positive frequencies {bad}", "give channel centre frequencies in MHz, all > 0")
-        return v
-
-
-class SkyConfig(Section):
-    """Simulated sky for the simulate stage."""
-
-    diffuse: bool = Field(True, description="Include the synthetic Galaxy-like diffuse sky.")
-    diffuse_lmax: int = Field(64, ge=1, description="Band limit of the synthetic diffuse sky.")
-    sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], description="Catalogue sources.",
-                               json_schema_extra={"allowed": "names from mmflow.sky.sources.CATALOG "
-                                                  "(Cyg A, Cas A, Vir A, Tau A, Her A, Hya A, 3C 123, 3C 353, ...)"})
-    resolved: bool = Field(False, description="Simulate Cyg A and Cas A resolved (2 and 3 Gaussian components, "
-                           "mmflow.sky.sources.RESOLVED_COMPONENTS); every other stage keeps the catalogue's point "
-                           "models unless the models stage fits them (docs/calibration.md).")
-    sun: bool = Field(False, description="Add the quiet Sun: a 20' disc of 2e4 Jy at 74 MHz with spectral index "
-                      "+1.8, at its apparent position at each time chunk's mid time "
-                      "(mmflow.simulate.corrupt.sun_points).")
-    noise: bool = Field(True, description="Add radiometer-equation thermal noise (needs telescope.include_autos).")
-    polarised: dict[str, tuple[float, float, float]] = Field(
-        {}, description="Fractional polarisation (Q/I, U/I, V/I; IAU) of sources in sky.sources, e.g. "
-        "{3C 286: [0.1, 0.05, 0.0]}, the others unpolarised. With imaging.stokes [I, Q, U, V] the simulate "
-        "stage writes xx, yy, xy and yx through the E-field beam (mmflow.simulate.polarised: direct sums); "
-        "needs corrupt.enabled false.")
-    seed: int = Field(1, ge=0, description="Random seed (diffuse sky and noise).")
-    quad_oversample: int = Field(48, ge=0, description="Extra band limit of the simulator's sky quadrature grid.")
-
-
-class InputConfig(Section):
-    """Existing data for the ingest stage."""
-
-    path: Optional[UserPath] = Field(None, description="File or glob of UVH5 / uvfits / MS files.")
-    format: Optional[Literal["uvh5", "uvfits", "ms"]] = Field(None, description="Force a format.")
-    on_bad_file: Literal["error", "skip"] = Field("error", description="Stop, or log and count a skip.")
-    nonfinite: Literal["error", "flag"] = Field(
-        "error", description="Unflagged NaN/inf samples in input files: refuse the file, or flag them "
-        "(counted and logged).")
-    pol_convention: Literal["auto", "sum", "avg"] = Field(
-        "auto", description="How the files' XX / YY relate to Stokes I (pyuvdata's pol_convention): 'sum' "
-        "I = XX + YY (matvis, pyuvsim, hera_sim: an unpolarised source of S Jy gives XX = S/2), 'avg' "
-        "I = (XX + YY) / 2 (CASA-style, XX = S); data are stored in mmflow's avg convention ('sum' data "
-        "doubled). 'auto': what the file says; when it says nothing, calibration sets the scale, or the run is "
-        "refused before any work (docs/conventions.md).")
-    cross_hands: bool = Field(True, description="Carry the cross hands (xy, yx / rl, lr) of files that hold them "
-                              "in vis.zarr's vis_cross (calibration and Stokes I use the parallel hands).")
-    average_channels: int = Field(1, ge=1, description="Average this many file channels into each ingested "
-                                  "channel: around each of observation.freqs_mhz, or consecutive blocks when it is "
-                                  "null (flags and nsample weights respected, as pyuvdata's frequency_average).")
-    conjugate: bool = Field(False, description="Conjugate the data on ingest. pyuvdata data (as written by "
-                            "matvis / hera_sim) already follow mmflow's exp(+2 pi i b.r), b = x_2 - x_1; set true "
-                            "only for data in the opposite sign convention.")
-
-
-class MmodeConfig(Section):
-    """Sidereal binning and the m-mode transform."""
-
-    lmax: int = Field(64, ge=1, description="Largest spherical-harmonic degree.")
-    mmax: Optional[int] = Field(None, ge=0, description="Largest m (default lmax; at most lmax).")
-    n_bins: Optional[int] = Field(None, ge=1, description="Sidereal bins (default: integrations per sidereal day; "
-                                  "at least 2 mmax + 1).")
-    min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day each baseline must "
-                                "cover (below: coverage_policy); a run where most baselines fall below stops.")
-    baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
-    splits: list[str] = Field(
-        ["full"], description="Data splits carried through m-modes, right-hand sides and alm (one transfer pass "
-        "for all; docs/mmodes.md; not given: [full], or [full, even, odd] when clean.enabled): 'full' first, "
-        "then 'even' / 'odd' sidereal bins (jackknife halves), 'day<k>' "
-        "the k-th sidereal day of the data (k = 0, 1, ...; per-day jackknife), 'day' / 'night' the integrations "
-        "with the Sun above / below the horizon (a systematics check for data spanning months).",
-        json_schema_extra={"allowed": "'full' first, then each of even | odd | day<k> (k = 0, 1, ...) | day | "
-                           "night at most once"})
-    noise: Literal["auto", "radiometer", "data"] = Field(
-        "auto", description="Thermal noise per baseline: 'radiometer' sigma^2 = V_ii V_jj / (dnu tau) from the "
-        "autocorrelations; 'data' from the residual of each baseline's band-limited m-mode fit (the sky removed, "
-        "docs/mmodes.md); 'auto' radiometer where the autocorrelations exist, else data.")
-    coverage_policy: Literal["drop", "downweight"] = Field(
-        "drop", description="Baselines whose sidereal coverage is below min_coverage: dropped (weight 0) or "
-        "down-weighted by coverage / min_coverage; counted and logged either way.")
-    prior_run: Optional[UserPath] = Field(
-        None, description="Run directory of a finished earlier run of the same data (same lmax, channels and "
-        "epoch): its solved map's model visibilities are the prior of each baseline's m-mode fit, filling what "
-        "flagged time leaves unmeasured (a second pass; docs/mmodes.md). Run it in a new run.directory. "
-        "null: no prior (gaps held at 0).", json_schema_extra={"allowed": "null or a run directory"})
-
-    prior_passes: Annotated[Union[Literal["auto"], int], BeforeValidator(_prior_passes)] = Field(
-        "auto", description="Prior passes inside one run (docs/mmodes.md): after the calibration stages, m-modes "
-        "-> solve run in RUN/prior0 (least squares alone), and each later pass, the run's own m-modes among them, "
-        "fits flagged time with the map before it as its prior (mmode.prior_run done for you; each pass "
-        "resumable). 'auto': passes only where flagged time leaves a baseline a gap longer than its band limit "
-        "bridges (one Nyquist interval, N / (2 M_b + 1) sidereal bins), until the map changes by less than "
-        "prior_tolerance, at most prior_max_passes; none without such gaps (and none with prior_run). 0: none.",
-        json_schema_extra={"allowed": "auto, or 0 to 3", "fingerprint_as": 0})
-    prior_tolerance: float = Field(
-        0.02, gt=0, description="'auto' prior passes stop when the map's alm (every channel, first split) changes "
-        "by less than this from one pass to the next: ||a_k - a_(k-1)|| / ||a_k||.",
-        json_schema_extra={"fingerprint": False})
-    prior_max_passes: int = Field(3, ge=1, le=6, description="The most 'auto' prior passes (each costs the imaging "
-                                  "stages once more).", json_schema_extra={"fingerprint": False})
-
-    @model_validator(mode="after")
-    def _one_prior(self):
-        if self.prior_passes != "auto" and self.prior_passes and self.prior_run is not None:
-            raise BadValue("mmode.prior_passes and mmode.prior_run both give a prior",
-                           "use prior_passes (passes inside this run) or prior_run (an earlier run), not both")
-        return self
-
-    @field_validator("prior_run")
-    @classmethod
-    def _prior_path(cls, v):
-        if v is not None and not v.strip():
-            raise BadValue("the prior run directory is empty", "give an earlier run's run.directory, or null")
-        return v
-
-    @field_validator("splits")
-    @classmethod
-    def _full_first(cls, v):
-        for s in v:
-            try:
-                split_kind(s)
-            except ValueError:
-                raise BadValue(f"unknown split '{s}'", "use full, even, odd, day<k> (k = 0, 1, ...: the k-th "
-                               "sidereal day), day or night, e.g. mmode.splits=[full, day0, day1]") from None
-        if not v or v[0] != "full" or len(set(v)) != len(v):
-            raise BadValue("'full' must come first and each split once", "write e.g. mmode.splits=[full, even, odd]")
-        return v
-
-
-class ImagingConfig(Section):
-    """The regularised solve for a_lm."""
-
-    method: Literal["tikhonov", "min_variance", "moore_penrose", "prior", "smoothness"] = Field(
-        "tikhonov", description="Solver (prior needs prior_map).")
-    eps: float = Field(0.01, gt=0, description="Regularisation parameter (paper: 0.01).")
-    zero_monopole: bool = Field(True, description="Set a_00 to zero (the array does not measure it).")
-    filter_m0: bool = Field(True, description="Drop m = 0 (confused with ground pick-up and cross-talk).")
-    filter_m1_lmin: Optional[int] = Field(100, ge=0, description="Drop m = 1 above this l (null: keep).")
-    lcurve: bool = Field(True, description="Compute an L-curve over 200 eps values.")
-    prior_map: Optional[str] = Field(None, description="HEALPix FITS map for method: prior.")
-    stokes: list[Literal["I", "Q", "U", "V"]] = Field(
-        ["I"], description="Stokes parameters to image: [I] (the scalar power-beam path) or [I, Q, U, V] (full "
-        "Stokes from xx, yy, xy, yx through an E-field beam: beam type short_dipole or a pyuvdata E-field beam; "
-        "docs/stokes.md).")
-    eps_pol: Optional[float] = Field(None, gt=0, description="Regularisation of Q, U (E, B) and V with stokes "
-                                     "[I, Q, U, V] (null: 100 x eps, the prior of a weakly polarised sky).")
-
-    @field_validator("stokes")
-    @classmethod
-    def _stokes(cls, v):
-        if v not in (["I"], ["I", "Q", "U", "V"]):
-            raise BadValue(f"{v}", "give [I] or [I, Q, U, V] (the four are solved together)")
         return v
 
 
@@ -327,27 +163,29 @@ def check_memory_limit(v):
     return v.strip()
 
 
-class WorkflowConfig(Section):
-    """A whole mmflow workflow."""
+def stage_sections(order=ORDER):
+    """``{section: Section class}`` of every stage that owns settings (``stages/<name>/settings.py``'s
+    ``SECTIONS``), in run order (:data:`mmflow.workflow.stages.ORDER`, which the pipeline is built from:
+    adding a stage with settings adds its sections to the schema)."""
+    out = {}
+    for name in order:
+        module = f"mmflow.workflow.stages.{name}.settings"
+        if importlib.util.find_spec(module) is not None:
+            out.update(import_module(module).SECTIONS)
+    return out
 
-    run: RunConfig = RunConfig()
-    source: Literal["simulate", "ingest"] = Field("simulate", description="Make data, or read it.")
-    telescope: TelescopeConfig = TelescopeConfig()
-    beam: BeamConfig = BeamConfig()
-    observation: ObservationConfig = ObservationConfig()
-    sky: SkyConfig = SkyConfig()
-    input: InputConfig = InputConfig()
-    corrupt: CorruptConfig = CorruptConfig()
-    calibrate: CalibrateConfig = CalibrateConfig()
-    models: ModelsConfig = ModelsConfig()
-    peel: PeelConfig = PeelConfig()
-    terrestrial: TerrestrialConfig = TerrestrialConfig()
-    mmode: MmodeConfig = MmodeConfig()
-    transfer: TransferConfig = TransferConfig()
-    imaging: ImagingConfig = ImagingConfig()
-    clean: CleanConfig = CleanConfig()
-    products: ProductsConfig = ProductsConfig()
-    cluster: ClusterConfig = ClusterConfig()
+
+#: the sections every stage shares: the run, the data's description (before the stages' own), the cluster (after)
+SHARED_FIRST = {"run": RunConfig, "telescope": TelescopeConfig, "beam": BeamConfig, "observation": ObservationConfig}
+SHARED_LAST = {"cluster": ClusterConfig}
+
+#: A whole mmflow workflow: ``source`` (make data, or read it), the shared sections, then each stage's
+#: own (:func:`stage_sections`) in the pipeline's order
+WorkflowConfig = create_model(
+    "WorkflowConfig", __base__=Section, __module__=__name__, __doc__="A whole mmflow workflow.",
+    run=(RunConfig, RunConfig()),
+    source=(Literal["simulate", "ingest"], Field("simulate", description="Make data, or read it.")),
+    **{k: (c, c()) for k, c in {**SHARED_FIRST, **stage_sections(), **SHARED_LAST}.items() if k != "run"})
 
 
 def _read_file(path, origins):

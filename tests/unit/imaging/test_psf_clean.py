@@ -312,7 +312,7 @@ def test_default_stall_ends_clean_on_residuals_points_do_not_describe():
     peeling residuals around Cyg A and Cas A after ~90 cycles, docs/planning.md) within 11 cycles of it
     setting in; the configuration's default is the same."""
     from mmflow.imaging.clean import CleanOptions
-    from mmflow.workflow.config.schema import CleanConfig
+    from mmflow.workflow.stages.clean.settings import CleanConfig
 
     opts = CleanOptions()
     assert CleanConfig().stall_fraction == opts.stall_frac and CleanConfig().stall_cycles == opts.stall_cycles

@@ -53,3 +53,7 @@ class CalibrateConfig(Section):
                              "noise): they hold the receiver power, so a gain error of 1e-3 leaves more than the "
                              "sky's power in them, and the ripple correction replaces them by their own 45-min "
                              "smooth (docs/calibration.md).")
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"calibrate": CalibrateConfig}

@@ -56,3 +56,7 @@ class CleanConfig(Section):
     @classmethod
     def _nside(cls, v):
         return power_of_two(v)
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"clean": CleanConfig}

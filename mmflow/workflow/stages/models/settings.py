@@ -37,3 +37,7 @@ class ModelsConfig(Section):
                                              "longest baseline used, or twice the start's extent if larger.")
     step_arcmin: Optional[float] = Field(None, gt=0, description="Pixel step in the aperture; null: aperture / 8.")
     maxiter: int = Field(3000, ge=1, description="Nelder-Mead iterations at most.")
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"models": ModelsConfig}

@@ -63,3 +63,7 @@ class PeelConfig(Section):
     fit_positions: bool = Field(False, description="Fit the subtracted sources' positions per integration (matched "
                                 "filter within 30 arcmin, on the peeled data with the source put back), then peel "
                                 "again with them (stored as DD phase gradients).")
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"peel": PeelConfig}

@@ -56,3 +56,7 @@ class ProductsConfig(Section):
     @classmethod
     def _nside(cls, v):
         return power_of_two(v)
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"products": ProductsConfig}

@@ -19,3 +19,7 @@ class TerrestrialConfig(Section):
                             "K^2 Hermitian combinations u_k u_l^H are fitted and subtracted per integration.")
     min_baseline_lambda: BaselineCut = Field("auto", description="Fit amplitudes on baselines longer than this "
                                              "(wavelengths); " + AUTO_CUT, json_schema_extra=CUT_ALLOWED)
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"terrestrial": TerrestrialConfig}

@@ -25,3 +25,7 @@ class TransferConfig(Section):
                         "partial normal equations kept on disk (each ~ the Gram's size). Set >= the cluster's worker "
                         "threads for parallelism. Results never depend on the cluster.")
     noise_weighting: bool = Field(True, description="Weight baselines by 1/variance in G_m (minimum variance).")
+
+
+#: this stage's sections of the workflow schema
+SECTIONS = {"transfer": TransferConfig}
