@@ -256,7 +256,7 @@ def test_kernels_import_no_dask_stores_or_configuration():
     for name, path in MODULES.items():
         if layer_of(name)[0] != "kernels":
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(parsed(path)):
             mods = ([a.name for a in node.names] if isinstance(node, ast.Import)
                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
             bad += [f"{name} imports {m} (line {node.lineno})" for m in mods if m.split(".")[0] in NOT_IN_KERNELS]
@@ -287,7 +287,7 @@ def uncommented_deferred_imports(root):
                     found.append(child)
                 walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)))
 
-        walk(ast.parse("\n".join(lines), filename=str(path)), False)
+        walk(parsed(path), False)
         covered_ends = set()
         for node in sorted(found, key=lambda n: n.lineno):
             own = any("# deferred:" in line for line in lines[node.lineno - 1:node.end_lineno])
