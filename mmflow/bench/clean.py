@@ -35,6 +35,7 @@ from mmflow.conventions import m_block_slice, m_blocks, m_slice, radec_to_vec
 from mmflow.imaging import clean, psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.maps import default_nside
+from mmflow.io.run_stores import STORES
 from mmflow.machine import gemm_gflops, machine
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.sky.diffuse import band_limited_random_alm, synthetic_sky_kelvin
@@ -144,7 +145,8 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
         t0 = time.perf_counter()
         for m0, m1 in blocks:
             chol = clean_stage.factors_of(ops, lmax, m0, m1)
-            root.create_array(f"chol_b{m0:05d}", shape=chol.shape, chunks=chol.shape, dtype=chol.dtype)[...] = chol
+            name = STORES.clean.chol(0, m0)  # the stage's array of channel 0
+            root.create_array(name, shape=chol.shape, chunks=chol.shape, dtype=chol.dtype)[...] = chol
         store_s = time.perf_counter() - t0
         state = clean.CleanState(dirty)
         t0 = time.perf_counter()
@@ -156,7 +158,7 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
         def one(block):
             m0, m1 = block
             t_a = time.perf_counter()
-            chol = root[f"chol_b{m0:05d}"][...]
+            chol = root[STORES.clean.chol(0, m0)][...]
             t_b = time.perf_counter()
             bops = clean_stage.operators_from_factors(chol, keeps, ops[m0].eps, lmax, m0, m1,
                                                       full_gram)
@@ -177,7 +179,7 @@ def stage_cycle(ops, full_gram, dirty, table, mask, nside, lmax, m_block, workdi
                 "observe_gflops": 2 * 8.0 * sum(op.keep.sum() ** 2 for op in ops.values()) / sums["observe"] / 1e9,
                 "components": int(len(flux)), "first_peak_jy_sr": float(peak),
                 "store_factors_once_s": store_s, "factors_gb_read_per_cycle": sum(
-                    root[f"chol_b{m0:05d}"].nbytes for m0, _ in blocks) / 1e9,
+                    root[STORES.clean.chol(0, m0)].nbytes for m0, _ in blocks) / 1e9,
                 "max_rel_difference_to_in_memory_cycle": err,
                 "note": "threads run the m blocks as the stage's workers do: summed task seconds exceed the "
                         "blocks' wall time by about the thread count"}

@@ -38,6 +38,7 @@ from mmflow.io import checks, ms_index, uvh5_index
 from mmflow.io.channels import average_channels, frequency_sets, select_channels
 from mmflow.io.polarization import pol_factor
 from mmflow.io.readers import file_kind, read_file, read_metadata, unflagged_nonfinite
+from mmflow.io.run_stores import STORES
 from mmflow.mmode.transform import bin_coverage
 from mmflow.sky.frames import apparent_sidereal_time
 from mmflow.telescope.layout import Layout
@@ -353,13 +354,14 @@ def ingest_time_chunk(store_path, row0, row1, *, fmt=None, nonfinite="error", co
     g = zarr.open_group(str(store_path), mode="r+")
     files = g.attrs["files"]
     infos = g.attrs.get("ingest_file_info")
-    row_time = g["plan_time_jd"][row0:row1]
-    file_rows = g["plan_file_rows"][:]
-    pairs, ant_numbers = g["pairs"][:], g["antenna_numbers"][:]
-    freqs = g["freqs_hz"][:]
-    n, nbl, nf, npol = len(row_time), len(pairs), len(freqs), g["vis"].shape[3]
+    row_time = g[STORES.vis.plan_time_jd][row0:row1]
+    file_rows = g[STORES.vis.plan_file_rows][:]
+    pairs, ant_numbers = g[STORES.vis.pairs][:], g[STORES.vis.antenna_numbers][:]
+    freqs = g[STORES.vis.freqs_hz][:]
+    n, nbl, nf, npol = len(row_time), len(pairs), len(freqs), g[STORES.vis.vis].shape[3]
     npar = npol
-    npol += g["vis_cross"].shape[3] if "vis_cross" in g else 0  # the cross hands follow the Stokes-I hands
+    cross = STORES.vis.vis_cross
+    npol += g[cross].shape[3] if cross in g else 0  # the cross hands follow the Stokes-I hands
     mode = nonfinite
     chunk_keys = _time_key(row_time)
     index = _index_lookup(ant_numbers)
@@ -408,13 +410,13 @@ def ingest_time_chunk(store_path, row0, row1, *, fmt=None, nonfinite="error", co
         vis[r[:, None], b[:, None], out[None, :]] = v
         wts[r[:, None], b[:, None], out[None, :]] = np.where(fl | ~finite, 0.0, ns)
         lst[r] = p.lst[mine]
-    g["vis"][row0:row0 + n] = vis[..., :npar]
-    g["weights"][row0:row0 + n] = wts[..., :npar]
+    g[STORES.vis.vis][row0:row0 + n] = vis[..., :npar]
+    g[STORES.vis.weights][row0:row0 + n] = wts[..., :npar]
     if npol > npar:
-        g["vis_cross"][row0:row0 + n] = vis[..., npar:]
-        g["weights_cross"][row0:row0 + n] = wts[..., npar:]
-    g["lst"][row0:row0 + n] = lst
-    g["time_jd"][row0:row0 + n] = row_time
+        g[STORES.vis.vis_cross][row0:row0 + n] = vis[..., npar:]
+        g[STORES.vis.weights_cross][row0:row0 + n] = wts[..., npar:]
+    g[STORES.vis.lst][row0:row0 + n] = lst
+    g[STORES.vis.time_jd][row0:row0 + n] = row_time
     flagged = int(np.sum(np.all(wts[..., :npar] == 0, axis=(1, 2, 3))))
     return {"integrations": int(n), "fully_flagged_integrations": flagged, "files_read": len(fis),
             "nonfinite_flagged": int(n_nonfinite)}

@@ -23,10 +23,14 @@ class StoreName(str):
 
     A ``str``: paths, markers and fingerprints see the same text as before; code names a store only
     through :data:`STORES` (a test refuses ``"*.zarr"`` literals elsewhere), so a rename is one line
-    here and a misspelt store fails at import, not in a task.
+    here and a misspelt store fails at import, not in a task. Its arrays are its attributes
+    (``STORES.gains.gains``, ``STORES.normal.gram(fi, m0)``: :data:`ARRAYS`).
     """
 
     __slots__ = ()
+
+    def __getattr__(self, name):
+        return _array_handle(self, name)
 
 
 @dataclass(frozen=True)
@@ -494,3 +498,88 @@ def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_
     return StoreSpec(STORES.clean, tuple(arrays), doc=(
         "The CLEAN stage's factors, PSFs, per-cycle state and results, per frequency F and m block M0 "
         "(healpy layout within the block)."))
+
+
+# ----------------------------------------------------------------------------- array handles
+
+class ArrayName(str):
+    """One array of a store as readers and writers name it (``STORES.gains.gains``): a ``str``, the
+    array's path in its store (what zarr, the chunk records and fingerprints see), that knows its
+    store (``.store``), so ``ctx.read(STORES.gains.gains, rows)`` needs nothing else."""
+
+    def __new__(cls, store, name):
+        self = super().__new__(cls, name)
+        self.store = store
+        return self
+
+    def __reduce__(self):
+        return ArrayName, (self.store, str(self))
+
+
+class ArrayFamily:
+    """Arrays declared once per channel (and per m block or order) from one ``template``:
+    ``STORES.normal.gram(fi, m0)`` is normal.zarr's ``f{fi}/gram_b{m0:05d}``."""
+
+    def __init__(self, store, template):
+        self.store, self.template = store, template
+        self.params = tuple(f.split("}")[0].split(":")[0] for f in template.split("{")[1:])  # ("fi", "m0")
+
+    def __call__(self, *index):
+        if len(index) != len(self.params):
+            raise TypeError(f"{self.store}'s {self.template} takes ({', '.join(self.params)}), got {index}")
+        return ArrayName(self.store, self.template.format(**dict(zip(self.params, map(int, index)))))
+
+    def __repr__(self):
+        return f"ArrayFamily({self.store!r}, {self.template!r})"
+
+
+#: every store's arrays, the one place their names are written outside the builders above: a name,
+#: or ``attribute=template`` for a family (``{fi}`` the channel, ``{m0}`` the first m of an m block,
+#: ``{m}`` the order). Read as ``STORES.<store>.<array>``; tests/unit/io/test_run_stores.py holds each
+#: store's arrays equal to those its builder declares.
+ARRAYS = {
+    STORES.vis: ("vis", "weights", "lst", "time_jd", "autos", "freqs_hz", "pairs", "antenna_enu", "vis_cross",
+                 "weights_cross", "plan_time_jd", "plan_file_rows", "antenna_numbers"),
+    STORES.mmodes: ("mmodes", "inv_var", "n_samples", "mmodes_corr", "inv_var_corr"),
+    STORES.partials: (dict(gram="f{fi}/gram_b{m0:05d}", rhs="f{fi}/rhs", vhv="f{fi}/vhv"),),
+    STORES.normal: ("rhs", "vhv", dict(gram="f{fi}/gram_b{m0:05d}")),
+    STORES.alm: ("alm", "lcurve", "fraction_above", "eps_grid"),
+    STORES.stokes: ("alm", "leakage", "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold",
+                    "v_noise", "v_n_cycles", "v_stop"),
+    STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
+    STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
+                   "apply_rows"),
+    STORES.peel: ("dd_gains", "scale", "mode", "guard", "measured", "removed", "converged"),
+    STORES.models: ("components", "cost", "iterations", "n_integrations"),
+    STORES.diffuse: ("samples",),
+    STORES.terrestrial: ("sum_vis", "sum_weight", "patterns", "amplitudes"),
+    STORES.clean: ("psf_table", "noise", "threshold", "peaks", "components", "restored", "n_cycles", "stop",
+                   dict(chol="f{fi}/chol_b{m0:05d}", psf="f{fi}/psf_b{m0:05d}",
+                        residual="f{fi}/residual_b{m0:05d}")),
+}
+
+
+def store_handles(store, declared):
+    """``{attribute: ArrayName | ArrayFamily}`` of one store; a name given twice, or one ``str`` already
+    has as an attribute (``STORES.vis.count``), is refused at import."""
+    names = [e for e in declared if isinstance(e, str)]
+    families = {a: t for e in declared if isinstance(e, dict) for a, t in e.items()}
+    out = {n: ArrayName(store, n) for n in names} | {a: ArrayFamily(store, t) for a, t in families.items()}
+    bad = [a for a in out if hasattr(str, a)] + (["a name twice"] if len(out) < len(names) + len(families) else [])
+    if bad:
+        raise ValueError(f"{store}: array handles {bad} (rename them in mmflow.io.run_stores.ARRAYS)")
+    return out
+
+
+HANDLES = {str(store): store_handles(store, declared) for store, declared in ARRAYS.items()}
+
+
+def _array_handle(store, name):
+    """``STORES.<store>.<name>``: the declared array (or family), else an error naming the store's arrays."""
+    if name.startswith("__") or str(store) not in HANDLES:
+        raise AttributeError(name)
+    try:
+        return HANDLES[str(store)][name]
+    except KeyError:
+        raise AttributeError(f"{store} declares no array {name!r} (its arrays: "
+                             f"{', '.join(HANDLES[str(store)])}; mmflow.io.run_stores.ARRAYS)") from None

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ast
 from collections import defaultdict
+from functools import lru_cache
 from pathlib import Path
 
 import pytest
@@ -54,6 +55,12 @@ def module_files(root):
     return out
 
 
+@lru_cache(maxsize=None)
+def parsed(path):
+    """The module at ``path`` as an :mod:`ast` tree (parsed once for every check of this file)."""
+    return ast.parse(path.read_text(), filename=str(path))
+
+
 def _resolve(node, module, is_package):
     """Absolute module named by an ``ImportFrom``'s ``module`` part (relative levels resolved)."""
     if node.level == 0:
@@ -80,7 +87,7 @@ def import_edges(root):
     top = root.name
     edges = []
     for name, path in modules.items():
-        tree = ast.parse(path.read_text(), filename=str(path))
+        tree = parsed(path)
         is_package = path.name == "__init__.py"
         for node in ast.walk(tree):
             if isinstance(node, ast.Import):
@@ -249,7 +256,7 @@ def test_kernels_import_no_dask_stores_or_configuration():
     for name, path in MODULES.items():
         if layer_of(name)[0] != "kernels":
             continue
-        for node in ast.walk(ast.parse(path.read_text())):
+        for node in ast.walk(parsed(path)):
             mods = ([a.name for a in node.names] if isinstance(node, ast.Import)
                     else [node.module or ""] if isinstance(node, ast.ImportFrom) and node.level == 0 else [])
             bad += [f"{name} imports {m} (line {node.lineno})" for m in mods if m.split(".")[0] in NOT_IN_KERNELS]
@@ -280,7 +287,7 @@ def uncommented_deferred_imports(root):
                     found.append(child)
                 walk(child, in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)))
 
-        walk(ast.parse("\n".join(lines), filename=str(path)), False)
+        walk(parsed(path), False)
         covered_ends = set()
         for node in sorted(found, key=lambda n: n.lineno):
             own = any("# deferred:" in line for line in lines[node.lineno - 1:node.end_lineno])
@@ -447,3 +454,131 @@ def test_deferred_import_checker_flags_uncommented_imports(tmp_path):
     assert uncommented_deferred_imports(pkg) == ["mmflow.m:13: import pyuvdata", "mmflow.m:17: from mmflow import sub",
                                                  "mmflow.m:18: import zarr  # deferred (no colon)",
                                                  "mmflow.m:26: import yaml"]
+
+
+# --- array names through their declaration ---------------------------------------------------
+
+#: calls that open a zarr group (``ctx.open``, ``ctx.create``, ``spec.create``, ``zarr.open_group``,
+#: ``open_checked``): a name they are assigned to, in the same function, is a group
+GROUP_CALLS = {"open", "create", "open_group", "open_checked"}
+#: parameters that hold a group by the package's naming (``g``: a store's group, ``vg``: vis.zarr's, ...)
+GROUP_PARAMS = {"g", "vg", "mg", "ng", "pg", "group"}
+#: calls that take an array's name: ``ctx.read(array, region)``; ``ctx.write(group, name, ...)``,
+#: ``ctx.array(group, name)``, ``ChunkLedger.write(group, name, ...)`` / ``write_all``
+NAME_SECOND = {"write", "array", "write_all"}
+#: zarr's calls that create an array by name (``StoreSpec.create`` is the one that should)
+NAME_FIRST = {"create_array", "require_array", "create_dataset", "require_dataset"}
+
+
+def _is_literal(node):
+    """A string written in the code: ``"gains"``, ``f"f{fi}/rhs"``, ``"f%d" % fi``, ``"f{}".format(fi)``."""
+    if isinstance(node, ast.Constant):
+        return isinstance(node.value, str)
+    if isinstance(node, ast.JoinedStr):
+        return True
+    if isinstance(node, ast.BinOp):
+        return _is_literal(node.left)
+    return (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "format"
+            and _is_literal(node.func.value))
+
+
+def _opens_group(node):
+    f = node.func if isinstance(node, ast.Call) else None
+    return f is not None and (f.attr if isinstance(f, ast.Attribute) else getattr(f, "id", None)) in GROUP_CALLS
+
+
+FUNCTIONS = (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)
+
+
+def _own_nodes(scope):
+    """The nodes of a function (or module) outside the functions nested in it."""
+    for child in ast.iter_child_nodes(scope):
+        if not isinstance(child, FUNCTIONS):
+            yield child
+            yield from _own_nodes(child)
+
+
+def _names_a_literal(node, groups):
+    """Whether ``node`` names an array by a string (see :func:`array_name_literals`)."""
+    def is_group(n):
+        return (isinstance(n, ast.Name) and n.id in groups) or _opens_group(n)
+
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+        args, attr = node.args, node.func.attr
+        return ((attr == "read" and any(_is_literal(a) for a in args[:2]))
+                or (attr in NAME_SECOND and len(args) >= 2 and _is_literal(args[1]))
+                or (attr in NAME_FIRST and bool(args) and _is_literal(args[0])))
+    if isinstance(node, ast.Subscript):
+        return is_group(node.value) and _is_literal(node.slice)
+    if isinstance(node, ast.Compare) and isinstance(node.ops[0], (ast.In, ast.NotIn)):
+        return is_group(node.comparators[0]) and _is_literal(node.left)
+    return False
+
+
+def array_name_literals(root, declarations=("io/run_stores.py",)):
+    """Array names written as strings where a store is read or written, as ``'path:line: code'``.
+
+    Flagged: a literal as the array of ``X.read(...)`` (first or second argument), as the name
+    (second argument) of ``X.write``/``X.array``/``X.write_all``, as the first argument of zarr's
+    ``create_array`` and the like (:data:`NAME_FIRST`), as the key of ``group[...]`` or in
+    ``... in group``, where ``group`` is a call opening one or a name bound to one in the function
+    or one enclosing it (:data:`GROUP_CALLS`, :data:`GROUP_PARAMS`). ``declarations`` (relative to
+    ``root``) are where the names are declared.
+    """
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        if str(path.relative_to(root)) in declarations:
+            continue
+        found = set()
+
+        def scan(scope, groups):
+            own = list(_own_nodes(scope))
+            if isinstance(scope, (ast.FunctionDef, ast.AsyncFunctionDef)):  # a lambda's g is not a group
+                groups = groups | {a.arg for a in scope.args.args if a.arg in GROUP_PARAMS}
+            groups = groups | {t.id for n in own if isinstance(n, ast.Assign) and _opens_group(n.value)
+                               for t in n.targets if isinstance(t, ast.Name)}
+            found.update(n.lineno for n in own if _names_a_literal(n, groups))
+            for node in [scope, *own]:
+                for child in ast.iter_child_nodes(node):
+                    if isinstance(child, FUNCTIONS):
+                        scan(child, groups)
+
+        scan(parsed(path), frozenset())
+        lines = path.read_text().splitlines()
+        out += [f"{path.relative_to(root.parent)}:{i}: {lines[i - 1].strip()}" for i in sorted(found)]
+    return out
+
+
+def test_arrays_are_named_through_their_declaration():
+    """Readers and writers name an array by its handle (``ctx.read(STORES.gains.gains, rows)``,
+    ``g[STORES.normal.gram(fi, m0)]``: :data:`mmflow.io.run_stores.ARRAYS`), never by a string, so a
+    renamed or misspelt array fails at the call, not as a missing array deep in a task."""
+    bad = array_name_literals(ROOT)
+    assert not bad, "array names as strings (use STORES.<store>.<array>):\n" + "\n".join(bad)
+
+
+def test_array_name_checker_flags_literals(tmp_path):
+    pkg = tmp_path / "mmflow"
+    (pkg / "io").mkdir(parents=True)
+    (pkg / "io" / "run_stores.py").write_text('ARRAYS = {"vis": ("vis",)}\nx = g["vis"]\n')   # the declarations
+    (pkg / "m.py").write_text(
+        "def a(ctx, g, fi):\n"
+        "    ctx.read(STORES.gains.gains, (slice(0, 1),))\n"                  # a handle: fine
+        "    ctx.read(STORES.gains, 'gains')\n"                               # 3
+        "    ctx.write(g, f'f{fi}/rhs', (), 0)\n"                             # 4
+        "    x = g['lst'][:]\n"                                               # 5
+        "    d = {'lst': 1}\n"
+        "    y = d['lst']\n"                                                  # a dict: fine
+        "    fh.write('text')\n"                                              # one argument: fine
+        "\n"
+        "def b(ctx):\n"
+        "    vis = ctx.open(STORES.vis)\n"
+        "    n = vis['vis'].shape\n"                                          # 12
+        "    c = 'vis_cross' in vis\n"                                        # 13
+        "    m = ctx.open(STORES.alm)['alm']\n"                               # 14
+        "    z = vis.attrs['epoch_jd']\n"                                     # attributes: fine
+        "    ctx.array(vis, 'f%d/x' % 3)\n"                                   # 16
+        "    return vis[STORES.vis.vis], ctx.read('vis.zarr/lst')\n"         # 17
+        "\n"
+        "root.create_array(f'chol_b{0:05d}', shape=(1,))\n")                 # 19
+    assert [s.split(":")[1] for s in array_name_literals(pkg)] == ["3", "4", "5", "12", "13", "14", "16", "17", "19"]

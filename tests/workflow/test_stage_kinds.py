@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import zarr
 
+from mmflow.io.run_stores import ArrayName
 from mmflow.io.stores import ArraySpec, StoreSpec
 from mmflow.workflow.engine.runner import run_workflow
 from mmflow.workflow.pipeline import PIPELINE
@@ -34,13 +35,13 @@ def _cal_prepare(ctx):
 def _cal_task(ctx, key):
     k = key.interval
     rows = slice(k * INTERVAL, (k + 1) * INTERVAL)
-    vis = ctx.read("vis.zarr", "vis", (rows,))  # reads the chunks the interval touches, verified
+    vis = ctx.read(ArrayName("vis.zarr", "vis"), (rows,))  # reads the chunks the interval touches, verified
     assert vis.shape[0] >= 1
     ctx.write(ctx.open("gains.zarr", mode="r+"), "gain", (slice(k, k + 1),), np.array([_gain(k)]))
 
 
 def _cal_apply(ctx, block):
-    gain = ctx.read("gains.zarr", "gain")
+    gain = ctx.read(ArrayName("gains.zarr", "gain"))
     per_row = np.repeat(gain, INTERVAL)[block.rows]
     block.vis /= per_row[:, None, None, None]
 
@@ -120,7 +121,7 @@ def _clean_prepare(ctx):
 def _clean_next(ctx, cycle):
     g = ctx.open("clean.zarr", mode="r+")
     if cycle == 0:  # the starting state, from the solve's alm
-        alm = ctx.read("alm.zarr", "alm")[0, 0]
+        alm = ctx.read(ArrayName("alm.zarr", "alm"))[0, 0]
         for b, part in enumerate(np.array_split(np.abs(alm), N_BLOCKS)):
             ctx.write(g, "level", (slice(0, 1), slice(b, b + 1)), np.array([[part.sum()]]))
     level = g["level"][cycle]

@@ -11,7 +11,8 @@ import pytest
 import yaml
 
 from mmflow.cli import main
-from mmflow.errors import InputError, StaleOutputError
+from mmflow.errors import InputError, MmflowError, StaleOutputError
+from mmflow.io.run_stores import STORES
 from mmflow.workflow.config.schema import load_config, schema_yaml
 from mmflow.workflow.engine.runner import run_workflow, status
 from tests.workflow_helpers import ROOT, SMALL, assert_identical, fork_run, interrupt_run, read_outputs, small_config
@@ -336,13 +337,15 @@ def test_a_stage_task_opens_each_store_once_and_still_checks_every_chunk(referen
     cfg = small_config(run_dir)
     ctx = Context(cfg.model_dump_json(), str(run_dir)).for_stage(PIPELINE.stage("mmodes"))
     task = ctx.for_task(keep_handles=True)
-    a, b = task.read("vis.zarr", "vis", (slice(0, 3),)), task.read("vis.zarr", "vis", (slice(3, 6),))
+    a, b = task.read(STORES.vis.vis, (slice(0, 3),)), task.read(STORES.vis.vis, (slice(3, 6),))
     assert len(opened) == 1 and a.shape[0] == b.shape[0] == 3
     store_total = task.open("vis.zarr").store.seconds  # the kept store's running total of checksum time
     assert 0 < store_total and task.ledger.seconds == pytest.approx(store_total, rel=1e-9)  # counted once
     plain = ctx.for_task()  # outside a stage task (prepare, finalize): opened each time
-    plain.read("vis.zarr", "vis", (slice(0, 3),)), plain.read("vis.zarr", "vis", (slice(3, 6),))
+    plain.read(STORES.vis.vis, (slice(0, 3),)), plain.read(STORES.vis.vis, (slice(3, 6),))
     assert len(opened) == 3
+    with pytest.raises(MmflowError, match="writes vis.zarr's array 'lst' into .*mmodes.zarr"):
+        task.write(task.open(STORES.mmodes, mode="r+"), STORES.vis.lst, (slice(0, 1),), np.zeros(1))  # refused
     chunk = next((run_dir / "vis.zarr" / "vis" / "c").rglob("*"), None)
     while chunk is not None and chunk.is_dir():
         chunk = next(chunk.iterdir())
@@ -350,6 +353,6 @@ def test_a_stage_task_opens_each_store_once_and_still_checks_every_chunk(referen
     chunk.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # a damaged chunk is found through a kept handle
     try:
         with pytest.raises(stores.DamagedStoreError, match="checksum differs"):
-            task.read("vis.zarr", "vis", (slice(None),))
+            task.read(STORES.vis.vis, (slice(None),))
     finally:
         chunk.write_bytes(data)

@@ -46,18 +46,19 @@ def read_block(ctx, rows=slice(None), columns=slice(None), cross=False, channels
     of channels (a task of one channel reads and corrects that channel only: ``vis.zarr`` holds one
     channel per chunk, so its memory and work do not grow with the channels of the run)."""
     vg = ctx.open(STORES.vis)
-    nt, nbl, nf = vg["vis"].shape[:3]
+    nt, nbl, nf = vg[STORES.vis.vis].shape[:3]
     rows, columns, channels = slice(*rows.indices(nt)), slice(*columns.indices(nbl)), slice(*channels.indices(nf))
     if channels.step != 1 or channels.stop <= channels.start:
         raise ValueError(f"read_block: channels {channels} is not a contiguous, non-empty range of the {nf} channels")
     region = (rows, columns, channels)
-    block = DataBlock(ctx.read(STORES.vis, "vis", region).astype(np.complex128),
-                      ctx.read(STORES.vis, "weights", region).astype(float),
-                      vg["pairs"][columns], rows, columns, ctx.read(STORES.vis, "autos", (rows, slice(None), channels)),
-                      ctx.read(STORES.vis, "lst", (rows,)), channels=channels)
+    block = DataBlock(ctx.read(STORES.vis.vis, region).astype(np.complex128),
+                      ctx.read(STORES.vis.weights, region).astype(float),
+                      vg[STORES.vis.pairs][columns], rows, columns,
+                      ctx.read(STORES.vis.autos, (rows, slice(None), channels)),
+                      ctx.read(STORES.vis.lst, (rows,)), channels=channels)
     if cross:
-        block.cross = ctx.read(STORES.vis, "vis_cross", region).astype(np.complex128)
-        block.cross_weights = ctx.read(STORES.vis, "weights_cross", region).astype(float)
+        block.cross = ctx.read(STORES.vis.vis_cross, region).astype(np.complex128)
+        block.cross_weights = ctx.read(STORES.vis.weights_cross, region).astype(float)
     for stage in ctx.corrections():
         stage.apply(ctx, block)
     return block

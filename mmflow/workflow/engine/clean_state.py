@@ -20,7 +20,7 @@ from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
-from mmflow.io.run_stores import STORES, gram_name
+from mmflow.io.run_stores import STORES
 from mmflow.mmode.normal import hermitian_full
 from mmflow.mmode.splits import day_splits, jackknife_kind
 from mmflow.workflow.engine.geometry import split_fractions
@@ -64,7 +64,7 @@ def block_operators_from_gram(ctx, fi, m0, m1):
     """:class:`psf.BlockOperator` of each m of a block, factorised from ``normal.zarr``'s Gram."""
     cfg = ctx.cfg
     lmax, eps, keeps = cfg.mmode.lmax, cfg.imaging.eps, kept_coefficients(cfg, m0, m1)
-    grams = ctx.read(STORES.normal, gram_name(fi, m0))
+    grams = ctx.read(STORES.normal.gram(fi, m0))
 
     def one(m):
         n = lmax - m + 1
@@ -78,9 +78,9 @@ def stored_operators(ctx, fi, m0, m1):
     leaves a coupling ``G_kf``: m = 1)."""
     cfg = ctx.cfg
     lmax, keeps = cfg.mmode.lmax, kept_coefficients(cfg, m0, m1)
-    chol = ctx.read(STORES.clean, f"f{fi}/chol_b{m0:05d}")
+    chol = ctx.read(STORES.clean.chol(fi, m0))
     partial = [m for m in range(m0, m1) if keeps[m].any() and not keeps[m].all()]
-    grams = ctx.read(STORES.normal, gram_name(fi, m0)) if partial else None
+    grams = ctx.read(STORES.normal.gram(fi, m0)) if partial else None
     return operators_from_factors(chol, keeps, cfg.imaging.eps, lmax, m0, m1,
                                   lambda m: hermitian_full(grams[m - m0, :lmax - m + 1, :lmax - m + 1]))
 
@@ -144,23 +144,23 @@ def residual_alm(g, fi, cycle, lmax, blocks):
     """The full healpy-layout residual alm at the start of ``cycle`` (zero for m beyond mmax)."""
     out = np.zeros(n_alm(lmax), np.complex128)
     for m0, m1 in blocks:
-        out[m_block_slice(lmax, m0, m1)] = g[f"f{fi}/residual_b{m0:05d}"][cycle]
+        out[m_block_slice(lmax, m0, m1)] = g[STORES.clean.residual(fi, m0)][cycle]
     return out
 
 
 def psf_alm_columns(g, fi, lmax, blocks):
     """The PSF columns ``(n_alm, n_dec)`` of the declination grid, assembled from the blocks one at a
     time (at lmax 1000 with 74 declinations the columns are 0.6 GB: the blocks are not held beside them)."""
-    n_dec = g[f"f{fi}/psf_b{blocks[0][0]:05d}"].shape[1]
+    n_dec = g[STORES.clean.psf(fi, blocks[0][0])].shape[1]
     out = np.zeros((n_alm(lmax), n_dec), np.complex128)
     for m0, m1 in blocks:
-        out[m_block_slice(lmax, m0, m1)] = g[f"f{fi}/psf_b{m0:05d}"][...]
+        out[m_block_slice(lmax, m0, m1)] = g[STORES.clean.psf(fi, m0)][...]
     return out
 
 
 def split_alm(ctx, fi, lmax, mmax):
     """``{split name: healpy alm}`` of the solved maps of one frequency."""
-    alm = ctx.read(STORES.alm, "alm", (slice(None), slice(fi, fi + 1)))[:, 0]
+    alm = ctx.read(STORES.alm.alm, (slice(None), slice(fi, fi + 1)))[:, 0]
     return {s: healpy_alm(alm[k], lmax, mmax) for k, s in enumerate(ctx.cfg.mmode.splits)}
 
 
@@ -191,7 +191,7 @@ def jackknife_sigma(alms, jackknife, lmax, nside, mask, l_weights=None):
 
 def clean_table(g, fi):
     """The PSF table CLEAN uses (of ``H PSF`` for a high-pass CLEAN)."""
-    return psf.table_from_array(g["psf_table"][fi, 1])
+    return psf.table_from_array(g[STORES.clean.psf_table][fi, 1])
 
 
 def active(peaks, threshold, opts):
@@ -207,12 +207,12 @@ def clean_result(g, fi, opts, n=None):
     """``(state, reason)``: the :class:`clean.CleanState` (no residual) of one frequency after
     its ``n`` cycles (default: every cycle with a peak; readers of a finished stage pass
     ``n_cycles``, so that no unwritten chunk is read)."""
-    thr = float(g["threshold"][fi])
+    thr = float(g[STORES.clean.threshold][fi])
     if n is None:
-        peaks = g["peaks"][fi]
+        peaks = g[STORES.clean.peaks][fi]
         n = int(np.argmin(np.isfinite(peaks))) if not np.isfinite(peaks).all() else len(peaks)
-    peaks = g["peaks"][fi, :n]
-    comps = g["components"][fi, :n]
+    peaks = g[STORES.clean.peaks][fi, :n]
+    comps = g[STORES.clean.components][fi, :n]
     vecs, flux, cyc = [], [], []
     for c in range(n):
         v, f = cycle_components(comps[c])

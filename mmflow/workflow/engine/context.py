@@ -12,6 +12,7 @@ import json
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import PurePath
 
 import numpy as np
 import zarr
@@ -116,10 +117,11 @@ class TaskContext(Context):
             self.handles[key] = (group, group[name])  # the group held: its id stays its own
         return self.handles[key][1]
 
-    def read(self, store, name, region=()):
-        """Read ``store/name[region]``; every chunk is checked against the producer's records as it is read."""
-        g = self.open(store)
-        arr = self.array(g, name)
+    def read(self, array, region=()):
+        """Read ``array[region]`` (a declared array, ``STORES.gains.gains``: it names its store); every
+        chunk is checked against the producer's records as it is read."""
+        g = self.open(array.store)
+        arr = self.array(g, array)
         before = g.store.seconds
         try:
             return arr[tuple(region) if region else ...]
@@ -128,7 +130,11 @@ class TaskContext(Context):
                 self.ledger.seconds += g.store.seconds - before
 
     def write(self, group, name, region, data, allow_nan=False):
-        """Write a chunk-aligned region, refusing NaN/inf, and record its chunks."""
+        """Write a chunk-aligned region of array ``name`` (its handle, ``STORES.gains.gains``) of the open
+        ``group``, refusing NaN/inf, and record its chunks."""
+        store = getattr(name, "store", None)
+        if store is not None and PurePath(str(group.store.root)).name != store:
+            raise MmflowError(f"stage '{self.stage.name}' writes {store}'s array '{name}' into {group.store.root}")
         data = np.asarray(data)
         if not allow_nan:
             self.check_finite(f"{group.store.root}/{name} region {_fmt(region)}", data)
@@ -171,11 +177,11 @@ def _parse(js):
 def _telescope(beam_json, run_path):
     g = zarr.open_group(str(RunDir(run_path).store(STORES.vis)), mode="r")
     a = g.attrs.asdict()
-    layout = Layout(a["antenna_names"], np.asarray(g["antenna_enu"][:]), a["lat_deg"], a["lon_deg"],
+    layout = Layout(a["antenna_names"], np.asarray(g[STORES.vis.antenna_enu][:]), a["lat_deg"], a["lon_deg"],
                     a["height_m"], a.get("layout_provenance", ""))
-    tel = Telescope(layout, make_beam(json.loads(beam_json)), np.asarray(g["freqs_hz"][:]),
+    tel = Telescope(layout, make_beam(json.loads(beam_json)), np.asarray(g[STORES.vis.freqs_hz][:]),
                     a["integration_s"], True, a.get("channel_width_hz", 0.0))
-    tel.pairs = np.asarray(g["pairs"][:])
+    tel.pairs = np.asarray(g[STORES.vis.pairs][:])
     return tel
 
 

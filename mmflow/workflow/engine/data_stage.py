@@ -5,17 +5,19 @@ Both write ``vis.zarr`` (declared in :mod:`mmflow.io.run_stores`); only one runs
 """
 from __future__ import annotations
 
+from mmflow.io.run_stores import STORES
 from mmflow.mmode.noise import autocorrelation_rows
 
 #: the arrays of ``vis.zarr`` written row by row per time chunk
-VIS_ARRAYS = ("vis", "weights", "lst", "time_jd")
+VIS_ARRAYS = (STORES.vis.vis, STORES.vis.weights, STORES.vis.lst, STORES.vis.time_jd)
 
 
 def write_autos(ctx, g, rows, vis, weights):
     """Write the ``autos`` rows of ``vis.zarr`` (``|V_ii|`` per antenna, NaN where unmeasured) from a
     time chunk's visibilities (:func:`mmflow.mmode.noise.autocorrelation_rows`)."""
-    n_ant = g["autos"].shape[1]
-    ctx.write(g, "autos", rows, autocorrelation_rows(vis, weights, g["pairs"][:], n_ant), allow_nan=True)
+    n_ant = g[STORES.vis.autos].shape[1]
+    ctx.write(g, STORES.vis.autos, rows, autocorrelation_rows(vis, weights, g[STORES.vis.pairs][:], n_ant),
+              allow_nan=True)
 
 
 def layout_attrs(layout):

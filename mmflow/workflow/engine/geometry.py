@@ -64,5 +64,5 @@ def split_fractions(ctx, fi):
     baselines (``mmodes.zarr``'s ``n_samples``, :func:`mmflow.mmode.splits.split_shares`): the ``f_k``
     of the per-day jackknife and of the day/night map, for any stage that reads ``mmodes.zarr``."""
     g = ctx.open(STORES.mmodes)
-    counts = ctx.read(STORES.mmodes, "n_samples", (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
+    counts = ctx.read(STORES.mmodes.n_samples, (slice(None), slice(fi, fi + 1)))[:, 0].sum(axis=-1)
     return split_shares(counts, list(g.attrs["splits"]))

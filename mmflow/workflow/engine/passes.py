@@ -125,7 +125,7 @@ def _write_json(path, value):
 def map_change(before, after):
     """``||a_k - a_(k-1)|| / ||a_k||`` of the solved alm (first split, every channel) of two passes' run
     directories: how much a pass changed the map."""
-    a0, a1 = (zarr.open_group(str(d / ALM), mode="r")["alm"][0] for d in (before, after))
+    a0, a1 = (zarr.open_group(str(d / ALM), mode="r")[STORES.alm.alm][0] for d in (before, after))
     return float(np.linalg.norm(a1 - a0) / max(np.linalg.norm(a1), np.finfo(float).tiny))
 
 
@@ -137,12 +137,12 @@ def unbridged_baselines(cfg, log=print):
     a time; 0: ``auto`` makes no prior pass."""
     run = resolve(cfg.run.directory)
     vis = zarr.open_group(str(run / STORES.vis), mode="r")
-    lst = vis["lst"][:]
+    lst = vis[STORES.vis.lst][:]
     good_t = np.isfinite(lst)
     n_bins = n_bins_of(cfg, vis.attrs["integration_s"])
     half = fit_bins(cfg.mmode.splits, n_bins) // 2
-    tel, freqs, pairs = run_telescope(cfg, run), vis["freqs_hz"][:], vis["pairs"][:]
-    weights = vis["weights"]
+    tel, freqs, pairs = run_telescope(cfg, run), vis[STORES.vis.freqs_hz][:], vis[STORES.vis.pairs][:]
+    weights = vis[STORES.vis.weights]
     step = weights.chunks[1]
     count = 0
     for start in range(0, weights.shape[1], step):

@@ -20,7 +20,7 @@ def fitted_tables(g, names):
     for the fitted sources among ``names``: what the peel stage copies into ``peel.zarr``'s attributes,
     so that its ``apply`` (run by any later reader) needs no other store."""
     order = list(g.attrs["sources"])
-    table = g["components"][:]  # (freq, source, component, column): small
+    table = g[STORES.models.components][:]  # (freq, source, component, column): small
     return {n: [[[float(x) for x in row] for row in table[fi, order.index(n)] if row[2] != 0]
                 for fi in range(table.shape[0])] for n in order if n in names}
 
@@ -66,13 +66,13 @@ def peel_components(ctx, block, fi, kinds):
     tel = ctx.telescope()
     names = ctx.open(STORES.peel).attrs["sources"]
     region = (block.rows, slice(fi, fi + 1))
-    mode = ctx.read(STORES.peel, "mode", region)[:, 0]  # (time, src, pol)
+    mode = ctx.read(STORES.peel.mode, region)[:, 0]  # (time, src, pol)
     out = np.zeros(block.vis.shape[:2] + block.vis.shape[3:], complex)  # (time, bl, pol)
     used = [s for s in range(len(names)) if np.isin(mode[:, s], kinds).any()]
     if not used:
         return out
-    scale = ctx.read(STORES.peel, "scale", region)[:, 0]
-    h = ctx.read(STORES.peel, "dd_gains", region)[:, 0]  # (time, src, ant, pol)
+    scale = ctx.read(STORES.peel.scale, region)[:, 0]
+    h = ctx.read(STORES.peel.dd_gains, region)[:, 0]  # (time, src, ant, pol)
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used])
     for k, s in enumerate(used):
         f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)

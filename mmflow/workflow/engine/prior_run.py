@@ -93,7 +93,7 @@ def prior_files(cfg):
     p = effective_prior(cfg.mmode, cfg.run.directory)
     if not p:
         return []
-    alm = resolve(p) / ALM / "alm"
+    alm = resolve(p) / ALM / STORES.alm.alm
     if cfg.mmode.prior_passes and not alm.exists():
         return []  # the run's own pass, not made yet: the stages before it run first (mmflow.workflow.engine.passes)
     return [str(alm)]
@@ -109,9 +109,9 @@ def _describe(path):
     if status is None or not status["complete"] or not (path / ALM).is_dir():
         return None, (f"holds no finished {ALM} (its solve stage has not completed)", again)
     try:
-        alm = zarr.open_group(str(path / ALM), mode="r")["alm"]
+        alm = zarr.open_group(str(path / ALM), mode="r")[STORES.alm.alm]
         vis = zarr.open_group(str(path / STORES.vis), mode="r")
-        freqs, epoch = np.asarray(vis["freqs_hz"][:], float), float(vis.attrs["epoch_jd"])
+        freqs, epoch = np.asarray(vis[STORES.vis.freqs_hz][:], float), float(vis.attrs["epoch_jd"])
     except (KeyError, OSError, ValueError) as exc:
         return None, (f"its {ALM} or vis.zarr cannot be read ({exc})", again)
     n_split, nf, m1, l1 = alm.shape
@@ -175,4 +175,4 @@ def read_prior_alm(prior_run, fi, lmax):
     """
     path = resolve(prior_run)
     g = open_checked(str(path), ALM, "r", RunDir(path).chunk_index("solve"), "solve")
-    return healpy_alm(g["alm"][0, fi], lmax)
+    return healpy_alm(g[STORES.alm.alm][0, fi], lmax)

@@ -73,14 +73,15 @@ def _intervals(ctx, tel, lst, integration_s):
 
 def _prepare(ctx):
     vg = ctx.open(STORES.vis)
-    nt, _, nf, npol = vg["vis"].shape
-    lst = vg["lst"][:]
+    nt, _, nf, npol = vg[STORES.vis.vis].shape
+    lst = vg[STORES.vis.lst][:]
     tel = ctx.telescope()
-    if ctx.cfg.calibrate.ripple and not np.isfinite(vg["autos"][:]).any():
-        raise InputError(str(ctx.run.store(STORES.vis)), "autos", "no autocorrelations: the ripple correction "
+    if ctx.cfg.calibrate.ripple and not np.isfinite(vg[STORES.vis.autos][:]).any():
+        raise InputError(str(ctx.run.store(STORES.vis)), STORES.vis.autos, "no autocorrelations: the ripple correction "
                          "needs them", "ingest autocorrelations (telescope.include_autos), or set "
                          "calibrate.ripple=false")
-    check_baselines(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda, "calibrate.min_baseline_lambda")
+    pairs = vg[STORES.vis.pairs][:]
+    check_baselines(tel, pairs, ctx.cfg.calibrate.min_baseline_lambda, "calibrate.min_baseline_lambda")
     solve, apply = _intervals(ctx, tel, lst, vg.attrs["integration_s"])
     ctx.create(
         gains_store(
@@ -97,7 +98,7 @@ def _prepare(ctx):
                 "ripple": bool(ctx.cfg.calibrate.ripple),
                 "interpolate": bool(ctx.cfg.calibrate.interpolate),
                 "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
-                "min_baseline_lambda": resolved_cuts(tel, vg["pairs"][:], ctx.cfg.calibrate.min_baseline_lambda),
+                "min_baseline_lambda": resolved_cuts(tel, pairs, ctx.cfg.calibrate.min_baseline_lambda),
             },
             n_src=len(ctx.cfg.calibrate.sources),
         )
@@ -113,7 +114,7 @@ def _ratio(ctx, fi):
     """Ripple ratio ``(time, antenna, pol)`` of channel ``fi`` from the autocorrelations."""
     key = (str(ctx.run_path), fi, ctx.cfg.calibrate.ripple_smooth_min, ctx.config_json)
     if key not in _RIPPLE:
-        autos = ctx.read(STORES.vis, "autos", (slice(None), slice(None), slice(fi, fi + 1)))[:, :, 0]
+        autos = ctx.read(STORES.vis.autos, (slice(None), slice(None), slice(fi, fi + 1)))[:, :, 0]
         finite = np.isfinite(autos)
         ratio, _ = ripple_ratio(np.where(finite, autos, 0.0), finite.astype(float),
                                 ctx.open(STORES.vis).attrs["integration_s"], key[2] * 60.0)
@@ -127,12 +128,12 @@ def _task(ctx, key):
     g = ctx.open(STORES.gains, mode="r+")
     if key.phase == "r":
         fi = key.freq
-        ctx.write(g, "ripple", (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
+        ctx.write(g, STORES.gains.ripple, (slice(None), slice(fi, fi + 1)), _ratio(ctx, fi)[:, None])
         return {"ripple_channels": 1}
 
     c = ctx.cfg.calibrate
     fi, k = key.freq, key.interval
-    t0, t1 = (int(x) for x in g["solve_rows"][k])
+    t0, t1 = (int(x) for x in g[STORES.gains.solve_rows][k])
     block = read_block(ctx, slice(t0, t1), channels=slice(fi, fi + 1))  # its channel only
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
@@ -159,12 +160,12 @@ def _task(ctx, key):
     has_data = antennas_with_data(w, block.pairs, tel.n_ant, keep)
     _stop_if_too_many_flagged(ctx, sol, has_data, f, (t0, t1), c)
     region = (slice(k, k + 1), slice(fi, fi + 1))
-    ctx.write(g, "gains", region, np.where(sol.flags, 0, np.nan_to_num(sol.gains))[:, None])  # flagged: 0
-    ctx.write(g, "flags", region, sol.flags[:, None])
-    ctx.write(g, "chi2", region, np.nan_to_num(sol.chi2[:, None]))
-    ctx.write(g, "iterations", region, sol.iterations[:, None].astype(np.int32))
-    ctx.write(g, "converged", region, sol.converged[:, None])
-    ctx.write(g, "flux_factor", region, np.nan_to_num(out.flux, nan=0.0)[None, None])  # 0: never fitted
+    ctx.write(g, STORES.gains.gains, region, np.where(sol.flags, 0, np.nan_to_num(sol.gains))[:, None])  # flagged: 0
+    ctx.write(g, STORES.gains.flags, region, sol.flags[:, None])
+    ctx.write(g, STORES.gains.chi2, region, np.nan_to_num(sol.chi2[:, None]))
+    ctx.write(g, STORES.gains.iterations, region, sol.iterations[:, None].astype(np.int32))
+    ctx.write(g, STORES.gains.converged, region, sol.converged[:, None])
+    ctx.write(g, STORES.gains.flux_factor, region, np.nan_to_num(out.flux, nan=0.0)[None, None])  # 0: never fitted
     return {"solutions": int(sol.converged.size), "not_converged": int((~sol.converged).sum()),
             "flagged_antennas": int((sol.flags[0] & has_data).any(axis=-1).sum()),
             "antennas_without_data": int((~has_data).all(axis=-1).sum()),
@@ -204,12 +205,12 @@ def _apply(ctx, block):
 
     Reads only ``gains.zarr`` (never the configuration: the reading stage's fingerprint covers
     the store)."""
-    gains = ctx.read(STORES.gains, "gains")  # (interval, freq, antenna, pol): small
-    flags = ctx.read(STORES.gains, "flags")
-    apply_rows, solve_rows = ctx.read(STORES.gains, "apply_rows"), ctx.read(STORES.gains, "solve_rows")
+    gains = ctx.read(STORES.gains.gains)  # (interval, freq, antenna, pol): small
+    flags = ctx.read(STORES.gains.flags)
+    apply_rows, solve_rows = ctx.read(STORES.gains.apply_rows), ctx.read(STORES.gains.solve_rows)
     interpolate = bool(ctx.open(STORES.gains).attrs.get("interpolate", False))
     rows = np.arange(block.rows.start, block.rows.stop)
-    ratio = ctx.read(STORES.gains, "ripple", (block.rows,)) if ctx.open(STORES.gains).attrs["ripple"] else None
+    ratio = ctx.read(STORES.gains.ripple, (block.rows,)) if ctx.open(STORES.gains).attrs["ripple"] else None
     for k, fi in block.channel_indices():
         v, w, autos = block.vis[:, :, k], block.weights[:, :, k], block.autos[:, :, k]  # views: in place
         if ratio is not None:

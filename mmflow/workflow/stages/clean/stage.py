@@ -73,7 +73,7 @@ def _geometry(ctx):
 def _prepare(ctx):
     cfg = ctx.cfg
     lmax, mmax, blocks = _geometry(ctx)
-    nf = ctx.open(STORES.alm)["alm"].shape[1]
+    nf = ctx.open(STORES.alm)[STORES.alm.alm].shape[1]
     n_dec = len(psf_decs_deg(_lat(ctx), cfg.clean.psf_dec_step_deg))
     ctx.create(clean_store(nf, lmax, mmax, cfg.transfer.m_block, n_dec, cfg.clean.max_cycles,
                            cfg.clean.peaks_per_cycle, 12 * clean_nside(cfg) ** 2, cfg.clean.keep_factors))
@@ -102,17 +102,17 @@ def _setup_task(ctx, key):
     ops = block_operators_from_gram(ctx, fi, m0, m1)
     t_factor = time.perf_counter() - t0
     if cfg.clean.keep_factors:
-        ctx.write(g, f"f{fi}/chol_b{m0:05d}", (), factors_of(ops, lmax, m0, m1))
+        ctx.write(g, STORES.clean.chol(fi, m0), (), factors_of(ops, lmax, m0, m1))
     t0 = time.perf_counter()
     decs = np.deg2rad(psf_decs_deg(_lat(ctx), cfg.clean.psf_dec_step_deg))
-    ctx.write(g, f"f{fi}/psf_b{m0:05d}", (), psf.psf_columns(ops, lmax, psf.table_vectors(decs), m0, m1))
+    ctx.write(g, STORES.clean.psf(fi, m0), (), psf.psf_columns(ops, lmax, psf.table_vectors(decs), m0, m1))
     t_psf = time.perf_counter() - t0
-    dirty = _ml_to_block(ctx.read(STORES.alm, "alm", (slice(0, 1), slice(fi, fi + 1), slice(m0, m1)))[0, 0],
+    dirty = _ml_to_block(ctx.read(STORES.alm.alm, (slice(0, 1), slice(fi, fi + 1), slice(m0, m1)))[0, 0],
                          lmax, m0, m1)
     w = highpass(cfg)
     if w is not None:
         dirty = dirty * np.concatenate([w[m:] for m in range(m0, m1)])
-    ctx.write(g, f"f{fi}/residual_b{m0:05d}", (slice(0, 1),), dirty[None])
+    ctx.write(g, STORES.clean.residual(fi, m0), (slice(0, 1),), dirty[None])
     return {"m": [m0, m1], "factor_s": round(t_factor, 4), "psf_s": round(t_psf, 4)}
 
 
@@ -125,9 +125,9 @@ def _cycle_task(ctx, key):
     t0 = time.perf_counter()
     ops = stored_operators(ctx, fi, m0, m1) if cfg.clean.keep_factors else block_operators_from_gram(ctx, fi, m0, m1)
     t_ops = time.perf_counter() - t0
-    rows = ctx.read(STORES.clean, "components", (slice(fi, fi + 1), slice(c, c + 1)))[0, 0]
-    name = f"f{fi}/residual_b{m0:05d}"
-    resid = ctx.read(STORES.clean, name, (slice(c, c + 1),))[0]
+    rows = ctx.read(STORES.clean.components, (slice(fi, fi + 1), slice(c, c + 1)))[0, 0]
+    name = STORES.clean.residual(fi, m0)
+    resid = ctx.read(name, (slice(c, c + 1),))[0]
     new, t = cycle_block(resid, rows, ops, lmax, m0, m1, highpass(cfg))
     ctx.write(ctx.open(STORES.clean, mode="r+"), name, (slice(c + 1, c + 2),), new[None])
     return {"m": [m0, m1], "operators_s": round(t_ops, 4), "components_s": round(t["components"], 4),
@@ -146,8 +146,8 @@ def _setup_tables(ctx, g):
     w = highpass(cfg)
     nside = clean_nside(cfg)
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(np.deg2rad(_lat(ctx))))
-    freqs = ctx.read(STORES.vis, "freqs_hz")
-    for fi in range(g["threshold"].shape[0]):
+    freqs = ctx.read(STORES.vis.freqs_hz)
+    for fi in range(g[STORES.clean.threshold].shape[0]):
         jk = jackknife_splits(ctx, fi)
         cols = psf_alm_columns(g, fi, lmax, blocks)
         tables = [psf.fit_psf_columns(cols, lmax, decs)]
@@ -155,8 +155,8 @@ def _setup_tables(ctx, g):
         tables.append(tables[0] if w is None else psf.fit_psf_columns(psf.apply_l_weights(cols, lmax, w, out=cols),
                                                                       lmax, decs))
         del cols
-        ctx.write(g, "psf_table", (slice(fi, fi + 1),), np.stack([psf.table_to_array(t) for t in tables])[None],
-                  allow_nan=True)
+        ctx.write(g, STORES.clean.psf_table, (slice(fi, fi + 1),),
+                  np.stack([psf.table_to_array(t) for t in tables])[None], allow_nan=True)
         noise, sigma_clean = np.full(len(NOISE_FIELDS), np.nan), None
         if jk[0] is not None:
             alms = split_alm(ctx, fi, lmax, mmax)
@@ -165,12 +165,12 @@ def _setup_tables(ctx, g):
             noise = np.array([nz[k] for k in NOISE_FIELDS])
             if w is not None:  # CLEAN sees H maps: their noise sets its threshold
                 sigma_clean = jackknife_sigma(alms, jk, lmax, nside, mask, w)
-        ctx.write(g, "noise", (slice(fi, fi + 1),), noise[None], allow_nan=True)
+        ctx.write(g, STORES.clean.noise, (slice(fi, fi + 1),), noise[None], allow_nan=True)
         if c.threshold is not None:
             thr = float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", float(freqs[fi])))
         else:
             thr = c.threshold_sigma * sigma_clean if sigma_clean is not None else 0.0
-        ctx.write(g, "threshold", (slice(fi, fi + 1),), np.array([thr]))
+        ctx.write(g, STORES.clean.threshold, (slice(fi, fi + 1),), np.array([thr]))
 
 
 def _next_cycle(ctx, cycle):
@@ -182,16 +182,16 @@ def _next_cycle(ctx, cycle):
     opts, nside = clean_options(cfg.clean), clean_nside(cfg)
     mask = ck.observed_mask(nside, ck.never_seen_dec_min(np.deg2rad(_lat(ctx))))
     keys = []
-    for fi in range(g["threshold"].shape[0]):
-        thr = float(g["threshold"][fi])
-        if not active(g["peaks"][fi, :cycle], thr, opts):
+    for fi in range(g[STORES.clean.threshold].shape[0]):
+        thr = float(g[STORES.clean.threshold][fi])
+        if not active(g[STORES.clean.peaks][fi, :cycle], thr, opts):
             continue
         vecs, flux, peak, _ = ck.plan_cycle(residual_alm(g, fi, cycle, lmax, blocks), lmax, clean_table(g, fi), mask,
                                             nside, opts, thr)
         rows = np.zeros((opts.n_peaks, 4))
         rows[:len(flux), :3], rows[:len(flux), 3] = vecs, flux
-        ctx.write(g, "components", (slice(fi, fi + 1), slice(cycle, cycle + 1)), rows[None, None])
-        ctx.write(g, "peaks", (slice(fi, fi + 1), slice(cycle, cycle + 1)), np.array([[peak]]))
+        ctx.write(g, STORES.clean.components, (slice(fi, fi + 1), slice(cycle, cycle + 1)), rows[None, None])
+        ctx.write(g, STORES.clean.peaks, (slice(fi, fi + 1), slice(cycle, cycle + 1)), np.array([[peak]]))
         keys += [TaskKey(freq=fi, m_block=m0) for m0, _ in blocks]
     return keys or None
 
@@ -202,7 +202,7 @@ def _finalize(ctx):
     g = ctx.open(STORES.clean, mode="r+")
     opts, nside, w = clean_options(cfg.clean), clean_nside(cfg), highpass(cfg)
     out = {}
-    for fi in range(g["threshold"].shape[0]):
+    for fi in range(g[STORES.clean.threshold].shape[0]):
         state, reason = clean_result(g, fi, opts)
         state.residual_alm = residual_alm(g, fi, state.cycle, lmax, blocks)
         table = clean_table(g, fi)
@@ -211,13 +211,13 @@ def _finalize(ctx):
                                       state.comp_flux, table)
         else:
             restored = ck.restore_highpass(split_alm(ctx, fi, lmax, mmax)["full"], state, table, w, lmax, nside)
-        ctx.write(g, "restored", (slice(fi, fi + 1),), restored[None])
-        ctx.write(g, "n_cycles", (slice(fi, fi + 1),), np.array([state.cycle]))
-        ctx.write(g, "stop", (slice(fi, fi + 1),), np.array([CLEAN_STOPS.index(reason) if reason else -1]))
+        ctx.write(g, STORES.clean.restored, (slice(fi, fi + 1),), restored[None])
+        ctx.write(g, STORES.clean.n_cycles, (slice(fi, fi + 1),), np.array([state.cycle]))
+        ctx.write(g, STORES.clean.stop, (slice(fi, fi + 1),), np.array([CLEAN_STOPS.index(reason) if reason else -1]))
         out[f"f{fi}"] = {"cycles": state.cycle, "stop": reason, "components": int(len(state.comp_flux)),
                          "first_peak_jy_sr": float(state.peaks[0]) if state.cycle else None,
                          "last_peak_jy_sr": float(state.peaks[-1]) if state.cycle else None,
-                         "threshold_jy_sr": float(g["threshold"][fi])}
+                         "threshold_jy_sr": float(g[STORES.clean.threshold][fi])}
     return out
 
 

@@ -20,7 +20,7 @@ from mmflow.workflow.engine.geometry import n_bins_of
 from mmflow.workflow.stages.ingest.cost import COST
 from mmflow.workflow.stages.base import Stage
 
-CROSS_ARRAYS = ("vis_cross", "weights_cross")
+CROSS_ARRAYS = (STORES.vis.vis_cross, STORES.vis.weights_cross)
 
 
 def input_files(cfg):
@@ -79,12 +79,12 @@ def _ingest_prepare(ctx):
 
 def _ingest_task(ctx, key):
     g = ctx.open(STORES.vis, mode="r+")
-    t0, t1 = chunk_rows(key, g["lst"].shape[0])
+    t0, t1 = chunk_rows(key, g[STORES.vis.lst].shape[0])
     info = ingest_rows(ctx.cfg, ctx.run.store(STORES.vis), t0, t1)
     rows = (slice(t0, t1),)
-    for name in VIS_ARRAYS + tuple(CROSS_ARRAYS if "vis_cross" in g else ()):  # ingest writes the rows itself
+    for name in VIS_ARRAYS + tuple(CROSS_ARRAYS if STORES.vis.vis_cross in g else ()):  # ingest writes the rows itself
         ctx.ledger.record(g[name], rows)
-    write_autos(ctx, g, rows, g["vis"][t0:t1], g["weights"][t0:t1])
+    write_autos(ctx, g, rows, g[STORES.vis.vis][t0:t1], g[STORES.vis.weights][t0:t1])
     return info
 
 

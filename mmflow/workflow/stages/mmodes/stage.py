@@ -49,14 +49,14 @@ from mmflow.workflow.engine.task_key import TaskKey
 def _prepare(ctx):
     cfg = ctx.cfg
     vis = ctx.open(STORES.vis)
-    nt, nbl, nf = vis["vis"].shape[:3]
+    nt, nbl, nf = vis[STORES.vis.vis].shape[:3]
     mmax, n_bins = mmax_of(cfg), n_bins_of(cfg, vis.attrs["integration_s"])
     splits = list(cfg.mmode.splits)
     prior = effective_prior(cfg.mmode, ctx.run.path)
     if prior is not None:  # channels and epoch of ingested data are known only now
-        check_prior_run(prior, cfg.mmode.lmax, mmax, ctx.run.path, vis["freqs_hz"][:],
+        check_prior_run(prior, cfg.mmode.lmax, mmax, ctx.run.path, vis[STORES.vis.freqs_hz][:],
                         float(vis.attrs["epoch_jd"]))
-    _check_day(ctx, vis["lst"][:], n_bins, cfg.mmode.min_coverage)
+    _check_day(ctx, vis[STORES.vis.lst][:], n_bins, cfg.mmode.min_coverage)
     attrs = {"mmax": mmax, "n_bins": n_bins, "splits": splits}
     if any(is_time_split(s) for s in splits):
         attrs.update(_check_time_splits(ctx, vis, splits, n_bins))
@@ -64,8 +64,8 @@ def _prepare(ctx):
     if is_full_stokes(cfg.imaging.stokes):
         _check_correlations(ctx, vis)
         n_corr = len(CORRELATIONS)
-    ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis["vis"].chunks[1], attrs, n_corr))
-    return [TaskKey(bl_chunk=i) for i in range(-(-nbl // vis["vis"].chunks[1]))]
+    ctx.create(mmodes_store(len(splits), nf, mmax, nbl, vis[STORES.vis.vis].chunks[1], attrs, n_corr))
+    return [TaskKey(bl_chunk=i) for i in range(-(-nbl // vis[STORES.vis.vis].chunks[1]))]
 
 
 def _check_correlations(ctx, vis):
@@ -82,7 +82,7 @@ def _time_splits(ctx, vis, splits):
     """``(lst, days, {split: integration mask})`` over every integration of ``vis.zarr`` (NaN LSTs in no
     split), the Sun's elevation computed only for ``day`` / ``night``; cached per process for the
     data's times (every task of a run needs the same masks)."""
-    lst, times = vis["lst"][:], vis["time_jd"][:]
+    lst, times = vis[STORES.vis.lst][:], vis[STORES.vis.time_jd][:]
     a = vis.attrs
     sun = any(split_kind(s)[0] == "sun" for s in splits)
     key = (hashlib.sha1(lst.tobytes() + times.tobytes()).hexdigest(), tuple(splits),
@@ -121,11 +121,11 @@ def _check_time_splits(ctx, vis, splits, n_bins):
 
 def _task(ctx, key):
     vg = ctx.open(STORES.vis)
-    nt, nbl, nf = vg["vis"].shape[:3]
-    ch = vg["vis"].chunks[1]
+    nt, nbl, nf = vg[STORES.vis.vis].shape[:3]
+    ch = vg[STORES.vis.vis].chunks[1]
     i = key.bl_chunk
     cols = slice(i * ch, min(nbl, (i + 1) * ch))
-    full_stokes = "mmodes_corr" in ctx.open(STORES.mmodes)
+    full_stokes = STORES.mmodes.mmodes_corr in ctx.open(STORES.mmodes)
     block = read_block(ctx, slice(None), cols, cross=full_stokes)  # all integrations, corrected
     good_t = np.isfinite(block.lst)
     vis, w = stokes_i(block.vis[good_t], block.weights[good_t])
@@ -138,7 +138,7 @@ def _task(ctx, key):
     per_pol, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs,
                                         [(p, p) for p in range(block.vis.shape[-1])])
     sigma2 = None if per_pol is None else stokes_i_variance(np.stack(per_pol, axis=-1))
-    tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
+    tel, freqs = ctx.telescope(), vg[STORES.vis.freqs_hz][:]
     # the bins of the smallest split bound the fit: half of them for even / odd
     n_fit = fit_bins(splits, n_bins)
     out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
@@ -159,13 +159,13 @@ def _task(ctx, key):
         info["dropped_low_coverage"] += full.coverage.n_dropped
         info["downweighted_low_coverage"] += full.coverage.n_downweighted
         info["baselines_without_data"] += full.coverage.n_empty
-    ctx.write(g, "mmodes", (slice(None), slice(None), slice(None), slice(None), cols), out)
-    ctx.write(g, "inv_var", (slice(None), cols), inv_var)
-    ctx.write(g, "n_samples", (slice(None), slice(None), cols), n_samples)
+    ctx.write(g, STORES.mmodes.mmodes, (slice(None), slice(None), slice(None), slice(None), cols), out)
+    ctx.write(g, STORES.mmodes.inv_var, (slice(None), cols), inv_var)
+    ctx.write(g, STORES.mmodes.n_samples, (slice(None), slice(None), cols), n_samples)
     if full_stokes:
         corr, inv_corr = _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit)
-        ctx.write(g, "mmodes_corr", (slice(None),) * 5 + (cols,), corr)
-        ctx.write(g, "inv_var_corr", (slice(None), slice(None), cols), inv_corr)
+        ctx.write(g, STORES.mmodes.mmodes_corr, (slice(None),) * 5 + (cols,), corr)
+        ctx.write(g, STORES.mmodes.inv_var_corr, (slice(None), slice(None), cols), inv_corr)
     return info
 
 
@@ -177,7 +177,7 @@ def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit):
     w = np.concatenate([block.weights, block.cross_weights], axis=-1)[good_t]
     feeds = [(0, 0), (1, 1)] + list(zip(*CROSS_FEEDS))
     per_corr, _ = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs, feeds)
-    tel, freqs = ctx.telescope(), vg["freqs_hz"][:]
+    tel, freqs = ctx.telescope(), vg[STORES.vis.freqs_hz][:]
     nf, nbl = vis.shape[2], vis.shape[1]
     out = np.zeros((len(fit.splits), nf, mmax + 1, 2, len(feeds), nbl), np.complex128)
     inv_var = np.zeros((nf, len(feeds), nbl))
@@ -287,8 +287,9 @@ def _check_day(ctx, lst, n_bins, min_coverage):
     day's drift scan."""
     coverage = bin_coverage(lst, n_bins)
     if coverage < min_coverage:
-        raise CoverageError(str(ctx.run.store(STORES.vis)), "lst", f"the integrations cover only {coverage:.1%} "
-                            f"of the {n_bins} sidereal bins (need {min_coverage:.0%})",
+        raise CoverageError(str(ctx.run.store(STORES.vis)), STORES.vis.lst,
+                            f"the integrations cover only {coverage:.1%} of the {n_bins} sidereal bins "
+                            f"(need {min_coverage:.0%})",
                             "observe a full sidereal day, lower mmode.min_coverage, or use fewer bins")
 
 
@@ -306,7 +307,7 @@ def _finalize(ctx):
     integrations cover the day (:func:`_check_day`, before any task), so the flags do: the input's or
     the corrections' (antennas a calibration flagged)."""
     infos = ctx.run.task_infos("mmodes").values()
-    nf = ctx.open(STORES.mmodes)["inv_var"].shape[0]
+    nf = ctx.open(STORES.mmodes)[STORES.mmodes.inv_var].shape[0]
     total = nf * sum(int(i.get("baselines", 0)) for i in infos)
     short = sum(int(i.get(k, 0)) for i in infos
                 for k in ("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data"))
@@ -314,9 +315,10 @@ def _finalize(ctx):
         cfg = ctx.cfg
         cal = ""
         if STORES.gains in ctx.stage.inputs and ctx.producer(STORES.gains) is not None:
-            flags = ctx.read(STORES.gains, "flags")
-            cal = f"; the calibrate stage flagged {np.mean(flags):.1%} of its antenna solutions (gains.zarr 'flags')"
-        raise CoverageError(str(ctx.run.store(STORES.vis)), "weights",
+            flags = ctx.read(STORES.gains.flags)
+            cal = (f"; the calibrate stage flagged {np.mean(flags):.1%} of its antenna solutions "
+                   f"({STORES.gains} '{STORES.gains.flags}')")
+        raise CoverageError(str(ctx.run.store(STORES.vis)), STORES.vis.weights,
                             f"{short} of {total} baselines (summed over channels) keep less than "
                             f"{cfg.mmode.min_coverage:.0%} of the sidereal day after their flags, though the "
                             f"integrations cover the day: the flags, not the observation, are short{cal}",

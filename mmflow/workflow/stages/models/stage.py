@@ -68,9 +68,9 @@ def _track(ctx, tel, lst, name):
 def _prepare(ctx):
     m = ctx.cfg.models
     vg = ctx.open(STORES.vis)
-    nf = vg["vis"].shape[2]
+    nf = vg[STORES.vis.vis].shape[2]
     tel = ctx.telescope()
-    lst = vg["lst"][:]
+    lst = vg[STORES.vis.lst][:]
     for name in m.sources:  # refuse before any work
         _, minutes = _track(ctx, tel, lst, name)
         if minutes < m.min_track_min:
@@ -104,7 +104,7 @@ def _task(ctx, key):
     name = m.sources[si]
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
-    rows, _ = _track(ctx, tel, ctx.open(STORES.vis)["lst"][:], name)
+    rows, _ = _track(ctx, tel, ctx.open(STORES.vis)[STORES.vis.lst][:], name)
     rows = rows[np.unique(np.linspace(0, len(rows) - 1, min(len(rows), m.max_integrations)).round().astype(int))]
     vis, weights, lst, pairs = _read_rows(ctx, rows, fi)
     keep = solve_mask(tel, pairs, p.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
@@ -134,14 +134,14 @@ def _task(ctx, key):
     comps, res = fit_gaussian_components(data, w, uvw, beam, start, aperture_arcmin=aperture, step_arcmin=step,
                                          reference_flux=total, free_amplitudes=True, maxiter=m.maxiter)
     g = ctx.open(STORES.models, mode="r+")
-    n_max = g["components"].shape[2]
+    n_max = g[STORES.models.components].shape[2]
     table = np.zeros((n_max, len(MODEL_COLUMNS)))
     table[:len(comps)] = pack_components(comps).reshape(len(comps), -1)
     region = (slice(fi, fi + 1), slice(si, si + 1))
-    ctx.write(g, "components", region, table[None, None])
-    ctx.write(g, "cost", region, np.array([[[res_point["fun_start"], res["fun_start"], res.fun]]]))
-    ctx.write(g, "iterations", region, np.array([[int(res.nit)]]))
-    ctx.write(g, "n_integrations", region, np.array([[len(rows)]]))
+    ctx.write(g, STORES.models.components, region, table[None, None])
+    ctx.write(g, STORES.models.cost, region, np.array([[[res_point["fun_start"], res["fun_start"], res.fun]]]))
+    ctx.write(g, STORES.models.iterations, region, np.array([[int(res.nit)]]))
+    ctx.write(g, STORES.models.n_integrations, region, np.array([[len(rows)]]))
     return {
         "fits": 1,
         "iterations": int(res.nit),

@@ -52,10 +52,11 @@ from mmflow.workflow.stages.base import Stage
 
 def _prepare(ctx):
     vg = ctx.open(STORES.vis)
-    nt, _, nf, npol = vg["vis"].shape
-    n_ant = vg["antenna_enu"].shape[0]
+    nt, _, nf, npol = vg[STORES.vis.vis].shape
+    n_ant = vg[STORES.vis.antenna_enu].shape[0]
     # with no baseline long enough every fit would be empty: refuse before any task
-    check_baselines(ctx.telescope(), vg["pairs"][:], ctx.cfg.peel.min_baseline_lambda, "peel.min_baseline_lambda")
+    check_baselines(ctx.telescope(), vg[STORES.vis.pairs][:], ctx.cfg.peel.min_baseline_lambda,
+                    "peel.min_baseline_lambda")
     names = peel_names(ctx.cfg.peel)
     # the models stage's fits replace the catalogue's point models when it is enabled: an input
     # whose producer's fingerprint then enters this stage's
@@ -71,7 +72,7 @@ def _prepare(ctx):
 
 def _task(ctx, key):
     fi = key.freq
-    rows = slice(*chunk_rows(key, ctx.open(STORES.vis)["lst"].shape[0]))
+    rows = slice(*chunk_rows(key, ctx.open(STORES.vis)[STORES.vis.lst].shape[0]))
     block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
     tel = ctx.telescope()
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, peel_names(ctx.cfg.peel),
@@ -85,8 +86,9 @@ def _task(ctx, key):
     def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
         return np.moveaxis(x, 0, 1)[:, None]
 
-    ctx.write(g, "dd_gains", region, per_time(out.dd_gains))
-    for name in ("scale", "mode", "guard", "measured", "removed", "converged"):
+    ctx.write(g, STORES.peel.dd_gains, region, per_time(out.dd_gains))
+    p = STORES.peel
+    for name in (p.scale, p.mode, p.guard, p.measured, p.removed, p.converged):  # the peel result's fields
         ctx.write(g, name, region, per_time(getattr(out, name)))
     peeled = out.mode == PEEL
     return {"peeled": int(peeled.sum()), "guard_fired": int(out.guard.sum()),

@@ -70,9 +70,9 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
     g = ctx.open(STORES.clean)
     maps_dir = ctx.run.path / "maps"
     rot = _rotate_to(p.frame, epoch)
-    state, reason = cs.clean_result(g, fi, cs.clean_options(cfg.clean), int(g["n_cycles"][fi]))
+    state, reason = cs.clean_result(g, fi, cs.clean_options(cfg.clean), int(g[STORES.clean.n_cycles][fi]))
     state.residual_alm = cs.residual_alm(g, fi, state.cycle, lmax, blocks)
-    tables = [psf.table_from_array(g["psf_table"][fi, k]) for k in (0, 1)]
+    tables = [psf.table_from_array(g[STORES.clean.psf_table][fi, k]) for k in (0, 1)]
     alms = cs.split_alm(ctx, fi, lmax, mmax)
     w = cs.highpass(cfg)
 
@@ -111,12 +111,12 @@ def clean_products(ctx, fi, tag, freq, epoch, nside, mask, meta, png):
         info["images"][name] = entry
     info["psf_stamps"] = _write_stamps(ctx, g, fi, tag, freq, tables[0], lmax, blocks, png, psf_stamp_header,
                                        write_image_fits, write_psf_png)
-    noise = dict(zip(NOISE_FIELDS, (float(x) for x in g["noise"][fi])))
+    noise = dict(zip(NOISE_FIELDS, (float(x) for x in g[STORES.clean.noise][fi])))
     noise["kelvin_map_units"] = p.unit
     noise["estimator"] = jk[0]
     noise["by_split"] = split_noise(ctx, fi, alms, freq, tables[0])
     per_cycle = [int(np.count_nonzero(state.comp_cycle == c)) for c in range(state.cycle)]
-    thr = float(g["threshold"][fi])
+    thr = float(g[STORES.clean.threshold][fi])
     info.update({
         "clean": {"cycles": state.cycle, "stop": reason, "components": int(len(state.comp_flux)),
                   "total_flux_jy": float(state.comp_flux.sum()), "threshold_jy_per_sr": thr,
@@ -204,11 +204,11 @@ def table1_row(ctx, fi, freq, info):
     cfg = ctx.cfg
     g = ctx.open(STORES.clean)
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    frac = ctx.read(STORES.alm, "fraction_above", (slice(fi, fi + 1),))[0][: mmax + 1]
+    frac = ctx.read(STORES.alm.fraction_above, (slice(fi, fi + 1),))[0][: mmax + 1]
     n_m = lmax - np.arange(mmax + 1) + 1  # each m's Gram size: the fraction over every singular value
     width = float(ctx.vis_attrs().get("channel_width_hz", 0.0))
     noise = {"kelvin": info["noise"]["kelvin"], "mjy_per_beam": info["noise"]["mjy_per_beam"]}
-    return table1.table1_row(freq, width, psf.table_from_array(g["psf_table"][fi, 0]), noise,
+    return table1.table1_row(freq, width, psf.table_from_array(g[STORES.clean.psf_table][fi, 0]), noise,
                              float(np.sum(frac * n_m) / np.sum(n_m)), info["noise"].get("by_split"))
 
 

@@ -86,9 +86,9 @@ def _peel_rows(ctx, fi, freq, epoch_year, wanted):
     kept = set(g.attrs.get("modelled", []))
     index = {n: s for s, n in enumerate(g.attrs["sources"]) if n not in kept}  # store column of each
     names = list(index)
-    mode = ctx.read(STORES.peel, "mode", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, pol)
-    scale = ctx.read(STORES.peel, "scale", (slice(None), slice(fi, fi + 1)))[:, 0]
-    gains = ctx.read(STORES.peel, "dd_gains", (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, ant, pol)
+    mode = ctx.read(STORES.peel.mode, (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, pol)
+    scale = ctx.read(STORES.peel.scale, (slice(None), slice(fi, fi + 1)))[:, 0]
+    gains = ctx.read(STORES.peel.dd_gains, (slice(None), slice(fi, fi + 1)))[:, 0]  # (time, src, ant, pol)
     rows = []
     for src in get_sources(names):
         if wanted is not None and src.name not in wanted:
@@ -187,7 +187,7 @@ def _noise_alms(ctx, fi, n_rot=NOISE_ROTATIONS):
 def _clean_components(ctx, fi):
     """CLEAN's components of one channel (frame of date): ``(vecs, fluxes)``."""
     g = ctx.open(STORES.clean)
-    state, _ = cs.clean_result(g, fi, cs.clean_options(ctx.cfg.clean), int(g["n_cycles"][fi]))
+    state, _ = cs.clean_result(g, fi, cs.clean_options(ctx.cfg.clean), int(g[STORES.clean.n_cycles][fi]))
     return state.comp_vec, state.comp_flux
 
 

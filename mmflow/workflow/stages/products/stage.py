@@ -46,20 +46,20 @@ def frequency_tags(freqs_hz):
 
 def _products_prepare(ctx):
     (ctx.run.path / "maps").mkdir(parents=True, exist_ok=True)
-    return [TaskKey(freq=fi) for fi in range(ctx.open(STORES.alm)["alm"].shape[1])]
+    return [TaskKey(freq=fi) for fi in range(ctx.open(STORES.alm)[STORES.alm.alm].shape[1])]
 
 
 def _products_task(ctx, key):
     cfg = ctx.cfg
     fi = key.freq
     vis = ctx.open(STORES.vis)
-    freqs = vis["freqs_hz"][:]
+    freqs = vis[STORES.vis.freqs_hz][:]
     f, epoch, lat = float(freqs[fi]), float(vis.attrs["epoch_jd"]), float(vis.attrs["lat_deg"])
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
-    alm = healpy_alm(ctx.read(STORES.alm, "alm", (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
-    lc = ctx.read(STORES.alm, "lcurve", (slice(fi, fi + 1),))[0].sum(axis=0)
-    frac = ctx.read(STORES.alm, "fraction_above", (slice(fi, fi + 1),))[0]
-    eps = ctx.read(STORES.alm, "eps_grid")
+    alm = healpy_alm(ctx.read(STORES.alm.alm, (slice(0, None), slice(fi, fi + 1)))[0, 0], lmax, mmax)
+    lc = ctx.read(STORES.alm.lcurve, (slice(fi, fi + 1),))[0].sum(axis=0)
+    frac = ctx.read(STORES.alm.fraction_above, (slice(fi, fi + 1),))[0]
+    eps = ctx.read(STORES.alm.eps_grid)
     p = cfg.products
     nside = p.nside or 2 * imaging_maps.default_nside(lmax)
     # through the module: tests/acceptance/test_faults.py replaces alm_to_output_map there
@@ -105,7 +105,7 @@ def _products_task(ctx, key):
 
 def _resolution_deg(vis, freq_hz, lmax):
     """The finer of the lmax limit (180 / lmax degrees) and the longest baseline's lambda / b."""
-    enu, pairs = vis["antenna_enu"][:], vis["pairs"][:]
+    enu, pairs = vis[STORES.vis.antenna_enu][:], vis[STORES.vis.pairs][:]
     b_max = float(np.linalg.norm(enu[pairs[:, 1]] - enu[pairs[:, 0]], axis=1).max())
     return float(max(180.0 / lmax, np.degrees(SPEED_OF_LIGHT / freq_hz / b_max) if b_max > 0 else 0.0))
 
@@ -130,7 +130,7 @@ def _cost_so_far(ctx):
 
 def _products_finalize(ctx):
     maps = ctx.run.path / "maps"
-    tags = frequency_tags(ctx.open(STORES.vis)["freqs_hz"][:])
+    tags = frequency_tags(ctx.open(STORES.vis)[STORES.vis.freqs_hz][:])
     parts = [json.loads((maps / f"summary_{t}.json").read_text()) for t in tags]
     out = {"maps": parts}
     if ctx.cfg.clean.enabled:

@@ -45,16 +45,16 @@ COLUMNS = ["I_STOKES", "Q_STOKES", "U_STOKES", "V_STOKES"]
 
 
 def _maps(ctx, name, fi, nside, unit=None, split=None):
-    """I, Q, U, V maps ``(4, npix)`` of ``stokes.zarr``'s array ``name`` at channel ``fi`` (of data split
-    ``split``, an index of ``mmode.splits``, for ``alm``) in ``products.frame`` and ``unit``."""
+    """I, Q, U, V maps ``(4, npix)`` of stokes.zarr's array ``name`` (``STORES.stokes.alm``, ...) at channel
+    ``fi`` (of data split ``split``, an index of ``mmode.splits``, for ``alm``) in ``products.frame`` and ``unit``."""
     cfg = ctx.cfg
     lmax, p = cfg.mmode.lmax, cfg.products
     vis = ctx.open(STORES.vis)
-    f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
+    f, epoch = float(vis[STORES.vis.freqs_hz][fi]), float(vis.attrs["epoch_jd"])
     if split is None:
-        padded = ctx.read(STORES.stokes, name, (slice(fi, fi + 1),))[0]  # (4, m, l)
+        padded = ctx.read(name, (slice(fi, fi + 1),))[0]  # (4, m, l)
     else:
-        padded = ctx.read(STORES.stokes, name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
+        padded = ctx.read(name, (slice(split, split + 1), slice(fi, fi + 1)))[0, 0]
     alm = np.stack([healpy_alm(padded[x], lmax) for x in range(4)])
     maps = stokes_alm_to_output_maps(alm, lmax, f, epoch, p.frame, unit or p.unit, nside)
     ctx.check_finite(f"maps/{name} of channel {fi}", maps)
@@ -75,7 +75,7 @@ def stokes_noise(ctx, fi, nside, mask, full):
     if kind is None:
         return None, None
     splits = list(ctx.cfg.mmode.splits)
-    maps = {s: full if s == "full" else _maps(ctx, "alm", fi, nside, split=splits.index(s)) for s in used}
+    maps = {s: full if s == "full" else _maps(ctx, STORES.stokes.alm, fi, nside, split=splits.index(s)) for s in used}
     sigma = {x: float(np.sqrt(split_variance({s: m[k] for s, m in maps.items()}, kind, fractions, mask)))
              for k, x in enumerate("IQUV")}
     return noise_realisation(maps, kind, fractions), {"estimator": kind, "unit": ctx.cfg.products.unit, **sigma}
@@ -86,13 +86,13 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     p = ctx.cfg.products
     g = ctx.open(STORES.stokes)
     vis = ctx.open(STORES.vis)
-    f, epoch = float(vis["freqs_hz"][fi]), float(vis.attrs["epoch_jd"])
+    f, epoch = float(vis[STORES.vis.freqs_hz][fi]), float(vis.attrs["epoch_jd"])
     rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
-    n_cyc = int(g["v_n_cycles"][fi])
-    comps = g["v_components"][fi, :n_cyc].reshape(-1, 4)
+    n_cyc = int(g[STORES.stokes.v_n_cycles][fi])
+    comps = g[STORES.stokes.v_components][fi, :n_cyc].reshape(-1, 4)
     comps = comps[comps[:, 3] != 0]
-    residual = _maps(ctx, "v_residual", fi, nside, "Jy/sr")[3]
-    table = psf.table_from_array(g["v_psf_table"][fi])
+    residual = _maps(ctx, STORES.stokes.v_residual, fi, nside, "Jy/sr")[3]
+    table = psf.table_from_array(g[STORES.stokes.v_psf_table][fi])
     restored = ck.restore_map(residual, comps[:, :3], comps[:, 3], table, to_frame=rot)
     cols = [units.convert(m, "Jy/sr", p.unit, f) for m in (restored, residual,
                                                          ck.model_map(comps[:, :3], comps[:, 3], nside, rot))]
@@ -107,8 +107,9 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     )
     ctx.ledger.record_file(ctx.run.path / path)
     info = {"fits": path, "cycles": n_cyc, "components": int(len(comps)), "flux_jy": float(comps[:, 3].sum()),
-            "stop": CLEAN_STOPS[int(g["v_stop"][fi])], "threshold_jy_sr": float(g["v_threshold"][fi]),
-            "noise_jy_sr": float(g["v_noise"][fi]), "restored_peak": float(np.max(np.abs(cols[0][mask])))}
+            "stop": CLEAN_STOPS[int(g[STORES.stokes.v_stop][fi])],
+            "threshold_jy_sr": float(g[STORES.stokes.v_threshold][fi]),
+            "noise_jy_sr": float(g[STORES.stokes.v_noise][fi]), "restored_peak": float(np.max(np.abs(cols[0][mask])))}
     if png:
         write_mollweide_png(ctx.run.path / f"maps/vclean_{tag}.png", cols[0], f"mmflow {tag} CLEANed Stokes V "
                             f"({p.frame})", p.unit, mask=mask)
@@ -130,7 +131,7 @@ def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
 def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     """Write the full-Stokes maps of channel ``fi`` and return their summary entries."""
     maps_dir = ctx.run.path / "maps"
-    iquv, leak = _maps(ctx, "alm", fi, nside, split=0), _maps(ctx, "leakage", fi, nside)
+    iquv, leak = _maps(ctx, STORES.stokes.alm, fi, nside, split=0), _maps(ctx, STORES.stokes.leakage, fi, nside)
     pmeta = dict(meta, STOKES="IQUV", POLCONV="avg", **POLARISATION_KEYWORDS)
     files = {"stokes_fits": f"maps/stokes_{tag}.fits", "leakage_fits": f"maps/leakage_{tag}.fits",
              "polfrac_fits": f"maps/polfrac_{tag}.fits"}

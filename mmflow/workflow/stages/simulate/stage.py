@@ -125,7 +125,8 @@ def _diffuse_task(ctx, key):
     points = diffuse_points(tel, f, cfg.observation.epoch_jd, s.diffuse_lmax, s.seed, s.quad_oversample)
     samples = drift_samples(tel, f, points, lsts, cfg.corrupt.enabled)
     rows = slice(key.time * DIFFUSE_SAMPLE_BLOCK, key.time * DIFFUSE_SAMPLE_BLOCK + len(lsts))
-    ctx.write(ctx.open(STORES.diffuse, mode="r+"), "samples", (slice(key.freq, key.freq + 1), rows), samples[None])
+    ctx.write(ctx.open(STORES.diffuse, mode="r+"), STORES.diffuse.samples, (slice(key.freq, key.freq + 1), rows),
+              samples[None])
     return {"diffuse_samples": len(lsts)}
 
 
@@ -133,8 +134,8 @@ def _diffuse_at(ctx, lst):
     """Per channel the diffuse sky interpolated to the sidereal angles ``lst`` (``simulate_chunk``'s ``extra``)."""
     g = ctx.open(STORES.diffuse)
     out = []
-    for fi in range(g["samples"].shape[0]):
-        v = evaluate_drift(coefficients_from_samples(ctx.read(STORES.diffuse, "samples", (slice(fi, fi + 1),))[0]),
+    for fi in range(g[STORES.diffuse.samples].shape[0]):
+        v = evaluate_drift(coefficients_from_samples(ctx.read(STORES.diffuse.samples, (slice(fi, fi + 1),))[0]),
                            lst, ctx.cfg.sky.diffuse_lmax)
         out.append(v[..., 0] if v.shape[-1] == 1 else v)
     return out
@@ -164,8 +165,8 @@ def _sim_task(ctx, key):
     if full:
         vis, cross = simulate_polarised_chunk(tel, _jones(ctx.for_stage(ctx.stage)), lst, skies, rng, o.integration_s,
                                               corrupted, slice(t0, t1), cfg.corrupt.system_jy)
-        ctx.write(g, "vis_cross", rows, cross)
-        ctx.write(g, "weights_cross", rows, np.ones(cross.shape, np.float32))
+        ctx.write(g, STORES.vis.vis_cross, rows, cross)
+        ctx.write(g, STORES.vis.weights_cross, rows, np.ones(cross.shape, np.float32))
     else:
         extra = _diffuse_at(ctx, lst) if interpolates_diffuse(cfg) else None
         vis = simulate_chunk(tel, lst, skies, rng, o.integration_s, corrupted, slice(t0, t1), cfg.corrupt.system_jy,
@@ -173,11 +174,11 @@ def _sim_task(ctx, key):
     weights = np.ones(vis.shape, np.float32)
     if o.raw_files:
         _write_raw(ctx, tel, t0, time_jd, vis, cross if full else None)
-    ctx.write(g, "vis", rows, vis)
-    ctx.write(g, "weights", rows, weights)
+    ctx.write(g, STORES.vis.vis, rows, vis)
+    ctx.write(g, STORES.vis.weights, rows, weights)
     write_autos(ctx, g, rows, vis, weights)
-    ctx.write(g, "lst", rows, lst)
-    ctx.write(g, "time_jd", rows, time_jd)
+    ctx.write(g, STORES.vis.lst, rows, lst)
+    ctx.write(g, STORES.vis.time_jd, rows, time_jd)
     return {"integrations": int(len(k))}
 
 

@@ -14,7 +14,7 @@ import numpy as np
 from mmflow.conventions import m_blocks, m_slice
 from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
-from mmflow.io.run_stores import STORES, alm_store, gram_name
+from mmflow.io.run_stores import STORES, alm_store
 from mmflow.mmode.normal import hermitian_full
 from mmflow.sky.diffuse import map_to_alm
 from mmflow.sky.frames import rotate_alm, rotation_matrix
@@ -33,7 +33,7 @@ def _solve_prepare(ctx):
     cfg = ctx.cfg
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
     ng = ctx.open(STORES.normal)
-    n_split, nf = ng["rhs"].shape[:2]
+    n_split, nf = ng[STORES.normal.rhs].shape[:2]
     ctx.create(alm_store(nf, lmax, mmax, cfg.transfer.m_block, n_split, default_eps_grid(N_EPS)))
     return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in m_blocks(mmax, cfg.transfer.m_block)]
 
@@ -52,9 +52,9 @@ def _solve_task(ctx, key):
     fi, m0 = key.freq, key.m_block
     m1 = dict(m_blocks(mmax_of(cfg), cfg.transfer.m_block))[m0]
     lmax = cfg.mmode.lmax
-    rhs_all = ctx.read(STORES.normal, "rhs", (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]
-    vhv_all = ctx.read(STORES.normal, "vhv", (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]
-    grams = ctx.read(STORES.normal, gram_name(fi, m0))
+    rhs_all = ctx.read(STORES.normal.rhs, (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]
+    vhv_all = ctx.read(STORES.normal.vhv, (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0]
+    grams = ctx.read(STORES.normal.gram(fi, m0))
     prior = _prior_alm(ctx, lmax) if im.method == "prior" else None
     eps_grid = default_eps_grid(N_EPS) if im.lcurve else None
     n_split = rhs_all.shape[0]
@@ -76,9 +76,9 @@ def _solve_task(ctx, key):
         if sol.lcurve is not None:
             lc[0, m - m0] = sol.lcurve
     out = ctx.open(STORES.alm, mode="r+")
-    ctx.write(out, "alm", (slice(None), slice(fi, fi + 1), slice(m0, m1)), alm)
-    ctx.write(out, "lcurve", (slice(fi, fi + 1), slice(m0, m1)), lc)
-    ctx.write(out, "fraction_above", (slice(fi, fi + 1), slice(m0, m1)), frac)
+    ctx.write(out, STORES.alm.alm, (slice(None), slice(fi, fi + 1), slice(m0, m1)), alm)
+    ctx.write(out, STORES.alm.lcurve, (slice(fi, fi + 1), slice(m0, m1)), lc)
+    ctx.write(out, STORES.alm.fraction_above, (slice(fi, fi + 1), slice(m0, m1)), frac)
     return {"m": [m0, m1]}
 
 

@@ -77,7 +77,7 @@ def _response_decs(lat_rad):
 
 def _prepare(ctx):
     mg = ctx.open(STORES.mmodes)
-    n_split, nf, n_m = mg["mmodes_corr"].shape[:3]
+    n_split, nf, n_m = mg[STORES.mmodes.mmodes_corr].shape[:3]
     c = ctx.cfg.clean
     v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
     ctx.create(stokes_store(n_split, nf, ctx.cfg.mmode.lmax, n_m - 1, v_clean))
@@ -88,10 +88,10 @@ def _task(ctx, key):
     cfg = ctx.cfg
     fi, lmax = key.freq, cfg.mmode.lmax
     vg = ctx.open(STORES.vis)
-    freq = float(vg["freqs_hz"][fi])
-    pairs = vg["pairs"][:]
-    mm = ctx.read(STORES.mmodes, "mmodes_corr", (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, m, pm, corr, bl)
-    inv_var = ctx.read(STORES.mmodes, "inv_var_corr", (slice(fi, fi + 1),))[0]  # (corr, bl)
+    freq = float(vg[STORES.vis.freqs_hz][fi])
+    pairs = vg[STORES.vis.pairs][:]
+    mm = ctx.read(STORES.mmodes.mmodes_corr, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, m, pm, corr, bl)
+    inv_var = ctx.read(STORES.mmodes.inv_var_corr, (slice(fi, fi + 1),))[0]  # (corr, bl)
     w = relative_weights(inv_var) if cfg.transfer.noise_weighting else (inv_var > 0).astype(float)
     keep = np.flatnonzero(w.max(axis=0) > 0)  # baselines with data in some correlation
     jones = make_jones(cfg.beam.model_dump())
@@ -111,10 +111,10 @@ def _task(ctx, key):
     unpolarised[0] = alm[0]
     leak = observe(unpolarised)[0]
     out = ctx.open(STORES.stokes, mode="r+")
-    n_m = out["alm"].shape[3]
-    ctx.write(out, "alm", (slice(None), slice(fi, fi + 1)),
+    n_m = out[STORES.stokes.alm].shape[3]
+    ctx.write(out, STORES.stokes.alm, (slice(None), slice(fi, fi + 1)),
               np.stack([padded_alm(a, lmax, n_m) for a in splits])[:, None])
-    ctx.write(out, "leakage", (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
+    ctx.write(out, STORES.stokes.leakage, (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
     info = {"baselines": int(len(keep)), "eps": list(eps),
             "polarisation": polarisation_response(observe, _response_decs(tel.lat_rad), clean_nside(cfg))}
     if cfg.clean.enabled:
@@ -128,7 +128,7 @@ def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe)
     noise: its jackknife sigma where ``mmode.splits`` make one (as the Stokes-I CLEAN), else the dirty V
     map's robust rms."""
     cfg = ctx.cfg
-    c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out["alm"].shape[3]
+    c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out[STORES.stokes.alm].shape[3]
     thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
     jk, names, nside = jackknife_splits(ctx, fi), list(cfg.mmode.splits), clean_nside(cfg)
     # V's jackknife sigma over the sky CLEAN sees, by the Stokes-I CLEAN's estimator (V is spin 0)
@@ -138,18 +138,19 @@ def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe)
     res = clean_stokes_v(normal, eps, splits[0], lat_rad, clean_options(c), nside, filters, thr, table,
                          observe=observe, noise=noise)
     st, one = res["state"], (slice(fi, fi + 1),)
-    ctx.write(out, "v_residual", one, padded_alm(res["residual"], lmax, n_m)[None])
-    ctx.write(out, "v_psf_table", one, psf.table_to_array(table)[None], allow_nan=True)
+    ctx.write(out, STORES.stokes.v_residual, one, padded_alm(res["residual"], lmax, n_m)[None])
+    ctx.write(out, STORES.stokes.v_psf_table, one, psf.table_to_array(table)[None], allow_nan=True)
     for cyc in range(st.cycle):  # one chunk per cycle run (flux 0: no component)
         sel = st.comp_cycle == cyc
         comps = np.zeros((1, 1, c.peaks_per_cycle, 4))
         comps[0, 0, :sel.sum()] = np.c_[st.comp_vec[sel], st.comp_flux[sel]]
-        ctx.write(out, "v_components", (slice(fi, fi + 1), slice(cyc, cyc + 1)), comps)
-    peaks = np.full(out["v_peaks"].shape[1], np.nan)
+        ctx.write(out, STORES.stokes.v_components, (slice(fi, fi + 1), slice(cyc, cyc + 1)), comps)
+    peaks = np.full(out[STORES.stokes.v_peaks].shape[1], np.nan)
     peaks[:st.cycle] = st.peaks
-    ctx.write(out, "v_peaks", one, peaks[None], allow_nan=True)
-    for name, value in (("v_threshold", res["threshold"]), ("v_noise", res["noise"]), ("v_n_cycles", st.cycle),
-                        ("v_stop", CLEAN_STOPS.index(res["reason"]))):
+    ctx.write(out, STORES.stokes.v_peaks, one, peaks[None], allow_nan=True)
+    s = STORES.stokes
+    for name, value in ((s.v_threshold, res["threshold"]), (s.v_noise, res["noise"]), (s.v_n_cycles, st.cycle),
+                        (s.v_stop, CLEAN_STOPS.index(res["reason"]))):
         ctx.write(out, name, one, np.array([value]))
     return {"cycles": int(st.cycle), "components": int(len(st.comp_flux)), "stop": res["reason"],
             "threshold_jy_sr": float(res["threshold"])}

@@ -40,9 +40,9 @@ from mmflow.workflow.stages.base import Stage
 
 def _prepare(ctx):
     vg = ctx.open(STORES.vis)
-    nt, nbl, nf, npol = vg["vis"].shape
+    nt, nbl, nf, npol = vg[STORES.vis.vis].shape
     ctx.create(terrestrial_store(len(time_keys(nt)), nt, nf, nbl, ctx.cfg.terrestrial.components,
-                                 vg["antenna_enu"].shape[0], npol, TIME_CHUNK))
+                                 vg[STORES.vis.antenna_enu].shape[0], npol, TIME_CHUNK))
     return _keys(nt, nf, "s")
 
 
@@ -53,12 +53,12 @@ def _keys(nt, nf, phase):
 
 def _templates(ctx, fi, pairs):
     """The (K^2, bl, pol) templates of channel ``fi`` for ``pairs`` (:func:`template_basis` of its K patterns)."""
-    return template_basis(ctx.read(STORES.terrestrial, "patterns", (slice(fi, fi + 1),))[0], pairs)
+    return template_basis(ctx.read(STORES.terrestrial.patterns, (slice(fi, fi + 1),))[0], pairs)
 
 
 def _task(ctx, key):
     k, fi = key.time, key.freq
-    rows = slice(*chunk_rows(key, ctx.open(STORES.vis)["lst"].shape[0]))
+    rows = slice(*chunk_rows(key, ctx.open(STORES.vis)[STORES.vis.lst].shape[0]))
     block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
     if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
         block.vis -= modelled_sources(ctx, block)
@@ -68,8 +68,8 @@ def _task(ctx, key):
     region = (slice(k, k + 1), slice(fi, fi + 1))
     if key.phase == "s":  # phase 1: weighted sums
         v = np.where(w > 0, vis, 0)
-        ctx.write(g, "sum_vis", region, (w * v).sum(0)[None, None])
-        ctx.write(g, "sum_weight", region, w.sum(0)[None, None])
+        ctx.write(g, STORES.terrestrial.sum_vis, region, (w * v).sum(0)[None, None])
+        ctx.write(g, STORES.terrestrial.sum_weight, region, w.sum(0)[None, None])
         return {}
     tel = ctx.telescope()  # phase 2: amplitudes per integration
     B = _templates(ctx, fi, block.pairs)
@@ -81,7 +81,7 @@ def _task(ctx, key):
             v = vis[:, keep, p].T
             if np.linalg.norm(v) > 0:
                 seen.append(projection_fraction(B[c, keep, p][:, None], v))
-    ctx.write(g, "amplitudes", (rows, slice(fi, fi + 1)), amps[:, None])
+    ctx.write(g, STORES.terrestrial.amplitudes, (rows, slice(fi, fi + 1)), amps[:, None])
     return {"max_projection_fraction": float(max(seen, default=0.0))}
 
 
@@ -91,21 +91,21 @@ def _next_cycle(ctx, cycle):
         return None
     t = ctx.cfg.terrestrial
     g = ctx.open(STORES.terrestrial, mode="r+")
-    n, nf = g["sum_vis"].shape[:2]
-    pairs = ctx.open(STORES.vis)["pairs"][:]
-    patterns = np.zeros(g["patterns"].shape, complex)
+    n, nf = g[STORES.terrestrial.sum_vis].shape[:2]
+    pairs = ctx.open(STORES.vis)[STORES.vis.pairs][:]
+    patterns = np.zeros(g[STORES.terrestrial.patterns].shape, complex)
     for fi in range(nf):  # every cross baseline: the template is never extrapolated
-        total = ordered_tree_sum([g["sum_vis"][i, fi] for i in range(n)])  # (bl, pol)
-        weight = ordered_tree_sum([g["sum_weight"][i, fi] for i in range(n)])
+        total = ordered_tree_sum([g[STORES.terrestrial.sum_vis][i, fi] for i in range(n)])  # (bl, pol)
+        weight = ordered_tree_sum([g[STORES.terrestrial.sum_weight][i, fi] for i in range(n)])
         mean = np.where(weight > 0, total / np.where(weight > 0, weight, 1), 0)
         patterns[fi] = fit_templates(mean, weight, pairs, ctx.telescope().n_ant, t.components).patterns
-    ctx.write(g, "patterns", (slice(None),), patterns)
-    return _keys(ctx.open(STORES.vis)["lst"].shape[0], nf, "a")
+    ctx.write(g, STORES.terrestrial.patterns, (slice(None),), patterns)
+    return _keys(ctx.open(STORES.vis)[STORES.vis.lst].shape[0], nf, "a")
 
 
 def _apply(ctx, block):
     """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place."""
-    amps = ctx.read(STORES.terrestrial, "amplitudes", (block.rows,))  # (time, freq, K, pol)
+    amps = ctx.read(STORES.terrestrial.amplitudes, (block.rows,))  # (time, freq, K, pol)
     for k, fi in block.channel_indices():
         block.vis[:, :, k] = subtract_templates(block.vis[:, :, k], _templates(ctx, fi, block.pairs), amps[:, fi])
 

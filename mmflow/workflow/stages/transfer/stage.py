@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from mmflow.conventions import m_blocks, complex_dtype
-from mmflow.io.run_stores import STORES, gram_name, partials_store, transfer_store
+from mmflow.io.run_stores import STORES, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
@@ -45,7 +45,7 @@ def _transfer_prepare(ctx):
     lmax, mmax = cfg.mmode.lmax, mmax_of(cfg)
     tel.check_lmax(lmax)
     mg = ctx.open(STORES.mmodes)
-    n_split, nf = mg["mmodes"].shape[:2]
+    n_split, nf = mg[STORES.mmodes.mmodes].shape[:2]
     plans = [_plan(ctx, fi) for fi in range(nf)]
     n_groups = max(len(p[3]) for p in plans)
     ctx.create(partials_store(nf, n_groups, lmax, mmax, cfg.transfer.m_block, n_split, _acc_dtype(cfg)))
@@ -68,8 +68,8 @@ def _transfer_task(ctx, key):
     # group's chunk order: chunk k's m-modes are columns starts[k]:starts[k + 1]
     cols = np.concatenate([c.index for c in group]) if group else np.zeros(0, int)
     starts = dict(zip((id(c) for c in group), np.cumsum([0] + [len(c.index) for c in group])))
-    mm_group = ctx.read(STORES.mmodes, "mmodes", (slice(None), slice(fi, fi + 1)))[:, 0][..., cols]
-    inv_var = ctx.read(STORES.mmodes, "inv_var", (slice(fi, fi + 1),))[0]
+    mm_group = ctx.read(STORES.mmodes.mmodes, (slice(None), slice(fi, fi + 1)))[:, 0][..., cols]
+    inv_var = ctx.read(STORES.mmodes.inv_var, (slice(fi, fi + 1),))[0]
     tim = {"read_s": time.perf_counter() - t0}
     inv_var = relative_weights(inv_var) if cfg.transfer.noise_weighting else np.ones_like(inv_var)
     dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
@@ -89,12 +89,12 @@ def _transfer_task(ctx, key):
         blk = np.zeros((1, m1 - m0, n0, n0), acc.dtype)
         for m in range(m0, m1):
             blk[0, m - m0, :lmax - m + 1, :lmax - m + 1] = acc.gram[m]
-        ctx.write(pg, gram_name(fi, m0), (slice(gk, gk + 1),), blk)
+        ctx.write(pg, STORES.partials.gram(fi, m0), (slice(gk, gk + 1),), blk)
     rhs = np.zeros((1, acc.n_split, mmax + 1, lmax + 1), acc.dtype)
     for m in range(mmax + 1):
         rhs[0, :, m, m:] = acc.rhs[m]
-    ctx.write(pg, f"f{fi}/rhs", (slice(gk, gk + 1),), rhs)
-    ctx.write(pg, f"f{fi}/vhv", (slice(gk, gk + 1),), acc.vhv[None])
+    ctx.write(pg, STORES.partials.rhs(fi), (slice(gk, gk + 1),), rhs)
+    ctx.write(pg, STORES.partials.vhv(fi), (slice(gk, gk + 1),), acc.vhv[None])
     tim["write_s"] = time.perf_counter() - t0
     # per-phase seconds (pool phases in thread-seconds) for `mmflow bench channel`
     return {"baselines": int(sum(len(c.index) for c in group)), "timings": {k: round(v, 3) for k, v in tim.items()}}
@@ -114,7 +114,7 @@ def _block_writer(ctx, fi, chunks, bc):
         if m > 0:
             b2[1] = blk[n:]
         row0 = position[id(chunk)]
-        ctx.write(store, f"f{fi}/B_m{m:05d}", (slice(None), slice(row0, row0 + n)), b2)
+        ctx.write(store, STORES.transfer.B(fi, m), (slice(None), slice(row0, row0 + n)), b2)
     return write
 
 

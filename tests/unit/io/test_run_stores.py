@@ -1,0 +1,67 @@
+"""The array handles of :mod:`mmflow.io.run_stores` name exactly the arrays the store builders declare."""
+import pickle
+
+import pytest
+
+from mmflow.conventions import m_blocks
+from mmflow.io import run_stores as rs
+from mmflow.io.run_stores import STORES, ArrayFamily, ArrayName
+from mmflow.io.store_docs import LMAX, M_BLOCK, N_FREQ, reference_stores
+
+#: what a family's index runs over in the reference configuration (store_docs)
+INDICES = {"fi": range(N_FREQ), "m0": [m0 for m0, _ in m_blocks(LMAX, M_BLOCK)], "m": range(LMAX + 1)}
+
+
+def _named(family):
+    """Every array a family names in the reference configuration."""
+    names = [()]
+    for p in family.params:
+        names = [i + (k,) for i in names for k in INDICES[p]]
+    return {family(*i) for i in names}
+
+
+def test_handles_name_exactly_the_declared_arrays():
+    """For every store: the handles' names (families expanded over the reference channels, m blocks
+    and orders) equal the arrays its builder declares, every optional array included; every handle
+    is a ``str`` equal to its name in the store and knows its store."""
+    specs = {spec.path: spec for spec in (b(**kw) for b, kw in reference_stores())}
+    assert set(specs) == set(STORES) == set(rs.ARRAYS)
+    for store in STORES:
+        handles = rs.HANDLES[store]
+        names = set()
+        for attr, h in handles.items():
+            assert getattr(store, attr) is h
+            names |= _named(h) if isinstance(h, ArrayFamily) else {h}
+        for name in names:
+            assert isinstance(name, ArrayName) and name.store == store and type(str(name)) is str
+        assert names == {a.name for a in specs[store].arrays}, store
+
+
+def test_a_family_formats_like_the_builder():
+    assert STORES.normal.gram(1, 10) == rs.gram_name(1, 10) == "f1/gram_b00010"
+    assert STORES.partials.rhs(3) == "f3/rhs" and STORES.transfer.B(0, 7) == "f0/B_m00007"
+    assert STORES.clean.residual(2, 120).store == STORES.clean
+    with pytest.raises(TypeError, match=r"takes \(fi, m0\)"):
+        STORES.clean.chol(0)
+
+
+def test_a_misspelt_array_fails_at_the_call_naming_the_store_s_arrays():
+    with pytest.raises(AttributeError, match=r"gains.zarr declares no array 'gain'.*flux_factor, gains, flags"):
+        STORES.gains.gain
+    assert not hasattr(STORES.vis, "__wrapped__")  # dunder lookups (pickle, copy, inspect) stay plain
+
+
+def test_handles_survive_pickling():
+    """Task functions run in worker processes: a handle arrives as itself, its store included."""
+    h = pickle.loads(pickle.dumps(STORES.normal.gram(1, 10)))
+    assert isinstance(h, ArrayName) and h == "f1/gram_b00010" and h.store == STORES.normal
+    assert pickle.loads(pickle.dumps(STORES.vis)).lst == "lst"
+
+
+def test_a_declaration_that_would_shadow_a_str_method_or_repeat_is_refused():
+    with pytest.raises(ValueError, match="count"):
+        rs.store_handles(STORES.vis, ("vis", "count"))
+    with pytest.raises(ValueError, match="twice"):
+        rs.store_handles(STORES.vis, ("vis", "vis"))
+    with pytest.raises(ValueError, match="twice"):
+        rs.store_handles(STORES.normal, ("gram", dict(gram="f{fi}/gram_b{m0:05d}")))
