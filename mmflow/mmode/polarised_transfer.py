@@ -31,7 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import ducc0
 import numpy as np
 
-from mmflow.conventions import m_blocks, complex_dtype
+from mmflow.conventions import complex_dtype
 from mmflow.mmode.fringe_kernels import kernel_fringe_folds
 from mmflow.mmode.polarised import CORRELATIONS, stokes_kernels
 from mmflow.mmode.spin_legendre import weighted_spin_tables
@@ -142,53 +142,65 @@ def _folded_gemm(table, first, second, out):
         np.matmul(odd, b.view(rdtype), out=o[1::2].view(rdtype))
 
 
-def polarised_block(s, d, tables, nb):
+def polarised_block(s, d, tables, nb, n_pol=None):
     """One m's coefficients ``(n_out, 4, n_corr, 2 n_b)`` over STOKES (T, E, B, V), from that m's
     Fourier arrays ``s, d`` (:func:`polarised_fourier`: ``(2, n_active, 2, n_corr, 2 n_b)``, pairs
-    (I, V) and (Q, U)) and the tables of :func:`polarised_tables`."""
+    (I, V) and (Q, U)) and the tables of :func:`polarised_tables`. ``n_pol`` (default ``n_out``): E, B
+    and V are computed on the first ``n_pol`` rows only (their band limit, ``imaging.stokes_lmax``) and
+    are zero below them; the spin-2 GEMMs shrink to those rows (none when ``n_pol = 0``)."""
     lam, wt, xt = tables
     n_out = lam[0].shape[0] + lam[1].shape[0]
+    n_pol = n_out if n_pol is None else max(0, min(int(n_pol), n_out))
     shape = (n_out,) + s.shape[2:]
-    iv, w_qu, x_qu = (np.empty(shape, s.dtype) for _ in range(3))
+    out = np.zeros((n_out, 4) + s.shape[3:], s.dtype) if n_pol < n_out else np.empty((n_out, 4) + s.shape[3:],
+                                                                                     s.dtype)
+    iv = np.empty(shape, s.dtype)
     _folded_gemm(lam, s[0], d[0], iv)
-    _folded_gemm(wt, s[1], d[1], w_qu)
-    _folded_gemm(xt, d[1], s[1], x_qu)
-    for a in (iv, w_qu, x_qu):
-        np.conjugate(a[..., nb:], out=a[..., nb:])
-    out = np.empty((n_out, 4) + s.shape[3:], s.dtype)
+    np.conjugate(iv[..., nb:], out=iv[..., nb:])
     out[:, 0] = iv[:, 0]
-    out[:, 1] = -(w_qu[:, 0] + 1j * x_qu[:, 1])
-    out[:, 2] = w_qu[:, 1] - 1j * x_qu[:, 0]
-    out[:, 3] = iv[:, 1]
+    out[:n_pol, 3] = iv[:n_pol, 1]
+    if n_pol:
+        ne, no = (n_pol + 1) // 2, n_pol // 2  # rows l - m even and odd below the band limit
+        wt_p, xt_p = (wt[0][:ne], wt[1][:no]), (xt[0][:ne], xt[1][:no])
+        w_qu, x_qu = (np.empty((n_pol,) + s.shape[2:], s.dtype) for _ in range(2))
+        _folded_gemm(wt_p, s[1], d[1], w_qu)
+        _folded_gemm(xt_p, d[1], s[1], x_qu)
+        for a in (w_qu, x_qu):
+            np.conjugate(a[..., nb:], out=a[..., nb:])
+        out[:n_pol, 1] = -(w_qu[:, 0] + 1j * x_qu[:, 1])
+        out[:n_pol, 2] = w_qu[:, 1] - 1j * x_qu[:, 0]
     return out
 
 
 def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype=np.float64, lmax_rows=None,
-                   timings=None):
+                   timings=None, mmin=0, lmax_pol=None):
     """Compute every m's full-Stokes block of baselines ``b`` and hand it to ``consume(m, block)``.
 
     ``block`` is ``(n_out, 4, n_corr, cols)``, ``n_out = lmax_rows - m + 1`` (l = m..), axis 1
     :data:`mmflow.mmode.polarised.STOKES`, ``cols = n_b`` for m = 0 and ``2 n_b`` otherwise (the
-    ``+m`` rows, then the ``-m`` rows ``(-1)^m conj(b^X_{l,-m})``). Runs of consecutive m run on
-    :func:`mmflow.threads.n_threads` threads with one BLAS thread each (the bits do not depend on
-    the thread count); ``consume`` is called on the thread that computed the block and may update
-    per-m state without locks. Returns ``consume``'s results in m order.
+    ``+m`` rows, then the ``-m`` rows ``(-1)^m conj(b^X_{l,-m})``). ``mmin <= m <= mmax`` (an m block
+    of the stokes stage); ``lmax_pol``: E, B and V only to that l (zero above: :func:`polarised_block`).
+    Runs of consecutive m run on :func:`mmflow.threads.n_threads` threads with one BLAS thread each (the
+    bits do not depend on the thread count); ``consume`` is called on the thread that computed the block
+    and may update per-m state without locks. Returns ``consume``'s results in m order.
     """
     b = np.asarray(b, float).reshape(-1, 3)
     nb = len(b)
     lrows = grid.lmax if lmax_rows is None else min(int(lmax_rows), grid.lmax)
     mmax = lrows if mmax is None else min(int(mmax), lrows)
+    lpol = lrows if lmax_pol is None else min(int(lmax_pol), lrows)
     rdtype = np.dtype(dtype)
     cdtype = complex_dtype(rdtype).type
     step = fourier_m_block(grid, nb, len(correlations), np.dtype(cdtype).itemsize)
     results = []
-    for m0, m1 in m_blocks(mmax, step):
+    for m0, m1 in ((m, min(m + step, mmax + 1)) for m in range(int(mmin), mmax + 1, step)):
         fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings)
         per_task = max(1, 512 // (lrows + 1))
         tasks = [range(m, min(m + per_task, m1)) for m in range(m0, m1, per_task)]
         t0 = time.perf_counter()
         with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:
-            for res, tim in pool.map(lambda ms: _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume), tasks):
+            for res, tim in pool.map(lambda ms: _blocks(grid, fourier, m0, ms, lrows, lpol, nb, rdtype, consume),
+                                     tasks):
                 results.extend(res)
                 if timings is not None:
                     for key, v in tim.items():
@@ -199,7 +211,7 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
     return results
 
 
-def _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume):
+def _blocks(grid, fourier, m0, ms, lrows, lpol, nb, rdtype, consume):
     """One pool task of :func:`polarised_pass`: the blocks of the m in ``ms`` handed to ``consume``."""
     fsum, fdiff, rings = fourier
     tim, res = {}, []
@@ -207,7 +219,7 @@ def _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume):
         t0 = time.perf_counter()
         tables = polarised_tables(grid, m, lrows, rings, rdtype)
         t1 = time.perf_counter()
-        block = polarised_block(fsum[m - m0], fdiff[m - m0], tables, nb)
+        block = polarised_block(fsum[m - m0], fdiff[m - m0], tables, nb, lpol - m + 1)
         t2 = time.perf_counter()
         tim["tables_s"] = tim.get("tables_s", 0.0) + t1 - t0
         tim["legendre_s"] = tim.get("legendre_s", 0.0) + t2 - t1
