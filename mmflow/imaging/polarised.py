@@ -94,16 +94,18 @@ class PolarisedNormal:
         return stokes_sizes(m, self.lmax, self.lmax_p)
 
 
-def _data_rows(mmodes, m, index):
+def _data_rows(mmodes, k, index, m0=None):
     """``(n_vec, n_corr rows)`` data of block m for baselines ``index``: per correlation ``V_m``
-    then (``m > 0``) ``conj(V_{-m})``, from m-modes ``(n_vec, mmax + 1, 2, n_corr, n_bl)``."""
-    v = mmodes[:, m, :1] if m == 0 else mmodes[:, m]  # (n_vec, 1 or 2, n_corr, n_bl)
+    then (``m > 0``) ``conj(V_{-m})``, from m-modes ``(n_vec, n_m, 2, n_corr, n_bl)`` at index ``k``
+    on their m axis (``m0``: whether m is 0, default ``k == 0``)."""
+    v = mmodes[:, k, :1] if (k == 0 if m0 is None else m0) else mmodes[:, k]  # (n_vec, 1 or 2, n_corr, n_bl)
     v = v[..., index].transpose(0, 2, 1, 3)  # (n_vec, n_corr, 1 or 2, nb)
     return v.reshape(v.shape[0], -1)
 
 
 def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, correlations=CORRELATIONS,
-                                chunk_size=None, dtype=np.float64, lmax_b=None, lmax_p=None, m_range=None):
+                                chunk_size=None, dtype=np.float64, lmax_b=None, lmax_p=None, m_range=None,
+                                lmax=None):
     """Stream over baseline chunks: ``G_m += B_m^H W B_m``, ``r_m += B_m^H W v_m``.
 
     Each chunk's blocks come from the ring-FFT + GEMM path
@@ -115,14 +117,17 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
 
     Parameters
     ----------
-    grid : mmflow.mmode.polarised.PolarisedGrid
-        Exact to ``lmax + `` the fringe band limit of the longest baseline.
+    grid : mmflow.mmode.polarised.PolarisedGrid, or callable ``(top, index) -> PolarisedGrid``
+        Exact to ``lmax + `` the fringe band limit of the longest baseline; or the grid of each chunk
+        (baselines ``index``, blocks to ``l = top``), exact to ``top +`` their fringe band limit, with
+        ``lmax`` given: short baselines' ring FFTs on a grid of their own size.
     b_wavelengths : ndarray (n_bl, 3)
         Baselines ``x_j - x_i`` in the sky frame at ``phi = 0``, in wavelengths
         (:func:`mmflow.mmode.transfer.baselines_in_wavelengths`).
     mmodes : ndarray ``([n_vec,] mmax + 1, 2, n_corr, n_bl)``, optional
         m-modes of the correlations (:func:`mmflow.mmode.transform.mmode_transform` of data
-        binned as ``(n_bins, n_corr, n_bl)``), ``mmax >= grid.lmax``; None: the Gram only.
+        binned as ``(n_bins, n_corr, n_bl)``), ``mmax >= lmax``, or only those of ``m_range``
+        (``m1 - m0`` on the m axis); None: the Gram only.
     inv_var : ndarray ``(n_corr, n_bl)``, optional
         Inverse noise variance of each correlation's m-modes (default 1).
     correlations : sequence of str
@@ -144,19 +149,25 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
         Only ``m0 <= m < m1`` (default every m): the stokes stage's m blocks, each a task holding its
         own Grams only.
 
+    lmax : int, optional
+        The band limit of T (default ``grid.lmax``; needed when ``grid`` is a callable).
+
     Returns
     -------
     PolarisedNormal
     """
     b = np.asarray(b_wavelengths, float).reshape(-1, 3)
-    lmax, n_corr, nb = grid.lmax, len(correlations), len(b)
+    grid_of = grid if callable(grid) else (lambda top, index: grid)
+    lmax = grid.lmax if lmax is None else int(lmax)
+    n_corr, nb = len(correlations), len(b)
     lmax_p = lmax if lmax_p is None else min(int(lmax_p), lmax)
     m0, m1 = (0, lmax + 1) if m_range is None else (int(m_range[0]), min(int(m_range[1]), lmax + 1))
-    mm = None
+    mm, mm0 = None, 0
     if mmodes is not None:
         mm = np.asarray(mmodes)
         mm = mm if mm.ndim == 5 else mm[None]
-        if mm.shape[1] <= lmax or mm.shape[3:] != (n_corr, nb):
+        mm0 = m0 if mm.shape[1] == m1 - m0 else 0  # the block's m-modes only
+        if (mm0 == 0 and mm.shape[1] < m1) or mm.shape[3:] != (n_corr, nb):
             raise InputError("polarised imaging", "mmodes", f"shape {mm.shape[1:]} for lmax {lmax}, "
                              f"{n_corr} correlations and {nb} baselines",
                              "give m-modes (mmax + 1, 2, n_corr, n_bl) with mmax >= lmax")
@@ -167,7 +178,8 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     gram = [np.zeros((n, n), cdtype, order="F") for n in size]
     rhs = [np.zeros((n_vec, n), np.complex128) for n in size]
     vhv = np.zeros((n_vec, lmax + 1))
-    chunk_size = chunk_size or baselines_per_pass(grid, n_corr, np.dtype(cdtype).itemsize)
+    # passes sized on the largest grid (the one of the longest baselines at lmax)
+    chunk_size = chunk_size or baselines_per_pass(grid_of(lmax, np.arange(nb)), n_corr, np.dtype(cdtype).itemsize)
     lb = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b, int), lmax)
     order = np.argsort(lb, kind="stable")  # chunks of like lmax_b: blocks stop at the chunk's largest
     for start in range(0, nb, chunk_size):
@@ -197,18 +209,41 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
                     for y in range(x, 4):
                         g[bo[x]:bo[x] + ps[x], bo[y]:bo[y] + ps[y]] += part[po[x]:po[x] + ps[x], po[y]:po[y] + ps[y]]
             if mm is not None:
-                v = _data_rows(mm, m, index)
+                v = _data_rows(mm, m - mm0, index, m == 0)
                 (bo, _), (po, ps) = stokes_offsets(big_t, big_p), stokes_offsets(n_l, n_p)
                 r = (v * sw) @ xs.conj().T
                 for x in range(4):
                     rhs[m - m0][:, bo[x]:bo[x] + ps[x]] += r[:, po[x]:po[x] + ps[x]]
                 vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)
 
-        polarised_pass(grid, b[index], consume, mmax=min(top, m1 - 1), correlations=correlations, dtype=dtype,
-                       lmax_rows=top, mmin=m0, lmax_pol=lmax_p)
+        polarised_pass(grid_of(top, index), b[index], consume, mmax=min(top, m1 - 1), correlations=correlations,
+                       dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p)
     for k in range(len(gram)):  # one m at a time: never two whole Grams
         gram[k] = hermitian_full(gram[k])
     return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)
+
+
+#: bytes per Gram element a block of m holds at once while it is solved: the complex128 Gram and its
+#: complex128 Cholesky factor (the accumulation's own copy is converted one m at a time)
+BLOCK_BYTES_PER_ELEMENT = 32
+
+
+def stokes_m_blocks(lmax, lmax_p, budget_bytes, bytes_per_m=0.0):
+    """Contiguous blocks of m ``[(m0, m1), ...]`` covering ``0..lmax`` whose normal equations fit a budget.
+
+    Block m holds ``BLOCK_BYTES_PER_ELEMENT N_m^2`` bytes (``N_m = L_m + 3 P_m``, :func:`stokes_sizes`) and
+    ``bytes_per_m`` (its m-modes); blocks are filled greedily from m = 0, each with at least one m. A
+    function of the settings only (never of the cluster).
+    """
+    blocks, m0, used = [], 0, 0.0
+    for m in range(lmax + 1):
+        n_t, n_p = stokes_sizes(m, lmax, lmax_p)
+        b = BLOCK_BYTES_PER_ELEMENT * float(n_t + 3 * n_p) ** 2 + bytes_per_m
+        if m > m0 and used + b > budget_bytes:
+            blocks.append((m0, m))
+            m0, used = m, 0.0
+        used += b
+    return blocks + [(m0, lmax + 1)]
 
 
 #: ``eps_pol / eps`` when not given: the prior of a weakly polarised sky (docs/stokes.md)

@@ -237,12 +237,23 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     ), doc="The solve stage's sky: a_lm per data split.")
 
 
-def stokes_store(n_split, nf, lmax, mmax, clean=None):
-    """The stokes stage's full-Stokes harmonics, per data split and frequency; ``clean``
-    ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V (``clean.enabled``)."""
-    shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, mmax + 1, lmax + 1)
+def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), sizes=None, gram_dtype="complex128"):
+    """The stokes stage's full-Stokes harmonics, per data split and frequency (one chunk per m: the
+    stage writes them per block of m); ``clean`` ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V
+    (``clean.enabled``); ``blocks`` (the stage's ``(m0, m1)``) with ``sizes(m)`` (the unknowns of block
+    m) add each block's Gram per frequency (``gram_dtype``: the accumulation's precision)."""
+    shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, 1, lmax + 1)
     dims = ("freq", "stokes", "m", "l")
-    arrays = [
+    arrays = []
+    for fi in range(nf):
+        for m0, m1 in blocks:
+            n = sizes(m0)
+            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "row", "column"), (m1 - m0, n, n), (1, n, n),
+                                    gram_dtype, doc="``G_m = B_m^H W B_m`` over ``[T; E; B; V]`` (T to "
+                                    "mmode.lmax, E, B, V to imaging.stokes_lmax) of the m of block M0, each padded "
+                                    "to block M0's size; what the leakage test sources and the CLEAN of V are "
+                                    "imaged through (factorised again, one m at a time)"))
+    arrays += [
         ArraySpec("alm", ("split",) + dims, (n_split,) + shape, (n_split,) + ch, "complex128",
                   doc="T, E, B, V harmonics of each data split (``mmode.splits``; Jy/sr, frame of date, healpy E/B; "
                       "IAU Q, U through :func:`mmflow.imaging.polarised.stokes_maps`), ``[split, f, X, m, l]``, "

@@ -22,6 +22,21 @@ def mmax_of(cfg):
     return cfg.mmode.mmax if cfg.mmode.mmax is not None else cfg.mmode.lmax
 
 
+#: ``imaging.stokes_lmax`` when null: the band limit of Q, U and V (E, B, V harmonics), or ``mmode.lmax`` if
+#: lower. 256 is ~0.7 deg (pi / 256): the polarised sky a day's drift scan at tens of MHz measures (Faraday
+#: rotation depolarises it, the polarised point sources are few and weak) at ~7x the Stokes-I Gram's cost
+#: at lmax 1000 instead of 64x; the beam's leakage of I into the cross hands keeps ``mmode.lmax`` (T's
+#: columns). docs/stokes.md, "The band limit of Q, U and V".
+STOKES_LMAX_DEFAULT = 256
+
+
+def stokes_lmax_of(cfg):
+    """The band limit of Q, U and V in full-Stokes imaging: ``imaging.stokes_lmax``, else
+    ``min(mmode.lmax, STOKES_LMAX_DEFAULT)``; never above ``mmode.lmax``."""
+    lp = cfg.imaging.stokes_lmax
+    return min(cfg.mmode.lmax, STOKES_LMAX_DEFAULT if lp is None else lp)
+
+
 def n_bins_of(cfg, integration_s):
     """Sidereal bins of the m-mode transform: ``mmode.n_bins``, else
     ``N = round(T_sid / tau)`` for integrations of ``tau`` seconds (one bin per integration)."""
