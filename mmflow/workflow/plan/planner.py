@@ -76,10 +76,13 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     tasks, w, u, specs = cost.work(g, cfg)
     k = costs["stages"].get(stage)
     est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)))
-    if k is None:
+    if k is None and cost.seconds is None:
         est.notes.append("no fitted constants: memory = working set, time unknown")
         est.task_bytes = w
         return est
+    if k is None:  # a stage that counts its own time from its work (the stokes stage), its memory its working set
+        est.notes.append("no fitted constants: memory = working set, time counted from the work")
+        k = {"a": 1.0, "b": 0.0, "c": 0.0, "d": 0.0}
     if cost.notes is not None:
         est.notes.extend(cost.notes(g, cfg, total_gflops or peak_gflops))
     est.task_bytes = k["a"] * w + k["b"]
