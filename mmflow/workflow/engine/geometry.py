@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S, is_full_stokes
+from mmflow.conventions import SIDEREAL_DAY_S
 from mmflow.mmode.splits import split_shares
 from mmflow.io.run_stores import STORES
 
@@ -62,9 +62,10 @@ def fit_bins(splits, n_bins):
 
 def interpolates_diffuse(cfg):
     """Whether the simulate stage sums the diffuse sky at a few sidereal angles and interpolates it to
-    every integration (:mod:`mmflow.simulate.drift_modes`): every unpolarised simulation with a diffuse
-    sky (a full-Stokes one sums it at every integration)."""
-    return bool(cfg.sky.diffuse) and not is_full_stokes(cfg.imaging.stokes)
+    every integration (:mod:`mmflow.simulate.drift_modes`): every simulation with a diffuse sky (a
+    full-Stokes one its four correlations: the unpolarised sky's drift scan through any beam is a
+    trigonometric polynomial of degree ``sky.diffuse_lmax`` in the sidereal angle)."""
+    return bool(cfg.sky.diffuse)
 
 
 def n_integrations(cfg):
