@@ -223,6 +223,12 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)
 
 
+#: ``imaging.stokes_lmax`` when null: the band limit of Q, U and V (E, B, V harmonics), or ``mmode.lmax`` if
+#: lower. 256 is ~0.7 deg (pi / 256): what a day's drift scan at tens of MHz measures of the polarised sky
+#: (Faraday rotation depolarises it; the polarised point sources are few and weak), at ~7x the Stokes-I
+#: Gram's cost at lmax 1000 instead of 64x; the beam's leakage of I into the cross hands keeps T's band
+#: limit. docs/stokes.md, "The band limit of Q, U and V".
+STOKES_LMAX_DEFAULT = 256
 #: bytes per Gram element a block of m holds at once while it is solved: the complex128 Gram and its
 #: complex128 Cholesky factor (the accumulation's own copy is converted one m at a time)
 BLOCK_BYTES_PER_ELEMENT = 32

@@ -60,7 +60,8 @@ def ring_kernels(grid, k, correlations):
     return out
 
 
-def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None):
+def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None,
+                      i_only=False):
     """``F_k +/- F_k'`` of every field and correlation for ``m0 <= m < m1`` and the active north rings.
 
     Returns
@@ -68,26 +69,32 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
     fsum, fdiff : complex ``(m1 - m0, 2, n_active, 2, n_corr, 2 n_b)``: axes 1 and 3 are the
         field pairs (I, V) and (Q, U) of :data:`FIELDS` (each pair contiguous per m: one GEMM);
         columns ``c < n_b`` hold ``F_{k,m}`` of baseline c, ``c >= n_b`` hold ``F_{k,-m}`` of baseline
-        ``c - n_b`` (conjugated after the GEMM, where the data are small).
+        ``c - n_b`` (conjugated after the GEMM, where the data are small). ``i_only`` (m above the
+        polarised band limit, where only T is solved for): the I kernels alone, ``(m1 - m0, 1, n_active,
+        1, n_corr, 2 n_b)``, a quarter of the ring products and FFTs.
     rings : the active north rings (:func:`active_rings`)
     """
     b = np.asarray(b, float).reshape(-1, 3)
     nb, nc, n = len(b), len(correlations), grid.n_phi
     m0, m1 = m_range
     rings = active_rings(grid)
-    shape = (m1 - m0, 2, len(rings), 2, nc, 2 * nb)
+    nf = 1 if i_only else 2
+    shape = (m1 - m0, nf, len(rings), nf, nc, 2 * nb)
     fsum, fdiff = np.empty(shape, cdtype), np.empty(shape, cdtype)
     neg = (n - np.arange(m0, m1)) % n  # F_{-m} sits at index n - m (0 for m = 0)
+
+    def kernels(k):
+        kern = ring_kernels(grid, k, correlations)
+        return (kern[:, :1] if i_only else kern).reshape(n, -1)
 
     def ring(i):
         k = rings[i]
         ks = len(grid.theta) - 1 - k  # the mirror ring
-        folded = np.empty((2, n, 4 * nc, nb), cdtype)
-        kernel_fringe_folds(grid.vectors[k], grid.vectors[ks], b, ring_kernels(grid, k, correlations).reshape(n, -1),
-                            ring_kernels(grid, ks, correlations).reshape(n, -1), folded[0], folded[1])
+        folded = np.empty((2, n, nf * nf * nc, nb), cdtype)
+        kernel_fringe_folds(grid.vectors[k], grid.vectors[ks], b, kernels(k), kernels(ks), folded[0], folded[1])
         for f, target in ((folded[0], fsum), (folded[1], fdiff)):
             ducc0.fft.c2c(f, axes=(0,), forward=False, inorm=0, out=f, nthreads=1)
-            f = f.reshape(n, 2, 2, nc, nb)  # fields (I, V), (Q, U)
+            f = f.reshape(n, nf, nf, nc, nb)  # fields (I, V), (Q, U); or I alone
             target[:, :, i, ..., :nb] = f[m0:m1]
             target[:, :, i, ..., nb:] = f[neg]
 
@@ -151,6 +158,8 @@ def polarised_block(s, d, tables, nb, n_pol=None):
     lam, wt, xt = tables
     n_out = lam[0].shape[0] + lam[1].shape[0]
     n_pol = n_out if n_pol is None else max(0, min(int(n_pol), n_out))
+    if len(s) == 1 and n_pol:  # Fourier arrays of the I kernels alone (polarised_fourier's i_only)
+        raise ValueError("polarised_block: E, B, V rows asked of the I kernels' Fourier arrays")
     shape = (n_out,) + s.shape[2:]
     out = np.zeros((n_out, 4) + s.shape[3:], s.dtype) if n_pol < n_out else np.empty((n_out, 4) + s.shape[3:],
                                                                                      s.dtype)
@@ -158,7 +167,8 @@ def polarised_block(s, d, tables, nb, n_pol=None):
     _folded_gemm(lam, s[0], d[0], iv)
     np.conjugate(iv[..., nb:], out=iv[..., nb:])
     out[:, 0] = iv[:, 0]
-    out[:n_pol, 3] = iv[:n_pol, 1]
+    if n_pol:
+        out[:n_pol, 3] = iv[:n_pol, 1]
     if n_pol:
         ne, no = (n_pol + 1) // 2, n_pol // 2  # rows l - m even and odd below the band limit
         wt_p, xt_p = (wt[0][:ne], wt[1][:no]), (xt[0][:ne], xt[1][:no])
@@ -193,8 +203,11 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
     cdtype = complex_dtype(rdtype).type
     step = fourier_m_block(grid, nb, len(correlations), np.dtype(cdtype).itemsize)
     results = []
-    for m0, m1 in ((m, min(m + step, mmax + 1)) for m in range(int(mmin), mmax + 1, step)):
-        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings)
+    # m <= lmax_pol: every kernel; above it the I kernels alone (a quarter of the arrays: 4x the m a block)
+    ranges = [(m, min(m + step, mmax + 1, lpol + 1), False) for m in range(int(mmin), min(mmax, lpol) + 1, step)]
+    ranges += [(m, min(m + 4 * step, mmax + 1), True) for m in range(max(int(mmin), lpol + 1), mmax + 1, 4 * step)]
+    for m0, m1, i_only in ranges:
+        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings, i_only)
         per_task = max(1, 512 // (lrows + 1))
         tasks = [range(m, min(m + per_task, m1)) for m in range(m0, m1, per_task)]
         t0 = time.perf_counter()

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import SIDEREAL_DAY_S
+from mmflow.imaging.polarised import STOKES_LMAX_DEFAULT
 from mmflow.mmode.splits import split_shares
 from mmflow.io.run_stores import STORES
 
@@ -20,14 +21,6 @@ DIFFUSE_SAMPLE_BLOCK = 8
 def mmax_of(cfg):
     """The largest m imaged: ``mmode.mmax``, else ``mmode.lmax``."""
     return cfg.mmode.mmax if cfg.mmode.mmax is not None else cfg.mmode.lmax
-
-
-#: ``imaging.stokes_lmax`` when null: the band limit of Q, U and V (E, B, V harmonics), or ``mmode.lmax`` if
-#: lower. 256 is ~0.7 deg (pi / 256): the polarised sky a day's drift scan at tens of MHz measures (Faraday
-#: rotation depolarises it, the polarised point sources are few and weak) at ~7x the Stokes-I Gram's cost
-#: at lmax 1000 instead of 64x; the beam's leakage of I into the cross hands keeps ``mmode.lmax`` (T's
-#: columns). docs/stokes.md, "The band limit of Q, U and V".
-STOKES_LMAX_DEFAULT = 256
 
 
 def stokes_lmax_of(cfg):

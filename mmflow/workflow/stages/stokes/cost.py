@@ -8,7 +8,8 @@ A block task holds its block's Grams and factors (``BLOCK_BYTES_PER_ELEMENT`` pe
 
 * ring products and FFTs: for every chunk of baselines (sorted by per-baseline lmax, as the stage chunks
   them), the points of the chunk's grid x 16 kernels x baselines, once per Fourier block of the m it
-  covers (:func:`mmflow.mmode.polarised_transfer.fourier_m_block`), at ``RING_SECONDS_PER_POINT``;
+  covers (:func:`mmflow.mmode.polarised_transfer.fourier_m_block`; above the polarised band limit the
+  4 I kernels in blocks of 4x the m), at ``RING_SECONDS_PER_POINT``;
 * Legendre GEMMs (``lambda`` on I and V to the chunk's top, ``W``, ``X`` on Q, U to the polarised band
   limit) and the ``herk`` of ``4 x 2 n_b`` rows into ``N_m^2`` (``4 k N^2`` flops), and the Cholesky
   factors (``8 N^3 / 3``), at ``GEMM_EFFICIENCY`` of the SGEMM peak.
@@ -79,12 +80,16 @@ def _block_seconds(g, cfg, chunks, m0, m1, size, lmax_p, peak):
         n_act = n_theta // 2
         m_hi = min(top, m1 - 1)
         per_m = 2 * 2 * n_act * 2 * len(CORRELATIONS) * 2 * nb * item
-        fblocks = -(-(m_hi - m0 + 1) // max(1, int(FOURIER_BUDGET_BYTES // per_m)))
+        step = max(1, int(FOURIER_BUDGET_BYTES // per_m))
+        n_pol_m = max(0, min(m_hi, lmax_p) - m0 + 1)  # every kernel; above lmax_p the I kernels alone
+        n_i_m = m_hi - m0 + 1 - n_pol_m
+        fblocks = -(-n_pol_m // step) + -(-n_i_m // (4 * step)) / 4
         ring += n_act * 2 * n_phi * KERNELS * nb * fblocks
         for m in range(m0, m_hi + 1):
             cols = nb if m == 0 else 2 * nb
             n_t, n_p = top - m + 1, max(0, min(top, lmax_p) - m + 1)
-            flops += 2.0 * n_act * (n_t + n_t + 2 * n_p) * len(CORRELATIONS) * cols * 2  # lambda (I, V), W, X
+            rows = 2 * n_t + 4 * n_p if n_p else n_t  # lambda on I, V (on I alone above lmax_p), W, X on Q, U
+            flops += 2.0 * n_act * rows * len(CORRELATIONS) * cols * 2
             flops += 4.0 * len(CORRELATIONS) * cols * (n_t + 3 * n_p) ** 2  # herk
     flops += sum(8.0 * size(m) ** 3 / 3 for m in range(m0, m1))  # the block's factors
     return ring * RING_SECONDS_PER_POINT * RING_REFERENCE_GFLOPS / peak + flops / (GEMM_EFFICIENCY * peak * 1e9)
