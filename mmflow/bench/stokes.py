@@ -1,7 +1,7 @@
 """``mmflow bench transfer --stokes IQUV``: full-Stokes transfer + Gram against Stokes I, one run.
 
 For the same baselines, frequency and lmax (float32, the workflow's precision), Q, U and V to the
-default band limit ``imaging.stokes_lmax`` (:data:`mmflow.imaging.polarised.STOKES_LMAX_DEFAULT`, or
+default band limit ``imaging.stokes_lmax`` (:data:`mmflow.conventions.STOKES_LMAX_DEFAULT`, or
 lmax if lower), the seconds of
 
 * Stokes I: the engine's ring-FFT + per-m GEMM transfer blocks and the ``herk`` of each m's
@@ -27,7 +27,7 @@ import time
 
 import numpy as np
 
-from mmflow.imaging.polarised import STOKES_LMAX_DEFAULT, stokes_sizes
+from mmflow.conventions import STOKES_LMAX_DEFAULT, stokes_sizes
 from mmflow.machine import best_time, gemm_gflops, machine
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.normal import herk_into

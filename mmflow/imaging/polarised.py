@@ -35,7 +35,7 @@ import healpy
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.conventions import m_slice, n_alm, complex_dtype
+from mmflow.conventions import m_slice, n_alm, complex_dtype, stokes_sizes
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.solvers import floored_penalty
@@ -43,13 +43,6 @@ from mmflow.mmode.normal import herk_into, hermitian_full
 from mmflow.mmode.polarised import CORRELATIONS, STOKES
 from mmflow.mmode.polarised_transfer import baselines_per_pass, polarised_pass
 from mmflow.sky.harmonics import point_sources_alm
-
-
-def stokes_sizes(m, lmax, lmax_p=None):
-    """Unknowns of block m: ``(L_m, P_m)``, ``L_m = lmax - m + 1`` harmonics of T and ``P_m =
-    max(0, lmax_p - m + 1)`` of each of E, B and V (``lmax_p``: their band limit, default ``lmax``)."""
-    lmax_p = lmax if lmax_p is None else min(int(lmax_p), lmax)
-    return lmax - m + 1, max(0, lmax_p - m + 1)
 
 
 def stokes_offsets(n_t, n_p):
@@ -223,12 +216,6 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)
 
 
-#: ``imaging.stokes_lmax`` when null: the band limit of Q, U and V (E, B, V harmonics), or ``mmode.lmax`` if
-#: lower. 256 is ~0.7 deg (pi / 256): what a day's drift scan at tens of MHz measures of the polarised sky
-#: (Faraday rotation depolarises it; the polarised point sources are few and weak), at ~7x the Stokes-I
-#: Gram's cost at lmax 1000 instead of 64x; the beam's leakage of I into the cross hands keeps T's band
-#: limit. docs/stokes.md, "The band limit of Q, U and V".
-STOKES_LMAX_DEFAULT = 256
 #: bytes per Gram element a block of m holds at once while it is solved: the complex128 Gram and its
 #: complex128 Cholesky factor (the accumulation's own copy is converted one m at a time)
 BLOCK_BYTES_PER_ELEMENT = 32

@@ -14,7 +14,7 @@ import numpy as np
 
 from dataclasses import dataclass
 
-from mmflow.conventions import m_block_slice, m_blocks
+from mmflow.conventions import m_block_slice, m_blocks, stokes_sizes
 from mmflow.io.stores import ArraySpec, StoreSpec
 
 
@@ -73,6 +73,8 @@ DIMENSIONS = {
     "pm": "0: +m, 1: -m (the m-modes' and the transfer blocks' common order)",
     "l": "degrees ``m..lmax`` (block of one m) or 0..lmax",
     "l2": "the second degree index of a Gram matrix",
+    "unknown": "the unknowns of a full-Stokes block of m, ``[T (l = m..lmax); E; B; V (l = m..stokes_lmax)]``",
+    "unknown2": "the second unknown index of a full-Stokes Gram matrix",
     "group": "fixed baseline groups of the transfer reduction (``transfer.groups``)",
     "eps": "trial regularisation values of the L-curve",
     "norm": "0: solution norm squared, 1: residual norm squared",
@@ -237,18 +239,19 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     ), doc="The solve stage's sky: a_lm per data split.")
 
 
-def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), sizes=None, gram_dtype="complex128"):
+def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gram_dtype="complex128"):
     """The stokes stage's full-Stokes harmonics, per data split and frequency (one chunk per m: the
     stage writes them per block of m); ``clean`` ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V
-    (``clean.enabled``); ``blocks`` (the stage's ``(m0, m1)``) with ``sizes(m)`` (the unknowns of block
-    m) add each block's Gram per frequency (``gram_dtype``: the accumulation's precision)."""
+    (``clean.enabled``); ``blocks`` (the stage's ``(m0, m1)``) add each block's Grams per frequency over
+    the unknowns of E, B, V to ``lmax_p`` (default ``lmax``; ``gram_dtype``: the accumulation's precision)."""
     shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, 1, lmax + 1)
     dims = ("freq", "stokes", "m", "l")
     arrays = []
     for fi in range(nf):
         for m0, m1 in blocks:
-            n = sizes(m0)
-            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "row", "column"), (m1 - m0, n, n), (1, n, n),
+            n_t, n_p = stokes_sizes(m0, lmax, lmax_p)
+            n = n_t + 3 * n_p
+            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "unknown", "unknown2"), (m1 - m0, n, n), (1, n, n),
                                     gram_dtype, doc="``G_m = B_m^H W B_m`` over ``[T; E; B; V]`` (T to "
                                     "mmode.lmax, E, B, V to imaging.stokes_lmax) of the m of block M0, each padded "
                                     "to block M0's size; what the leakage test sources and the CLEAN of V are "

@@ -9,8 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S
-from mmflow.imaging.polarised import STOKES_LMAX_DEFAULT
+from mmflow.conventions import SIDEREAL_DAY_S, STOKES_LMAX_DEFAULT
 from mmflow.mmode.splits import split_shares
 from mmflow.io.run_stores import STORES
 

@@ -19,6 +19,7 @@ kept, again for each CLEAN cycle (the plan assumes ``expected_clean_cycles``).
 """
 from __future__ import annotations
 
+import ducc0
 import numpy as np
 
 from mmflow.io import run_stores as rs
@@ -46,7 +47,6 @@ PASS_BASELINES = 64
 
 def _grid_shape(top, fringe):
     """``(n_theta, n_phi)`` of a chunk's grid (:func:`mmflow.mmode.polarised.make_polarised_grid`)."""
-    import ducc0
     quad = top + fringe
     n_theta = quad // 2 + 2
     n_theta += n_theta % 2
@@ -114,7 +114,7 @@ def work(g, cfg):
     c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                            (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None,
-                           blocks, size, gram_dtype(cfg))
+                           blocks, lmax_p, gram_dtype(cfg))
     units = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * g.n_bl
     return Work(g.n_freq * (len(blocks) + 1), max(block_task, second), units, [spec])
 

@@ -87,7 +87,8 @@ def _prepare(ctx):
     c = cfg.clean
     v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
     blocks = blocks_of(cfg, n_split, n_bl)
-    ctx.create(stokes_store(n_split, nf, cfg.mmode.lmax, n_m - 1, v_clean, blocks, sizes_of(cfg), gram_dtype(cfg)))
+    ctx.create(stokes_store(n_split, nf, cfg.mmode.lmax, n_m - 1, v_clean, blocks, stokes_lmax_of(cfg),
+                            gram_dtype(cfg)))
     return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in blocks]
 
 
