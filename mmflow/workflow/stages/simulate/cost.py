@@ -79,11 +79,11 @@ def diffuse_sum_seconds(g, cfg, peak_gflops):
     """Wall seconds of an interpolated diffuse sky's direct sums on the whole machine: per channel and
     sampled angle ``(2 n_ant)^2 x n_up`` flops (``n_up``, half the quadrature grid, above the horizon), per
     feed column, at :data:`DIFFUSE_SUM_FRACTION` of the SGEMM peak ``peak_gflops``; a full-Stokes
-    simulation's four correlations are one complex64 product ``(2 n_ant, 2 n_up) x (2 n_up, 2 n_ant)`` per
-    angle (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`): ``8 (2 n_ant)^2 2 n_up`` flops
-    (assumed at the same share of the peak)."""
+    simulation's four correlations are one complex64 Hermitian rank-``2 n_up`` update of the ``(2 n_ant)^2``
+    correlation matrix per angle (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`'s
+    ``herk``): ``4 (2 n_ant)^2 2 n_up`` flops (assumed at the same share of the peak)."""
     sky = sky_sizes(g, cfg)
-    per_sample = (8.0 * (2.0 * g.n_ant) ** 2 * sky.diffuse_points if sky.full_stokes
+    per_sample = (4.0 * (2.0 * g.n_ant) ** 2 * sky.diffuse_points if sky.full_stokes
                   else sky.feed_columns * (2.0 * g.n_ant) ** 2 * sky.diffuse_points / 2)
     flops = g.n_freq * sky.diffuse_samples * per_sample
     return flops / (DIFFUSE_SUM_FRACTION * peak_gflops * 1e9)
