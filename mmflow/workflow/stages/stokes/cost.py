@@ -109,7 +109,11 @@ def work(g, cfg):
     size, lmax_p, blocks, gram, mm, all_gram, kept = _plan(g, cfg)
     n_theta, n_phi = _grid_shape(g.lmax, g.lmax)
     grid = 2 * 2 * n_theta * n_phi * COMPLEX128_BYTES  # feeds x (N, E) responses of the largest grid
-    block_task = max(a + b for a, b in zip(gram, mm)) + FOURIER_BUDGET_BYTES + grid
+    # one pass's Fourier arrays (polarised_fourier: 2 x 2 x rings x 2 x corr x 2 n_b per m), at most the budget
+    item = 8 if cfg.transfer.dtype == "float32" else 16
+    fourier = min(FOURIER_BUDGET_BYTES, 2 * 2 * (n_theta // 2) * 2 * len(CORRELATIONS) * 2
+                  * min(PASS_BASELINES, g.n_bl) * item * (g.lmax + 1))
+    block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
     second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + 2 * g.n_split * 4 * (g.lmax + 1) ** 2 * 16
     c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
@@ -138,8 +142,10 @@ def seconds(g, cfg, per_task, workers, peak):
 
 def notes(g, cfg, peak):
     size, lmax_p, blocks, gram, mm, all_gram, kept = _plan(g, cfg)
-    return [f"Q, U, V to l = {lmax_p} (imaging.stokes_lmax), I to {g.lmax}; {len(blocks)} blocks of m a channel, "
-            f"whole Gram {all_gram / 1e9:.2f} GB (complex128), never in one task"]
+    whole = f"a channel's whole Gram {all_gram / 1e9:.2f} GB (complex128)"
+    split = (f"{len(blocks)} blocks of m a channel, {whole} in none of them" if len(blocks) > 1 else
+             f"one block of m a channel ({whole})")
+    return [f"Q, U, V to l = {lmax_p} (imaging.stokes_lmax), I to {g.lmax}; {split}"]
 
 
 COST = Cost(work, shrink="a lower imaging.stokes_lmax (Q, U, V's band limit: the Gram grows as (lmax + 3 "
