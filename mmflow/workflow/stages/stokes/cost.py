@@ -41,6 +41,8 @@ RING_REFERENCE_GFLOPS = 205.0
 GEMM_EFFICIENCY = 0.6
 #: kernels of the ring stage: I, V, Q, U for each of the four correlations
 KERNELS = 4 * len(CORRELATIONS)
+#: test sources of the polarisation response (4 at each of up to 5 declinations: the stokes stage's)
+RESPONSE_SOURCES = 20
 #: baselines per pass at lmax ~1000 (:func:`mmflow.mmode.polarised_transfer.baselines_per_pass`'s ceiling)
 PASS_BASELINES = 64
 
@@ -114,7 +116,11 @@ def work(g, cfg):
     fourier = min(FOURIER_BUDGET_BYTES, 2 * 2 * (n_theta // 2) * 2 * len(CORRELATIONS) * 2
                   * min(PASS_BASELINES, g.n_bl) * item * (g.lmax + 1))
     block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
-    second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + 2 * g.n_split * 4 * (g.lmax + 1) ** 2 * 16
+    # the second phase: the factors (or one m's Gram and factor), the splits' harmonics and the test sources'
+    # (the polarisation response's 4 per declination, or the V PSF table's) imaged: in and out, T, E, B, V each
+    n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
+    vectors = 2 * max(RESPONSE_SOURCES, PSF_DECLINATIONS) + g.n_split
+    second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + vectors * 4 * n_alm * COMPLEX128_BYTES
     c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                            (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None,
