@@ -155,6 +155,21 @@ def m_blocks(mmax, m_block):
     return [(m0, min(mmax + 1, m0 + m_block)) for m0 in range(0, mmax + 1, m_block)]
 
 
+#: ``imaging.stokes_lmax`` when null: the band limit of Q, U and V (E, B, V harmonics), or ``mmode.lmax`` if
+#: lower. 256 is ~0.7 deg (pi / 256): what a day's drift scan at tens of MHz measures of the polarised sky
+#: (Faraday rotation depolarises it; the polarised point sources are few and weak), at ~7x the Stokes-I
+#: Gram's cost at lmax 1000 instead of 64x; the beam's leakage of I into the cross hands keeps T's band
+#: limit. docs/stokes.md, "The band limit of Q, U and V".
+STOKES_LMAX_DEFAULT = 256
+
+
+def stokes_sizes(m, lmax, lmax_p=None):
+    """Unknowns of block m: ``(L_m, P_m)``, ``L_m = lmax - m + 1`` harmonics of T and ``P_m =
+    max(0, lmax_p - m + 1)`` of each of E, B and V (``lmax_p``: their band limit, default ``lmax``)."""
+    lmax_p = lmax if lmax_p is None else min(int(lmax_p), lmax)
+    return lmax - m + 1, max(0, lmax_p - m + 1)
+
+
 def m_block_slice(lmax, m_start, m_stop):
     """Slice of the healpy alm vector holding every ``a_lm`` with ``m_start <= m < m_stop``.
 

@@ -35,7 +35,7 @@ import healpy
 import numpy as np
 import scipy.linalg as sla
 
-from mmflow.conventions import m_slice, n_alm, complex_dtype
+from mmflow.conventions import m_slice, n_alm, complex_dtype, stokes_sizes
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.solvers import floored_penalty
@@ -45,50 +45,82 @@ from mmflow.mmode.polarised_transfer import baselines_per_pass, polarised_pass
 from mmflow.sky.harmonics import point_sources_alm
 
 
+def stokes_offsets(n_t, n_p):
+    """Start of T, E, B, V in a block ``[T (n_t); E (n_p); B (n_p); V (n_p)]`` and their sizes."""
+    return (0, n_t, n_t + n_p, n_t + 2 * n_p), (n_t, n_p, n_p, n_p)
+
+
 @dataclass
 class PolarisedNormal:
-    """Per-m normal equations of the full-Stokes problem.
+    """Per-m normal equations of the full-Stokes problem, for ``m = m0 .. m0 + len(gram) - 1``.
 
     Attributes
     ----------
     lmax : int
-    gram : list over m of complex128 ``(4 L_m, 4 L_m)`` (full Hermitian), ``L_m = lmax - m + 1``
-    rhs : list over m of complex128 ``(n_vec, 4 L_m)``: one row per data vector
-    vhv : ndarray ``(n_vec, lmax + 1)``: ``v^H W v`` per m
+    gram : list over m of complex128 ``(N_m, N_m)`` (full Hermitian), ``N_m = L_m + 3 P_m``
+        (:func:`stokes_sizes`: the unknowns ``[T (l = m..lmax); E; B; V (l = m..lmax_p)]``)
+    rhs : list over m of complex128 ``(n_vec, N_m)``: one row per data vector
+    vhv : ndarray ``(n_vec, lmax + 1)``: ``v^H W v`` per m (0 outside the block)
+    lmax_p : int, optional
+        Band limit of E, B and V (``imaging.stokes_lmax``; default ``lmax``).
+    m0 : int
+        The first m held (0: every m; the stokes stage streams blocks of m).
     """
 
     lmax: int
     gram: list
     rhs: list
     vhv: np.ndarray
+    lmax_p: int = None
+    m0: int = 0
+
+    def __post_init__(self):
+        self.lmax_p = self.lmax if self.lmax_p is None else min(int(self.lmax_p), self.lmax)
+
+    @property
+    def m_range(self):
+        """``range`` of the m held."""
+        return range(self.m0, self.m0 + len(self.gram))
+
+    def sizes(self, m):
+        """``(L_m, P_m)`` of block m (:func:`stokes_sizes`)."""
+        return stokes_sizes(m, self.lmax, self.lmax_p)
 
 
-def _data_rows(mmodes, m, index):
+def _data_rows(mmodes, k, index, m0=None):
     """``(n_vec, n_corr rows)`` data of block m for baselines ``index``: per correlation ``V_m``
-    then (``m > 0``) ``conj(V_{-m})``, from m-modes ``(n_vec, mmax + 1, 2, n_corr, n_bl)``."""
-    v = mmodes[:, m, :1] if m == 0 else mmodes[:, m]  # (n_vec, 1 or 2, n_corr, n_bl)
+    then (``m > 0``) ``conj(V_{-m})``, from m-modes ``(n_vec, n_m, 2, n_corr, n_bl)`` at index ``k``
+    on their m axis (``m0``: whether m is 0, default ``k == 0``)."""
+    v = mmodes[:, k, :1] if (k == 0 if m0 is None else m0) else mmodes[:, k]  # (n_vec, 1 or 2, n_corr, n_bl)
     v = v[..., index].transpose(0, 2, 1, 3)  # (n_vec, n_corr, 1 or 2, nb)
     return v.reshape(v.shape[0], -1)
 
 
 def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, correlations=CORRELATIONS,
-                                chunk_size=None, dtype=np.float64, lmax_b=None):
+                                chunk_size=None, dtype=np.float64, lmax_b=None, lmax_p=None, m_range=None,
+                                lmax=None):
     """Stream over baseline chunks: ``G_m += B_m^H W B_m``, ``r_m += B_m^H W v_m``.
 
     Each chunk's blocks come from the ring-FFT + GEMM path
     (:func:`mmflow.mmode.polarised_transfer.polarised_pass`) and go, row-weighted by ``sqrt(W)``,
     into one ``herk`` per m (:func:`mmflow.mmode.normal.herk_into`) on the thread that computed them.
+    The columns of ``B_m`` are ``[T (l = m..lmax); E; B; V (l = m..lmax_p)]`` (:func:`stokes_sizes`):
+    with ``lmax_p < lmax`` the polarised sky is band-limited to ``lmax_p`` while T keeps ``lmax``, and
+    for ``m > lmax_p`` the block holds T only (the four correlations still measure it).
 
     Parameters
     ----------
-    grid : mmflow.mmode.polarised.PolarisedGrid
-        Exact to ``lmax + `` the fringe band limit of the longest baseline.
+    grid : mmflow.mmode.polarised.PolarisedGrid, or callable ``(top, index) -> PolarisedGrid``
+        Exact to ``lmax + `` the fringe band limit of the longest baseline; or the grid of each chunk
+        (baselines ``index``, blocks to ``l = top``), exact to ``top +`` their fringe band limit, with
+        ``lmax`` given: short baselines' ring FFTs on a grid of their own size.
     b_wavelengths : ndarray (n_bl, 3)
         Baselines ``x_j - x_i`` in the sky frame at ``phi = 0``, in wavelengths
         (:func:`mmflow.mmode.transfer.baselines_in_wavelengths`).
     mmodes : ndarray ``([n_vec,] mmax + 1, 2, n_corr, n_bl)``, optional
         m-modes of the correlations (:func:`mmflow.mmode.transform.mmode_transform` of data
-        binned as ``(n_bins, n_corr, n_bl)``), ``mmax >= grid.lmax``; None: the Gram only.
+        binned as ``(n_bins, n_corr, n_bl)``), ``mmax >= lmax``, or only those of ``m_range``
+        (``m1 - m0`` on the m axis); None: the Gram only.
     inv_var : ndarray ``(n_corr, n_bl)``, optional
         Inverse noise variance of each correlation's m-modes (default 1).
     correlations : sequence of str
@@ -104,59 +136,107 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
         blocks (baselines sorted by ``lmax_b``) stop at the chunk's largest (Legendre GEMMs and
         ``herk`` over ``l <= lmax_c`` only; the ring FFTs stay on ``grid``). Its m-modes enter ``r_m``
         and ``v^H W v`` for ``m <= lmax_c``.
+    lmax_p : int, optional
+        Band limit of E, B and V (default ``lmax``: every Stokes parameter to ``lmax``).
+    m_range : (m0, m1), optional
+        Only ``m0 <= m < m1`` (default every m): the stokes stage's m blocks, each a task holding its
+        own Grams only.
+
+    lmax : int, optional
+        The band limit of T (default ``grid.lmax``; needed when ``grid`` is a callable).
 
     Returns
     -------
     PolarisedNormal
     """
     b = np.asarray(b_wavelengths, float).reshape(-1, 3)
-    lmax, n_corr, nb = grid.lmax, len(correlations), len(b)
-    mm = None
+    grid_of = grid if callable(grid) else (lambda top, index: grid)
+    lmax = grid.lmax if lmax is None else int(lmax)
+    n_corr, nb = len(correlations), len(b)
+    lmax_p = lmax if lmax_p is None else min(int(lmax_p), lmax)
+    m0, m1 = (0, lmax + 1) if m_range is None else (int(m_range[0]), min(int(m_range[1]), lmax + 1))
+    mm, mm0 = None, 0
     if mmodes is not None:
         mm = np.asarray(mmodes)
         mm = mm if mm.ndim == 5 else mm[None]
-        if mm.shape[1] <= lmax or mm.shape[3:] != (n_corr, nb):
+        mm0 = m0 if mm.shape[1] == m1 - m0 else 0  # the block's m-modes only
+        if (mm0 == 0 and mm.shape[1] < m1) or mm.shape[3:] != (n_corr, nb):
             raise InputError("polarised imaging", "mmodes", f"shape {mm.shape[1:]} for lmax {lmax}, "
                              f"{n_corr} correlations and {nb} baselines",
                              "give m-modes (mmax + 1, 2, n_corr, n_bl) with mmax >= lmax")
     n_vec = 0 if mm is None else mm.shape[0]
     w = np.ones((n_corr, nb)) if inv_var is None else np.broadcast_to(np.asarray(inv_var, float), (n_corr, nb))
     cdtype = complex_dtype(dtype).type
-    gram = [np.zeros((4 * (lmax - m + 1),) * 2, cdtype, order="F") for m in range(lmax + 1)]
-    rhs = [np.zeros((n_vec, 4 * (lmax - m + 1)), np.complex128) for m in range(lmax + 1)]
+    size = [sum(stokes_sizes(m, lmax, lmax_p) * np.array([1, 3])) for m in range(m0, m1)]
+    gram = [np.zeros((n, n), cdtype, order="F") for n in size]
+    rhs = [np.zeros((n_vec, n), np.complex128) for n in size]
     vhv = np.zeros((n_vec, lmax + 1))
-    chunk_size = chunk_size or baselines_per_pass(grid, n_corr, np.dtype(cdtype).itemsize)
+    # passes sized on the largest grid (the one of the longest baselines at lmax)
+    chunk_size = chunk_size or baselines_per_pass(grid_of(lmax, np.arange(nb)), n_corr, np.dtype(cdtype).itemsize)
     lb = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b, int), lmax)
     order = np.argsort(lb, kind="stable")  # chunks of like lmax_b: blocks stop at the chunk's largest
     for start in range(0, nb, chunk_size):
         index = order[start:start + chunk_size]
         top = int(lb[index].max())
+        if top < m0:  # the chunk's baselines see none of this block's m
+            continue
         mask = np.arange(lmax + 1)[:, None] <= lb[index][None, :] if lb[index].min() < top else None
 
         def consume(m, block):  # block (n_l, 4, n_corr, cols): rows (corr, +m / -m, baseline), l = m..top
-            n_l, cols, big = block.shape[0], block.shape[-1], lmax - m + 1
+            n_l, cols = block.shape[0], block.shape[-1]
+            big_t, big_p = stokes_sizes(m, lmax, lmax_p)
+            n_p = max(0, min(top, lmax_p) - m + 1)  # E, B, V rows of this chunk
             if mask is not None:  # coefficients above a baseline's own lmax_b are zero
                 block = block * np.tile(mask[m:top + 1], (1, cols // len(index)))[:, None, None, :]
             sw = np.sqrt(np.tile(w[:, index], (1, cols // len(index)))).reshape(-1)
-            xs = block.transpose(1, 0, 2, 3).reshape(4 * n_l, n_corr * cols) * sw.astype(cdtype)
-            if n_l == big:
-                herk_into(gram[m], xs, n_corr * cols, 4 * n_l, n_corr * cols)
-            else:  # l = m..top of each Stokes: the upper blocks (X <= Y) of a smaller Gram, added in place
-                part = herk_into(np.zeros((4 * n_l,) * 2, cdtype, order="F"), xs, n_corr * cols, 4 * n_l,
-                                 n_corr * cols)
+            rows = [block[:, 0]] + [block[:n_p, x] for x in (1, 2, 3)]  # each (n, n_corr, cols)
+            xs = np.concatenate(rows).reshape(n_l + 3 * n_p, n_corr * cols) * sw.astype(cdtype)
+            g = gram[m - m0]
+            if (n_l, n_p) == (big_t, big_p):
+                herk_into(g, xs, n_corr * cols, n_l + 3 * n_p, n_corr * cols)
+            else:  # l <= top of each Stokes: the upper blocks (X <= Y) of a smaller Gram, added in place
+                part = herk_into(np.zeros((n_l + 3 * n_p,) * 2, cdtype, order="F"), xs, n_corr * cols,
+                                 n_l + 3 * n_p, n_corr * cols)
+                (po, ps), (bo, _) = stokes_offsets(n_l, n_p), stokes_offsets(big_t, big_p)
                 for x in range(4):
                     for y in range(x, 4):
-                        gram[m][x * big:x * big + n_l, y * big:y * big + n_l] += \
-                            part[x * n_l:(x + 1) * n_l, y * n_l:(y + 1) * n_l]
+                        g[bo[x]:bo[x] + ps[x], bo[y]:bo[y] + ps[y]] += part[po[x]:po[x] + ps[x], po[y]:po[y] + ps[y]]
             if mm is not None:
-                v = _data_rows(mm, m, index)
-                rhs[m].reshape(n_vec, 4, big)[:, :, :n_l] += ((v * sw) @ xs.conj().T).reshape(n_vec, 4, n_l)
+                v = _data_rows(mm, m - mm0, index, m == 0)
+                (bo, _), (po, ps) = stokes_offsets(big_t, big_p), stokes_offsets(n_l, n_p)
+                r = (v * sw) @ xs.conj().T
+                for x in range(4):
+                    rhs[m - m0][:, bo[x]:bo[x] + ps[x]] += r[:, po[x]:po[x] + ps[x]]
                 vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)
 
-        polarised_pass(grid, b[index], consume, mmax=top, correlations=correlations, dtype=dtype, lmax_rows=top)
-    for m in range(lmax + 1):  # one m at a time: never two whole Grams
-        gram[m] = hermitian_full(gram[m])
-    return PolarisedNormal(lmax, gram, rhs, vhv)
+        polarised_pass(grid_of(top, index), b[index], consume, mmax=min(top, m1 - 1), correlations=correlations,
+                       dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p)
+    for k in range(len(gram)):  # one m at a time: never two whole Grams
+        gram[k] = hermitian_full(gram[k])
+    return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)
+
+
+#: bytes per Gram element a block of m holds at once while it is solved: the complex128 Gram and its
+#: complex128 Cholesky factor (the accumulation's own copy is converted one m at a time)
+BLOCK_BYTES_PER_ELEMENT = 32
+
+
+def stokes_m_blocks(lmax, lmax_p, budget_bytes, bytes_per_m=0.0):
+    """Contiguous blocks of m ``[(m0, m1), ...]`` covering ``0..lmax`` whose normal equations fit a budget.
+
+    Block m holds ``BLOCK_BYTES_PER_ELEMENT N_m^2`` bytes (``N_m = L_m + 3 P_m``, :func:`stokes_sizes`) and
+    ``bytes_per_m`` (its m-modes); blocks are filled greedily from m = 0, each with at least one m. A
+    function of the settings only (never of the cluster).
+    """
+    blocks, m0, used = [], 0, 0.0
+    for m in range(lmax + 1):
+        n_t, n_p = stokes_sizes(m, lmax, lmax_p)
+        b = BLOCK_BYTES_PER_ELEMENT * float(n_t + 3 * n_p) ** 2 + bytes_per_m
+        if m > m0 and used + b > budget_bytes:
+            blocks.append((m0, m))
+            m0, used = m, 0.0
+        used += b
+    return blocks + [(m0, lmax + 1)]
 
 
 #: ``eps_pol / eps`` when not given: the prior of a weakly polarised sky (docs/stokes.md)
@@ -170,8 +250,9 @@ def stokes_eps(eps, eps_pol=None):
     return (float(eps), pol, pol, pol)
 
 
-def penalty(eps, n_l):
-    """Diagonal of ``D`` for one m block: ``eps`` per Stokes (T, E, B, V), each repeated ``n_l`` times.
+def penalty(eps, n_l, n_p=None):
+    """Diagonal of ``D`` for one m block: ``eps`` per Stokes (T, E, B, V), T's repeated ``n_l`` times and
+    E's, B's, V's ``n_p`` times (default ``n_l``: every Stokes parameter to the same band limit).
 
     ``eps``: a dict ``{"T": .., "E": .., "B": .., "V": ..}``, a 4-sequence, or a pair
     ``(eps_I, eps_pol)`` (``eps_pol`` for E, B and V).
@@ -185,12 +266,22 @@ def penalty(eps, n_l):
     if len(vals) != 4 or min(vals) <= 0:
         raise InputError("polarised imaging", "eps", f"{eps}",
                          "give four positive values (T, E, B, V) or (eps_I, eps_pol)")
-    return np.repeat(vals, n_l)
+    return np.repeat(vals, stokes_offsets(n_l, n_l if n_p is None else n_p)[1])
 
 
-def _pack(alm, m, lmax):
-    """``[T_m; E_m; B_m; V_m]`` (l = m..lmax each) of a ``(4, n_alm)`` alm array."""
-    return np.concatenate([alm[x, m_slice(lmax, m)] for x in range(4)])
+def _pack(alm, m, lmax, lmax_p):
+    """``[T_m; E_m; B_m; V_m]`` of a ``(4, n_alm)`` alm array: T to ``lmax``, E, B, V to ``lmax_p``."""
+    n_p = stokes_sizes(m, lmax, lmax_p)[1]
+    sl = m_slice(lmax, m)
+    return np.concatenate([alm[0, sl]] + [alm[x, sl][:n_p] for x in (1, 2, 3)])
+
+
+def _unpack_into(out, y, m, lmax, lmax_p):
+    """Write block-m unknowns ``y`` ``(n_vec, L_m + 3 P_m)`` into alm ``out`` ``(n_vec, 4, n_alm)``
+    (E, B, V above ``lmax_p`` stay as they are: zero)."""
+    (off, size), sl = stokes_offsets(*stokes_sizes(m, lmax, lmax_p)), m_slice(lmax, m)
+    for x in range(4):
+        out[:, x, sl.start:sl.start + size[x]] = y[:, off[x]:off[x] + size[x]]
 
 
 def solve_polarised(normal, eps, filters=None):
@@ -210,59 +301,74 @@ def solve_polarised(normal, eps, filters=None):
 def expected_alm(normal, true_alm, eps, filters=None):
     """The noiseless image of a true sky through the same solve: ``(G_m + D)^-1 G_m x_m``.
 
-    ``true_alm``: ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` T, E, B, V band-limited to ``lmax``;
-    ``filters`` as in :func:`solve_polarised`. Returns ``(n_vec, 4, n_alm)``. With a T-only
-    ``true_alm`` (an unpolarised sky) its E, B, V parts are the leakage of I into Q, U, V maps.
-    (:class:`PolarisedObserver`, which keeps the factorisations for repeated calls.)
+    ``true_alm``: ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` T, E, B, V (E, B, V above the normal
+    equations' ``lmax_p`` are outside the model and not seen); ``filters`` as in :func:`solve_polarised`.
+    Returns ``(n_vec, 4, n_alm)``. With a T-only ``true_alm`` (an unpolarised sky) its E, B, V parts
+    are the leakage of I into Q, U, V maps. (:class:`PolarisedObserver`, which keeps the factorisations
+    for repeated calls.)
     """
     return PolarisedObserver(normal, eps, filters)(true_alm)
 
 
 class PolarisedObserver:
     """The solve ``x_m = (G_m + D)^-1 r_m`` and the map of a true sky through it, ``x -> (G_m + D)^-1 G_m x_m``,
-    for every m from the Cholesky factors of ``G_m + D`` computed once (the stokes stage solves, images the
-    leakage and CLEANs V with one set); ``filters`` remove unknowns (zero in every Stokes parameter) as in
-    :func:`solve_polarised`, and ``D`` is :func:`penalty` (:func:`mmflow.imaging.solvers.floored_penalty`)."""
+    for the m of ``normal`` (:attr:`PolarisedNormal.m_range`) from the Cholesky factors of ``G_m + D``
+    (the stokes stage solves, images the leakage and CLEANs V with one set); ``filters`` remove unknowns
+    (zero in every Stokes parameter) as in :func:`solve_polarised`, and ``D`` is :func:`penalty`
+    (:func:`mmflow.imaging.solvers.floored_penalty`).
 
-    def __init__(self, normal, eps, filters=None):
-        self.normal = normal
-        self.lmax = normal.lmax
-        self.blocks = []
-        for m in range(self.lmax + 1):
-            n_l = self.lmax - m + 1
-            keep = np.tile(filter_mask(m, self.lmax, **filters), 4) if filters else np.ones(4 * n_l, bool)
-            if not keep.any():
-                self.blocks.append(None)
-                continue
-            g = normal.gram[m][np.ix_(keep, keep)]
-            g[np.diag_indices(len(g))] += floored_penalty(penalty(eps, n_l)[keep])
-            self.blocks.append((keep, sla.cho_factor(g, overwrite_a=True, check_finite=False)))
+    ``keep_factors``: factorise every m once, here, and keep the factors (the size of the Gram); False:
+    factorise each m again at every call and keep none, so that only one m's Gram and factor are in
+    memory at a time (``normal.gram`` may then be a sequence read from disk per m: the stokes stage's
+    second phase at the paper's scale). The results are the same bits either way.
+    """
+
+    def __init__(self, normal, eps, filters=None, keep_factors=True):
+        self.normal, self.eps, self.filters = normal, eps, filters
+        self.lmax, self.lmax_p = normal.lmax, normal.lmax_p
+        self.blocks = {m: self._factor(m) for m in normal.m_range} if keep_factors else None
+
+    def _factor(self, m):
+        """``(keep, cho_factor(G_kk + D_k))`` of block m, or None when the filters remove all of it."""
+        n_l, n_p = self.normal.sizes(m)
+        keep = np.ones(n_l + 3 * n_p, bool)
+        if self.filters:
+            fm = filter_mask(m, self.lmax, **self.filters)
+            keep = np.concatenate([fm] + [fm[:n_p]] * 3)
+        if not keep.any():
+            return None
+        g = np.asarray(self.normal.gram[m - self.normal.m0])[np.ix_(keep, keep)].astype(np.complex128)
+        g[np.diag_indices(len(g))] += floored_penalty(penalty(self.eps, n_l, n_p)[keep])
+        return keep, sla.cho_factor(g, overwrite_a=True, check_finite=False)
 
     def solve(self, rhs_of_m):
-        """``(G_m + D)^-1 r_m`` for every m, ``rhs_of_m(m)`` ``(n_vec, 4 (lmax - m + 1))``:
-        alm ``(n_vec, 4, n_alm)``."""
-        n_vec = len(rhs_of_m(0))
-        out = np.zeros((n_vec, 4, n_alm(self.lmax)), np.complex128)
-        for m, block in enumerate(self.blocks):
+        """``(G_m + D)^-1 r_m`` for every m held, ``rhs_of_m(m)`` ``(n_vec, L_m + 3 P_m)``:
+        alm ``(n_vec, 4, n_alm)`` (zero at the m not held)."""
+        out = None
+        for m in self.normal.m_range:
+            block = self._factor(m) if self.blocks is None else self.blocks[m]
+            rhs = rhs_of_m(m)
+            if out is None:
+                out = np.zeros((len(rhs), 4, n_alm(self.lmax)), np.complex128)
             if block is None:
                 continue
             keep, factor = block
-            rhs = rhs_of_m(m)
-            y = np.zeros((n_vec, len(keep)), np.complex128)
+            y = np.zeros((len(rhs), len(keep)), np.complex128)
             y[:, keep] = sla.cho_solve(factor, rhs[:, keep].T, check_finite=False).T
-            out[:, :, m_slice(self.lmax, m)] = y.reshape(n_vec, 4, -1)
+            _unpack_into(out, y, m, self.lmax, self.lmax_p)
         return out
 
     def solution(self):
         """The solve of the data: ``(G_m + D)^-1 r_m`` of every data vector, ``(n_vec, 4, n_alm)``."""
-        return self.solve(lambda m: self.normal.rhs[m])
+        return self.solve(lambda m: self.normal.rhs[m - self.normal.m0])
 
     def __call__(self, true_alm):
         """The noiseless image through the solve of ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` true harmonics
         (the Gram's own product, no copy of it: one factor per m is the extra memory)."""
         x = np.asarray(true_alm)
         x = x if x.ndim == 3 else x[None]
-        return self.solve(lambda m: np.stack([self.normal.gram[m] @ _pack(xx, m, self.lmax) for xx in x]))
+        return self.solve(lambda m: np.stack([np.asarray(self.normal.gram[m - self.normal.m0])
+                                              @ _pack(xx, m, self.lmax, self.lmax_p) for xx in x]))
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

@@ -14,7 +14,7 @@ import numpy as np
 
 from dataclasses import dataclass
 
-from mmflow.conventions import m_block_slice, m_blocks
+from mmflow.conventions import m_block_slice, m_blocks, stokes_sizes
 from mmflow.io.stores import ArraySpec, StoreSpec
 
 
@@ -77,6 +77,8 @@ DIMENSIONS = {
     "pm": "0: +m, 1: -m (the m-modes' and the transfer blocks' common order)",
     "l": "degrees ``m..lmax`` (block of one m) or 0..lmax",
     "l2": "the second degree index of a Gram matrix",
+    "unknown": "the unknowns of a full-Stokes block of m, ``[T (l = m..lmax); E; B; V (l = m..stokes_lmax)]``",
+    "unknown2": "the second unknown index of a full-Stokes Gram matrix",
     "group": "fixed baseline groups of the transfer reduction (``transfer.groups``)",
     "eps": "trial regularisation values of the L-curve",
     "norm": "0: solution norm squared, 1: residual norm squared",
@@ -241,12 +243,24 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     ), doc="The solve stage's sky: a_lm per data split.")
 
 
-def stokes_store(n_split, nf, lmax, mmax, clean=None):
-    """The stokes stage's full-Stokes harmonics, per data split and frequency; ``clean``
-    ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V (``clean.enabled``)."""
-    shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, mmax + 1, lmax + 1)
+def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gram_dtype="complex128"):
+    """The stokes stage's full-Stokes harmonics, per data split and frequency (one chunk per m: the
+    stage writes them per block of m); ``clean`` ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V
+    (``clean.enabled``); ``blocks`` (the stage's ``(m0, m1)``) add each block's Grams per frequency over
+    the unknowns of E, B, V to ``lmax_p`` (default ``lmax``; ``gram_dtype``: the accumulation's precision)."""
+    shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, 1, lmax + 1)
     dims = ("freq", "stokes", "m", "l")
-    arrays = [
+    arrays = []
+    for fi in range(nf):
+        for m0, m1 in blocks:
+            n_t, n_p = stokes_sizes(m0, lmax, lmax_p)
+            n = n_t + 3 * n_p
+            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "unknown", "unknown2"), (m1 - m0, n, n), (1, n, n),
+                                    gram_dtype, doc="``G_m = B_m^H W B_m`` over ``[T; E; B; V]`` (T to "
+                                    "mmode.lmax, E, B, V to imaging.stokes_lmax) of the m of block M0, each padded "
+                                    "to block M0's size; what the leakage test sources and the CLEAN of V are "
+                                    "imaged through (factorised again, one m at a time)"))
+    arrays += [
         ArraySpec("alm", ("split",) + dims, (n_split,) + shape, (n_split,) + ch, "complex128",
                   doc="T, E, B, V harmonics of each data split (``mmode.splits``; Jy/sr, frame of date, healpy E/B; "
                       "IAU Q, U through :func:`mmflow.imaging.polarised.stokes_maps`), ``[split, f, X, m, l]``, "
@@ -545,7 +559,7 @@ ARRAYS = {
     STORES.normal: ("rhs", "vhv", dict(gram="f{fi}/gram_b{m0:05d}")),
     STORES.alm: ("alm", "lcurve", "fraction_above", "eps_grid"),
     STORES.stokes: ("alm", "leakage", "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold",
-                    "v_noise", "v_n_cycles", "v_stop"),
+                    "v_noise", "v_n_cycles", "v_stop", dict(gram="f{fi}/gram_b{m0:05d}")),
     STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
     STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
                    "apply_rows"),

@@ -31,7 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 import ducc0
 import numpy as np
 
-from mmflow.conventions import m_blocks, complex_dtype
+from mmflow.conventions import complex_dtype
 from mmflow.mmode.fringe_kernels import kernel_fringe_folds
 from mmflow.mmode.polarised import CORRELATIONS, stokes_kernels
 from mmflow.mmode.spin_legendre import weighted_spin_tables
@@ -60,7 +60,8 @@ def ring_kernels(grid, k, correlations):
     return out
 
 
-def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None):
+def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None,
+                      i_only=False):
     """``F_k +/- F_k'`` of every field and correlation for ``m0 <= m < m1`` and the active north rings.
 
     Returns
@@ -68,26 +69,32 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
     fsum, fdiff : complex ``(m1 - m0, 2, n_active, 2, n_corr, 2 n_b)``: axes 1 and 3 are the
         field pairs (I, V) and (Q, U) of :data:`FIELDS` (each pair contiguous per m: one GEMM);
         columns ``c < n_b`` hold ``F_{k,m}`` of baseline c, ``c >= n_b`` hold ``F_{k,-m}`` of baseline
-        ``c - n_b`` (conjugated after the GEMM, where the data are small).
+        ``c - n_b`` (conjugated after the GEMM, where the data are small). ``i_only`` (m above the
+        polarised band limit, where only T is solved for): the I kernels alone, ``(m1 - m0, 1, n_active,
+        1, n_corr, 2 n_b)``, a quarter of the ring products and FFTs.
     rings : the active north rings (:func:`active_rings`)
     """
     b = np.asarray(b, float).reshape(-1, 3)
     nb, nc, n = len(b), len(correlations), grid.n_phi
     m0, m1 = m_range
     rings = active_rings(grid)
-    shape = (m1 - m0, 2, len(rings), 2, nc, 2 * nb)
+    nf = 1 if i_only else 2
+    shape = (m1 - m0, nf, len(rings), nf, nc, 2 * nb)
     fsum, fdiff = np.empty(shape, cdtype), np.empty(shape, cdtype)
     neg = (n - np.arange(m0, m1)) % n  # F_{-m} sits at index n - m (0 for m = 0)
+
+    def kernels(k):
+        kern = ring_kernels(grid, k, correlations)
+        return (kern[:, :1] if i_only else kern).reshape(n, -1)
 
     def ring(i):
         k = rings[i]
         ks = len(grid.theta) - 1 - k  # the mirror ring
-        folded = np.empty((2, n, 4 * nc, nb), cdtype)
-        kernel_fringe_folds(grid.vectors[k], grid.vectors[ks], b, ring_kernels(grid, k, correlations).reshape(n, -1),
-                            ring_kernels(grid, ks, correlations).reshape(n, -1), folded[0], folded[1])
+        folded = np.empty((2, n, nf * nf * nc, nb), cdtype)
+        kernel_fringe_folds(grid.vectors[k], grid.vectors[ks], b, kernels(k), kernels(ks), folded[0], folded[1])
         for f, target in ((folded[0], fsum), (folded[1], fdiff)):
             ducc0.fft.c2c(f, axes=(0,), forward=False, inorm=0, out=f, nthreads=1)
-            f = f.reshape(n, 2, 2, nc, nb)  # fields (I, V), (Q, U)
+            f = f.reshape(n, nf, nf, nc, nb)  # fields (I, V), (Q, U); or I alone
             target[:, :, i, ..., :nb] = f[m0:m1]
             target[:, :, i, ..., nb:] = f[neg]
 
@@ -142,53 +149,71 @@ def _folded_gemm(table, first, second, out):
         np.matmul(odd, b.view(rdtype), out=o[1::2].view(rdtype))
 
 
-def polarised_block(s, d, tables, nb):
+def polarised_block(s, d, tables, nb, n_pol=None):
     """One m's coefficients ``(n_out, 4, n_corr, 2 n_b)`` over STOKES (T, E, B, V), from that m's
     Fourier arrays ``s, d`` (:func:`polarised_fourier`: ``(2, n_active, 2, n_corr, 2 n_b)``, pairs
-    (I, V) and (Q, U)) and the tables of :func:`polarised_tables`."""
+    (I, V) and (Q, U)) and the tables of :func:`polarised_tables`. ``n_pol`` (default ``n_out``): E, B
+    and V are computed on the first ``n_pol`` rows only (their band limit, ``imaging.stokes_lmax``) and
+    are zero below them; the spin-2 GEMMs shrink to those rows (none when ``n_pol = 0``)."""
     lam, wt, xt = tables
     n_out = lam[0].shape[0] + lam[1].shape[0]
+    n_pol = n_out if n_pol is None else max(0, min(int(n_pol), n_out))
+    if len(s) == 1 and n_pol:  # Fourier arrays of the I kernels alone (polarised_fourier's i_only)
+        raise ValueError("polarised_block: E, B, V rows asked of the I kernels' Fourier arrays")
     shape = (n_out,) + s.shape[2:]
-    iv, w_qu, x_qu = (np.empty(shape, s.dtype) for _ in range(3))
+    out = np.zeros((n_out, 4) + s.shape[3:], s.dtype) if n_pol < n_out else np.empty((n_out, 4) + s.shape[3:],
+                                                                                     s.dtype)
+    iv = np.empty(shape, s.dtype)
     _folded_gemm(lam, s[0], d[0], iv)
-    _folded_gemm(wt, s[1], d[1], w_qu)
-    _folded_gemm(xt, d[1], s[1], x_qu)
-    for a in (iv, w_qu, x_qu):
-        np.conjugate(a[..., nb:], out=a[..., nb:])
-    out = np.empty((n_out, 4) + s.shape[3:], s.dtype)
+    np.conjugate(iv[..., nb:], out=iv[..., nb:])
     out[:, 0] = iv[:, 0]
-    out[:, 1] = -(w_qu[:, 0] + 1j * x_qu[:, 1])
-    out[:, 2] = w_qu[:, 1] - 1j * x_qu[:, 0]
-    out[:, 3] = iv[:, 1]
+    if n_pol:
+        out[:n_pol, 3] = iv[:n_pol, 1]
+    if n_pol:
+        ne, no = (n_pol + 1) // 2, n_pol // 2  # rows l - m even and odd below the band limit
+        wt_p, xt_p = (wt[0][:ne], wt[1][:no]), (xt[0][:ne], xt[1][:no])
+        w_qu, x_qu = (np.empty((n_pol,) + s.shape[2:], s.dtype) for _ in range(2))
+        _folded_gemm(wt_p, s[1], d[1], w_qu)
+        _folded_gemm(xt_p, d[1], s[1], x_qu)
+        for a in (w_qu, x_qu):
+            np.conjugate(a[..., nb:], out=a[..., nb:])
+        out[:n_pol, 1] = -(w_qu[:, 0] + 1j * x_qu[:, 1])
+        out[:n_pol, 2] = w_qu[:, 1] - 1j * x_qu[:, 0]
     return out
 
 
 def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype=np.float64, lmax_rows=None,
-                   timings=None):
+                   timings=None, mmin=0, lmax_pol=None):
     """Compute every m's full-Stokes block of baselines ``b`` and hand it to ``consume(m, block)``.
 
     ``block`` is ``(n_out, 4, n_corr, cols)``, ``n_out = lmax_rows - m + 1`` (l = m..), axis 1
     :data:`mmflow.mmode.polarised.STOKES`, ``cols = n_b`` for m = 0 and ``2 n_b`` otherwise (the
-    ``+m`` rows, then the ``-m`` rows ``(-1)^m conj(b^X_{l,-m})``). Runs of consecutive m run on
-    :func:`mmflow.threads.n_threads` threads with one BLAS thread each (the bits do not depend on
-    the thread count); ``consume`` is called on the thread that computed the block and may update
-    per-m state without locks. Returns ``consume``'s results in m order.
+    ``+m`` rows, then the ``-m`` rows ``(-1)^m conj(b^X_{l,-m})``). ``mmin <= m <= mmax`` (an m block
+    of the stokes stage); ``lmax_pol``: E, B and V only to that l (zero above: :func:`polarised_block`).
+    Runs of consecutive m run on :func:`mmflow.threads.n_threads` threads with one BLAS thread each (the
+    bits do not depend on the thread count); ``consume`` is called on the thread that computed the block
+    and may update per-m state without locks. Returns ``consume``'s results in m order.
     """
     b = np.asarray(b, float).reshape(-1, 3)
     nb = len(b)
     lrows = grid.lmax if lmax_rows is None else min(int(lmax_rows), grid.lmax)
     mmax = lrows if mmax is None else min(int(mmax), lrows)
+    lpol = lrows if lmax_pol is None else min(int(lmax_pol), lrows)
     rdtype = np.dtype(dtype)
     cdtype = complex_dtype(rdtype).type
     step = fourier_m_block(grid, nb, len(correlations), np.dtype(cdtype).itemsize)
     results = []
-    for m0, m1 in m_blocks(mmax, step):
-        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings)
+    # m <= lmax_pol: every kernel; above it the I kernels alone (a quarter of the arrays: 4x the m a block)
+    ranges = [(m, min(m + step, mmax + 1, lpol + 1), False) for m in range(int(mmin), min(mmax, lpol) + 1, step)]
+    ranges += [(m, min(m + 4 * step, mmax + 1), True) for m in range(max(int(mmin), lpol + 1), mmax + 1, 4 * step)]
+    for m0, m1, i_only in ranges:
+        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings, i_only)
         per_task = max(1, 512 // (lrows + 1))
         tasks = [range(m, min(m + per_task, m1)) for m in range(m0, m1, per_task)]
         t0 = time.perf_counter()
         with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:
-            for res, tim in pool.map(lambda ms: _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume), tasks):
+            for res, tim in pool.map(lambda ms: _blocks(grid, fourier, m0, ms, lrows, lpol, nb, rdtype, consume),
+                                     tasks):
                 results.extend(res)
                 if timings is not None:
                     for key, v in tim.items():
@@ -199,7 +224,7 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
     return results
 
 
-def _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume):
+def _blocks(grid, fourier, m0, ms, lrows, lpol, nb, rdtype, consume):
     """One pool task of :func:`polarised_pass`: the blocks of the m in ``ms`` handed to ``consume``."""
     fsum, fdiff, rings = fourier
     tim, res = {}, []
@@ -207,7 +232,7 @@ def _blocks(grid, fourier, m0, ms, lrows, nb, rdtype, consume):
         t0 = time.perf_counter()
         tables = polarised_tables(grid, m, lrows, rings, rdtype)
         t1 = time.perf_counter()
-        block = polarised_block(fsum[m - m0], fdiff[m - m0], tables, nb)
+        block = polarised_block(fsum[m - m0], fdiff[m - m0], tables, nb, lpol - m + 1)
         t2 = time.perf_counter()
         tim["tables_s"] = tim.get("tables_s", 0.0) + t1 - t0
         tim["legendre_s"] = tim.get("legendre_s", 0.0) + t2 - t1

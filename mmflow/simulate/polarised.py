@@ -35,6 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.blas import get_blas_funcs
 
 from mmflow.conventions import enu_to_equatorial_matrix, stokes_coherency
 from mmflow.errors import InputError
@@ -86,8 +87,13 @@ def coherency(stokes_jy):
     return stokes_coherency(np.asarray(stokes_jy, float).reshape(-1, 4))
 
 
+#: sources summed at once per integration (the product's ``(2 n_ant, 2 n_src)`` factors stay ~100 MB at 256
+#: antennas: a diffuse sky's million points in pieces)
+SOURCE_BLOCK = 8192
+
+
 def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=None, correlations=CORRELATIONS,
-                                  dterms=None):
+                                  dterms=None, dtype=np.complex128):
     """Noise-free ``V_pq`` of every pair and correlation for each sidereal angle in ``lsts``.
 
     Parameters
@@ -107,13 +113,18 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
     dterms : ndarray complex ``(n_ant, 2)``, optional
         Polarisation leakage ``(d_x, d_y)`` of every antenna, applied to the four correlations
         by :func:`apply_leakage` before ``correlations`` are selected; None: no leakage.
+    dtype : complex128 or complex64
+        Precision of the per-integration products (complex64: a diffuse sky's samples, at the SGEMM
+        rate; rounding ~1e-6 of the largest visibility). Sources are summed :data:`SOURCE_BLOCK` at a
+        time; an unpolarised sky (``S_s = I_s 1``) as ``sum_s I_s A_s A_s^H``, Hermitian rank-k updates of
+        ``sqrt(|I_s|) A_s`` (``herk``, sign by sign: half the product's flops).
 
     Returns
     -------
     ndarray complex128 ``(n_time, n_corr, n_bl)`` in Jy.
     """
     if dterms is not None:
-        full = simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs)
+        full = simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs, dtype=dtype)
         full = apply_leakage(full, telescope.antenna_pairs() if pairs is None else pairs, dterms)
         return full[:, [CORRELATIONS.index(c) for c in correlations]]
     pairs = telescope.antenna_pairs() if pairs is None else np.asarray(pairs)
@@ -125,20 +136,36 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
     q_idx = np.array([_FEED[c[1]] for c in correlations])
     out = np.zeros((len(lsts), len(correlations), len(pairs)), np.complex128)
     n_ant = len(x_wl)
+    unpolarised = not np.any(sky.stokes_jy[:, 1:])
+    herk = get_blas_funcs("herk", dtype=np.dtype(dtype))
     for t, phi in enumerate(lsts):
         rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
-        r_enu = sky.vectors @ rot
-        up = r_enu[:, 2] > 0
-        if not np.any(up):
+        r_all = sky.vectors @ rot
+        up_all = np.flatnonzero(r_all[:, 2] > 0)
+        if not len(up_all):
             continue
-        j_enu = jones.jones_enu(r_enu[up], freq_hz)  # (feed, 3, n_up)
-        basis = np.stack([e_n[up] @ rot, e_e[up] @ rot], axis=1)  # (n_up, [N, E], 3) in ENU
-        j_ne = np.einsum("pis,sci->psc", j_enu, basis)  # (feed, n_up, [N, E])
-        z = np.exp(2j * np.pi * (x_wl @ r_enu[up].T))  # (n_ant, n_up)
-        a = np.conj(z)[:, None, :, None] * j_ne[None]  # (ant, feed, src, c)
-        a_s = np.einsum("apsc,scd->apsd", a, s_mat[up])
-        n_up = int(up.sum())
-        vis = a_s.reshape(2 * n_ant, 2 * n_up) @ a.reshape(2 * n_ant, 2 * n_up).conj().T
+        vis = np.zeros((2 * n_ant, 2 * n_ant), dtype, order="F")
+        for s0 in range(0, len(up_all), SOURCE_BLOCK):
+            up = up_all[s0:s0 + SOURCE_BLOCK]
+            r_enu = r_all[up]
+            j_enu = jones.jones_enu(r_enu, freq_hz)  # (feed, 3, n_up)
+            basis = np.stack([e_n[up] @ rot, e_e[up] @ rot], axis=1)  # (n_up, [N, E], 3) in ENU
+            j_ne = np.einsum("pis,sci->psc", j_enu, basis)  # (feed, n_up, [N, E])
+            z = np.exp(2j * np.pi * (x_wl @ r_enu.T))  # (n_ant, n_up)
+            a = (np.conj(z)[:, None, :, None] * j_ne[None]).astype(dtype, copy=False)  # (ant, feed, src, c)
+            n_up = len(up)
+            if unpolarised:  # S_s = I_s 1: sum_s I_s A_s A_s^H, the upper triangle by herk of each sign
+                flux = sky.stokes_jy[up, 0]
+                for sign in (1.0, -1.0):
+                    cols = np.flatnonzero(sign * flux > 0)
+                    if len(cols):
+                        b_s = a[:, :, cols] * np.sqrt(np.abs(flux[cols]))[None, None, :, None].astype(a.real.dtype)
+                        vis = herk(sign, b_s.reshape(2 * n_ant, 2 * len(cols)), beta=1.0, c=vis, overwrite_c=True)
+                continue
+            a_s = np.einsum("apsc,scd->apsd", a, s_mat[up].astype(dtype, copy=False))
+            vis += a_s.reshape(2 * n_ant, 2 * n_up) @ a.reshape(2 * n_ant, 2 * n_up).conj().T
+        if unpolarised:
+            vis = np.triu(vis) + np.triu(vis, 1).conj().T
         vis = vis.reshape(n_ant, 2, n_ant, 2)  # [i, p, j, q]
         out[t] = vis[pairs[None, :, 0], p_idx[:, None], pairs[None, :, 1], q_idx[:, None]]
     return out

@@ -61,11 +61,24 @@ def feed_columns(telescope, corrupted):
     return feeds or [telescope]
 
 
-def drift_samples(telescope, freq_hz, points, lsts, corrupted):
+def diffuse_columns(telescope, corrupted, full_stokes):
+    """Columns of a diffuse sky's samples (:func:`drift_samples`): the four correlations of a full-Stokes
+    simulation, else one per :func:`feed_columns`."""
+    return len(CORRELATIONS) if full_stokes else len(feed_columns(telescope, corrupted))
+
+
+def drift_samples(telescope, freq_hz, points, lsts, corrupted, jones=None):
     """``(time, baseline, feed)`` visibilities of ``points`` at the sidereal angles ``lsts``, through
     :func:`feed_columns` (what :func:`simulate_chunk` adds as ``extra`` once interpolated), summed in
     single precision as :func:`simulate_chunk` sums its sky (rounding ~1e-5 of the largest
-    visibility, against radiometer noise ~3e-3 of it at 13 s and 24 kHz)."""
+    visibility, against radiometer noise ~3e-3 of it at 13 s and 24 kHz). With the E-field beam
+    ``jones`` (a full-Stokes simulation) the four correlations xx, yy, xy, yx of the unpolarised
+    ``points`` instead (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`, single precision:
+    what :func:`simulate_polarised_chunk` adds as ``extra``)."""
+    if jones is not None:
+        v = simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, unpolarised(points),
+                                          telescope.antenna_pairs(), dtype=np.complex64)
+        return np.moveaxis(v, 1, -1)
     return np.stack([simulate_drift_scan(t, freq_hz, lsts, points, t.antenna_pairs(), np.complex64)
                      for t in feed_columns(telescope, corrupted)], axis=-1)
 
@@ -165,7 +178,7 @@ def joined(parts):
 
 
 def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, integration_s=None, corrupted=None,
-                             rows=None, system_jy=0.0):
+                             rows=None, system_jy=0.0, extra=None):
     """The four linear correlations of one time chunk: ``(parallel, cross)``, each ``(time, baseline,
     freq, 2)`` complex64, the parallel hands xx, yy and the cross hands xy, yx (x east, y north), one
     :class:`~mmflow.simulate.polarised.PolarisedPoints` sky per frequency through the E-field beam
@@ -175,7 +188,9 @@ def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, inte
 
     ``corrupted``, ``rows``, ``system_jy``: as :func:`simulate_chunk`'s, the direction-dependent sources
     as PolarisedPoints: gains per feed, the day's D-terms, DD gains and terrestrial signals
-    (:func:`mmflow.simulate.corrupt.corrupted_visibilities` on the four correlations)."""
+    (:func:`mmflow.simulate.corrupt.corrupted_visibilities` on the four correlations). ``extra``: per
+    frequency ``(time, baseline, correlation)`` visibilities added to the sky's before corruption and noise
+    (the diffuse sky interpolated from its samples, :func:`drift_samples`)."""
     pairs = telescope.antenna_pairs()
     out = np.zeros((len(lsts), len(pairs), len(telescope.freqs_hz), len(CORRELATIONS)), np.complex64)
 
@@ -184,6 +199,8 @@ def simulate_polarised_chunk(telescope, jones, lsts, skies, noise_rng=None, inte
 
     for fi, f in enumerate(telescope.freqs_hz):
         v = drift_scan(skies[fi], f)
+        if extra is not None:
+            v = v + extra[fi]
         if corrupted is not None:
             day, dd_points, dd_vecs = corrupted[fi]
             dd = np.stack([drift_scan(p, f) for p in dd_points]) if dd_points else np.zeros((0,) + v.shape, complex)

@@ -404,3 +404,27 @@ def test_constants_are_the_lines_of_least_largest_relative_error():
     ls, lc = np.polyfit(x, y, 1)
     assert worst(ls, lc) > 1.5 * worst(s, c) and worst(ls, lc) > 0.4  # least squares: beyond the time bound
     assert minimax_line(x, y, slope=0.3)[0] == pytest.approx(0.3)
+
+
+def test_full_stokes_at_the_paper_scale_is_planned_in_blocks_of_m(tmp_path):
+    """The paper's channel in full Stokes (issue 39): the stokes stage in blocks of m whose tasks fit 8 GB
+    (none holds the channel's whole Gram, 9.09 GB in complex128 with Q, U, V to the default l = 256), timed
+    from its work; the polarised simulation with its diffuse sky interpolated, in hours."""
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.stages.stokes.blocks import blocks_of, sizes_of
+
+    cfg = load_config("workflows/paper-scale.yaml", ["imaging.stokes=[I, Q, U, V]", "peel.enabled=false",
+                                                     "terrestrial.enabled=false", f"run.directory={tmp_path}",
+                                                     "beam={type: short_dipole, horizon_taper: 3}"])
+    g = geometry(cfg)
+    stages = {e["stage"]: e for e in plan(cfg, peak_gflops=200.0)["stages"]}
+    st, sim = stages["stokes"], stages["simulate"]
+    blocks = blocks_of(cfg, g.n_split, g.n_bl)
+    assert st["tasks"] == len(blocks) + 1 and len(blocks) > 4
+    size = sizes_of(cfg)
+    assert size(0) == 1001 + 3 * 257 and size(257) == 1001 - 257  # T to 1000, E, B, V to 256
+    whole = 16.0 * sum(size(m) ** 2 for m in range(1001))
+    largest = max(16.0 * sum(size(m) ** 2 for m in range(m0, m1)) for m0, m1 in blocks)
+    assert whole == pytest.approx(9.09e9, rel=1e-3) and largest < whole / 4
+    assert st["task_bytes"] <= 8e9 and 0 < st["seconds"] < 6 * 3600
+    assert 0 < sim["seconds"] < 4 * 3600  # the diffuse sky's four correlations at its 138 sampled angles

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import SIDEREAL_DAY_S, is_full_stokes
+from mmflow.conventions import SIDEREAL_DAY_S, STOKES_LMAX_DEFAULT
 from mmflow.mmode.splits import split_shares
 from mmflow.io.run_stores import STORES
 
@@ -20,6 +20,13 @@ DIFFUSE_SAMPLE_BLOCK = 8
 def mmax_of(cfg):
     """The largest m imaged: ``mmode.mmax``, else ``mmode.lmax``."""
     return cfg.mmode.mmax if cfg.mmode.mmax is not None else cfg.mmode.lmax
+
+
+def stokes_lmax_of(cfg):
+    """The band limit of Q, U and V in full-Stokes imaging: ``imaging.stokes_lmax``, else
+    ``min(mmode.lmax, STOKES_LMAX_DEFAULT)``; never above ``mmode.lmax``."""
+    lp = cfg.imaging.stokes_lmax
+    return min(cfg.mmode.lmax, STOKES_LMAX_DEFAULT if lp is None else lp)
 
 
 def n_bins_of(cfg, integration_s):
@@ -47,9 +54,10 @@ def fit_bins(splits, n_bins):
 
 def interpolates_diffuse(cfg):
     """Whether the simulate stage sums the diffuse sky at a few sidereal angles and interpolates it to
-    every integration (:mod:`mmflow.simulate.drift_modes`): every unpolarised simulation with a diffuse
-    sky (a full-Stokes one sums it at every integration)."""
-    return bool(cfg.sky.diffuse) and not is_full_stokes(cfg.imaging.stokes)
+    every integration (:mod:`mmflow.simulate.drift_modes`): every simulation with a diffuse sky (a
+    full-Stokes one its four correlations: the unpolarised sky's drift scan through any beam is a
+    trigonometric polynomial of degree ``sky.diffuse_lmax`` in the sidereal angle)."""
+    return bool(cfg.sky.diffuse)
 
 
 def n_integrations(cfg):

@@ -80,10 +80,13 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)),
                         store_files=sum(s.n_files for s in specs),
                         largest_chunk_bytes=max((s.largest_chunk_bytes for s in specs), default=0))
-    if k is None:
+    if k is None and cost.seconds is None:
         est.notes.append("no fitted constants: memory = working set, time unknown")
         est.task_bytes = w
         return est
+    if k is None:  # a stage that counts its own time from its work (the stokes stage), its memory its working set
+        est.notes.append("no fitted constants: memory = working set, time counted from the work")
+        k = {"a": 1.0, "b": 0.0, "c": 0.0, "d": 0.0}
     if cost.notes is not None:
         est.notes.extend(cost.notes(g, cfg, total_gflops or peak_gflops))
     est.task_bytes = k["a"] * w + k["b"]

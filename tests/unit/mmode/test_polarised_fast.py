@@ -74,17 +74,24 @@ def test_fast_blocks_equal_the_reference_kernels(correlations, monkeypatch):
         np.testing.assert_array_equal(g, h)
 
 
-@pytest.mark.parametrize("per_baseline", [False, True])
-def test_streamed_normal_equations_equal_the_dense_products(per_baseline):
+@pytest.mark.parametrize("per_baseline, lmax_p, m_range",
+                         [(False, None, None), (True, None, None), (True, 10, (5, 14))])
+def test_streamed_normal_equations_equal_the_dense_products(per_baseline, lmax_p, m_range):
     """With per-baseline lmax the dense products use the reference blocks with each baseline's
-    coefficients above its lmax_b zeroed, and its m-modes only up to its chunk's largest lmax_b."""
+    coefficients above its lmax_b zeroed, and its m-modes only up to its chunk's largest lmax_b.
+    With a band limit of its own for E, B, V (``lmax_p``) the dense products keep T's columns to lmax
+    and E's, B's, V's to ``lmax_p``; a block of m (``m_range``, its m-modes only) holds those m alone."""
     grid, b = _setup(7, 24, seed=3)
     rng = np.random.default_rng(4)
     lmax, nc = grid.lmax, 4
     mm = rng.normal(size=(2, lmax + 3, 2, nc, len(b))) + 1j * rng.normal(size=(2, lmax + 3, 2, nc, len(b)))
     w = rng.uniform(0.5, 2.0, (nc, len(b)))
     lmax_b = np.array([24, 9, 17, 5, 24, 12, 20]) if per_baseline else None
-    normal = accumulate_polarised_normal(grid, b, mm, w, chunk_size=3, lmax_b=lmax_b)
+    m0, m1 = m_range or (0, lmax + 1)
+    given = mm if m_range is None else mm[:, m0:m1]
+    normal = accumulate_polarised_normal(grid, b, given, w, chunk_size=3, lmax_b=lmax_b, lmax_p=lmax_p,
+                                         m_range=m_range)
+    assert list(normal.m_range) == list(range(m0, m1))
     blocks = reference_transfer_blocks(grid, b)
     if per_baseline:
         # chunks of three by lmax_b: (5, 9, 12) -> 12, (17, 20, 24) -> 24, (24) -> 24
@@ -95,13 +102,18 @@ def test_streamed_normal_equations_equal_the_dense_products(per_baseline):
                 np.tile(ell[None, :] <= lmax_b[:, None], (2, 1))[None, None]
             live = top >= m  # a chunk's m-modes enter only its m <= lmax_c
             mm[:, m, :, :, ~live] = 0
-    for m in (0, 1, 9, 13, lmax):
+    for m in [m for m in (0, 1, 5, 9, 13, lmax) if m0 <= m < m1]:
         blk = blocks[m]  # (corr, 4, rows, L)
-        a = blk.transpose(0, 2, 1, 3).reshape(nc * blk.shape[2], -1)  # rows (corr, +-m, b), cols (X, l)
+        n_l = blk.shape[3]
+        n_p = n_l if lmax_p is None else max(0, lmax_p - m + 1)
+        cols = np.concatenate([np.arange(n_l)] + [x * n_l + np.arange(n_p) for x in (1, 2, 3)])
+        a = blk.transpose(0, 2, 1, 3).reshape(nc * blk.shape[2], -1)[:, cols]  # rows (corr, +-m, b), cols (X, l)
         wr = np.tile(w, (1, 1 if m == 0 else 2)).reshape(-1)
         v = (mm[:, m, :1] if m == 0 else mm[:, m]).transpose(0, 2, 1, 3).reshape(2, -1)
         g = a.conj().T @ (wr[:, None] * a)
         scale = np.abs(g).max()
-        assert np.abs(normal.gram[m] - g).max() < 1e-12 * scale
-        np.testing.assert_allclose(normal.rhs[m], (v * wr) @ a.conj(), atol=1e-12 * np.abs(normal.rhs[m]).max())
+        assert normal.gram[m - m0].shape == (n_l + 3 * n_p,) * 2 and normal.sizes(m) == (n_l, n_p)
+        assert np.abs(normal.gram[m - m0] - g).max() < 1e-12 * scale
+        np.testing.assert_allclose(normal.rhs[m - m0], (v * wr) @ a.conj(),
+                                   atol=1e-12 * np.abs(normal.rhs[m - m0]).max())
         np.testing.assert_allclose(normal.vhv[:, m], np.sum(wr * np.abs(v) ** 2, axis=1), rtol=1e-12)

@@ -249,6 +249,10 @@ def test_bench_transfer_stokes_compares_both_paths_on_the_same_baselines():
     from mmflow.bench.stokes import compare
 
     r = compare(16, 4)
-    assert (r["lmax"], r["baselines"]) == (16, 4)
+    assert (r["lmax"], r["stokes_lmax"], r["baselines"]) == (16, 16, 4)  # the default band limit: lmax if lower
     assert r["full_over_i"] > 1 and r["full_stokes_s_per_baseline"] == r["full_stokes_s"] / 4
     assert 30 < r["flops_full_over_i"] < 64
+    # Q, U, V to l = 4: the herk of (L + 3 P)^2 and the spin-2 GEMMs shrink towards the four correlations'
+    # Stokes-I work (4x the rows)
+    low = compare(16, 4, lmax_p=4)
+    assert low["stokes_lmax"] == 4 and 4 < low["flops_full_over_i"] < r["flops_full_over_i"] / 2

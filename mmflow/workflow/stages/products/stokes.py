@@ -156,8 +156,9 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
         info["noise"] = noise
     # the largest leakage of the unpolarised sky into each of Q, U, V, relative to the I peak
     info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
-    # whether the solve images polarised fractions as they are (the stokes task's polarisation_response)
-    info["polarisation"] = ctx.run.task_infos("stokes").get(TaskKey(freq=fi).format(), {}).get("polarisation")
+    # whether the solve images polarised fractions as they are (the polarisation_response of the stokes
+    # stage's second phase, its per-frequency task of cycle 0)
+    info["polarisation"] = ctx.run.task_infos("stokes").get(TaskKey(freq=fi, cycle=0).format(), {}).get("polarisation")
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():

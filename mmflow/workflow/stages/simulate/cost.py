@@ -14,7 +14,8 @@ import numpy as np
 
 from mmflow.io import run_stores as rs
 from mmflow.simulate.drift_modes import n_samples
-from mmflow.simulate.scene import diffuse_quad_lmax, feed_columns
+from mmflow.conventions import is_full_stokes
+from mmflow.simulate.scene import diffuse_columns, diffuse_quad_lmax
 from mmflow.simulate.visibilities import gauss_legendre_shape
 from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
 from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, vis_spec
@@ -35,7 +36,8 @@ class SkySizes(NamedTuple):
     points: int  # sources, and the diffuse grid when it is not interpolated
     diffuse_points: int  # the diffuse sky's quadrature grid
     diffuse_samples: int  # sidereal angles of an interpolated diffuse sky (0: none)
-    feed_columns: int  # simulated through each feed's power beam (2) or one beam (1)
+    feed_columns: int  # simulated through each feed's power beam (2) or one beam (1); 4 correlations (full Stokes)
+    full_stokes: bool  # the four correlations through the E-field beam
 
 
 def sky_sizes(g, cfg):
@@ -49,8 +51,10 @@ def sky_sizes(g, cfg):
         ntheta, nphi = gauss_legendre_shape(q)
         n_diffuse = ntheta * nphi
     interpolated = interpolates_diffuse(cfg)
+    full = is_full_stokes(cfg.imaging.stokes)
     return SkySizes(len(s.sources) + (0 if interpolated else n_diffuse), n_diffuse,
-                    n_samples(s.diffuse_lmax) if interpolated else 0, len(feed_columns(g.tel, cfg.corrupt.enabled)))
+                    n_samples(s.diffuse_lmax) if interpolated else 0,
+                    diffuse_columns(g.tel, cfg.corrupt.enabled, full), full)
 
 
 def work(g, cfg):
@@ -74,9 +78,14 @@ def work(g, cfg):
 def diffuse_sum_seconds(g, cfg, peak_gflops):
     """Wall seconds of an interpolated diffuse sky's direct sums on the whole machine: per channel and
     sampled angle ``(2 n_ant)^2 x n_up`` flops (``n_up``, half the quadrature grid, above the horizon), per
-    feed column, at :data:`DIFFUSE_SUM_FRACTION` of the SGEMM peak ``peak_gflops``."""
+    feed column, at :data:`DIFFUSE_SUM_FRACTION` of the SGEMM peak ``peak_gflops``; a full-Stokes
+    simulation's four correlations are one complex64 Hermitian rank-``2 n_up`` update of the ``(2 n_ant)^2``
+    correlation matrix per angle (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`'s
+    ``herk``): ``4 (2 n_ant)^2 2 n_up`` flops (assumed at the same share of the peak)."""
     sky = sky_sizes(g, cfg)
-    flops = g.n_freq * sky.diffuse_samples * sky.feed_columns * (2.0 * g.n_ant) ** 2 * sky.diffuse_points / 2
+    per_sample = (4.0 * (2.0 * g.n_ant) ** 2 * sky.diffuse_points if sky.full_stokes
+                  else sky.feed_columns * (2.0 * g.n_ant) ** 2 * sky.diffuse_points / 2)
+    flops = g.n_freq * sky.diffuse_samples * per_sample
     return flops / (DIFFUSE_SUM_FRACTION * peak_gflops * 1e9)
 
 

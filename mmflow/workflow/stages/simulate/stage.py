@@ -30,7 +30,7 @@ from mmflow.io.raw_files import RAW_DIR, raw_path, write_raw_chunk
 from mmflow.io.run_stores import STORES, diffuse_store, vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
 from mmflow.simulate.drift_modes import coefficients_from_samples, evaluate_drift, n_samples, sample_lsts
-from mmflow.simulate.scene import (diffuse_points, drift_samples, feed_columns, joined, polarised_sky_points,
+from mmflow.simulate.scene import (diffuse_columns, diffuse_points, drift_samples, joined, polarised_sky_points,
                                    polarised_source_points, simulate_chunk, simulate_polarised_chunk, sky_points,
                                    source_points_date, unpolarised)
 from mmflow.sky.sources import get_sources, resolved
@@ -64,7 +64,7 @@ def _sim_prepare(ctx):
     # first phase: the diffuse sky at N sidereal angles, DIFFUSE_SAMPLE_BLOCK per task; then the time chunks
     n_s = n_samples(cfg.sky.diffuse_lmax)
     ctx.create(diffuse_store(len(tel.freqs_hz), n_s, len(tel.antenna_pairs()),
-                             len(feed_columns(tel, cfg.corrupt.enabled)), DIFFUSE_SAMPLE_BLOCK))
+                             diffuse_columns(tel, cfg.corrupt.enabled, full), DIFFUSE_SAMPLE_BLOCK))
     return [TaskKey(phase="d", freq=fi, time=b) for fi in range(len(tel.freqs_hz))
             for b in range(-(-n_s // DIFFUSE_SAMPLE_BLOCK))]
 
@@ -123,7 +123,9 @@ def _diffuse_task(ctx, key):
     s = cfg.sky
     lsts = sample_lsts(s.diffuse_lmax)[key.time * DIFFUSE_SAMPLE_BLOCK:(key.time + 1) * DIFFUSE_SAMPLE_BLOCK]
     points = diffuse_points(tel, f, cfg.observation.epoch_jd, s.diffuse_lmax, s.seed, s.quad_oversample)
-    samples = drift_samples(tel, f, points, lsts, cfg.corrupt.enabled)
+    full = is_full_stokes(cfg.imaging.stokes)  # the four correlations through the E-field beam
+    jones = _jones(ctx.for_stage(ctx.stage)) if full else None
+    samples = drift_samples(tel, f, points, lsts, cfg.corrupt.enabled, jones)
     rows = slice(key.time * DIFFUSE_SAMPLE_BLOCK, key.time * DIFFUSE_SAMPLE_BLOCK + len(lsts))
     ctx.write(ctx.open(STORES.diffuse, mode="r+"), STORES.diffuse.samples, (slice(key.freq, key.freq + 1), rows),
               samples[None])
@@ -163,8 +165,9 @@ def _sim_task(ctx, key):
     g = ctx.open(STORES.vis, mode="r+")
     rows = (slice(t0, t1),)
     if full:
+        extra = _diffuse_at(ctx, lst) if interpolates_diffuse(cfg) else None
         vis, cross = simulate_polarised_chunk(tel, _jones(ctx.for_stage(ctx.stage)), lst, skies, rng, o.integration_s,
-                                              corrupted, slice(t0, t1), cfg.corrupt.system_jy)
+                                              corrupted, slice(t0, t1), cfg.corrupt.system_jy, extra)
         ctx.write(g, STORES.vis.vis_cross, rows, cross)
         ctx.write(g, STORES.vis.weights_cross, rows, np.ones(cross.shape, np.float32))
     else:

@@ -31,6 +31,10 @@ class ImagingConfig(Section):
         "docs/stokes.md).")
     eps_pol: Optional[float] = Field(None, gt=0, description="Regularisation of Q, U (E, B) and V with stokes "
                                      "[I, Q, U, V] (null: 100 x eps, the prior of a weakly polarised sky).")
+    stokes_lmax: Optional[int] = Field(None, ge=2, description="Band limit of Q, U and V (their E, B, V "
+                                       "harmonics) with stokes [I, Q, U, V]; I keeps mmode.lmax (null: "
+                                       "min(mmode.lmax, 256): the polarised sky at ~0.7 deg, ~7x the Stokes-I "
+                                       "Gram at lmax 1000 instead of 64x; docs/stokes.md).")
 
     @field_validator("stokes")
     @classmethod

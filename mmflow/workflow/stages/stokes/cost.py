@@ -1,27 +1,158 @@
-"""The stokes stage's cost: a task per channel holding the whole channel's Gram over [T, E, B, V]
-(complex128, full matrices) and its Cholesky factors, one set for the solve, the leakage and the CLEAN of
-V (two Grams), and the ring FFTs of one pass of at most 64 baselines (16 fields x (+m, -m) per ring and
-m, complex128, ~lmax / 2 north rings), in m-blocks within ``FOURIER_BUDGET_BYTES``."""
+"""The stokes stage's cost: per channel a task per block of m (:func:`blocks.blocks_of`) and one task of the
+second phase; the time from the work the stage does, counted as the stage does it (there are no fitted
+constants for it).
+
+A block task holds its block's Grams and factors (``BLOCK_BYTES_PER_ELEMENT`` per element of
+``sum_m N_m^2``, ``N_m = L_m + 3 P_m``), its m-modes, one pass's ring-Fourier arrays (at most
+``FOURIER_BUDGET_BYTES``) and the largest chunk grid's feed responses. Its time:
+
+* ring products and FFTs: for every chunk of baselines (sorted by per-baseline lmax, as the stage chunks
+  them), the points of the chunk's grid x 16 kernels x baselines, once per Fourier block of the m it
+  covers (:func:`mmflow.mmode.polarised_transfer.fourier_m_block`; above the polarised band limit the
+  4 I kernels in blocks of 4x the m), at ``RING_SECONDS_PER_POINT``;
+* Legendre GEMMs (``lambda`` on I and V to the chunk's top, ``W``, ``X`` on Q, U to the polarised band
+  limit) and the ``herk`` of ``4 x 2 n_b`` rows into ``N_m^2`` (``4 k N^2`` flops), and the Cholesky
+  factors (``8 N^3 / 3``), at ``GEMM_EFFICIENCY`` of the SGEMM peak.
+
+The second phase factorises every m once more for the polarisation response and, when the factors are not
+kept, again for each CLEAN cycle (the plan assumes ``expected_clean_cycles``).
+"""
 from __future__ import annotations
 
-from mmflow.io import run_stores as rs
-from mmflow.mmode.polarised_transfer import FOURIER_BUDGET_BYTES
-from mmflow.workflow.plan.work import (COMPLEX128_BYTES, PSF_DECLINATIONS, Cost, Work, expected_clean_cycles)
+import ducc0
+import numpy as np
 
-#: Grams held at once: the solve's and its factors (the leakage and the CLEAN of V reuse them)
-GRAMS = 2
-#: baselines of one pass of the ring FFTs
+from mmflow.io import run_stores as rs
+from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT
+from mmflow.mmode.polarised import CORRELATIONS
+from mmflow.mmode.polarised_transfer import FOURIER_BUDGET_BYTES
+from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
+from mmflow.mmode.engine import GridCache
+from mmflow.workflow.engine.geometry import stokes_lmax_of
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, PSF_DECLINATIONS, Cost, Work, expected_clean_cycles
+from mmflow.workflow.stages.stokes.blocks import FACTORS_KEPT_BYTES, blocks_of, gram_dtype, mmode_bytes_per_m, sizes_of
+
+#: wall seconds per ring point, kernel and Fourier block at the SGEMM peak ``RING_REFERENCE_GFLOPS``:
+#: ``mmflow bench transfer --stokes IQUV`` (docs/stokes.md, 2026-11-27): ring stage 25.4 thread-seconds on
+#: 2 threads for 64 baselines at lmax 1000 (grid 1022 x 2048 rings x points, 4 Fourier blocks)
+RING_SECONDS_PER_POINT = 12.7 / (64 * 1022 * 2048 * 16 * 4)
+RING_REFERENCE_GFLOPS = 205.0
+#: fraction of the SGEMM peak the Legendre GEMMs and the ``herk`` run at (the same benchmark: 67 %)
+GEMM_EFFICIENCY = 0.6
+#: kernels of the ring stage: I, V, Q, U for each of the four correlations
+KERNELS = 4 * len(CORRELATIONS)
+#: test sources of the polarisation response (4 at each of up to 5 declinations: the stokes stage's)
+RESPONSE_SOURCES = 20
+#: baselines per pass at lmax ~1000 (:func:`mmflow.mmode.polarised_transfer.baselines_per_pass`'s ceiling)
 PASS_BASELINES = 64
 
 
+def _grid_shape(top, fringe):
+    """``(n_theta, n_phi)`` of a chunk's grid (:func:`mmflow.mmode.polarised.make_polarised_grid`)."""
+    quad = top + fringe
+    n_theta = quad // 2 + 2
+    n_theta += n_theta % 2
+    return n_theta, ducc0.fft.good_size(max(quad + 2, 2 * top + 2))
+
+
+def _chunks(g, cfg):
+    """Per chunk of baselines ``(n_b, top, grid points, lmax_b array)`` as the stage chunks one channel."""
+    tel, f = g.tel, g.freqs_hz[-1]
+    lmax = g.lmax
+    pairs = tel.antenna_pairs()
+    b_len = np.linalg.norm(baselines_in_wavelengths(tel, pairs, f), axis=1)
+    lb = tel.baseline_lmax(f, lmax, pairs) if cfg.transfer.per_baseline_lmax else np.full(len(pairs), lmax)
+    order = np.argsort(lb, kind="stable")
+    out = []
+    for s in range(0, len(order), PASS_BASELINES):
+        idx = order[s:s + PASS_BASELINES]
+        top = int(lb[idx].max())
+        key = GridCache.key(top, fringe_bandlimit(b_len[idx], tel.beam.lmax_hint), lmax)
+        out.append((len(idx), top, _grid_shape(*key), lb[idx]))
+    return out
+
+
+def _block_seconds(g, cfg, chunks, m0, m1, size, lmax_p, peak):
+    """Seconds of one block task (module docstring)."""
+    ring, flops = 0.0, 0.0
+    item = 8 if cfg.transfer.dtype == "float32" else 16
+    for nb, top, (n_theta, n_phi), lbs in chunks:
+        if top < m0:
+            continue
+        n_act = n_theta // 2
+        m_hi = min(top, m1 - 1)
+        per_m = 2 * 2 * n_act * 2 * len(CORRELATIONS) * 2 * nb * item
+        step = max(1, int(FOURIER_BUDGET_BYTES // per_m))
+        n_pol_m = max(0, min(m_hi, lmax_p) - m0 + 1)  # every kernel; above lmax_p the I kernels alone
+        n_i_m = m_hi - m0 + 1 - n_pol_m
+        fblocks = -(-n_pol_m // step) + -(-n_i_m // (4 * step)) / 4
+        ring += n_act * 2 * n_phi * KERNELS * nb * fblocks
+        for m in range(m0, m_hi + 1):
+            cols = nb if m == 0 else 2 * nb
+            n_t, n_p = top - m + 1, max(0, min(top, lmax_p) - m + 1)
+            rows = 2 * n_t + 4 * n_p if n_p else n_t  # lambda on I, V (on I alone above lmax_p), W, X on Q, U
+            flops += 2.0 * n_act * rows * len(CORRELATIONS) * cols * 2
+            flops += 4.0 * len(CORRELATIONS) * cols * (n_t + 3 * n_p) ** 2  # herk
+    flops += sum(8.0 * size(m) ** 3 / 3 for m in range(m0, m1))  # the block's factors
+    return ring * RING_SECONDS_PER_POINT * RING_REFERENCE_GFLOPS / peak + flops / (GEMM_EFFICIENCY * peak * 1e9)
+
+
+def _plan(g, cfg):
+    size, lmax_p = sizes_of(cfg), stokes_lmax_of(cfg)
+    blocks = blocks_of(cfg, g.n_split, g.n_bl)
+    gram = [BLOCK_BYTES_PER_ELEMENT * sum(float(size(m)) ** 2 for m in range(m0, m1)) for m0, m1 in blocks]
+    mm = [mmode_bytes_per_m(g.n_split, g.n_bl) * (m1 - m0) for m0, m1 in blocks]
+    all_gram = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * COMPLEX128_BYTES
+    kept = BLOCK_BYTES_PER_ELEMENT / 2 * sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) <= FACTORS_KEPT_BYTES
+    return size, lmax_p, blocks, gram, mm, all_gram, kept
+
+
 def work(g, cfg):
-    gram = GRAMS * COMPLEX128_BYTES * sum((4 * (g.lmax - m + 1)) ** 2 for m in range(g.lmax + 1))
-    coef = min(FOURIER_BUDGET_BYTES,
-               2 * 16 * 2 * PASS_BASELINES * COMPLEX128_BYTES * (g.lmax + 1) * (g.lmax // 2 + 2))
+    size, lmax_p, blocks, gram, mm, all_gram, kept = _plan(g, cfg)
+    n_theta, n_phi = _grid_shape(g.lmax, g.lmax)
+    grid = 2 * 2 * n_theta * n_phi * COMPLEX128_BYTES  # feeds x (N, E) responses of the largest grid
+    # one pass's Fourier arrays (polarised_fourier: 2 x 2 x rings x 2 x corr x 2 n_b per m), at most the budget
+    item = 8 if cfg.transfer.dtype == "float32" else 16
+    fourier = min(FOURIER_BUDGET_BYTES, 2 * 2 * (n_theta // 2) * 2 * len(CORRELATIONS) * 2
+                  * min(PASS_BASELINES, g.n_bl) * item * (g.lmax + 1))
+    block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
+    # the second phase: the factors (or one m's Gram and factor), the splits' harmonics and the test sources'
+    # (the polarisation response's 4 per declination, or the V PSF table's) imaged: in and out, T, E, B, V each
+    n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
+    vectors = 2 * max(RESPONSE_SOURCES, PSF_DECLINATIONS) + g.n_split
+    second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + vectors * 4 * n_alm * COMPLEX128_BYTES
     c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
-                           (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None)
-    return Work(g.n_freq, gram + coef, g.n_bl * 4 * (g.lmax + 1) ** 2, [spec])
+                           (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None,
+                           blocks, lmax_p, gram_dtype(cfg))
+    units = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * g.n_bl
+    return Work(g.n_freq * (len(blocks) + 1), max(block_task, second), units, [spec])
 
 
-COST = Cost(work, shrink="a smaller chunk")
+def seconds(g, cfg, per_task, workers, peak):
+    """The stage's wall time: each channel's block tasks in rounds over the task slots, then its second
+    phase (module docstring)."""
+    size, lmax_p, blocks, *_, kept = _plan(g, cfg)
+    chunks = _chunks(g, cfg)
+    block_s = sorted((_block_seconds(g, cfg, chunks, m0, m1, size, lmax_p, peak) for m0, m1 in blocks),
+                     reverse=True)
+    # the block tasks of all channels over the slots (each channel's blocks alike), longest first
+    per_slot = [0.0] * max(1, workers)
+    for s in block_s * g.n_freq:
+        per_slot[per_slot.index(min(per_slot))] += s
+    factor_s = sum(8.0 * size(m) ** 3 / 3 for m in range(g.lmax + 1)) / (GEMM_EFFICIENCY * peak * 1e9)
+    refactor = 1 + (0 if kept else expected_clean_cycles(cfg) + 1)  # the response, the V PSFs, each cycle
+    second = factor_s * refactor * -(-g.n_freq // max(1, workers))
+    return max(per_slot) + second
+
+
+def notes(g, cfg, peak):
+    size, lmax_p, blocks, gram, mm, all_gram, kept = _plan(g, cfg)
+    whole = f"a channel's whole Gram {all_gram / 1e9:.2f} GB (complex128)"
+    split = (f"{len(blocks)} blocks of m a channel, {whole} in none of them" if len(blocks) > 1 else
+             f"one block of m a channel ({whole})")
+    return [f"Q, U, V to l = {lmax_p} (imaging.stokes_lmax), I to {g.lmax}; {split}"]
+
+
+COST = Cost(work, shrink="a lower imaging.stokes_lmax (Q, U, V's band limit: the Gram grows as (lmax + 3 "
+            "stokes_lmax)^3)", seconds=seconds, notes=notes)

@@ -1,42 +1,43 @@
-"""The ``stokes`` stage: full-Stokes imaging (``imaging.stokes: [I, Q, U, V]``), one task per frequency.
+"""The ``stokes`` stage: full-Stokes imaging (``imaging.stokes: [I, Q, U, V]``), in blocks of m.
 
-Each task reads the m-modes of the four correlations (``mmodes.zarr``'s ``mmodes_corr``, xx, yy,
-xy, yx), builds the full-Stokes transfer coefficients of every baseline through the E-field beam
-(:func:`mmflow.mmode.polarised_transfer.polarised_pass`, the beam from ``beam``: type
-``short_dipole`` or a pyuvdata E-field beam), accumulates ``G_m = B_m^H W B_m`` and
-``r_m = B_m^H W v_m`` over the ``4 (lmax - m + 1)`` unknowns ``[T; E; B; V]``
-(:func:`mmflow.imaging.polarised.accumulate_polarised_normal`, ``W`` the correlations' relative
-inverse noise variances where ``transfer.noise_weighting``) and solves
-``x_m = (G_m + D)^-1 r_m`` with ``D = diag(eps, eps_pol, eps_pol, eps_pol)`` and the Stokes-I
-solve's m-filters (:func:`mmflow.imaging.polarised.solve_polarised`). It also writes the
-leakage: the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]``
-(:func:`mmflow.imaging.polarised.expected_alm`), whose Q, U, V are what the beam model leaves of I
-in them. With ``clean.enabled`` it CLEANs V (a sparse sky) with the ``clean`` settings
-(:func:`mmflow.imaging.polarised_clean.clean_stokes_v`: components from the V residual, subtracted
-through the full-Stokes solve from all four Stokes parameters; threshold ``clean.threshold`` or
-``clean.threshold_sigma`` x the V map's jackknife noise, or its robust rms without even/odd or
-per-day splits). Every data split (``mmode.splits``) is solved through the same factorisation, so
-the products can state each Stokes map's jackknife noise. Writes ``stokes.zarr``; the products
-stage makes the maps.
+Phase one, one task per (frequency, block of m): the task reads the block's m-modes of the four
+correlations (``mmodes.zarr``'s ``mmodes_corr``, xx, yy, xy, yx), builds the full-Stokes transfer
+coefficients of every baseline for those m through the E-field beam
+(:func:`mmflow.mmode.polarised_transfer.polarised_pass`, each chunk of baselines on a grid of its own
+size; the beam from ``beam``: type ``short_dipole`` or a pyuvdata E-field beam), accumulates
+``G_m = B_m^H W B_m`` and ``r_m = B_m^H W v_m`` over the unknowns ``[T; E; B; V]`` (T to ``mmode.lmax``,
+E, B, V to ``imaging.stokes_lmax``: :func:`mmflow.imaging.polarised.accumulate_polarised_normal`, ``W``
+the correlations' relative inverse noise variances where ``transfer.noise_weighting``), solves
+``x_m = (G_m + D)^-1 r_m`` with ``D = diag(eps, eps_pol, eps_pol, eps_pol)`` and the Stokes-I solve's
+m-filters for every data split (``mmode.splits``) through one factorisation, images the leakage (the
+unpolarised sky ``[T, 0, 0, 0]`` through the same solve, :func:`mmflow.imaging.polarised.expected_alm`),
+and writes the block's harmonics, leakage and Grams to ``stokes.zarr``. The blocks
+(:func:`mmflow.imaging.polarised.stokes_m_blocks`) keep a task's Grams, factors and m-modes within
+``BLOCK_BYTES``: no task holds a channel's whole Gram.
 
-The transfer coefficients are the reference kernels (six spherical-harmonic transforms per
-baseline and correlation, the whole Gram of a channel in memory: ``16 sum_m (4 L_m)^2`` bytes):
-arrays of tens of antennas and lmax of a few tens to ~100 (docs/stokes.md); ``mmflow plan``
-states the memory.
+Phase two, one task per frequency: the polarisation response of test sources through the run's solve
+(:func:`mmflow.imaging.polarised.polarisation_response`) and, with ``clean.enabled``, the CLEAN of V (a
+sparse sky; :func:`mmflow.imaging.polarised_clean.clean_stokes_v`: components from the V residual,
+subtracted through the full-Stokes solve from all four Stokes parameters; threshold ``clean.threshold``
+or ``clean.threshold_sigma`` x the V map's jackknife noise, or its robust rms without even/odd or
+per-day splits), through the stored Grams factorised one m at a time
+(:class:`mmflow.imaging.polarised.PolarisedObserver` with ``keep_factors`` only when a channel's factors
+fit ``FACTORS_KEPT_BYTES``). The products stage makes the maps.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import is_full_stokes, padded_alm
-from mmflow.imaging.polarised import (PolarisedObserver, accumulate_polarised_normal, polarisation_response,
-                                      stokes_eps)
+from mmflow.conventions import healpy_alm, is_full_stokes, padded_alm
+from mmflow.imaging.polarised import (BLOCK_BYTES_PER_ELEMENT, PolarisedNormal, PolarisedObserver,
+                                      accumulate_polarised_normal, polarisation_response, stokes_eps)
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
 from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
 from mmflow.io.run_stores import STORES, CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
+from mmflow.mmode.engine import GridCache
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.sky import units
 from mmflow.telescope.beam_factory import make_jones
@@ -47,13 +48,16 @@ from mmflow.workflow.engine.clean_state import (
     jackknife_splits,
     psf_decs_deg,
 )
+from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.engine.kernel_args import m_filters
+from mmflow.workflow.stages.stokes.blocks import FACTORS_KEPT_BYTES, blocks_of, gram_dtype, sizes_of
 from mmflow.workflow.stages.stokes.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
 
 STOKES_CONFIG = (
     "mmode.lmax",
+    "transfer.dtype",
     "mmode.splits",
     "beam",
     "imaging",
@@ -78,46 +82,129 @@ def _response_decs(lat_rad):
 def _prepare(ctx):
     mg = ctx.open(STORES.mmodes)
     n_split, nf, n_m = mg[STORES.mmodes.mmodes_corr].shape[:3]
-    c = ctx.cfg.clean
+    n_bl = mg[STORES.mmodes.mmodes_corr].shape[-1]
+    cfg = ctx.cfg
+    c = cfg.clean
     v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
-    ctx.create(stokes_store(n_split, nf, ctx.cfg.mmode.lmax, n_m - 1, v_clean))
-    return [TaskKey(freq=fi) for fi in range(nf)]
+    blocks = blocks_of(cfg, n_split, n_bl)
+    ctx.create(stokes_store(n_split, nf, cfg.mmode.lmax, n_m - 1, v_clean, blocks, stokes_lmax_of(cfg),
+                            gram_dtype(cfg)))
+    return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in blocks]
+
+
+def _split_baselines(ctx):
+    """Data splits and baselines of the m-modes (what the blocks of m depend on besides the settings)."""
+    shape = ctx.open(STORES.mmodes)[STORES.mmodes.mmodes_corr].shape
+    return shape[0], shape[-1]
+
+
+def _next_cycle(ctx, cycle):
+    """Phase two after the blocks: one task per frequency (the response and the CLEAN of V)."""
+    if cycle > 0:
+        return None
+    return [TaskKey(freq=fi) for fi in range(ctx.open(STORES.mmodes)[STORES.mmodes.mmodes_corr].shape[1])]
 
 
 def _task(ctx, key):
+    return _block_task(ctx, key) if key.m_block is not None else _channel_task(ctx, key)
+
+
+def _block_task(ctx, key):
+    """Phase one: the normal equations, solve and leakage of one block of m (module docstring)."""
     cfg = ctx.cfg
-    fi, lmax = key.freq, cfg.mmode.lmax
+    fi, lmax, lmax_p = key.freq, cfg.mmode.lmax, stokes_lmax_of(cfg)
     vg = ctx.open(STORES.vis)
     freq = float(vg[STORES.vis.freqs_hz][fi])
     pairs = vg[STORES.vis.pairs][:]
-    mm = ctx.read(STORES.mmodes.mmodes_corr, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, m, pm, corr, bl)
+    n_split, n_bl = _split_baselines(ctx)
+    m0 = key.m_block
+    m1 = dict(blocks_of(cfg, n_split, n_bl))[m0]
     inv_var = ctx.read(STORES.mmodes.inv_var_corr, (slice(fi, fi + 1),))[0]  # (corr, bl)
     w = relative_weights(inv_var) if cfg.transfer.noise_weighting else (inv_var > 0).astype(float)
     keep = np.flatnonzero(w.max(axis=0) > 0)  # baselines with data in some correlation
+    # the block's m-modes only: (split, m, pm, corr, bl)
+    mm = ctx.read(STORES.mmodes.mmodes_corr, (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0][..., keep]
     jones = make_jones(cfg.beam.model_dump())
     tel = ctx.telescope()
     b = baselines_in_wavelengths(tel, pairs[keep], freq)
-    grid = make_polarised_grid(tel.lat_rad, jones, freq, lmax,
-                               fringe_bandlimit(np.linalg.norm(b, axis=1), jones.lmax_hint))
-    # every data split through one factorisation: split 0 is the full data, the others its jackknives
+    b_len = np.linalg.norm(b, axis=1)
     lmax_b = tel.baseline_lmax(freq, lmax, pairs[keep]) if cfg.transfer.per_baseline_lmax else None
-    normal = accumulate_polarised_normal(grid, b, mm[:, :lmax + 1, :, :, keep], w[:, keep], CORRELATIONS,
-                                         lmax_b=lmax_b)
+    dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
+    normal = accumulate_polarised_normal(_grids(tel.lat_rad, jones, freq, lmax, b_len), b, mm, w[:, keep],
+                                         CORRELATIONS, dtype=dtype, lmax_b=lmax_b, lmax_p=lmax_p,
+                                         m_range=(m0, m1), lmax=lmax)
     eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
-    observe = PolarisedObserver(normal, eps, filters)  # factorised once: the solve, the leakage, the CLEAN of V
-    splits = observe.solution()  # (split, 4, n_alm)
-    alm = splits[0]
-    unpolarised = np.zeros_like(alm)
-    unpolarised[0] = alm[0]
+    observe = PolarisedObserver(normal, eps, filters)  # factorised once: the solve and the leakage
+    splits = observe.solution()  # (split, 4, n_alm), zero outside the block
+    unpolarised = np.zeros_like(splits[0])
+    unpolarised[0] = splits[0][0]
     leak = observe(unpolarised)[0]
     out = ctx.open(STORES.stokes, mode="r+")
     n_m = out[STORES.stokes.alm].shape[3]
-    ctx.write(out, STORES.stokes.alm, (slice(None), slice(fi, fi + 1)),
-              np.stack([padded_alm(a, lmax, n_m) for a in splits])[:, None])
-    ctx.write(out, STORES.stokes.leakage, (slice(fi, fi + 1),), padded_alm(leak, lmax, n_m)[None])
-    info = {"baselines": int(len(keep)), "eps": list(eps),
-            "polarisation": polarisation_response(observe, _response_decs(tel.lat_rad), clean_nside(cfg))}
+    mb = slice(m0, min(m1, n_m))
+    ctx.write(out, STORES.stokes.alm, (slice(None), slice(fi, fi + 1), slice(None), mb),
+              np.stack([padded_alm(a, lmax, n_m)[:, mb] for a in splits])[:, None])
+    ctx.write(out, STORES.stokes.leakage, (slice(fi, fi + 1), slice(None), mb),
+              padded_alm(leak, lmax, n_m)[None, :, mb])
+    name = STORES.stokes.gram(fi, m0)
+    n0, gdt = out[name].shape[1], out[name].dtype
+    for k, g in enumerate(normal.gram):  # each m's Gram padded to the block's size, in the accumulation's precision
+        pad = np.zeros((1, n0, n0), gdt)
+        pad[0, :len(g), :len(g)] = g
+        ctx.write(out, name, (slice(k, k + 1),), pad)
+    return {"baselines": int(len(keep)), "m": [m0, m1], "eps": list(eps), "stokes_lmax": lmax_p}
+
+
+def _grids(lat_rad, jones, freq, lmax, b_len):
+    """``(top, index) -> PolarisedGrid`` of a chunk: exact to its ``top`` and its baselines' fringe band
+    limit (both rounded up as :meth:`mmflow.mmode.engine.GridCache.key` rounds them: neighbouring chunks
+    share a grid), the last one kept."""
+    cache = {}
+
+    def grid_of(top, index):
+        key = GridCache.key(top, fringe_bandlimit(b_len[index], jones.lmax_hint), lmax)
+        if key not in cache:
+            cache.clear()
+            cache[key] = make_polarised_grid(lat_rad, jones, freq, *key)
+        return cache[key]
+    return grid_of
+
+
+class _StoredGrams:
+    """The stored Grams of one frequency as a sequence over m (read one m at a time, complex128)."""
+
+    def __init__(self, ctx, fi, blocks, sizes):
+        self.ctx, self.fi, self.blocks, self.sizes = ctx, fi, blocks, sizes
+        self.n = blocks[-1][1]
+
+    def __len__(self):
+        return self.n
+
+    def __getitem__(self, m):
+        m0 = max(b0 for b0, _ in self.blocks if b0 <= m)
+        n = self.sizes(m)
+        g = self.ctx.read(STORES.stokes.gram(self.fi, m0), (slice(m - m0, m - m0 + 1),))[0]
+        return g[:n, :n].astype(np.complex128)
+
+
+def _channel_task(ctx, key):
+    """Phase two of one frequency: the polarisation response and the CLEAN of V (module docstring)."""
+    cfg = ctx.cfg
+    fi, lmax, lmax_p = key.freq, cfg.mmode.lmax, stokes_lmax_of(cfg)
+    n_split, n_bl = _split_baselines(ctx)
+    sizes = sizes_of(cfg)
+    normal = PolarisedNormal(lmax, _StoredGrams(ctx, fi, blocks_of(cfg, n_split, n_bl), sizes), None, None, lmax_p)
+    eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
+    kept = BLOCK_BYTES_PER_ELEMENT / 2 * sum(sizes(m) ** 2 for m in range(lmax + 1)) <= FACTORS_KEPT_BYTES
+    observe = PolarisedObserver(normal, eps, filters, keep_factors=kept)
+    tel = ctx.telescope()
+    info = {"polarisation": polarisation_response(observe, _response_decs(tel.lat_rad), clean_nside(cfg)),
+            "factors_kept": bool(kept)}
     if cfg.clean.enabled:
+        stored = ctx.read(STORES.stokes.alm, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, 4, m, l)
+        splits = np.array([[healpy_alm(x, lmax) for x in a] for a in stored])  # (split, 4, n_alm)
+        freq = float(ctx.open(STORES.vis)[STORES.vis.freqs_hz][fi])
+        out = ctx.open(STORES.stokes, mode="r+")
         info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, tel.lat_rad, observe)
     return info
 
@@ -163,8 +250,10 @@ STAGE = Stage(
     (STORES.stokes,),
     _prepare,
     _task,
+    next_cycle=_next_cycle,
     enabled=lambda cfg: is_full_stokes(cfg.imaging.stokes),
     description="full-Stokes transfer coefficients (E-field beam), normal equations over T, E, B, V and "
-    "Tikhonov per Stokes, per frequency; leakage of the unpolarised sky; CLEAN of V (clean.enabled)",
+    "Tikhonov per Stokes, per frequency and block of m; leakage of the unpolarised sky; then per frequency "
+    "the polarisation response and the CLEAN of V (clean.enabled)",
     cost=COST,
 )

@@ -1,0 +1,41 @@
+"""The stokes stage's blocks of m and the sizes of its normal equations (the stage's and its cost model's)."""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.conventions import complex_dtype
+from mmflow.imaging.polarised import stokes_m_blocks, stokes_sizes
+from mmflow.mmode.polarised import CORRELATIONS
+from mmflow.workflow.engine.geometry import stokes_lmax_of
+
+#: bytes of a phase-one task's Grams, factors and m-modes (:func:`stokes_m_blocks`): with the ring FFTs'
+#: budget and the grid, a task of a few GB
+BLOCK_BYTES = 3 * 2 ** 30
+#: phase two keeps a channel's Cholesky factors in memory when they fit this (else it factorises each
+#: stored Gram again per observation: the same bits, one m's matrices in memory)
+FACTORS_KEPT_BYTES = 2 ** 30
+
+
+def mmode_bytes_per_m(n_split, n_bl):
+    """Bytes of one m's m-modes of the four correlations (complex128, +m and -m, every split)."""
+    return n_split * 2 * len(CORRELATIONS) * n_bl * np.dtype(np.complex128).itemsize
+
+
+def blocks_of(cfg, n_split, n_bl):
+    """The stage's blocks of m ``[(m0, m1), ...]``: from the settings and the data's size only."""
+    return stokes_m_blocks(cfg.mmode.lmax, stokes_lmax_of(cfg), BLOCK_BYTES, mmode_bytes_per_m(n_split, n_bl))
+
+
+def sizes_of(cfg):
+    """``m -> N_m``, the unknowns ``[T; E; B; V]`` of block m (:func:`stokes_sizes`)."""
+    lmax, lmax_p = cfg.mmode.lmax, stokes_lmax_of(cfg)
+
+    def size(m):
+        n_t, n_p = stokes_sizes(m, lmax, lmax_p)
+        return n_t + 3 * n_p
+    return size
+
+
+def gram_dtype(cfg):
+    """The Grams' precision on disk: the accumulation's (complex64 for ``transfer.dtype: float32``)."""
+    return complex_dtype(cfg.transfer.dtype).name
