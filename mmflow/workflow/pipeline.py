@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+from mmflow.io.run_stores import RELEASED_BY_DEFAULT
 from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel, products, simulate,
                                     solve, stokes, terrestrial, transfer)
 from mmflow.workflow.stages.base import first_writer
@@ -74,6 +75,23 @@ class Pipeline:
     def producer_of(self, store, cfg):
         """The enabled stage that writes ``store`` (None if none is enabled)."""
         return first_writer(self.stages, store, cfg)
+
+    def readers(self, store, cfg):
+        """The enabled stages that read ``store``: those that declare it as an input (``Stage.inputs``, the
+        one place a store's readers are written), its writer excluded."""
+        return [s for s in self.stages if store in s.inputs and store not in s.outputs and s.enabled(cfg)]
+
+    def released(self, cfg):
+        """``{store: stage}``: the intermediates this run releases (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`
+        less ``run.keep``) that an enabled stage writes, each with the stage after which it goes: its last
+        reader in pipeline order, or its writer where no other stage reads it."""
+        out = {}
+        for store in RELEASED_BY_DEFAULT:
+            writer = self.producer_of(store, cfg)
+            if writer is None or store in cfg.run.keep:
+                continue
+            out[store] = (self.readers(store, cfg) or [writer])[-1].name
+        return out
 
     def __reduce__(self):
         if self.name is not None and _NAMED.get(self.name) is self:

@@ -142,6 +142,36 @@ def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_pat
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
+def test_released_stores_change_no_map_and_a_run_killed_after_a_release_resumes(cli_reference, tmp_path):
+    """The reference released its intermediates (the defaults): the partials once normal had summed them,
+    the diffuse sky's samples once simulate had interpolated them; both recorded, neither counted as
+    damage. A run that keeps the partials (``run.keep``) makes the same stores and maps bit for bit. A
+    run whose normal stage must run again recomputes the released partials first (transfer), releases
+    them after normal, is killed in solve (the stage after the release) and resumes to the same bits
+    without recomputing them."""
+    from mmflow.workflow.engine.rundir import RunDir
+    from mmflow.workflow.engine.runner import verify
+
+    ref, out = cli_reference, read_outputs(cli_reference)
+    assert not (ref / "partials.zarr").exists() and list(RunDir(ref).released("transfer")) == ["partials.zarr"]
+    assert not (ref / "diffuse.zarr").exists() and list(RunDir(ref).released("simulate")) == ["diffuse.zarr"]
+    assert not any(verify(ref, full=False).values())
+    kept = fork_run(ref, tmp_path / "kept", "mmodes")
+    subprocess.run([*CLI_RUN, f"run.directory={kept}", "run.keep=[partials.zarr]", "--no-progress"], cwd=ROOT,
+                   check=True, stdout=subprocess.DEVNULL)
+    assert (kept / "partials.zarr" / "zarr.json").exists() and not RunDir(kept).released("transfer")
+    assert_identical(out, read_outputs(kept))
+    killed = fork_run(ref, tmp_path / "killed", "transfer")  # normal to do; the partials it reads released
+    interrupt_run(killed, "solve", signal.SIGKILL, extra=["products.png=false"])
+    assert "[transfer] recomputing: normal reads partials.zarr" in (killed / "mmflow.log").read_text()
+    assert not (killed / "partials.zarr").exists() and RunDir(killed).released("transfer")
+    assert status(killed)["normal"]["complete"] and not status(killed)["solve"]["complete"]
+    resumed = subprocess.run([*CLI_RUN, f"run.directory={killed}", "--no-progress"], cwd=ROOT, check=True,
+                             capture_output=True, text=True).stdout
+    assert "[transfer] complete, kept" in resumed and "recomputing" not in resumed, resumed
+    assert_identical(out, read_outputs(killed))
+
+
 def test_the_interrupt_helper_fails_when_the_child_never_reaches_the_stage(tmp_path):
     """A run refused before any work is not "interrupted and resumed": the helper says so."""
     with pytest.raises(AssertionError, match=r"ended \(exit 2\) before stage 'transfer'"):
@@ -313,7 +343,7 @@ def test_every_store_records_config_versions_and_fingerprint(reference_run):
     import zarr
 
     run_dir, _ = reference_run
-    for store in ("vis.zarr", "mmodes.zarr", "partials.zarr", "normal.zarr", "alm.zarr"):
+    for store in ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"):  # partials.zarr: released after normal
         meta = zarr.open_group(str(run_dir / store), mode="r").attrs["mmflow"]
         assert meta["config"]["mmode"]["lmax"] == 24 and meta["versions"]["numpy"]
         assert meta["fingerprint"] == status(run_dir)[meta["stage"]]["fingerprint"]
