@@ -194,8 +194,9 @@ def _config(args):
 
 def _stores(args):
     from mmflow.io.store_docs import stores_markdown  # deferred: zarr (~1 s): `import mmflow.cli` stays light
+    from mmflow.workflow.pipeline import PIPELINE  # the stages that write and read each store
 
-    print(stores_markdown(), end="")
+    print(stores_markdown(PIPELINE.lifetimes()), end="")
     return 0
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from mmflow.io.run_stores import RELEASED_BY_DEFAULT
+from mmflow.io.run_stores import RELEASED_BY_DEFAULT, STORES
 from mmflow.workflow.stages import (calibrate, clean, ingest, mmodes, models, normal, peel, products, simulate,
                                     solve, stokes, terrestrial, transfer)
 from mmflow.workflow.stages.base import first_writer
@@ -76,10 +76,23 @@ class Pipeline:
         """The enabled stage that writes ``store`` (None if none is enabled)."""
         return first_writer(self.stages, store, cfg)
 
+    def declared_readers(self, store):
+        """The stages that read ``store``: those that declare it as an input (``Stage.inputs``, the one place
+        a store's readers are written; a ``reads_corrected`` stage reads the corrections before it), its
+        writers excluded."""
+        return [s for s in self.stages if store in s.inputs and store not in s.outputs]
+
     def readers(self, store, cfg):
-        """The enabled stages that read ``store``: those that declare it as an input (``Stage.inputs``, the
-        one place a store's readers are written), its writer excluded."""
-        return [s for s in self.stages if store in s.inputs and store not in s.outputs and s.enabled(cfg)]
+        """The :meth:`declared_readers` of ``store`` enabled under ``cfg``."""
+        return [s for s in self.declared_readers(store) if s.enabled(cfg)]
+
+    def lifetimes(self):
+        """``{store: (writers, readers, released)}`` of every store (:data:`mmflow.io.run_stores.STORES`):
+        the names of the stages that write it and read it, and whether it is released once its readers
+        have finished (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`); for ``docs/stores.md``."""
+        return {store: (tuple(s.name for s in self.stages if store in s.outputs),
+                        tuple(s.name for s in self.declared_readers(store)), store in RELEASED_BY_DEFAULT)
+                for store in STORES}
 
     def released(self, cfg):
         """``{store: stage}``: the intermediates this run releases (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`

@@ -94,20 +94,24 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     return est
 
 
-def live_stores(ests, released):
+def live_stores(writes, released):
     """The peak of the live stores of stages run in order: ``(peak bytes, the stage at which it is reached,
     {store: bytes} left at the end)``.
 
-    Each stage adds the stores it writes while the stores before it are still there; after it, the
-    intermediates it was the last reader of go (``released``: ``{store: stage}``,
-    :meth:`mmflow.workflow.pipeline.Pipeline.released`)."""
+    ``writes``: ``[(stage, {store: bytes})]`` in run order. Each stage adds the stores it writes while the
+    stores before it are still there; after it, the intermediates it was the last reader of go
+    (``released``: ``{store: stage}``, :meth:`mmflow.workflow.pipeline.Pipeline.released`)::
+
+        live(s) = sum of the stores written by stages <= s, less those released after a stage < s
+        peak    = max over s of live(s)
+    """
     live, peak, at = {}, 0, None
-    for e in ests:
-        live.update(e.stores)
+    for stage, stores in writes:
+        live.update(stores)
         if sum(live.values()) > peak:
-            peak, at = sum(live.values()), e.stage
+            peak, at = sum(live.values()), stage
         for store, after in released.items():
-            if after == e.stage:
+            if after == stage:
                 live.pop(store, None)
     return peak, at, live
 
@@ -167,7 +171,7 @@ def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
-    peak, at, kept = live_stores(ests, PIPELINE.released(cfg))
+    peak, at, kept = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
     return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops, "task_slots": workers,
             "total_store_gb": sum(e.store_bytes for e in ests) / 1e9, "peak_store_gb": peak / 1e9,
             "peak_stage": at, "kept_stores": {k: v / 1e9 for k, v in kept.items()},
@@ -243,7 +247,7 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
                                  f"(`mmflow plan`), more than a worker's {worker_limit_gb:.2f} GB memory limit",
                                  f"{PIPELINE.stage(e.stage).cost.shrink_setting(cfg)}, or more memory per worker "
                                  "(fewer cluster.n_workers, a larger cluster.memory_limit)")
-    peak, at, _ = live_stores(ests, PIPELINE.released(cfg))
+    peak, at, _ = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
     disk = peak - existing_bytes
     free = free_disk_gb(cfg.run.directory) if free_disk is None else free_disk
     if disk / 1e9 > free:
