@@ -153,8 +153,9 @@ def _status(args):
             continue
         extra = f"  {s['summary']['wall_s']} s" if s["summary"] else ""
         stale = "  STALE: made from other settings (rerun with --force)" if s["stale"] else ""
+        gone = f"  released: {', '.join(s['released'])}" if s["released"] else ""
         print(f"{name:12s} {s['done']}/{s['total']} chunks {'complete' if s['complete'] else 'incomplete'}"
-              f"{extra}{stale}")
+              f"{extra}{gone}{stale}")
     return 0
 
 

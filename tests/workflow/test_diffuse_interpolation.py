@@ -13,7 +13,7 @@ QUIET = dict(progress=False, log=lambda *a: None)
 
 def test_interpolated_diffuse_sky_equals_the_direct_sum(tmp_path, monkeypatch):
     extra = ("sky.noise=false", "sky.sources=[\"Cyg A\"]")
-    cfg = small_config(tmp_path / "interp", *extra)
+    cfg = small_config(tmp_path / "interp", *extra, "run.keep=[diffuse.zarr]")  # else released after simulate
     run_workflow(cfg, only=("simulate",), **QUIET)
     d = zarr.open_group(str(tmp_path / "interp" / "diffuse.zarr"), mode="r")
     assert d["samples"].shape[:2] == (1, n_samples(cfg.sky.diffuse_lmax))

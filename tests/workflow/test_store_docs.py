@@ -13,7 +13,8 @@ STORES_MD = os.path.join(ROOT, "docs", "stores.md")
 
 def test_docs_stores_page_matches_declarations():
     with open(STORES_MD) as fh:
-        assert fh.read() == stores_markdown(PIPELINE.lifetimes()), "regenerate docs/stores.md with `make docs` (`mmflow stores show`)"
+        assert fh.read() == stores_markdown(PIPELINE.lifetimes()), \
+            "regenerate docs/stores.md with `make docs` (`mmflow stores show`)"
 
 
 def test_every_store_builder_is_on_the_page():

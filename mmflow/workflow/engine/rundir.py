@@ -234,6 +234,17 @@ class RunDir:
         shutil.rmtree(p)
         return nbytes
 
+    def keys_writing_released(self, stage):
+        """The stage's finished keys (and driver markers) that wrote chunks of its released stores."""
+        gone = self.released(stage)
+        man = self.manifest(stage) or {"keys": []}
+        return [k for k in list(man["keys"]) + EXTRA_MARKERS if gone and any(
+            rel.split("/", 1)[0] in gone for rel in self.marker_chunks(stage, [k]))]
+
+    def forget_released(self, stage):
+        """Forget the stage's releases (its tasks that wrote them are to run again)."""
+        (self.status_dir(stage) / "released.json").unlink(missing_ok=True)
+
     def _live(self, stage, chunks):
         """``chunks`` less those of the stage's released stores."""
         gone = self.released(stage)

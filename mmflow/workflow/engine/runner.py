@@ -309,12 +309,18 @@ def _repair_or_refuse(run, st, force, log):
         raise DamagedStoreError(f"stage '{stage}' in {run.path} has {n} damaged chunk files (first: {first}). "
                                 f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
                                 f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
-    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
-    if "_prepare" in damaged or run.released(stage):  # a released store of its own its tasks may read: all again
+    # a store of the stage's own released meanwhile (the diffuse sky's samples, which its time chunks read):
+    # the tasks that wrote it run again too, and it is released again once the stage is complete
+    again = run.keys_writing_released(stage)
+    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})"
+        + (f" and the {len(again)} that wrote {', '.join(run.released(stage))}, released since" if again else ""))
+    keys = list(damaged) + [k for k in again if k not in damaged]
+    run.forget_released(stage)
+    if "_prepare" in keys:
         run.reset_stage(stage)
         return
-    cycles = {TaskKey.parse(k).cycle for k in damaged if not k.startswith("cycle") and not k.startswith("_")}
-    run.forget_keys(stage, list(damaged) + [f"cycle{c:04d}" for c in cycles if c is not None])
+    cycles = {TaskKey.parse(k).cycle for k in keys if not k.startswith("cycle") and not k.startswith("_")}
+    run.forget_keys(stage, keys + [f"cycle{c:04d}" for c in cycles if c is not None])
 
 
 def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log):
