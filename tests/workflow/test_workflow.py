@@ -128,27 +128,27 @@ def cli_reference(tmp_path_factory):
     return run_dir
 
 
-@pytest.mark.parametrize("stage, sig", [("transfer", signal.SIGKILL), ("mmodes", signal.SIGINT)])
-def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_path, stage, sig):
-    """A run interrupted in ``stage`` after its first chunk resumes to the reference's outputs. It
-    starts from a copy of the reference's stages before ``stage`` (:func:`fork_run`)."""
-    from mmflow.workflow.pipeline import ORDER
-
-    ref_dir = cli_reference
-    run_dir = fork_run(ref_dir, tmp_path / "interrupted", ORDER[ORDER.index(stage) - 1])
-    interrupt_run(run_dir, stage, sig, extra=["products.png=false"])
-    subprocess.run([*CLI_RUN, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
+def test_interrupted_run_that_keeps_its_partials_resumes_to_bit_identical_outputs(cli_reference, tmp_path):
+    """A run interrupted (SIGINT) in mmodes after its first chunk resumes to the reference's outputs. It
+    starts from a copy of the reference's stages before mmodes (:func:`fork_run`). The reference released
+    its partials once normal had summed them; this run keeps them (``run.keep``): the same stores and maps
+    bit for bit. (A SIGKILL inside transfer: tests/acceptance/test_faults.py, on another cluster size;
+    inside solve, after a release: the next test.)"""
+    ref_dir, keep = cli_reference, "run.keep=[partials.zarr]"
+    run_dir = fork_run(ref_dir, tmp_path / "interrupted", "simulate")
+    interrupt_run(run_dir, "mmodes", signal.SIGINT, extra=["products.png=false", keep])
+    subprocess.run([*CLI_RUN, keep, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
                    stdout=subprocess.DEVNULL)
+    assert (run_dir / "partials.zarr" / "zarr.json").exists() and not (ref_dir / "partials.zarr").exists()
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
-def test_released_stores_change_no_map_and_a_run_killed_after_a_release_resumes(cli_reference, tmp_path):
+def test_a_run_killed_after_a_release_resumes_bit_identical(cli_reference, tmp_path):
     """The reference released its intermediates (the defaults): the partials once normal had summed them,
     the diffuse sky's samples once simulate had interpolated them; both recorded, neither counted as
-    damage. A run that keeps the partials (``run.keep``) makes the same stores and maps bit for bit. A
-    run whose normal stage must run again recomputes the released partials first (transfer), releases
-    them after normal, is killed in solve (the stage after the release) and resumes to the same bits
-    without recomputing them."""
+    damage (a run that keeps them makes the same maps: the test above). A run whose normal stage must run
+    again recomputes the released partials first (transfer), releases them after normal, is killed in
+    solve (the stage after the release) and resumes to the same bits without recomputing them."""
     from mmflow.workflow.engine.rundir import RunDir
     from mmflow.workflow.engine.runner import verify
 
@@ -156,11 +156,6 @@ def test_released_stores_change_no_map_and_a_run_killed_after_a_release_resumes(
     assert not (ref / "partials.zarr").exists() and list(RunDir(ref).released("transfer")) == ["partials.zarr"]
     assert not (ref / "diffuse.zarr").exists() and list(RunDir(ref).released("simulate")) == ["diffuse.zarr"]
     assert not any(verify(ref, full=False).values())
-    kept = fork_run(ref, tmp_path / "kept", "mmodes")
-    subprocess.run([*CLI_RUN, f"run.directory={kept}", "run.keep=[partials.zarr]", "--no-progress"], cwd=ROOT,
-                   check=True, stdout=subprocess.DEVNULL)
-    assert (kept / "partials.zarr" / "zarr.json").exists() and not RunDir(kept).released("transfer")
-    assert_identical(out, read_outputs(kept))
     killed = fork_run(ref, tmp_path / "killed", "transfer")  # normal to do; the partials it reads released
     interrupt_run(killed, "solve", signal.SIGKILL, extra=["products.png=false"])
     assert "[transfer] recomputing: normal reads partials.zarr" in (killed / "mmflow.log").read_text()
