@@ -167,6 +167,17 @@ def test_a_run_killed_after_a_release_resumes_bit_identical(cli_reference, tmp_p
     assert_identical(out, read_outputs(killed))
 
 
+def test_a_single_stage_that_needs_a_released_store_is_refused_naming_the_fix(reference_run, tmp_path):
+    """``mmflow normal`` alone cannot remake the partials it reads, released after the normal stage that
+    made the reference: refused before any work, naming `mmflow run` and run.keep; nothing recomputed."""
+    from mmflow.errors import MmflowError
+
+    run_dir = fork_run(reference_run[0], tmp_path / "run", "transfer")
+    with pytest.raises(MmflowError, match=r"reads partials.zarr.*mmflow run.*run.keep=\[partials.zarr\]"):
+        run_workflow(small_config(run_dir), only=["normal"], progress=False, log=lambda *a: None)
+    assert status(run_dir)["transfer"]["complete"] and status(run_dir)["normal"] is None
+
+
 def test_the_interrupt_helper_fails_when_the_child_never_reaches_the_stage(tmp_path):
     """A run refused before any work is not "interrupted and resumed": the helper says so."""
     with pytest.raises(AssertionError, match=r"ended \(exit 2\) before stage 'transfer'"):
