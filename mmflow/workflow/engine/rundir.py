@@ -224,15 +224,15 @@ class RunDir:
         p = self.store(store)
         if p.is_symlink() or not p.is_dir():
             return None
-        stamp = (_read_json(p / "zarr.json") or {}).get("attributes", {}).get("mmflow", {})
-        if stamp.get("stage") != stage:
-            return None
         done = self.released(stage)
-        nbytes = done.get(store, {}).get("bytes", dir_size(p))
-        done[store] = {"bytes": nbytes, "released": time.strftime("%Y-%m-%dT%H:%M:%S")}
-        _atomic_write(self.status_dir(stage) / "released.json", json.dumps(done))
+        if store not in done:  # recorded: its stamp was checked then (a kill may have removed it since)
+            stamp = (_read_json(p / "zarr.json") or {}).get("attributes", {}).get("mmflow", {})
+            if stamp.get("stage") != stage:
+                return None
+            done[store] = {"bytes": dir_size(p), "released": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            _atomic_write(self.status_dir(stage) / "released.json", json.dumps(done))
         shutil.rmtree(p)
-        return nbytes
+        return done[store]["bytes"]
 
     def keys_writing_released(self, stage):
         """The stage's finished keys (and driver markers) that wrote chunks of its released stores."""

@@ -21,8 +21,9 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
   the run with its own error, :class:`mmflow.workflow.engine.batch.JobWatch`);
 * an intermediate store (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`, less ``run.keep``) is
   released once its writer and every enabled stage that reads it are complete with the current
-  settings (:func:`_release_finished`), the release recorded with its writer; a stage that has work
-  again and reads a released store has its writer recomputed first (:func:`_recompute_released`),
+  settings (:func:`mmflow.workflow.engine.release.release_finished`), the release recorded with its
+  writer; a stage that has work again and reads a released store has its writer recomputed first
+  (:func:`mmflow.workflow.engine.release.recompute_released`),
   bit for bit, and a resume whose remaining stages do not read it recomputes nothing.
 """
 from __future__ import annotations
@@ -48,6 +49,7 @@ from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import check_fits
 from mmflow.workflow.engine.resources import (current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss, reset_traced_peak,
                                        traced_peak_bytes)
+from mmflow.workflow.engine.release import recompute_released, release_finished
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -384,59 +386,6 @@ def _has_work(run, name, fp):
     return s is None or not s["complete"] or s["fingerprint"] != fp.digest
 
 
-def _finished(run, name, fps):
-    """True when stage ``name`` is complete with its current fingerprint."""
-    s = run.stage_status(name)
-    return s is not None and s["complete"] and fps.get(name) is not None and s["fingerprint"] == fps[name].digest
-
-
-def _release_finished(run, cfg, pipeline, fps, log):
-    """Release every intermediate of :meth:`Pipeline.released` whose writer and enabled readers are all
-    complete with the current settings (:meth:`RunDir.release`: only the run's own store; a link to
-    another run's, in a prior pass, stays)."""
-    for store in pipeline.released(cfg):
-        writer = pipeline.producer_of(store, cfg)
-        readers = pipeline.readers(store, cfg)
-        if not all(_finished(run, st.name, fps) for st in [writer, *readers]):
-            continue
-        again = store in run.released(writer.name)  # a kill came between the record and the removal
-        if again and not run.store(store).exists():
-            continue
-        nbytes = run.release(writer.name, store)
-        if nbytes is not None and not again:
-            by = ", ".join(st.name for st in readers) or f"{writer.name} itself"
-            log(f"[{writer.name}] released {store} ({nbytes / 1e9:.3f} GB): read by {by}, all finished "
-                "(run.keep keeps it)")
-
-
-def _recompute_released(run, cfg, pipeline, fps, stages, force, log):
-    """The writers of released stores that a stage with work to do reads, reset so that they run again
-    (first, bit for bit: stages are deterministic); raise where such a writer is not among ``stages``.
-
-    A stage has work when it is not complete with its current settings (stale with ``--force``, or
-    forgotten), or has damaged chunks to recompute (``--force``); a writer reset has work in turn."""
-    names = {st.name for st in stages}
-    work = {st.name for st in stages if st.enabled(cfg) and st.task is not None
-            and (not _finished(run, st.name, fps) or (force and run.damaged_keys(st.name)))}
-    again, todo = [], list(work)
-    while todo:
-        st = pipeline.stage(todo.pop())
-        for store in st.inputs:
-            prod = pipeline.producer_of(store, cfg)
-            if prod is None or prod.name in work or store not in run.released(prod.name):
-                continue
-            if prod.name not in names:
-                raise MmflowError(f"stage '{st.name}' reads {store}, which stage '{prod.name}' wrote and this run "
-                                  f"released in {run.path} once its readers had finished. Fix: run `mmflow run` "
-                                  f"(it recomputes stage '{prod.name}' first), or keep it: run.keep=[{store}]")
-            work.add(prod.name)
-            todo.append(prod.name)
-            again.append((prod.name, store, st.name))
-    for prod, store, reader in again:
-        log(f"[{prod}] recomputing: {reader} reads {store}, released after its readers had finished")
-        run.reset_stage(prod)
-
-
 def _stale_stages(run, fps, names):
     return [n for n in names if fps.get(n) is not None and run.is_stale(n, fps[n].digest)]
 
@@ -493,7 +442,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
     for st in stages:  # then the checks that read the input data, for the stages with tasks to do
         if st.scan is not None and st.enabled(cfg) and _has_work(run, st.name, fps[st.name]):
             st.scan(cfg)
-    _recompute_released(run, cfg, pipeline, fps, stages, force, log)
+    recompute_released(run, cfg, pipeline, fps, stages, force, log)
     plan = _check_resources(cfg, run, client, stages)
     slots = 1 if client is None else cfg.cluster.n_workers * cfg.cluster.threads_per_worker  # as mmflow plan counts
     BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],
@@ -528,7 +477,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
             summaries[st.name] = kept
             BOARD.keep_stage(st.name, len(keys))
             log(f"[{st.name}] complete, kept: {len(keys)} tasks done (took {kept.get('wall_s')} s when it ran)")
-            _release_finished(run, cfg, pipeline, fps, log)
+            release_finished(run, cfg, pipeline, fps, log)
             continue
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
         _stamp_stores(run, st, cfg, fp.digest)
@@ -559,7 +508,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
         summaries[st.name] = summary
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
             f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
-        _release_finished(run, cfg, pipeline, fps, log)
+        release_finished(run, cfg, pipeline, fps, log)
     if only:
         later = _stale_stages(run, stage_fingerprints(cfg, run, pipeline), list(pipeline.names))
         if later:

@@ -27,6 +27,8 @@ def test_release_removes_only_the_run_s_own_store_and_records_it(tmp_path):
     nbytes = run.release("transfer", "partials.zarr")
     assert nbytes > 100 and not run.store("partials.zarr").exists()
     assert run.released("transfer")["partials.zarr"]["bytes"] == nbytes
+    (run.store("partials.zarr") / "a").mkdir(parents=True)  # what a kill during the removal left, unstamped
+    assert run.release("transfer", "partials.zarr") == nbytes and not run.store("partials.zarr").exists()
 
 
 def test_chunks_of_a_released_store_are_not_damage(tmp_path):
