@@ -35,7 +35,8 @@ def release_finished(run, cfg, pipeline, fps, log):
         nbytes = run.release(writer.name, store)
         if nbytes is not None and not again:
             by = ", ".join(st.name for st in readers) or f"{writer.name} itself"
-            log(f"[{writer.name}] released {store} ({nbytes / 1e9:.3f} GB): read by {by}, all finished "
+            size = f"{nbytes / 1e9:.2f} GB" if nbytes >= 1e8 else f"{nbytes / 1e6:.1f} MB"
+            log(f"[{writer.name}] released {store} ({size}): read by {by}, all finished "
                 "(run.keep keeps it)")
 
 
