@@ -58,6 +58,7 @@ def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
     assert sum("complete, kept" in m for m in logged) == len(summaries) > 4
     assert_identical(before, read_outputs(run_dir))
     assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in written} == written
+    assert not (run_dir / "partials.zarr").exists()  # released, and not made again (empty) by a kept prepare
 
 
 def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
@@ -165,6 +166,7 @@ def test_a_run_killed_after_a_release_resumes_bit_identical(cli_reference, tmp_p
                              capture_output=True, text=True).stdout
     assert "[transfer] complete, kept" in resumed and "recomputing" not in resumed, resumed
     assert_identical(out, read_outputs(killed))
+    assert not (killed / "partials.zarr").exists()
 
 
 def test_a_single_stage_that_needs_a_released_store_is_refused_naming_the_fix(reference_run, tmp_path):

@@ -20,6 +20,24 @@ def finished(run, name, fps):
             and run.completion(name) is not None)
 
 
+def released_here(run, st, cfg, pipeline):
+    """The stores among ``st``'s inputs and outputs that the run has released."""
+    out = []
+    for store in (*st.inputs, *st.outputs):
+        writer = pipeline.producer_of(store, cfg)
+        if writer is not None and store in run.released(writer.name):
+            out.append(store)
+    return out
+
+
+def planned_keys(run, name):
+    """The keys a stage's prepare listed when it ran (its manifest's, less those a later phase added): what
+    a finished stage that reads or writes a released store is kept with, its prepare not run again (it would
+    open the released store, or make it again empty)."""
+    man = run.manifest(name)
+    return [k for k in man["keys"] if k not in set(man.get("added_keys", []))]
+
+
 def release_finished(run, cfg, pipeline, fps, log):
     """Release every intermediate of :meth:`Pipeline.released` whose writer and enabled readers are all
     complete with the current settings (:meth:`RunDir.release`: only the run's own store; a link to

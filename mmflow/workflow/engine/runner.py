@@ -49,7 +49,7 @@ from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import check_fits
 from mmflow.workflow.engine.resources import (current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss, reset_traced_peak,
                                        traced_peak_bytes)
-from mmflow.workflow.engine.release import recompute_released, release_finished
+from mmflow.workflow.engine.release import finished, planned_keys, recompute_released, release_finished, released_here
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -469,7 +469,10 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
         _check_inputs(run, st, cfg, pipeline)
         sctx = ctx.for_stage(st)
         pctx = sctx.for_task()
-        keys = [k.format() for k in st.prepare(pctx)]
+        if finished(run, st.name, fps) and released_here(run, st, cfg, pipeline):
+            keys = planned_keys(run, st.name)  # its prepare would read, or make again, a store released since
+        else:
+            keys = [k.format() for k in st.prepare(pctx)]
         todo = run.begin_stage(st.name, fp, keys, st.outputs)
         BOARD.begin_stage(st.name, len(keys), len(keys) - len(todo))
         kept = _kept_summary(run, st, todo)
