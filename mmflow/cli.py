@@ -153,8 +153,9 @@ def _status(args):
             continue
         extra = f"  {s['summary']['wall_s']} s" if s["summary"] else ""
         stale = "  STALE: made from other settings (rerun with --force)" if s["stale"] else ""
+        gone = f"  released: {', '.join(s['released'])}" if s["released"] else ""
         print(f"{name:12s} {s['done']}/{s['total']} chunks {'complete' if s['complete'] else 'incomplete'}"
-              f"{extra}{stale}")
+              f"{extra}{gone}{stale}")
     return 0
 
 
@@ -194,8 +195,9 @@ def _config(args):
 
 def _stores(args):
     from mmflow.io.store_docs import stores_markdown  # deferred: zarr (~1 s): `import mmflow.cli` stays light
+    from mmflow.workflow.pipeline import PIPELINE  # the stages that write and read each store
 
-    print(stores_markdown(), end="")
+    print(stores_markdown(PIPELINE.lifetimes()), end="")
     return 0
 
 

@@ -58,6 +58,17 @@ class Stores:
 #: every store's name (``STORES.vis``, ``STORES.gains``, ...)
 STORES = Stores()
 
+#: The run's intermediates: each is released (its directory removed, the release recorded in the run
+#: directory) once every enabled stage that reads it has finished, unless ``run.keep`` names it. Who
+#: reads a store is what the stages declare (``Stage.inputs``: :meth:`mmflow.workflow.pipeline.Pipeline.readers`).
+#: Every other store is kept: the data (``vis``), the solutions the corrections read (``gains``, ``peel``,
+#: ``terrestrial``), the m-modes, the normal equations and what users open (``alm``, ``stokes``,
+#: ``clean``), which a rerun with other imaging settings starts from, and the transfer blocks, which no
+#: stage reads (``transfer.mode=store`` writes them for the user). Released: the partials (``normal`` holds
+#: their sum), the diffuse sky's samples (``vis`` holds them interpolated) and the fitted source models
+#: (``peel`` holds them in its attribute ``fitted_models``).
+RELEASED_BY_DEFAULT = (STORES.partials, STORES.diffuse, STORES.models)
+
 #: what each dimension name of the stores below counts
 DIMENSIONS = {
     "time": "integrations, in time order",

@@ -125,11 +125,21 @@ def _argument(v):
     return repr(v)
 
 
-def store_table(builder, kwargs):
-    """Markdown section of one store."""
+def lifetime_text(writers, readers, released):
+    """A store's lifetime as the page writes it: who writes and reads it, and whether it is released."""
+    said = f"Written by {', '.join(writers) or 'no stage'}; read by {', '.join(readers) or 'no later stage'}. "
+    if released:
+        return said + ("**Released** once " + ("they have" if readers else "its writer has") + " finished (its "
+                       "directory removed, the release recorded with its writer; `run.keep` keeps it).")
+    return said + "Kept."
+
+
+def store_table(builder, kwargs, lifetime=None):
+    """Markdown section of one store (``lifetime``: its ``(writers, readers, released)``, :func:`lifetime_text`)."""
     spec = builder(**kwargs)
     call = ", ".join(f"{k}={_argument(v)}" for k, v in kwargs.items())
-    lines = [f"## {spec.path}", "", _text(spec.doc), "", f"Reference: `{builder.__name__}({call})`", "",
+    life = [lifetime_text(*lifetime), ""] if lifetime is not None else []
+    lines = [f"## {spec.path}", "", _text(spec.doc), "", *life, f"Reference: `{builder.__name__}({call})`", "",
              "| array | dims | shape | chunks | dtype | fill | meaning |", "|---|---|---|---|---|---|---|"]
     groups = {}
     for a in spec.arrays:
@@ -144,8 +154,9 @@ def store_table(builder, kwargs):
     return "\n".join(lines) + "\n"
 
 
-def stores_markdown():
-    """The whole page (``docs/stores.md``)."""
+def stores_markdown(lifetimes=None):
+    """The whole page (``docs/stores.md``); ``lifetimes``: ``{store: (writers, readers, released)}``, the
+    pipeline's (:meth:`mmflow.workflow.pipeline.Pipeline.lifetimes`: this layer does not import it)."""
     stores = reference_stores()
     problems = undocumented([b(**kw) for b, kw in stores])
     if problems:
@@ -156,6 +167,9 @@ def stores_markdown():
         "`doc` of every store and array) by `mmflow stores show`; regenerate with `make docs` (a test keeps "
         "it in sync). The run directory around the stores, and how chunks are completed, checked and "
         "resumed, are in [data-layout.md](data-layout.md).", "",
+        "Each store names the stages that write and read it (the stages' declared inputs) and whether it "
+        "is released, its directory removed, once every enabled stage that reads it has finished (the run's "
+        "intermediates; `run.keep: [...]` keeps them; every other store is kept).", "",
         f"Shapes are those of a small reference configuration: {REFERENCE}; the `Reference:` line of each "
         "store gives its builder's arguments. Chunks name the builder parameter that sets them "
         f"({', '.join(f'`{p}`' for p in CHUNK_PARAMETERS)}, from the configuration), `all` for the whole "
@@ -165,4 +179,5 @@ def stores_markdown():
         "## Dimensions", "", "| dimension | counts |", "|---|---|",
         *(f"| {d} | {_text(text)} |" for d, text in rs.DIMENSIONS.items()), "",
     ]
-    return "\n".join(head) + "\n" + "\n".join(store_table(b, kw) for b, kw in stores)
+    return "\n".join(head) + "\n" + "\n".join(
+        store_table(b, kw, None if lifetimes is None else lifetimes[b(**kw).path]) for b, kw in stores)

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 
 from importlib import import_module
 
+from mmflow.io.run_stores import RELEASED_BY_DEFAULT, STORES
 from mmflow.workflow.stages import ORDER
 from mmflow.workflow.stages.base import first_writer
 
@@ -75,6 +76,36 @@ class Pipeline:
     def producer_of(self, store, cfg):
         """The enabled stage that writes ``store`` (None if none is enabled)."""
         return first_writer(self.stages, store, cfg)
+
+    def declared_readers(self, store):
+        """The stages that read ``store``: those that declare it as an input (``Stage.inputs``, the one place
+        a store's readers are written; a ``reads_corrected`` stage reads the corrections before it), its
+        writers excluded."""
+        return [s for s in self.stages if store in s.inputs and store not in s.outputs]
+
+    def readers(self, store, cfg):
+        """The :meth:`declared_readers` of ``store`` enabled under ``cfg``."""
+        return [s for s in self.declared_readers(store) if s.enabled(cfg)]
+
+    def lifetimes(self):
+        """``{store: (writers, readers, released)}`` of every store (:data:`mmflow.io.run_stores.STORES`):
+        the names of the stages that write it and read it, and whether it is released once its readers
+        have finished (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`); for ``docs/stores.md``."""
+        return {store: (tuple(s.name for s in self.stages if store in s.outputs),
+                        tuple(s.name for s in self.declared_readers(store)), store in RELEASED_BY_DEFAULT)
+                for store in STORES}
+
+    def released(self, cfg):
+        """``{store: stage}``: the intermediates this run releases (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`
+        less ``run.keep``) that an enabled stage writes, each with the stage after which it goes: its last
+        reader in pipeline order, or its writer where no other stage reads it."""
+        out = {}
+        for store in RELEASED_BY_DEFAULT:
+            writer = self.producer_of(store, cfg)
+            if writer is None or store in cfg.run.keep:
+                continue
+            out[store] = (self.readers(store, cfg) or [writer])[-1].name
+        return out
 
     def __reduce__(self):
         if self.name is not None and _NAMED.get(self.name) is self:

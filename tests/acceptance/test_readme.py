@@ -41,7 +41,7 @@ def test_quick_tour_and_python_example_run_verbatim_after_the_demo(tmp_path):
     assert "STALE" in log and "products" in log  # the single-stage run says what is now stale
     assert "maps below are STALE" in log  # ... and does not show the old maps as current
     assert (tmp_path / "my-workflow.yaml").exists()
-    assert "largest task: transfer" in log and "GB of stores" in log  # the plan of the paper's channel
+    assert "largest task: transfer" in log and "GB live at the peak" in log  # the plan of the paper's channel
 
     code = _block("python", "The same engine in Python")
     py = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True, text=True)

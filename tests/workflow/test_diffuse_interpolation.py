@@ -22,7 +22,7 @@ def test_interpolated_diffuse_sky_equals_the_direct_sum(tmp_path, monkeypatch, s
     """Also the four correlations of a full-Stokes simulation (the diffuse sky through the E-field beam,
     its samples summed by ``herk`` in single precision; the direct path sums it in double)."""
     extra = ("sky.noise=false", "sky.sources=[\"Cyg A\"]") + stokes
-    cfg = small_config(tmp_path / "interp", *extra)
+    cfg = small_config(tmp_path / "interp", *extra, "run.keep=[diffuse.zarr]")  # else released after simulate
     run_workflow(cfg, only=("simulate",), **QUIET)
     d = zarr.open_group(str(tmp_path / "interp" / "diffuse.zarr"), mode="r")
     assert d["samples"].shape[:2] == (1, n_samples(cfg.sky.diffuse_lmax))

@@ -34,7 +34,7 @@ def test_models_stage_fits_and_peel_uses_the_fits(tmp_path):
     from mmflow.workflow.engine.peel_models import peel_coherencies
     from mmflow.sky.sources import Source, get_sources
 
-    cfg = _cfg(tmp_path / "run")
+    cfg = _cfg(tmp_path / "run", "run.keep=[models.zarr]")  # else released once peel has read it
     run_workflow(cfg, only=UPTO_PEEL, **QUIET)
     g = zarr.open_group(str(tmp_path / "run" / "models.zarr"), mode="r")
     assert g.attrs["sources"] == ["Cyg A", "Cas A"] and g.attrs["n_components"] == [2, 3]

@@ -5,6 +5,7 @@ from mmflow.calibrate import peel as peel_kernel
 from mmflow.cli import main
 from mmflow.io import run_stores
 from mmflow.io.store_docs import pattern, reference_stores, store_builders, stores_markdown, undocumented
+from mmflow.workflow.pipeline import PIPELINE
 from tests.workflow_helpers import ROOT
 
 STORES_MD = os.path.join(ROOT, "docs", "stores.md")
@@ -12,7 +13,8 @@ STORES_MD = os.path.join(ROOT, "docs", "stores.md")
 
 def test_docs_stores_page_matches_declarations():
     with open(STORES_MD) as fh:
-        assert fh.read() == stores_markdown(), "regenerate docs/stores.md with `make docs` (`mmflow stores show`)"
+        assert fh.read() == stores_markdown(PIPELINE.lifetimes()), \
+            "regenerate docs/stores.md with `make docs` (`mmflow stores show`)"
 
 
 def test_every_store_builder_is_on_the_page():
@@ -57,4 +59,4 @@ def test_peel_mode_codes_are_the_kernels():
 
 def test_cli_stores_show_prints_the_page(capsys):
     assert main(["stores", "show"]) == 0
-    assert capsys.readouterr().out == stores_markdown()
+    assert capsys.readouterr().out == stores_markdown(PIPELINE.lifetimes())

@@ -59,6 +59,7 @@ def test_rerun_skips_everything_and_changes_nothing(reference_run, tmp_path):
     assert sum("complete, kept" in m for m in logged) == len(summaries) > 4
     assert_identical(before, read_outputs(run_dir))
     assert {p: (p.stat().st_mtime_ns, p.read_bytes()) for p in written} == written
+    assert not (run_dir / "partials.zarr").exists()  # released, and not made again (empty) by a kept prepare
 
 
 def test_markers_keep_the_names_earlier_versions_gave_them(reference_run):
@@ -129,18 +130,55 @@ def cli_reference(tmp_path_factory):
     return run_dir
 
 
-@pytest.mark.parametrize("stage, sig", [("transfer", signal.SIGKILL), ("mmodes", signal.SIGINT)])
-def test_interrupted_run_resumes_to_bit_identical_outputs(cli_reference, tmp_path, stage, sig):
-    """A run interrupted in ``stage`` after its first chunk resumes to the reference's outputs. It
-    starts from a copy of the reference's stages before ``stage`` (:func:`fork_run`)."""
-    from mmflow.workflow.pipeline import ORDER
-
-    ref_dir = cli_reference
-    run_dir = fork_run(ref_dir, tmp_path / "interrupted", ORDER[ORDER.index(stage) - 1])
-    interrupt_run(run_dir, stage, sig, extra=["products.png=false"])
-    subprocess.run([*CLI_RUN, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
+def test_interrupted_run_that_keeps_its_partials_resumes_to_bit_identical_outputs(cli_reference, tmp_path):
+    """A run interrupted (SIGINT) in mmodes after its first chunk resumes to the reference's outputs. It
+    starts from a copy of the reference's stages before mmodes (:func:`fork_run`). The reference released
+    its partials once normal had summed them; this run keeps them (``run.keep``): the same stores and maps
+    bit for bit. (A SIGKILL inside transfer: tests/acceptance/test_faults.py, on another cluster size;
+    inside solve, after a release: the next test.)"""
+    ref_dir, keep = cli_reference, "run.keep=[partials.zarr]"
+    run_dir = fork_run(ref_dir, tmp_path / "interrupted", "simulate")
+    interrupt_run(run_dir, "mmodes", signal.SIGINT, extra=["products.png=false", keep])
+    subprocess.run([*CLI_RUN, keep, f"run.directory={run_dir}", "--no-progress"], cwd=ROOT, check=True,
                    stdout=subprocess.DEVNULL)
+    assert (run_dir / "partials.zarr" / "zarr.json").exists() and not (ref_dir / "partials.zarr").exists()
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
+
+
+def test_a_run_killed_after_a_release_resumes_bit_identical(cli_reference, tmp_path):
+    """The reference released its intermediates (the defaults): the partials once normal had summed them,
+    the diffuse sky's samples once simulate had interpolated them; both recorded, neither counted as
+    damage (a run that keeps them makes the same maps: the test above). A run whose normal stage must run
+    again recomputes the released partials first (transfer), releases them after normal, is killed in
+    solve (the stage after the release) and resumes to the same bits without recomputing them."""
+    from mmflow.workflow.engine.rundir import RunDir
+    from mmflow.workflow.engine.runner import verify
+
+    ref, out = cli_reference, read_outputs(cli_reference)
+    assert not (ref / "partials.zarr").exists() and list(RunDir(ref).released("transfer")) == ["partials.zarr"]
+    assert not (ref / "diffuse.zarr").exists() and list(RunDir(ref).released("simulate")) == ["diffuse.zarr"]
+    assert not any(verify(ref, full=False).values())
+    killed = fork_run(ref, tmp_path / "killed", "transfer")  # normal to do; the partials it reads released
+    interrupt_run(killed, "solve", signal.SIGKILL, extra=["products.png=false"])
+    assert "[transfer] recomputing: normal reads partials.zarr" in (killed / "mmflow.log").read_text()
+    assert not (killed / "partials.zarr").exists() and RunDir(killed).released("transfer")
+    assert status(killed)["normal"]["complete"] and not status(killed)["solve"]["complete"]
+    resumed = subprocess.run([*CLI_RUN, f"run.directory={killed}", "--no-progress"], cwd=ROOT, check=True,
+                             capture_output=True, text=True).stdout
+    assert "[transfer] complete, kept" in resumed and "recomputing" not in resumed, resumed
+    assert_identical(out, read_outputs(killed))
+    assert not (killed / "partials.zarr").exists()
+
+
+def test_a_single_stage_that_needs_a_released_store_is_refused_naming_the_fix(reference_run, tmp_path):
+    """``mmflow normal`` alone cannot remake the partials it reads, released after the normal stage that
+    made the reference: refused before any work, naming `mmflow run` and run.keep; nothing recomputed."""
+    from mmflow.errors import MmflowError
+
+    run_dir = fork_run(reference_run[0], tmp_path / "run", "transfer")
+    with pytest.raises(MmflowError, match=r"reads partials.zarr.*mmflow run.*run.keep=\[partials.zarr\]"):
+        run_workflow(small_config(run_dir), only=["normal"], progress=False, log=lambda *a: None)
+    assert status(run_dir)["transfer"]["complete"] and status(run_dir)["normal"] is None
 
 
 def test_the_interrupt_helper_fails_when_the_child_never_reaches_the_stage(tmp_path):
@@ -314,7 +352,7 @@ def test_every_store_records_config_versions_and_fingerprint(reference_run):
     import zarr
 
     run_dir, _ = reference_run
-    for store in ("vis.zarr", "mmodes.zarr", "partials.zarr", "normal.zarr", "alm.zarr"):
+    for store in ("vis.zarr", "mmodes.zarr", "normal.zarr", "alm.zarr"):  # partials.zarr: released after normal
         meta = zarr.open_group(str(run_dir / store), mode="r").attrs["mmflow"]
         assert meta["config"]["mmode"]["lmax"] == 24 and meta["versions"]["numpy"]
         assert meta["fingerprint"] == status(run_dir)[meta["stage"]]["fingerprint"]

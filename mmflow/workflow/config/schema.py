@@ -13,6 +13,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError, create_model, field_validator
 
 from mmflow.errors import InputError
+from mmflow.io.run_stores import RELEASED_BY_DEFAULT, STORES
 from mmflow.paths import expand_path
 from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.beam import BEAM_PARAMS, BeamConfig
@@ -27,12 +28,25 @@ class RunConfig(Section):
     directory: UserPath = Field("runs/demo", description="Run directory (zarr stores, maps, status markers).",
                            json_schema_extra={"allowed": "a non-empty path"})
     name: str = Field("mmflow-run", description="A label stored with every output.")
+    keep: list[str] = Field(
+        [], description="Intermediate stores to keep after the stages that read them have finished (by default "
+        f"{', '.join(RELEASED_BY_DEFAULT)} are then released: removed, the release recorded; every other store "
+        "is kept). Names of stores, e.g. [partials.zarr]; changes no result.",
+        json_schema_extra={"allowed": f"a list of {', '.join(STORES)}"})
 
     @field_validator("directory")
     @classmethod
     def _nonempty(cls, v):
         if not v.strip():
             raise BadValue("the run directory is empty", "give a path, e.g. run.directory=runs/my-run")
+        return v
+
+    @field_validator("keep")
+    @classmethod
+    def _known_stores(cls, v):
+        unknown = [s for s in v if s not in set(STORES)]
+        if unknown:
+            raise BadValue(f"no store {', '.join(unknown)}", f"name stores of the run: {', '.join(STORES)}")
         return v
 
 

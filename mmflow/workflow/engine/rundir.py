@@ -7,7 +7,8 @@ Layout (see docs/data-layout.md)::
     RUN/maps/                  HEALPix FITS, PNGs, summaries (only files mmflow lists are its own)
     RUN/_status/lock           held (flock) by the one driver working in RUN; names host and pid
     RUN/_status/STAGE/         manifest.json (fingerprint, settings, keys), KEY.done markers,
-                               chunks.json and complete.json when every key is done
+                               chunks.json and complete.json when every key is done, released.json
+                               (the stage's stores released once their readers had finished)
 
 A chunk counts as done only when its marker exists: markers are written (atomically) after
 the data and list the size and XXH3 checksum of every chunk file the task wrote, so a killed task
@@ -15,6 +16,10 @@ is simply redone and a damaged chunk is found (``mmflow verify``). A stage whose
 fingerprint (what it reads: settings, inputs' fingerprints, input files) differs from the
 stored manifest is stale: mmflow refuses to mix outputs unless asked to recompute
 (``--force``), and says which settings or inputs changed.
+
+A store released after its readers finished (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`,
+:meth:`RunDir.release`) is recorded in its stage's ``released.json``: the stage stays complete, its
+released chunks are not "damaged", and the record goes with the stage (``--force``, a stale stage).
 """
 from __future__ import annotations
 
@@ -205,13 +210,58 @@ class RunDir:
                 p.unlink()
         shutil.rmtree(self.status_dir(stage), ignore_errors=True)
 
+    def released(self, stage):
+        """``{store: record}`` of the stage's stores released after their readers had finished."""
+        return _read_json(self.status_dir(stage) / "released.json") or {}
+
+    def release(self, stage, store):
+        """Remove ``store``, written by ``stage``, and record that it was finished and released; returns the
+        bytes it held, or None where it is not the run's own store (a link: a prior pass shares its run's
+        stores; a directory without the stamp of ``stage``: not written by this run), which stays.
+
+        The record is written first: a kill between the two leaves the record and what is left of the
+        store, removed by the next release."""
+        p = self.store(store)
+        if p.is_symlink() or not p.is_dir():
+            return None
+        done = self.released(stage)
+        if store not in done:  # recorded: its stamp was checked then (a kill may have removed it since)
+            stamp = (_read_json(p / "zarr.json") or {}).get("attributes", {}).get("mmflow", {})
+            if stamp.get("stage") != stage:
+                return None
+            done[store] = {"bytes": dir_size(p), "released": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            _atomic_write(self.status_dir(stage) / "released.json", json.dumps(done))
+        shutil.rmtree(p)
+        return done[store]["bytes"]
+
+    def keys_writing_released(self, stage):
+        """The stage's finished keys (and driver markers) that wrote chunks of its released stores."""
+        gone = self.released(stage)
+        man = self.manifest(stage) or {"keys": []}
+        return [k for k in list(man["keys"]) + EXTRA_MARKERS if gone and any(
+            rel.split("/", 1)[0] in gone for rel in self.marker_chunks(stage, [k]))]
+
+    def forget_released(self, stage):
+        """Forget the stage's releases (its tasks that wrote them are to run again)."""
+        (self.status_dir(stage) / "released.json").unlink(missing_ok=True)
+
+    def _live(self, stage, chunks):
+        """``chunks`` less those of the stage's released stores."""
+        gone = self.released(stage)
+        return {rel: v for rel, v in chunks.items() if rel.split("/", 1)[0] not in gone} if gone else chunks
+
+    def live_chunk_index(self, stage):
+        """:meth:`chunk_index` of a complete stage less the chunks of its released stores."""
+        return self._live(stage, self.chunk_index(stage))
+
     def damaged_keys(self, stage):
-        """``{key: [problems]}`` of finished keys whose chunk files are missing or truncated (stat only)."""
+        """``{key: [problems]}`` of finished keys whose chunk files are missing or truncated (stat only;
+        the chunks of released stores are not looked for)."""
         man = self.manifest(stage)
         out = {}
         for k in (list(man["keys"]) + EXTRA_MARKERS if man else []):
             m = _read_json(self.marker(stage, k))
-            problems = verify_chunks(self.path, m.get("chunks", {}), full=False) if m else []
+            problems = verify_chunks(self.path, self._live(stage, m.get("chunks", {})), full=False) if m else []
             if problems:
                 out[k] = problems
         return out
@@ -260,7 +310,7 @@ class RunDir:
         done = sum(1 for k in man["keys"] if self.is_done(stage, k))
         comp = self.completion(stage)
         return {"fingerprint": man["fingerprint"], "done": done, "total": len(man["keys"]),
-                "complete": comp is not None, "summary": comp}
+                "complete": comp is not None, "summary": comp, "released": sorted(self.released(stage))}
 
     def verify(self, stages, full=True):
         """``{stage: [problems]}`` for every stage with a manifest: missing markers, damaged chunks."""
@@ -270,7 +320,8 @@ class RunDir:
             if man is None:
                 continue
             problems = [f"chunk key {k}: not done" for k in man["keys"] if not self.is_done(stage, k)]
-            problems += verify_chunks(self.path, self.marker_chunks(stage, list(man["keys"]) + EXTRA_MARKERS), full)
+            problems += verify_chunks(self.path, self._live(stage, self.marker_chunks(
+                stage, list(man["keys"]) + EXTRA_MARKERS)), full)
             out[stage] = problems
         return out
 

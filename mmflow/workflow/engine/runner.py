@@ -18,7 +18,13 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
 * inputs are checked against their producers' chunk records before they are read;
 * a stage that has had no worker for ``cluster.worker_wait_s`` fails, naming the stage (SLURM/PBS:
   only while no worker job is queued or starting; a worker that cannot reach the scheduler stops
-  the run with its own error, :class:`mmflow.workflow.engine.batch.JobWatch`).
+  the run with its own error, :class:`mmflow.workflow.engine.batch.JobWatch`);
+* an intermediate store (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`, less ``run.keep``) is
+  released once its writer and every enabled stage that reads it are complete with the current
+  settings (:func:`mmflow.workflow.engine.release.release_finished`), the release recorded with its
+  writer; a stage that has work again and reads a released store has its writer recomputed first
+  (:func:`mmflow.workflow.engine.release.recompute_released`),
+  bit for bit, and a resume whose remaining stages do not read it recomputes nothing.
 """
 from __future__ import annotations
 
@@ -43,6 +49,7 @@ from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import check_fits
 from mmflow.workflow.engine.resources import (current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss, reset_traced_peak,
                                        traced_peak_bytes)
+from mmflow.workflow.engine.release import finished, planned_keys, recompute_released, release_finished, released_here
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -276,7 +283,7 @@ def _check_inputs(run, st, cfg, pipeline):
         if s is None or not s["complete"]:
             raise MmflowError(f"stage '{st.name}' needs stage '{prod.name}' complete in {run.path}: "
                               f"run `mmflow run` (or `mmflow {prod.name}`) first")
-        problems = verify_chunks(run.path, run.chunk_index(prod.name), full=False)
+        problems = verify_chunks(run.path, run.live_chunk_index(prod.name), full=False)
         if problems:
             raise DamagedStoreError(f"stage '{st.name}' cannot start: the output of stage '{prod.name}' is "
                                     f"damaged: {problems[0]}" + (f" (and {len(problems) - 1} more)"
@@ -304,12 +311,18 @@ def _repair_or_refuse(run, st, force, log):
         raise DamagedStoreError(f"stage '{stage}' in {run.path} has {n} damaged chunk files (first: {first}). "
                                 f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
                                 f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
-    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})")
-    if "_prepare" in damaged:
+    # a store of the stage's own released meanwhile (the diffuse sky's samples, which its time chunks read):
+    # the tasks that wrote it run again too, and it is released again once the stage is complete
+    again = run.keys_writing_released(stage)
+    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})"
+        + (f" and the {len(again)} that wrote {', '.join(run.released(stage))}, released since" if again else ""))
+    keys = list(damaged) + [k for k in again if k not in damaged]
+    run.forget_released(stage)
+    if "_prepare" in keys:
         run.reset_stage(stage)
         return
-    cycles = {TaskKey.parse(k).cycle for k in damaged if not k.startswith("cycle") and not k.startswith("_")}
-    run.forget_keys(stage, list(damaged) + [f"cycle{c:04d}" for c in cycles if c is not None])
+    cycles = {TaskKey.parse(k).cycle for k in keys if not k.startswith("cycle") and not k.startswith("_")}
+    run.forget_keys(stage, keys + [f"cycle{c:04d}" for c in cycles if c is not None])
 
 
 def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log):
@@ -429,6 +442,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
     for st in stages:  # then the checks that read the input data, for the stages with tasks to do
         if st.scan is not None and st.enabled(cfg) and _has_work(run, st.name, fps[st.name]):
             st.scan(cfg)
+    recompute_released(run, cfg, pipeline, fps, stages, force, log)
     plan = _check_resources(cfg, run, client, stages)
     slots = 1 if client is None else cfg.cluster.n_workers * cfg.cluster.threads_per_worker  # as mmflow plan counts
     BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],
@@ -455,7 +469,10 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
         _check_inputs(run, st, cfg, pipeline)
         sctx = ctx.for_stage(st)
         pctx = sctx.for_task()
-        keys = [k.format() for k in st.prepare(pctx)]
+        if finished(run, st.name, fps) and released_here(run, st, cfg, pipeline):
+            keys = planned_keys(run, st.name)  # its prepare would read, or make again, a store released since
+        else:
+            keys = [k.format() for k in st.prepare(pctx)]
         todo = run.begin_stage(st.name, fp, keys, st.outputs)
         BOARD.begin_stage(st.name, len(keys), len(keys) - len(todo))
         kept = _kept_summary(run, st, todo)
@@ -463,6 +480,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
             summaries[st.name] = kept
             BOARD.keep_stage(st.name, len(keys))
             log(f"[{st.name}] complete, kept: {len(keys)} tasks done (took {kept.get('wall_s')} s when it ran)")
+            release_finished(run, cfg, pipeline, fps, log)
             continue
         run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
         _stamp_stores(run, st, cfg, fp.digest)
@@ -493,6 +511,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
         summaries[st.name] = summary
         log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
             f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
+        release_finished(run, cfg, pipeline, fps, log)
     if only:
         later = _stale_stages(run, stage_fingerprints(cfg, run, pipeline), list(pipeline.names))
         if later:

@@ -41,7 +41,7 @@ from mmflow.workflow.engine.geometry import n_integrations
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.nodes import MIB, Node
 from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
-                                          load_costs, task_seconds)
+                                          live_stores, load_costs, task_seconds)
 
 #: the job's walltime against the stage's planned time (the plan is within 50 % in time: docs/planning.md)
 WALLTIME_MARGIN = 2.0
@@ -127,7 +127,7 @@ def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
         rows.append({"stage": st.name, "tasks": est.tasks, "task_gb": need / 1e9, "worker_cores": k,
                      "workers_per_node": max(1, node.cores // k), "worker_memory_gb": k * node.core_memory_bytes / 1e9,
                      "fits": k <= node.cores, "per_task_s": per_task, "node_s": max(0.0, wide) * nodes,
-                     "store_gb": est.store_bytes / 1e9, "store_files": est.store_files,
+                     "store_gb": est.store_bytes / 1e9, "stores": est.stores, "store_files": est.store_files,
                      "largest_chunk_mb": est.largest_chunk_bytes / 1e6, "notes": est.notes})
     return rows
 
@@ -202,7 +202,8 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
     -------
     dict
         ``node``, ``nodes``, ``settings`` (the split settings chosen, dotted), ``stages`` (rows of
-        :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb``, ``free_disk_gb``
+        :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb`` (the live stores'
+        peak, :func:`mmflow.workflow.plan.planner.live_stores`), ``free_disk_gb``
         (where ``run.directory`` will be: the shared file system where planned on a login node),
         ``node_memory_gb`` (the most a node holds at once), ``node_hours`` and ``core_gflops``; where the
         workflow's ``cluster.jobqueue`` gives memory and processes, ``configured_worker_gb`` and the
@@ -249,7 +250,8 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
                     "core_memory_bytes": node.core_memory_bytes, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
-           "store_gb": sum(r["store_gb"] for r in rows), "store_files": sum(r["store_files"] for r in rows),
+           "store_gb": live_stores([(r["stage"], r["stores"]) for r in rows], PIPELINE.released(c))[0] / 1e9,
+           "store_files": sum(r["store_files"] for r in rows),
            "largest_chunk_mb": max(r["largest_chunk_mb"] for r in rows),
            "free_disk_gb": free_disk_gb(cfg.run.directory)}
     configured = configured_worker_gb(cfg)
@@ -374,8 +376,9 @@ def format_cluster_plan(res):
                     + (f"too small for {', '.join(big)}: ask for the jobs above" if big else
                        "enough for every stage's task"))
     free = res["free_disk_gb"]
-    rows.append(f"disk: {res['store_gb']:.1f} GB of stores on the shared file system, {res['store_files']:,} files "
-                f"(chunks of at most {res['largest_chunk_mb']:.0f} MB; docs/clusters.md, shared file systems) ("
+    rows.append(f"disk: {res['store_gb']:.1f} GB of stores live at the peak on the shared file system, "
+                f"{res['store_files']:,} files written (chunks of at most {res['largest_chunk_mb']:.0f} MB; "
+                "docs/clusters.md, shared file systems) ("
                 + (f"{free:.1f} GB free where run.directory will be)" if free >= res["store_gb"] else
                    f"only {free:.1f} GB free where run.directory will be: mmflow run refuses it there)"))
     return "\n".join(rows)

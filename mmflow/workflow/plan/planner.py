@@ -14,7 +14,9 @@ and from per-stage constants fitted to measured runs (:mod:`mmflow.workflow.plan
 
 Store sizes are the declared stores' uncompressed bytes (:attr:`mmflow.io.stores.StoreSpec.nbytes`
 of the same :mod:`mmflow.io.run_stores` declarations the stages create), an upper bound of the
-disk they take (zarr compresses noise-like data by a few percent only).
+disk they take (zarr compresses noise-like data by a few percent only). The disk a run needs is
+the peak of its live stores (:func:`live_stores`): stages run in order, each adds its stores, and
+an intermediate goes once its last reader has finished (:meth:`mmflow.workflow.pipeline.Pipeline.released`).
 """
 from __future__ import annotations
 
@@ -52,6 +54,7 @@ class StageEstimate:
     working_set_bytes: float
     units_per_task: float
     store_bytes: int
+    stores: dict = field(default_factory=dict)  # {store: bytes} of the stores it writes
     task_bytes: float = 0.0  # predicted peak memory of the largest task above the worker baseline
     seconds: float = 0.0  # predicted wall time of the stage on the cluster
     notes: list = field(default_factory=list)
@@ -77,7 +80,7 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     cost = PIPELINE.stage(stage).cost
     tasks, w, u, specs = cost.work(g, cfg)
     k = costs["stages"].get(stage)
-    est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)),
+    est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)), {s.path: s.nbytes for s in specs},
                         store_files=sum(s.n_files for s in specs),
                         largest_chunk_bytes=max((s.largest_chunk_bytes for s in specs), default=0))
     if k is None and cost.seconds is None:
@@ -96,6 +99,28 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     else:
         est.seconds = per_task * math.ceil(tasks / max(workers, 1))
     return est
+
+
+def live_stores(writes, released):
+    """The peak of the live stores of stages run in order: ``(peak bytes, the stage at which it is reached,
+    {store: bytes} left at the end)``.
+
+    ``writes``: ``[(stage, {store: bytes})]`` in run order. Each stage adds the stores it writes while the
+    stores before it are still there; after it, the intermediates it was the last reader of go
+    (``released``: ``{store: stage}``, :meth:`mmflow.workflow.pipeline.Pipeline.released`)::
+
+        live(s) = sum of the stores written by stages <= s, less those released after a stage < s
+        peak    = max over s of live(s)
+    """
+    live, peak, at = {}, 0, None
+    for stage, stores in writes:
+        live.update(stores)
+        if sum(live.values()) > peak:
+            peak, at = sum(live.values()), stage
+        for store, after in released.items():
+            if after == stage:
+                live.pop(store, None)
+    return peak, at, live
 
 
 def task_seconds(k, units, costs, peak_gflops):
@@ -139,7 +164,9 @@ def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     -------
     dict
         ``stages`` (list of estimates as dicts), ``task_slots`` (tasks running at once, by which each
-        stage's per-task time is multiplied), ``total_store_gb``, ``largest_task`` (stage and GB),
+        stage's per-task time is multiplied), ``total_store_gb`` (every store written), ``peak_store_gb``
+        and ``peak_stage`` (the live stores' peak, :func:`live_stores`), ``kept_stores`` (``{store: GB}``
+        left at the end), ``largest_task`` (stage and GB),
         ``worker_memory_gb`` (the cluster's per-worker limit, or None) and ``free_disk_gb`` where
         the run directory will be. ``ingest``: as in :func:`geometry`.
     """
@@ -151,8 +178,10 @@ def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
+    peak, at, kept = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
     return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops, "task_slots": workers,
-            "total_store_gb": sum(e.store_bytes for e in ests) / 1e9,
+            "total_store_gb": sum(e.store_bytes for e in ests) / 1e9, "peak_store_gb": peak / 1e9,
+            "peak_stage": at, "kept_stores": {k: v / 1e9 for k, v in kept.items()},
             "largest_task": {"stage": largest.stage, "gb": (largest.task_bytes + WORKER_BASE_BYTES) / 1e9},
             "worker_memory_gb": worker_memory_gb(cfg), "free_disk_gb": free_disk_gb(cfg.run.directory),
             "total_seconds": sum(e.seconds for e in ests)}
@@ -193,8 +222,11 @@ def format_plan(res):
         rows.append(f"{e['stage']:12s} {e['tasks']:7d} {(e['task_bytes'] + WORKER_BASE_BYTES) / 1e9:8.2f} "
                     f"{e['store_bytes'] / 1e9:9.3f} {t:>9s}" + (f"  ({'; '.join(e['notes'])})" if e["notes"] else ""))
     lt, wm = res["largest_task"], res["worker_memory_gb"]
-    rows.append(f"total: {res['total_store_gb']:.3f} GB of stores ({res['free_disk_gb']:.1f} GB free), "
-                f"~{duration(res['total_seconds'])} at {res['sgemm_gflops']:.0f} SGEMM GFLOP/s")
+    kept = res["kept_stores"]
+    rows.append(f"stores: {res['peak_store_gb']:.3f} GB live at the peak (after {res['peak_stage']}; "
+                f"{res['free_disk_gb']:.1f} GB free), {res['total_store_gb']:.3f} GB written; kept at the end "
+                f"{sum(kept.values()):.3f} GB: {', '.join(kept)}")
+    rows.append(f"total: ~{duration(res['total_seconds'])} at {res['sgemm_gflops']:.0f} SGEMM GFLOP/s")
     rows.append(f"largest task: {lt['stage']} {lt['gb']:.2f} GB (with a worker's baseline)"
                 + (f" against {wm:.2f} GB per worker" if wm else ""))
     return "\n".join(rows)
@@ -207,8 +239,9 @@ def duration(s):
 
 def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes=0):
     """Refuse, before any work, a run whose largest task exceeds a worker's memory or whose stores
-    exceed the free disk: an :class:`mmflow.errors.InputError` naming the stage, the estimate, the
-    limit and the setting that fixes it. ``existing_bytes``: what the run's stores hold already."""
+    exceed the free disk at their peak (:func:`live_stores`): an :class:`mmflow.errors.InputError` naming
+    the stage, the estimate, the limit and the setting that fixes it. ``existing_bytes``: what the run's
+    stores hold already."""
     g = geometry(cfg)
     costs = load_costs()
     workers = 1
@@ -221,13 +254,14 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
                                  f"(`mmflow plan`), more than a worker's {worker_limit_gb:.2f} GB memory limit",
                                  f"{PIPELINE.stage(e.stage).cost.shrink_setting(cfg)}, or more memory per worker "
                                  "(fewer cluster.n_workers, a larger cluster.memory_limit)")
-    disk = sum(e.store_bytes for e in ests) - existing_bytes
+    peak, at, _ = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
+    disk = peak - existing_bytes
     free = free_disk_gb(cfg.run.directory) if free_disk is None else free_disk
     if disk / 1e9 > free:
         big = max(ests, key=lambda e: e.store_bytes)
         raise InputError(str(cfg.run.directory), "run.directory", f"the stores need up to {disk / 1e9:.2f} GB "
-                         f"(`mmflow plan`; {big.stage} {big.store_bytes / 1e9:.2f} GB), more than the "
-                         f"{free:.2f} GB free there",
+                         f"at once (`mmflow plan`: the live stores' peak, after {at}; {big.stage} "
+                         f"{big.store_bytes / 1e9:.2f} GB), more than the {free:.2f} GB free there",
                          f"{PIPELINE.stage(big.stage).cost.disk_shrink_setting(cfg)}, free disk space, or set "
                          "run.directory on a larger file system")
     return ests

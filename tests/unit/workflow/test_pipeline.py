@@ -1,0 +1,99 @@
+"""The pipeline's stores and their lifetimes: who reads a store is what the stages declare."""
+import ast
+import re
+from pathlib import Path
+
+from mmflow.io.run_stores import RELEASED_BY_DEFAULT, STORES
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.plan.planner import live_stores
+from tests.workflow_helpers import DEMO, ROOT, refused_problem
+
+PACKAGE = Path(ROOT) / "mmflow"
+NAMED = re.compile(r"\bSTORES\.(\w+)")
+
+
+def _named_text(text):
+    """The stores a source text names (``STORES.<attr>``)."""
+    return {getattr(STORES, a) for a in NAMED.findall(text)}
+
+
+def _named(path):
+    """The stores a source file names (``STORES.<attr>``)."""
+    return _named_text(path.read_text())
+
+
+def _store_functions(path, store):
+    """Top-level functions of the module at ``path`` that name ``store``, or call one that does (within it)."""
+    funcs = {n.name: n for n in ast.parse(path.read_text()).body if isinstance(n, ast.FunctionDef)}
+    found = {name for name, f in funcs.items() if store in _named_text(ast.unparse(f))}
+    while True:
+        more = {name for name, f in funcs.items() if name not in found
+                and any(isinstance(c, ast.Name) and c.id in found for c in ast.walk(f))}
+        if not more:
+            return found
+        found |= more
+
+
+def _importers(path, names):
+    """The modules of the package that import any of ``names`` from the module at ``path``."""
+    dotted = ".".join(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    out = set()
+    for p in PACKAGE.rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module == dotted and {a.name for a in node.names} & names:
+                out.add(p)
+    return out
+
+
+def test_each_stage_names_only_the_stores_it_declares():
+    """A stage package that named a store it does not declare as an input or output would read a store its
+    declared readers let go (the engine's helpers it calls open stores through ctx.open, which refuses
+    any store the stage does not declare)."""
+    for st in PIPELINE:
+        named = set().union(*(_named(p) for p in (PACKAGE / "workflow" / "stages" / st.name).glob("*.py")))
+        assert named <= set(st.inputs) | set(st.outputs), (st.name, named - set(st.inputs) - set(st.outputs))
+
+
+def test_a_released_store_is_named_only_where_it_is_written_or_read():
+    """Only its declaration, its writers and its declared readers name a store that is released: no other
+    module (the CLI, a report, a benchmark) can read it behind the stages' backs."""
+    for store in RELEASED_BY_DEFAULT:
+        writers, readers, released = PIPELINE.lifetimes()[store]
+        assert released
+        allowed = {PACKAGE / "io" / "run_stores.py"} | {p for st in writers + readers
+                                                       for p in (PACKAGE / "workflow" / "stages" / st).glob("*.py")}
+        naming = {p for p in PACKAGE.rglob("*.py") if store in _named(p)}
+        # an engine helper that names it (by its array handles) serves only its writers and readers: every
+        # module importing a function of the helper that names it is one of theirs, opening it through ctx.open,
+        # which refuses a store the calling stage does not declare
+        helpers = {p for p in naming - allowed if p.parent == PACKAGE / "workflow" / "engine"
+                   and _importers(p, _store_functions(p, store)) <= allowed}
+        assert naming <= allowed | helpers and naming - {PACKAGE / "io" / "run_stores.py"}, \
+            (store, naming - allowed - helpers)
+
+
+def test_release_points_follow_the_declared_readers():
+    """The partials go after normal, their one reader; the diffuse sky's samples after simulate, which
+    alone reads them; the fitted models after peel; run.keep keeps what it names; a store of a disabled
+    writer is not released; readers of a disabled stage do not hold a store."""
+    cfg = load_config(DEMO, ["models.enabled=true", "peel.enabled=true", "peel.sources=[Cyg A, Cas A]",
+                             "peel.peel=[Cyg A]", "calibrate.enabled=true"])
+    assert [s.name for s in PIPELINE.readers(STORES.partials, cfg)] == ["normal"]
+    assert [s.name for s in PIPELINE.readers(STORES.peel, cfg)] == ["mmodes", "products"]  # terrestrial: disabled
+    assert PIPELINE.released(cfg) == {STORES.partials: "normal", STORES.diffuse: "simulate", STORES.models: "peel"}
+    kept = load_config(DEMO, ["run.keep=[partials.zarr, models.zarr]"])
+    assert PIPELINE.released(kept) == {STORES.diffuse: "simulate"}  # models: disabled in the demo
+
+
+def test_run_keep_names_stores():
+    (what, field, problem, fix), _ = refused_problem(["run.keep=[partial.zarr]"], "run.keep")
+    assert "partial.zarr" in problem and "partials.zarr" in fix
+
+
+def test_the_plan_counts_the_peak_of_the_live_stores():
+    """Stores a (5) read by b, then b (3), then c (4): a goes after b, so c runs beside b's store alone."""
+    writes = [("a", {"x": 5}), ("b", {"y": 3}), ("c", {"z": 4})]
+    assert live_stores(writes, {"x": "b"}) == (8, "b", {"y": 3, "z": 4})
+    assert live_stores(writes, {}) == (12, "c", {"x": 5, "y": 3, "z": 4})  # nothing released: the sum
+    assert live_stores(writes, {"x": "a", "y": "b"}) == (5, "a", {"z": 4})
