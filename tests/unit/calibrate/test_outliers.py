@@ -32,10 +32,26 @@ def _noise_on(vis, pairs, bad, rng):
 
 @pytest.fixture(scope="module", params=sorted(LAYOUTS))
 def sky(request):
+    return sky_scene(request.param)
+
+
+def noisy_search(sky, fraction, seed):
+    """The search on ``sky`` with ``fraction`` of its antennas (drawn with ``seed``) holding noise, as
+    the calibrate stage calls it: (the noisy antennas, the flagged ones)."""
+    n, pairs = sky["n"], sky["pairs"]
+    rng = np.random.default_rng(seed)
+    bad = np.sort(rng.choice(n, int(round(fraction * n)), replace=False))
+    vis = _noise_on(sky["vis"].copy(), pairs, bad, rng)
+    sol = solve_gains(vis, sky["model"], 1.0, pairs, n, baseline_keep=sky["keep"], outlier_sigma=5.0,
+                      baseline_lengths=sky["lengths"])
+    return bad, np.flatnonzero(sol.flags[0, :, 0])
+
+
+def sky_scene(n_ant):
     """Two integrations of eight point sources (a 1000 and an 800 Jy source the model holds, six of
     20-100 Jy it does not) over an OVRO-LWA layout at 52 MHz, random gains of amplitude 0.6-1.4 and any
     phase, thermal noise of 2 % of the mean visibility; the baselines the stage keeps (``auto`` cut)."""
-    layout = ovro_lwa_layout(**LAYOUTS[request.param])
+    layout = ovro_lwa_layout(**LAYOUTS[n_ant])
     rng = np.random.default_rng(7)
     n = layout.n_ant
     i, j = np.triu_indices(n)
@@ -62,15 +78,9 @@ def test_exactly_the_noisy_antennas_are_flagged(sky, fraction):
     with the baseline lengths and its cut) flags those and no other; above 20 % of an array of more
     than 40 antennas that is more than the stage's default ``max_flagged_fraction`` (the old search,
     at most 8 one-at-a-time rounds, could not flag more than 8)."""
-    n, pairs = sky["n"], sky["pairs"]
-    rng = np.random.default_rng(int(100 * fraction))
-    bad = np.sort(rng.choice(n, int(round(fraction * n)), replace=False))
-    vis = _noise_on(sky["vis"].copy(), pairs, bad, rng)
-    sol = solve_gains(vis, sky["model"], 1.0, pairs, n, baseline_keep=sky["keep"], outlier_sigma=5.0,
-                      baseline_lengths=sky["lengths"])
-    flagged = np.flatnonzero(sol.flags[0, :, 0])
+    bad, flagged = noisy_search(sky, fraction, seed=int(100 * fraction))
     np.testing.assert_array_equal(flagged, bad)
-    assert (len(flagged) > STOP * n) == (fraction > STOP)
+    assert (len(flagged) > STOP * sky["n"]) == (fraction > STOP)
 
 
 def test_an_antenna_flagged_on_a_pulled_solve_is_let_back(rng, monkeypatch):
