@@ -47,10 +47,11 @@ def noisy_search(sky, fraction, seed):
     return bad, np.flatnonzero(sol.flags[0, :, 0])
 
 
-def sky_scene(n_ant):
+def sky_scene(n_ant, thermal=0.02):
     """Two integrations of eight point sources (a 1000 and an 800 Jy source the model holds, six of
     20-100 Jy it does not) over an OVRO-LWA layout at 52 MHz, random gains of amplitude 0.6-1.4 and any
-    phase, thermal noise of 2 % of the mean visibility; the baselines the stage keeps (``auto`` cut)."""
+    phase, thermal noise of ``thermal`` x the mean visibility amplitude per real and imaginary part; the
+    baselines the stage keeps (``auto`` cut)."""
     layout = ovro_lwa_layout(**LAYOUTS[n_ant])
     rng = np.random.default_rng(7)
     n = layout.n_ant
@@ -67,7 +68,7 @@ def sky_scene(n_ant):
         vis[t, :, 0], model[t, :, 0] = fringes.sum(1), fringes[:, :2].sum(1)
     g = rng.uniform(0.6, 1.4, (n, 1)) * np.exp(1j * rng.uniform(-np.pi, np.pi, (n, 1)))
     vis *= gain_products(g, pairs)
-    vis += 0.02 * np.abs(vis).mean() * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
+    vis += thermal * np.abs(vis).mean() * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
     keep = baseline_mask(pairs, layout.enu, FREQ, auto_min_lambda(pairs, layout.enu, FREQ))
     return dict(n=n, vis=vis, model=model, pairs=pairs, keep=keep, lengths=baseline_lengths(pairs, layout.enu, FREQ))
 
