@@ -2,9 +2,9 @@
 
 An antenna holding noise (a dead or miswired input) leaves its noise in the residuals of every
 baseline it is on, so a sum over an antenna's baselines (its ``chi2``) mixes the noise of the bad
-antennas into the good ones': with a quarter of 42 antennas noisy, a good antenna's ``chi2`` is a
-third of a bad one's, the spread of the statistic is that of the bad antennas, and a threshold at
-``median + 5 MAD`` over the array finds few of them. Here every step is a median or a low quantile
+antennas into the good ones': with 13 of 42 antennas noisy, a good antenna's ``chi2`` is about a
+third of a bad one's, the typical residual at a length (a median over baselines, half of them
+noisy) is the noise's, and a threshold at ``median + 5 MAD`` over the array finds few of them. Here every step is a median or a low quantile
 over baselines, each of which holds a minority of noisy values while fewer than about a third of
 the antennas are bad (a fraction ``q`` of bad antennas spoils ``1 - (1 - q)^2`` of the baselines, 51 %
 at ``q = 0.3``, and a fraction ``q`` of each good antenna's baselines):
