@@ -1,7 +1,7 @@
 """The outlier-antenna search (issue 37 item 7): exactly the noisy antennas flagged up to 30 % of the
 array, on 42 and 256 antennas; 20 % of them flagged when that many are bad (the calibrate stage's
-default stop can fire); an antenna flagged on a solve still pulled by the bad ones let back; the
-search on data mmflow did not simulate; the per-bin quantiles against numpy's."""
+default stop can fire); an antenna flagged on a solve still pulled by the bad ones let back; noiseless
+data; the search on data mmflow did not simulate; the per-bin quantiles against numpy's."""
 from dataclasses import replace
 
 import numpy as np
@@ -112,6 +112,24 @@ def test_an_antenna_flagged_on_a_pulled_solve_is_let_back(rng, monkeypatch):
     assert [np.flatnonzero(r[0]).tolist() for r in rounds] == [[5], []]
     assert not out.flags.any() and (w == W).all()
     np.testing.assert_allclose(out.gains, res.gains, rtol=0, atol=1e-8)
+
+
+def test_noiseless_data_flag_only_the_antenna_that_does_not_follow_the_model(rng):
+    """Without noise the good antennas' residuals are round-off (their spread floored, ``MAD_FLOOR``):
+    only the decorrelated antenna is flagged, and the others' gains are exact."""
+    n = 16
+    i, j = np.triu_indices(n)
+    pairs = np.stack([i, j], 1)
+    model = rng.normal(size=(2, len(pairs), 1)) + 1j * rng.normal(size=(2, len(pairs), 1))
+    g = (1 + 0.3 * rng.uniform(-1, 1, n)) * np.exp(2j * np.pi * rng.uniform(size=n))
+    vis = model * gain_products(g[:, None], pairs)
+    sel = ((pairs[:, 0] == 4) | (pairs[:, 1] == 4)) & (pairs[:, 0] != pairs[:, 1])
+    vis[:, sel] *= np.exp(1j * rng.uniform(0, 2 * np.pi, vis[:, sel].shape))
+    sol = solve_gains(vis, model, 1.0, pairs, n, outlier_sigma=5.0, tol=1e-12, max_iter=2000)
+    assert np.flatnonzero(sol.flags[0, :, 0]).tolist() == [4]
+    ref = sol.ref_ant[0, 0]
+    good = np.arange(n) != 4
+    np.testing.assert_allclose(sol.gains[0, good, 0], (g * np.conj(g[ref]) / abs(g[ref]))[good], rtol=1e-10)
 
 
 def test_noisy_antennas_of_data_mmflow_did_not_simulate_are_flagged():
