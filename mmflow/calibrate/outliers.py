@@ -4,10 +4,11 @@ An antenna holding noise (a dead or miswired input) leaves its noise in the resi
 baseline it is on, so a sum over an antenna's baselines (its ``chi2``) mixes the noise of the bad
 antennas into the good ones': with 13 of 42 antennas noisy, a good antenna's ``chi2`` is about a
 third of a bad one's, the typical residual at a length (a median over baselines, half of them
-noisy) is the noise's, and a threshold at ``median + 5 MAD`` over the array finds few of them. Here every step is a median or a low quantile
-over baselines, each of which holds a minority of noisy values while fewer than about a third of
-the antennas are bad (a fraction ``q`` of bad antennas spoils ``1 - (1 - q)^2`` of the baselines, 51 %
-at ``q = 0.3``, and a fraction ``q`` of each good antenna's baselines):
+noisy) is the noise's, and a threshold at ``median + 5 MAD`` over the array finds few of them.
+Here every step is a median or a low quantile over baselines, each of which holds a minority of
+noisy values while fewer than about a third of the antennas are bad (a fraction ``q`` of bad
+antennas spoils ``1 - (1 - q)^2`` of the baselines, 51 % at ``q = 0.3``, and a fraction ``q`` of each
+good antenna's baselines):
 
 * per baseline the residual power per weight ``rho_ij = r_ij / w_ij`` with
   ``r_ij = sum_k w_ijk |V_ijk - g_i M_ijk g_j^*|^2``, ``w_ij = sum_k w_ijk``,
