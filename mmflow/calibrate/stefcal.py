@@ -32,6 +32,7 @@ import numba
 import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, to_matrix
+from mmflow.calibrate.outliers import antenna_statistics, outliers
 from mmflow.errors import InputError
 from mmflow.threads import n_threads
 from mmflow.conventions import complex_dtype
@@ -278,123 +279,58 @@ def stefcal(V, M, W, g0=None, *, tol=1e-5, max_iter=100, damping="half", ref_ant
     return StefcalResult(g, flags, iters, converged, change, ant_change, ant_iter, chi2, ref)
 
 
-#: an antenna whose data the model describes to within this fraction of its model power is never an outlier
-MAX_EXPLAINED_RESIDUAL = 0.25
+def flag_outlier_antennas(V, M, W, result, *, n_sigma=5.0, lengths=None, **kwargs):
+    """Flag every outlier antenna of each solution at once, re-solve without them, and judge again every
+    antenna, the flagged ones included, until the flagged set no longer changes.
 
+    The statistic (:mod:`mmflow.calibrate.outliers`) is built of medians and a low quantile over
+    baselines, so that it holds while fewer than about a third of the antennas are bad and no good
+    antenna is judged by the noise of the bad ones on its baselines:
 
-def length_normalised_chi2(V, M, W, gains, flags, lengths, n_bins=16):
-    """Each antenna's residual power over what residuals at its baselines' lengths typically are,
-    and over the power of its model.
+        rho_ij = sum_k w_ijk |V_ijk - g_i M_ijk g_j^*|^2 / sum_k w_ijk
+        f(b)   = lower quartile of rho over the baselines of length ~b (one bin without ``lengths``)
+        x_i    = median_j rho_ij / f(|b_ij|),     outlier:  x_i > median(x) + n_sigma 1.4826 MAD(x)
 
-    ``r_ij = sum_k w_ijk |V_ijk - g_i M_ijk g_j^*|^2``, ``w_ij = sum_k w_ijk`` and
-    ``p_ij = sum_k w_ijk |g_i M_ijk g_j^*|^2`` per baseline; the baselines between unflagged
-    antennas are cut into ``n_bins`` bins of equal count by length and ``f(b)`` is the median of
-    ``r_ij / w_ij`` in the bin of length ``b``. Returns, each (S, N) (NaN for flagged antennas or
-    antennas without data),
-
-        x_i = sum_j r_ij / sum_j w_ij f(|b_ij|)    and    u_i = sum_j r_ij / sum_j p_ij:
-
-    ``x`` ~1 for an antenna whose residuals are those of any baseline of its lengths, whatever
-    their cause (noise, or the direction-dependent errors that grow with baseline length and make
-    the outermost antennas' plain ``chi2`` the largest of the array), ``u`` the fraction of its
-    signal the model leaves unexplained (~1 or more for data that do not follow the model at all).
-    ``lengths`` (N, N), any unit.
-    """
-    S, K, N, _ = V.shape
-    iu = np.triu_indices(N, 1)
-    x, u = np.full((S, N), np.nan), np.full((S, N), np.nan)
-    block = max(1, 2 ** 20 // (N * N))
-    for s in range(S):
-        g = gains[s].astype(np.complex128)
-        r, p = np.zeros((N, N)), np.zeros((N, N))
-        for k0 in range(0, K, block):  # samples a block at a time (temporaries ~16 MB), summed in order
-            ks = slice(k0, k0 + block)
-            m = g[None, :, None] * M[s, ks] * np.conj(g)[None, None, :]
-            res = V[s, ks] - m
-            for rk, pk in zip(W[s, ks] * (res.real ** 2 + res.imag ** 2), W[s, ks] * (m.real ** 2 + m.imag ** 2)):
-                r += rk
-                p += pk
-        w = W[s].sum(axis=0, dtype=float)
-        r, p, w = r + r.T, p + p.T, w + w.T  # both halves: the dense problem may hold either
-        np.fill_diagonal(w, 0.0)
-        ok = ~flags[s]
-        use = (w > 0) & ok[:, None] & ok[None, :]
-        sel = use[iu]
-        if not sel.any():
-            continue
-        lb, rb = lengths[iu][sel], (r[iu] / np.where(w[iu] > 0, w[iu], 1.0))[sel]
-        edges = np.quantile(lb, np.linspace(0.0, 1.0, n_bins + 1))
-        bin_of = np.clip(np.searchsorted(edges, lb, side="right") - 1, 0, n_bins - 1)
-        typical = _binned_medians(rb, bin_of, n_bins)
-        typical = np.where(np.isfinite(typical), typical, np.nanmedian(typical))
-        idx = np.clip(np.searchsorted(edges, lengths, side="right") - 1, 0, n_bins - 1)
-        power = np.sum(W[s] * np.abs(V[s]) ** 2) / max(np.count_nonzero(W[s]), 1)
-        expect = np.where(use, w * np.maximum(typical[idx], 1e-9 * power), 0.0).sum(axis=1)
-        got = np.where(use, r, 0.0).sum(axis=1)
-        model = np.where(use, p, 0.0).sum(axis=1)
-        x[s] = np.where(ok & (expect > 0), got / np.where(expect > 0, expect, 1.0), np.nan)
-        u[s] = np.where(ok & (expect > 0), got / np.maximum(model, 1e-300), np.nan)
-    return x, u
-
-
-def _binned_medians(values, bins, n_bins):
-    """``np.median(values[bins == b])`` for ``b = 0..n_bins-1`` (NaN for an empty bin, or one holding a
-    NaN, as np.median) from one sort: the mean of the two middle values of each bin (one value for
-    an odd count)."""
-    v = values[np.lexsort((values, bins))]
-    counts = np.bincount(bins, minlength=n_bins)
-    start = np.cumsum(counts) - counts
-    filled = counts > 0
-    lo = np.where(filled, start + (counts - 1) // 2, 0)
-    hi = np.where(filled, start + counts // 2, 0)
-    if not len(v):
-        return np.full(n_bins, np.nan)
-    with_nan = np.bincount(bins, weights=np.isnan(values), minlength=n_bins) > 0
-    return np.where(filled & ~with_nan, (v[lo] + v[hi]) / 2, np.nan)
-
-
-def flag_outlier_antennas(V, M, W, result, *, n_sigma=5.0, max_rounds=8, lengths=None, **kwargs):
-    """Flag antennas whose residuals are outliers, one per solution and round, and re-solve.
-
-    The statistic is each antenna's ``chi2`` or, with ``lengths`` (N, N) the baseline lengths,
-    :func:`length_normalised_chi2` (its residuals over the typical residuals at its baselines'
-    lengths), and then an antenna whose model leaves at most :data:`MAX_EXPLAINED_RESIDUAL` of its
-    signal unexplained is never an outlier: direction-dependent errors of a modelled source, largest
-    on the outermost antennas, flag no antenna, an antenna whose data do not follow the model does.
-    An antenna is an outlier when its statistic exceeds the median over unflagged antennas by more
-    than ``n_sigma`` x 1.4826 MAD (for ``chi2`` floored at 1e-9 of the median data power, so that
-    noiseless data flag nothing). Its weights are zeroed (``W`` is copied) and the affected solutions re-solved
-    from their previous gains.
+    with ``j`` and the median and MAD over the unflagged antennas; a flagged antenna is judged with
+    its gain against the unflagged ones (one Stefcal step, :func:`sweep`), so that an antenna
+    flagged while the first solve was still pulled by the bad ones is let back once the solve no
+    longer is. ``lengths`` (N, N): the baseline lengths (None: one bin). An antenna whose model leaves
+    at most :data:`mmflow.calibrate.outliers.MAX_EXPLAINED_RESIDUAL` of its signal unexplained
+    (``median_j r_ij / p_ij``) is never an outlier: direction-dependent errors of a modelled source,
+    largest on the outermost antennas, flag no antenna, an antenna whose data do not follow the
+    model does. The flagged antennas' weights are zeroed (``W`` is not modified) and the solutions
+    whose set changed re-solved from the previous gains; the search stops when the set is unchanged
+    or repeats, after N rounds at most (no cap below the array's size). Antennas the solve itself
+    flags (no data, not converged) are not judged.
     Returns the new result and the weights.
     """
-    W = np.array(W, copy=True)
-    S, K, N, _ = V.shape
-    power = np.einsum("skij,skij->s", W, np.abs(V) ** 2) / np.maximum(W.reshape(S, -1).astype(bool).sum(1), 1)
-    for _ in range(max_rounds):
-        explained, floor = np.zeros((S, N), bool), 1e-9 * power
-        if lengths is None:
-            stat = result.chi2
-        else:  # a dimensionless statistic: its floor only keeps the MAD above zero
-            floor = np.full(S, 1e-9)
-            stat, unexplained = length_normalised_chi2(V, M, W, result.gains, result.flags, lengths)
-            explained = unexplained <= MAX_EXPLAINED_RESIDUAL
-        stat = np.where(result.flags | ~np.isfinite(stat), np.inf, stat)
-        stat[np.all(np.isinf(stat), axis=1)] = 0.0
-        stat = np.where(np.isinf(stat), np.nan, stat)
-        med = np.nanmedian(stat, axis=1)
-        mad = 1.4826 * np.nanmedian(np.abs(stat - med[:, None]), axis=1)
-        thresh = med + n_sigma * np.maximum(mad, floor)
-        z = np.where(np.isfinite(stat) & ~explained, stat - thresh[:, None], -np.inf)
-        worst = np.argmax(z, axis=1)
-        bad = z[np.arange(S), worst] > 0
-        if not bad.any():
+    W0, N = W, V.shape[2]
+    search = np.zeros(result.flags.shape, bool)
+    seen = {search.tobytes()}
+    for _ in range(N):
+        partners = ~result.flags
+        g = result.gains.copy()
+        s = np.flatnonzero(search.any(axis=1))
+        if s.size:  # the flagged antennas' gains against the unflagged ones (others held): one step
+            both = partners[s][:, None, :, None] | partners[s][:, None, None, :]
+            step = sweep(V[s], M[s], W0[s] * both, g[s] + (g[s] == 0), threads=kwargs.get("threads"))
+            g[s] = np.where(search[s], step, g[s])
+        x, u = antenna_statistics(V, M, W0, g, partners, lengths)
+        new = outliers(x, partners, u, n_sigma) & (partners | search)
+        if (new == search).all():
             break
-        s = np.flatnonzero(bad)
-        W[s, :, worst[s], :] = 0.0
-        W[s, :, :, worst[s]] = 0.0
-        sub = stefcal(V[s], M[s], W[s], result.gains[s] + (result.gains[s] == 0), **kwargs)
+        repeats = new.tobytes() in seen  # a cycle: take this set and stop
+        seen.add(new.tobytes())
+        s = np.flatnonzero((new != search).any(axis=1))
+        search = new
+        keep = ~search[s]
+        W = np.array(W0, copy=True) if W is W0 else W
+        W[s] = W0[s] * (keep[:, None, :, None] & keep[:, None, None, :])
+        sub = stefcal(V[s], M[s], W[s], g[s] + (g[s] == 0), **kwargs)
         for name in StefcalResult.__dataclass_fields__:
             getattr(result, name)[s] = getattr(sub, name)
+        if repeats:
+            break
     return result, W
 
 
@@ -474,12 +410,14 @@ def solve_gains(vis, model, weights, pairs, n_ant, *, solint=None, baseline_keep
         Baselines to use, e.g. :func:`mmflow.calibrate.baselines.baseline_mask` (min length).
         Autocorrelations are always excluded.
     outlier_sigma : float or None
-        Flag outlier antennas one at a time (:func:`flag_outlier_antennas`); None: off.
+        Flag the outlier antennas at this many sigma, all at once, re-solving until none is left
+        (:func:`flag_outlier_antennas`); None: off.
     g0 : ndarray (n_interval, n_ant, n_pol), optional starting gains.
     baseline_lengths : ndarray (n_bl,), optional
         Length of each pair (any unit): the outlier search then compares each antenna's residuals
-        with the typical residuals at its baselines' lengths (:func:`length_normalised_chi2`),
-        so that direction-dependent errors, largest on the longest baselines, flag no antenna.
+        with the typical residuals at its baselines' lengths
+        (:func:`mmflow.calibrate.outliers.antenna_statistics`), so that direction-dependent errors,
+        largest on the longest baselines, flag no antenna.
 
     Returns
     -------

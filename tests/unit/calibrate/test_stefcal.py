@@ -4,7 +4,8 @@ import pytest
 
 from mmflow.calibrate.baselines import baseline_mask, to_matrix
 from mmflow.calibrate.gain_apply import apply_gains, apply_gains_autos
-from mmflow.calibrate.stefcal import solve_gains, stefcal, sweep
+from mmflow.calibrate.outliers import MAX_EXPLAINED_RESIDUAL, antenna_statistics, outliers
+from mmflow.calibrate.stefcal import dense_problem, solve_gains, stefcal, sweep
 from mmflow.simulate.corrupt import gain_products
 
 
@@ -24,6 +25,14 @@ def _problem(rng, n_ant, n_time, n_pol=2, unity=False):
         g = (1 + 0.3 * rng.uniform(-1, 1, (n_ant, n_pol))) * np.exp(2j * np.pi * rng.uniform(size=(n_ant, n_pol)))
     vis = model * gain_products(g, pairs)
     return pairs, model, g, vis
+
+
+def _square(n):
+    """Index of the upper-triangle pair (i, j) (or (j, i)) of ``_pairs(n)``: (n, n)."""
+    idx = np.zeros((n, n), int)
+    i, j = np.triu_indices(n)
+    idx[i, j] = idx[j, i] = np.arange(len(i))
+    return idx
 
 
 def _referenced(g, ref):
@@ -103,7 +112,7 @@ def test_autocorrelation_powers_are_corrected_as_the_visibilities(rng):
     np.testing.assert_array_equal(out[:, 2, 1], raw[:, 2, 1])
 
 
-def test_outlier_antenna_is_flagged_one_at_a_time(rng):
+def test_a_decorrelated_antenna_is_flagged_and_no_other(rng):
     n = 20
     pairs, model, g, vis = _problem(rng, n, 2)
     vis = vis + 0.01 * (rng.normal(size=vis.shape) + 1j * rng.normal(size=vis.shape))
@@ -120,8 +129,8 @@ def test_long_baseline_model_errors_flag_no_antenna_when_compared_by_length(rng)
     """One of two bright sources seen through a refractive offset: the model error ``S (e^{i k b.dtheta} - 1)``
     grows with baseline length, so the outermost antennas' plain chi2 are the array's largest
     (the paper-scale run flagged its outriggers). Compared with residuals at the same lengths
-    (:func:`length_normalised_chi2`) no antenna is an outlier, while an antenna whose data
-    do not follow the model at all is still flagged, first."""
+    (:func:`mmflow.calibrate.outliers.antenna_statistics`), and described by the model, no antenna is an
+    outlier, while an antenna whose data do not follow the model at all is still flagged, and no other."""
     n, n_time = 40, 6
     r = np.concatenate([rng.uniform(0, 40, n - 8), rng.uniform(400, 800, 8)])  # core + outriggers (m)
     a = rng.uniform(0, 2 * np.pi, n)
@@ -139,8 +148,17 @@ def test_long_baseline_model_errors_flag_no_antenna_when_compared_by_length(rng)
     vis = seen * gain_products(g, pairs) + noise
     lengths = np.linalg.norm(b, axis=1)
     w = np.ones(vis.shape)
-    plain = solve_gains(vis, model, w, pairs, n, outlier_sigma=5.0)
-    assert plain.flags[0, n - 8:].any()  # the old statistic flags outriggers for the sky's error
+    # by the rank of their residuals the outriggers stand out against the whole array (most of their 16
+    # antenna-pols), hardly against baselines of their lengths, and the model leaves little of their
+    # signal unexplained, which keeps them all
+    sol = solve_gains(vis, model, w, pairs, n, outlier_sigma=None)
+    V, M, W = dense_problem(vis, model, w, pairs, n, n_time)
+    partners = ~sol.flags[0].T
+    x, unexplained = antenna_statistics(V, M, W, sol.gains[0].T, partners)
+    assert outliers(x, partners)[:, n - 8:].sum() >= 8 and not outliers(x, partners)[:, :n - 8].any()
+    x, unexplained = antenna_statistics(V, M, W, sol.gains[0].T, partners, np.linalg.norm(b, axis=1)[_square(n)])
+    assert outliers(x, partners).sum() <= 2
+    assert (unexplained < MAX_EXPLAINED_RESIDUAL).all() and not outliers(x, partners, unexplained).any()
     by_length = solve_gains(vis, model, w, pairs, n, outlier_sigma=5.0, baseline_lengths=lengths)
     assert not by_length.flags.any()
     bad = vis.copy()
@@ -275,22 +293,6 @@ def test_apply_gains_equals_the_division_in_place_and_broadcasts_one_integration
     assert np.array_equal(one, same)
     with pytest.raises(ValueError, match="gains for 3 integrations, data for 37"):
         apply_gains(vis, 1.0, pairs, g[:3])
-
-
-def test_binned_medians_equal_numpys_median_of_each_bin(rng):
-    """The outlier statistic's typical residual per length bin, from one sort, is np.median of the bin
-    (odd and even counts, empty bins NaN, ties)."""
-    from mmflow.calibrate.stefcal import _binned_medians
-
-    for n in (0, 1, 2, 7, 40, 333):
-        values = np.round(rng.random(n), 1)  # ties
-        bins = rng.integers(0, 16, n)
-        expected = [np.median(values[bins == b]) if np.any(bins == b) else np.nan for b in range(16)]
-        np.testing.assert_array_equal(_binned_medians(values, bins, 16), expected)
-        if n > 2:  # a NaN makes its bin's median NaN, as np.median does
-            values[0] = np.nan
-            expected = [np.median(values[bins == b]) if np.any(bins == b) else np.nan for b in range(16)]
-            np.testing.assert_array_equal(_binned_medians(values, bins, 16), expected)
 
 
 def test_to_matrix_equals_a_loop_over_baselines(rng):

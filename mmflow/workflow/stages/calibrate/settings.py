@@ -42,10 +42,11 @@ class CalibrateConfig(Section):
     max_iter: int = Field(100, ge=1, description="Stefcal iterations at most.")
     damping: Literal["half", "rk4", "none"] = Field("half", description="Stefcal damping of the update.")
     outlier_sigma: Optional[float] = Field(5.0, gt=0, description="Flag antennas whose corrected residuals are "
-                                           "outliers at this many sigma (one at a time); null: off.")
+                                           "outliers at this many sigma (all at once, re-solving until none is left; "
+                                           "docs/calibration.md); null: off.")
     max_flagged_fraction: float = Field(0.2, ge=0, le=1, description="Stop, naming the antennas and why, when a "
                                         "solution flags more than this fraction of the antennas that have data "
-                                        "(a model that does not describe the data, not bad antennas).")
+                                        "(a model that does not describe the data, or that many bad antennas).")
     ripple: bool = Field(True, description="Correct the autocorrelation ripple (HVAC sawtooth) first.")
     ripple_smooth_min: float = Field(45.0, gt=0, description="FWHM of the ripple smoothing kernel (minutes).")
     flag_autos: bool = Field(True, description="After calibration, give the autocorrelations weight 0 in every "

@@ -12,9 +12,10 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
   refracted and scintillating per integration, the rest as catalogued; ``calibrate.measure_flux``
   measured rather than setting the flux scale, ``flux_factor``), on ripple-corrected data and on baselines
   longer than ``calibrate.min_baseline_lambda`` (``auto``: 15 lambda, lowered until every antenna keeps
-  half of its baselines, :mod:`mmflow.workflow.engine.baseline_cuts`); outlier antennas are flagged one at a
-  time, and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with
-  data stops the run naming them (the model, not the array, is then wrong).
+  half of its baselines, :mod:`mmflow.workflow.engine.baseline_cuts`); outlier antennas are flagged all at
+  once and the solution re-solved until none is left (:func:`mmflow.calibrate.stefcal.flag_outlier_antennas`),
+  and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with data stops
+  the run naming them (a model that does not describe the data, or that many bad antennas).
 
 With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
 ``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
@@ -174,9 +175,10 @@ def _task(ctx, key):
 
 def _stop_if_too_many_flagged(ctx, sol, has_data, f, rows, c):
     """Refuse a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with
-    data: that is a sky model which does not describe the data on the baselines used (missing bright
-    sources, a wrong beam, a cut that keeps the diffuse sky), not bad antennas, and the later stages
-    would fail on the coverage it leaves with a misleading message."""
+    data: most often a sky model which does not describe the data on the baselines used (missing bright
+    sources, a wrong beam, a cut that keeps the diffuse sky), else that many bad antennas (the search
+    finds up to about a third of the array holding noise, :mod:`mmflow.calibrate.outliers`); the later
+    stages would fail on the coverage it leaves with a misleading message."""
     flagged = (sol.flags[0] & has_data).any(axis=-1)
     n_data = int(has_data.any(axis=-1).sum())
     if n_data == 0 or flagged.sum() <= c.max_flagged_fraction * n_data:
@@ -192,10 +194,11 @@ def _stop_if_too_many_flagged(ctx, sol, has_data, f, rows, c):
                      f"{int(flagged.sum())} of the {n_data} antennas with data ({listed}{more}) as outliers or "
                      f"unconverged, more than calibrate.max_flagged_fraction={c.max_flagged_fraction:g} (the "
                      f"others' residual chi2 median {med_ok:.3g}): the sky model calibrate.sources="
-                     f"{list(c.sources)} does not describe the data on the baselines used",
+                     f"{list(c.sources)} does not describe the data on the baselines used, or that many "
+                     "antennas are bad",
                      "add the bright sources the track sees to calibrate.sources, set calibrate.min_baseline_lambda"
-                     "=auto (or raise it past the diffuse sky's baselines), check the beam; or raise "
-                     "calibrate.outlier_sigma / calibrate.max_flagged_fraction if those antennas are truly bad")
+                     "=auto (or raise it past the diffuse sky's baselines), check the beam; or, if those antennas are "
+                     "truly bad, flag them in the input or raise calibrate.max_flagged_fraction")
 
 
 def _apply(ctx, block):
