@@ -11,6 +11,7 @@ complex coefficients ``peel.zarr``'s ``cross_scale`` holds (:mod:`mmflow.calibra
 """
 from __future__ import annotations
 
+import json
 from functools import lru_cache, partial
 
 import numpy as np
@@ -45,8 +46,6 @@ def four_correlation_jones(ctx):
 
 @lru_cache(maxsize=4)
 def _jones(beam_json):
-    import json
-
     try:
         return make_jones(json.loads(beam_json))
     except InputError:  # a pyuvdata power beam: no feeds to model
