@@ -95,13 +95,18 @@ def peel_cross(tel, fi, lst, pairs, cross, weights, coh, out, p):
     (time, bl, 2: xy, yx; ``weights`` alike) against ``T^s = h_s,ip conj(h_s,jq) M^s_pq``, ``h`` the DD gains
     of ``out`` (:func:`peel_solve`'s, per feed) and ``coh`` (n_src, time, bl, 2) the sources' xy, yx through
     the E-field beam; on the baselines the parallel hands are solved on (``peel.min_baseline_lambda``, no
-    autocorrelations), integrations with an LST.
+    autocorrelations), integrations with an LST; ``peel.batch`` integrations at a time (the fit's templates
+    and design matrix are complex128, n_src of them per sample).
     """
     keep = solve_mask(tel, pairs, p.min_baseline_lambda, float(tel.freqs_hz[fi])) & (pairs[:, 0] != pairs[:, 1])
     w = np.asarray(weights, float) * keep[:, None] * np.isfinite(lst)[:, None, None]
     active = (out.mode[..., 0] != SKIP) & (out.mode[..., -1] != SKIP)  # (src, time)
-    T = gain_templates(np.asarray(coh, complex), out.dd_gains, pairs)
-    return fit_cross(np.where(w > 0, cross, 0), w, T, active)
+    c = np.zeros((len(lst), len(coh)), complex)
+    for t0 in range(0, len(lst), p.batch):
+        t = slice(t0, t0 + p.batch)
+        T = gain_templates(np.asarray(coh[:, t], complex), out.dd_gains[:, t], pairs)
+        c[t] = fit_cross(np.where(w[t] > 0, cross[t], 0), w[t], T, active[:, t])
+    return c
 
 
 def _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, epoch_jd):
