@@ -29,7 +29,11 @@ xy and ``conj(yx)`` together (:func:`fit_cross`)::
                                    r_s   = sum_b w^xy conj(T^s_xy) xy + w^yx T^s_yx conj(yx)
 
 (a component not active in an integration gets ``c = 0``), and :func:`cross_model` is
-``(sum_s c_s T^s_xy, sum_s conj(c_s) T^s_yx)``.
+``(sum_s c_s T^s_xy, sum_s conj(c_s) T^s_yx)``. A component whose cross hands are weak (a source near
+the zenith, or where ``J_x . J_y`` vanishes, at azimuths 0 and 90 deg for short dipoles) makes ``G``
+near-singular, and ``c`` would take any size; ``ridge`` adds ``lambda_s`` to ``G_ss``
+(``c_s -> 0`` where ``G_ss << lambda_s``: what is left in the cross hands is then below
+``sqrt(lambda_s)`` of the fit's scale, and nothing is subtracted that the data do not measure).
 """
 from __future__ import annotations
 
@@ -65,7 +69,7 @@ def pattern_templates(patterns, pairs):
     return np.stack([xy, yx], axis=-1).reshape(K * K, len(pairs), 2)
 
 
-def fit_cross(vis, weights, templates, active=None):
+def fit_cross(vis, weights, templates, active=None, ridge=None):
     """Complex coefficients (time, n) of the components in the cross hands (the module's least squares).
 
     Parameters
@@ -74,6 +78,7 @@ def fit_cross(vis, weights, templates, active=None):
     weights : ndarray broadcastable to ``vis`` (0: not used, e.g. autocorrelations, short baselines)
     templates : ndarray (n, time, bl, 2) or (n, bl, 2) (the same in every integration)
     active : bool ndarray (n, time), optional: the components fitted in each integration (others: 0)
+    ridge : ndarray broadcastable to (time, n), optional: ``lambda`` added to ``G``'s diagonal
     """
     vis = np.asarray(vis)
     T = np.asarray(templates)
@@ -88,8 +93,11 @@ def fit_cross(vis, weights, templates, active=None):
     d = np.where(wd > 0, d, 0)
     G = np.einsum("stb,ktb->tsk", np.conj(a), a * wd)
     r = np.einsum("stb,tb->ts", np.conj(a), wd * d)
+    diag = np.arange(G.shape[1])
+    if ridge is not None:
+        G[:, diag, diag] += ridge
     empty = np.abs(np.einsum("tss->ts", G)) == 0  # nothing to fit: c = 0
-    G[:, np.arange(G.shape[1]), np.arange(G.shape[1])] += empty
+    G[:, diag, diag] += empty
     return np.linalg.solve(G, r[..., None])[..., 0]
 
 

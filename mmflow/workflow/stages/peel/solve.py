@@ -87,16 +87,25 @@ def peel_solve(tel, fi, lst, pairs, vis, weights, coh, p, epoch_jd, integration_
     return out
 
 
+#: ``lambda_s`` of the cross hands' fit (:func:`mmflow.calibrate.cross_hands.fit_cross`'s ``ridge``) relative to
+#: the source's parallel hands, ``sum_b w (|h_ix h_jx M_xx|^2 + |h_iy h_jy M_yy|^2)``: only a source whose cross
+#: hands hold less than ~1e-4 of its parallel hands' amplitude is shrunk there (what is left: < 1e-4 of its flux,
+#: -40 dB); 1e-4 (shrinking below 1 %) left Cyg A at -31 to -34 dB in Q, U, V
+#: (tests/acceptance/test_four_correlation_peel.py)
+CROSS_RIDGE = 1e-8
+
+
 def peel_cross(tel, fi, lst, pairs, cross, weights, coh, out, p):
     """The cross hands' coefficients (time, n_src) of every source the parallel hands fitted.
 
     ``c_s`` of :mod:`mmflow.calibrate.cross_hands` per integration, fitted jointly over the peeled, subtracted
     and modelled sources of that integration (a skipped one: 0) to the calibrated cross hands ``cross``
     (time, bl, 2: xy, yx; ``weights`` alike) against ``T^s = h_s,ip conj(h_s,jq) M^s_pq``, ``h`` the DD gains
-    of ``out`` (:func:`peel_solve`'s, per feed) and ``coh`` (n_src, time, bl, 2) the sources' xy, yx through
-    the E-field beam; on the baselines the parallel hands are solved on (``peel.min_baseline_lambda``, no
-    autocorrelations), integrations with an LST; ``peel.batch`` integrations at a time (the fit's templates
-    and design matrix are complex128, n_src of them per sample).
+    of ``out`` (:func:`peel_solve`'s, per feed) and ``coh`` (n_src, time, bl, 4) the sources' xx, yy, xy, yx
+    through the E-field beam, with the ridge :data:`CROSS_RIDGE` x the source's parallel hands; on the
+    baselines the parallel hands are solved on (``peel.min_baseline_lambda``, no autocorrelations),
+    integrations with an LST; ``peel.batch`` integrations at a time (the fit's templates and design matrix
+    are complex128, n_src of them per sample).
     """
     keep = solve_mask(tel, pairs, p.min_baseline_lambda, float(tel.freqs_hz[fi])) & (pairs[:, 0] != pairs[:, 1])
     w = np.asarray(weights, float) * keep[:, None] * np.isfinite(lst)[:, None, None]
@@ -104,8 +113,11 @@ def peel_cross(tel, fi, lst, pairs, cross, weights, coh, out, p):
     c = np.zeros((len(lst), len(coh)), complex)
     for t0 in range(0, len(lst), p.batch):
         t = slice(t0, t0 + p.batch)
-        T = gain_templates(np.asarray(coh[:, t], complex), out.dd_gains[:, t], pairs)
-        c[t] = fit_cross(np.where(w[t] > 0, cross[t], 0), w[t], T, active[:, t])
+        h = out.dd_gains[:, t]
+        T = gain_templates(np.asarray(coh[:, t, :, 2:], complex), h, pairs)
+        par = np.abs(np.asarray(coh[:, t, :, :2]) * gain_products(h, pairs)) ** 2  # (src, time, bl, 2)
+        ridge = CROSS_RIDGE * np.einsum("stbp,tbp->ts", par, w[t])
+        c[t] = fit_cross(np.where(w[t] > 0, cross[t], 0), w[t], T, active[:, t], ridge)
     return c
 
 

@@ -100,7 +100,7 @@ def _task(ctx, key):
     region = (rows, slice(fi, fi + 1))
     if jones is not None:
         c = peel_cross(tel, fi, block.lst, block.pairs, block.cross[:, :, 0], block.cross_weights[:, :, 0],
-                       coh[..., 2:], out, ctx.cfg.peel)
+                       coh, out, ctx.cfg.peel)
         ctx.write(g, "cross_scale", region, c[:, None])
 
     def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
