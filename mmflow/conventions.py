@@ -53,6 +53,11 @@ FULL_STOKES = ("I", "Q", "U", "V")
 #: through east) is ``A = (1, i)``: ``A_N conj(A_E) = -i``, hence the ``-i`` of ``sigma_V[0, 1]``.
 STOKES_COHERENCY = np.array([[[1, 0], [0, 1]], [[1, 0], [0, -1]], [[0, 1], [1, 0]], [[0, -1j], [1j, 0]]], complex)
 
+#: the feeds of the cross hands (``vis.zarr``'s ``cross_pol`` axis) against the parallel hands' axis: cross
+#: hand k correlates feed ``CROSS_FEEDS[0][k]`` of antenna i with feed ``CROSS_FEEDS[1][k]`` of antenna j
+#: (xy: x of i, y of j; yx: y of i, x of j; likewise rl, lr)
+CROSS_FEEDS = ((0, 1), (1, 0))
+
 
 def complex_dtype(dtype):
     """The complex dtype of a working precision: ``complex64`` for float32 (or complex64), else ``complex128``.

@@ -4,13 +4,23 @@
 ``p`` of a source (one for a point source, a sampled grid per Gaussian component), evaluated
 by :func:`mmflow.simulate.visibilities.simulate_drift_scan` (the same measurement equation the
 simulator uses, so calibration models and simulated data agree to rounding).
+
+Through an E-field beam (:func:`source_correlations`), the four linear correlations of each
+source, unpolarised (the catalogue holds no polarisation)::
+
+    M_ij,pq(t) = sum_p J_p(r_p) S_p J_q(r_p)^H exp(2 pi i (x_j - x_i) . r_p / lambda),   S_p = I_p 1
+
+(pq = xx, yy, xy, yx; :func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`): the parallel
+hands each through its own feed's power beam ``|J_p|^2``, and the cross hands the beam's
+``J_x J_y^H``, nonzero off the zenith (for short dipoles ``-I r_E r_N``).
 """
 from __future__ import annotations
 
 import numpy as np
 
 from mmflow.conventions import radec_to_vec
-from mmflow.simulate.scene import source_points_date
+from mmflow.simulate.polarised import simulate_polarised_drift_scan
+from mmflow.simulate.scene import source_points_date, unpolarised
 from mmflow.simulate.visibilities import SkyPoints, simulate_drift_scan
 from mmflow.sky.frames import rotation_matrix, source_enu
 from mmflow.sky.sources import epoch_year
@@ -42,6 +52,29 @@ def source_coherencies(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, 
     for s, src in enumerate(sources):
         pts = src if isinstance(src, SkyPoints) else source_points_date(src, freq_hz, epoch_jd)
         simulate_drift_scan(telescope, freq_hz, lsts, pts, pairs=pairs, dtype=dtype, out=out[s])
+    return out
+
+
+def source_correlations(telescope, freq_hz, lsts, sources, epoch_jd, pairs=None, dtype=np.complex128, out=None, *,
+                        jones):
+    """Model visibilities of each source separately in the four correlations through the E-field beam.
+
+    Parameters as :func:`source_coherencies`'s, and ``jones`` a :class:`mmflow.telescope.jones.JonesBeam`
+    (feeds x east, y north); the sources unpolarised.
+
+    Returns
+    -------
+    ndarray (n_src, n_time, n_bl, 4) of ``dtype`` (or ``out``'s): xx, yy, xy, yx (Jy, ``avg``: an
+    unpolarised source of flux I gives ``xx = |J_x|^2 I``)
+    """
+    pairs = telescope.antenna_pairs() if pairs is None else np.asarray(pairs)
+    lsts = np.atleast_1d(lsts)
+    if out is None:
+        out = np.empty((len(sources), len(lsts), len(pairs), 4), dtype)
+    for s, src in enumerate(sources):
+        pts = src if isinstance(src, SkyPoints) else source_points_date(src, freq_hz, epoch_jd)
+        vis = simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, unpolarised(pts), pairs)
+        out[s] = np.moveaxis(vis, 1, -1)  # (time, corr, bl) -> (time, bl, corr)
     return out
 
 

@@ -86,10 +86,6 @@ _STORED = {1: "I", -1: "rr", -2: "ll", -5: "xx", -6: "yy", -3: "rl", -4: "lr", -
 CROSS = {(-5, -6): (-7, -8), (-1, -2): (-3, -4)}  # (XX, YY): (XY, YX); (RR, LL): (RL, LR)
 
 
-#: the feeds of the cross hands on ``vis.zarr``'s ``cross_pol`` axis, against the parallel hands' axis: cross
-#: hand k correlates feed ``CROSS_FEEDS[0][k]`` of antenna i with feed ``CROSS_FEEDS[1][k]`` of antenna j
-#: (xy: x of i, y of j; yx: y of i, x of j; likewise rl, lr)
-CROSS_FEEDS = ((0, 1), (1, 0))
 
 
 def cross_recipe(pol_numbers, indices):

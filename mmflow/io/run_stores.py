@@ -408,11 +408,15 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
 PEEL_MODES = ("skip", "peel", "subtract", "model")
 
 
-def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs):
-    """The peel stage's store."""
+def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs, cross=False):
+    """The peel stage's store (``cross``: a four-correlation peel, with the cross hands' coefficients)."""
     dims = ("time", "freq", "source", "pol")
     shape, ch = (n_time, nf, n_src, npol), (time_chunk, 1, n_src, npol)
     codes = ", ".join(f"{i} {name}" for i, name in enumerate(PEEL_MODES))
+    cross_arrays = () if not cross else (
+        ArraySpec("cross_scale", ("time", "freq", "source"), (n_time, nf, n_src), (time_chunk, 1, n_src),
+                  "complex128", doc="complex coefficient ``c`` of each source in the cross hands: ``c h_ix conj(h_jy) "
+                  "M_xy`` on xy, its conjugate on yx (a four-correlation peel; 0 skipped)"),)
     return StoreSpec(STORES.peel, (
         ArraySpec("dd_gains", ("time", "freq", "source", "antenna", "pol"), (n_time, nf, n_src, n_ant, npol),
                   (time_chunk, 1, n_src, n_ant, npol), "complex128",
@@ -425,10 +429,11 @@ def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs):
                   doc="the guard's point-source estimate of the source in the data"),
         ArraySpec("removed", dims, shape, ch, "float64", doc="the guard's estimate of what peeling removed"),
         ArraySpec("converged", dims, shape, ch, "bool", doc="converged in the last pass"),
-    ), attrs, doc=(
+    ) + cross_arrays, attrs, doc=(
         "Bright sources peeled, subtracted or modelled per integration: the peel stage. Attributes: "
         "``sources``, ``peeled``, ``modelled``, ``modes`` (name -> code of ``mode``), ``fitted_models`` "
-        "(the models stage's components, when it is enabled), ``pols``."))
+        "(the models stage's components, when it is enabled), ``pols``, ``correlations`` (xx, yy, xy, yx: a "
+        "four-correlation peel through the E-field beam; absent: the parallel hands only)."))
 
 
 #: columns of models.zarr's ``components``
@@ -463,8 +468,13 @@ def diffuse_store(nf, n_samples, nbl, n_feed, sample_block):
     ), doc="A band-limited diffuse sky's drift scan at N sidereal angles: the simulate stage's first phase.")
 
 
-def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk):
-    """The terrestrial stage's store."""
+def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk, cross=False):
+    """The terrestrial stage's store (``cross``: the cross hands' coefficients too, four correlations)."""
+    cross_arrays = () if not cross else (
+        ArraySpec("cross_amplitudes", ("time", "freq", "template"), (n_time, nf, n_comp ** 2),
+                  (time_chunk, 1, n_comp ** 2), "complex128",
+                  doc="complex coefficient ``a_kl(t)`` of ``u_kx u_ly^H`` in the cross hands (xy; its conjugate "
+                  "on yx), in the order ``k K + l``"),)
     return StoreSpec(STORES.terrestrial, (
         ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "complex128", doc="weighted sum of the calibrated, peeled visibilities of each time chunk"),
@@ -477,7 +487,7 @@ def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk
                   (time_chunk, 1, n_comp ** 2, npol), "float64",
                   doc="real amplitude ``a_k(t)`` of each of the K^2 templates: ``u_k u_k^H``, then for k < l "
                   "``u_k u_l^H + u_l u_k^H`` and ``i (u_k u_l^H - u_l u_k^H)``"),
-    ), doc="Signals that do not move with the sky: the terrestrial stage.")
+    ) + cross_arrays, doc="Signals that do not move with the sky: the terrestrial stage.")
 
 
 # ----------------------------------------------------------------------------- clean.zarr
@@ -574,10 +584,10 @@ ARRAYS = {
     STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
     STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
                    "apply_rows"),
-    STORES.peel: ("dd_gains", "scale", "mode", "guard", "measured", "removed", "converged"),
+    STORES.peel: ("dd_gains", "scale", "mode", "guard", "measured", "removed", "converged", "cross_scale"),
     STORES.models: ("components", "cost", "iterations", "n_integrations"),
     STORES.diffuse: ("samples",),
-    STORES.terrestrial: ("sum_vis", "sum_weight", "patterns", "amplitudes"),
+    STORES.terrestrial: ("sum_vis", "sum_weight", "patterns", "amplitudes", "cross_amplitudes"),
     STORES.clean: ("psf_table", "noise", "threshold", "peaks", "components", "restored", "n_cycles", "stop",
                    dict(chol="f{fi}/chol_b{m0:05d}", psf="f{fi}/psf_b{m0:05d}",
                         residual="f{fi}/residual_b{m0:05d}")),

@@ -57,11 +57,11 @@ def reference_stores():
         (rs.gains_store, dict(n_interval=n_int, nf=N_FREQ, n_ant=N_ANT, npol=npol, n_time=N_TIME, solve_rows=rows,
                               apply_rows=rows, attrs={}, n_src=3)),
         (rs.peel_store, dict(n_time=N_TIME, nf=N_FREQ, n_src=3, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK,
-                             attrs={})),
+                             attrs={}, cross=True)),
         (rs.models_store, dict(nf=N_FREQ, n_src=3, n_comp=4, attrs={})),
         (rs.diffuse_store, dict(nf=N_FREQ, n_samples=42, nbl=nbl, n_feed=2, sample_block=8)),
         (rs.terrestrial_store, dict(n_chunks=math.ceil(N_TIME / TIME_CHUNK), n_time=N_TIME, nf=N_FREQ, nbl=nbl,
-                                    n_comp=2, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK)),
+                                    n_comp=2, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK, cross=True)),
         (rs.clean_store, dict(nf=N_FREQ, lmax=LMAX, mmax=LMAX, m_block=M_BLOCK, n_dec=5, max_cycles=6, n_peaks=7,
                               npix=12 * 4 ** 2, keep_factors=True)),
     ]

@@ -141,7 +141,6 @@ def test_stokes_run_resumes_bit_identical_after_a_kill(scan, reference, tmp_path
     (["source=simulate", "sky.polarised={Cyg A: [0.6, 0.6, 0.6]}"], "sky.polarised.Cyg A", "more than 1"),
     (["source=simulate", "sky.polarised={Cyg A: [.nan, 0, 0]}"], "sky.polarised.Cyg A.0", "finite"),
     (["sky.polarised={Cyg A: [0.1, 0, 0]}"], "sky.polarised", "only a full-Stokes simulation"),
-    (["peel.enabled=true", "peel.sources=[Cyg A]"], "peel.enabled", "cross hands would keep"),
     (["mmode.mmax=10"], "mmode.mmax", "every m up to lmax"),
     (["imaging.stokes=[I, V]"], "imaging.stokes", "[I] or [I, Q, U, V]"),
 ])

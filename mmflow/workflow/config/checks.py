@@ -428,11 +428,6 @@ def _stokes_problems(cfg):
     if cfg.source != "simulate" and not cfg.input.cross_hands:
         out.append(Problem(("input", "cross_hands"), False, "full Stokes needs the cross hands xy, yx",
                            "set input.cross_hands=true"))
-    for stage in ("peel", "terrestrial"):
-        if getattr(cfg, stage).enabled:
-            out.append(Problem((stage, "enabled"), True, f"{stage} models and subtracts the parallel hands only: the "
-                               "cross hands would keep what it removes, and Q, U, V with them",
-                               f"set {stage}.enabled=false for imaging.stokes [I, Q, U, V], or image Stokes I only"))
     mm = cfg.mmode
     if mm.mmax is not None and mm.mmax != mm.lmax:
         out.append(Problem(("mmode", "mmax"), mm.mmax, f"full Stokes solves every m up to lmax = {mm.lmax}",

@@ -43,7 +43,7 @@ from mmflow.calibrate.screened_gains import solve_gains_screened
 from mmflow.calibrate.gain_apply import apply_gains, apply_gains_autos
 from mmflow.calibrate.stefcal import best_track
 from mmflow.errors import InputError
-from mmflow.io.polarization import CROSS_FEEDS
+from mmflow.conventions import CROSS_FEEDS
 from mmflow.io.run_stores import STORES, gains_store
 from mmflow.sky.sources import get_sources
 from mmflow.telescope.jones import feed_telescopes

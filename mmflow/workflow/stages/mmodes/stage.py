@@ -30,7 +30,8 @@ import numpy as np
 
 from mmflow.conventions import is_full_stokes
 from mmflow.errors import CoverageError, InputError
-from mmflow.io.polarization import CROSS_FEEDS, stokes_i, stokes_i_variance
+from mmflow.conventions import CROSS_FEEDS
+from mmflow.io.polarization import stokes_i, stokes_i_variance
 from mmflow.io.run_stores import STORES, mmodes_store
 from mmflow.mmode.gapfill import chunk_mmodes, prior_mmodes, refit_prior_m0
 from mmflow.mmode.noise import radiometer_variance

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.coherency import apparent_flux, source_vector_date
+from mmflow.calibrate.cross_hands import fit_cross, gain_templates
 from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.peel import SKIP, SUBTRACT, peel, select_modes
 from mmflow.calibrate.source_models import position_gains
@@ -47,7 +48,8 @@ def peel_solve(tel, fi, lst, pairs, vis, weights, coh, p, epoch_jd, integration_
     lst : ndarray (time,) sidereal angles (rad; NaN: a missing integration, skipped)
     pairs : ndarray (bl, 2)
     vis, weights : ndarray (time, bl, pol): the calibrated visibilities and their weights
-    coh : ndarray (n_src, time, bl): the models of :func:`peel_names` (in :func:`solve_dtype`)
+    coh : ndarray (n_src, time, bl), or (n_src, time, bl, pol) one per feed: the models of :func:`peel_names`
+        (in :func:`solve_dtype`)
     p : the ``peel`` configuration
     epoch_jd : float, the data's epoch; integration_s : float
 
@@ -77,11 +79,46 @@ def peel_solve(tel, fi, lst, pairs, vis, weights, coh, p, epoch_jd, integration_
     h = np.ones(out.dd_gains.shape[:3], complex)  # (src, time, ant): subtracted sources at their positions
     if p.fit_positions:
         h = _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, epoch_jd)
-        coh = coh * gain_products(h[..., None], pairs)[..., 0]
+        gp = gain_products(h[..., None], pairs)  # (src, time, bl, 1)
+        coh = coh * (gp if coh.ndim == 4 else gp[..., 0])
         out = peel(vis, weights, coh, pairs, tel.n_ant, modes, **kw)
     sub = out.mode == SUBTRACT  # (src, time, pol): stored DD gains are the position gradient (1: catalogue)
     out.dd_gains = np.where(sub[:, :, None, :], h[..., None], out.dd_gains)
     return out
+
+
+#: ``lambda_s`` of the cross hands' fit (:func:`mmflow.calibrate.cross_hands.fit_cross`'s ``ridge``) relative to
+#: the source's parallel hands, ``sum_b w (|h_ix h_jx M_xx|^2 + |h_iy h_jy M_yy|^2)``: only a source whose cross
+#: hands hold less than ~1e-4 of its parallel hands' amplitude is shrunk there (what is left: < 1e-4 of its flux,
+#: -40 dB); 1e-4 (shrinking below 1 %) left Cyg A at -31 to -34 dB in Q, U, V
+#: (tests/acceptance/test_four_correlation_peel.py)
+CROSS_RIDGE = 1e-8
+
+
+def peel_cross(tel, fi, lst, pairs, cross, weights, coh, out, p):
+    """The cross hands' coefficients (time, n_src) of every source the parallel hands fitted.
+
+    ``c_s`` of :mod:`mmflow.calibrate.cross_hands` per integration, fitted jointly over the peeled, subtracted
+    and modelled sources of that integration (a skipped one: 0) to the calibrated cross hands ``cross``
+    (time, bl, 2: xy, yx; ``weights`` alike) against ``T^s = h_s,ip conj(h_s,jq) M^s_pq``, ``h`` the DD gains
+    of ``out`` (:func:`peel_solve`'s, per feed) and ``coh`` (n_src, time, bl, 4) the sources' xx, yy, xy, yx
+    through the E-field beam, with the ridge :data:`CROSS_RIDGE` x the source's parallel hands; on the
+    baselines the parallel hands are solved on (``peel.min_baseline_lambda``, no autocorrelations),
+    integrations with an LST; ``peel.batch`` integrations at a time (the fit's templates and design matrix
+    are complex128, n_src of them per sample).
+    """
+    keep = solve_mask(tel, pairs, p.min_baseline_lambda, float(tel.freqs_hz[fi])) & (pairs[:, 0] != pairs[:, 1])
+    w = np.asarray(weights, float) * keep[:, None] * np.isfinite(lst)[:, None, None]
+    active = (out.mode[..., 0] != SKIP) & (out.mode[..., -1] != SKIP)  # (src, time)
+    c = np.zeros((len(lst), len(coh)), complex)
+    for t0 in range(0, len(lst), p.batch):
+        t = slice(t0, t0 + p.batch)
+        h = out.dd_gains[:, t]
+        T = gain_templates(np.asarray(coh[:, t, :, 2:], complex), h, pairs)
+        par = np.abs(np.asarray(coh[:, t, :, :2]) * gain_products(h, pairs)) ** 2  # (src, time, bl, 2)
+        ridge = CROSS_RIDGE * np.einsum("stbp,tbp->ts", par, w[t])
+        c[t] = fit_cross(np.where(w[t] > 0, cross[t], 0), w[t], T, active[:, t], ridge)
+    return c
 
 
 def _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, epoch_jd):
@@ -94,6 +131,7 @@ def _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, e
         sub = (out.mode[s] == SUBTRACT).any(-1) & good & (w.sum(1) > 0)  # a flagged integration: no fit
         if not sub.any():
             continue
-        data = (out.residual[sub] + out.scale[s][sub][:, None, :] * coh[s][sub][..., None]).mean(-1)
+        model = coh[s][sub] if coh.ndim == 4 else coh[s][sub][..., None]  # (time, bl, pol or 1)
+        data = (out.residual[sub] + out.scale[s][sub][:, None, :] * model).mean(-1)
         _, h[s, sub] = position_gains(tel, f, lst[sub], pairs, source_vector_date(src, epoch_jd), data, w[sub])
     return h

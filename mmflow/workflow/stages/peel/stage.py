@@ -30,6 +30,18 @@ moves it to its fitted position in that integration)
 with the same coherencies (recomputed for the block's baselines), so ``vis.zarr`` is never
 rewritten.
 
+Four correlations (the data hold xy, yx and the beam is an E-field beam:
+:func:`~mmflow.workflow.engine.peel_models.four_correlation_jones`): every source's model is its four
+correlations through the E-field beam, the parallel hands solved as above each against its own
+feed's model, and the cross hands fitted after them, one complex coefficient ``c_s`` per source and
+integration (:func:`~mmflow.workflow.stages.peel.solve.peel_cross`, :mod:`mmflow.calibrate.cross_hands`)::
+
+    xy_ij -= sum_s c_s h_s,ix conj(h_s,jy) M^s_ij,xy,      yx_ij -= sum_s conj(c_s) h_s,iy conj(h_s,jx) M^s_ij,yx
+
+over the peeled and subtracted sources (``c_s`` absorbs the feeds' relative phase, which neither the
+parallel hands' DD gains nor ``calibrate`` fix), so full-Stokes maps lose the sources in Q, U and V
+as in I.
+
 With the ``models`` stage enabled, the sources it fitted are modelled by their fitted Gaussian
 components (``models.zarr``) instead of the catalogue's points, in the solve and in ``apply``
 alike: the peel stage copies them into ``peel.zarr``'s attribute ``fitted_models``, so ``apply``
@@ -44,8 +56,9 @@ from mmflow.io.run_stores import STORES, PEEL_MODES, peel_store
 from mmflow.workflow.engine.baseline_cuts import check_baselines
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
-from mmflow.workflow.engine.peel_models import fitted_tables, peel_coherencies, peel_components
-from mmflow.workflow.stages.peel.solve import peel_names, peel_solve, solve_dtype
+from mmflow.workflow.engine.peel_models import (FOUR, fitted_tables, four_correlation_jones, peel_coherencies,
+                                                peel_components)
+from mmflow.workflow.stages.peel.solve import peel_cross, peel_names, peel_solve, solve_dtype
 from mmflow.workflow.stages.peel.cost import COST
 from mmflow.workflow.stages.base import Stage
 
@@ -63,25 +76,33 @@ def _prepare(ctx):
     fitted = {}
     if ctx.producer(STORES.models) is not None:
         fitted = fitted_tables(ctx.open(STORES.models), names)
-    ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK,
-                          {"sources": names, "peeled": list(ctx.cfg.peel.peel),
-                           "modelled": list(ctx.cfg.peel.model_sources), "fitted_models": fitted,
-                           "modes": {n: i for i, n in enumerate(PEEL_MODES)}, "pols": vg.attrs["pols"]}))
+    four = four_correlation_jones(ctx) is not None
+    attrs = {"sources": names, "peeled": list(ctx.cfg.peel.peel), "modelled": list(ctx.cfg.peel.model_sources),
+             "fitted_models": fitted, "modes": {n: i for i, n in enumerate(PEEL_MODES)}, "pols": vg.attrs["pols"]}
+    if four:
+        attrs["correlations"] = FOUR
+    ctx.create(peel_store(nt, nf, len(names), n_ant, npol, TIME_CHUNK, attrs, cross=four))
     return [k for fi in range(nf) for k in time_keys(nt, freq=fi)]
 
 
 def _task(ctx, key):
     fi = key.freq
     rows = slice(*chunk_rows(key, ctx.open(STORES.vis)[STORES.vis.lst].shape[0]))
-    block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
+    jones = four_correlation_jones(ctx)  # four correlations: the cross hands too
+    block = read_block(ctx, rows, channels=slice(fi, fi + 1), cross=jones is not None)  # its channel only
     tel = ctx.telescope()
     coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, peel_names(ctx.cfg.peel),
-                           solve_dtype(ctx.cfg.peel))
+                           solve_dtype(ctx.cfg.peel), jones=jones)
     attrs = ctx.vis_attrs()
-    out = peel_solve(tel, fi, block.lst, block.pairs, block.vis[:, :, 0], block.weights[:, :, 0], coh,
-                     ctx.cfg.peel, float(attrs["epoch_jd"]), float(attrs["integration_s"]))
+    out = peel_solve(tel, fi, block.lst, block.pairs, block.vis[:, :, 0], block.weights[:, :, 0],
+                     coh if jones is None else coh[..., :2], ctx.cfg.peel, float(attrs["epoch_jd"]),
+                     float(attrs["integration_s"]))
     g = ctx.open(STORES.peel, mode="r+")
     region = (rows, slice(fi, fi + 1))
+    if jones is not None:
+        c = peel_cross(tel, fi, block.lst, block.pairs, block.cross[:, :, 0], block.cross_weights[:, :, 0],
+                       coh, out, ctx.cfg.peel)
+        ctx.write(g, STORES.peel.cross_scale, region, c[:, None])
 
     def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
         return np.moveaxis(x, 0, 1)[:, None]
@@ -96,10 +117,13 @@ def _task(ctx, key):
 
 
 def _apply(ctx, block):
-    """Subtract every channel's peeled and subtracted sources from a block, in place (reads only
-    ``peel.zarr``, never the configuration); the modelled sources stay."""
+    """Subtract every channel's peeled and subtracted sources from a block, in place, and from its cross
+    hands where they are read (reads only ``peel.zarr`` and the beam); the modelled sources stay."""
     for k, fi in block.channel_indices():
-        block.vis[:, :, k] -= peel_components(ctx, block, fi, (PEEL, SUBTRACT))
+        par, cross = peel_components(ctx, block, fi, (PEEL, SUBTRACT), cross=block.cross is not None)
+        block.vis[:, :, k] -= par
+        if cross is not None:
+            block.cross[:, :, k] -= cross
 
 
 STAGE = Stage(

@@ -18,7 +18,15 @@ Both phases hold out the fitted ``peel.model_sources`` (:func:`mmflow.workflow.e
 the catalogued sky left in the data would otherwise leak into the templates and, integration by
 integration, into their amplitudes.
 
-``apply`` subtracts ``sum_k a_k(t) B_k`` from a block where it is read. Every task reads and
+Four correlations (the data hold xy, yx and the beam is an E-field beam:
+:func:`~mmflow.workflow.engine.peel_models.four_correlation_jones`): a terrestrial signal's coherency over
+the feeds is positive semi-definite, so its cross block lies in the span of the parallel hands'
+patterns, ``xy = sum_kl a_kl u_kx u_ly^H`` (yx its Hermitian transpose); the phase-2 tasks also fit
+the K^2 complex ``a_kl(t)`` per integration to the cross hands (:mod:`mmflow.calibrate.cross_hands`,
+same baselines, the modelled sources held out there too).
+
+``apply`` subtracts ``sum_k a_k(t) B_k`` from a block where it is read (and ``sum_kl a_kl(t) T^kl``
+from its cross hands where they are read). Every task reads and
 corrects one channel (:func:`read_block`'s ``channels``): its memory does not grow with the run's
 channels.
 """
@@ -26,13 +34,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from mmflow.calibrate.cross_hands import cross_model, fit_cross, pattern_templates
 from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, projection_fraction, subtract_templates,
                                           template_basis)
 from mmflow.io.run_stores import STORES, terrestrial_store
 from mmflow.workflow.engine.baseline_cuts import solve_mask
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
-from mmflow.workflow.engine.peel_models import modelled_sources
+from mmflow.errors import InputError
+from mmflow.workflow.engine.peel_models import four_correlation_jones, modelled_sources
 from mmflow.workflow.engine.reduce import ordered_tree_sum
 from mmflow.workflow.stages.terrestrial.cost import COST
 from mmflow.workflow.stages.base import Stage
@@ -42,7 +52,8 @@ def _prepare(ctx):
     vg = ctx.open(STORES.vis)
     nt, nbl, nf, npol = vg[STORES.vis.vis].shape
     ctx.create(terrestrial_store(len(time_keys(nt)), nt, nf, nbl, ctx.cfg.terrestrial.components,
-                                 vg[STORES.vis.antenna_enu].shape[0], npol, TIME_CHUNK))
+                                 vg[STORES.vis.antenna_enu].shape[0], npol, TIME_CHUNK,
+                                 cross=four_correlation_jones(ctx) is not None))
     return _keys(nt, nf, "s")
 
 
@@ -59,9 +70,14 @@ def _templates(ctx, fi, pairs):
 def _task(ctx, key):
     k, fi = key.time, key.freq
     rows = slice(*chunk_rows(key, ctx.open(STORES.vis)[STORES.vis.lst].shape[0]))
-    block = read_block(ctx, rows, channels=slice(fi, fi + 1))  # its channel only
+    # phase 2: the cross hands too
+    four = key.phase != "s" and STORES.terrestrial.cross_amplitudes in ctx.open(STORES.terrestrial)
+    block = read_block(ctx, rows, channels=slice(fi, fi + 1), cross=four)  # its channel only
     if ctx.cfg.peel.enabled and ctx.cfg.peel.model_sources:
-        block.vis -= modelled_sources(ctx, block)
+        par, cross = modelled_sources(ctx, block)
+        block.vis -= par
+        if cross is not None:
+            block.cross -= cross
     vis = block.vis[:, :, 0]  # (time, bl, pol)
     g = ctx.open(STORES.terrestrial, mode="r+")
     w = np.where(np.isfinite(block.lst)[:, None, None], block.weights[:, :, 0], 0.0)
@@ -82,6 +98,12 @@ def _task(ctx, key):
             if np.linalg.norm(v) > 0:
                 seen.append(projection_fraction(B[c, keep, p][:, None], v))
     ctx.write(g, STORES.terrestrial.amplitudes, (rows, slice(fi, fi + 1)), amps[:, None])
+    if four:
+        wc = np.where(np.isfinite(block.lst)[:, None, None], block.cross_weights[:, :, 0], 0.0)
+        wc = wc * (keep & (block.pairs[:, 0] != block.pairs[:, 1]))[:, None]
+        patterns = ctx.read(STORES.terrestrial.patterns, (slice(fi, fi + 1),))[0]
+        ca = fit_cross(np.where(wc > 0, block.cross[:, :, 0], 0), wc, pattern_templates(patterns, block.pairs))
+        ctx.write(g, STORES.terrestrial.cross_amplitudes, (rows, slice(fi, fi + 1)), ca[:, None])
     return {"max_projection_fraction": float(max(seen, default=0.0))}
 
 
@@ -104,10 +126,19 @@ def _next_cycle(ctx, cycle):
 
 
 def _apply(ctx, block):
-    """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place."""
+    """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place (and ``sum_kl a_kl(t) T^kl`` from its
+    cross hands where they are read)."""
     amps = ctx.read(STORES.terrestrial.amplitudes, (block.rows,))  # (time, freq, K, pol)
+    if block.cross is not None and STORES.terrestrial.cross_amplitudes not in ctx.open(STORES.terrestrial):
+        raise InputError(str(ctx.run.store(STORES.terrestrial)), "cross_amplitudes", "the terrestrial solutions "
+                         "hold the parallel hands only, and this stage reads the cross hands too",
+                         "rerun the terrestrial stage with an E-field beam on data holding xy, yx (--force)")
     for k, fi in block.channel_indices():
         block.vis[:, :, k] = subtract_templates(block.vis[:, :, k], _templates(ctx, fi, block.pairs), amps[:, fi])
+        if block.cross is not None:
+            ca = ctx.read(STORES.terrestrial.cross_amplitudes, (block.rows, slice(fi, fi + 1)))[:, 0]
+            patterns = ctx.read(STORES.terrestrial.patterns, (slice(fi, fi + 1),))[0]
+            block.cross[:, :, k] -= cross_model(ca, pattern_templates(patterns, block.pairs))
 
 
 STAGE = Stage(

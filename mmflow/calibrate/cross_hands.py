@@ -1,0 +1,112 @@
+"""The cross hands xy, yx of what the parallel hands' solutions remove: peeled and subtracted sources,
+terrestrial templates.
+
+Correlations (docs/conventions.md): ``xy_ij = V_(ix),(jy)`` and ``yx_ij = V_(iy),(jx)``, feed ``p`` of
+antenna ``i`` with feed ``q`` of antenna ``j``, entries of the Hermitian ``2N x 2N`` feed-antenna
+coherency ``V``; so ``yx_ij = conj(V_(jx),(iy))``: the cross block ``X = [V_(ix),(jy)]`` holds xy on
+and above its diagonal and ``conj(yx)`` (transposed) below.
+
+A component that the parallel hands model as ``h_ip conj(h_jp) M_ij,pp`` (a source's DD gains ``h``
+per antenna and feed, its model ``M`` through the E-field beam, ``M_ij,pq = sum J_p S J_q^H e^{2 pi i
+b . r / lambda}``; or a terrestrial pattern ``u_kp,i conj(u_lp,j)``) has, in the cross hands::
+
+    xy_ij = c h_ix conj(h_jy) M_ij,xy = c T_ij,xy,      yx_ij = conj(c) h_iy conj(h_jx) M_ij,yx = conj(c) T_ij,yx
+
+with one complex ``c`` per component and integration. The parallel hands fix ``h_ip`` only up to a
+constant phase per feed (``h_ip conj(h_jp)`` does not see it), and ``calibrate`` leaves the same
+freedom in the direction-independent gains (the XY phase, not calibrated): ``c`` is that phase
+difference (and what is left of the amplitudes), ``|c| ~ 1``. Its conjugate on yx is Hermiticity:
+``yx_ij = conj(X_ji)``. A terrestrial signal with coherency ``sum_r e_r e_r^H`` over the feeds has
+parallel blocks spanned by the fitted patterns ``u_kx``, ``u_ky``, so its cross block is ``sum_kl a_kl
+u_kx u_ly^H``: the templates ``T^kl_ij,xy = u_kx,i conj(u_ly,j)``, ``T^kl_ij,yx = u_ly,i conj(u_kx,j)``.
+
+The coefficients of all components of an integration are one complex weighted least-squares fit of
+xy and ``conj(yx)`` together (:func:`fit_cross`)::
+
+    min_c  sum_b w^xy_b |xy_b - sum_s c_s T^s_b,xy|^2 + w^yx_b |conj(yx_b) - sum_s c_s conj(T^s_b,yx)|^2
+
+    =>  sum_s' G_ss' c_s' = r_s,   G_ss' = sum_b w^xy conj(T^s_xy) T^s'_xy + w^yx T^s_yx conj(T^s'_yx),
+                                   r_s   = sum_b w^xy conj(T^s_xy) xy + w^yx T^s_yx conj(yx)
+
+(a component not active in an integration gets ``c = 0``), and :func:`cross_model` is
+``(sum_s c_s T^s_xy, sum_s conj(c_s) T^s_yx)``. A component whose cross hands are weak (a source near
+the zenith, or where ``J_x . J_y`` vanishes, at azimuths 0 and 90 deg for short dipoles) makes ``G``
+near-singular, and ``c`` would take any size; ``ridge`` adds ``lambda_s`` to ``G_ss``
+(``c_s -> 0`` where ``G_ss << lambda_s``: what is left in the cross hands is then below
+``sqrt(lambda_s)`` of the fit's scale, and nothing is subtracted that the data do not measure).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mmflow.conventions import CROSS_FEEDS
+from mmflow.simulate.corrupt import gain_products
+
+
+def gain_templates(models, gains, pairs):
+    """``T`` (n, time, bl, 2) of components with DD gains: ``h_ip conj(h_jq) M_ij,pq`` for (pq) = xy, yx.
+
+    Parameters
+    ----------
+    models : ndarray (n, time, bl, 2): each component's model in xy, yx (Jy)
+    gains : ndarray (n, time, n_ant, 2) per feed x, y, or None (1: a component at its catalogue position)
+    pairs : ndarray (bl, 2)
+    """
+    if gains is None:
+        return np.asarray(models)
+    return models * gain_products(gains, pairs, CROSS_FEEDS)
+
+
+def pattern_templates(patterns, pairs):
+    """``T`` (K^2, bl, 2) of K terrestrial patterns (K, n_ant, 2 feeds): ``T^kl_xy = u_kx,i conj(u_ly,j)``,
+    ``T^kl_yx = u_ly,i conj(u_kx,j)``, in the order ``k * K + l``."""
+    pairs = np.asarray(pairs)
+    ux, uy = patterns[..., 0], patterns[..., 1]  # (K, n_ant)
+    i, j = pairs[:, 0], pairs[:, 1]
+    xy = ux[:, None, i] * np.conj(uy[None, :, j])  # (k, l, bl)
+    yx = uy[None, :, i] * np.conj(ux[:, None, j])
+    K = patterns.shape[0]
+    return np.stack([xy, yx], axis=-1).reshape(K * K, len(pairs), 2)
+
+
+def fit_cross(vis, weights, templates, active=None, ridge=None):
+    """Complex coefficients (time, n) of the components in the cross hands (the module's least squares).
+
+    Parameters
+    ----------
+    vis : ndarray (time, bl, 2): xy, yx
+    weights : ndarray broadcastable to ``vis`` (0: not used, e.g. autocorrelations, short baselines)
+    templates : ndarray (n, time, bl, 2) or (n, bl, 2) (the same in every integration)
+    active : bool ndarray (n, time), optional: the components fitted in each integration (others: 0)
+    ridge : ndarray broadcastable to (time, n), optional: ``lambda`` added to ``G``'s diagonal
+    """
+    vis = np.asarray(vis)
+    T = np.asarray(templates)
+    if T.ndim == 3:
+        T = np.broadcast_to(T[:, None], (T.shape[0],) + vis.shape)
+    w = np.broadcast_to(weights, vis.shape)
+    a = np.concatenate([T[..., 0], np.conj(T[..., 1])], axis=-1)  # (n, time, 2 bl)
+    if active is not None:
+        a = a * np.asarray(active, bool)[..., None]
+    d = np.concatenate([vis[..., 0], np.conj(vis[..., 1])], axis=-1)  # (time, 2 bl)
+    wd = np.concatenate([w[..., 0], w[..., 1]], axis=-1)
+    d = np.where(wd > 0, d, 0)
+    G = np.einsum("stb,ktb->tsk", np.conj(a), a * wd)
+    r = np.einsum("stb,tb->ts", np.conj(a), wd * d)
+    diag = np.arange(G.shape[1])
+    if ridge is not None:
+        G[:, diag, diag] += ridge
+    empty = np.abs(np.einsum("tss->ts", G)) == 0  # nothing to fit: c = 0
+    G[:, diag, diag] += empty
+    return np.linalg.solve(G, r[..., None])[..., 0]
+
+
+def cross_model(coefficients, templates):
+    """``sum_s c_s T^s_xy``, ``sum_s conj(c_s) T^s_yx``: (time, bl, 2) for ``coefficients`` (time, n) and
+    ``templates`` (n, time, bl, 2) or (n, bl, 2)."""
+    c = np.asarray(coefficients)
+    T = np.asarray(templates)
+    sub = "tn,nbp->tbp" if T.ndim == 3 else "tn,ntbp->tbp"
+    xy = np.einsum(sub, c, T[..., :1])
+    yx = np.einsum(sub, np.conj(c), T[..., 1:])
+    return np.concatenate([xy, yx], axis=-1)
