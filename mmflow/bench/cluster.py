@@ -60,6 +60,16 @@ QUICK = ["telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.i
          "products.flux_scale=false"]
 #: the demo at lmax 64, one channel
 FULL = ["observation.freqs_mhz=[40.0]", "mmode.lmax=64", "products.flux_scale=false"]
+PAPER = DEMO.parent / "paper-scale.yaml"
+#: a sidereal day (s)
+SIDEREAL_DAY_S = 86164.0905
+#: workflows/paper-scale.yaml reduced to a minute of CPU: 64 antennas (2,080 baselines), 256 integrations
+#: over the sidereal day (calibration solutions of 16), lmax 100, the compact sources only, 2 CLEAN cycles,
+#: no PNGs. Its simulate task plans ~0.55 GB and every other stage's less than 0.51 GB: on nodes of 2 CPUs
+#: and 1500 MB (1 GiB to a job) the plan gives simulate workers of 2 cores and the rest workers of one
+PAPER_REDUCED = ["telescope.max_antennas=64", f"observation.integration_s={SIDEREAL_DAY_S / 256:.7f}",
+                 f"calibrate.solint_s={16 * SIDEREAL_DAY_S / 256:.4f}", "mmode.lmax=100", "sky.diffuse=false",
+                 "clean.max_cycles=2", "products.png=false"]
 #: stores whose arrays are compared bit for bit with the reference run
 COMPARED = (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm, STORES.stokes)
 NODES = (1, 2, 3)
