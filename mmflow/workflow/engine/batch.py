@@ -10,6 +10,7 @@ is reported with its own error, and a lost job is logged and replaced.
 from __future__ import annotations
 
 import ipaddress
+import json
 import math
 import os
 import re
@@ -202,6 +203,50 @@ def refuse_impossible(opts, kind, sizes):
                      "of larger nodes (cluster.jobqueue.queue)")
 
 
+#: PBS job states (``job_state``, qstat's ``S`` column) as JobWatch counts them (SLURM's words): a job
+#: exiting after its run (E) still holds its node, as SLURM's COMPLETING
+PBS_STATES = {"Q": "PENDING", "H": "PENDING", "W": "PENDING", "T": "PENDING", "R": "RUNNING", "E": "RUNNING",
+              "S": "SUSPENDED", "U": "SUSPENDED", "B": "RUNNING", "F": "COMPLETED", "C": "COMPLETED", "X": "COMPLETED"}
+
+
+def _pbs_id(text):
+    """A PBS job id without its server (``'8.scheduler'`` -> ``'8'``)."""
+    return text.split(".")[0]
+
+
+def parse_qstat_json(text, ids):
+    """``{job id: (state, reason, node)}`` of the jobs ``ids`` from ``qstat -f -F json`` (OpenPBS, PBS Pro):
+    the state in SLURM's words (:data:`PBS_STATES`), the reason the scheduler's ``comment`` (e.g. "Not
+    Running: Insufficient amount of resource: ncpus"), the node the first of ``exec_host``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        ``text`` is not that JSON (None, or Torque's qstat, which has no ``-F json``).
+    """
+    jobs = json.loads(text)["Jobs"] if text else None
+    if not isinstance(jobs, dict):
+        raise TypeError("no Jobs in qstat's JSON")
+    out = {}
+    for full, job in jobs.items():
+        if _pbs_id(full) in ids:
+            code = job.get("job_state", "")
+            reason = job.get("comment") or {"H": "held"}.get(code, "queued")
+            out[_pbs_id(full)] = (PBS_STATES.get(code, code), reason, (job.get("exec_host") or "").split("/")[0])
+    return out
+
+
+def parse_qstat(text, ids):
+    """``{job id: (state, reason, node)}`` of the jobs ``ids`` from plain ``qstat`` (Torque, and PBS without
+    ``-F json``): columns job id, name, user, time use, state, queue; no reason (``'queued'``) nor node."""
+    out = {}
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) >= 6 and _pbs_id(parts[0]) in ids:
+            out[_pbs_id(parts[0])] = (PBS_STATES.get(parts[4], parts[4]), {"H": "held"}.get(parts[4], "queued"), "")
+    return out
+
+
 @dataclass
 class QueueState:
     """What the batch system says about a run's worker jobs (:meth:`JobWatch.poll`)."""
@@ -267,14 +312,11 @@ class JobWatch:
             out = _call(["squeue", "-h", "-o", "%i|%T|%r|%N", "-j", ",".join(ids)]) or ""
             rows = [line.split("|") for line in out.splitlines() if line.count("|") == 3]
             return {i: ("RUNNING" if s in ("RUNNING", "COMPLETING") else s, r, n) for i, s, r, n in rows}
-        out = _call(["qstat", *ids]) or ""
-        states = {}
-        for line in out.splitlines():
-            parts = line.split()
-            if parts and parts[0].split(".")[0] in ids and len(parts) >= 5:
-                states[parts[0].split(".")[0]] = ({"R": "RUNNING", "Q": "PENDING", "H": "PENDING"}.get(
-                    parts[4], parts[4]), "queued", "")
-        return states
+        text = _call(["qstat", "-f", "-F", "json", *ids])  # OpenPBS / PBS Pro: the scheduler's comment too
+        try:
+            return parse_qstat_json(text, ids)
+        except (TypeError, ValueError):  # Torque: no -F json
+            return parse_qstat(_call(["qstat", *ids]) or "", ids)
 
     def error_in_log(self, job_id):
         """The last line of a job's log that says it could not reach the scheduler, or None."""
