@@ -99,7 +99,14 @@ def interface_address(name):
 
 
 def jobqueue_cluster(cfg, kind, log=print):
-    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
+    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (:func:`jobqueue_cluster_and_pools`'s,
+    without its pools: e.g. to print its ``job_script()``)."""
+    return jobqueue_cluster_and_pools(cfg, kind, log)[0]
+
+
+def jobqueue_cluster_and_pools(cfg, kind, log=print):
+    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml),
+    and its :class:`mmflow.workflow.engine.pools.StagePools` where the jobs are sized per stage (else None).
 
     The scheduler has to listen on the cluster network (the workers run on other nodes): on
     ``cluster.interface`` (handed to the scheduler only: a worker finds its own address by
@@ -228,7 +235,7 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
                 log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
                     "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
         else:
-            cluster, pools = jobqueue_cluster(cfg, kind, log)
+            cluster, pools = jobqueue_cluster_and_pools(cfg, kind, log)
             n_jobs = 0 if pools else c.n_workers  # pools: each stage's jobs submitted as it starts
             cluster.scale(jobs=n_jobs)
             client = Client(cluster)
