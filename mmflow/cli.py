@@ -109,6 +109,13 @@ def build_parser(stages=True):
     ig.add_argument("--raw", action="store_true",
                     help="raw OVRO-LWA MeasurementSets (one per integration, 109 channels, xx yy xy yx, uncalib): "
                     "one channel kept and four averaged, beside pyuvdata's reads")
+    cl = b.add_argument_group("cluster", "options of `mmflow bench cluster`")
+    cl.add_argument("--cluster-workflow", dest="cluster_workflow", choices=("demo", "paper", "array"), default="demo",
+                    help="demo (default): the demo on one exclusive 1-core job a node; paper: workflows/paper-scale"
+                    ".yaml reduced; array: the 352-antenna workflows/ovro-lwa-stage3.yaml reduced (paper and array "
+                    "on jobs sized per stage from the plan, each stage's traced task peak beside the plan's)")
+    cl.add_argument("--node-memory-mb", type=int, default=3000, help="each namespaced node's memory (MB)")
+    cl.add_argument("--nodes", dest="cluster_nodes", default="1,2,3", help="node counts to run on, comma-separated")
     pp = b.add_argument_group("paper", "options of `mmflow bench paper` (workflows/paper-scale.yaml)")
     pp.add_argument("--paper-scale", choices=("full", "reduced", "small"),
                     help="full: the paper's channel (default); reduced: 64 antennas, 1/8 of the integrations, "
@@ -210,6 +217,9 @@ def _bench(args):
                        solve_stride=args.solve_stride)
     elif args.what == "paper":
         options = dict(scale=args.paper_scale, overrides=args.set, source=args.paper_source)
+    elif args.what == "cluster":
+        options = dict(workflow=args.cluster_workflow, node_memory_mb=args.node_memory_mb,
+                       nodes=tuple(int(n) for n in args.cluster_nodes.split(",")))
     elif args.what == "ingest":
         options = dict(raw=args.raw)
     elif args.what == "transfer":

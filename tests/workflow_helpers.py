@@ -79,9 +79,13 @@ def read_outputs(run_dir):
             for name, arr in sub.arrays():
                 out[f"{store}/{gname}/{name}"] = arr[:]
     import healpy
+    from astropy.io import fits as afits
 
     for fits in sorted((run_dir / "maps").glob("*.fits")):
-        out[fits.name] = healpy.read_map(str(fits), field=None)  # every column (I, Q, U, V)
+        with afits.open(fits) as hdul:
+            healpix = len(hdul) > 1 and hdul[1].header.get("PIXTYPE") == "HEALPIX"
+            # every column (I, Q, U, V) of a HEALPix map; the image of any other (CLEAN's PSF stamps)
+            out[fits.name] = healpy.read_map(str(fits), field=None) if healpix else np.array(hdul[0].data)
     return out
 
 

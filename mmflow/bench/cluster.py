@@ -60,6 +60,35 @@ QUICK = ["telescope.radius_m=20", "observation.freqs_mhz=[40.0]", "observation.i
          "products.flux_scale=false"]
 #: the demo at lmax 64, one channel
 FULL = ["observation.freqs_mhz=[40.0]", "mmode.lmax=64", "products.flux_scale=false"]
+PAPER = DEMO.parent / "paper-scale.yaml"
+#: a sidereal day (s)
+SIDEREAL_DAY_S = 86164.0905
+#: workflows/paper-scale.yaml reduced to a minute of CPU: 64 antennas (2,080 baselines), 256 integrations
+#: over the sidereal day (calibration solutions of 16), lmax 100, the compact sources only, 2 CLEAN cycles,
+#: no PNGs. Its simulate task plans ~0.55 GB and every other stage's less than 0.51 GB: on nodes of 2 CPUs
+#: and 1500 MB (1 GiB to a job) the plan gives simulate workers of 2 cores and the rest workers of one
+PAPER_REDUCED = ["telescope.max_antennas=64", f"observation.integration_s={SIDEREAL_DAY_S / 256:.7f}",
+                 f"calibrate.solint_s={16 * SIDEREAL_DAY_S / 256:.4f}", "mmode.lmax=100", "sky.diffuse=false",
+                 "clean.max_cycles=2", "products.png=false"]
+ARRAY = DEMO.parent / "ovro-lwa-stage3.yaml"
+#: workflows/ovro-lwa-stage3.yaml (the 352-antenna array, 61,776 baselines) reduced to fit a 2-core / 24 GB
+#: machine in minutes: simulated instead of read from its files, one channel (73.152 MHz), 128 integrations
+#: over the sidereal day, lmax 50 (the longest baselines need ~4000: this is a memory check, not a map),
+#: no diffuse sky, maps at nside 64; its calibration, peeling, terrestrial filter and splits as the workflow's
+ARRAY_REDUCED = ["source=simulate", "observation.freqs_mhz=[73.152]",
+                 f"observation.integration_s={SIDEREAL_DAY_S / 128:.7f}", "mmode.lmax=50", "sky.diffuse=false",
+                 "products.nside=64"]
+#: ``--workflow``: name -> (file, overrides, its --quick overrides, what it is)
+WORKFLOWS = {
+    "demo": (DEMO, None, None, "the demo at lmax 64, one channel (--quick: the test suite's small demo)"),
+    "paper": (PAPER, PAPER_REDUCED, PAPER_REDUCED, "workflows/paper-scale.yaml reduced: 64 antennas, 256 "
+              "integrations, lmax 100 (bench.cluster.PAPER_REDUCED)"),
+    "array": (ARRAY, ARRAY_REDUCED, [*ARRAY_REDUCED, "telescope.max_antennas=64"],
+              "workflows/ovro-lwa-stage3.yaml reduced: 352 antennas (--quick: 64), one channel, 128 integrations, "
+              "lmax 50 (bench.cluster.ARRAY_REDUCED)"),
+}
+#: the plan's task memory against the largest task's traced peak: the bound issue 38 sets (and the pipeline test's)
+TRACED_TOLERANCE = 0.25
 #: stores whose arrays are compared bit for bit with the reference run
 COMPARED = (STORES.vis, STORES.mmodes, STORES.normal, STORES.alm, STORES.stokes)
 NODES = (1, 2, 3)
@@ -133,24 +162,46 @@ def stream_figures(stream):
                                "sum": round(sum(gaps), 3), "count": len(gaps)}}
 
 
-def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB"):
-    """The workflow on ``n`` nodes of ``slurm`` (one exclusive worker job each, of one core and
-    ``memory``): the run's figures."""
+def plan_vs_traced(cfg, run_dir, peak_gflops):
+    """Per stage the plan's task memory (:func:`mmflow.workflow.plan.planner.plan`) against the largest
+    traced peak of its tasks (``traced_peak_bytes``, recorded where the workers trace their allocations:
+    ``PYTHONTRACEMALLOC``), as ``tests/acceptance/test_plan_traced.py`` compares them; ``within`` is
+    :data:`TRACED_TOLERANCE`."""
+    from mmflow.workflow.engine.rundir import RunDir  # deferred: as load_config in run_on_slurm
+    from mmflow.workflow.plan.planner import plan
+
+    run = RunDir(run_dir)
+    out = {}
+    for e in plan(cfg, peak_gflops=peak_gflops)["stages"]:
+        traced = [i["traced_peak_bytes"] for i in run.task_infos(e["stage"]).values() if "traced_peak_bytes" in i]
+        if traced:
+            ratio = e["task_bytes"] / max(traced)
+            out[e["stage"]] = {"planned_gb": round(e["task_bytes"] / 1e9, 4), "traced_gb": round(max(traced) / 1e9, 4),
+                               "planned/traced": round(ratio, 3), "within": abs(ratio - 1) <= TRACED_TOLERANCE}
+    return out
+
+
+def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB", workflow=DEMO, sized=False):
+    """The workflow on ``n`` nodes of ``slurm``: the run's figures. One exclusive worker job a node, of one
+    core and ``memory``; or (``sized``) the jobs sized per stage from the plan on ``n`` of the nodes
+    (``cluster.n_workers``; :mod:`mmflow.workflow.engine.pools`)."""
     from mmflow.workflow.config.schema import load_config  # deferred: the schema loads dask
     from mmflow.workflow.engine.cluster import open_cluster
     from mmflow.workflow.engine.passes import run_with_passes
 
     run_dir = Path(directory) / f"nodes{n}"
-    cfg = load_config(DEMO, list(overrides) + [
+    jobs = [] if sized else [f"cluster.jobqueue={{cores: 1, memory: {memory}, walltime: '00:30:00',"
+                             " job_extra_directives: ['--exclusive']}"]
+    cfg = load_config(workflow, list(overrides) + [
         f"run.directory={run_dir}", "cluster.kind=slurm", f"cluster.n_workers={n}", "cluster.dashboard_address=:0",
-        f"cluster.interface={slurm.bridge}", f"cluster.jobqueue={{cores: 1, memory: {memory}, walltime: '00:30:00',"
-        " job_extra_directives: ['--exclusive']}"])
+        f"cluster.interface={slurm.bridge}", *jobs])
     logs = []
     t_submit = time.time()
     with open_cluster(cfg, log=logs.append) as client:
-        client.wait_for_workers(n, timeout=300)
+        if not sized:  # sized per stage: each stage's jobs are submitted as it starts (in wall_s)
+            client.wait_for_workers(n, timeout=300)
         up = time.time() - t_submit
-        hosts = client.run(socket.gethostname)
+        hosts = {} if sized else client.run(socket.gethostname)
         client.get_task_stream(start=time.time())  # starts the scheduler's task-stream record
         t0 = time.time()
         summaries = run_with_passes(cfg, client, progress=False, log=logs.append)
@@ -158,6 +209,7 @@ def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB"):
         stream = client.get_task_stream(start=t0 - 1)
         outgoing = client.run(_outgoing)
         workers = set(outgoing)
+        hosts = hosts or client.run(socket.gethostname)  # sized per stage: the last stage's workers
     tasks, task_s, stores = _totals(summaries)
     stages = sum(1 for s in summaries.values() if s.get("tasks_run"))
     between = sum(b for log in outgoing.values() for who, b in log if who in workers)
@@ -171,7 +223,8 @@ def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB"):
             **st, "no_worker_computing_s": round(wall - st["any_worker_computing_s"], 3),
             "wrapper_fraction": round(st["dask_compute_s"] / task_s - 1, 4) if task_s else None,
             "bytes_between_workers": between, "bytes_to_driver": to_driver, "store_bytes": stores,
-            "identical": store_digests(run_dir) == reference}
+            "identical": store_digests(run_dir) == reference,
+            "pools": [line for line in logs if line.startswith("stage ")], "config": cfg}
 
 
 def array_task_sizes(proj, per_task_s):
@@ -189,13 +242,18 @@ def array_task_sizes(proj, per_task_s):
                           for r in rows}}
 
 
-def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None):
+def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None, workflow="demo", node_memory_mb=3000):
     """Run the benchmark; ``slurm``: a started :class:`~mmflow.bench.netns_slurm.NamespacedSlurm` of at
-    least ``max(nodes)`` nodes (the tests' session cluster), else one is started here and stopped."""
-    overrides = QUICK if quick else FULL
-    res = {"machine": machine(), "workflow": {"file": "workflows/demo.yaml", "overrides": overrides,
-                                              "settings": "the test suite's small demo" if quick else
-                                              "the demo at lmax 64, one channel"}}
+    least ``max(nodes)`` nodes (the tests' session cluster), else one of ``node_memory_mb`` a node is
+    started here and stopped. ``workflow``: a name of :data:`WORKFLOWS`; the demo runs on one exclusive
+    1-core job a node, the others on jobs sized per stage from the plan, with their workers tracing their
+    allocations (``PYTHONTRACEMALLOC``) for :func:`plan_vs_traced`."""
+    path, full, small, about = WORKFLOWS[workflow]
+    overrides = (QUICK if quick else FULL) if workflow == "demo" else (small if quick else full)
+    sized = workflow != "demo"
+    res = {"machine": machine(), "workflow": {"file": f"workflows/{path.name}", "overrides": overrides,
+                                              "settings": "the test suite's small demo" if quick and not sized
+                                              else about}}
     if slurm is None:
         why = unavailable()
         if why:
@@ -204,9 +262,13 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None):
     from mmflow.workflow.config.schema import load_config  # deferred: the schema loads dask
     from mmflow.workflow.engine.passes import run_with_passes
 
-    saved = os.environ.get("SLURM_CONF")
+    env = {"SLURM_CONF": None, "PYTHONTRACEMALLOC": "1" if sized else None,
+           # mmflow's tasks hold no results in a worker: pausing a worker whose freed heap stays resident
+           # only stalls it (the small nodes here make workers of ~1 GiB)
+           "DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE": "False" if sized else None}
+    saved = {k: os.environ.get(k) for k in env}
     with tempfile.TemporaryDirectory(prefix="mmflow-bench-cluster-", dir=directory) as root:
-        cfg = load_config(DEMO, list(overrides) + ["cluster.kind=synchronous", f"run.directory={root}/reference"])
+        cfg = load_config(path, list(overrides) + ["cluster.kind=synchronous", f"run.directory={root}/reference"])
         t0 = time.time()
         summaries = run_with_passes(cfg, None, progress=False, log=lambda *a: None)
         tasks, task_s, stores = _totals(summaries)
@@ -217,20 +279,27 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None):
         own = slurm is None
         try:
             if own:
-                slurm = NamespacedSlurm(Path(root) / "slurm", n_nodes=max(nodes), cpus=2, memory_mb=3000,
+                slurm = NamespacedSlurm(Path(root) / "slurm", n_nodes=max(nodes), cpus=2, memory_mb=node_memory_mb,
                                         tag=f"mb{os.getpid() % 100000}")
                 slurm.start()
-            os.environ["SLURM_CONF"] = str(slurm.conf)
+            env["SLURM_CONF"] = str(slurm.conf)
+            os.environ.update({k: v for k, v in env.items() if v is not None})
             res["slurm"] = {"nodes": len(slurm.nodes), "cpus_per_node": slurm.cpus, "memory_mb": slurm.memory_mb,
                             "started_here": own, "network": str(slurm.subnet)}
             memory = "1GB" if quick else "2GB"
-            res["job"] = {"cores": 1, "memory": memory, "exclusive": True}
-            res["runs"] = [run_on_slurm(slurm, n, overrides, root, reference, memory) for n in nodes]
+            res["job"] = ("sized per stage from the plan (sinfo)" if sized else
+                          {"cores": 1, "memory": memory, "exclusive": True})
+            res["runs"] = [run_on_slurm(slurm, n, overrides, root, reference, memory, path, sized) for n in nodes]
+            for r in res["runs"]:
+                run_cfg = r.pop("config")
+                if sized:
+                    r["plan_vs_traced"] = plan_vs_traced(run_cfg, run_cfg.run.directory, res["sgemm_gflops"])
         finally:
-            if saved is None:
-                os.environ.pop("SLURM_CONF", None)
-            else:
-                os.environ["SLURM_CONF"] = saved
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
             if own and slurm is not None:
                 slurm.stop()
     from mmflow.workflow.plan.jobs import array_projection  # deferred: the planner's modules

@@ -12,9 +12,13 @@ from urllib.parse import urlparse
 import pytest
 import yaml
 
+from mmflow.bench.cluster import PAPER, PAPER_REDUCED
 from mmflow.cli import main
+from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.cluster import open_cluster
 from mmflow.workflow.engine.passes import run_with_passes
+from mmflow.workflow.engine.rundir import RunDir
+from mmflow.workflow.plan.planner import WORKER_BASE_BYTES, plan
 from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
 
 pytestmark = [pytest.mark.slow, pytest.mark.cluster]
@@ -36,26 +40,62 @@ def _no_jobs(slurm):
     return slurm.slurm("squeue", "-h", "-o", "%i %T").strip() == ""
 
 
-def test_workflow_on_three_nodes_matches_a_local_run(slurm, reference, tmp_path):
-    """Three worker jobs spread over the nodes; the scheduler listens on cluster.interface (the
-    bridge), the dashboard link printed is where the dashboard listens; maps bit-identical."""
+@pytest.fixture(scope="module")
+def paper_reference(tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("pref") / "run"
+    run_with_passes(_paper(run_dir, "cluster.kind=synchronous"), progress=False, log=lambda *a: None)
+    return read_outputs(run_dir)
+
+
+def _paper(run_dir, *extra):
+    return load_config(PAPER, [*PAPER_REDUCED, f"run.directory={run_dir}", *extra])
+
+
+def _sample_jobs(slurm, seen, stop):
+    """Every worker job squeue lists until ``stop`` is set: ``{job id: (cpus, memory, node)}`` of running ones."""
+    while not stop.is_set():
+        for line in slurm.slurm("squeue", "-h", "-t", "R", "-o", "%i %C %m %N", check=False).splitlines():
+            job, cpus, mem, node = line.split()
+            seen[job] = (int(cpus), mem, node)
+        time.sleep(0.3)
+
+
+def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, paper_reference, tmp_path):
+    """The reduced paper-scale workflow with no job shape given: the plan on the partition's nodes (sinfo:
+    2 CPUs, 1500 MB) gives simulate workers of 2 cores / 1 GiB and every other stage workers of 1 core /
+    512 MiB, two to a job; each stage's tasks ran on workers of its pool that hold its planned task, the
+    stages after simulate shared their jobs, the workers were on two nodes (over the bridge: the
+    scheduler on cluster.interface), the dashboard link printed is where it listens; maps bit-identical
+    (the workers' memory thresholds: tests/cluster/conftest.py)."""
     run_dir = tmp_path / "run"
-    cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=3", "cluster.dashboard_address=:0",
-                       f"cluster.interface={slurm.bridge}", JOB)
-    logs = []
-    with open_cluster(cfg, log=logs.append) as client:
-        client.wait_for_workers(3, timeout=120)
-        hosts = client.run(socket.gethostname)  # each node's UTS namespace: its own hostname
-        addresses = {a.split("://")[1].rsplit(":", 1)[0] for a in hosts}
-        run_with_passes(cfg, client, progress=False, log=logs.append)
-        assert client.scheduler.address.startswith(f"tcp://{slurm.host_address}:")
-        link = next(line for line in logs if line.startswith("dask dashboard:")).split()[-1]
-        host, port = urlparse(link).hostname, urlparse(link).port
-        assert host == "127.0.0.1", link  # the jobqueue dashboard listens on loopback only (cluster.expose)
-        socket.create_connection((host, port), timeout=5).close()  # and really listens there
-    assert len(set(hosts.values())) >= 2 and set(hosts.values()) <= set(slurm.nodes), hosts
-    assert addresses <= {slurm.address(n) for n in slurm.nodes}, addresses  # over the bridge, not loopback
-    assert_identical(reference, read_outputs(run_dir))
+    cfg = _paper(run_dir, "cluster.kind=slurm", "cluster.n_workers=2", "cluster.dashboard_address=:0",
+                 f"cluster.interface={slurm.bridge}")
+    logs, seen, stop = [], {}, threading.Event()
+    sampler = threading.Thread(target=_sample_jobs, args=(slurm, seen, stop), daemon=True)
+    sampler.start()
+    try:
+        with open_cluster(cfg, log=logs.append) as client:
+            run_with_passes(cfg, client, progress=False, log=logs.append)
+            assert client.scheduler.address.startswith(f"tcp://{slurm.host_address}:")
+            link = next(line for line in logs if line.startswith("dask dashboard:")).split()[-1]
+            host, port = urlparse(link).hostname, urlparse(link).port
+            assert host == "127.0.0.1", link  # the jobqueue dashboard listens on loopback only (cluster.expose)
+            socket.create_connection((host, port), timeout=5).close()  # and really listens there
+    finally:
+        stop.set()
+        sampler.join(5)
+    switches = [line for line in logs if line.startswith("stage ")]
+    assert switches[0].startswith("stage simulate: 1 jobs of 2 cores / 1.07 GB,"), logs
+    assert len(switches) == 2 and "(2 workers of 1 cores each)" in switches[1], switches  # one switch: shared jobs
+    planned = {e["stage"]: e["task_bytes"] + WORKER_BASE_BYTES for e in plan(cfg, peak_gflops=100.0)["stages"]}
+    run = RunDir(run_dir)
+    for name, need in planned.items():
+        infos = [i for i in run.task_infos(name).values() if "worker" in i]
+        limits = {i["worker_memory_bytes"] for i in infos}
+        assert limits == ({2 ** 30} if name == "simulate" else {2 ** 29}), (name, limits, infos, logs)
+        assert need < 0.95 * min(limits), (name, need, limits)  # below dask's kill threshold
+    assert {c for c, _, _ in seen.values()} == {2} and len({n for _, _, n in seen.values()}) >= 2, seen
+    assert_identical(paper_reference, read_outputs(run_dir))
 
 
 def test_an_impossible_request_is_refused_before_any_submission(slurm, tmp_path, capsys):
@@ -79,7 +119,8 @@ def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys):
     rc = main(["run", *WORKFLOW, f"run.directory={run_dir}", "--cluster", "slurm", "--no-progress"])
     out = capsys.readouterr().out
     assert rc == 0, out[-3000:]
-    assert f"listens on {slurm.bridge}" in out and "cores 1, memory" in out, out[:3000]
+    assert f"listens on {slurm.bridge}" in out and "sized per stage from the plan" in out, out[:3000]
+    assert "stage simulate: " in out and "jobs of 2 cores / 1.07 GB" in out, out[:3000]
     assert yaml.safe_load((run_dir / "config.yaml").read_text())["cluster"]["kind"] == "slurm"
     assert_identical(reference, read_outputs(run_dir))
 

@@ -50,3 +50,64 @@ def test_queued_jobs_are_described_with_their_reasons():
     assert QueueState().waiting() is None
     st = QueueState(pending=[("1", "Priority"), ("2", "Resources"), ("3", "Priority")])
     assert st.waiting() == "waiting for 3 queued jobs (Priority, Resources)"
+
+
+#: ``qstat -f -F json`` of OpenPBS 2022.1.1 on ALCF's Polaris, as printed there (a queued, a held and a
+#: running job; attributes the parser does not read left out, values as printed)
+QSTAT_JSON = """{
+    "timestamp":1699637718,
+    "pbs_version":"2022.1.1.20220926110806",
+    "pbs_server":"polaris-pbs-01.hsn.cm.polaris.alcf.anl.gov",
+    "Jobs":{
+        "359322.polaris-pbs-01.hsn.cm.polaris.alcf.anl.gov":{
+            "Job_Name":"STDIN",
+            "job_state":"Q",
+            "queue":"debug",
+            "Resource_List":{"ncpus":64, "ngpus":8, "nodect":1, "select":"1:ngpus=8", "walltime":"01:00:00"},
+            "substate":10,
+            "comment":"Not Running: Job is requesting an exclusive node and node is in use",
+            "eligible_time":"8199:09:40"
+        },
+        "412020.polaris-pbs-01.hsn.cm.polaris.alcf.anl.gov":{
+            "Job_Name":"pyannote",
+            "job_state":"H",
+            "queue":"preemptable",
+            "Hold_Types":"s",
+            "substate":20,
+            "comment":"job held, too many failed attempts to run",
+            "run_count":21
+        },
+        "1147579.polaris-pbs-01.hsn.cm.polaris.alcf.anl.gov":{
+            "Job_Name":"xgc1_core",
+            "resources_used":{"ncpus":160, "walltime":"22:28:30"},
+            "job_state":"R",
+            "queue":"large",
+            "exec_host":"x3006c0s31b1n0/0+x3006c0s37b0n0/0+x3006c0s37b1n0/0"
+        }
+    }
+}"""
+#: plain ``qstat`` of OpenPBS (a tutorial's listing, an OpenPBS cluster on Azure): a queued job's time is "0"
+QSTAT_TABLE = """\
+Job id            Name             User              Time Use S Queue
+----------------  ---------------- ----------------  -------- - -----
+6.scheduler       sys-dashboard-s  clusteradmin      00:00:17 R workq
+7.scheduler       STDIN            clusteradmin      03:24:08 R workq
+8.scheduler       OPM              clusteradmin             0 Q workq
+"""
+
+
+def test_pbs_queued_jobs_are_read_with_the_schedulers_reason():
+    from mmflow.workflow.engine.batch import parse_qstat, parse_qstat_json
+
+    got = parse_qstat_json(QSTAT_JSON, ["359322", "412020", "1147579", "5"])
+    assert got == {"359322": ("PENDING", "Not Running: Job is requesting an exclusive node and node is in use", ""),
+                   "412020": ("PENDING", "job held, too many failed attempts to run", ""),
+                   "1147579": ("RUNNING", "queued", "x3006c0s31b1n0")}  # a job qstat no longer lists: gone
+    assert parse_qstat_json(QSTAT_JSON, ["1147579"]).keys() == {"1147579"}
+    for not_json in (None, QSTAT_TABLE):  # Torque has no -F json: the plain listing is read instead
+        with pytest.raises((TypeError, ValueError)):
+            parse_qstat_json(not_json, ["8"])
+    assert parse_qstat(QSTAT_TABLE, ["7", "8"]) == {"7": ("RUNNING", "queued", ""), "8": ("PENDING", "queued", "")}
+    st = QueueState(pending=[(j, r) for j, (s, r, _) in got.items() if s == "PENDING"])
+    assert st.waiting() == ("waiting for 2 queued jobs (Not Running: Job is requesting an exclusive node and node "
+                            "is in use, job held, too many failed attempts to run)")

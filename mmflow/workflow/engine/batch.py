@@ -10,6 +10,7 @@ is reported with its own error, and a lost job is logged and replaced.
 from __future__ import annotations
 
 import ipaddress
+import json
 import math
 import os
 import re
@@ -80,7 +81,7 @@ def cluster_interface(kind):
     return None
 
 
-def _jobqueue_default(kind, key):
+def jobqueue_default(kind, key):
     import dask  # deferred: dask takes 0.3-0.8 s to import; only clusters need it
 
     return dask.config.get(f"jobqueue.{kind}.{key.replace('_', '-')}", None)
@@ -132,8 +133,9 @@ def largest_task_gb(cfg):
     return max((e.task_bytes for e in ests), default=0) / 1e9 + planmod.WORKER_BASE_BYTES / 1e9
 
 
-def job_options(cfg, kind, log=print):
-    """``cluster.jobqueue`` with what it leaves out filled in, ready for dask-jobqueue.
+def job_options(cfg, kind, log=print, opts=None):
+    """``cluster.jobqueue`` (or ``opts``: it with a pool's shape, :mod:`mmflow.workflow.engine.pools`)
+    with what it leaves out filled in, ready for dask-jobqueue.
 
     * cores and memory, when neither ``cluster.jobqueue`` nor dask's jobqueue.yaml gives them:
       ``cluster.threads_per_worker`` cores and 1.5x the plan's largest task (at least 2 GB), capped
@@ -144,16 +146,16 @@ def job_options(cfg, kind, log=print):
     * ``--lifetime``/``--lifetime-stagger`` for the workers from the walltime (:func:`lifetime_args`),
       unless ``worker_extra_args`` sets a lifetime.
     """
-    from dask.utils import format_bytes, parse_bytes  # deferred: as in _jobqueue_default
+    from dask.utils import format_bytes, parse_bytes  # deferred: as in jobqueue_default
 
     c = cfg.cluster
-    opts = dict(c.jobqueue)
-    sizes = node_sizes(kind, opts.get("queue") or _jobqueue_default(kind, "queue"))
+    opts = dict(c.jobqueue if opts is None else opts)
+    sizes = node_sizes(kind, opts.get("queue") or jobqueue_default(kind, "queue"))
     filled = []
-    if opts.get("cores") is None and _jobqueue_default(kind, "cores") is None:
+    if opts.get("cores") is None and jobqueue_default(kind, "cores") is None:
         opts["cores"] = c.threads_per_worker
         filled.append(f"cores {opts['cores']}")
-    if opts.get("memory") is None and _jobqueue_default(kind, "memory") is None:
+    if opts.get("memory") is None and jobqueue_default(kind, "memory") is None:
         task = largest_task_gb(cfg)
         gb = max(2.0, math.ceil(1.5 * task * 2) / 2)
         if sizes:
@@ -161,20 +163,20 @@ def job_options(cfg, kind, log=print):
         opts["memory"] = format_bytes(int(gb * 1e9)).replace(" ", "")
         filled.append(f"memory {opts['memory']} (the plan's largest task {task:.2f} GB x1.5, at least 2 GB"
                       + (", at most a node's" if sizes else "") + ")")
-    if opts.get("processes") is None and _jobqueue_default(kind, "processes") is None:
+    if opts.get("processes") is None and jobqueue_default(kind, "processes") is None:
         opts["processes"] = 1
     if filled:
         log(f"cluster.jobqueue: {', '.join(filled)} per job (set cluster.jobqueue.cores/memory to choose)")
     for key in ("log_directory", "local_directory"):
         if opts.get(key):
             opts[key] = os.path.expandvars(os.path.expanduser(str(opts[key])))
-    if not opts.get("log_directory") and not _jobqueue_default(kind, "log_directory"):
+    if not opts.get("log_directory") and not jobqueue_default(kind, "log_directory"):
         opts["log_directory"] = str(Path(cfg.run.directory).expanduser().absolute() / "cluster-logs")
-    extra = list(opts.get("worker_extra_args") or _jobqueue_default(kind, "worker_extra_args") or [])
+    extra = list(opts.get("worker_extra_args") or jobqueue_default(kind, "worker_extra_args") or [])
     if not any(a.startswith("--lifetime") for a in extra):
-        extra += lifetime_args(opts.get("walltime") or _jobqueue_default(kind, "walltime"))
+        extra += lifetime_args(opts.get("walltime") or jobqueue_default(kind, "walltime"))
     opts["worker_extra_args"] = extra
-    parse_bytes(str(opts["memory"] or _jobqueue_default(kind, "memory")))  # a bad size fails here, not in a job
+    parse_bytes(str(opts["memory"] or jobqueue_default(kind, "memory")))  # a bad size fails here, not in a job
     return opts, sizes
 
 
@@ -185,9 +187,9 @@ def refuse_impossible(opts, kind, sizes):
 
     if not sizes:
         return
-    cores = int(opts.get("cores") or _jobqueue_default(kind, "cores") or 1)
-    mem_mb = parse_bytes(str(opts.get("memory") or _jobqueue_default(kind, "memory"))) / 2 ** 20
-    part = opts.get("queue") or _jobqueue_default(kind, "queue") or "the default partition"
+    cores = int(opts.get("cores") or jobqueue_default(kind, "cores") or 1)
+    mem_mb = parse_bytes(str(opts.get("memory") or jobqueue_default(kind, "memory"))) / 2 ** 20
+    part = opts.get("queue") or jobqueue_default(kind, "queue") or "the default partition"
     if any(cpus >= cores and mb >= mem_mb for cpus, mb in sizes):
         return
     max_cpus, max_mb = max(s[0] for s in sizes), max(s[1] for s in sizes)
@@ -199,6 +201,50 @@ def refuse_impossible(opts, kind, sizes):
                      f"node of {part} with {cores} CPUs has (at most {max_mb / 1024:.1f} GiB, sinfo): it would wait "
                      "in the queue forever", f"set cluster.jobqueue.memory <= {max_mb}MiB, or a partition "
                      "of larger nodes (cluster.jobqueue.queue)")
+
+
+#: PBS job states (``job_state``, qstat's ``S`` column) as JobWatch counts them (SLURM's words): a job
+#: exiting after its run (E) still holds its node, as SLURM's COMPLETING
+PBS_STATES = {"Q": "PENDING", "H": "PENDING", "W": "PENDING", "T": "PENDING", "R": "RUNNING", "E": "RUNNING",
+              "S": "SUSPENDED", "U": "SUSPENDED", "B": "RUNNING", "F": "COMPLETED", "C": "COMPLETED", "X": "COMPLETED"}
+
+
+def _pbs_id(text):
+    """A PBS job id without its server (``'8.scheduler'`` -> ``'8'``)."""
+    return text.split(".")[0]
+
+
+def parse_qstat_json(text, ids):
+    """``{job id: (state, reason, node)}`` of the jobs ``ids`` from ``qstat -f -F json`` (OpenPBS, PBS Pro):
+    the state in SLURM's words (:data:`PBS_STATES`), the reason the scheduler's ``comment`` (e.g. "Not
+    Running: Insufficient amount of resource: ncpus"), the node the first of ``exec_host``.
+
+    Raises
+    ------
+    ValueError, TypeError
+        ``text`` is not that JSON (None, or Torque's qstat, which has no ``-F json``).
+    """
+    jobs = json.loads(text)["Jobs"] if text else None
+    if not isinstance(jobs, dict):
+        raise TypeError("no Jobs in qstat's JSON")
+    out = {}
+    for full, job in jobs.items():
+        if _pbs_id(full) in ids:
+            code = job.get("job_state", "")
+            reason = job.get("comment") or {"H": "held"}.get(code, "queued")
+            out[_pbs_id(full)] = (PBS_STATES.get(code, code), reason, (job.get("exec_host") or "").split("/")[0])
+    return out
+
+
+def parse_qstat(text, ids):
+    """``{job id: (state, reason, node)}`` of the jobs ``ids`` from plain ``qstat`` (Torque, and PBS without
+    ``-F json``): columns job id, name, user, time use, state, queue; no reason (``'queued'``) nor node."""
+    out = {}
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) >= 6 and _pbs_id(parts[0]) in ids:
+            out[_pbs_id(parts[0])] = (PBS_STATES.get(parts[4], parts[4]), {"H": "held"}.get(parts[4], "queued"), "")
+    return out
 
 
 @dataclass
@@ -234,8 +280,10 @@ class JobWatch:
         Where the jobs write their logs (``<name>-<job id>.err``).
     """
 
-    def __init__(self, cluster, kind, n_jobs, log_directory, interval=2.0, log=print):
+    def __init__(self, cluster, kind, n_jobs, log_directory, interval=2.0, log=print, pools=None):
         self.cluster, self.kind, self.n_jobs = cluster, kind, n_jobs
+        self.pools = pools  # a :class:`mmflow.workflow.engine.pools.StagePools` where jobs are sized per stage
+        self.retired = set()  # jobs retired when the run moved to another pool: not lost, not replaced
         self.log_directory = Path(log_directory) if log_directory else None
         self.interval, self.log = interval, log
         self.connected = {}  # job name -> job id of a job whose worker joined the scheduler
@@ -246,7 +294,15 @@ class JobWatch:
         self.node_of = {}  # job id -> the node it ran on
 
     def _jobs(self):
-        return {name: job.job_id for name, job in list(self.cluster.workers.items()) if getattr(job, "job_id", None)}
+        return {name: job.job_id for name, job in list(self.cluster.workers.items())
+                if getattr(job, "job_id", None) and name not in self.retired}
+
+    def retire(self, names):
+        """Forget the jobs ``names`` (retired on purpose: the run moved to another pool)."""
+        self.retired |= set(names)
+        for name in names:
+            self.connected.pop(name, None)
+            self.left.discard(name)
 
     def _queue(self, ids):
         """``{job id: (state, reason, node)}`` of the jobs the batch system still lists."""
@@ -256,14 +312,11 @@ class JobWatch:
             out = _call(["squeue", "-h", "-o", "%i|%T|%r|%N", "-j", ",".join(ids)]) or ""
             rows = [line.split("|") for line in out.splitlines() if line.count("|") == 3]
             return {i: ("RUNNING" if s in ("RUNNING", "COMPLETING") else s, r, n) for i, s, r, n in rows}
-        out = _call(["qstat", *ids]) or ""
-        states = {}
-        for line in out.splitlines():
-            parts = line.split()
-            if parts and parts[0].split(".")[0] in ids and len(parts) >= 5:
-                states[parts[0].split(".")[0]] = ({"R": "RUNNING", "Q": "PENDING", "H": "PENDING"}.get(
-                    parts[4], parts[4]), "queued", "")
-        return states
+        text = _call(["qstat", "-f", "-F", "json", *ids])  # OpenPBS / PBS Pro: the scheduler's comment too
+        try:
+            return parse_qstat_json(text, ids)
+        except (TypeError, ValueError):  # Torque: no -F json
+            return parse_qstat(_call(["qstat", *ids]) or "", ids)
 
     def error_in_log(self, job_id):
         """The last line of a job's log that says it could not reach the scheduler, or None."""

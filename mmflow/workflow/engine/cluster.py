@@ -12,6 +12,7 @@ from contextlib import contextmanager
 
 from mmflow.errors import InputError
 from mmflow.workflow.engine.batch import JobWatch, cluster_interface, job_options, refuse_impossible
+from mmflow.workflow.engine.pools import StagePools, plan_pools, pool_options, workers_per_host
 
 LOOPBACK = "127.0.0.1"
 ALL_INTERFACES = "0.0.0.0"
@@ -98,7 +99,14 @@ def interface_address(name):
 
 
 def jobqueue_cluster(cfg, kind, log=print):
-    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml).
+    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (:func:`jobqueue_cluster_and_pools`'s,
+    without its pools: e.g. to print its ``job_script()``)."""
+    return jobqueue_cluster_and_pools(cfg, kind, log)[0]
+
+
+def jobqueue_cluster_and_pools(cfg, kind, log=print):
+    """A dask-jobqueue SLURM or PBS cluster from ``cluster.jobqueue`` (rest from dask's jobqueue.yaml),
+    and its :class:`mmflow.workflow.engine.pools.StagePools` where the jobs are sized per stage (else None).
 
     The scheduler has to listen on the cluster network (the workers run on other nodes): on
     ``cluster.interface`` (handed to the scheduler only: a worker finds its own address by
@@ -110,7 +118,9 @@ def jobqueue_cluster(cfg, kind, log=print):
     import dask_jobqueue  # deferred: dask_jobqueue takes 1-3 s to import (docs/performance.md), SLURM/PBS only
 
     cls = dask_jobqueue.SLURMCluster if kind == "slurm" else dask_jobqueue.PBSCluster
-    opts, sizes = job_options(cfg, kind, log)
+    pools = plan_pools(cfg, kind, dict(cfg.cluster.jobqueue), log)
+    first = next(iter(pools.values())) if pools else None
+    opts, sizes = job_options(cfg, kind, log, pool_options(cfg.cluster.jobqueue, first, None) if pools else None)
     refuse_impossible(opts, kind, sizes)
     sched = dict(opts.get("scheduler_options") or {})
     sched.setdefault("dashboard_address", dashboard_bind(cfg.cluster))
@@ -125,9 +135,13 @@ def jobqueue_cluster(cfg, kind, log=print):
                 f"interface on the network of the {kind} nodes (sinfo)")
     opts["scheduler_options"] = sched
     # thread budget: the worker processes of one job share its cores (mmflow.threads.n_threads)
-    opts["job_script_prologue"] = list(opts.get("job_script_prologue") or []) + [
-        f"export MMFLOW_WORKERS_PER_HOST={int(opts.get('processes') or 1)}"]
-    return cls(**opts)
+    prologue = list(opts.get("job_script_prologue") or [])
+    opts["job_script_prologue"] = prologue + [workers_per_host(opts.get("processes"))]
+    cluster = cls(**opts)
+    if not pools:
+        return cluster, None
+    return cluster, StagePools(cluster, pools, dict(cluster._job_kwargs, job_script_prologue=prologue),
+                               cfg.cluster.jobqueue.get("walltime"), log)
 
 
 class LazyClient:
@@ -154,6 +168,15 @@ class LazyClient:
         if log is not None:
             self._watch.log = log
         return self._watch.poll(self._client)
+
+    def use_stage(self, stage, log=None):
+        """Before ``stage``'s tasks are sent: the worker jobs of its pool where the jobs are sized per
+        stage (:class:`mmflow.workflow.engine.pools.StagePools`; the change logged with ``log``);
+        nothing for any other cluster."""
+        if self._client is None:
+            self._client, self._cluster, self._watch = self._start()
+        if self._watch is not None and self._watch.pools is not None:
+            self._watch.pools.use(stage, self._client, self._watch, log)
 
     def __getattr__(self, name):  # only for names not found on this object: the client's
         if name.startswith("_"):
@@ -212,11 +235,13 @@ def open_cluster(cfg, scheduler=None, kind=None, log=print):
                 log(f"cluster.expose: the scheduler ({cluster.scheduler_address}) and dashboard listen on all "
                     "interfaces; anyone who can reach them can run code as you (docs/clusters.md: TLS)")
         else:
-            cluster = jobqueue_cluster(cfg, kind, log)
-            cluster.scale(jobs=c.n_workers)
+            cluster, pools = jobqueue_cluster_and_pools(cfg, kind, log)
+            n_jobs = 0 if pools else c.n_workers  # pools: each stage's jobs submitted as it starts
+            cluster.scale(jobs=n_jobs)
             client = Client(cluster)
-            watch = JobWatch(cluster, kind, c.n_workers, cluster._dummy_job.log_directory, log=log)
-            log(f"{kind}: {c.n_workers} worker jobs submitted; the scheduler listens on {client.scheduler.address}")
+            watch = JobWatch(cluster, kind, n_jobs, cluster._dummy_job.log_directory, log=log, pools=pools)
+            log(f"{kind}: " + ("worker jobs submitted per stage" if pools else f"{n_jobs} worker jobs submitted")
+                + f"; the scheduler listens on {client.scheduler.address}")
         log(f"dask dashboard: {dashboard_link(cluster, client)}" + (
             f" (mmflow's page: {dashboard_link(cluster, client, 'mmflow')})" if cluster is not None else ""))
         return client, cluster, watch

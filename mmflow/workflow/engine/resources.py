@@ -80,6 +80,19 @@ def traced_peak_bytes(start):
     return tracemalloc.get_traced_memory()[1] - start
 
 
+def dask_worker():
+    """``(name, memory limit in bytes or None)`` of the dask worker running this task (what its cluster
+    gave it), or None outside a dask worker."""
+    dist = sys.modules.get("distributed")  # a task outside any dask worker never imports it
+    if dist is None:
+        return None
+    try:
+        worker = dist.get_worker()
+    except ValueError:
+        return None
+    return str(worker.name), worker.memory_manager.memory_limit or None
+
+
 def current_rss_bytes():
     """This process's resident memory now (``VmRSS``), or None where ``/proc`` has none."""
     kib = _status_kib("VmRSS")

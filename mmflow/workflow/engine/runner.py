@@ -47,8 +47,8 @@ from mmflow.workflow.engine.context import Context
 from mmflow.workflow.engine.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import check_fits
-from mmflow.workflow.engine.resources import (current_rss_bytes, gb, peak_rss_bytes, reset_peak_rss, reset_traced_peak,
-                                       traced_peak_bytes)
+from mmflow.workflow.engine.resources import (current_rss_bytes, dask_worker, gb, peak_rss_bytes, reset_peak_rss,
+                                              reset_traced_peak, traced_peak_bytes)
 from mmflow.workflow.engine.release import finished, planned_keys, recompute_released, release_finished, released_here
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
@@ -70,6 +70,10 @@ def versions():
 #: worker: tasks write stores): it is given back first (mmflow.allocator.release_freed_memory), so that a
 #: task's peak is its own working set on the worker's baseline.
 RELEASE_ABOVE_BYTES = 1.5e9
+#: A dask worker resident above this share of its memory limit when a task ends gives its freed memory back:
+#: dask pauses a worker above 80 % of its limit (``distributed.worker.memory.pause``) and it would stay paused,
+#: starting no task, while that memory stays resident (small workers: jobs sized per stage from the plan)
+RELEASE_ABOVE_SHARE = 0.7
 
 
 def run_task(ctx, pipeline, stage_name, key):
@@ -97,12 +101,17 @@ def run_task(ctx, pipeline, stage_name, key):
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start))
+    worker, limit = dask_worker() or (None, None)
+    if worker is not None:  # the worker the task was sent to, and its memory (jobs sized per stage)
+        info.update(worker=worker, worker_memory_bytes=limit and int(limit))
     if traced_start is not None:
         traced = traced_peak_bytes(traced_start)
         info["traced_peak_gb"] = gb(traced)
         info["traced_peak_bytes"] = int(traced)  # exact: the GB figure of a small task is coarse
     run.check_holder(ctx.token)
     run.mark_done(stage_name, key, info, tctx.ledger.entries)
+    if limit and current_rss_bytes() > RELEASE_ABOVE_SHARE * limit:
+        release_freed_memory()
     return {"key": key, "skipped": False, **info}
 
 
@@ -194,6 +203,9 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
         return out
     from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
+    use_stage = getattr(type(client), "use_stage", None)
+    if use_stage is not None:  # SLURM/PBS jobs sized per stage: the stage's own (mmflow.workflow.engine.pools)
+        use_stage(client, name, log)
     futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
                          retries=2)

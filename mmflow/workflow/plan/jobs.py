@@ -310,6 +310,40 @@ def job_shapes(plan_result, nodes=None):
     return out
 
 
+def worker_pools(plan_result, nodes=None):
+    """The jobs a run asks for: :func:`job_shapes` grouped by worker, so that stages of one worker
+    shape share their jobs (none resubmitted between them) and larger workers serve only the stages
+    that need them.
+
+    Returns
+    -------
+    dict
+        ``{stage: pool}``, one pool dict shared by the stages of its worker: ``worker_cores``,
+        ``worker_memory_bytes`` (a worker's limit), ``processes`` (workers a job: the most any of its
+        stages fills), ``cores`` and ``memory`` (a job's, as :func:`job_shapes` writes them), ``count``
+        (jobs: the most any of its stages uses), ``walltime`` (the longest of its stages'),
+        ``task_memory_bytes`` (its stages' largest task with a worker's baseline) and ``stages``.
+    """
+    shapes = job_shapes(plan_result, nodes)
+    core_mem = plan_result["node"]["core_memory_bytes"]
+    pools, out = {}, {}
+    for stage, j in shapes.items():
+        k = j["worker_cores"]
+        pool = pools.setdefault(k, {"worker_cores": k, "worker_memory_bytes": j["worker_memory_bytes"],
+                                    "processes": 0, "count": 0, "walltime": "00:00:00", "task_memory_bytes": 0,
+                                    "stages": []})
+        pool["processes"] = max(pool["processes"], j["processes"])
+        pool["count"] = max(pool["count"], j["count"])
+        pool["walltime"] = max(pool["walltime"], j["walltime"], key=lambda w: [int(x) for x in w.split(":")])
+        pool["task_memory_bytes"] = max(pool["task_memory_bytes"], j["task_memory_bytes"])
+        pool["stages"].append(stage)
+        out[stage] = pool
+    for pool in pools.values():
+        pool["cores"] = pool["processes"] * pool["worker_cores"]
+        pool["memory"] = f"{pool['cores'] * core_mem // MIB}MiB"
+    return out
+
+
 def projection(cfg, node, nodes=(8, 64), **kw):
     """A cluster plan projected onto several node counts (JSON-ready): per count the wall time, the
     most memory a node holds at once, the stores and node-hours, and per stage its tasks and their

@@ -1,0 +1,184 @@
+"""Worker jobs sized per stage from the plan (SLURM/PBS): larger workers only for the stages that need them.
+
+When ``cluster.jobqueue`` gives neither ``cores`` nor ``memory`` (nor does dask's jobqueue.yaml) and
+the partition's nodes are known (``sinfo``), a run asks for what ``mmflow plan --cluster slurm`` says:
+the cluster plan (:func:`mmflow.workflow.plan.jobs.cluster_plan`) on those nodes gives each stage the
+worker its largest task needs, and :func:`mmflow.workflow.plan.jobs.worker_pools` groups the stages by
+worker into pools. Before a stage's tasks are sent (:meth:`StagePools.use`):
+
+* a stage of the pool whose jobs are running keeps them (stages of one shape share their jobs; a pool's
+  job count is the most any of its stages uses);
+* a stage of another pool first retires the running workers (every task of the stage before has
+  finished: stages run one after another), so that no task is ever sent to a worker smaller than the
+  plan sized for it, then the cluster's job options become the pool's and it is scaled to the
+  pool's jobs; the log says ``stage X: N jobs of C cores / M GB``.
+
+The queue handling of :class:`mmflow.workflow.engine.batch.JobWatch` applies to every pool: queued jobs
+are waited for, lost jobs are replaced (with the running pool's shape: dask-jobqueue submits
+``cluster.new_spec``), workers retire before the pool's walltime.
+"""
+from __future__ import annotations
+
+from mmflow.errors import InputError
+from mmflow.workflow.engine.batch import jobqueue_default, lifetime_args
+
+#: the job options a pool sets (the rest of ``cluster.jobqueue`` is kept for every pool)
+POOL_OPTIONS = ("cores", "memory", "processes", "walltime")
+
+
+def plan_pools(cfg, kind, opts, log=print):
+    """``{stage: pool}`` (:func:`mmflow.workflow.plan.jobs.worker_pools`) of the run, or None where
+    the jobs are not sized per stage: ``opts`` (``cluster.jobqueue``) or dask's jobqueue.yaml give
+    cores or memory, or the partition's nodes are unknown (no ``sinfo``: PBS, or SLURM not answering).
+
+    The nodes planned on: ``cluster.n_workers`` where the workflow sets it, else the plan's choice
+    (:func:`mmflow.workflow.plan.jobs.choose_nodes`, at most the partition's nodes).
+
+    Raises
+    ------
+    InputError
+        A stage's largest task fits a node only with other settings (the plan's split, named), or none.
+    """
+    from mmflow.workflow.plan.jobs import cluster_plan, worker_pools  # deferred: the plan imports every stage
+    from mmflow.workflow.plan.nodes import node_size, read_sinfo
+
+    if any(opts.get(k) is not None or jobqueue_default(kind, k) is not None for k in ("cores", "memory")):
+        return None
+    text = read_sinfo() if kind == "slurm" else None
+    if text is None:
+        return None
+    node = node_size(partition=opts.get("queue") or jobqueue_default(kind, "queue"), sinfo_text=text)
+    nodes = cfg.cluster.n_workers if "n_workers" in cfg.cluster.model_fields_set else None
+    res = cluster_plan(cfg, node, nodes)
+    if res["settings"]:
+        given = ", ".join(f"{k}={v}" for k, v in res["settings"].items())
+        raise InputError("cluster", "cluster.jobqueue", f"a task of this workflow needs more memory than a node of "
+                         f"{node.cores} cores and {node.memory_bytes / 1e9:.2f} GB has unless it is split ({given}; "
+                         "`mmflow plan --cluster slurm` shows the plan)", f"rerun with {given}")
+    pools = worker_pools(res)
+    log(f"{kind}: worker jobs sized per stage from the plan on {res['nodes']} nodes of {node.cores} cores and "
+        f"{node.memory_bytes / 1e9:.2f} GB (sinfo): " + "; ".join(
+            f"{', '.join(p['stages'])}: {describe(p)}" for p in _distinct(pools)))
+    return pools
+
+
+def workers_per_host(processes):
+    """The job script's line that tells mmflow's thread budget how many workers share the job's cores."""
+    return f"export MMFLOW_WORKERS_PER_HOST={int(processes or 1)}"
+
+
+def _without_lifetime(args):
+    """``worker_extra_args`` without ``--lifetime``/``--lifetime-stagger`` and their values."""
+    out, skip = [], False
+    for a in args:
+        if skip or a in ("--lifetime", "--lifetime-stagger"):
+            skip = not skip
+            continue
+        out.append(a)
+    return out
+
+
+def _user_lifetime(args, walltime):
+    """True where ``args``' lifetime is not the one :func:`~mmflow.workflow.engine.batch.lifetime_args`
+    makes of ``walltime`` (the workflow set its own)."""
+    have = [a for i, a in enumerate(args) if a.startswith("--lifetime") or (i and args[i - 1].startswith("--lifetime"))]
+    return bool(have) and have != lifetime_args(walltime)
+
+
+def _distinct(pools):
+    seen = []
+    for p in pools.values():
+        if not any(p is q for q in seen):
+            seen.append(p)
+    return seen
+
+
+def describe(pool):
+    """``'N jobs of C cores / M GB'`` (and the workers a job holds where more than one)."""
+    from dask.utils import parse_bytes  # deferred: dask takes 0.3-0.8 s to import
+
+    text = f"{pool['count']} jobs of {pool['cores']} cores / {parse_bytes(pool['memory']) / 1e9:.2f} GB"
+    return text + (f" ({pool['processes']} workers of {pool['worker_cores']} cores each)"
+                   if pool["processes"] > 1 else "")
+
+
+def pool_options(opts, pool, user_walltime):
+    """``opts`` (the job options :func:`mmflow.workflow.engine.batch.job_options` completes) with the
+    pool's shape; the workflow's own walltime, where it gives one, wins over the plan's."""
+    out = dict(opts, **{k: pool[k] for k in POOL_OPTIONS})
+    if user_walltime:
+        out["walltime"] = user_walltime
+    return out
+
+
+class StagePools:
+    """Switches a dask-jobqueue cluster's jobs to the pool of the stage about to run.
+
+    Parameters
+    ----------
+    cluster : dask_jobqueue.JobQueueCluster
+        Started with no jobs (the first stage's :meth:`use` submits them).
+    pools : dict
+        ``{stage: pool}`` (:func:`plan_pools`).
+    job_kwargs : dict
+        The cluster's job options (``cluster._job_kwargs``: the interface, protocol and security
+        dask-jobqueue added included), ``job_script_prologue`` without mmflow's workers-per-host line.
+    user_walltime : str or None
+        ``cluster.jobqueue.walltime`` where given.
+    """
+
+    def __init__(self, cluster, pools, job_kwargs, user_walltime, log=print):
+        self.cluster, self.pools, self.log = cluster, pools, log
+        self.job_kwargs, self.user_walltime = dict(job_kwargs), user_walltime
+        args = list(job_kwargs.get("worker_extra_args") or [])
+        # the lifetime job_options added from the first pool's walltime is each pool's own; one the workflow set stays
+        self.extra_args = None if _user_lifetime(args, job_kwargs.get("walltime")) else _without_lifetime(args)
+        self.current = None
+
+    def pool_of(self, stage):
+        """The stage's pool; a stage the plan does not list (none: every enabled stage with tasks is
+        planned) keeps the running pool, else takes the one of the largest workers."""
+        if stage in self.pools:
+            return self.pools[stage]
+        return self.current or max(self.pools.values(), key=lambda p: p["worker_cores"])
+
+    def job_kwargs_of(self, pool):
+        """The cluster's job options with ``pool``'s shape, lifetime and workers-per-host line."""
+        kw = pool_options(self.job_kwargs, pool, self.user_walltime)
+        if self.extra_args is not None:
+            kw["worker_extra_args"] = list(self.extra_args) + lifetime_args(kw["walltime"])
+        kw["job_script_prologue"] = list(kw.get("job_script_prologue") or []) + [workers_per_host(kw["processes"])]
+        return kw
+
+    def use(self, stage, client, watch=None, log=None):
+        """Make the cluster's jobs the stage's pool's (see the module's docstring; the change logged with
+        ``log``, default the cluster's); returns the pool."""
+        pool = self.pool_of(stage)
+        if pool is self.current:
+            return pool
+        old = set(self.cluster.worker_spec)
+        if old:  # the last stage's workers: none of its tasks is left, and none of this stage's is sent yet
+            names = [str(w["name"]) for w in client.scheduler_info().get("workers", {}).values()]
+            gone = [n for n in names if any(n == str(o) or n.startswith(f"{o}-") for o in old)]
+            if gone:
+                client.retire_workers(names=gone, close_workers=True)
+            for name in old:
+                self.cluster.worker_spec.pop(name, None)
+            # new names: a new job under an old one would be taken for the old job, which is then never closed
+            self.cluster._i = getattr(self.cluster, "_i", 0) + 1
+            if watch is not None:
+                watch.retire(old)
+        kw = self.job_kwargs_of(pool)
+        spec = {"cls": self.cluster.job_cls, "options": kw}
+        if kw["processes"] > 1:
+            spec["group"] = [f"-{i}" for i in range(kw["processes"])]
+        self.cluster._job_kwargs = kw  # what dask-jobqueue's job script and job counts are made from
+        self.cluster.new_spec = spec  # what scaling submits, replacements of lost jobs included
+        self.current = pool
+        if watch is not None:
+            watch.n_jobs = pool["count"]
+        self.cluster.scale(jobs=pool["count"])
+        (log or self.log)(f"stage {stage}: {describe(pool)}" + (" (the running jobs retired)" if old else "")
+                 + f", walltime {kw['walltime']}; for {', '.join(pool['stages'])}")
+        return pool
+

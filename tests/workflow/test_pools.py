@@ -1,0 +1,110 @@
+"""Worker jobs sized per stage from the plan, without a batch system (tests/cluster runs them on a real
+SLURM): stages grouped by worker into pools, and the switch between pools on a stand-in cluster."""
+from pathlib import Path
+
+import pytest
+
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.batch import lifetime_args
+from mmflow.workflow.engine.pools import StagePools, describe, plan_pools
+from mmflow.workflow.plan import jobs
+from mmflow.workflow.plan.nodes import MIB, Node
+from tests.workflow_helpers import small_config
+
+ROOT = Path(__file__).resolve().parents[2]
+GB = 1e9
+
+
+@pytest.fixture(scope="module")
+def paper_plan():
+    return jobs.cluster_plan(load_config(str(ROOT / "workflows" / "paper-scale.yaml")), Node(32, 128 * GB),
+                             peak_gflops=197.0)
+
+
+def test_stages_of_one_worker_share_a_pool_and_larger_workers_serve_only_those_that_need_them(paper_plan):
+    pools = jobs.worker_pools(paper_plan)
+    shapes, rows = paper_plan["jobs"], {r["stage"]: r for r in paper_plan["stages"]}
+    assert set(pools) == set(shapes)
+    for stage, pool in pools.items():
+        assert pool["worker_cores"] == rows[stage]["worker_cores"] and stage in pool["stages"]
+        assert all(pools[s] is pool for s in pool["stages"])  # one dict: the stages share its jobs
+        mine = [shapes[s] for s in pool["stages"]]
+        assert pool["count"] == max(j["count"] for j in mine) and pool["processes"] == max(j["processes"] for j in mine)
+        assert pool["task_memory_bytes"] <= pool["worker_memory_bytes"] * jobs.terminate_fraction()
+        assert pool["cores"] == pool["processes"] * pool["worker_cores"] <= 32  # a job fits a node
+        assert pool["memory"] == f"{pool['cores'] * Node(32, 128 * GB).core_memory_bytes // MIB}MiB"
+    assert pools["transfer"]["worker_cores"] == 2 and pools["transfer"]["stages"] == ["transfer"]
+    assert pools["mmodes"] is pools["normal"] and pools["mmodes"]["worker_cores"] == 1
+
+
+class _Cluster:
+    """A dask-jobqueue cluster's scaling as StagePools uses it (SpecCluster's naming and scale)."""
+
+    job_cls = "job"
+
+    def __init__(self):
+        self.worker_spec, self.new_spec, self._i, self._job_kwargs, self.scaled = {}, None, 0, {}, []
+
+    def scale(self, jobs):
+        self.scaled.append(jobs)
+        while len(self.worker_spec) < jobs:
+            while f"job-{self._i}" in self.worker_spec:
+                self._i += 1
+            self.worker_spec[f"job-{self._i}"] = self.new_spec
+
+
+class _Client:
+    def __init__(self, cluster):
+        self.cluster, self.retired = cluster, []
+
+    def scheduler_info(self):
+        return {"workers": {f"tcp://{n}{s}": {"name": f"{n}{s}"} for n, spec in self.cluster.worker_spec.items()
+                            for s in spec.get("group", [""])}}
+
+    def retire_workers(self, names, close_workers):
+        self.retired.append(sorted(names))
+
+
+def test_a_stage_of_another_pool_retires_the_running_jobs_and_submits_its_own(paper_plan):
+    pools, cluster, said = jobs.worker_pools(paper_plan), _Cluster(), []
+    client = _Client(cluster)
+    sp = StagePools(cluster, pools, {"queue": "compute", "walltime": None, "worker_extra_args": ["--nthreads", "1"]},
+                    None, said.append)
+    sp.use("mmodes", client)
+    one = pools["mmodes"]
+    assert cluster.scaled == [one["count"]] and client.retired == []
+    opts = cluster.new_spec["options"]
+    assert (opts["cores"], opts["memory"], opts["processes"]) == (one["cores"], one["memory"], one["processes"])
+    assert opts["queue"] == "compute" and cluster.new_spec["group"] == [f"-{i}" for i in range(one["processes"])]
+    assert opts["worker_extra_args"] == ["--nthreads", "1", *lifetime_args(one["walltime"])]
+    assert opts["job_script_prologue"] == [f"export MMFLOW_WORKERS_PER_HOST={one['processes']}"]
+    assert said[-1].startswith(f"stage mmodes: {describe(one)}")
+    first = set(cluster.worker_spec)
+    sp.use("transfer", client)  # 2-core workers: the 1-core jobs retired, new names
+    two = pools["transfer"]
+    assert client.retired == [sorted(f"{n}-{i}" for n in first for i in range(one["processes"]))]
+    assert not set(cluster.worker_spec) & first and len(cluster.worker_spec) == two["count"]
+    assert cluster.new_spec["options"]["cores"] == two["cores"] and cluster._job_kwargs["processes"] == two["processes"]
+    assert "the running jobs retired" in said[-1]
+    sp.use("normal", client)  # back to 1-core workers
+    kept = set(cluster.worker_spec)
+    sp.use("solve", client)  # the same pool: its jobs kept, nothing retired or submitted
+    assert set(cluster.worker_spec) == kept and len(client.retired) == 2 and len(cluster.scaled) == 3
+
+
+def test_jobs_are_sized_per_stage_only_when_the_workflow_gives_no_shape_and_sinfo_answers(tmp_path, monkeypatch):
+    import dask_jobqueue  # noqa: F401  (loads dask's jobqueue.yaml defaults, as jobqueue_cluster does)
+
+    from mmflow.workflow.plan import nodes
+
+    cfg = small_config(tmp_path / "run", "cluster.kind=slurm")
+    monkeypatch.setattr(nodes, "read_sinfo", lambda: "2 1500 3 debug*\n")
+    said = []
+    pools = plan_pools(cfg, "slurm", {}, said.append)
+    assert pools is not None and set(pools) == {"simulate", "mmodes", "transfer", "normal", "solve", "products"}
+    assert all(p["worker_memory_bytes"] == 512 * MIB for p in pools.values())
+    assert "sized per stage from the plan" in said[0]
+    assert plan_pools(cfg, "slurm", {"cores": 2}, said.append) is None  # the workflow's shape wins
+    assert plan_pools(cfg, "pbs", {}, said.append) is None  # no sinfo: one shape, as before
+    monkeypatch.setattr(nodes, "read_sinfo", lambda: None)
+    assert plan_pools(cfg, "slurm", {}, said.append) is None
