@@ -109,8 +109,10 @@ def test_half_written_array_metadata_from_a_kill_is_rebuilt(ref, tmp_path):
 
 
 def test_resume_on_another_cluster_size_is_bit_identical(tmp_path):
-    """SIGKILL the driver inside transfer on 2 local workers; resume on 1 worker. The reference ran
-    uninterrupted on 3 workers: on one executor kind (worker processes), bits never depend on the cluster."""
+    """SIGKILL the driver inside transfer on 1 local worker; resume on 2 workers. The reference ran
+    uninterrupted on 3 workers: on one executor kind (worker processes), bits never depend on the cluster.
+    (Killed on one worker: transfer's two tasks then run one after the other, so the kill lands between
+    them; on two workers they finish together and the stage can be complete before the signal.)"""
     from mmflow.cli import main
 
     # products.png=false: the maps compared are the FITS files; a PNG costs each run ~2 s in a worker
@@ -122,8 +124,8 @@ def test_resume_on_another_cluster_size_is_bit_identical(tmp_path):
 
     assert cli(tmp_path / "ref", "cluster.n_workers=3") == 0
     run_dir = tmp_path / "run"
-    interrupt_run(run_dir, "transfer", signal.SIGKILL, extra=local + ["cluster.n_workers=2"])
-    assert cli(run_dir, "cluster.n_workers=1") == 0
+    interrupt_run(run_dir, "transfer", signal.SIGKILL, extra=local + ["cluster.n_workers=1"])
+    assert cli(run_dir, "cluster.n_workers=2") == 0
     assert_identical(read_outputs(tmp_path / "ref"), read_outputs(run_dir))
 
 
