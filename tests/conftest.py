@@ -10,7 +10,7 @@ os.environ.setdefault("MMFLOW_THREADS", "2")
 os.environ.setdefault("MMFLOW_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "mmflow"))
 
 
-#: the longest test files, longest first: started first, so that with ``-n 2 --dist loadfile
+#: the longest test files, longest first: started first, so that with ``-n 3 --dist loadfile
 #: --no-loadscope-reorder`` (``make test``) no long file is left running alone at the end (a scheduling
 #: hint; measured, docs/performance.md). Without ``--no-loadscope-reorder`` xdist sorts the files by
 #: their number of tests and the one-test README tour (~3 min) started last.
