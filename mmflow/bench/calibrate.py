@@ -20,6 +20,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from mmflow.environ import restored_environ
 from mmflow.calibrate.coherency import source_coherencies, source_vector_date
 from mmflow.calibrate.dd_screen import screen_basis, screen_gains, sky_tangents_enu
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
@@ -168,16 +169,10 @@ def peel_stage_rates(n_ant=256, n_int=32, rng=None):
 @contextmanager
 def one_core():
     """Kernels on one thread (``MMFLOW_THREADS=1``, BLAS limited to one thread) for the block's duration."""
-    old = os.environ.get("MMFLOW_THREADS")
-    os.environ["MMFLOW_THREADS"] = "1"
-    try:
+    with restored_environ("MMFLOW_THREADS"):
+        os.environ["MMFLOW_THREADS"] = "1"
         with single_threaded_blas():
             yield
-    finally:
-        if old is None:
-            del os.environ["MMFLOW_THREADS"]
-        else:
-            os.environ["MMFLOW_THREADS"] = old
 
 
 def _peel_stage_rates(n_ant, n_int, rng):

@@ -48,6 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mmflow.environ import restored_environ
 from mmflow.bench.netns_slurm import NamespacedSlurm, unavailable
 from mmflow.io.run_stores import STORES
 from mmflow.machine import gemm_gflops, machine
@@ -266,8 +267,8 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None, wo
            # mmflow's tasks hold no results in a worker: pausing a worker whose freed heap stays resident
            # only stalls it (the small nodes here make workers of ~1 GiB)
            "DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE": "False" if sized else None}
-    saved = {k: os.environ.get(k) for k in env}
-    with tempfile.TemporaryDirectory(prefix="mmflow-bench-cluster-", dir=directory) as root:
+    with (tempfile.TemporaryDirectory(prefix="mmflow-bench-cluster-", dir=directory) as root,
+          restored_environ(*env)):
         cfg = load_config(path, list(overrides) + ["cluster.kind=synchronous", f"run.directory={root}/reference"])
         t0 = time.time()
         summaries = run_with_passes(cfg, None, progress=False, log=lambda *a: None)
@@ -295,11 +296,6 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None, wo
                 if sized:
                     r["plan_vs_traced"] = plan_vs_traced(run_cfg, run_cfg.run.directory, res["sgemm_gflops"])
         finally:
-            for k, v in saved.items():
-                if v is None:
-                    os.environ.pop(k, None)
-                else:
-                    os.environ[k] = v
             if own and slurm is not None:
                 slurm.stop()
     from mmflow.workflow.plan.jobs import array_projection  # deferred: the planner's modules

@@ -33,6 +33,7 @@ BASE_MODULES = {
     "mmflow.conventions",
     "mmflow.errors",
     "mmflow.paths",
+    "mmflow.environ",
     "mmflow.offline",
     "mmflow.threads",
     "mmflow.import_thread",

@@ -10,6 +10,7 @@ import os
 import socket
 from contextlib import contextmanager
 
+from mmflow.environ import restored_environ
 from mmflow.errors import InputError
 from mmflow.workflow.engine.batch import JobWatch, cluster_interface, job_options, refuse_impossible
 from mmflow.workflow.engine.pools import StagePools, plan_pools, pool_options, workers_per_host
@@ -71,16 +72,9 @@ def fork_workers_from_a_preloaded_server():
     get_mp_context().set_forkserver_preload(list(PRELOAD))
     env = {k: str(v) for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()}
     env.setdefault("PYTHONHASHSEED", "6640")  # as dask's nanny sets it for spawned workers
-    saved = {k: os.environ.get(k) for k in env}
-    os.environ.update(env)
-    try:
+    with restored_environ(*env):
+        os.environ.update(env)
         forkserver.ensure_running()
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def interface_address(name):
