@@ -441,7 +441,7 @@ def polarisation_response(observe, decs_rad, nside, fraction=0.1):
     images = observe(truth).reshape(len(decs), 4, 4, -1)
     out = {"dec_deg": np.rad2deg(decs).round(3).tolist(), "fraction": float(fraction), "leakage": [],
            "ratio_q": [], "ratio_u": [], "ratio_v": []}
-    lmax_p = getattr(observe, "lmax_p", None) or lmax
+    lmax_p = observe.lmax_p
     if lmax_p < lmax:  # I at the polarised band limit, for the fractions
         images = images.copy()
         images[..., 0, healpy.Alm.getlm(lmax)[0] > lmax_p] = 0
