@@ -149,28 +149,48 @@ def _folded_gemm(table, first, second, out):
         np.matmul(odd, b.view(rdtype), out=o[1::2].view(rdtype))
 
 
+def _i_rows(lam, s_iv, d_iv, ne, no, n_rows):
+    """I's rows from row ``ne + no`` of the ``lambda`` tables on (I, V) Fourier arrays ``s_iv, d_iv``
+    (``(n_active, 2, n_corr, cols)``): ``(n_rows, n_corr, cols)``. The first of them is an odd row in
+    ``l - m`` when ``ne > no`` (then the odd table and ``F_k - F_k'`` come first)."""
+    s_i, d_i = np.ascontiguousarray(s_iv[:, 0]), np.ascontiguousarray(d_iv[:, 0])
+    rest = np.empty((n_rows,) + s_i.shape[1:], s_iv.dtype)
+    if ne > no:
+        _folded_gemm((lam[1][no:], lam[0][ne:]), d_i, s_i, rest)
+    else:
+        _folded_gemm((lam[0][ne:], lam[1][no:]), s_i, d_i, rest)
+    return rest
+
+
 def polarised_block(s, d, tables, nb, n_pol=None):
     """One m's coefficients ``(n_out, 4, n_corr, 2 n_b)`` over STOKES (T, E, B, V), from that m's
     Fourier arrays ``s, d`` (:func:`polarised_fourier`: ``(2, n_active, 2, n_corr, 2 n_b)``, pairs
     (I, V) and (Q, U)) and the tables of :func:`polarised_tables`. ``n_pol`` (default ``n_out``): E, B
     and V are computed on the first ``n_pol`` rows only (their band limit, ``imaging.stokes_lmax``) and
-    are zero below them; the spin-2 GEMMs shrink to those rows (none when ``n_pol = 0``)."""
+    are zero above them; the spin-2 GEMMs shrink to those rows (none when ``n_pol = 0``), and the
+    ``lambda`` GEMM takes the (I, V) pair on them and I alone on the rows above (:func:`_i_rows`)."""
     lam, wt, xt = tables
     n_out = lam[0].shape[0] + lam[1].shape[0]
     n_pol = n_out if n_pol is None else max(0, min(int(n_pol), n_out))
     if len(s) == 1 and n_pol:  # Fourier arrays of the I kernels alone (polarised_fourier's i_only)
         raise ValueError("polarised_block: E, B, V rows asked of the I kernels' Fourier arrays")
-    shape = (n_out,) + s.shape[2:]
     out = np.zeros((n_out, 4) + s.shape[3:], s.dtype) if n_pol < n_out else np.empty((n_out, 4) + s.shape[3:],
                                                                                      s.dtype)
-    iv = np.empty(shape, s.dtype)
-    _folded_gemm(lam, s[0], d[0], iv)
+    ne, no = (n_pol + 1) // 2, n_pol // 2  # rows l - m even and odd below the band limit
+    if len(s) == 1 or n_pol == n_out:  # I alone, or I and V on every row: one GEMM of the pair
+        iv = np.empty((n_out,) + s.shape[2:], s.dtype)
+        _folded_gemm(lam, s[0], d[0], iv)
+    else:  # I and V on the rows below the band limit, I alone above it (V is zero there)
+        iv = np.empty((n_pol,) + s.shape[2:], s.dtype)
+        _folded_gemm((lam[0][:ne], lam[1][:no]), s[0], d[0], iv)
+        rest = _i_rows(lam, s[0], d[0], ne, no, n_out - n_pol)
+        np.conjugate(rest[..., nb:], out=rest[..., nb:])
+        out[n_pol:, 0] = rest
     np.conjugate(iv[..., nb:], out=iv[..., nb:])
-    out[:, 0] = iv[:, 0]
+    out[:len(iv), 0] = iv[:, 0]
     if n_pol:
         out[:n_pol, 3] = iv[:n_pol, 1]
     if n_pol:
-        ne, no = (n_pol + 1) // 2, n_pol // 2  # rows l - m even and odd below the band limit
         wt_p, xt_p = (wt[0][:ne], wt[1][:no]), (xt[0][:ne], xt[1][:no])
         w_qu, x_qu = (np.empty((n_pol,) + s.shape[2:], s.dtype) for _ in range(2))
         _folded_gemm(wt_p, s[1], d[1], w_qu)

@@ -14,7 +14,7 @@ from mmflow.conventions import enu_to_equatorial_matrix
 from mmflow.errors import InputError
 from mmflow.mmode.polarised import (CORRELATIONS, feed_projections, make_polarised_grid, polarised_coefficients,
                                     stokes_kernels)
-from mmflow.mmode.polarised_transfer import polarised_transfer_blocks
+from mmflow.mmode.polarised_transfer import polarised_pass, polarised_transfer_blocks
 from mmflow.mmode.transfer import fringe_bandlimit, make_grid, transfer_blocks
 from mmflow.telescope.jones import PyUVDataJones, ShortDipoleJones
 
@@ -240,6 +240,26 @@ def test_pure_V_sky_gives_antisymmetric_cross_hands_and_no_parallel_hands():
         xx, yy, xy, yx = blk[:, 3]
         assert np.abs(xx).max() < 1e-12 * peak and np.abs(yy).max() < 1e-12 * peak
         assert np.abs(xy + yx).max() < 1e-12 * peak
+
+
+@pytest.mark.parametrize("lmax_pol", [7, 8])  # the band limit's first row above it odd and even in l - m
+def test_a_polarised_band_limit_keeps_t_and_the_rows_below_it(lmax_pol):
+    """``lmax_pol`` (``imaging.stokes_lmax``) changes no T coefficient and no E, B, V coefficient at
+    ``l <= lmax_pol``, and zeroes E, B, V above it: the same blocks as every Stokes parameter to lmax
+    (there the (I, V) pair takes one GEMM per parity; below lmax the rows above the band limit take
+    the I kernels alone)."""
+    jones = ShortDipoleJones(horizon_taper=3.0)
+    lmax = 20
+    b = np.array([[3.0, 1.0, -0.5], [-1.2, 2.2, 0.4], [0.7, -0.3, 0.2]])
+    grid = _grid(jones, b, lmax)
+    full = polarised_pass(grid, b, lambda m, blk: blk.copy())
+    low = polarised_pass(grid, b, lambda m, blk: blk.copy(), lmax_pol=lmax_pol)
+    scale = max(np.abs(f).max() for f in full)
+    for m, (f, lo) in enumerate(zip(full, low)):
+        n_p = max(0, lmax_pol - m + 1)  # rows l = m..lmax_pol
+        np.testing.assert_allclose(lo[:, 0], f[:, 0], rtol=0, atol=1e-13 * scale)
+        np.testing.assert_allclose(lo[:n_p, 1:], f[:n_p, 1:], rtol=0, atol=1e-13 * scale)
+        assert not lo[n_p:, 1:].any()
 
 
 def test_bench_transfer_stokes_compares_both_paths_on_the_same_baselines():
