@@ -32,7 +32,7 @@ from mmflow.machine import best_time, gemm_gflops, machine
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.normal import herk_into
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
-from mmflow.mmode.polarised_transfer import active_rings, baselines_per_pass, polarised_pass
+from mmflow.mmode.polarised_transfer import active_rings, baselines_per_pass, legendre_rows, polarised_pass
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.telescope import Telescope, ovro_lwa_layout
 from mmflow.telescope.jones import ShortDipoleJones
@@ -78,16 +78,14 @@ def _full_stokes(tel, jones, lmax, lmax_p, timings):
                                fringe_bandlimit(np.linalg.norm(b, axis=1), jones.lmax_hint))
     t_grid = time.perf_counter() - t0
     t0 = time.perf_counter()
-    step = baselines_per_pass(grid, nc, np.dtype(np.complex64).itemsize)
+    step = baselines_per_pass(grid, nc, np.dtype(np.complex64).itemsize, lmax_pol=lmax_p)
     for s0 in range(0, len(b), step):  # as accumulate_polarised_normal chunks its baselines
         polarised_pass(grid, b[s0:s0 + step], consume, dtype=np.float32, timings=timings, lmax_pol=lmax_p)
     n_act = len(active_rings(grid))
 
-    def rows(m):  # table x field rows: lambda on I (to lmax) and V, W and X on Q, U (to lmax_p)
-        n_l, n_p = stokes_sizes(m, lmax, lmax_p)
-        return n_l + 5 * n_p
     # Legendre: rows x (corr x cols) complex columns against n_act rings, 2 real flops per product
-    leg = sum(2.0 * rows(m) * n_act * nc * (len(b) if m == 0 else 2 * len(b)) * 2 for m in range(lmax + 1))
+    leg = sum(2.0 * legendre_rows(*stokes_sizes(m, lmax, lmax_p)) * n_act * nc * (len(b) if m == 0 else 2 * len(b)) * 2
+              for m in range(lmax + 1))
     return time.perf_counter() - t0, t_grid, flops[0] + leg
 
 

@@ -172,7 +172,8 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     rhs = [np.zeros((n_vec, n), np.complex128) for n in size]
     vhv = np.zeros((n_vec, lmax + 1))
     # passes sized on the largest grid (the one of the longest baselines at lmax)
-    chunk_size = chunk_size or baselines_per_pass(grid_of(lmax, np.arange(nb)), n_corr, np.dtype(cdtype).itemsize)
+    chunk_size = chunk_size or baselines_per_pass(grid_of(lmax, np.arange(nb)), n_corr, np.dtype(cdtype).itemsize,
+                                                  m_range=(m0, m1), lmax_pol=lmax_p)
     lb = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b, int), lmax)
     order = np.argsort(lb, kind="stable")  # chunks of like lmax_b: blocks stop at the chunk's largest
     for start in range(0, nb, chunk_size):

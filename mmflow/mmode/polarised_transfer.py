@@ -42,6 +42,8 @@ FIELDS = ("I", "V", "Q", "U")
 #: Bytes one pass's Fourier arrays may hold; more m than fit are done in blocks, each block's ring
 #: FFTs recomputed (a quarter of the time at lmax 1000 with 8 baselines a pass: docs/stokes.md).
 FOURIER_BUDGET_BYTES = 1024 * 2 ** 20
+#: baselines a pass (:func:`pass_baselines`): fewer narrow the GEMMs, more are not needed to fill them
+PASS_BASELINES = (8, 64)
 
 
 def active_rings(grid):
@@ -106,26 +108,57 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
     return fsum, fdiff, rings
 
 
-def fourier_bytes_per_m(grid, nb, n_corr, itemsize):
+def fourier_bytes(n_active, nb, n_corr, itemsize):
     """Bytes of :func:`polarised_fourier`'s two arrays per m: ``2 x 2 x n_active x 2 x n_corr x 2 n_b``."""
-    return 2 * 2 * len(active_rings(grid)) * 2 * n_corr * 2 * nb * itemsize
+    return 2 * 2 * int(n_active) * 2 * n_corr * 2 * nb * itemsize
+
+
+def fourier_bytes_per_m(grid, nb, n_corr, itemsize):
+    """:func:`fourier_bytes` on ``grid``'s active rings (:func:`active_rings`)."""
+    return fourier_bytes(len(active_rings(grid)), nb, n_corr, itemsize)
+
+
+def m_block_of(bytes_per_m, budget=None):
+    """How many m one Fourier pass keeps so that its two arrays (``bytes_per_m`` each m) stay within ``budget``
+    bytes (default :data:`FOURIER_BUDGET_BYTES`)."""
+    budget = FOURIER_BUDGET_BYTES if budget is None else budget
+    return max(1, int(budget // max(bytes_per_m, 1)))
 
 
 def fourier_m_block(grid, nb, n_corr, itemsize, budget=None):
-    """How many m one Fourier pass keeps so that its two arrays stay within ``budget`` bytes
-    (default :data:`FOURIER_BUDGET_BYTES`)."""
-    budget = FOURIER_BUDGET_BYTES if budget is None else budget
-    return max(1, int(budget // max(fourier_bytes_per_m(grid, nb, n_corr, itemsize), 1)))
+    """:func:`m_block_of` for ``nb`` baselines on ``grid``."""
+    return m_block_of(fourier_bytes_per_m(grid, nb, n_corr, itemsize), budget)
 
 
-def baselines_per_pass(grid, n_corr, itemsize, budget=None):
-    """Baselines per :func:`polarised_pass`: about four Fourier m-blocks (:func:`fourier_m_block`) per
-    pass, 8 to 64. Each block recomputes the rings' FFTs; fewer baselines make narrower GEMMs and
-    lower-rank ``herk`` updates. Measured at lmax 1000 (float32, 16 baselines, with numpy's ring
-    products): 1.82 s per baseline at 8 per pass (five blocks), 1.86 s at 4, 2.7 s at 16."""
+def pass_baselines(bytes_per_m_baseline, n_pol_m, n_i_m, budget=None):
+    """Baselines per :func:`polarised_pass` over ``n_pol_m`` m of every kernel and ``n_i_m`` m of the I
+    kernels alone (above the polarised band limit: a quarter of the bytes), ``bytes_per_m_baseline`` the
+    Fourier arrays' bytes per m and baseline (:func:`fourier_bytes_per_m`): as many as let each of the two
+    ranges fit one Fourier m-block (:func:`fourier_m_block`), 8 to 64.
+
+    Every m-block recomputes the rings' products and FFTs (the ring stage, not in the GEMMs), so a pass
+    whose m do not fit one block pays it again per block: at lmax 1000 with Q, U, V to 256, 16 baselines a
+    pass split the polarised m in two blocks, 36 ring products per baseline instead of 20. Below 8
+    baselines the GEMMs narrow (measured at lmax 1000, every Stokes parameter to lmax, with numpy's ring
+    products: 1.82 s per baseline at 8 a pass, 1.86 s at 4, 2.7 s at 16)."""
     budget = FOURIER_BUDGET_BYTES if budget is None else budget
-    all_m = fourier_bytes_per_m(grid, 1, n_corr, itemsize) * (grid.lmax + 1)
-    return int(np.clip(4 * budget // max(all_m, 1), 8, 64))
+    per = max(int(n_pol_m), -(-int(n_i_m) // 4), 1) * max(float(bytes_per_m_baseline), 1.0)
+    return int(np.clip(budget // per, *PASS_BASELINES))
+
+
+def baselines_per_pass(grid, n_corr, itemsize, budget=None, m_range=None, lmax_pol=None):
+    """:func:`pass_baselines` for the passes of ``grid`` over ``m_range`` (default ``0..grid.lmax``), E, B and
+    V to ``lmax_pol`` (default ``grid.lmax``)."""
+    m0, m1 = (0, grid.lmax + 1) if m_range is None else (int(m_range[0]), min(int(m_range[1]), grid.lmax + 1))
+    lpol = grid.lmax if lmax_pol is None else int(lmax_pol)
+    n_pol_m = max(0, min(m1, lpol + 1) - m0)
+    return pass_baselines(fourier_bytes_per_m(grid, 1, n_corr, itemsize), n_pol_m, m1 - m0 - n_pol_m, budget)
+
+
+def legendre_rows(n_t, n_p):
+    """Table x field rows of one m's Legendre GEMMs (:func:`polarised_block`): ``lambda`` on I to the T rows
+    ``n_t`` and on V to the polarised rows ``n_p``, ``W`` and ``X`` on Q and U to ``n_p``."""
+    return n_t + 5 * n_p
 
 
 def polarised_tables(grid, m, lmax_rows, rings, rdtype):

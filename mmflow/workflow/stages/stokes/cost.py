@@ -25,7 +25,8 @@ import numpy as np
 from mmflow.io import run_stores as rs
 from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT
 from mmflow.mmode.polarised import CORRELATIONS
-from mmflow.mmode.polarised_transfer import FOURIER_BUDGET_BYTES
+from mmflow.mmode.polarised_transfer import (FOURIER_BUDGET_BYTES, PASS_BASELINES, fourier_bytes, legendre_rows,
+                                             m_block_of, pass_baselines)
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.mmode.engine import GridCache
 from mmflow.workflow.engine.geometry import stokes_lmax_of
@@ -43,8 +44,6 @@ GEMM_EFFICIENCY = 0.6
 KERNELS = 4 * len(CORRELATIONS)
 #: test sources of the polarisation response (4 at each of up to 5 declinations: the stokes stage's)
 RESPONSE_SOURCES = 20
-#: baselines per pass at lmax ~1000 (:func:`mmflow.mmode.polarised_transfer.baselines_per_pass`'s ceiling)
-PASS_BASELINES = 64
 
 
 def _grid_shape(top, fringe):
@@ -55,34 +54,43 @@ def _grid_shape(top, fringe):
     return n_theta, ducc0.fft.good_size(max(quad + 2, 2 * top + 2))
 
 
-def _chunks(g, cfg):
-    """Per chunk of baselines ``(n_b, top, grid points, lmax_b array)`` as the stage chunks one channel."""
+def _chunks(g, cfg, m_range, lmax_p):
+    """Per chunk of baselines ``(n_b, top, grid points, lmax_b array)`` as the stage chunks one channel's block
+    of m ``m_range``: sorted by per-baseline lmax, :func:`mmflow.mmode.polarised_transfer.pass_baselines` a
+    chunk on the largest grid (that of every baseline at lmax)."""
     tel, f = g.tel, g.freqs_hz[-1]
     lmax = g.lmax
     pairs = tel.antenna_pairs()
     b_len = np.linalg.norm(baselines_in_wavelengths(tel, pairs, f), axis=1)
     lb = tel.baseline_lmax(f, lmax, pairs) if cfg.transfer.per_baseline_lmax else np.full(len(pairs), lmax)
+    n_theta, _ = _grid_shape(*GridCache.key(lmax, fringe_bandlimit(b_len, tel.beam.lmax_hint), lmax))
+    m0, m1 = m_range
+    n_pol_m = max(0, min(m1, lmax_p + 1) - m0)
+    per = pass_baselines(fourier_bytes(n_theta // 2, 1, len(CORRELATIONS), _item(cfg)), n_pol_m, m1 - m0 - n_pol_m)
     order = np.argsort(lb, kind="stable")
     out = []
-    for s in range(0, len(order), PASS_BASELINES):
-        idx = order[s:s + PASS_BASELINES]
+    for s in range(0, len(order), per):
+        idx = order[s:s + per]
         top = int(lb[idx].max())
         key = GridCache.key(top, fringe_bandlimit(b_len[idx], tel.beam.lmax_hint), lmax)
         out.append((len(idx), top, _grid_shape(*key), lb[idx]))
     return out
 
 
-def _block_seconds(g, cfg, chunks, m0, m1, size, lmax_p, peak):
+def _item(cfg):
+    """Bytes of a complex of the transfer's precision."""
+    return 8 if cfg.transfer.dtype == "float32" else 16
+
+
+def _block_seconds(g, cfg, m0, m1, size, lmax_p, peak):
     """Seconds of one block task (module docstring)."""
     ring, flops = 0.0, 0.0
-    item = 8 if cfg.transfer.dtype == "float32" else 16
-    for nb, top, (n_theta, n_phi), lbs in chunks:
+    for nb, top, (n_theta, n_phi), lbs in _chunks(g, cfg, (m0, m1), lmax_p):
         if top < m0:
             continue
         n_act = n_theta // 2
         m_hi = min(top, m1 - 1)
-        per_m = 2 * 2 * n_act * 2 * len(CORRELATIONS) * 2 * nb * item
-        step = max(1, int(FOURIER_BUDGET_BYTES // per_m))
+        step = m_block_of(fourier_bytes(n_act, nb, len(CORRELATIONS), _item(cfg)))
         n_pol_m = max(0, min(m_hi, lmax_p) - m0 + 1)  # every kernel; above lmax_p the I kernels alone
         n_i_m = m_hi - m0 + 1 - n_pol_m
         fblocks = -(-n_pol_m // step) + -(-n_i_m // (4 * step)) / 4
@@ -90,8 +98,7 @@ def _block_seconds(g, cfg, chunks, m0, m1, size, lmax_p, peak):
         for m in range(m0, m_hi + 1):
             cols = nb if m == 0 else 2 * nb
             n_t, n_p = top - m + 1, max(0, min(top, lmax_p) - m + 1)
-            rows = 2 * n_t + 4 * n_p if n_p else n_t  # lambda on I, V (on I alone above lmax_p), W, X on Q, U
-            flops += 2.0 * n_act * rows * len(CORRELATIONS) * cols * 2
+            flops += 2.0 * n_act * legendre_rows(n_t, n_p) * len(CORRELATIONS) * cols * 2
             flops += 4.0 * len(CORRELATIONS) * cols * (n_t + 3 * n_p) ** 2  # herk
     flops += sum(8.0 * size(m) ** 3 / 3 for m in range(m0, m1))  # the block's factors
     return ring * RING_SECONDS_PER_POINT * RING_REFERENCE_GFLOPS / peak + flops / (GEMM_EFFICIENCY * peak * 1e9)
@@ -112,9 +119,8 @@ def work(g, cfg):
     n_theta, n_phi = _grid_shape(g.lmax, g.lmax)
     grid = 2 * 2 * n_theta * n_phi * COMPLEX128_BYTES  # feeds x (N, E) responses of the largest grid
     # one pass's Fourier arrays (polarised_fourier: 2 x 2 x rings x 2 x corr x 2 n_b per m), at most the budget
-    item = 8 if cfg.transfer.dtype == "float32" else 16
-    fourier = min(FOURIER_BUDGET_BYTES, 2 * 2 * (n_theta // 2) * 2 * len(CORRELATIONS) * 2
-                  * min(PASS_BASELINES, g.n_bl) * item * (g.lmax + 1))
+    fourier = min(FOURIER_BUDGET_BYTES, fourier_bytes(n_theta // 2, min(PASS_BASELINES[1], g.n_bl), len(CORRELATIONS),
+                                                      _item(cfg)) * (g.lmax + 1))
     block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
     # the second phase: the factors (or one m's Gram and factor), the splits' harmonics and the test sources'
     # (the polarisation response's 4 per declination, or the V PSF table's) imaged: in and out, T, E, B, V each
@@ -133,8 +139,7 @@ def seconds(g, cfg, per_task, workers, peak):
     """The stage's wall time: each channel's block tasks in rounds over the task slots, then its second
     phase (module docstring)."""
     size, lmax_p, blocks, *_, kept = _plan(g, cfg)
-    chunks = _chunks(g, cfg)
-    block_s = sorted((_block_seconds(g, cfg, chunks, m0, m1, size, lmax_p, peak) for m0, m1 in blocks),
+    block_s = sorted((_block_seconds(g, cfg, m0, m1, size, lmax_p, peak) for m0, m1 in blocks),
                      reverse=True)
     # the block tasks of all channels over the slots (each channel's blocks alike), longest first
     per_slot = [0.0] * max(1, workers)
