@@ -1,7 +1,7 @@
 """Peeling with defaults on a corrupted day mmflow did not make (issue 39 item 4).
 
 ``tests/independent_day.py`` writes one sidereal day of the 18 OVRO-LWA core stands within 20 m at
-40 MHz (192 integrations, XX and YY) as UVH5 through pyuvdata, summed directly with astropy's apparent
+40 MHz (128 integrations, XX and YY) as UVH5 through pyuvdata, summed directly with astropy's apparent
 directions (no mmflow simulator or corruption code): Cyg A and Cas A refracted and scintillating, Vir A
 and Tau A, eight unmodelled sources of 30-100 Jy at least 35 deg from Cyg A and Cas A, per-antenna
 complex gains with the HVAC sawtooth, receiver power in the autocorrelations and radiometer noise; the
@@ -10,10 +10,11 @@ path, lmax and the three calibration stages switched on, every calibration setti
 
 dB as in ``tests/acceptance/test_four_correlation_peel.py``: the largest ``|chain - truth|`` within
 3 deg of the source (``truth``: the unmodelled sources alone, uncorrupted, imaged alike) over the
-source's peak in the map of the same data calibrated but not peeled. Measured: Cyg A -33.9 dB, Cas A
--33.6 dB; the unmodelled sources' peaks 0.895-1.008 of the truth's (median 0.94). With gains that also
-drift slowly (1 % in amplitude, 0.03 rad in phase over hours) the defaults' one gain solution
-(the best track's) leaves -27.5 / -25.8 dB: docs/calibration.md.
+source's peak in the map of the same data calibrated but not peeled. Measured: Cyg A -36.0 dB, Cas A
+-36.6 dB; the unmodelled sources' peaks 0.911-1.051 of the truth's (median 0.97); seeds 8 and 9: -37.9 / -40.8
+and -36.7 / -34.8 dB, 0.905-1.056; 192 integrations (seed 7): -33.9 / -33.6 dB, 0.895-1.008. With gains
+that also drift slowly (1 % in amplitude, 0.03 rad in phase over hours) the defaults' one gain solution
+(the best track's) leaves -27.5 / -25.8 dB (192 integrations): docs/calibration.md.
 """
 import healpy as hp
 import numpy as np
@@ -43,7 +44,7 @@ def _run(path, data, *extra):
 @pytest.fixture(scope="module")
 def maps(tmp_path_factory):
     d = tmp_path_factory.mktemp("independent")
-    day = independent_day()
+    day = independent_day(n_times=128)
     day["corrupted"].write_uvh5(str(d / "corrupted.uvh5"), fix_autos=True)
     day["truth"].write_uvh5(str(d / "truth.uvh5"), fix_autos=True)
     out = {"chain": _run(d / "chain", d / "corrupted.uvh5", *ON)}
@@ -63,7 +64,7 @@ def test_cyg_a_and_cas_a_are_30_db_down_with_defaults(maps):
         pix = hp.query_disc(NSIDE, v, np.deg2rad(3.0))
         db = 10 * np.log10(np.abs(maps["chain"][pix] - maps["truth"][pix]).max() / peak)
         print(f"{name}: {db:.1f} dB")
-        assert db < -30, (name, db)  # measured -33.9 (Cyg A), -33.6 dB (Cas A)
+        assert db < -30, (name, db)  # measured -36.0 (Cyg A), -36.6 dB (Cas A)
 
 
 def test_unmodelled_sources_are_kept(maps):
@@ -73,5 +74,5 @@ def test_unmodelled_sources_are_kept(maps):
         kept.append(measure_peak(maps["chain"], v, np.deg2rad(10))["peak"]
                     / measure_peak(maps["truth"], v, np.deg2rad(10))["peak"])
     print("unmodelled peaks / truth:", " ".join(f"{k:.3f}" for k in kept))
-    assert np.all(np.abs(np.array(kept) - 1) < 0.12), kept  # measured 0.895-1.008
-    assert abs(np.median(kept) - 1) < 0.08, kept  # measured 0.94
+    assert np.all(np.abs(np.array(kept) - 1) < 0.12), kept  # measured 0.911-1.051
+    assert abs(np.median(kept) - 1) < 0.06, kept  # measured 0.97
