@@ -42,6 +42,10 @@ import numpy as np
 from mmflow.conventions import CROSS_FEEDS
 from mmflow.simulate.corrupt import gain_products
 
+#: the largest ``|c_s| / |c_bar|`` :func:`fit_cross_bounded` accepts: the amplitudes the parallel hands fit
+#: leave ``|c|`` within a few tens of percent of 1 (scintillation, the XY amplitude ratio)
+CROSS_MAX_RATIO = 3.0
+
 
 def gain_templates(models, gains, pairs):
     """``T`` (n, time, bl, 2) of components with DD gains: ``h_ip conj(h_jq) M_ij,pq`` for (pq) = xy, yx.
@@ -69,7 +73,7 @@ def pattern_templates(patterns, pairs):
     return np.stack([xy, yx], axis=-1).reshape(K * K, len(pairs), 2)
 
 
-def fit_cross(vis, weights, templates, active=None, ridge=None):
+def fit_cross(vis, weights, templates, active=None, ridge=None, prior=None):
     """Complex coefficients (time, n) of the components in the cross hands (the module's least squares).
 
     Parameters
@@ -79,6 +83,8 @@ def fit_cross(vis, weights, templates, active=None, ridge=None):
     templates : ndarray (n, time, bl, 2) or (n, bl, 2) (the same in every integration)
     active : bool ndarray (n, time), optional: the components fitted in each integration (others: 0)
     ridge : ndarray broadcastable to (time, n), optional: ``lambda`` added to ``G``'s diagonal
+    prior : ndarray broadcastable to (time, n), optional: what the ridge draws ``c`` towards (default 0),
+        ``(G + Lambda) c = r + Lambda c_prior``
     """
     vis = np.asarray(vis)
     T = np.asarray(templates)
@@ -95,10 +101,52 @@ def fit_cross(vis, weights, templates, active=None, ridge=None):
     r = np.einsum("stb,tb->ts", np.conj(a), wd * d)
     diag = np.arange(G.shape[1])
     if ridge is not None:
+        ridge = np.broadcast_to(ridge, G.shape[:2]) * (1 if active is None else np.asarray(active, bool).T)
         G[:, diag, diag] += ridge
+        if prior is not None:
+            r = r + ridge * prior
     empty = np.abs(np.einsum("tss->ts", G)) == 0  # nothing to fit: c = 0
     G[:, diag, diag] += empty
     return np.linalg.solve(G, r[..., None])[..., 0]
+
+
+def fit_cross_bounded(vis, weights, templates, active=None, ridge=None, max_ratio=CROSS_MAX_RATIO):
+    """:func:`fit_cross` with every coefficient bounded: ``(c (time, n), refused (time, n) bool)``.
+
+    Physically ``c_s`` is the XY phase, common to every direction, times what is left of the amplitudes
+    (``|c_s| ~ 1``). A component whose cross-hand template the data barely measure (a source low in the
+    beam, or whose template is nearly a combination of the others') can otherwise take any coefficient
+    (``|c|`` up to 1e13 was met: it removes the data's projection on that template). So:
+
+    1. ``c_bar`` (time,): one coefficient shared by the active components, fitted against ``sum_s T^s``
+       (the common XY phase; dominated by the brightest sources);
+    2. ``c_s`` by the joint fit with ``ridge`` drawing each towards ``c_bar`` instead of 0, so a component
+       the data do not measure gets the common coefficient;
+    3. a coefficient with ``|c_s| > max_ratio |c_bar|`` is refused: set to ``c_bar`` (its template then
+       subtracted at the common coefficient) and the others refitted without it, until none is refused.
+
+    Returns the coefficients and the refused components (for the summary: the data did not measure
+    them).
+    """
+    vis = np.asarray(vis)
+    T = np.asarray(templates)
+    if T.ndim == 3:
+        T = np.broadcast_to(T[:, None], (T.shape[0],) + vis.shape)
+    n, n_t = T.shape[0], vis.shape[0]
+    act = np.ones((n, n_t), bool) if active is None else np.asarray(active, bool).copy()
+    shared = np.einsum("st,stbp->tbp", act.astype(float), T)[None]
+    c_bar = fit_cross(vis, weights, shared)[:, 0]  # (time,)
+    lam = np.zeros((n_t, n)) if ridge is None else np.broadcast_to(ridge, (n_t, n))
+    refused = np.zeros((n_t, n), bool)
+    for _ in range(n):
+        free = act & ~refused.T
+        fixed = np.where(refused, c_bar[:, None], 0.0) * act.T  # (time, n)
+        c = fit_cross(vis - cross_model(fixed, T), weights, T, free, lam, c_bar[:, None]) + fixed
+        new = free.T & (np.abs(c) > max_ratio * np.abs(c_bar)[:, None])
+        if not new.any():
+            return c, refused
+        refused |= new
+    return c, refused
 
 
 def cross_model(coefficients, templates):

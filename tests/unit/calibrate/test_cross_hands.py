@@ -2,7 +2,8 @@
 the full ``2N x 2N`` feed-antenna coherency built here directly."""
 import numpy as np
 
-from mmflow.calibrate.cross_hands import cross_model, fit_cross, gain_templates, pattern_templates
+from mmflow.calibrate.cross_hands import (CROSS_MAX_RATIO, cross_model, fit_cross, fit_cross_bounded, gain_templates,
+                                          pattern_templates)
 
 
 def _pairs(n):
@@ -81,3 +82,43 @@ def test_ridge_leaves_a_component_the_cross_hands_do_not_measure():
     assert np.abs(free[:, 1]).max() > 1e4
     assert np.abs(held[:, 1]).max() < 1e-3  # what it subtracts: < 1e-12 of the data
     np.testing.assert_allclose(held[:, 0], 0.6 + 0.8j, atol=1e-3)
+
+
+def test_bounded_fit_refuses_a_coefficient_the_data_do_not_measure():
+    """A source low in the beam: its cross-hand template is 1e-4 of a bright one's and nearly the bright one's
+    shape (collinear to 1e-3), with noise of 1e-3 of the data. The plain fit (the stage's 1e-8 ridge) lets it
+    take a coefficient of thousands (subtracting noise along it); the bounded fit refuses it (the common
+    coefficient instead, flagged) and keeps the bright source's, which the data measure, to the noise."""
+    rng = np.random.default_rng(11)
+    n_t, n_bl = 3, 60
+    strong = rng.normal(size=(n_t, n_bl, 2)) + 1j * rng.normal(size=(n_t, n_bl, 2))
+    weak = 1e-4 * (strong + 1e-3 * (rng.normal(size=strong.shape) + 1j * rng.normal(size=strong.shape)))
+    T = np.stack([strong, weak])
+    truth = np.array([0.6 + 0.8j, 0.7 + 0.7j])  # both ~ the XY phase
+    noise = 1e-3 * (rng.normal(size=strong.shape) + 1j * rng.normal(size=strong.shape))
+    data = cross_model(np.broadcast_to(truth, (n_t, 2)), T) + noise
+    power = np.einsum("stbp->ts", np.abs(T) ** 2)
+    free = fit_cross(data, 1.0, T, ridge=1e-8 * power)
+    c, refused = fit_cross_bounded(data, 1.0, T, ridge=1e-8 * power)
+    assert np.abs(free[:, 1]).max() > 100
+    assert refused[:, 1].all() and not refused[:, 0].any()
+    assert np.abs(c[:, 1]).max() <= CROSS_MAX_RATIO * np.abs(c[:, 0]).max()
+    np.testing.assert_allclose(c[:, 0], truth[0], atol=2e-3)
+    # what the bounded fit leaves in the data: the noise's level (the weak source's misfit is 1e-4 of its flux)
+    assert np.abs(data - cross_model(c, T) - noise).max() < 1e-3
+
+
+def test_bounded_fit_equals_the_plain_fit_where_every_coefficient_is_measured():
+    """Three well-separated components of coefficients within a factor 3 of each other: nothing refused, and
+    the coefficients are the plain fit's (the ridge's pull towards the common one is 1e-8 of the data's)."""
+    rng = np.random.default_rng(12)
+    n_t, n_bl = 2, 50
+    T = rng.normal(size=(3, n_t, n_bl, 2)) + 1j * rng.normal(size=(3, n_t, n_bl, 2))
+    T[2] *= 0.1
+    truth = np.array([1.0, 0.8j, -1.2 + 0.3j])
+    data = cross_model(np.broadcast_to(truth, (n_t, 3)), T)
+    ridge = 1e-8 * np.einsum("stbp->ts", np.abs(T) ** 2)
+    c, refused = fit_cross_bounded(data, 1.0, T, ridge=ridge)
+    assert not refused.any()
+    np.testing.assert_allclose(c, fit_cross(data, 1.0, T, ridge=ridge), atol=1e-7)
+    np.testing.assert_allclose(c, np.broadcast_to(truth, (n_t, 3)), atol=1e-6)

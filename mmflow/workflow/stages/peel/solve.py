@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.coherency import apparent_flux, source_vector_date
-from mmflow.calibrate.cross_hands import fit_cross, gain_templates
+from mmflow.calibrate.cross_hands import fit_cross_bounded, gain_templates
 from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.peel import SKIP, SUBTRACT, peel, select_modes
 from mmflow.calibrate.source_models import position_gains
@@ -96,7 +96,9 @@ CROSS_RIDGE = 1e-8
 
 
 def peel_cross(tel, fi, lst, pairs, cross, weights, coh, out, p):
-    """The cross hands' coefficients (time, n_src) of every source the parallel hands fitted.
+    """The cross hands' coefficients (time, n_src) of every source the parallel hands fitted, and which of
+    them the data did not measure (``|c_s|`` beyond :data:`~mmflow.calibrate.cross_hands.CROSS_MAX_RATIO` times
+    the sources' common coefficient: set to it, :func:`~mmflow.calibrate.cross_hands.fit_cross_bounded`).
 
     ``c_s`` of :mod:`mmflow.calibrate.cross_hands` per integration, fitted jointly over the peeled, subtracted
     and modelled sources of that integration (a skipped one: 0) to the calibrated cross hands ``cross``
@@ -111,14 +113,15 @@ def peel_cross(tel, fi, lst, pairs, cross, weights, coh, out, p):
     w = np.asarray(weights, float) * keep[:, None] * np.isfinite(lst)[:, None, None]
     active = (out.mode[..., 0] != SKIP) & (out.mode[..., -1] != SKIP)  # (src, time)
     c = np.zeros((len(lst), len(coh)), complex)
+    refused = np.zeros(c.shape, bool)
     for t0 in range(0, len(lst), p.batch):
         t = slice(t0, t0 + p.batch)
         h = out.dd_gains[:, t]
         T = gain_templates(np.asarray(coh[:, t, :, 2:], complex), h, pairs)
         par = np.abs(np.asarray(coh[:, t, :, :2]) * gain_products(h, pairs)) ** 2  # (src, time, bl, 2)
         ridge = CROSS_RIDGE * np.einsum("stbp,tbp->ts", par, w[t])
-        c[t] = fit_cross(np.where(w[t] > 0, cross[t], 0), w[t], T, active[:, t], ridge)
-    return c
+        c[t], refused[t] = fit_cross_bounded(np.where(w[t] > 0, cross[t], 0), w[t], T, active[:, t], ridge)
+    return c, refused
 
 
 def _fit_positions(tel, f, lst, pairs, weights, out, coh, keep, good, sources, epoch_jd):

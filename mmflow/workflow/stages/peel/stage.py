@@ -40,7 +40,9 @@ integration (:func:`~mmflow.workflow.stages.peel.solve.peel_cross`, :mod:`mmflow
 
 over the peeled and subtracted sources (``c_s`` absorbs the feeds' relative phase, which neither the
 parallel hands' DD gains nor ``calibrate`` fix), so full-Stokes maps lose the sources in Q, U and V
-as in I.
+as in I. Each ``c_s`` is bounded (:func:`~mmflow.calibrate.cross_hands.fit_cross_bounded`): drawn towards
+the sources' common coefficient where the data barely measure it, and set to it when ``|c_s|`` would
+exceed three times that (counted in the summary's ``cross_refused``).
 
 With the ``models`` stage enabled, the sources it fitted are modelled by their fitted Gaussian
 components (``models.zarr``) instead of the catalogue's points, in the solve and in ``apply``
@@ -99,10 +101,12 @@ def _task(ctx, key):
                      float(attrs["integration_s"]))
     g = ctx.open(STORES.peel, mode="r+")
     region = (rows, slice(fi, fi + 1))
+    refused = 0
     if jones is not None:
-        c = peel_cross(tel, fi, block.lst, block.pairs, block.cross[:, :, 0], block.cross_weights[:, :, 0],
-                       coh, out, ctx.cfg.peel)
+        c, unmeasured = peel_cross(tel, fi, block.lst, block.pairs, block.cross[:, :, 0],
+                                   block.cross_weights[:, :, 0], coh, out, ctx.cfg.peel)
         ctx.write(g, STORES.peel.cross_scale, region, c[:, None])
+        refused = int(unmeasured.sum())
 
     def per_time(x):  # (n_src, time, ...) -> (time, 1, n_src, ...)
         return np.moveaxis(x, 0, 1)[:, None]
@@ -113,7 +117,7 @@ def _task(ctx, key):
         ctx.write(g, name, region, per_time(getattr(out, name)))
     peeled = out.mode == PEEL
     return {"peeled": int(peeled.sum()), "guard_fired": int(out.guard.sum()),
-            "not_converged": int((peeled & ~out.converged).sum())}
+            "not_converged": int((peeled & ~out.converged).sum()), "cross_refused": refused}
 
 
 def _apply(ctx, block):
@@ -136,7 +140,7 @@ STAGE = Stage(
     kind="solve",
     apply=_apply,
     enabled=lambda cfg: cfg.peel.enabled,
-    counters=("peeled", "guard_fired", "not_converged"),
+    counters=("peeled", "guard_fired", "not_converged", "cross_refused"),
     description="peel (DD gains) or subtract bright sources per integration (applied on read)",
     cost=COST,
 )
