@@ -368,8 +368,12 @@ class PolarisedObserver:
         (the Gram's own product, no copy of it: one factor per m is the extra memory)."""
         x = np.asarray(true_alm)
         x = x if x.ndim == 3 else x[None]
-        return self.solve(lambda m: np.stack([np.asarray(self.normal.gram[m - self.normal.m0])
-                                              @ _pack(xx, m, self.lmax, self.lmax_p) for xx in x]))
+
+        def product(m):  # G_m x_m of every vector, G_m read once (a read from disk per m in the stokes stage)
+            g = np.asarray(self.normal.gram[m - self.normal.m0])
+            return np.stack([g @ _pack(xx, m, self.lmax, self.lmax_p) for xx in x])
+
+        return self.solve(product)
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

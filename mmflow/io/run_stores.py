@@ -58,6 +58,98 @@ class Stores:
 #: every store's name (``STORES.vis``, ``STORES.gains``, ...)
 STORES = Stores()
 
+
+# ----------------------------------------------------------------------------- array handles
+
+class ArrayName(str):
+    """One array of a store as readers and writers name it (``STORES.gains.gains``): a ``str``, the
+    array's path in its store (what zarr, the chunk records and fingerprints see), that knows its
+    store (``.store``), so ``ctx.read(STORES.gains.gains, rows)`` needs nothing else."""
+
+    def __new__(cls, store, name):
+        self = super().__new__(cls, name)
+        self.store = store
+        return self
+
+    def __reduce__(self):
+        return ArrayName, (self.store, str(self))
+
+
+class ArrayFamily:
+    """Arrays declared once per channel (and per m block or order) from one ``template``:
+    ``STORES.normal.gram(fi, m0)`` is normal.zarr's ``f{fi}/gram_b{m0:05d}``."""
+
+    def __init__(self, store, template):
+        self.store, self.template = store, template
+        self.params = tuple(f.split("}")[0].split(":")[0] for f in template.split("{")[1:])  # ("fi", "m0")
+
+    def __call__(self, *index):
+        if len(index) != len(self.params):
+            raise TypeError(f"{self.store}'s {self.template} takes ({', '.join(self.params)}), got {index}")
+        return ArrayName(self.store, self.template.format(**dict(zip(self.params, map(int, index)))))
+
+    def __repr__(self):
+        return f"ArrayFamily({self.store!r}, {self.template!r})"
+
+
+#: the Gram blocks' name, one array per channel and m block (normal, partials, stokes)
+GRAM = "f{fi}/gram_b{m0:05d}"
+
+#: every store's arrays, the one place their names are written: a name, or ``attribute=template`` for
+#: a family (``{fi}`` the channel, ``{m0}`` the first m of an m block, ``{m}`` the order). Read as
+#: ``STORES.<store>.<array>``, by readers and writers and by the store builders below, which declare
+#: each array through its handle (tests/unit/io/test_run_stores.py: every handle is declared by its
+#: store's builder and every declared array is a handle of that store).
+ARRAYS = {
+    STORES.vis: ("vis", "weights", "lst", "time_jd", "autos", "freqs_hz", "pairs", "antenna_enu", "vis_cross",
+                 "weights_cross", "plan_time_jd", "plan_file_rows", "antenna_numbers"),
+    STORES.mmodes: ("mmodes", "inv_var", "n_samples", "mmodes_corr", "inv_var_corr"),
+    STORES.partials: (dict(gram=GRAM, rhs="f{fi}/rhs", vhv="f{fi}/vhv"),),
+    STORES.normal: ("rhs", "vhv", dict(gram=GRAM)),
+    STORES.alm: ("alm", "lcurve", "fraction_above", "eps_grid"),
+    STORES.stokes: ("alm", "leakage", "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold",
+                    "v_noise", "v_n_cycles", "v_stop", dict(gram=GRAM)),
+    STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
+    STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
+                   "apply_rows"),
+    STORES.peel: ("dd_gains", "scale", "mode", "guard", "measured", "removed", "converged", "cross_scale"),
+    STORES.models: ("components", "cost", "iterations", "n_integrations"),
+    STORES.diffuse: ("samples",),
+    STORES.terrestrial: ("sum_vis", "sum_weight", "patterns", "amplitudes", "cross_amplitudes"),
+    STORES.clean: ("psf_table", "noise", "threshold", "peaks", "components", "restored", "n_cycles", "stop",
+                   dict(chol="f{fi}/chol_b{m0:05d}", psf="f{fi}/psf_b{m0:05d}",
+                        residual="f{fi}/residual_b{m0:05d}")),
+}
+
+
+def store_handles(store, declared):
+    """``{attribute: ArrayName | ArrayFamily}`` of one store; a name given twice, or one ``str`` already
+    has as an attribute (``STORES.vis.count``), is refused at import."""
+    names = [e for e in declared if isinstance(e, str)]
+    families = {a: t for e in declared if isinstance(e, dict) for a, t in e.items()}
+    out = {n: ArrayName(store, n) for n in names} | {a: ArrayFamily(store, t) for a, t in families.items()}
+    bad = [a for a in out if hasattr(str, a)] + (["a name twice"] if len(out) < len(names) + len(families) else [])
+    if bad:
+        raise ValueError(f"{store}: array handles {bad} (rename them in mmflow.io.run_stores.ARRAYS)")
+    return out
+
+
+HANDLES = {str(store): store_handles(store, declared) for store, declared in ARRAYS.items()}
+
+
+def _array_handle(store, name):
+    """``STORES.<store>.<name>``: the declared array (or family), else an error naming the store's arrays."""
+    if name.startswith("__") or str(store) not in HANDLES:
+        raise AttributeError(name)
+    try:
+        return HANDLES[str(store)][name]
+    except KeyError:
+        raise AttributeError(f"{store} declares no array {name!r} (its arrays: "
+                             f"{', '.join(HANDLES[str(store)])}; mmflow.io.run_stores.ARRAYS)") from None
+
+
+# ----------------------------------------------------------------------------- the stores
+
 #: The run's intermediates: each is released (its directory removed, the release recorded in the run
 #: directory) once every enabled stage that reads it has finished, unless ``run.keep`` names it. Who
 #: reads a store is what the stages declare (``Stage.inputs``: :meth:`mmflow.workflow.pipeline.Pipeline.readers`).
@@ -117,30 +209,31 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
     """``attrs["pols"]`` names the polarisation axis, ``attrs["cross_pols"]`` (optional) the cross hands' axis;
     ``ingest_plan`` (ingest: ``(row_time_jd, file_rows, antenna_numbers)``, :func:`mmflow.io.ingest.plan_arrays`)
     adds what ingest's tasks read instead of rescanning the files."""
+    h = STORES.vis  # its arrays' handles
     nbl, nf, n_ant, npol = len(pairs), len(freqs_hz), len(antenna_enu), len(attrs["pols"])
     ch = (time_chunk, min(baseline_chunk, nbl), 1, npol)  # one channel per chunk: a task of one channel reads it alone
     dims = ("time", "baseline", "freq", "pol")
     ncross = len(attrs.get("cross_pols") or [])
     cross = () if not ncross else (
-        ArraySpec("vis_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,), "complex64",
+        ArraySpec(h.vis_cross, dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,), "complex64",
                   doc="cross-hand visibilities (xy, yx | rl, lr), Jy; where the ingested files hold them, or a "
                   "full-Stokes simulation"),
-        ArraySpec("weights_cross", dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
+        ArraySpec(h.weights_cross, dims[:3] + ("cross_pol",), (n_time, nbl, nf, ncross), ch[:3] + (ncross,),
                   "float32", doc="their weights, 0 = flagged"))
     planned = () if ingest_plan is None else _ingest_plan_arrays(*ingest_plan)
     return StoreSpec(STORES.vis, (
-        ArraySpec("vis", dims, (n_time, nbl, nf, npol), ch, "complex64",
+        ArraySpec(h.vis, dims, (n_time, nbl, nf, npol), ch, "complex64",
                   doc="visibilities, Jy, mmflow's sign convention (docs/conventions.md)"),
-        ArraySpec("weights", dims, (n_time, nbl, nf, npol), ch, "float32", doc="weights, 0 = flagged"),
-        ArraySpec("lst", ("time",), (n_time,), (time_chunk,), "float64", np.nan, doc="apparent LST, radians"),
-        ArraySpec("time_jd", ("time",), (n_time,), (time_chunk,), "float64", np.nan, doc="UTC Julian date"),
-        ArraySpec("autos", ("time", "antenna", "freq", "pol"), (n_time, n_ant, nf, npol),
+        ArraySpec(h.weights, dims, (n_time, nbl, nf, npol), ch, "float32", doc="weights, 0 = flagged"),
+        ArraySpec(h.lst, ("time",), (n_time,), (time_chunk,), "float64", np.nan, doc="apparent LST, radians"),
+        ArraySpec(h.time_jd, ("time",), (n_time,), (time_chunk,), "float64", np.nan, doc="UTC Julian date"),
+        ArraySpec(h.autos, ("time", "antenna", "freq", "pol"), (n_time, n_ant, nf, npol),
                   (time_chunk, n_ant, nf, npol), "float32", np.nan,
                   doc="autocorrelations |V_ii| (radiometer noise, ripple); NaN where absent or flagged"),
-        ArraySpec("freqs_hz", ("freq",), (nf,), (nf,), "float64", data=freqs_hz, doc="channel frequencies, Hz"),
-        ArraySpec("pairs", ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs,
+        ArraySpec(h.freqs_hz, ("freq",), (nf,), (nf,), "float64", data=freqs_hz, doc="channel frequencies, Hz"),
+        ArraySpec(h.pairs, ("baseline", "ant"), (nbl, 2), (nbl, 2), "int32", data=pairs,
                   doc="antenna indices (i, j) of each baseline, i <= j"),
-        ArraySpec("antenna_enu", ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
+        ArraySpec(h.antenna_enu, ("antenna", "enu"), np.shape(antenna_enu), np.shape(antenna_enu), "float64",
                   data=antenna_enu, doc="antenna positions east, north, up of the array centre, metres"),
     ) + cross + planned, attrs, doc=(
         "Visibilities, written by the simulate or ingest stage and never rewritten: corrections are "
@@ -156,12 +249,13 @@ def vis_store(n_time, pairs, freqs_hz, antenna_enu, attrs, time_chunk, baseline_
 
 def _ingest_plan_arrays(row_time, file_rows, antenna_numbers):
     """Ingest's plan in vis.zarr: its tasks read these instead of rescanning the files' metadata."""
+    h = STORES.vis  # its arrays' handles
     return (
-        ArraySpec("plan_time_jd", ("time",), np.shape(row_time), np.shape(row_time), "float64", data=row_time,
+        ArraySpec(h.plan_time_jd, ("time",), np.shape(row_time), np.shape(row_time), "float64", data=row_time,
                   doc="UTC Julian date of each row, from the files' metadata (ingest's plan)"),
-        ArraySpec("plan_file_rows", ("file", "first_last"), np.shape(file_rows), np.shape(file_rows), "int64",
+        ArraySpec(h.plan_file_rows, ("file", "first_last"), np.shape(file_rows), np.shape(file_rows), "int64",
                   data=file_rows, doc="first and last row (inclusive) of each ingested file's integrations"),
-        ArraySpec("antenna_numbers", ("antenna",), np.shape(antenna_numbers), np.shape(antenna_numbers), "int64",
+        ArraySpec(h.antenna_numbers, ("antenna",), np.shape(antenna_numbers), np.shape(antenna_numbers), "int64",
                   data=antenna_numbers, doc="the files' antenna number of each antenna (index = antenna axis)"),
     )
 
@@ -169,45 +263,43 @@ def _ingest_plan_arrays(row_time, file_rows, antenna_numbers):
 def mmodes_store(n_split, nf, mmax, nbl, baseline_chunk, attrs, n_corr=0):
     """The mmodes stage's store (baseline chunks as vis.zarr's); ``n_corr`` > 0 (full Stokes) adds the
     m-modes of each correlation (xx, yy, xy, yx)."""
+    h = STORES.mmodes  # its arrays' handles
     ch = min(baseline_chunk, nbl)
     pol = () if not n_corr else (
-        ArraySpec("mmodes_corr", ("split", "freq", "m", "pm", "correlation", "baseline"),
+        ArraySpec(h.mmodes_corr, ("split", "freq", "m", "pm", "correlation", "baseline"),
                   (n_split, nf, mmax + 1, 2, n_corr, nbl), (n_split, nf, mmax + 1, 2, n_corr, ch), "complex128",
                   doc="m-modes of each correlation (xx, yy, xy, yx) per data split, layout of ``mmodes``; "
                       "only with imaging.stokes [I, Q, U, V]"),
-        ArraySpec("inv_var_corr", ("freq", "correlation", "baseline"), (nf, n_corr, nbl), (nf, n_corr, ch),
+        ArraySpec(h.inv_var_corr, ("freq", "correlation", "baseline"), (nf, n_corr, nbl), (nf, n_corr, ch),
                   "float64", doc="inverse noise variance of each correlation's m-modes"),
     )
     return StoreSpec(STORES.mmodes, (
-        ArraySpec("mmodes", ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
+        ArraySpec(h.mmodes, ("split", "freq", "m", "pm", "baseline"), (n_split, nf, mmax + 1, 2, nbl),
                   (n_split, nf, mmax + 1, 2, ch), "complex128",
                   doc="m-modes: ``[..., 0, b] = V_m``, ``[..., 1, b] = conj(V_-m)``"),
-        ArraySpec("inv_var", ("freq", "baseline"), (nf, nbl), (nf, ch), "float64",
+        ArraySpec(h.inv_var, ("freq", "baseline"), (nf, nbl), (nf, ch), "float64",
                   doc="inverse noise variance of each baseline's m-modes"),
-        ArraySpec("n_samples", ("split", "freq", "baseline"), (n_split, nf, nbl), (n_split, nf, ch), "int64",
+        ArraySpec(h.n_samples, ("split", "freq", "baseline"), (n_split, nf, nbl), (n_split, nf, ch), "int64",
                   doc="each split's unflagged integrations (the bins' summed 0/1 weights), from which the "
                       "jackknives take each split's share ``f_k`` (:func:`mmflow.mmode.splits.split_shares`)"),
     ) + pol, attrs, doc="m-modes of the (corrected) visibilities, per data split: the mmodes stage.")
 
 
-def gram_name(fi, m0):
-    return f"f{fi}/gram_b{m0:05d}"
-
-
 def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
     """The transfer stage's partial normal equations, one per fixed baseline group."""
+    h = STORES.partials  # its arrays' handles
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
-            arrays.append(ArraySpec(gram_name(fi, m0), ("group", "m", "l", "l2"), (n_groups, m1 - m0, n, n),
+            arrays.append(ArraySpec(h.gram(fi, m0), ("group", "m", "l", "l2"), (n_groups, m1 - m0, n, n),
                                     (1, m1 - m0, n, n), dtype,
                                     doc="the group's part of ``G_m = B^H N^-1 B`` for the m of block M0, "
                                         "padded to ``lmax - m0 + 1``"))
-        arrays.append(ArraySpec(f"f{fi}/rhs", ("group", "split", "m", "l"), (n_groups, n_split, mmax + 1, lmax + 1),
+        arrays.append(ArraySpec(h.rhs(fi), ("group", "split", "m", "l"), (n_groups, n_split, mmax + 1, lmax + 1),
                                 (1, n_split, mmax + 1, lmax + 1), dtype,
                                 doc="the group's part of ``r_m = B^H N^-1 v``"))
-        arrays.append(ArraySpec(f"f{fi}/vhv", ("group", "split", "m"), (n_groups, n_split, mmax + 1),
+        arrays.append(ArraySpec(h.vhv(fi), ("group", "split", "m"), (n_groups, n_split, mmax + 1),
                                 (1, n_split, mmax + 1), "float64", doc="the group's part of ``v^H N^-1 v``"))
     return StoreSpec(STORES.partials, tuple(arrays), doc=(
         "Partial normal equations of the transfer stage, per frequency F: one partial sum per fixed "
@@ -217,20 +309,21 @@ def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
 
 def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
     """The normal stage's reduced normal equations (``gram_dtype``: the partials')."""
+    h = STORES.normal  # its arrays' handles
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
-            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
+            arrays.append(ArraySpec(h.gram(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
                                     gram_dtype,
                                     doc="upper triangles of ``G_m = B^H N^-1 B`` for the m of block M0, padded "
                                         "to ``lmax - m0 + 1``; the partials' precision (complex64 for float32 "
                                         "transfer: half the bytes; summed in complex128 and rounded once, so "
                                         "one group's Gram is the engine's bit for bit)"))
     arrays += [
-        ArraySpec("rhs", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
+        ArraySpec(h.rhs, ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
                   (n_split, 1, m_block, lmax + 1), "complex128", doc="``r_m = B^H N^-1 v``"),
-        ArraySpec("vhv", ("split", "freq", "m"), (n_split, nf, mmax + 1), (n_split, 1, m_block), "float64",
+        ArraySpec(h.vhv, ("split", "freq", "m"), (n_split, nf, mmax + 1), (n_split, 1, m_block), "float64",
                   doc="``v^H N^-1 v`` (the L-curve's residual norm)"),
     ]
     return StoreSpec(STORES.normal, tuple(arrays), doc=(
@@ -240,16 +333,17 @@ def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
 
 def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     """The solve stage's store."""
+    h = STORES.alm  # its arrays' handles
     n_eps = len(eps_grid)
     return StoreSpec(STORES.alm, (
-        ArraySpec("alm", ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
+        ArraySpec(h.alm, ("split", "freq", "m", "l"), (n_split, nf, mmax + 1, lmax + 1),
                   (n_split, 1, m_block, lmax + 1), "complex128", doc="spherical-harmonic coefficients, Jy/sr, "
                   "frame of date"),
-        ArraySpec("lcurve", ("freq", "m", "eps", "norm"), (nf, mmax + 1, n_eps, 2), (1, m_block, n_eps, 2),
+        ArraySpec(h.lcurve, ("freq", "m", "eps", "norm"), (nf, mmax + 1, n_eps, 2), (1, m_block, n_eps, 2),
                   "float64", doc="L-curve of the first split (zero unless ``imaging.lcurve``)"),
-        ArraySpec("fraction_above", ("freq", "m"), (nf, mmax + 1), (1, m_block), "float64",
+        ArraySpec(h.fraction_above, ("freq", "m"), (nf, mmax + 1), (1, m_block), "float64",
                   doc="fraction of singular values of ``B_m`` above ``sqrt(eps)``"),
-        ArraySpec("eps_grid", ("eps",), (n_eps,), (n_eps,), "float64", data=eps_grid,
+        ArraySpec(h.eps_grid, ("eps",), (n_eps,), (n_eps,), "float64", data=eps_grid,
                   doc="the L-curve's trial eps"),
     ), doc="The solve stage's sky: a_lm per data split.")
 
@@ -259,6 +353,7 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gr
     stage writes them per block of m); ``clean`` ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V
     (``clean.enabled``); ``blocks`` (the stage's ``(m0, m1)``) add each block's Grams per frequency over
     the unknowns of E, B, V to ``lmax_p`` (default ``lmax``; ``gram_dtype``: the accumulation's precision)."""
+    h = STORES.stokes  # its arrays' handles
     shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, 1, lmax + 1)
     dims = ("freq", "stokes", "m", "l")
     arrays = []
@@ -266,17 +361,17 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gr
         for m0, m1 in blocks:
             n_t, n_p = stokes_sizes(m0, lmax, lmax_p)
             n = n_t + 3 * n_p
-            arrays.append(ArraySpec(gram_name(fi, m0), ("m", "unknown", "unknown2"), (m1 - m0, n, n), (1, n, n),
+            arrays.append(ArraySpec(h.gram(fi, m0), ("m", "unknown", "unknown2"), (m1 - m0, n, n), (1, n, n),
                                     gram_dtype, doc="``G_m = B_m^H W B_m`` over ``[T; E; B; V]`` (T to "
                                     "mmode.lmax, E, B, V to imaging.stokes_lmax) of the m of block M0, each padded "
                                     "to block M0's size; what the leakage test sources and the CLEAN of V are "
                                     "imaged through (factorised again, one m at a time)"))
     arrays += [
-        ArraySpec("alm", ("split",) + dims, (n_split,) + shape, (n_split,) + ch, "complex128",
+        ArraySpec(h.alm, ("split",) + dims, (n_split,) + shape, (n_split,) + ch, "complex128",
                   doc="T, E, B, V harmonics of each data split (``mmode.splits``; Jy/sr, frame of date, healpy E/B; "
                       "IAU Q, U through :func:`mmflow.imaging.polarised.stokes_maps`), ``[split, f, X, m, l]``, "
                       "0 for l < m; the splits other than ``full`` give the jackknife noise of each Stokes map"),
-        ArraySpec("leakage", dims, shape, ch, "complex128",
+        ArraySpec(h.leakage, dims, shape, ch, "complex128",
                   doc="the image through the same solve of the unpolarised sky ``[T, 0, 0, 0]`` (T the solved I of "
                       "the full data): "
                       "its E, B, V parts are the I -> Q, U, V leakage the beam model leaves"),
@@ -284,24 +379,24 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gr
     if clean is not None:
         n_dec, max_cycles, n_peaks = clean
         arrays += [
-            ArraySpec("v_residual", dims, shape, ch, "complex128",
+            ArraySpec(h.v_residual, dims, shape, ch, "complex128",
                       doc="T, E, B, V after the CLEAN of V: ``alm`` minus the solve's image of the V components "
                           "(:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) [clean.enabled]"),
-            ArraySpec("v_psf_table", ("freq", "dec", "column"), (nf, n_dec, 5), (1, n_dec, 5), "float64", np.nan,
+            ArraySpec(h.v_psf_table, ("freq", "dec", "column"), (nf, n_dec, 5), (1, n_dec, 5), "float64", np.nan,
                       doc="the V PSF by declination: dec, peak, major, minor, pa [clean.enabled]"),
-            ArraySpec("v_components", ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4),
+            ArraySpec(h.v_components, ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4),
                       (1, 1, n_peaks, 4), "float64", doc="V CLEAN components, frame of date, Jy (flux 0 = none) "
                       "[clean.enabled]"),
-            ArraySpec("v_peaks", ("freq", "cycle"), (nf, max_cycles), (1, max_cycles), "float64", np.nan,
+            ArraySpec(h.v_peaks, ("freq", "cycle"), (nf, max_cycles), (1, max_cycles), "float64", np.nan,
                       doc="the residual V peak each cycle started from, Jy/sr [clean.enabled]"),
-            ArraySpec("v_threshold", ("freq",), (nf,), (1,), "float64", np.nan,
+            ArraySpec(h.v_threshold, ("freq",), (nf,), (1,), "float64", np.nan,
                       doc="the V CLEAN threshold, Jy/sr [clean.enabled]"),
-            ArraySpec("v_noise", ("freq",), (nf,), (1,), "float64", np.nan,
+            ArraySpec(h.v_noise, ("freq",), (nf,), (1,), "float64", np.nan,
                       doc="the V map's noise the CLEAN threshold is a multiple of: its jackknife sigma (even/odd or "
                           "per-day splits), else the dirty V map's robust rms (1.4826 MAD over the sky seen), Jy/sr "
                           "[clean.enabled]"),
-            ArraySpec("v_n_cycles", ("freq",), (nf,), (1,), "int64", doc="V CLEAN cycles run [clean.enabled]"),
-            ArraySpec("v_stop", ("freq",), (nf,), (1,), "int64", -1,
+            ArraySpec(h.v_n_cycles, ("freq",), (nf,), (1,), "int64", doc="V CLEAN cycles run [clean.enabled]"),
+            ArraySpec(h.v_stop, ("freq",), (nf,), (1,), "int64", -1,
                       doc=f"why the V CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "
                           "[clean.enabled]"),
         ]
@@ -311,12 +406,13 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gr
 
 def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
     """The transfer blocks, kept only with ``transfer.mode=store``."""
+    h = STORES.transfer  # its arrays' handles
     arrays = []
     for fi in range(nf):
-        arrays.append(ArraySpec(f"f{fi}/order", ("baseline",), (nbl,), (nbl,), "int64", data=orders[fi],
+        arrays.append(ArraySpec(h.order(fi), ("baseline",), (nbl,), (nbl,), "int64", data=orders[fi],
                                 doc="the rows' baselines: sorted by per-baseline lmax"))
         for m in range(mmax + 1):
-            arrays.append(ArraySpec(f"f{fi}/B_m{m:05d}", ("pm", "baseline", "l"), (2, nbl, lmax - m + 1),
+            arrays.append(ArraySpec(h.B(fi, m), ("pm", "baseline", "l"), (2, nbl, lmax - m + 1),
                                     (2, min(baseline_chunk, nbl), lmax - m + 1), dtype,
                                     doc="transfer block ``B_m`` in the order ``f{F}/order`` (the -m rows 0 at m = 0)"))
     return StoreSpec(STORES.transfer, tuple(arrays), doc=(
@@ -326,13 +422,14 @@ def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):
 
 def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, attrs, n_src=1):
     """The calibrate stage's store (``n_src``: the calibration sources, ``attrs["sources"]``)."""
+    h = STORES.gains  # its arrays' handles
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
     return StoreSpec(
         STORES.gains,
         (
             ArraySpec(
-                "flux_factor",
+                h.flux_factor,
                 ("interval", "freq", "source", "pol"),
                 (n_interval, nf, n_src, npol),
                 (1, 1, n_src, npol),
@@ -343,13 +440,13 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 "where a screened source gave no model power (below the horizon)",
             ),
             ArraySpec(
-                "gains", sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"
+                h.gains, sol, (n_interval, nf, n_ant, npol), per, "complex128", doc="complex gains, 0 where flagged"
             ),
             ArraySpec(
-                "flags", sol, (n_interval, nf, n_ant, npol), per, "bool", doc="no data, not finite, or not converged"
+                h.flags, sol, (n_interval, nf, n_ant, npol), per, "bool", doc="no data, not finite, or not converged"
             ),
             ArraySpec(
-                "chi2",
+                h.chi2,
                 sol,
                 (n_interval, nf, n_ant, npol),
                 per,
@@ -357,7 +454,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)",
             ),
             ArraySpec(
-                "iterations",
+                h.iterations,
                 ("interval", "freq", "pol"),
                 (n_interval, nf, npol),
                 (1, 1, npol),
@@ -365,7 +462,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 doc="Stefcal iterations",
             ),
             ArraySpec(
-                "converged",
+                h.converged,
                 ("interval", "freq", "pol"),
                 (n_interval, nf, npol),
                 (1, 1, npol),
@@ -373,7 +470,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 doc="Stefcal converged",
             ),
             ArraySpec(
-                "ripple",
+                h.ripple,
                 ("time", "freq", "antenna", "pol"),
                 (n_time, nf, n_ant, npol),
                 (n_time, 1, n_ant, npol),
@@ -381,7 +478,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 doc="autocorrelation ripple ratio ``r(t)`` per integration (1 where not corrected)",
             ),
             ArraySpec(
-                "solve_rows",
+                h.solve_rows,
                 ("interval", "edge"),
                 (n_interval, 2),
                 (n_interval, 2),
@@ -390,7 +487,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 doc="the integrations each interval was solved on",
             ),
             ArraySpec(
-                "apply_rows",
+                h.apply_rows,
                 ("interval", "edge"),
                 (n_interval, 2),
                 (n_interval, 2),
@@ -410,25 +507,26 @@ PEEL_MODES = ("skip", "peel", "subtract", "model")
 
 def peel_store(n_time, nf, n_src, n_ant, npol, time_chunk, attrs, cross=False):
     """The peel stage's store (``cross``: a four-correlation peel, with the cross hands' coefficients)."""
+    h = STORES.peel  # its arrays' handles
     dims = ("time", "freq", "source", "pol")
     shape, ch = (n_time, nf, n_src, npol), (time_chunk, 1, n_src, npol)
     codes = ", ".join(f"{i} {name}" for i, name in enumerate(PEEL_MODES))
     cross_arrays = () if not cross else (
-        ArraySpec("cross_scale", ("time", "freq", "source"), (n_time, nf, n_src), (time_chunk, 1, n_src),
+        ArraySpec(h.cross_scale, ("time", "freq", "source"), (n_time, nf, n_src), (time_chunk, 1, n_src),
                   "complex128", doc="complex coefficient ``c`` of each source in the cross hands: ``c h_ix conj(h_jy) "
                   "M_xy`` on xy, its conjugate on yx (a four-correlation peel; 0 skipped)"),)
     return StoreSpec(STORES.peel, (
-        ArraySpec("dd_gains", ("time", "freq", "source", "antenna", "pol"), (n_time, nf, n_src, n_ant, npol),
+        ArraySpec(h.dd_gains, ("time", "freq", "source", "antenna", "pol"), (n_time, nf, n_src, n_ant, npol),
                   (time_chunk, 1, n_src, n_ant, npol), "complex128",
                   doc="direction-dependent gains (a subtracted source: 1, or the phase gradient of its fitted "
                       "position)"),
-        ArraySpec("scale", dims, shape, ch, "float64", doc="fitted flux scale (1 peeled, 0 skipped)"),
-        ArraySpec("mode", dims, shape, ch, "int8", doc=f"mode used at the end: {codes} (:data:`PEEL_MODES`)"),
-        ArraySpec("guard", dims, shape, ch, "bool", doc="the guard turned a peel into a subtraction"),
-        ArraySpec("measured", dims, shape, ch, "float64",
+        ArraySpec(h.scale, dims, shape, ch, "float64", doc="fitted flux scale (1 peeled, 0 skipped)"),
+        ArraySpec(h.mode, dims, shape, ch, "int8", doc=f"mode used at the end: {codes} (:data:`PEEL_MODES`)"),
+        ArraySpec(h.guard, dims, shape, ch, "bool", doc="the guard turned a peel into a subtraction"),
+        ArraySpec(h.measured, dims, shape, ch, "float64",
                   doc="the guard's point-source estimate of the source in the data"),
-        ArraySpec("removed", dims, shape, ch, "float64", doc="the guard's estimate of what peeling removed"),
-        ArraySpec("converged", dims, shape, ch, "bool", doc="converged in the last pass"),
+        ArraySpec(h.removed, dims, shape, ch, "float64", doc="the guard's estimate of what peeling removed"),
+        ArraySpec(h.converged, dims, shape, ch, "bool", doc="converged in the last pass"),
     ) + cross_arrays, attrs, doc=(
         "Bright sources peeled, subtracted or modelled per integration: the peel stage. Attributes: "
         "``sources``, ``peeled``, ``modelled``, ``modes`` (name -> code of ``mode``), ``fitted_models`` "
@@ -444,24 +542,26 @@ MODEL_COSTS = ("point", "start", "fitted")
 
 def models_store(nf, n_src, n_comp, attrs):
     """The models stage's store."""
+    h = STORES.models  # its arrays' handles
     return StoreSpec(STORES.models, (
-        ArraySpec("components", ("freq", "source", "component", "column"), (nf, n_src, n_comp, len(MODEL_COLUMNS)),
+        ArraySpec(h.components, ("freq", "source", "component", "column"), (nf, n_src, n_comp, len(MODEL_COLUMNS)),
                   (1, 1, n_comp, len(MODEL_COLUMNS)), "float64",
                   doc=f"fitted Gaussian components, columns {', '.join(MODEL_COLUMNS)} (offsets east/north of "
                       "the catalogued position; fluxes renormalised to the published spectrum; flux 0 = no "
                       "component)"),
-        ArraySpec("cost", ("freq", "source", "kind"), (nf, n_src, len(MODEL_COSTS)), (1, 1, len(MODEL_COSTS)),
+        ArraySpec(h.cost, ("freq", "source", "kind"), (nf, n_src, len(MODEL_COSTS)), (1, 1, len(MODEL_COSTS)),
                   "float64", doc=f"aperture cost of the {', '.join(MODEL_COSTS)} model"),
-        ArraySpec("iterations", ("freq", "source"), (nf, n_src), (1, 1), "int64", doc="Nelder-Mead iterations"),
-        ArraySpec("n_integrations", ("freq", "source"), (nf, n_src), (1, 1), "int64", doc="integrations used"),
+        ArraySpec(h.iterations, ("freq", "source"), (nf, n_src), (1, 1), "int64", doc="Nelder-Mead iterations"),
+        ArraySpec(h.n_integrations, ("freq", "source"), (nf, n_src), (1, 1), "int64", doc="integrations used"),
     ), attrs, doc="Resolved source models fitted per frequency and source: the models stage.")
 
 
 def diffuse_store(nf, n_samples, nbl, n_feed, sample_block):
     """The simulate stage's diffuse sky at the sampled sidereal angles
     (:mod:`mmflow.simulate.drift_modes`): what its time chunks interpolate."""
+    h = STORES.diffuse  # its arrays' handles
     return StoreSpec(STORES.diffuse, (
-        ArraySpec("samples", ("freq", "sample", "baseline", "feed"), (nf, n_samples, nbl, n_feed),
+        ArraySpec(h.samples, ("freq", "sample", "baseline", "feed"), (nf, n_samples, nbl, n_feed),
                   (1, sample_block, nbl, n_feed), "complex128",
                   doc="the diffuse sky's visibilities (Jy) at the sidereal angles ``2 pi k / N``, through each "
                   "feed's power beam (one column for a power beam)"),
@@ -470,20 +570,21 @@ def diffuse_store(nf, n_samples, nbl, n_feed, sample_block):
 
 def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk, cross=False):
     """The terrestrial stage's store (``cross``: the cross hands' coefficients too, four correlations)."""
+    h = STORES.terrestrial  # its arrays' handles
     cross_arrays = () if not cross else (
-        ArraySpec("cross_amplitudes", ("time", "freq", "template"), (n_time, nf, n_comp ** 2),
+        ArraySpec(h.cross_amplitudes, ("time", "freq", "template"), (n_time, nf, n_comp ** 2),
                   (time_chunk, 1, n_comp ** 2), "complex128",
                   doc="complex coefficient ``a_kl(t)`` of ``u_kx u_ly^H`` in the cross hands (xy; its conjugate "
                   "on yx), in the order ``k K + l``"),)
     return StoreSpec(STORES.terrestrial, (
-        ArraySpec("sum_vis", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
+        ArraySpec(h.sum_vis, ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "complex128", doc="weighted sum of the calibrated, peeled visibilities of each time chunk"),
-        ArraySpec("sum_weight", ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
+        ArraySpec(h.sum_weight, ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "float64", doc="sum of their weights"),
-        ArraySpec("patterns", ("freq", "component", "antenna", "pol"), (nf, n_comp, n_ant, npol),
+        ArraySpec(h.patterns, ("freq", "component", "antenna", "pol"), (nf, n_comp, n_ant, npol),
                   (nf, n_comp, n_ant, npol), "complex128",
                   doc="``u_k`` of the rank-1 templates ``B_k = u_k u_k^H`` fitted to the average"),
-        ArraySpec("amplitudes", ("time", "freq", "template", "pol"), (n_time, nf, n_comp ** 2, npol),
+        ArraySpec(h.amplitudes, ("time", "freq", "template", "pol"), (n_time, nf, n_comp ** 2, npol),
                   (time_chunk, 1, n_comp ** 2, npol), "float64",
                   doc="real amplitude ``a_k(t)`` of each of the K^2 templates: ``u_k u_k^H``, then for k < l "
                   "``u_k u_l^H + u_l u_k^H`` and ``i (u_k u_l^H - u_l u_k^H)``"),
@@ -498,123 +599,39 @@ NOISE_FIELDS = ("jy_per_sr", "kelvin", "mjy_per_beam", "beam_solid_angle_sr")  #
 
 def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_factors):
     """The CLEAN stage's store (``keep_factors``: keep the Cholesky factors)."""
+    h = STORES.clean  # its arrays' handles
     arrays = []
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             sl = m_block_slice(lmax, m0, m1)
             n, k = lmax - m0 + 1, sl.stop - sl.start
             if keep_factors:
-                arrays.append(ArraySpec(f"f{fi}/chol_b{m0:05d}", ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
+                arrays.append(ArraySpec(h.chol(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
                                         "complex128", doc="Cholesky factors of ``G_kk + eps I`` [keep_factors]; "
                                         "uncompressed (every cycle task reads its block's)", compressed=False))
-            arrays.append(ArraySpec(f"f{fi}/psf_b{m0:05d}", ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128",
+            arrays.append(ArraySpec(h.psf(fi, m0), ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128",
                                     doc="PSF columns of the declination grid"))
-            arrays.append(ArraySpec(f"f{fi}/residual_b{m0:05d}", ("cycle", "alm"), (max_cycles + 1, k), (1, k),
+            arrays.append(ArraySpec(h.residual(fi, m0), ("cycle", "alm"), (max_cycles + 1, k), (1, k),
                                     "complex128", doc="the residual a_lm at the start of each cycle (one chunk per "
                                     "cycle, never rewritten: a killed cycle is redone from the one before)"))
     arrays += [
-        ArraySpec("psf_table", ("freq", "kind", "dec", "column"), (nf, 2, n_dec, 5), (1, 2, n_dec, 5), "float64",
+        ArraySpec(h.psf_table, ("freq", "kind", "dec", "column"), (nf, 2, n_dec, 5), (1, 2, n_dec, 5), "float64",
                   np.nan, doc="columns dec, peak, major, minor, pa; kind 0 the PSF, 1 the PSF CLEAN uses "
                   "(``H PSF`` for a high-pass CLEAN)"),
-        ArraySpec("noise", ("freq", "quantity"), (nf, len(NOISE_FIELDS)), (1, len(NOISE_FIELDS)), "float64", np.nan,
+        ArraySpec(h.noise, ("freq", "quantity"), (nf, len(NOISE_FIELDS)), (1, len(NOISE_FIELDS)), "float64", np.nan,
                   doc=f"noise: {', '.join(NOISE_FIELDS)}"),
-        ArraySpec("threshold", ("freq",), (nf,), (1,), "float64", np.nan, doc="CLEAN threshold, Jy/sr"),
-        ArraySpec("peaks", ("freq", "cycle"), (nf, max_cycles), (1, 1), "float64", np.nan,
+        ArraySpec(h.threshold, ("freq",), (nf,), (1,), "float64", np.nan, doc="CLEAN threshold, Jy/sr"),
+        ArraySpec(h.peaks, ("freq", "cycle"), (nf, max_cycles), (1, 1), "float64", np.nan,
                   doc="the residual peak each cycle started from"),
-        ArraySpec("components", ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4), (1, 1, n_peaks, 4),
+        ArraySpec(h.components, ("freq", "cycle", "peak", "xyzf"), (nf, max_cycles, n_peaks, 4), (1, 1, n_peaks, 4),
                   "float64", doc="CLEAN components (flux 0 = none)"),
-        ArraySpec("restored", ("freq", "pixel"), (nf, npix), (1, npix), "float64",
+        ArraySpec(h.restored, ("freq", "pixel"), (nf, npix), (1, npix), "float64",
                   doc="the restored map, frame of date, Jy/sr"),
-        ArraySpec("n_cycles", ("freq",), (nf,), (1,), "int64", doc="cycles run"),
-        ArraySpec("stop", ("freq",), (nf,), (1,), "int64", -1,
+        ArraySpec(h.n_cycles, ("freq",), (nf,), (1,), "int64", doc="cycles run"),
+        ArraySpec(h.stop, ("freq",), (nf,), (1,), "int64", -1,
                   doc=f"why CLEAN stopped: {', '.join(f'{i} {s}' for i, s in enumerate(CLEAN_STOPS))} "
                       "(-1: none)"),
     ]
     return StoreSpec(STORES.clean, tuple(arrays), doc=(
         "The CLEAN stage's factors, PSFs, per-cycle state and results, per frequency F and m block M0 "
         "(healpy layout within the block)."))
-
-
-# ----------------------------------------------------------------------------- array handles
-
-class ArrayName(str):
-    """One array of a store as readers and writers name it (``STORES.gains.gains``): a ``str``, the
-    array's path in its store (what zarr, the chunk records and fingerprints see), that knows its
-    store (``.store``), so ``ctx.read(STORES.gains.gains, rows)`` needs nothing else."""
-
-    def __new__(cls, store, name):
-        self = super().__new__(cls, name)
-        self.store = store
-        return self
-
-    def __reduce__(self):
-        return ArrayName, (self.store, str(self))
-
-
-class ArrayFamily:
-    """Arrays declared once per channel (and per m block or order) from one ``template``:
-    ``STORES.normal.gram(fi, m0)`` is normal.zarr's ``f{fi}/gram_b{m0:05d}``."""
-
-    def __init__(self, store, template):
-        self.store, self.template = store, template
-        self.params = tuple(f.split("}")[0].split(":")[0] for f in template.split("{")[1:])  # ("fi", "m0")
-
-    def __call__(self, *index):
-        if len(index) != len(self.params):
-            raise TypeError(f"{self.store}'s {self.template} takes ({', '.join(self.params)}), got {index}")
-        return ArrayName(self.store, self.template.format(**dict(zip(self.params, map(int, index)))))
-
-    def __repr__(self):
-        return f"ArrayFamily({self.store!r}, {self.template!r})"
-
-
-#: every store's arrays, the one place their names are written outside the builders above: a name,
-#: or ``attribute=template`` for a family (``{fi}`` the channel, ``{m0}`` the first m of an m block,
-#: ``{m}`` the order). Read as ``STORES.<store>.<array>``; tests/unit/io/test_run_stores.py holds each
-#: store's arrays equal to those its builder declares.
-ARRAYS = {
-    STORES.vis: ("vis", "weights", "lst", "time_jd", "autos", "freqs_hz", "pairs", "antenna_enu", "vis_cross",
-                 "weights_cross", "plan_time_jd", "plan_file_rows", "antenna_numbers"),
-    STORES.mmodes: ("mmodes", "inv_var", "n_samples", "mmodes_corr", "inv_var_corr"),
-    STORES.partials: (dict(gram="f{fi}/gram_b{m0:05d}", rhs="f{fi}/rhs", vhv="f{fi}/vhv"),),
-    STORES.normal: ("rhs", "vhv", dict(gram="f{fi}/gram_b{m0:05d}")),
-    STORES.alm: ("alm", "lcurve", "fraction_above", "eps_grid"),
-    STORES.stokes: ("alm", "leakage", "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold",
-                    "v_noise", "v_n_cycles", "v_stop", dict(gram="f{fi}/gram_b{m0:05d}")),
-    STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
-    STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
-                   "apply_rows"),
-    STORES.peel: ("dd_gains", "scale", "mode", "guard", "measured", "removed", "converged", "cross_scale"),
-    STORES.models: ("components", "cost", "iterations", "n_integrations"),
-    STORES.diffuse: ("samples",),
-    STORES.terrestrial: ("sum_vis", "sum_weight", "patterns", "amplitudes", "cross_amplitudes"),
-    STORES.clean: ("psf_table", "noise", "threshold", "peaks", "components", "restored", "n_cycles", "stop",
-                   dict(chol="f{fi}/chol_b{m0:05d}", psf="f{fi}/psf_b{m0:05d}",
-                        residual="f{fi}/residual_b{m0:05d}")),
-}
-
-
-def store_handles(store, declared):
-    """``{attribute: ArrayName | ArrayFamily}`` of one store; a name given twice, or one ``str`` already
-    has as an attribute (``STORES.vis.count``), is refused at import."""
-    names = [e for e in declared if isinstance(e, str)]
-    families = {a: t for e in declared if isinstance(e, dict) for a, t in e.items()}
-    out = {n: ArrayName(store, n) for n in names} | {a: ArrayFamily(store, t) for a, t in families.items()}
-    bad = [a for a in out if hasattr(str, a)] + (["a name twice"] if len(out) < len(names) + len(families) else [])
-    if bad:
-        raise ValueError(f"{store}: array handles {bad} (rename them in mmflow.io.run_stores.ARRAYS)")
-    return out
-
-
-HANDLES = {str(store): store_handles(store, declared) for store, declared in ARRAYS.items()}
-
-
-def _array_handle(store, name):
-    """``STORES.<store>.<name>``: the declared array (or family), else an error naming the store's arrays."""
-    if name.startswith("__") or str(store) not in HANDLES:
-        raise AttributeError(name)
-    try:
-        return HANDLES[str(store)][name]
-    except KeyError:
-        raise AttributeError(f"{store} declares no array {name!r} (its arrays: "
-                             f"{', '.join(HANDLES[str(store)])}; mmflow.io.run_stores.ARRAYS)") from None

@@ -5,7 +5,7 @@ import pytest
 import zarr
 
 from mmflow.conventions import m_slice
-from mmflow.io.run_stores import gram_name
+from mmflow.io.run_stores import STORES
 from mmflow.imaging.solvers import solve_alm
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.noise import relative_weights
@@ -32,7 +32,7 @@ def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path, groups):
     acc = accumulate_normal_equations(tel, tel.freqs_hz[0], mg["mmodes"][:, 0], lmax,
                                       inv_var=relative_weights(mg["inv_var"][0]),
                                       chunk_size=cfg.transfer.baseline_chunk, dtype=np.float32)
-    assert acc.gram[0].dtype == np.complex64 and ng[gram_name(0, 0)].dtype == np.complex64
+    assert acc.gram[0].dtype == np.complex64 and ng[STORES.normal.gram(0, 0)].dtype == np.complex64
     m_block = cfg.transfer.m_block
     scale = np.abs(acc.gram[0]).max()
 
@@ -44,7 +44,7 @@ def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path, groups):
     for m in range(lmax + 1):
         m0 = m - m % m_block
         n = lmax - m + 1
-        stored = ng[gram_name(0, m0)][m - m0, :n, :n]
+        stored = ng[STORES.normal.gram(0, m0)][m - m0, :n, :n]
         same(np.triu(stored), np.triu(acc.gram[m]))
         same(ng["rhs"][0, 0, m, m:], acc.rhs[m][0].astype(np.complex128))
     im = cfg.imaging

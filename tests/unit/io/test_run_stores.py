@@ -1,4 +1,5 @@
-"""The array handles of :mod:`mmflow.io.run_stores` name exactly the arrays the store builders declare."""
+"""The array handles of :mod:`mmflow.io.run_stores`: the store builders declare every array through
+one, and every handle is an array a builder declares."""
 import pickle
 
 import pytest
@@ -20,10 +21,13 @@ def _named(family, indices=INDICES):
     return {family(*i) for i in names}
 
 
-def test_handles_name_exactly_the_declared_arrays():
-    """For every store: the handles' names (families expanded over the reference channels, m blocks
-    and orders) equal the arrays its builder declares, every optional array included; every handle
-    is a ``str`` equal to its name in the store and knows its store."""
+def test_every_declared_array_is_a_handle_of_its_store_and_every_handle_is_declared():
+    """The builders declare their arrays through the handles (the names are written once, in
+    :data:`~mmflow.io.run_stores.ARRAYS`). For every store, in the reference configuration with every
+    optional array included: each array a builder declares is an :class:`ArrayName` of that store (a
+    name written as a string, or another store's handle, fails), and the handles' names (families
+    expanded over the reference channels, m blocks and orders) are exactly the declared arrays (a
+    handle no builder declares fails); every handle is a ``str`` equal to its name and knows its store."""
     built = [(b(**kw), kw) for b, kw in reference_stores()]
     specs = {spec.path: spec for spec, _ in built}
     # a store with blocks of m of its own (the stokes stage's) names its families by those
@@ -31,6 +35,9 @@ def test_handles_name_exactly_the_declared_arrays():
                for spec, kw in built}
     assert set(specs) == set(STORES) == set(rs.ARRAYS)
     for store in STORES:
+        declared = [a.name for a in specs[store].arrays]
+        strays = [n for n in declared if not (isinstance(n, ArrayName) and n.store == store)]
+        assert not strays, f"{store}: arrays declared without their handle: {strays}"
         handles = rs.HANDLES[store]
         names = set()
         for attr, h in handles.items():
@@ -38,11 +45,11 @@ def test_handles_name_exactly_the_declared_arrays():
             names |= _named(h, indices[store]) if isinstance(h, ArrayFamily) else {h}
         for name in names:
             assert isinstance(name, ArrayName) and name.store == store and type(str(name)) is str
-        assert names == {a.name for a in specs[store].arrays}, store
+        assert names == set(declared), f"{store}: handles no builder declares: {sorted(names - set(declared))}"
 
 
 def test_a_family_formats_like_the_builder():
-    assert STORES.normal.gram(1, 10) == rs.gram_name(1, 10) == "f1/gram_b00010"
+    assert STORES.normal.gram(1, 10) == "f1/gram_b00010" and STORES.partials.gram(0, 0) == "f0/gram_b00000"
     assert STORES.partials.rhs(3) == "f3/rhs" and STORES.transfer.B(0, 7) == "f0/B_m00007"
     assert STORES.clean.residual(2, 120).store == STORES.clean
     with pytest.raises(TypeError, match=r"takes \(fi, m0\)"):
