@@ -36,13 +36,15 @@ def solve_sizes(g, cfg):
     cal = cfg.calibrate
     n_src = len(cal.sources) if cal.enabled else 0
     rounds = cal.screen_rounds if cal.enabled and set(cal.screen_sources) & set(cal.sources) else 0
-    interval = int(round((cal.solint_s if cal.solint_s else 60.0 * cal.track_min) / cfg.observation.integration_s))
+    # at least one integration, as the stage's intervals and track are (`calibrate.stage._intervals`)
+    span_s = cal.solint_s if cal.solint_s else 60.0 * cal.track_min
+    interval = max(1, int(round(span_s / cfg.observation.integration_s)))
     return n_src, rounds, interval
 
 
 def work(g, cfg):
     n_src, rounds, interval = solve_sizes(g, cfg)
-    L = max(1, min(interval or g.n_time, g.n_time))
+    L = min(interval, g.n_time)
     n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
     w = CODE_BYTES + L * g.n_bl * g.n_pol * (HELD_SAMPLE_BYTES + COMPLEX128_BYTES * max(1, n_src))
     if rounds:  # the screen fits' arrays; a batch's antenna matrices (an interval shorter than a batch: its own)
