@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable, NamedTuple, Optional
 
+import ducc0
 import numpy as np
 
 from mmflow.conventions import SPEED_OF_LIGHT, m_blocks
@@ -32,6 +33,12 @@ VIS_SAMPLE_BYTES = 8.0 + 4.0
 CORRECTED_SAMPLE_BYTES = 16.0 + 8.0
 #: bytes of a complex128 element (Gram blocks, m-modes, models in double precision)
 COMPLEX128_BYTES = 16.0
+#: complex (time, baseline, pol) temporaries of the peel's correction on read
+#: (:func:`mmflow.workflow.engine.peel_models.peel_components`: the model it builds, each source's term, the
+#: gain products and the two ends' gains they come from)
+PEEL_TEMPORARIES = 5
+#: bytes per source, antenna and pol of the DD gains read and copied
+DD_GAIN_BYTES = 2 * COMPLEX128_BYTES
 #: declinations of CLEAN's PSF table (the clean stage and the CLEAN of V in the stokes stage)
 PSF_DECLINATIONS = 16
 #: the setting that shrinks every per-channel task and store
@@ -163,6 +170,24 @@ def halvings(key, floor=1):
     return split
 
 
+def read_bytes(g, cfg, n_time, n_bl, n_freq):
+    """Bytes of a block of ``n_time x n_bl x n_freq`` as :func:`mmflow.workflow.engine.blocks.read_block`
+    returns it to a stage after the peel (complex128 + float64 a sample) and, with peeling on, the peel's
+    correction of one channel on read: per integration and baseline the subtracted sources' coherencies and
+    :data:`PEEL_TEMPORARIES` complex arrays per pol, per integration the sources' DD gains read and copied::
+
+        n_time (n_bl n_freq n_pol 24 + n_bl 16 (n_sub + 5 n_pol) + 32 n_sub n_ant n_pol)
+
+    (measured 0.75 GB at 6,628 integrations and 64 antennas, 1.22 GB at 256; 1.34 GB traced for a time
+    chunk of the 352-antenna array, one pol and four sources, against 1.34 counted: docs/planning.md)."""
+    n_sub = len(cfg.peel.sources) if cfg.peel.enabled else 0
+    per_time = n_bl * n_freq * g.n_pol * CORRECTED_SAMPLE_BYTES
+    if n_sub:
+        per_time += (n_bl * COMPLEX128_BYTES * (n_sub + PEEL_TEMPORARIES * g.n_pol)
+                     + DD_GAIN_BYTES * n_sub * g.n_ant * g.n_pol)
+    return n_time * per_time
+
+
 def vis_spec(g):
     """The ``vis.zarr`` the data stages write, sized by the geometry."""
     return rs.vis_store(g.n_time, np.zeros((g.n_bl, 2), int), np.zeros(g.n_freq), np.zeros((g.n_ant, 3)),
@@ -197,6 +222,14 @@ def n_m_blocks(g):
 
 #: bytes of an m-mode as ``mmodes.zarr`` holds it and the transfer task reads it (complex128)
 MMODE_BYTES = 16.0
+#: bytes of a transfer grid's point: its direction (3 float64) and the beam on it (float64)
+#: (:class:`mmflow.mmode.transfer.TransferGrid`'s ``vectors`` and ``beam``)
+GRID_POINT_BYTES = 4 * 8.0
+#: the time of one fringe sample of the transfer's Fourier stage (a baseline's fringe on a north ring's
+#: point and its mirror's, folded, and its share of the rings' FFTs) in Gram updates: measured on this VM
+#: (one thread, float32) 58 ns a sample on the 352-antenna array's longest baselines against 1.25 ns a Gram
+#: update at lmax 300-500 (the least-squares split of four chunks' times into the two; docs/planning.md)
+FRINGE_SAMPLE_UNITS = 46.0
 
 
 def transfer_plan(tel, freq_hz, cfg, mmax):
@@ -209,12 +242,21 @@ def transfer_plan(tel, freq_hz, cfg, mmax):
     - ``workspace``, while it accumulates: the group's m-modes and, of its largest chunk (chunks of
       short baselines hold up to :data:`mmflow.mmode.engine.MAX_CHUNK_FACTOR` x
       ``transfer.baseline_chunk`` baselines), on the chunk's own grid (:class:`mmflow.mmode.engine.GridCache`'s
-      buckets: ``l_g``, exact to ``l_g +`` its fringe band limit, ``n_theta`` rings,
-      :func:`mmflow.mmode.transfer.make_grid`; one grid held at a time) the float tables
-      ``n_theta / 2 x (l_g + 1)(l_g + 2) / 2``, the ring-Fourier buffers ``2 x (m_top + 1) x n_theta / 2
-      x 2 n_chunk`` complex, the chunk's m-modes (complex128) and their weighted copy
-      (:func:`mmflow.mmode.engine.add_chunk`, in the Gram's precision) and the row mask
-      ``(lmax + 1) x 2 n_chunk`` real."""
+      buckets: ``l_g``, exact to ``l_g +`` its fringe band limit, ``n_theta`` rings of ``n_phi`` points,
+      :func:`mmflow.mmode.transfer.make_grid`; one grid held at a time) the grid's directions and beam
+      (:data:`GRID_POINT_BYTES` a point), the float tables ``n_theta / 2 x (l_g + 1)(l_g + 2) / 2``, the
+      ring-Fourier buffers ``2 x (m_top + 1) x n_theta / 2 x 2 n_chunk`` complex, the chunk's m-modes
+      (complex128) and their weighted copy (:func:`mmflow.mmode.engine.add_chunk`, in the Gram's
+      precision) and the row mask ``(lmax + 1) x 2 n_chunk`` real. The grid's points grow with the
+      fringe band limit, not with lmax: at lmax 50 the 352-antenna array's longest baselines (fringe
+      band limit ~3,950) take grids of ~7M points, 0.22 GB, beside 0.6 GB of buffers.
+
+    The units of a group: its Gram work plus :data:`FRINGE_SAMPLE_UNITS` per fringe sample of its
+    chunks' Fourier stage, ``sum_chunks n_c x n_active x n_phi`` (:func:`mmflow.mmode.transfer.fourier_stage`:
+    every baseline's beam-weighted fringe on every point of its chunk's grid, then the rings' FFTs). Where
+    ``lmax`` is near the baselines' own band limits the Gram work dominates (``~ n lmax^3 / 3`` against
+    ``~ n lmax^2``); at a low ``lmax`` with long baselines the Fourier stage does (the 352-antenna array at
+    lmax 50: 96 % of the transfer's time)."""
     t = cfg.transfer
     lmax = cfg.mmode.lmax
     n_split = len(cfg.mmode.splits)
@@ -224,20 +266,35 @@ def transfer_plan(tel, freq_hz, cfg, mmax):
     hint = tel.beam.lmax_hint
     lengths = np.linalg.norm(tel.baselines_enu(), axis=1) * freq_hz / SPEED_OF_LIGHT
 
-    def chunk_bytes(c):
+    def grid_of(c):
         glmax, fringe = GridCache.key(c.lmax, fringe_bandlimit(lengths[c.index], hint), lmax)
-        half_rings = grid_rings(glmax, fringe) / 2
+        rings = grid_rings(glmax, fringe)
+        return glmax, rings, grid_points(glmax, fringe)
+
+    def chunk_bytes(c):
+        glmax, rings, points = grid_of(c)
+        half_rings = rings / 2
         m_top, nb = min(mmax, c.lmax), len(c.index)
         tables = half_rings * (glmax + 1) * (glmax + 2) / 2 * real
         fourier = 2 * (m_top + 1) * half_rings * 2 * nb * cplx
         data = n_split * (m_top + 1) * 2 * nb * (MMODE_BYTES + cplx)
-        return tables + fourier + data + (lmax + 1) * 2 * nb * real
+        return points * GRID_POINT_BYTES + tables + fourier + data + (lmax + 1) * 2 * nb * real
+
+    def fringe_samples(c):  # the north rings (each folded with its mirror) x their points, per baseline
+        return len(c.index) * grid_of(c)[2] / 2
 
     mode_bytes = n_split * (mmax + 1) * 2 * MMODE_BYTES  # one baseline's m-modes
     units, read, work = [], 0.0, 0.0
     for group in plan_groups(chunks, t.groups):
-        units.append(sum(len(c.index) * gram_work(c.lmax, mmax) for c in group))
+        units.append(sum(len(c.index) * gram_work(c.lmax, mmax) + FRINGE_SAMPLE_UNITS * fringe_samples(c)
+                         for c in group))
         n = sum(len(c.index) for c in group)
         read = max(read, mode_bytes * (len(lmax_b) + n))
         work = max(work, mode_bytes * n + max(chunk_bytes(c) for c in group))
     return tuple(units), read, work
+
+
+def grid_points(glmax, fringe_lmax):
+    """Points of the transfer grid exact to ``glmax + fringe_lmax``: ``n_theta x n_phi``
+    (:func:`mmflow.mmode.transfer.make_grid`)."""
+    return grid_rings(glmax, fringe_lmax) * ducc0.fft.good_size(glmax + fringe_lmax + 2)

@@ -1,5 +1,7 @@
 """The calibrate stage's cost: a task per solution interval and channel, holding the interval's data and
-each calibrator's model (complex128), and with screened sources the screen rounds' arrays.
+each calibrator's model (complex128), and with screened sources the screen rounds' arrays and a batch's
+antenna matrices (a batch of at most the interval's integrations), the ``vis.zarr`` chunks its read
+decodes, and the code its first task loads.
 
 Each screen round costs ~4 catalogue solves: a gain solve and the screen fits' antenna matrices
 (``mmflow bench calibrate``, gains_screened; docs/calibration.md).
@@ -9,12 +11,33 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, VIS_SAMPLE_BYTES, Cost, Work
+from mmflow.workflow.engine.chunking import TIME_CHUNK
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work
 
-#: bytes per sample a screen round adds: the screened model, the masked data and their weights
-SCREEN_SAMPLE_BYTES = 56.0
-#: antenna matrices of a batch of the screen fits: six complex128 matrices for 16 integrations
-SCREEN_BATCH_MATRICES = 6 * 16
+#: bytes per sample of the interval as the task holds it: the block read (complex128 + float64) and its
+#: selected, ripple-corrected copy (:func:`mmflow.calibrate.ripple.apply_ripple`)
+HELD_SAMPLE_BYTES = 2 * CORRECTED_SAMPLE_BYTES
+#: bytes per sample of the interval a screen round adds (:func:`mmflow.calibrate.screened_gains.solve_gains_screened`):
+#: the weights (float64) and the masked data (complex128)
+SCREEN_SAMPLE_BYTES = 8.0 + COMPLEX128_BYTES
+#: bytes per sample of a batch of the screen fits (:func:`mmflow.calibrate.screened_gains._fit_screens`): the gain
+#: products, the unscreened sources' sum and the two arrays of the residual ``v - g rest`` (complex128 each)
+SCREEN_BATCH_SAMPLE_BYTES = 4 * COMPLEX128_BYTES
+#: complex128 antenna matrices per integration of a batch of the screen fits (the data, weights, each
+#: screened source's model, the residual and its screened part)
+SCREEN_MATRICES = 6
+#: integrations whose screens are fitted together (``solve_gains_screened``'s ``batch``)
+SCREEN_BATCH = 16
+#: chunks zarr decodes at once (its ``async.concurrency``, 10 by default): an interval of a few integrations
+#: reads whole ``vis.zarr`` chunks of ``TIME_CHUNK x mmode.baseline_chunk`` samples (zarr allocates a chunk's
+#: full shape, also for a short last time chunk), which then outweigh its own arrays
+ZARR_CONCURRENCY = 10
+#: bytes of a decoded visibility (complex64, as ``vis.zarr`` holds it)
+DECODED_SAMPLE_BYTES = 8.0
+#: what the first gains task of a worker loads besides its arrays: the catalogue's astropy tables and the
+#: modules and numba-typed kernels of the solvers (traced: 21 MB in a fresh process, 15 MB after the simulate
+#: stage in the same one; a task of a short track at 352 antennas holds ~50 MB of arrays beside it)
+CODE_BYTES = 20e6
 
 
 def solve_sizes(g, cfg):
@@ -23,19 +46,22 @@ def solve_sizes(g, cfg):
     cal = cfg.calibrate
     n_src = len(cal.sources) if cal.enabled else 0
     rounds = cal.screen_rounds if cal.enabled and set(cal.screen_sources) & set(cal.sources) else 0
-    interval = int(round((cal.solint_s if cal.solint_s else 60.0 * cal.track_min) / cfg.observation.integration_s))
+    # at least one integration, as the stage's intervals and track are (`calibrate.stage._intervals`)
+    span_s = cal.solint_s if cal.solint_s else 60.0 * cal.track_min
+    interval = max(1, int(round(span_s / cfg.observation.integration_s)))
     return n_src, rounds, interval
 
 
 def work(g, cfg):
     n_src, rounds, interval = solve_sizes(g, cfg)
-    L = max(1, min(interval or g.n_time, g.n_time))
+    L = min(interval, g.n_time)
     n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
-    w = L * g.n_bl * g.n_pol * (VIS_SAMPLE_BYTES + COMPLEX128_BYTES * max(1, n_src))
-    if rounds:  # the screened model, the masked data and weights; a batch's antenna matrices
-        w += (
-            L * g.n_bl * g.n_pol * SCREEN_SAMPLE_BYTES + SCREEN_BATCH_MATRICES * COMPLEX128_BYTES * g.n_pol * g.n_ant**2
-        )
+    decoded = min(-(-g.n_bl // g.mmode_chunk), ZARR_CONCURRENCY) * TIME_CHUNK * g.mmode_chunk * DECODED_SAMPLE_BYTES
+    w = CODE_BYTES + decoded + L * g.n_bl * g.n_pol * (HELD_SAMPLE_BYTES + COMPLEX128_BYTES * max(1, n_src))
+    if rounds:  # the screen fits' arrays; a batch's antenna matrices (an interval shorter than a batch: its own)
+        batch = min(SCREEN_BATCH, L)
+        w += ((L * SCREEN_SAMPLE_BYTES + batch * SCREEN_BATCH_SAMPLE_BYTES) * g.n_bl * g.n_pol
+              + SCREEN_MATRICES * batch * COMPLEX128_BYTES * g.n_pol * g.n_ant ** 2)
     spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                           np.zeros((n_int, 2), int), {}, n_src=max(1, n_src))
     units = L * g.n_bl * g.n_pol * max(1, n_src) * (1 + 4 * rounds)

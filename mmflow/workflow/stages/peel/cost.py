@@ -1,7 +1,8 @@
 """The peel stage's cost: a task per time chunk and channel holding its corrected block (complex128 +
 float64), the sources' models (complex64, one for both hands), the peeled residual it returns
-(complex128, :func:`mmflow.calibrate.peel.peel`'s ``residual``) and a batch's antenna matrices (data,
-weights, residual and the models: 16 integrations x hands; the solve runs in single precision). A
+(complex128, :func:`mmflow.calibrate.peel.peel`'s ``residual``), the solve's float64 copy of the weights
+and a batch's antenna matrices (data, weights, two copies of the residual, the normal matrix and the
+models: 16 integrations x hands; the solve runs in single precision). A
 four-correlation peel (full Stokes through an E-field beam) also holds the block's cross hands, each
 source's four correlations, and the cross hands' fit (:func:`mmflow.calibrate.cross_hands.fit_cross`:
 the templates and the stacked design matrix with its weighted copy, complex128, a batch at a time)."""
@@ -21,6 +22,12 @@ RESIDUAL_SAMPLE_BYTES = 16.0
 BATCH_INTEGRATIONS = 16
 #: bytes of an antenna-matrix element (complex64: the peel solves in single precision)
 MATRIX_ELEMENT_BYTES = 8.0
+#: bytes per element of a batch's antenna matrices besides the sources' models
+#: (:func:`mmflow.calibrate.peel.peel`, :func:`~mmflow.calibrate.peel.peel_dense`): the data and two copies of
+#: the residual (complex64), the normal matrix's ``W |M|^2`` (float64) and the weights (float32)
+BATCH_MATRIX_BYTES = 3 * MATRIX_ELEMENT_BYTES + 8.0 + 4.0
+#: bytes per sample of the weights as the solve holds them (float64, broadcast to the data's shape)
+WEIGHT_COPY_BYTES = 8.0
 #: bytes per cross-hand sample and source of the cross hands' fit: templates, design matrix and its weighted
 #: copy (complex128 each)
 CROSS_FIT_SAMPLE_BYTES = 48.0
@@ -36,9 +43,9 @@ def work(g, cfg):
     T = g.chunk_integrations
     four = is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES  # + xy, yx (four_correlation_jones)
     cross, n_corr = (2, 4) if four else (0, 1)
-    w = (T * g.n_bl * ((CORRECTED_SAMPLE_BYTES + RESIDUAL_SAMPLE_BYTES) * g.n_pol + CORRECTED_SAMPLE_BYTES * cross
-                       + MODEL_SAMPLE_BYTES * n_corr * n_src)
-         + (n_src + 3) * BATCH_INTEGRATIONS * g.n_pol * g.n_ant ** 2 * MATRIX_ELEMENT_BYTES
+    w = (T * g.n_bl * ((CORRECTED_SAMPLE_BYTES + RESIDUAL_SAMPLE_BYTES + WEIGHT_COPY_BYTES) * g.n_pol
+                       + CORRECTED_SAMPLE_BYTES * cross + MODEL_SAMPLE_BYTES * n_corr * n_src)
+         + (n_src * MATRIX_ELEMENT_BYTES + BATCH_MATRIX_BYTES) * BATCH_INTEGRATIONS * g.n_pol * g.n_ant ** 2
          + BATCH_INTEGRATIONS * g.n_bl * cross * n_src * CROSS_FIT_SAMPLE_BYTES)  # the cross fit, a batch at a time
     spec = rs.peel_store(g.n_time, g.n_freq, n_src, g.n_ant, g.n_pol, TIME_CHUNK, {}, cross=four)
     return Work(g.n_time_chunks * g.n_freq, w, T * g.n_bl * g.n_pol * n_src, [spec])

@@ -1,9 +1,12 @@
 """The simulate stage's cost: per time chunk every channel's visibilities of the sky's points, and with
 an interpolated diffuse sky first its direct sums at the sampled sidereal angles.
 
-Memory of a time-chunk task: the chunk's ``vis.zarr`` block and, one channel at a time,
-:data:`TEMPORARIES` complex128 ``(time, baseline, pol)`` arrays (drift scans, corruptions, noise;
-measured 2.8 GB at 256 antennas, docs/planning.md).
+Memory of a time-chunk task: the chunk's ``vis.zarr`` block and, one channel at a time, a corrupted
+simulation's :data:`TEMPORARIES` complex128 ``(time, baseline, pol)`` arrays (drift scans, corruptions,
+noise; measured 2.8 GB at 256 antennas, docs/planning.md), or an uncorrupted one's drift scan
+(:data:`DRIFT_SCAN_BYTES`) and, with ``sky.noise``, the radiometer noise's arrays
+(:data:`NOISE_SAMPLE_BYTES`): 112 B a sample traced at 352 antennas against the 172 B that ten
+temporaries and the block counted.
 """
 from __future__ import annotations
 
@@ -20,8 +23,16 @@ from mmflow.simulate.visibilities import gauss_legendre_shape
 from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
 from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, vis_spec
 
-#: complex128 (time, baseline, pol) temporaries of one channel (drift scans, corruptions, noise)
+#: complex128 (time, baseline, pol) temporaries of one channel of a corrupted simulation (drift scans,
+#: corruptions, noise)
 TEMPORARIES = 10
+#: bytes per sample of an uncorrupted channel's drift scan (:func:`mmflow.simulate.visibilities.simulate_drift_scan`
+#: returns complex128)
+DRIFT_SCAN_BYTES = COMPLEX128_BYTES
+#: bytes per sample of the radiometer noise (:func:`mmflow.simulate.visibilities.thermal_noise`) at its peak:
+#: the two ends' autocorrelations, sigma and the two normal draws (float64 each), the complex noise, the
+#: autocorrelations' real noise and the selection between them (complex128 each)
+NOISE_SAMPLE_BYTES = 5 * 8.0 + 3 * COMPLEX128_BYTES
 #: bytes per sampled angle, baseline and feed column of the diffuse sky's samples and their modes
 DIFFUSE_SAMPLE_BYTES = 2 * COMPLEX128_BYTES
 #: the share of the SGEMM peak the diffuse sky's direct sums reach (the rank-k product over the antennas and
@@ -62,7 +73,10 @@ def work(g, cfg):
     T = g.chunk_integrations
     units = T * g.n_bl * g.n_freq * sky.points
     w = g.vis_task_bytes
-    w += T * g.n_bl * g.n_pol * (TEMPORARIES * COMPLEX128_BYTES)
+    if cfg.corrupt.enabled or is_full_stokes(cfg.imaging.stokes):
+        w += T * g.n_bl * g.n_pol * (TEMPORARIES * COMPLEX128_BYTES)
+    else:  # scalar and clean: one channel's drift scan and its noise (the chunk's channels: the vis block)
+        w += T * g.n_bl * g.n_pol * (DRIFT_SCAN_BYTES + (NOISE_SAMPLE_BYTES if cfg.sky.noise else 0.0))
     if not sky.diffuse_samples:
         return Work(g.n_time_chunks, w, units, [vis_spec(g)])
     # an interpolated diffuse sky: first its direct sums at the sampled angles (DIFFUSE_SAMPLE_BLOCK a task:

@@ -1,12 +1,18 @@
 """The terrestrial stage's cost: a task per channel and time chunk in each of its two phases (the
-template's sum, its removal), reading its channel of the chunk."""
+template's sum, its removal), reading its channel of the chunk with the corrections before it (with
+peeling on, the peel's correction on read is its peak: :func:`mmflow.workflow.plan.work.read_bytes`), then
+its weights, the masked data and their product (:data:`SUMS_SAMPLE_BYTES`)."""
 from __future__ import annotations
 
 from mmflow.conventions import is_full_stokes
 from mmflow.io import run_stores as rs
 from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import Cost, Work
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, read_bytes
+
+#: bytes per sample a task holds beside its block: the weights (float64), the masked data and the weighted
+#: data (complex128 each)
+SUMS_SAMPLE_BYTES = 8.0 + 2 * COMPLEX128_BYTES
 
 
 def work(g, cfg):
@@ -14,7 +20,9 @@ def work(g, cfg):
     four = is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES  # the cross hands' coefficients too
     spec = rs.terrestrial_store(n_tchunk, g.n_time, g.n_freq, g.n_bl, cfg.terrestrial.components, g.n_ant, g.n_pol,
                                 TIME_CHUNK, cross=four)
-    return Work(2 * n_tchunk * g.n_freq, g.vis_task_bytes / g.n_freq, g.chunk_integrations * g.n_bl * g.n_pol, [spec])
+    T = g.chunk_integrations
+    w = max(read_bytes(g, cfg, T, g.n_bl, 1), T * g.n_bl * g.n_pol * (CORRECTED_SAMPLE_BYTES + SUMS_SAMPLE_BYTES))
+    return Work(2 * n_tchunk * g.n_freq, w, T * g.n_bl * g.n_pol, [spec])
 
 
 COST = Cost(work)

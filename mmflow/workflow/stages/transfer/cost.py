@@ -1,8 +1,9 @@
 """The transfer stage's cost: a task per channel and baseline group; its peak is the larger of its read
 (the channel's m-modes, before its Gram exists) and its accumulation: its partial Gram (one channel's
 ``sum_m (lmax - m + 1)^2`` elements) and its workspace (the group's m-modes, grid tables, and the widest
-chunk's ring-Fourier buffers and data: :func:`mmflow.workflow.plan.work.transfer_plan`); the units: the
-group's Gram updates."""
+chunk's grid, ring-Fourier buffers and data: :func:`mmflow.workflow.plan.work.transfer_plan`); the units:
+the group's Gram updates and its Fourier stage's fringe samples (at a low lmax with long baselines, most
+of its time)."""
 from __future__ import annotations
 
 import numpy as np
