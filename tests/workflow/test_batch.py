@@ -42,7 +42,8 @@ def test_cluster_slurm_alone_gets_cores_memory_logs_and_lifetime(tmp_path, monke
     jq = ("cluster.jobqueue={cores: 4, memory: 8GB, log_directory: '/x/${MMFLOW_TEST_USER}/logs', "
           "worker_extra_args: [--lifetime, 1h]}")
     opts, _ = job_options(small_config(tmp_path / "run", "cluster.kind=slurm", jq), "slurm", said.append)
-    assert opts["log_directory"] == "/x/someone/logs" and opts["worker_extra_args"] == ["--lifetime", "1h"]
+    assert opts["log_directory"] == "/x/someone/logs"
+    assert opts["worker_extra_args"] == ["--lifetime", "1h", "--preload", "mmflow.workflow.engine.worker_start"]
     assert opts["cores"] == 4 and opts["memory"] == "8GB"
 
 

@@ -23,6 +23,10 @@ from pathlib import Path
 
 from mmflow.errors import InputError
 
+#: what every worker imports when it starts (:mod:`mmflow.workflow.engine.worker_start`: the stages and the
+#: compiled kernels), a local cluster's fork server and a job-queue worker's ``--preload`` alike
+WORKER_PRELOAD = "mmflow.workflow.engine.worker_start"
+
 #: a job's share of its walltime kept free at the end: workers retire before it
 RETIRE_FRACTION = 0.2
 #: lines of a worker's log that say why it could not reach the scheduler
@@ -144,7 +148,10 @@ def job_options(cfg, kind, log=print, opts=None):
       there); ``$USER``-style variables expanded in it and in ``local_directory`` (``#SBATCH``
       lines are not expanded by SLURM);
     * ``--lifetime``/``--lifetime-stagger`` for the workers from the walltime (:func:`lifetime_args`),
-      unless ``worker_extra_args`` sets a lifetime.
+      unless ``worker_extra_args`` sets a lifetime;
+    * ``--preload`` :data:`WORKER_PRELOAD`: each worker loads the stages and numba's kernels when it starts,
+      as a local cluster's forked workers have them, not inside its first task (whose memory the plan
+      then reads as the task's: a fresh worker's first m-mode task traced 0.058 GB against 0.019 planned).
     """
     from dask.utils import format_bytes, parse_bytes  # deferred: as in jobqueue_default
 
@@ -175,6 +182,8 @@ def job_options(cfg, kind, log=print, opts=None):
     extra = list(opts.get("worker_extra_args") or jobqueue_default(kind, "worker_extra_args") or [])
     if not any(a.startswith("--lifetime") for a in extra):
         extra += lifetime_args(opts.get("walltime") or jobqueue_default(kind, "walltime"))
+    if WORKER_PRELOAD not in extra:
+        extra += ["--preload", WORKER_PRELOAD]
     opts["worker_extra_args"] = extra
     parse_bytes(str(opts["memory"] or jobqueue_default(kind, "memory")))  # a bad size fails here, not in a job
     return opts, sizes

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 
 from mmflow.environ import restored_environ
 from mmflow.errors import InputError
-from mmflow.workflow.engine.batch import JobWatch, cluster_interface, job_options, refuse_impossible
+from mmflow.workflow.engine.batch import WORKER_PRELOAD, JobWatch, cluster_interface, job_options, refuse_impossible
 from mmflow.workflow.engine.pools import StagePools, plan_pools, pool_options, workers_per_host
 
 LOOPBACK = "127.0.0.1"
@@ -41,7 +41,7 @@ def memory_limit(text):
 #: dask's setting for how a local cluster's nanny starts its worker process
 START_METHOD = "distributed.worker.multiprocessing-method"
 #: what a local worker's server process imports once, before it forks each worker
-PRELOAD = ("distributed", "mmflow.workflow.engine.worker_start")
+PRELOAD = ("distributed", WORKER_PRELOAD)
 
 
 def fork_workers_from_a_preloaded_server():

@@ -6,8 +6,9 @@ fringe kernel in both precisions) from numba's cache, compiling them on a machin
 Each worker is then a fork that shares them, so no worker task bears numba's ~45 MB runtime start
 (~0.5 s) or a compilation (~15 MB and 1-1.5 s per kernel, per worker, on a fresh installation):
 a task's measured memory is its working set, as :mod:`mmflow.workflow.plan.planner` models it, and the
-runtime sits in the worker's baseline (``WORKER_BASE_BYTES``). Workers started any other way
-(a job-queue cluster, ``dask worker``) load them in their first task instead; nothing else differs.
+runtime sits in the worker's baseline (``WORKER_BASE_BYTES``). A job-queue cluster's workers import it
+when they start (``--preload``, :data:`mmflow.workflow.engine.batch.WORKER_PRELOAD`); workers started any
+other way (``dask worker`` by hand) load them in their first task instead; nothing else differs.
 """
 import numpy as np
 
