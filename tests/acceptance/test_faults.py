@@ -379,7 +379,7 @@ def test_workflow_alm_equals_engine_alm_and_splits_share_one_transfer_pass(tmp_p
 
     run_dir = tmp_path / "run"
     cfg = small_config(run_dir, "mmode.splits=[full, even, odd]", "observation.integration_s=172.3281810",
-                       "imaging.filter_m1_lmin=null")
+                       "imaging.filter_m1_lmin=null", "run.keep=[mmodes.zarr]")
     s = run_workflow(cfg, **QUIET)
     assert s["transfer"]["tasks"] == len(RunDir(run_dir).manifest("transfer")["keys"])  # one pass for 3 splits
     mg = zarr.open_group(str(run_dir / "mmodes.zarr"))

@@ -56,7 +56,8 @@ def measured_run(tmp_path_factory):
     rotation_matrix("icrs", "date", 2457802.0)  # parses the table into the cache if it is not there
 
     run_dir = tmp_path_factory.mktemp("plan") / "r"
-    cfg = small_config(run_dir, "cluster.kind=local", "cluster.n_workers=1", "cluster.dashboard_address=:0")
+    cfg = small_config(run_dir, "cluster.kind=local", "cluster.n_workers=1", "cluster.dashboard_address=:0",
+                       "run.keep=[vis.zarr, mmodes.zarr]")  # every array the stages created, for the sizes below
     with open_cluster(cfg, log=lambda *a: None) as client:
         run_workflow(cfg, client, progress=False, log=lambda *a: None)
     return cfg, run_dir

@@ -454,7 +454,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
     for st in stages:  # then the checks that read the input data, for the stages with tasks to do
         if st.scan is not None and st.enabled(cfg) and _has_work(run, st.name, fps[st.name]):
             st.scan(cfg)
-    recompute_released(run, cfg, pipeline, fps, stages, force, log)
+    recompute_released(run, cfg, pipeline, fps, stages, force, log, later=planned or ())
     plan = _check_resources(cfg, run, client, stages)
     slots = 1 if client is None else cfg.cluster.n_workers * cfg.cluster.threads_per_worker  # as mmflow plan counts
     BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],

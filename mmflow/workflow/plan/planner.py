@@ -16,7 +16,9 @@ Store sizes are the declared stores' uncompressed bytes (:attr:`mmflow.io.stores
 of the same :mod:`mmflow.io.run_stores` declarations the stages create), an upper bound of the
 disk they take (zarr compresses noise-like data by a few percent only). The disk a run needs is
 the peak of its live stores (:func:`live_stores`): stages run in order, each adds its stores, and
-an intermediate goes once its last reader has finished (:meth:`mmflow.workflow.pipeline.Pipeline.released`).
+an intermediate goes once its last reader has finished (:meth:`mmflow.workflow.pipeline.Pipeline.released`),
+and so does a large array of a kept store (:meth:`mmflow.workflow.pipeline.Pipeline.released_arrays`:
+:func:`run_live_stores`).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ import numpy as np
 from mmflow.conventions import complex_dtype
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
+from mmflow.io.run_stores import RELEASED_ARRAYS, handle_of
 from mmflow.machine import gemm_gflops
 from mmflow.paths import expand_path
 from mmflow.workflow.engine.context import build_telescope
@@ -58,6 +61,7 @@ class StageEstimate:
     task_bytes: float = 0.0  # predicted peak memory of the largest task above the worker baseline
     seconds: float = 0.0  # predicted wall time of the stage on the cluster
     notes: list = field(default_factory=list)
+    arrays: dict = field(default_factory=dict)  # {store: {array: bytes}} of the arrays it writes that can go alone
     store_files: int = 0  # files of its stores with every chunk written (StoreSpec.n_files)
     largest_chunk_bytes: int = 0  # its stores' largest chunk, uncompressed
 
@@ -81,6 +85,7 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     tasks, w, u, specs = cost.work(g, cfg)
     k = costs["stages"].get(stage)
     est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)), {s.path: s.nbytes for s in specs},
+                        arrays={s.path: releasable_bytes(s) for s in specs if s.path in RELEASED_ARRAYS},
                         store_files=sum(s.n_files for s in specs),
                         largest_chunk_bytes=max((s.largest_chunk_bytes for s in specs), default=0))
     if k is None and cost.seconds is None:
@@ -121,6 +126,39 @@ def live_stores(writes, released):
             if after == stage:
                 live.pop(store, None)
     return peak, at, live
+
+
+def releasable_bytes(spec):
+    """``{array: bytes}`` of the arrays of a store's spec that can be released alone
+    (:data:`mmflow.io.run_stores.RELEASED_ARRAYS`; a family's arrays summed under its attribute)."""
+    out = {}
+    for a in spec.arrays:
+        attr = handle_of(spec.path, a.name)
+        if attr in RELEASED_ARRAYS[spec.path]:
+            out[attr] = out.get(attr, 0) + int(np.prod(a.shape, dtype=float) * np.dtype(a.dtype).itemsize)
+    return out
+
+
+def run_live_stores(writes, cfg):
+    """:func:`live_stores` of a run: ``writes`` ``[(stage, {store: bytes}, {store: {array: bytes}})]`` in run
+    order, the arrays that go alone (:meth:`mmflow.workflow.pipeline.Pipeline.released_arrays`) counted as
+    units of their own (``vis.zarr/vis``) beside the rest of their store; the stores left at the end summed
+    per store. Returns ``(peak bytes, stage, {store: bytes})``."""
+    released = {**PIPELINE.released(cfg), **PIPELINE.released_arrays(cfg)}
+    units = []
+    for stage, stores, arrays in writes:
+        u = dict(stores)
+        for store, per in arrays.items():
+            for attr, nbytes in per.items():
+                if f"{store}/{attr}" in released:
+                    u[f"{store}/{attr}"] = nbytes
+                    u[store] -= nbytes
+        units.append((stage, u))
+    peak, at, kept = live_stores(units, released)
+    by_store = {}
+    for unit, nbytes in kept.items():
+        by_store[unit.split("/", 1)[0]] = by_store.get(unit.split("/", 1)[0], 0) + nbytes
+    return peak, at, by_store
 
 
 def task_seconds(k, units, costs, peak_gflops):
@@ -178,7 +216,7 @@ def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
-    peak, at, kept = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
+    peak, at, kept = run_live_stores([(e.stage, e.stores, e.arrays) for e in ests], cfg)
     return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops, "task_slots": workers,
             "total_store_gb": sum(e.store_bytes for e in ests) / 1e9, "peak_store_gb": peak / 1e9,
             "peak_stage": at, "kept_stores": {k: v / 1e9 for k, v in kept.items()},
@@ -254,7 +292,7 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
                                  f"(`mmflow plan`), more than a worker's {worker_limit_gb:.2f} GB memory limit",
                                  f"{PIPELINE.stage(e.stage).cost.shrink_setting(cfg)}, or more memory per worker "
                                  "(fewer cluster.n_workers, a larger cluster.memory_limit)")
-    peak, at, _ = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
+    peak, at, _ = run_live_stores([(e.stage, e.stores, e.arrays) for e in ests], cfg)
     disk = peak - existing_bytes
     free = free_disk_gb(cfg.run.directory) if free_disk is None else free_disk
     if disk / 1e9 > free:
