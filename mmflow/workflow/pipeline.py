@@ -106,14 +106,20 @@ class Pipeline:
     def released(self, cfg):
         """``{store: stage}``: the intermediates this run releases (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`
         less ``run.keep``) that an enabled stage writes, each with the stage after which it goes: its last
-        reader in pipeline order, or its writer where no other stage reads it."""
+        reader in pipeline order, or its writer where no other stage reads it (:meth:`release_point`)."""
         out = {}
         for store in RELEASED_BY_DEFAULT:
             writer = self.producer_of(store, cfg)
             if writer is None or not writer.recomputable or store in cfg.run.keep:
                 continue
-            out[store] = (self.readers(store, cfg) or [writer])[-1].name
+            out[store] = self.release_point((self.readers(store, cfg) or [writer])[-1], cfg)
         return out
+
+    def release_point(self, stage, cfg):
+        """The stage after which what goes after ``stage`` is released: ``stage``, or the enabled stage run
+        channel by channel with it (``Stage.by_channel_after``: both complete together)."""
+        return next((s.name for s in self.stages if s.by_channel_after == stage.name and s.enabled(cfg)),
+                    stage.name)
 
     def released_arrays(self, cfg):
         """``{"store/array": stage}``: the arrays of :data:`mmflow.io.run_stores.RELEASED_ARRAYS` this run
@@ -126,7 +132,8 @@ class Pipeline:
             if writer is None or not writer.recomputable or store in cfg.run.keep or store in RELEASED_BY_DEFAULT:
                 continue
             for array in arrays:
-                out[f"{store}/{array}"] = (self.array_readers(store, array, cfg) or [writer])[-1].name
+                out[f"{store}/{array}"] = self.release_point((self.array_readers(store, array, cfg) or [writer])[-1],
+                                                             cfg)
         return out
 
     def __reduce__(self):

@@ -10,11 +10,15 @@ with its writer
 (:meth:`mmflow.workflow.engine.rundir.RunDir.release`), so a resume knows it was finished; a stage
 that must run again and reads one has the store's writer recomputed first (stages are deterministic:
 the same bits), and a resume whose remaining stages do not read it recomputes nothing.
+:func:`repair_or_refuse` recomputes a stage's damaged chunks (``--force``), with the tasks that wrote a
+store of its own it has released since.
 """
 from __future__ import annotations
 
 from mmflow.errors import MmflowError
+from mmflow.io.stores import DamagedStoreError
 from mmflow.io.run_stores import array_paths
+from mmflow.workflow.engine.task_key import TaskKey
 
 
 def finished(run, name, fps):
@@ -122,3 +126,37 @@ def recompute_released(run, cfg, pipeline, fps, stages, force, log, later=()):
         what = "; ".join(f"{reader} reads {store}" for p, store, reader in again if p == prod)
         log(f"[{prod}] recomputing: {what}, released after its readers had finished")
         run.reset_stage(prod)
+
+
+def repair_or_refuse(run, st, force, log):
+    """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop.
+
+    Only the damaged tasks are recomputed, in a stage with cycles too: a later task read the damaged
+    chunk while it was intact (every read is checked against the chunk records), so what it wrote
+    stands, and a task rerun from the same inputs rewrites its chunk bit for bit. The checkpoint of
+    each cycle that holds a damaged task is forgotten with it, so that the cycle is planned again
+    (``next_cycle`` is deterministic) and runs just that task.
+    """
+    stage = st.name
+    damaged = run.damaged_keys(stage)
+    if not damaged:
+        return
+    first = next(iter(damaged.values()))[0]
+    n = sum(len(p) for p in damaged.values())
+    if not force:
+        raise DamagedStoreError(f"stage '{stage}' in {run.path} has {n} damaged chunk files (first: {first}). "
+                                f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
+                                f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
+    # a store of the stage's own released meanwhile (the diffuse sky's samples, which its time chunks read):
+    # the tasks that wrote it run again too, and it is released again once the stage is complete
+    again = run.keys_writing_released(stage)
+    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})"
+        + (f" and the {len(again)} that wrote {', '.join(run.released(stage))}, released since" if again else ""))
+    keys = list(damaged) + [k for k in again if k not in damaged]
+    arrays = again and any("/" in u for u in run.released(stage))  # gone from a kept store: made by prepare
+    run.forget_released(stage)
+    if "_prepare" in keys or arrays:
+        run.reset_stage(stage)
+        return
+    cycles = {TaskKey.parse(k).cycle for k in keys if not k.startswith("cycle") and not k.startswith("_")}
+    run.forget_keys(stage, keys + [f"cycle{c:04d}" for c in cycles if c is not None])

@@ -280,6 +280,12 @@ class RunDir:
         gone = self._gone(stage)
         return {rel: v for rel, v in chunks.items() if not _under(rel, gone)} if gone else chunks
 
+    def finished_chunks(self, stage):
+        """``{relative chunk path: [size, crc]}`` of the stage's finished keys so far (a stage not complete yet,
+        whose finished channels the stage run channel by channel with it reads)."""
+        man = self.manifest(stage) or {"keys": []}
+        return self.marker_chunks(stage, [k for k in list(man["keys"]) + EXTRA_MARKERS if self.is_done(stage, k)])
+
     def live_chunk_index(self, stage):
         """:meth:`chunk_index` of a complete stage less the chunks of its released stores."""
         return self._live(stage, self.chunk_index(stage))

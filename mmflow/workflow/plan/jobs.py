@@ -128,7 +128,7 @@ def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
                      "workers_per_node": max(1, node.cores // k), "worker_memory_gb": k * node.core_memory_bytes / 1e9,
                      "fits": k <= node.cores, "per_task_s": per_task, "node_s": max(0.0, wide) * nodes,
                      "store_gb": est.store_bytes / 1e9, "stores": est.stores, "arrays": est.arrays,
-                     "store_files": est.store_files,
+                     "channels": est.channels, "store_files": est.store_files,
                      "largest_chunk_mb": est.largest_chunk_bytes / 1e6, "notes": est.notes})
     return rows
 
@@ -251,7 +251,8 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
                     "core_memory_bytes": node.core_memory_bytes, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
-           "store_gb": run_live_stores([(r["stage"], r["stores"], r["arrays"]) for r in rows], c)[0] / 1e9,
+           "store_gb": run_live_stores([(r["stage"], r["stores"], r["arrays"], r["channels"]) for r in rows],
+                                       c)[0] / 1e9,
            "store_files": sum(r["store_files"] for r in rows),
            "largest_chunk_mb": max(r["largest_chunk_mb"] for r in rows),
            "free_disk_gb": free_disk_gb(cfg.run.directory)}
