@@ -10,6 +10,8 @@ Gram blocks are stored per m block (``m0 <= m < m1``) padded to the block's larg
 """
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from dataclasses import dataclass
@@ -91,6 +93,20 @@ class ArrayFamily:
     def __repr__(self):
         return f"ArrayFamily({self.store!r}, {self.template!r})"
 
+    @property
+    def pattern(self):
+        """The family's arrays as a glob pattern (``f*/gram_b*``)."""
+        return re.sub(r"{[^}]*}", "*", self.template)
+
+    def matches(self, path):
+        """True where ``path`` is one of the family's arrays (``f1/gram_b00010`` of ``f{fi}/gram_b{m0:05d}``)."""
+        return re.fullmatch(re.sub(r"\\\{[^}]*\\\}", r"[0-9]+", re.escape(self.template)), path) is not None
+
+
+#: vis.zarr's arrays that stay once the visibilities have gone (:data:`RELEASED_ARRAYS`): what the stages after
+#: ``mmodes`` read of it (``Stage.reads``)
+VIS_METADATA = ("lst", "time_jd", "freqs_hz", "pairs", "antenna_enu", "plan_time_jd", "plan_file_rows",
+                "antenna_numbers")
 
 #: the Gram blocks' name, one array per channel and m block (normal, partials, stokes)
 GRAM = "f{fi}/gram_b{m0:05d}"
@@ -137,6 +153,25 @@ def store_handles(store, declared):
 HANDLES = {str(store): store_handles(store, declared) for store, declared in ARRAYS.items()}
 
 
+def array_paths(store_dir, store, attr):
+    """The paths (relative to the store) of the arrays of handle ``attr`` of ``store`` that exist in the
+    store's directory ``store_dir`` (one for an array, those of a family that were written)."""
+    h = HANDLES[str(store)][attr]
+    if isinstance(h, ArrayName):
+        return [str(h)] if (store_dir / h / "zarr.json").is_file() else []
+    return sorted(str(p.parent.relative_to(store_dir)) for p in store_dir.glob(f"{h.pattern}/zarr.json")
+                  if h.matches(str(p.parent.relative_to(store_dir))))
+
+
+def handle_of(store, path):
+    """The attribute (:data:`ARRAYS`) that names array ``path`` of ``store``: ``handle_of(STORES.normal,
+    "f1/gram_b00010") == "gram"``; None for an array the store does not declare."""
+    for attr, h in HANDLES.get(str(store), {}).items():
+        if isinstance(h, ArrayName) and h == path or isinstance(h, ArrayFamily) and h.matches(path):
+            return attr
+    return None
+
+
 def _array_handle(store, name):
     """``STORES.<store>.<name>``: the declared array (or family), else an error naming the store's arrays."""
     if name.startswith("__") or str(store) not in HANDLES:
@@ -160,6 +195,20 @@ def _array_handle(store, name):
 #: their sum), the diffuse sky's samples (``vis`` holds them interpolated) and the fitted source models
 #: (``peel`` holds them in its attribute ``fitted_models``).
 RELEASED_BY_DEFAULT = (STORES.partials, STORES.diffuse, STORES.models)
+
+#: The large arrays of kept stores that later stages no longer read: each is released (its directory
+#: removed, the release recorded) once every enabled stage that reads it has finished (a stage that reads
+#: only some arrays of a store says which: ``Stage.reads``), unless ``run.keep`` names its store. What the
+#: later stages read stays: vis.zarr's times, channels, baselines and antennas (:data:`VIS_METADATA`) after
+#: the visibilities, weights and autocorrelations (read up to ``mmodes``); mmodes.zarr's ``inv_var`` and
+#: ``n_samples`` after the m-modes (read by ``transfer``, ``stokes``). By attribute name (:data:`ARRAYS`).
+#: normal.zarr's Grams and clean.zarr's factors stay: the products read them (the PSF at each source), so
+#: releasing them would lower only the disk kept after the run, not its peak, and a rerun with other
+#: imaging settings would make every stage before them again.
+RELEASED_ARRAYS = {
+    STORES.vis: ("vis", "weights", "autos", "vis_cross", "weights_cross"),
+    STORES.mmodes: ("mmodes", "mmodes_corr"),
+}
 
 #: what each dimension name of the stores below counts
 DIMENSIONS = {

@@ -125,17 +125,27 @@ def _argument(v):
     return repr(v)
 
 
-def lifetime_text(writers, readers, released):
-    """A store's lifetime as the page writes it: who writes and reads it, and whether it is released."""
+def lifetime_text(writers, readers, released, arrays=None):
+    """A store's lifetime as the page writes it: who writes and reads it, whether it is released, and which
+    of its arrays are released alone (``arrays``: ``{array: readers}``)."""
     said = f"Written by {', '.join(writers) or 'no stage'}; read by {', '.join(readers) or 'no later stage'}. "
     if released:
         return said + ("**Released** once " + ("they have" if readers else "its writer has") + " finished (its "
                        "directory removed, the release recorded with its writer; `run.keep` keeps it).")
-    return said + "Kept."
+    if not arrays:
+        return said + "Kept."
+    by = {}
+    for a, r in arrays.items():
+        by.setdefault(r, []).append(f"`{a}`")
+    alone = "; ".join(f"{', '.join(names)} once {', '.join(r) if r else 'its writer'} "
+                      f"{'have' if len(r) > 1 else 'has'} finished" for r, names in by.items())
+    return said + (f"Kept, but for arrays **released** alone (the later stages read the rest): {alone} (their "
+                   "directories removed, the release recorded with the writer; `run.keep` keeps the store whole).")
 
 
 def store_table(builder, kwargs, lifetime=None):
-    """Markdown section of one store (``lifetime``: its ``(writers, readers, released)``, :func:`lifetime_text`)."""
+    """Markdown section of one store (``lifetime``: its ``(writers, readers, released, arrays)``,
+    :func:`lifetime_text`)."""
     spec = builder(**kwargs)
     call = ", ".join(f"{k}={_argument(v)}" for k, v in kwargs.items())
     life = [lifetime_text(*lifetime), ""] if lifetime is not None else []
@@ -169,7 +179,9 @@ def stores_markdown(lifetimes=None):
         "resumed, are in [data-layout.md](data-layout.md).", "",
         "Each store names the stages that write and read it (the stages' declared inputs) and whether it "
         "is released, its directory removed, once every enabled stage that reads it has finished (the run's "
-        "intermediates; `run.keep: [...]` keeps them; every other store is kept).", "",
+        "intermediates; `run.keep: [...]` keeps them; every other store is kept), or which of its large arrays "
+        "are released alone once the stages that read them have finished (a stage that reads some arrays of a "
+        "store declares which).", "",
         f"Shapes are those of a small reference configuration: {REFERENCE}; the `Reference:` line of each "
         "store gives its builder's arguments. Chunks name the builder parameter that sets them "
         f"({', '.join(f'`{p}`' for p in CHUNK_PARAMETERS)}, from the configuration), `all` for the whole "

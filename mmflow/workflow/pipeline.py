@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 from importlib import import_module
 
-from mmflow.io.run_stores import RELEASED_BY_DEFAULT, STORES
+from mmflow.io.run_stores import RELEASED_ARRAYS, RELEASED_BY_DEFAULT, STORES
 from mmflow.workflow.stages import ORDER
 from mmflow.workflow.stages.base import first_writer
 
@@ -87,24 +87,53 @@ class Pipeline:
         """The :meth:`declared_readers` of ``store`` enabled under ``cfg``."""
         return [s for s in self.declared_readers(store) if s.enabled(cfg)]
 
+    def array_readers(self, store, array, cfg):
+        """The enabled stages that read array ``array`` (its :data:`mmflow.io.run_stores.ARRAYS` attribute) of
+        ``store``: its :meth:`readers` less those that read only other arrays of it (``Stage.reads``)."""
+        return [s for s in self.readers(store, cfg) if store not in s.reads or array in s.reads[store]]
+
     def lifetimes(self):
-        """``{store: (writers, readers, released)}`` of every store (:data:`mmflow.io.run_stores.STORES`):
-        the names of the stages that write it and read it, and whether it is released once its readers
-        have finished (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`); for ``docs/stores.md``."""
+        """``{store: (writers, readers, released, arrays)}`` of every store (:data:`mmflow.io.run_stores.STORES`):
+        the names of the stages that write it and read it, whether it is released once its readers have
+        finished (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`), and ``{array: readers}`` of its arrays
+        released alone (:data:`mmflow.io.run_stores.RELEASED_ARRAYS`); for ``docs/stores.md``."""
         return {store: (tuple(s.name for s in self.stages if store in s.outputs),
-                        tuple(s.name for s in self.declared_readers(store)), store in RELEASED_BY_DEFAULT)
+                        tuple(s.name for s in self.declared_readers(store)), store in RELEASED_BY_DEFAULT,
+                        {a: tuple(s.name for s in self.declared_readers(store) if store not in s.reads
+                                  or a in s.reads[store]) for a in RELEASED_ARRAYS.get(store, ())})
                 for store in STORES}
 
     def released(self, cfg):
         """``{store: stage}``: the intermediates this run releases (:data:`mmflow.io.run_stores.RELEASED_BY_DEFAULT`
         less ``run.keep``) that an enabled stage writes, each with the stage after which it goes: its last
-        reader in pipeline order, or its writer where no other stage reads it."""
+        reader in pipeline order, or its writer where no other stage reads it (:meth:`release_point`)."""
         out = {}
         for store in RELEASED_BY_DEFAULT:
             writer = self.producer_of(store, cfg)
-            if writer is None or store in cfg.run.keep:
+            if writer is None or not writer.recomputable or store in cfg.run.keep:
                 continue
-            out[store] = (self.readers(store, cfg) or [writer])[-1].name
+            out[store] = self.release_point((self.readers(store, cfg) or [writer])[-1], cfg)
+        return out
+
+    def release_point(self, stage, cfg):
+        """The stage after which what goes after ``stage`` is released: ``stage``, or the enabled stage run
+        channel by channel with it (``Stage.by_channel_after``: both complete together)."""
+        return next((s.name for s in self.stages if s.by_channel_after == stage.name and s.enabled(cfg)),
+                    stage.name)
+
+    def released_arrays(self, cfg):
+        """``{"store/array": stage}``: the arrays of :data:`mmflow.io.run_stores.RELEASED_ARRAYS` this run
+        releases (their store not in ``run.keep``, nor released whole, its writer enabled and able to make it
+        again: ``Stage.recomputable``), each with the stage after which it goes: its last reader
+        (:meth:`array_readers`) in pipeline order, or its writer where no other stage reads it."""
+        out = {}
+        for store, arrays in RELEASED_ARRAYS.items():
+            writer = self.producer_of(store, cfg)
+            if writer is None or not writer.recomputable or store in cfg.run.keep or store in RELEASED_BY_DEFAULT:
+                continue
+            for array in arrays:
+                out[f"{store}/{array}"] = self.release_point((self.array_readers(store, array, cfg) or [writer])[-1],
+                                                             cfg)
         return out
 
     def __reduce__(self):

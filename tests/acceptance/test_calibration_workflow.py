@@ -28,7 +28,8 @@ QUIET = dict(progress=False, log=lambda *a: None)
 BRIGHT = ["Cyg A", "Cas A", "Vir A", "Tau A"]
 FAINT = ["3C 123", "3C 48", "3C 147", "3C 196", "3C 286", "3C 295", "3C 380"]
 DEMO = "workflows/demo-calibrate.yaml"  # the calibration demo of `make demo`, run here as it is
-BASE = ["products.nside=64", "products.png=false", "imaging.lcurve=false", "cluster.kind=synchronous"]
+BASE = ["products.nside=64", "products.png=false", "imaging.lcurve=false", "cluster.kind=synchronous",
+        "run.keep=[vis.zarr]"]  # the tests below rerun the calibration chain on these visibilities
 OFF = ["calibrate.enabled=false", "peel.enabled=false", "terrestrial.enabled=false"]
 
 

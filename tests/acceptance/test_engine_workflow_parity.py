@@ -21,7 +21,7 @@ def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path, groups):
     complex64 sum by rounding only."""
     run = tmp_path / "run"
     cfg = small_config(run, "transfer.dtype=float32", f"transfer.groups={groups}", "imaging.lcurve=false",
-                       "mmode.splits=[full]")
+                       "mmode.splits=[full]", "run.keep=[mmodes.zarr]")
     run_workflow(cfg, only=["simulate", "mmodes", "transfer", "normal", "solve"], progress=False,
                  log=lambda *a: None)
     mg = zarr.open_group(str(run / "mmodes.zarr"), mode="r")

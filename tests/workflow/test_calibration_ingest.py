@@ -33,7 +33,7 @@ QUIET = dict(progress=False, log=lambda *a: None)
 DEMO = "workflows/demo-calibrate.yaml"
 JD_2023 = 2460000.5
 BASE = ["products.nside=64", "products.png=false", "imaging.lcurve=false", "cluster.kind=synchronous",
-        f"observation.epoch_jd={JD_2023}"]
+        f"observation.epoch_jd={JD_2023}", "run.keep=[vis.zarr]"]
 OFF = ["calibrate.enabled=false", "peel.enabled=false", "terrestrial.enabled=false"]
 PLAIN = OFF + ["corrupt.gains=false", "corrupt.sawtooth_db=0", "corrupt.dd_sources=[]", "corrupt.crosstalk_jy=0"]
 BRIGHT = ["Cyg A", "Cas A", "Vir A", "Tau A"]

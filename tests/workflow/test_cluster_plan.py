@@ -113,7 +113,8 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     assert t["memory"] == f"{16 * node.core_memory_bytes // MIB}MiB"
     assert t["task_memory_bytes"] <= t["worker_memory_bytes"] * jobs.terminate_fraction()
     assert t["task_memory_bytes"] == pytest.approx(rows["transfer"]["task_gb"] * GB, abs=1)
-    assert res["nodes"] >= 1 and res["wall_s"] > 0 and res["store_gb"] > 30
+    # the live stores' peak: 40 GB written, the visibilities gone after mmodes, the partials after normal
+    assert res["nodes"] >= 1 and res["wall_s"] > 0 and 20 < res["store_gb"] < 40
 
 
 @pytest.mark.parametrize("setting, value, node_bytes, stage", [

@@ -235,7 +235,7 @@ def three_days(tmp_path_factory):
                                    "clean.enabled=true"]),
                         ("noisy_days", ["sky.noise=true", "mmode.splits=[full, day0, day1, day2]", "clean.enabled=true",
                                         "clean.threshold_sigma=4"])]:
-        cfg = small_config(root / name, *DAYS3, *extra)
+        cfg = small_config(root / name, *DAYS3, *extra, "run.keep=[mmodes.zarr]")
         run_workflow(cfg, **QUIET)
         runs[name] = (root / name, cfg)
     return runs

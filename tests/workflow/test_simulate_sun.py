@@ -20,7 +20,7 @@ def test_sun_only_sky_peaks_at_its_transit_with_the_beam_weighted_disc_flux(tmp_
     jd = 2459390.5  # 2021-06-25, the Sun near its northernmost declination
     cfg = small_config(tmp_path / "run", "sky.sun=true", "sky.sources=[]", "sky.diffuse=false", "sky.noise=false",
                        "observation.freqs_mhz=[40.0, 50.0]", f"observation.epoch_jd={jd}",
-                       "products.png=false", "imaging.lcurve=false")
+                       "products.png=false", "imaging.lcurve=false", "run.keep=[vis.zarr]")
     run_workflow(cfg, **QUIET)
     vis = zarr.open_group(str(tmp_path / "run" / "vis.zarr"), mode="r")
     tel = build_telescope(cfg)

@@ -60,8 +60,9 @@ def toy_stages():
 
 def test_correction_is_applied_once_on_read_and_never_written_back(toy_stages, tmp_path):
     plain, cal = tmp_path / "plain", tmp_path / "cal"
-    run_workflow(small_config(plain), only=["simulate", "mmodes"], **toy_stages)
-    run_workflow(small_config(cal, "calibrate.enabled=true"), only=["simulate", "calibrate", "mmodes"], **toy_stages)
+    run_workflow(small_config(plain, "run.keep=[vis.zarr]"), only=["simulate", "mmodes"], **toy_stages)
+    run_workflow(small_config(cal, "calibrate.enabled=true", "run.keep=[vis.zarr]"),
+                 only=["simulate", "calibrate", "mmodes"], **toy_stages)
     v_plain = zarr.open_group(str(plain / "vis.zarr"))["vis"][:]
     assert np.array_equal(v_plain, zarr.open_group(str(cal / "vis.zarr"))["vis"][:])  # vis.zarr untouched
     # the corrected m-modes are the m-modes of vis / gain: check one baseline against a direct transform

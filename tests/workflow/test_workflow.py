@@ -145,23 +145,57 @@ def test_interrupted_run_that_keeps_its_partials_resumes_to_bit_identical_output
     assert_identical(read_outputs(ref_dir), read_outputs(run_dir))
 
 
+def _released_after(log_text):
+    """``{released unit: the stage that had just finished}`` from a run's log."""
+    out, last = {}, None
+    for line in log_text.splitlines():
+        done = re.search(r"\[(\w+)\] (done in|complete, kept)", line)
+        last = done.group(1) if done else last
+        gone = re.search(r"\] released (\S+) ", line)
+        if gone:
+            out[gone.group(1)] = last
+    return out
+
+
 def test_a_run_killed_after_a_release_resumes_bit_identical(cli_reference, tmp_path):
     """The reference released its intermediates (the defaults): the partials once normal had summed them,
-    the diffuse sky's samples once simulate had interpolated them; both recorded, neither counted as
-    damage (a run that keeps them makes the same maps: the test above). A run whose normal stage must run
-    again recomputes the released partials first (transfer), releases them after normal, is killed in
-    solve (the stage after the release) and resumes to the same bits without recomputing them."""
+    the diffuse sky's samples once simulate had interpolated them, the visibilities, weights and
+    autocorrelations once mmodes had read them, the m-modes once transfer had; each recorded with its
+    writer (`mmflow status` names them), none counted as damage (a run that keeps them makes the same maps:
+    the test above), each released right after the stage the plan names and the arrays left on disk those
+    the plan keeps. A run whose normal stage must run again recomputes, first, what it reads through
+    released stores (simulate, mmodes, transfer), releases them again, is killed in solve (the stage after
+    the release) and resumes to the same bits without recomputing them."""
+    import zarr
+
+    from mmflow.io.run_stores import RELEASED_ARRAYS
     from mmflow.workflow.engine.rundir import RunDir
     from mmflow.workflow.engine.runner import verify
+    from mmflow.workflow.pipeline import PIPELINE
 
     ref, out = cli_reference, read_outputs(cli_reference)
-    assert not (ref / "partials.zarr").exists() and list(RunDir(ref).released("transfer")) == ["partials.zarr"]
-    assert not (ref / "diffuse.zarr").exists() and list(RunDir(ref).released("simulate")) == ["diffuse.zarr"]
+    cfg = load_config("workflows/demo.yaml", [*SMALL, f"run.directory={ref}"])
+    planned = {**PIPELINE.released(cfg), **PIPELINE.released_arrays(cfg)}
+    made = {s: set(RunDir(ref).released(s)) for s in ("simulate", "mmodes", "transfer")}
+    assert made == {"simulate": {"diffuse.zarr", "vis.zarr/vis", "vis.zarr/weights", "vis.zarr/autos"},
+                    "mmodes": {"mmodes.zarr/mmodes"}, "transfer": {"partials.zarr", "partials.zarr/f0"}}
+    after = _released_after((ref / "mmflow.log").read_text())  # partials.zarr/f0: within normal, once summed
+    assert {u: after[u] for u in planned if u in after} == {u: planned[u] for u in set().union(*made.values())
+                                                            if u in planned}
+    for store, arrays in RELEASED_ARRAYS.items():  # what is left: every declared array less those released
+        assert not set(arrays) & set(dict(zarr.open_group(str(ref / store), mode="r").arrays()))
+    assert not (ref / "partials.zarr").exists() and not (ref / "diffuse.zarr").exists()
+    assert "released: diffuse.zarr, vis.zarr/autos, vis.zarr/vis, vis.zarr/weights" in subprocess.run(
+        [sys.executable, "-m", "mmflow.cli", "status", str(ref)], cwd=ROOT, check=True, capture_output=True,
+        text=True).stdout
     assert not any(verify(ref, full=False).values())
     killed = fork_run(ref, tmp_path / "killed", "transfer")  # normal to do; the partials it reads released
     interrupt_run(killed, "solve", signal.SIGKILL, extra=["products.png=false"])
-    assert "[transfer] recomputing: normal reads partials.zarr" in (killed / "mmflow.log").read_text()
+    log = (killed / "mmflow.log").read_text()
+    assert "[transfer] recomputing: normal reads partials.zarr" in log
+    assert "[mmodes] recomputing: transfer reads mmodes.zarr/mmodes" in log and "[simulate] recomputing: mmodes" in log
     assert not (killed / "partials.zarr").exists() and RunDir(killed).released("transfer")
+    assert set(RunDir(killed).released("simulate")) == made["simulate"]
     assert status(killed)["normal"]["complete"] and not status(killed)["solve"]["complete"]
     resumed = subprocess.run([*CLI_RUN, f"run.directory={killed}", "--no-progress"], cwd=ROOT, check=True,
                              capture_output=True, text=True).stdout
@@ -361,7 +395,8 @@ def test_every_store_records_config_versions_and_fingerprint(reference_run):
 def test_a_stage_task_opens_each_store_once_and_still_checks_every_chunk(reference_run, monkeypatch):
     """A task's context keeps the groups and arrays it opened (zarr reads their metadata through its
     I/O thread, ~1 ms each): reading two regions of one array opens the store once; every chunk read
-    is still checked against the producer's records, and the checksum time is counted once."""
+    is still checked against the producer's records, and the checksum time is counted once (the times: an
+    array the run keeps, its visibilities released after mmodes)."""
     import zarr
 
     from mmflow.io import stores
@@ -375,22 +410,22 @@ def test_a_stage_task_opens_each_store_once_and_still_checks_every_chunk(referen
     cfg = small_config(run_dir)
     ctx = Context(cfg.model_dump_json(), str(run_dir)).for_stage(PIPELINE.stage("mmodes"))
     task = ctx.for_task(keep_handles=True)
-    a, b = task.read(STORES.vis.vis, (slice(0, 3),)), task.read(STORES.vis.vis, (slice(3, 6),))
+    a, b = task.read(STORES.vis.lst, (slice(0, 3),)), task.read(STORES.vis.lst, (slice(3, 6),))
     assert len(opened) == 1 and a.shape[0] == b.shape[0] == 3
     store_total = task.open("vis.zarr").store.seconds  # the kept store's running total of checksum time
     assert 0 < store_total and task.ledger.seconds == pytest.approx(store_total, rel=1e-9)  # counted once
     plain = ctx.for_task()  # outside a stage task (prepare, finalize): opened each time
-    plain.read(STORES.vis.vis, (slice(0, 3),)), plain.read(STORES.vis.vis, (slice(3, 6),))
+    plain.read(STORES.vis.lst, (slice(0, 3),)), plain.read(STORES.vis.lst, (slice(3, 6),))
     assert len(opened) == 3
     with pytest.raises(MmflowError, match="writes vis.zarr's array 'lst' into .*mmodes.zarr"):
         task.write(task.open(STORES.mmodes, mode="r+"), STORES.vis.lst, (slice(0, 1),), np.zeros(1))  # refused
-    chunk = next((run_dir / "vis.zarr" / "vis" / "c").rglob("*"), None)
+    chunk = next((run_dir / "vis.zarr" / "lst" / "c").rglob("*"), None)
     while chunk is not None and chunk.is_dir():
         chunk = next(chunk.iterdir())
     data = chunk.read_bytes()
     chunk.write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # a damaged chunk is found through a kept handle
     try:
         with pytest.raises(stores.DamagedStoreError, match="checksum differs"):
-            task.read(STORES.vis.vis, (slice(None),))
+            task.read(STORES.vis.lst, (slice(None),))
     finally:
         chunk.write_bytes(data)

@@ -13,7 +13,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError, create_model, field_validator
 
 from mmflow.errors import InputError
-from mmflow.io.run_stores import RELEASED_BY_DEFAULT, STORES
+from mmflow.io.run_stores import RELEASED_ARRAYS, RELEASED_BY_DEFAULT, STORES
 from mmflow.paths import expand_path
 from mmflow.workflow.config.base import Section, UserPath
 from mmflow.workflow.config.beam import BEAM_PARAMS, BeamConfig
@@ -30,8 +30,9 @@ class RunConfig(Section):
     name: str = Field("mmflow-run", description="A label stored with every output.")
     keep: list[str] = Field(
         [], description="Intermediate stores to keep after the stages that read them have finished (by default "
-        f"{', '.join(RELEASED_BY_DEFAULT)} are then released: removed, the release recorded; every other store "
-        "is kept). Names of stores, e.g. [partials.zarr]; changes no result.",
+        f"{', '.join(RELEASED_BY_DEFAULT)} are then released: removed, the release recorded; and the large arrays "
+        f"of {', '.join(RELEASED_ARRAYS)} that later stages do not read: docs/stores.md; every other store is "
+        "kept). Names of stores, kept whole, e.g. [partials.zarr, vis.zarr]; changes no result.",
         json_schema_extra={"allowed": f"a list of {', '.join(STORES)}"})
 
     @field_validator("directory")

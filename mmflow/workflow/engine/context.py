@@ -102,7 +102,10 @@ class TaskContext(Context):
         producer = self.producer(store) if store in self.stage.inputs else None
         expected = None
         if producer is not None and producer.name != self.stage.name and mode == "r":
-            expected = self.run.chunk_index(producer.name)
+            if self.stage.by_channel_after == producer.name and self.run.completion(producer.name) is None:
+                expected = self.run.finished_chunks(producer.name)  # run channel by channel: its done tasks'
+            else:
+                expected = self.run.chunk_index(producer.name)
         g = open_checked(self.run_path, store, mode, expected, producer.name if producer else None)
         if self.handles is not None:
             self.handles[store, mode] = g

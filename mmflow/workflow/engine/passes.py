@@ -32,6 +32,7 @@ import os
 import numpy as np
 import zarr
 
+from mmflow.errors import MmflowError
 from mmflow.io.polarization import stokes_i
 from mmflow.mmode.gapfill import unbridged_gaps
 from mmflow.mmode.transform import bin_occupancy
@@ -134,9 +135,18 @@ def unbridged_baselines(cfg, log=print):
     (:func:`mmflow.mmode.gapfill.unbridged_gaps`: longer than ``N / (2 M_b + 1)`` sidereal bins), from
     the weights of ``RUN/vis.zarr`` binned as the ``mmodes`` stage bins them (Stokes I: flagged where
     either hand is; the flags of the input, before calibration's). Reads the weights one baseline chunk at
-    a time; 0: ``auto`` makes no prior pass."""
+    a time; 0: ``auto`` makes no prior pass. Where the run has released the weights (once ``mmodes`` had
+    read them: :data:`mmflow.io.run_stores.RELEASED_ARRAYS`), the count recorded when they were read (the
+    weights are released only after that record, and recomputed bit for bit before any stage reads them)."""
     run = resolve(cfg.run.directory)
     vis = zarr.open_group(str(run / STORES.vis), mode="r")
+    if STORES.vis.weights not in vis:
+        try:
+            return int(json.loads(auto_record(cfg.run.directory).read_text())["baselines_with_unbridged_gaps"])
+        except (OSError, ValueError, KeyError, TypeError):
+            raise MmflowError(f"{run / STORES.vis} holds no weights (released once the mmodes stage had read them) "
+                              "and the run recorded no count of unbridged baselines. Fix: set "
+                              "mmode.prior_passes to a number (0: none), or keep them: run.keep=[vis.zarr]") from None
     lst = vis[STORES.vis.lst][:]
     good_t = np.isfinite(lst)
     n_bins = n_bins_of(cfg, vis.attrs["integration_s"])

@@ -13,6 +13,10 @@ worker into pools. Before a stage's tasks are sent (:meth:`StagePools.use`):
   plan sized for it, then the cluster's job options become the pool's and it is scaled to the
   pool's jobs; the log says ``stage X: N jobs of C cores / M GB``.
 
+Two stages run channel by channel (``normal`` after ``transfer``: :mod:`mmflow.workflow.engine.channels`)
+run in the first one's pool: ``normal``'s tasks go to ``transfer``'s workers, which its plan sizes larger,
+rather than switching pools at every channel (its own pool serves ``mmflow normal`` run alone).
+
 The queue handling of :class:`mmflow.workflow.engine.batch.JobWatch` applies to every pool: queued jobs
 are waited for, lost jobs are replaced (with the running pool's shape: dask-jobqueue submits
 ``cluster.new_spec``), workers retire before the pool's walltime.

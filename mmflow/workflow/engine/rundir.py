@@ -52,6 +52,11 @@ def _atomic_write(path, text):
     os.replace(tmp, path)
 
 
+def _under(rel, paths):
+    """True where the run-relative chunk path ``rel`` lies in one of ``paths`` (stores or arrays)."""
+    return any(rel == q or rel.startswith(q + "/") for q in paths)
+
+
 def _read_json(path):
     try:
         return json.loads(Path(path).read_text())
@@ -234,12 +239,37 @@ class RunDir:
         shutil.rmtree(p)
         return done[store]["bytes"]
 
+    def release_arrays(self, stage, unit, paths):
+        """Remove arrays ``paths`` (relative to their store) of the store of ``unit`` (``vis.zarr/vis``: the
+        store, then the array's handle), written by ``stage``, and record them under ``unit``; returns the
+        bytes they held, or None where the store is not the run's own (as :meth:`release`) or none is left."""
+        store = unit.split("/", 1)[0]
+        p = self.store(store)
+        if p.is_symlink() or not p.is_dir():
+            return None
+        done = self.released(stage)
+        if unit not in done:
+            stamp = (_read_json(p / "zarr.json") or {}).get("attributes", {}).get("mmflow", {})
+            if stamp.get("stage") != stage or not paths:
+                return None
+            done[unit] = {"bytes": sum(dir_size(p / a) for a in paths), "arrays": list(paths),
+                          "released": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            _atomic_write(self.status_dir(stage) / "released.json", json.dumps(done))
+        for a in done[unit]["arrays"]:
+            shutil.rmtree(p / a, ignore_errors=True)
+        return done[unit]["bytes"]
+
+    def _gone(self, stage):
+        """The run-relative paths the stage's releases removed: whole stores, and arrays (``vis.zarr/vis``)."""
+        return tuple(q for unit, rec in self.released(stage).items()
+                     for q in ([f"{unit.split('/', 1)[0]}/{a}" for a in rec["arrays"]] if "arrays" in rec else [unit]))
+
     def keys_writing_released(self, stage):
         """The stage's finished keys (and driver markers) that wrote chunks of its released stores."""
-        gone = self.released(stage)
+        gone = self._gone(stage)
         man = self.manifest(stage) or {"keys": []}
         return [k for k in list(man["keys"]) + EXTRA_MARKERS if gone and any(
-            rel.split("/", 1)[0] in gone for rel in self.marker_chunks(stage, [k]))]
+            _under(rel, gone) for rel in self.marker_chunks(stage, [k]))]
 
     def forget_released(self, stage):
         """Forget the stage's releases (its tasks that wrote them are to run again)."""
@@ -247,8 +277,14 @@ class RunDir:
 
     def _live(self, stage, chunks):
         """``chunks`` less those of the stage's released stores."""
-        gone = self.released(stage)
-        return {rel: v for rel, v in chunks.items() if rel.split("/", 1)[0] not in gone} if gone else chunks
+        gone = self._gone(stage)
+        return {rel: v for rel, v in chunks.items() if not _under(rel, gone)} if gone else chunks
+
+    def finished_chunks(self, stage):
+        """``{relative chunk path: [size, crc]}`` of the stage's finished keys so far (a stage not complete yet,
+        whose finished channels the stage run channel by channel with it reads)."""
+        man = self.manifest(stage) or {"keys": []}
+        return self.marker_chunks(stage, [k for k in list(man["keys"]) + EXTRA_MARKERS if self.is_done(stage, k)])
 
     def live_chunk_index(self, stage):
         """:meth:`chunk_index` of a complete stage less the chunks of its released stores."""

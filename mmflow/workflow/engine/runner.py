@@ -24,7 +24,10 @@ What a run guarantees (each covered by ``tests/acceptance/test_faults.py``):
   settings (:func:`mmflow.workflow.engine.release.release_finished`), the release recorded with its
   writer; a stage that has work again and reads a released store has its writer recomputed first
   (:func:`mmflow.workflow.engine.release.recompute_released`),
-  bit for bit, and a resume whose remaining stages do not read it recomputes nothing.
+  bit for bit, and a resume whose remaining stages do not read it recomputes nothing;
+* a stage that sums what the stage before it wrote per channel (``normal``: ``Stage.by_channel_after``)
+  runs with it channel by channel, each channel's intermediates released once summed
+  (:mod:`mmflow.workflow.engine.channels`).
 """
 from __future__ import annotations
 
@@ -49,7 +52,9 @@ from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import check_fits
 from mmflow.workflow.engine.resources import (current_rss_bytes, dask_worker, gb, peak_rss_bytes, reset_peak_rss,
                                               reset_traced_peak, traced_peak_bytes)
-from mmflow.workflow.engine.release import finished, planned_keys, recompute_released, release_finished, released_here
+from mmflow.workflow.engine.channels import by_channel, by_channel_partner
+from mmflow.workflow.engine.release import (planned_keys, recompute_released, release_finished,
+                                            released_here, repair_or_refuse)
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -188,7 +193,9 @@ def _queue_state(client, log):
     return poll(client, log) if poll is not None else None
 
 
-def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=print):
+def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=print, pool=None):
+    """Run the keys ``todo`` of stage ``name``; ``pool``: the stage whose worker pool runs them (default:
+    its own; a stage run channel by channel with the one before it runs in that one's)."""
     if not todo:
         return []
     bar = _Progress(name, len(todo), progress)
@@ -205,7 +212,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
 
     use_stage = getattr(type(client), "use_stage", None)
     if use_stage is not None:  # SLURM/PBS jobs sized per stage: the stage's own (mmflow.workflow.engine.pools)
-        use_stage(client, name, log)
+        use_stage(client, pool or name, log)
     futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
                          retries=2)
@@ -285,11 +292,12 @@ def _gather_stage(client, futures, results):
         results[k] = r
 
 
-def _check_inputs(run, st, cfg, pipeline):
-    """Every input store's producer is complete and its recorded chunks exist with their sizes."""
+def _check_inputs(run, st, cfg, pipeline, after=None):
+    """Every input store's producer is complete and its recorded chunks exist with their sizes (but
+    ``after``, the stage it runs channel by channel with: its tasks' markers are checked as they are read)."""
     for store in st.inputs:
         prod = pipeline.producer_of(store, cfg)
-        if prod is None or prod.name == st.name:
+        if prod is None or prod.name == st.name or prod is after:
             continue
         s = run.stage_status(prod.name)
         if s is None or not s["complete"]:
@@ -302,39 +310,6 @@ def _check_inputs(run, st, cfg, pipeline):
                                                                   if len(problems) > 1 else "")
                                     + f". Fix: `mmflow run ... --force` recomputes stage '{prod.name}' "
                                     f"(`mmflow verify {run.path}` lists every damaged chunk)")
-
-
-def _repair_or_refuse(run, st, force, log):
-    """A finished chunk whose files are missing or truncated: recompute it (``--force``) or stop.
-
-    Only the damaged tasks are recomputed, in a stage with cycles too: a later task read the damaged
-    chunk while it was intact (every read is checked against the chunk records), so what it wrote
-    stands, and a task rerun from the same inputs rewrites its chunk bit for bit. The checkpoint of
-    each cycle that holds a damaged task is forgotten with it, so that the cycle is planned again
-    (``next_cycle`` is deterministic) and runs just that task.
-    """
-    stage = st.name
-    damaged = run.damaged_keys(stage)
-    if not damaged:
-        return
-    first = next(iter(damaged.values()))[0]
-    n = sum(len(p) for p in damaged.values())
-    if not force:
-        raise DamagedStoreError(f"stage '{stage}' in {run.path} has {n} damaged chunk files (first: {first}). "
-                                f"Fix: rerun the same command with --force to recompute the {len(damaged)} damaged "
-                                f"tasks (the rest is kept); `mmflow verify {run.path}` lists them all")
-    # a store of the stage's own released meanwhile (the diffuse sky's samples, which its time chunks read):
-    # the tasks that wrote it run again too, and it is released again once the stage is complete
-    again = run.keys_writing_released(stage)
-    log(f"[{stage}] recomputing {len(damaged)} tasks whose files are damaged (first: {first})"
-        + (f" and the {len(again)} that wrote {', '.join(run.released(stage))}, released since" if again else ""))
-    keys = list(damaged) + [k for k in again if k not in damaged]
-    run.forget_released(stage)
-    if "_prepare" in keys:
-        run.reset_stage(stage)
-        return
-    cycles = {TaskKey.parse(k).cycle for k in keys if not k.startswith("cycle") and not k.startswith("_")}
-    run.forget_keys(stage, keys + [f"cycle{c:04d}" for c in cycles if c is not None])
 
 
 def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log):
@@ -372,7 +347,8 @@ def _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
 def _kept_summary(run, st, todo):
     """The recorded summary of a stage already complete with the same fingerprint (``begin_stage``
     has refused any other), with ``kept: True`` and ``tasks_run: 0``; None when it has work left,
-    including a finalize whose marker ``_repair_or_refuse`` removed for a damaged file."""
+    including a finalize whose marker :func:`mmflow.workflow.engine.release.repair_or_refuse` removed for a
+    damaged file."""
     recorded = None if todo else run.completion(st.name)  # no key left to do: no per-key scan again
     if recorded is None or (st.finalize is not None and not run.is_done(st.name, "_finalize")):
         return None
@@ -439,6 +415,64 @@ def run_workflow(cfg, client=None, only=None, force=False, progress=True, log=pr
         lock.close()
 
 
+def _open_stage(run, st, cfg, pipeline, fps, ctx, force, log, after=None):
+    """A stage up to its tasks: reset if stale (``--force``) or never begun, repaired, its inputs checked
+    (``after``: the stage it runs channel by channel with, not complete yet), its keys listed (prepare) and
+    recorded. Returns ``(stage context, keys, keys to do, kept summary or None)``."""
+    fp = fps[st.name]
+    if run.is_stale(st.name, fp.digest) and (force or not run.has_results(st.name)):
+        why = "recomputing (--force)" if force else "no task had finished: starting afresh"
+        log(f"[{st.name}] {why}: {fp.explain(run.manifest(st.name))}")
+        run.reset_stage(st.name)
+    repair_or_refuse(run, st, force, log)
+    _check_inputs(run, st, cfg, pipeline, after)
+    sctx = ctx.for_stage(st)
+    pctx = sctx.for_task()
+    # a stage whose prepare ran (its marker records what it wrote: kept) and that reads or writes a store
+    # released since, whole or in part: its keys as listed then (its prepare would read, or make again, what
+    # was released); a stage run channel by channel with another may be half-way
+    prepared = run.is_done(st.name, "_prepare") and bool(released_here(run, st, cfg, pipeline))
+    keys = planned_keys(run, st.name) if prepared else [k.format() for k in st.prepare(pctx)]
+    todo = run.begin_stage(st.name, fp, keys, st.outputs)
+    BOARD.begin_stage(st.name, len(keys), len(keys) - len(todo))
+    kept = _kept_summary(run, st, todo)
+    if kept is None and not prepared:
+        run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
+    if kept is None:
+        _stamp_stores(run, st, cfg, fp.digest)
+        log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
+    return sctx, keys, todo, kept
+
+
+def _close_stage(run, st, cfg, sctx, t0, results, client, ctx, pipeline, progress, worker_wait_s, log):
+    """A stage after its tasks: its further phases or cycles, its finalize, its summary; marked complete."""
+    if st.next_cycle is not None:  # iterative stages, and solve stages with a second phase
+        results += _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
+    fin = None
+    if st.finalize:
+        fctx = sctx.for_task()
+        fin = st.finalize(fctx)
+        run.mark_done(st.name, "_finalize", fin, fctx.ledger.entries)
+    counts = _counts(run, st)
+    if any(counts.values()):
+        log(f"[{st.name}] " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in counts.items() if v))
+    # every phase's tasks (a second phase's or a cycle's keys join the manifest as they are planned)
+    n_tasks = sum(1 for k in run.manifest(st.name)["keys"] if not k.startswith("cycle"))
+    summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": n_tasks, "counts": counts,
+               "tasks_run": sum(1 for r in results if not r.get("skipped")),
+               "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
+               "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),
+               "guard_s": round(sum(r.get("guard_s", 0) for r in results), 3),
+               "bytes_written": run.bytes_of(st.outputs), "finalize": fin,
+               "worker_peak_rss_gb": _worker_peak(results),
+               "driver_peak_rss_gb": gb(peak_rss_bytes())}
+    run.finish_stage(st.name, summary)
+    BOARD.finish_stage(st.name, summary["wall_s"])
+    log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
+        f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
+    return summary
+
+
 def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, planned=None):
     stages = [st for st in pipeline if not only or st.name in only]
     fps = stage_fingerprints(cfg, run, pipeline)
@@ -454,7 +488,7 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
     for st in stages:  # then the checks that read the input data, for the stages with tasks to do
         if st.scan is not None and st.enabled(cfg) and _has_work(run, st.name, fps[st.name]):
             st.scan(cfg)
-    recompute_released(run, cfg, pipeline, fps, stages, force, log)
+    recompute_released(run, cfg, pipeline, fps, stages, force, log, later=planned or ())
     plan = _check_resources(cfg, run, client, stages)
     slots = 1 if client is None else cfg.cluster.n_workers * cfg.cluster.threads_per_worker  # as mmflow plan counts
     BOARD.begin_run(run.path, cluster_kind(client), [st.name for st in stages if st.enabled(cfg) and st.task],
@@ -464,65 +498,39 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
                                                    "cluster": cluster_record(cfg, client)}, indent=2))
     ctx = Context(cfg.model_dump_json(), str(run.path), token)
     worker_wait_s = float(getattr(cfg.cluster, "worker_wait_s", 300))
-    summaries = {}
+    summaries, paired = {}, set()
     for st in stages:
         if not st.enabled(cfg):
             if st.task is None or only:
                 log(f"[{st.name}] skipped: disabled ({st.description})")
             continue
+        if st.name in paired:  # run channel by channel with the stage before it
+            continue
         t0 = time.time()
         reset_peak_rss()
-        fp = fps[st.name]
-        if run.is_stale(st.name, fp.digest) and (force or not run.has_results(st.name)):
-            why = "recomputing (--force)" if force else "no task had finished: starting afresh"
-            log(f"[{st.name}] {why}: {fp.explain(run.manifest(st.name))}")
-            run.reset_stage(st.name)
-        _repair_or_refuse(run, st, force, log)
-        _check_inputs(run, st, cfg, pipeline)
-        sctx = ctx.for_stage(st)
-        pctx = sctx.for_task()
-        if finished(run, st.name, fps) and released_here(run, st, cfg, pipeline):
-            keys = planned_keys(run, st.name)  # its prepare would read, or make again, a store released since
-        else:
-            keys = [k.format() for k in st.prepare(pctx)]
-        todo = run.begin_stage(st.name, fp, keys, st.outputs)
-        BOARD.begin_stage(st.name, len(keys), len(keys) - len(todo))
-        kept = _kept_summary(run, st, todo)
+        sctx, keys, todo, kept = _open_stage(run, st, cfg, pipeline, fps, ctx, force, log)
         if kept is not None:  # finished with these settings and inputs: nothing is recomputed or rewritten
             summaries[st.name] = kept
             BOARD.keep_stage(st.name, len(keys))
             log(f"[{st.name}] complete, kept: {len(keys)} tasks done (took {kept.get('wall_s')} s when it ran)")
             release_finished(run, cfg, pipeline, fps, log)
             continue
-        run.mark_done(st.name, "_prepare", {}, pctx.ledger.entries)
-        _stamp_stores(run, st, cfg, fp.digest)
-        log(f"[{st.name}] {len(keys)} tasks, {len(keys) - len(todo)} already done: {st.description}")
+        nxt = by_channel_partner(st, stages, cfg)
+        if nxt is not None:
+            nctx, nkeys, ntodo, nkept = _open_stage(run, nxt, cfg, pipeline, fps, ctx, force, log, after=st)
+            if nkept is None:  # both have work: channel by channel, each channel's intermediates released
+                paired.add(nxt.name)
+                runs, spent = by_channel(run, cfg, pipeline, st, nxt, todo, ntodo, nkeys, log,
+                                         lambda name, keys: _execute(client, ctx, pipeline, name, keys, progress,
+                                                                     worker_wait_s, log, pool=st.name))
+                for s_, c_ in ((st, sctx), (nxt, nctx)):  # each stage's wall time: its own batches and close
+                    summaries[s_.name] = _close_stage(run, s_, cfg, c_, time.time() - spent[s_.name], runs[s_.name],
+                                                      client, ctx, pipeline, progress, worker_wait_s, log)
+                release_finished(run, cfg, pipeline, fps, log)
+                continue
         results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s, log)
-        if st.next_cycle is not None:  # iterative stages, and solve stages with a second phase
-            results += _iterate(client, ctx, pipeline, run, st, sctx, progress, worker_wait_s, log)
-        fin = None
-        if st.finalize:
-            fctx = sctx.for_task()
-            fin = st.finalize(fctx)
-            run.mark_done(st.name, "_finalize", fin, fctx.ledger.entries)
-        counts = _counts(run, st)
-        if any(counts.values()):
-            log(f"[{st.name}] " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in counts.items() if v))
-        # every phase's tasks (a second phase's or a cycle's keys join the manifest as they are planned)
-        n_tasks = sum(1 for k in run.manifest(st.name)["keys"] if not k.startswith("cycle"))
-        summary = {"stage": st.name, "wall_s": round(time.time() - t0, 2), "tasks": n_tasks, "counts": counts,
-                   "tasks_run": sum(1 for r in results if not r.get("skipped")),
-                   "task_s": round(sum(r.get("seconds", 0) for r in results), 3),
-                   "checksum_s": round(sum(r.get("checksum_s", 0) for r in results), 3),
-                   "guard_s": round(sum(r.get("guard_s", 0) for r in results), 3),
-                   "bytes_written": run.bytes_of(st.outputs), "finalize": fin,
-                   "worker_peak_rss_gb": _worker_peak(results),
-                   "driver_peak_rss_gb": gb(peak_rss_bytes())}
-        run.finish_stage(st.name, summary)
-        BOARD.finish_stage(st.name, summary["wall_s"])
-        summaries[st.name] = summary
-        log(f"[{st.name}] done in {summary['wall_s']} s, {summary['tasks_run']} tasks run, "
-            f"{summary['bytes_written'] / 1e6:.1f} MB in {', '.join(st.outputs)}")
+        summaries[st.name] = _close_stage(run, st, cfg, sctx, t0, results, client, ctx, pipeline, progress,
+                                          worker_wait_s, log)
         release_finished(run, cfg, pipeline, fps, log)
     if only:
         later = _stale_stages(run, stage_fingerprints(cfg, run, pipeline), list(pipeline.names))

@@ -41,7 +41,7 @@ from mmflow.workflow.engine.geometry import n_integrations
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.nodes import MIB, Node
 from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
-                                          live_stores, load_costs, task_seconds)
+                                          load_costs, run_live_stores, task_seconds)
 
 #: the job's walltime against the stage's planned time (the plan is within 50 % in time: docs/planning.md)
 WALLTIME_MARGIN = 2.0
@@ -127,7 +127,8 @@ def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
         rows.append({"stage": st.name, "tasks": est.tasks, "task_gb": need / 1e9, "worker_cores": k,
                      "workers_per_node": max(1, node.cores // k), "worker_memory_gb": k * node.core_memory_bytes / 1e9,
                      "fits": k <= node.cores, "per_task_s": per_task, "node_s": max(0.0, wide) * nodes,
-                     "store_gb": est.store_bytes / 1e9, "stores": est.stores, "store_files": est.store_files,
+                     "store_gb": est.store_bytes / 1e9, "stores": est.stores, "arrays": est.arrays,
+                     "channels": est.channels, "store_files": est.store_files,
                      "largest_chunk_mb": est.largest_chunk_bytes / 1e6, "notes": est.notes})
     return rows
 
@@ -203,7 +204,7 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
     dict
         ``node``, ``nodes``, ``settings`` (the split settings chosen, dotted), ``stages`` (rows of
         :func:`stage_rows`), ``jobs`` (:func:`job_shapes`), ``wall_s``, ``store_gb`` (the live stores'
-        peak, :func:`mmflow.workflow.plan.planner.live_stores`), ``free_disk_gb``
+        peak, :func:`mmflow.workflow.plan.planner.run_live_stores`), ``free_disk_gb``
         (where ``run.directory`` will be: the shared file system where planned on a login node),
         ``node_memory_gb`` (the most a node holds at once), ``node_hours`` and ``core_gflops``; where the
         workflow's ``cluster.jobqueue`` gives memory and processes, ``configured_worker_gb`` and the
@@ -250,7 +251,8 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
                     "core_memory_bytes": node.core_memory_bytes, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
-           "store_gb": live_stores([(r["stage"], r["stores"]) for r in rows], PIPELINE.released(c))[0] / 1e9,
+           "store_gb": run_live_stores([(r["stage"], r["stores"], r["arrays"], r["channels"]) for r in rows],
+                                       c)[0] / 1e9,
            "store_files": sum(r["store_files"] for r in rows),
            "largest_chunk_mb": max(r["largest_chunk_mb"] for r in rows),
            "free_disk_gb": free_disk_gb(cfg.run.directory)}

@@ -16,7 +16,9 @@ Store sizes are the declared stores' uncompressed bytes (:attr:`mmflow.io.stores
 of the same :mod:`mmflow.io.run_stores` declarations the stages create), an upper bound of the
 disk they take (zarr compresses noise-like data by a few percent only). The disk a run needs is
 the peak of its live stores (:func:`live_stores`): stages run in order, each adds its stores, and
-an intermediate goes once its last reader has finished (:meth:`mmflow.workflow.pipeline.Pipeline.released`).
+an intermediate goes once its last reader has finished (:meth:`mmflow.workflow.pipeline.Pipeline.released`),
+and so does a large array of a kept store (:meth:`mmflow.workflow.pipeline.Pipeline.released_arrays`:
+:func:`run_live_stores`).
 """
 from __future__ import annotations
 
@@ -31,6 +33,7 @@ import numpy as np
 from mmflow.conventions import complex_dtype
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
+from mmflow.io.run_stores import RELEASED_ARRAYS, handle_of
 from mmflow.machine import gemm_gflops
 from mmflow.paths import expand_path
 from mmflow.workflow.engine.context import build_telescope
@@ -58,6 +61,8 @@ class StageEstimate:
     task_bytes: float = 0.0  # predicted peak memory of the largest task above the worker baseline
     seconds: float = 0.0  # predicted wall time of the stage on the cluster
     notes: list = field(default_factory=list)
+    arrays: dict = field(default_factory=dict)  # {store: {array: bytes}} of the arrays it writes that can go alone
+    channels: dict = field(default_factory=dict)  # {store: [bytes of each channel]} of the stores it writes
     store_files: int = 0  # files of its stores with every chunk written (StoreSpec.n_files)
     largest_chunk_bytes: int = 0  # its stores' largest chunk, uncompressed
 
@@ -81,6 +86,8 @@ def estimate(stage, g, cfg, costs, peak_gflops, workers, total_gflops=None):
     tasks, w, u, specs = cost.work(g, cfg)
     k = costs["stages"].get(stage)
     est = StageEstimate(stage, tasks, w, u, int(sum(s.nbytes for s in specs)), {s.path: s.nbytes for s in specs},
+                        arrays={s.path: releasable_bytes(s) for s in specs if s.path in RELEASED_ARRAYS},
+                        channels={s.path: channel_bytes(s, g.n_freq) for s in specs},
                         store_files=sum(s.n_files for s in specs),
                         largest_chunk_bytes=max((s.largest_chunk_bytes for s in specs), default=0))
     if k is None and cost.seconds is None:
@@ -112,15 +119,96 @@ def live_stores(writes, released):
         live(s) = sum of the stores written by stages <= s, less those released after a stage < s
         peak    = max over s of live(s)
     """
+    return live_steps([(stage, stores, [u for u, after in released.items() if after == stage])
+                       for stage, stores in writes])
+
+
+def live_steps(steps):
+    """:func:`live_stores` of steps ``[(label, {unit: bytes}, [units released after it])]``: a unit is a store,
+    an array of one (``vis.zarr/vis``) or a channel's group (``partials.zarr/f0``); releasing a store releases
+    its units too."""
     live, peak, at = {}, 0, None
-    for stage, stores in writes:
-        live.update(stores)
+    for label, units, gone in steps:
+        live.update(units)
         if sum(live.values()) > peak:
-            peak, at = sum(live.values()), stage
-        for store, after in released.items():
-            if after == stage:
-                live.pop(store, None)
+            peak, at = sum(live.values()), label
+        for u in gone:
+            for k in [k for k in live if k == u or k.startswith(u + "/")]:
+                live.pop(k)
     return peak, at, live
+
+
+def releasable_bytes(spec):
+    """``{array: bytes}`` of the arrays of a store's spec that can be released alone
+    (:data:`mmflow.io.run_stores.RELEASED_ARRAYS`; a family's arrays summed under its attribute)."""
+    out = {}
+    for a in spec.arrays:
+        attr = handle_of(spec.path, a.name)
+        if attr in RELEASED_ARRAYS[spec.path]:
+            out[attr] = out.get(attr, 0) + _bytes(a)
+    return out
+
+
+def channel_bytes(spec, n_freq):
+    """The bytes of a store's spec per channel: its arrays of group ``f{F}`` in channel ``F``, the others
+    (one channel per chunk along their ``freq`` axis) split evenly."""
+    shared = sum(_bytes(a) for a in spec.arrays if not a.name.startswith("f")) / max(n_freq, 1)
+    return [int(sum(_bytes(a) for a in spec.arrays if a.name.startswith(f"f{f}/")) + shared) for f in range(n_freq)]
+
+
+def _bytes(a):
+    return int(np.prod(a.shape, dtype=float) * np.dtype(a.dtype).itemsize)
+
+
+def run_live_stores(writes, cfg):
+    """:func:`live_steps` of a run: ``writes`` ``[(stage, {store: bytes}, {store: {array: bytes}}, {store:
+    [bytes per channel]})]`` in run order. The arrays that go alone
+    (:meth:`mmflow.workflow.pipeline.Pipeline.released_arrays`) are units of their own (``vis.zarr/vis``)
+    beside the rest of their store; a stage run channel by channel after the one before it
+    (``Stage.by_channel_after``, :mod:`mmflow.workflow.engine.channels`) alternates with it, channel ``F`` of
+    the first then of the second, the first's group ``f{F}`` of a store the second is the last reader of
+    released after it. Returns ``(peak bytes, step, {store: bytes} left at the end)``."""
+    released = {**PIPELINE.released(cfg), **PIPELINE.released_arrays(cfg)}
+    after = {}
+    for unit, stage in released.items():
+        after.setdefault(stage, []).append(unit)
+    steps, k = [], 0
+    while k < len(writes):
+        stage, stores, arrays, channels = writes[k]
+        nxt = writes[k + 1] if k + 1 < len(writes) else None
+        if nxt is not None and PIPELINE.stage(nxt[0]).by_channel_after == stage:
+            steps += _by_channel_steps(writes[k], nxt, released, after)
+            k += 2
+            continue
+        u = dict(stores)
+        for store, per in arrays.items():
+            for attr, nbytes in per.items():
+                if f"{store}/{attr}" in released:
+                    u[f"{store}/{attr}"] = nbytes
+                    u[store] -= nbytes
+        steps.append((stage, u, after.get(stage, [])))
+        k += 1
+    peak, at, kept = live_steps(steps)
+    by_store = {}
+    for unit, nbytes in kept.items():
+        by_store[unit.split("/", 1)[0]] = by_store.get(unit.split("/", 1)[0], 0) + nbytes
+    return peak, at, by_store
+
+
+def _by_channel_steps(first, second, released, after):
+    """The steps of two stages run channel by channel (:func:`run_live_stores`)."""
+    (a, _, _, a_ch), (b, _, _, b_ch) = first, second
+    n = max(len(v) for v in (*a_ch.values(), *b_ch.values()))
+    steps = []
+    for f in range(n):
+        last = f == n - 1
+        gone = [f"{s}/f{f}" for s in a_ch if released.get(s) == b]
+        steps.append((a if last else f"{a} (channel {f + 1} of {n})", {f"{s}/f{f}": v[f] for s, v in a_ch.items()},
+                      []))
+        # what goes after the first stage goes once both are complete (the runner's releases after a stage)
+        steps.append((b if last else f"{b} (channel {f + 1} of {n})", {f"{s}/f{f}": v[f] for s, v in b_ch.items()},
+                      gone + (after.get(a, []) + after.get(b, []) if last else [])))
+    return steps
 
 
 def task_seconds(k, units, costs, peak_gflops):
@@ -178,7 +266,7 @@ def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
-    peak, at, kept = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
+    peak, at, kept = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg)
     return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops, "task_slots": workers,
             "total_store_gb": sum(e.store_bytes for e in ests) / 1e9, "peak_store_gb": peak / 1e9,
             "peak_stage": at, "kept_stores": {k: v / 1e9 for k, v in kept.items()},
@@ -254,7 +342,7 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
                                  f"(`mmflow plan`), more than a worker's {worker_limit_gb:.2f} GB memory limit",
                                  f"{PIPELINE.stage(e.stage).cost.shrink_setting(cfg)}, or more memory per worker "
                                  "(fewer cluster.n_workers, a larger cluster.memory_limit)")
-    peak, at, _ = live_stores([(e.stage, e.stores) for e in ests], PIPELINE.released(cfg))
+    peak, at, _ = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg)
     disk = peak - existing_bytes
     free = free_disk_gb(cfg.run.directory) if free_disk is None else free_disk
     if disk / 1e9 > free:

@@ -69,6 +69,18 @@ class Stage:
     scan: Optional[Callable] = None  # scan(cfg): reads the input data, before any work, when the stage has any
     reads_corrected: bool = False
     cost: Optional[object] = None  # its cost model (mmflow.workflow.plan.work.Cost: work, shrink settings)
+    #: ``{store: (array attributes)}``: the arrays it reads of an input store of which it reads only some
+    #: (:data:`mmflow.io.run_stores.ARRAYS` names; a store not named: all its arrays). What lets a large array
+    #: go once its own readers have finished (:data:`mmflow.io.run_stores.RELEASED_ARRAYS`)
+    reads: dict = field(default_factory=dict)
+    #: the stage whose tasks of each channel run just before this stage's tasks of that channel (the keys of
+    #: both carry ``freq``; :mod:`mmflow.workflow.engine.channels`): the runner alternates them channel by
+    #: channel, and what that stage wrote for a channel (a group ``f{F}`` of a store this stage alone reads,
+    #: released after it) goes once this stage has read it
+    by_channel_after: Optional[str] = None
+    #: False where its outputs are made from files outside the run (ingest): none of them is released, as
+    #: a rerun could not make them again once those files are gone
+    recomputable: bool = True
     upstream: tuple = field(default=(), repr=False)
 
     def __post_init__(self):

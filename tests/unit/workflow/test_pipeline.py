@@ -59,7 +59,7 @@ def test_a_released_store_is_named_only_where_it_is_written_or_read():
     """Only its declaration, its writers and its declared readers name a store that is released: no other
     module (the CLI, a report, a benchmark) can read it behind the stages' backs."""
     for store in RELEASED_BY_DEFAULT:
-        writers, readers, released = PIPELINE.lifetimes()[store]
+        writers, readers, released, _ = PIPELINE.lifetimes()[store]
         assert released
         allowed = {PACKAGE / "io" / "run_stores.py"} | {p for st in writers + readers
                                                        for p in (PACKAGE / "workflow" / "stages" / st).glob("*.py")}
@@ -97,3 +97,46 @@ def test_the_plan_counts_the_peak_of_the_live_stores():
     assert live_stores(writes, {"x": "b"}) == (8, "b", {"y": 3, "z": 4})
     assert live_stores(writes, {}) == (12, "c", {"x": 5, "y": 3, "z": 4})  # nothing released: the sum
     assert live_stores(writes, {"x": "a", "y": "b"}) == (5, "a", {"z": 4})
+
+
+def test_large_arrays_go_after_the_last_stage_that_reads_them():
+    """vis.zarr's visibilities, weights and autocorrelations go after mmodes, their last reader (the later
+    stages read its metadata alone: ``Stage.reads``); the m-modes after transfer, their last reader (the stages
+    after it read ``n_samples``), that is after normal, which runs with it channel by channel; the m-modes of
+    each correlation after stokes; run.keep keeps a store's
+    arrays; an ingested vis.zarr is kept whole (its files may be gone on a rerun)."""
+    cfg = load_config(DEMO, ["clean.enabled=true"])
+    vis = {f"{STORES.vis}/{a}": "mmodes" for a in ("vis", "weights", "autos", "vis_cross", "weights_cross")}
+    assert PIPELINE.released_arrays(cfg) == {**vis, f"{STORES.mmodes}/mmodes": "normal",  # with transfer
+                                             f"{STORES.mmodes}/mmodes_corr": "mmodes"}
+    assert [s.name for s in PIPELINE.array_readers(STORES.mmodes, "n_samples", cfg)] == ["clean", "products"]
+    stokes = load_config(DEMO, ["imaging.stokes=[I, Q, U, V]", "corrupt.enabled=true", "beam={type: short_dipole}"])
+    assert PIPELINE.released_arrays(stokes)[f"{STORES.mmodes}/mmodes_corr"] == "stokes"
+    assert PIPELINE.released_arrays(stokes)[f"{STORES.mmodes}/mmodes"] == "normal"
+    kept = load_config(DEMO, ["run.keep=[vis.zarr]"])
+    assert set(PIPELINE.released_arrays(kept)) == {f"{STORES.mmodes}/mmodes", f"{STORES.mmodes}/mmodes_corr"}
+    ingest = PIPELINE.stage("ingest")
+    assert not ingest.recomputable and all(s.recomputable for s in PIPELINE if s is not ingest)
+
+
+def test_the_plan_counts_a_released_array_apart_from_its_store():
+    """vis.zarr (10, of which the visibilities 8) read whole by b, then only its metadata by c: the
+    visibilities go after b, the rest of the store stays to the end."""
+    from mmflow.workflow.plan.planner import live_stores
+
+    writes = [("a", {"v": 2, "v/vis": 8}), ("b", {"m": 5}), ("c", {"n": 1})]
+    assert live_stores(writes, {"v/vis": "b"}) == (15, "b", {"v": 2, "m": 5, "n": 1})
+
+
+def test_the_plan_alternates_transfer_and_normal_by_channel():
+    """Two channels of partials (5 each) summed into normal (1 each), channel by channel: channel 0's
+    partials go once normal has summed them, so the peak is the m-modes (4), one channel's partials and
+    the normal equations (11), not both channels' partials (16); the m-modes transfer reads (3 of the 4) go
+    once both stages are complete."""
+    from mmflow.workflow.plan.planner import run_live_stores
+
+    cfg = load_config(DEMO)
+    writes = [("mmodes", {"mmodes.zarr": 4}, {"mmodes.zarr": {"mmodes": 3}}, {"mmodes.zarr": [2, 2]}),
+              ("transfer", {"partials.zarr": 10}, {}, {"partials.zarr": [5, 5]}),
+              ("normal", {"normal.zarr": 2}, {}, {"normal.zarr": [1, 1]})]
+    assert run_live_stores(writes, cfg) == (4 + 5 + 2, "normal", {"mmodes.zarr": 1, "normal.zarr": 2})

@@ -45,3 +45,26 @@ def test_chunks_of_a_released_store_are_not_damage(tmp_path):
     assert list(run.damaged_keys("transfer")) == ["k"]
     run.forget_released("transfer")
     assert run.released("transfer") == {} and len(run.damaged_keys("transfer")["k"]) == 2
+
+
+def test_release_of_arrays_removes_them_alone_and_their_chunks_are_not_damage(tmp_path):
+    """Arrays of a kept store go alone, recorded under ``store/array``; the store and its other arrays stay
+    (their chunks still checked); a linked store (a prior pass's) keeps its arrays."""
+    run = RunDir(tmp_path / "run")
+    _store(run.store("vis.zarr"), "simulate")
+    (run.store("vis.zarr") / "vis" / "c").mkdir(parents=True)
+    (run.store("vis.zarr") / "vis" / "zarr.json").write_text("{}")
+    (run.store("vis.zarr") / "vis" / "c" / "0").write_bytes(b"x" * 200)
+    chunks = {"vis.zarr/a/c/0": [100, "0"], "vis.zarr/vis/c/0": [200, "0"]}
+    run.status_dir("simulate").mkdir(parents=True)
+    (run.status_dir("simulate") / "manifest.json").write_text(json.dumps({"fingerprint": "f", "keys": ["k"]}))
+    run.mark_done("simulate", "k", {}, chunks)
+    assert run.release_arrays("simulate", "vis.zarr/vis", ["vis"]) >= 200
+    assert not (run.store("vis.zarr") / "vis").exists() and (run.store("vis.zarr") / "a" / "c" / "0").exists()
+    assert run.released("simulate")["vis.zarr/vis"]["arrays"] == ["vis"]
+    assert run.damaged_keys("simulate") == {} and run.keys_writing_released("simulate") == ["k"]
+    (run.store("vis.zarr") / "a" / "c" / "0").unlink()  # a kept array's chunk: still damage
+    assert run.damaged_keys("simulate")["k"] == [f"{run.path}/vis.zarr/a/c/0: missing"]
+    _store(tmp_path / "other.zarr", "mmodes")
+    (run.path / "mmodes.zarr").symlink_to(tmp_path / "other.zarr")
+    assert run.release_arrays("mmodes", "mmodes.zarr/a", ["a"]) is None and (tmp_path / "other.zarr" / "a").exists()

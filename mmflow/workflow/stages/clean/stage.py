@@ -30,7 +30,7 @@ from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.jackknife import beam_noise
-from mmflow.io.run_stores import STORES, CLEAN_STOPS, NOISE_FIELDS, clean_store
+from mmflow.io.run_stores import VIS_METADATA, STORES, CLEAN_STOPS, NOISE_FIELDS, clean_store
 from mmflow.sky import units
 from mmflow.workflow.engine.clean_state import (
     active,
@@ -234,4 +234,5 @@ STAGE = Stage(
     next_cycle=_next_cycle,
     description="m-mode CLEAN: PSF by declination, major cycles over m blocks, jackknife threshold",
     cost=COST,
+    reads={STORES.vis: VIS_METADATA, STORES.mmodes: ("n_samples",)},
 )

@@ -102,4 +102,5 @@ STAGE = Stage(
     counters=("fully_flagged_integrations", "nonfinite_flagged"),
     description="read UVH5 / uvfits / MS files with pyuvdata, fanned out over time chunks of files",
     cost=COST,
+    recomputable=False,  # vis.zarr holds the files' data whole: the files may be gone on a rerun
 )

@@ -55,4 +55,5 @@ STAGE = Stage(
     kind="reduce",
     description="sum partial normal equations over baseline groups (fixed-order tree), per m block",
     cost=COST,
+    by_channel_after="transfer",  # each channel's partials summed, and released, before the next is made
 )

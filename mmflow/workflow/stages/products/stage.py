@@ -31,7 +31,7 @@ from mmflow.workflow.stages.products.stokes import stokes_products
 from mmflow.workflow.stages.products.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
-from mmflow.io.run_stores import STORES
+from mmflow.io.run_stores import VIS_METADATA, STORES
 
 
 def frequency_tags(freqs_hz):
@@ -159,4 +159,5 @@ STAGE = Stage("products", ("mmode.lmax", "mmode.mmax", "mmode.splits", "imaging"
                ("maps",),
                _products_prepare, _products_task, _products_finalize,
                description="HEALPix FITS maps, Mollweide PNGs, L-curves, summary; CLEAN maps, PSF stamps, Table 1; "
-               "flux scale, spectral index, astrometry; HTML report", cost=COST)
+               "flux scale, spectral index, astrometry; HTML report", cost=COST,
+               reads={STORES.vis: VIS_METADATA, STORES.mmodes: ("n_samples",)})

@@ -14,7 +14,7 @@ import numpy as np
 from mmflow.conventions import m_blocks, m_slice
 from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
-from mmflow.io.run_stores import STORES, alm_store
+from mmflow.io.run_stores import VIS_METADATA, STORES, alm_store
 from mmflow.mmode.normal import hermitian_full
 from mmflow.sky.diffuse import map_to_alm
 from mmflow.sky.frames import rotate_alm, rotation_matrix
@@ -87,4 +87,5 @@ def _prior_files(cfg):
 
 
 STAGE = Stage("solve", SOLVE_CONFIG, (STORES.vis, STORES.normal), (STORES.alm,), _solve_prepare, _solve_task,
-               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block", cost=COST)
+               files=_prior_files, description="Tikhonov (or alternative) solve + L-curve per m block", cost=COST,
+               reads={STORES.vis: VIS_METADATA})

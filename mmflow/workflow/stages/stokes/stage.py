@@ -34,7 +34,7 @@ from mmflow.imaging.polarised import (BLOCK_BYTES_PER_ELEMENT, PolarisedNormal, 
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
 from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
-from mmflow.io.run_stores import STORES, CLEAN_STOPS, stokes_store
+from mmflow.io.run_stores import VIS_METADATA, STORES, CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
 from mmflow.mmode.engine import GridCache
@@ -256,4 +256,5 @@ STAGE = Stage(
     "Tikhonov per Stokes, per frequency and block of m; leakage of the unpolarised sky; then per frequency "
     "the polarisation response and the CLEAN of V (clean.enabled)",
     cost=COST,
+    reads={STORES.vis: VIS_METADATA, STORES.mmodes: ("mmodes_corr", "inv_var_corr", "inv_var", "n_samples")},
 )

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from mmflow.conventions import m_blocks, complex_dtype
-from mmflow.io.run_stores import STORES, partials_store, transfer_store
+from mmflow.io.run_stores import VIS_METADATA, STORES, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.normal import NormalAccumulator
@@ -120,4 +120,5 @@ def _block_writer(ctx, fi, chunks, bc):
 
 STAGE = Stage("transfer", TRANSFER_CONFIG, (STORES.vis, STORES.mmodes), (STORES.partials, STORES.transfer),
                _transfer_prepare, _transfer_task,
-               description="transfer blocks + herk into partial normal equations per fixed baseline group", cost=COST)
+               description="transfer blocks + herk into partial normal equations per fixed baseline group", cost=COST,
+               reads={STORES.vis: VIS_METADATA, STORES.mmodes: ("mmodes", "inv_var")})
