@@ -52,14 +52,25 @@ I, V = 0, 3  # the rows of I and V in (I, Q, U, V) and (T, E, B, V)
 COND_MAX = 20.0
 
 
+#: declinations imaged at once by :func:`psf_table` (4 sources each): the images in memory are 16 x 4 x n_alm
+#: (0.5 GB at lmax 1000), each pass one solve (a factorisation of every m where the factors are not kept)
+DECS_PER_PASS = 4
+
+
 def psf_table(observe, dec_rad, beam=I):
     """The response table of :func:`clean_stokes` by declination (RA 0): ``matrix`` ``(n_dec, 4, 4)``
     (:func:`mmflow.imaging.polarised.response_matrices`) and the PSF of Stokes ``beam`` (its map of a unit
     source of its own: ``dec``, ``peak``, ``major``, ``minor``, ``pa``, :func:`mmflow.imaging.psf.fit_psf_columns`;
-    the Gaussian restores the components), from one :func:`mmflow.imaging.polarised.stokes_response`."""
-    images = stokes_response(observe, dec_rad)
-    table = psf_mod.fit_psf_columns(images[:, beam, beam].T, observe.lmax, dec_rad)
-    table["matrix"] = response_matrices(images, dec_rad, observe.lmax)
+    the Gaussian restores the components), from :func:`mmflow.imaging.polarised.stokes_response`
+    (``DECS_PER_PASS`` declinations a pass)."""
+    dec = np.asarray(dec_rad, float).reshape(-1)
+    cols, mats = [], []
+    for k in range(0, len(dec), DECS_PER_PASS):
+        images = stokes_response(observe, dec[k:k + DECS_PER_PASS])
+        cols.append(images[:, beam, beam])
+        mats.append(response_matrices(images, dec[k:k + DECS_PER_PASS], observe.lmax))
+    table = psf_mod.fit_psf_columns(np.concatenate(cols).T, observe.lmax, dec)
+    table["matrix"] = np.concatenate(mats)
     return table
 
 

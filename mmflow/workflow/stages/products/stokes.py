@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm
+from mmflow.conventions import healpy_alm, radec_to_vec
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.jackknife import noise_realisation, split_variance
@@ -118,6 +118,30 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     return info
 
 
+def sources_in_frame(ctx, entry):
+    """The stokes stage's CLEANed sources (``entry``: its task's ``sources``, frame of date) in
+    ``products.frame``: each source's ``lon_deg``, ``lat_deg`` there and its polarisation angle turned by
+    :func:`mmflow.imaging.clean.north_rotation` (north through east in that frame, IAU); fractions and the
+    Stokes vector do not change."""
+    if not entry:
+        return entry
+    frame = ctx.cfg.products.frame
+    rot = None if frame == "date" else rotation_matrix("date", frame, float(ctx.open(STORES.vis).attrs["epoch_jd"]))
+    out = dict(entry, frame=frame, sources=[])
+    for src in entry["sources"]:
+        src = dict(src)
+        vec = radec_to_vec(np.deg2rad(src.pop("ra_deg")), np.deg2rad(src.pop("dec_deg")))
+        if rot is not None:
+            if src["angle_deg"] is not None:
+                chi = src["angle_deg"] + np.rad2deg(ck.north_rotation(vec[None], rot)[0])
+                src["angle_deg"] = float((chi + 90.0) % 180.0 - 90.0)
+            vec = rot @ vec
+        src["lon_deg"] = float(np.rad2deg(np.arctan2(vec[1], vec[0])) % 360.0)
+        src["lat_deg"] = float(np.rad2deg(np.arcsin(np.clip(vec[2], -1, 1))))
+        out["sources"].append(src)
+    return out
+
+
 def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
     """``(sqrt(Q^2 + U^2) / I, V / I)`` where ``I > min_i_fraction`` x the I peak (of the ``mask``ed sky), NaN
     elsewhere."""
@@ -158,7 +182,11 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
     # whether the solve images polarised fractions as they are (the polarisation_response of the stokes
     # stage's second phase, its per-frequency task of cycle 0)
-    info["polarisation"] = ctx.run.task_infos("stokes").get(TaskKey(freq=fi, cycle=0).format(), {}).get("polarisation")
+    task = ctx.run.task_infos("stokes").get(TaskKey(freq=fi, cycle=0).format(), {})
+    info["polarisation"] = task.get("polarisation")
+    # the compact sources' Stokes vectors from the full-Stokes CLEAN through the run's response (unbiased where
+    # measured: each source's cond(A) <= cond_max), in products.frame
+    info["sources"] = sources_in_frame(ctx, task.get("sources"))
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():
