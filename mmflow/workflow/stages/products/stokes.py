@@ -118,15 +118,14 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     return info
 
 
-def sources_in_frame(ctx, entry):
-    """The stokes stage's CLEANed sources (``entry``: its task's ``sources``, frame of date) in
-    ``products.frame``: each source's ``lon_deg``, ``lat_deg`` there and its polarisation angle turned by
-    :func:`mmflow.imaging.clean.north_rotation` (north through east in that frame, IAU); fractions and the
-    Stokes vector do not change."""
+def sources_in_frame(entry, frame, epoch_jd):
+    """The stokes stage's CLEANed sources (``entry``: its task's ``sources``, frame of date) in ``frame``
+    (``products.frame``; ``epoch_jd`` the run's epoch): each source's ``lon_deg``, ``lat_deg`` there and its
+    polarisation angle turned by :func:`mmflow.imaging.clean.north_rotation` (north through east in that frame,
+    IAU, in [-90, 90)); the Stokes vector and the fractions do not change."""
     if not entry:
         return entry
-    frame = ctx.cfg.products.frame
-    rot = None if frame == "date" else rotation_matrix("date", frame, float(ctx.open(STORES.vis).attrs["epoch_jd"]))
+    rot = None if frame == "date" else rotation_matrix("date", frame, float(epoch_jd))
     out = dict(entry, frame=frame, sources=[])
     for src in entry["sources"]:
         src = dict(src)
@@ -186,7 +185,8 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     info["polarisation"] = task.get("polarisation")
     # the compact sources' Stokes vectors from the full-Stokes CLEAN through the run's response (unbiased where
     # measured: each source's cond(A) <= cond_max), in products.frame
-    info["sources"] = sources_in_frame(ctx, task.get("sources"))
+    info["sources"] = sources_in_frame(task.get("sources"), ctx.cfg.products.frame,
+                                       ctx.open(STORES.vis).attrs["epoch_jd"])
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():
