@@ -94,7 +94,7 @@ def test_stokes_maps_equal_the_true_sky_imaged_and_follow_iau(scan, reference):
     assert len(pol["dec_deg"]) == 5 and ratios.shape == (3, 5)
     assert pol["measured"] == bool(np.abs(ratios - 1).max() <= 0.05 and max(pol["leakage"]) < 0.005)
     assert (pol["note"] == "") == pol["measured"]
-    _check_sources(summary["sources"], sky)
+    _check_sources(summary["sources"], sky, reference)
     path = reference / "maps" / "stokes_40.000MHz.fits"
     maps = np.array(hp.read_map(str(path), field=None))
     head = fits.getheader(path, 1)
@@ -127,12 +127,18 @@ def test_stokes_maps_equal_the_true_sky_imaged_and_follow_iau(scan, reference):
             assert abs((chi - chi_true + 90) % 180 - 90) < 2.0, (k, chi, chi_true)
 
 
-def _check_sources(entry, sky):
+def _check_sources(entry, sky, run_dir):
     """The summary's sources (the full-Stokes CLEAN through the run's response,
     :func:`mmflow.imaging.polarised_clean.stokes_sources`) hold each source's Stokes vector: linear and circular
     fractions within 5 %, angles within 2 deg, the unpolarised source's Q, U, V < 0.5 % of I, every source
-    measured (cond(A) <= cond_max) and within 0.1 FWHM of where it is."""
+    measured (cond(A) <= cond_max) and within 1 deg of where it is; the restored maps (``polclean_<tag>.fits``,
+    IAU) hold the true linear fractions at the sources' pixels within 5 %. (Measured: fractions within 3.9 %,
+    V within 2.3 %, angles within 0.1 deg, Q, U, V of the unpolarised source <= 0.06 % of I, cond 1.5-2.0,
+    restored linear fractions within 1.5 %: the CLEAN stops at 3 x the dirty I map's robust rms, 17 cycles.)"""
     print({k: v for k, v in entry.items() if k != "sources"})
+    path = run_dir / entry["fits"]
+    assert fits.getheader(path, 1)["POLCCONV"] == "IAU"
+    restored = np.array(hp.read_map(str(path), field=None))
     assert entry["frame"] == "date" and entry["cond_max"] > 1 and entry["components"] > 0
     got = entry["sources"]
     vecs = radec_to_vec(np.deg2rad([s["lon_deg"] for s in got]), np.deg2rad([s["lat_deg"] for s in got]))
@@ -148,6 +154,9 @@ def _check_sources(entry, sky):
         assert abs(src["circular_fraction"] / (st[3] / st[0]) - 1) < 0.05
         chi = src["angle_deg"] - 0.5 * np.rad2deg(np.arctan2(st[2], st[1]))
         assert abs((chi + 90) % 180 - 90) < 2.0
+        pix = hp.vec2pix(NSIDE, *vec)
+        print(f"  restored linear fraction {np.hypot(*restored[1:3, pix]) / restored[0, pix]:.4f}")
+        assert abs(np.hypot(*restored[1:3, pix]) / restored[0, pix] / (np.hypot(st[1], st[2]) / st[0]) - 1) < 0.05
 
 
 def test_stokes_run_resumes_bit_identical_after_a_kill(scan, reference, tmp_path):

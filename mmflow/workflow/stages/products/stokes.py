@@ -21,6 +21,9 @@ file (``maps/``)                   content
                                    Gaussian of their declination), ``V_RESIDUAL``, ``V_MODEL``
                                    (components, flux / pixel solid angle)
 ``vclean_<tag>.png``               the restored V map
+``polclean_<tag>.fits``            the full-Stokes CLEAN of the compact sources: I, Q, U, V
+                                   restored (residual + each component's I, Q, U, V convolved
+                                   with the I PSF's fitted Gaussian of its declination), IAU
 =================================  =============================================================
 """
 from __future__ import annotations
@@ -118,6 +121,36 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     return info
 
 
+def sources_products(ctx, fi, tag, nside, mask, meta):
+    """Write the restored maps of the full-Stokes CLEAN of the compact sources of channel ``fi``
+    (``polclean_<tag>.fits``: the residual's I, Q, U, V plus each component's, convolved with the I PSF's
+    Gaussian of its declination, :func:`mmflow.imaging.clean.restore_map`; Q, U referred to
+    ``products.frame``'s north as the residual's are) and return its path."""
+    p = ctx.cfg.products
+    g = ctx.open(STORES.stokes)
+    vis = ctx.open(STORES.vis)
+    f, epoch = float(vis[STORES.vis.freqs_hz][fi]), float(vis.attrs["epoch_jd"])
+    rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
+    n_cyc = int(g[STORES.stokes.src_n_cycles][fi])
+    comps = g[STORES.stokes.src_components][fi, :n_cyc].reshape(-1, 7)
+    comps = comps[np.any(comps[:, 3:] != 0, axis=1)]
+    stokes = comps[:, 3:].copy()
+    if rot is not None and len(comps):  # Q + iU turns by 2 psi with the frame's north (north_rotation)
+        psi = ck.north_rotation(comps[:, :3], rot)
+        c, s = np.cos(2 * psi), np.sin(2 * psi)
+        stokes[:, 1], stokes[:, 2] = c * comps[:, 4] - s * comps[:, 5], s * comps[:, 4] + c * comps[:, 5]
+    residual = _maps(ctx, STORES.stokes.src_residual, fi, nside, "Jy/sr")
+    table = psf.table_from_array(g[STORES.stokes.src_psf_table][fi])
+    restored = np.stack([units.convert(ck.restore_map(residual[x], comps[:, :3], stokes[:, x], table, to_frame=rot),
+                                       "Jy/sr", p.unit, f) for x in range(4)])
+    ctx.check_finite(f"maps/polclean of channel {fi}", restored)
+    path = f"maps/polclean_{tag}.fits"
+    write_healpix_fits(ctx.run.path / path, restored, dict(meta, STOKES="IQUV", POLCONV="avg", CLEANCYC=n_cyc,
+                                                           **POLARISATION_KEYWORDS), mask=mask, column_names=COLUMNS)
+    ctx.ledger.record_file(ctx.run.path / path)
+    return path
+
+
 def sources_in_frame(entry, frame, epoch_jd):
     """The stokes stage's CLEANed sources (``entry``: its task's ``sources``, frame of date) in ``frame``
     (``products.frame``; ``epoch_jd`` the run's epoch): each source's ``lon_deg``, ``lat_deg`` there and its
@@ -187,6 +220,8 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     # measured: each source's cond(A) <= cond_max), in products.frame
     info["sources"] = sources_in_frame(task.get("sources"), ctx.cfg.products.frame,
                                        ctx.open(STORES.vis).attrs["epoch_jd"])
+    if info["sources"]:
+        info["sources"]["fits"] = sources_products(ctx, fi, tag, nside, mask, meta)
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():

@@ -125,10 +125,11 @@ def work(g, cfg):
     n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
     vectors = 2 * max(RESPONSE_SOURCES, 4 * DECS_PER_PASS) + g.n_split + PSF_DECLINATIONS / 4
     second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + vectors * 4 * n_alm * COMPLEX128_BYTES
-    c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
+    c = cfg.clean  # the CLEANs of the sources and of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                            (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None,
-                           blocks, lmax_p, gram_dtype(cfg))
+                           blocks, lmax_p, gram_dtype(cfg),
+                           (PSF_DECLINATIONS, min(c.max_cycles, EXPECTED_CLEAN_CYCLES), c.peaks_per_cycle))
     units = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * g.n_bl
     return Work(g.n_freq * (len(blocks) + 1), max(block_task, second), units, [spec])
 

@@ -91,10 +91,11 @@ def _prepare(ctx):
     n_bl = mg[STORES.mmodes.mmodes_corr].shape[-1]
     cfg = ctx.cfg
     c = cfg.clean
-    v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
+    sources = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle)
+    v_clean = sources if c.enabled else None
     blocks = blocks_of(cfg, n_split, n_bl)
     ctx.create(stokes_store(n_split, nf, cfg.mmode.lmax, n_m - 1, v_clean, blocks, stokes_lmax_of(cfg),
-                            gram_dtype(cfg)))
+                            gram_dtype(cfg), sources))
     return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in blocks]
 
 
@@ -209,9 +210,9 @@ def _channel_task(ctx, key):
     stored = ctx.read(STORES.stokes.alm, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, 4, m, l)
     splits = np.array([[healpy_alm(x, lmax) for x in a] for a in stored])  # (split, 4, n_alm)
     freq = float(ctx.open(STORES.vis)[STORES.vis.freqs_hz][fi])
-    info["sources"] = _clean_sources(ctx, fi, freq, splits, tel.lat_rad, observe)
+    out = ctx.open(STORES.stokes, mode="r+")
+    info["sources"] = _clean_sources(ctx, out, fi, freq, splits, tel.lat_rad, observe)
     if cfg.clean.enabled:
-        out = ctx.open(STORES.stokes, mode="r+")
         info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, tel.lat_rad, observe)
     return info
 
@@ -234,15 +235,25 @@ def _threshold_noise(ctx, fi, freq, splits, lat_rad, row):
     return thr, noise
 
 
-def _clean_sources(ctx, fi, freq, splits, lat_rad, observe):
+def _clean_sources(ctx, out, fi, freq, splits, lat_rad, observe):
     """The full-Stokes CLEAN of the compact sources of the full data ``splits[0]``
     (:func:`mmflow.imaging.polarised_clean.clean_stokes` on I's peaks, the ``clean`` settings, its threshold
     from I's noise as :func:`_threshold_noise`) and its sources (:func:`~mmflow.imaging.polarised_clean.stokes_sources`,
-    frame of date; the products stage states them in ``products.frame``)."""
+    frame of date; the products stage states them in ``products.frame``), written to ``stokes.zarr``'s ``src_*``
+    (the residual, the components per cycle, the I PSF table) for the restored maps."""
     cfg = ctx.cfg
     thr, noise = _threshold_noise(ctx, fi, freq, splits, lat_rad, I)
     table = psf_table(observe, np.deg2rad(_v_decs(ctx)), beam=I)
     res = clean_stokes(observe, splits[0], lat_rad, clean_options(cfg.clean), clean_nside(cfg), thr, noise, table)
+    s, one, n_m = STORES.stokes, (slice(fi, fi + 1),), out[STORES.stokes.alm].shape[3]
+    ctx.write(out, s.src_residual, one, padded_alm(res["residual"], cfg.mmode.lmax, n_m)[None])
+    ctx.write(out, s.src_psf_table, one, psf.table_to_array(table)[None], allow_nan=True)
+    for cyc in range(res["cycles"]):  # one chunk per cycle run
+        sel = res["cycle"] == cyc
+        comps = np.zeros((1, 1, cfg.clean.peaks_per_cycle, 7))
+        comps[0, 0, :sel.sum()] = np.c_[res["vec"][sel], res["stokes"][sel]]
+        ctx.write(out, s.src_components, (slice(fi, fi + 1), slice(cyc, cyc + 1)), comps)
+    ctx.write(out, s.src_n_cycles, one, np.array([res["cycles"]]))
     return {"cycles": int(res["cycles"]), "components": int(len(res["stokes"])), "stop": res["reason"],
             "threshold_jy_sr": float(res["threshold"]), "noise_jy_sr": float(res["noise"]), "cond_max": COND_MAX,
             "frame": "date", "sources": stokes_sources(res, cfg.mmode.lmax, max_sources=MAX_SOURCES)}
