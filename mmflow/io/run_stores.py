@@ -107,6 +107,7 @@ DIMENSIONS = {
     "peak": "peaks removed per cycle",
     "quantity": "noise quantities (:data:`NOISE_FIELDS`)",
     "xyzf": "x, y, z of the unit vector (frame of date), flux in Jy",
+    "xyziquv": "x, y, z of the unit vector (frame of date), then I, Q, U, V in Jy (IAU)",
     "pixel": "HEALPix pixels (RING)",
     "sample": "sidereal angles 2 pi k / N, k = 0 .. N - 1, of a band-limited sky's drift scan",
     "feed": "the feeds whose power beam a visibility is simulated through (one for a power beam)",
