@@ -433,14 +433,18 @@ def stokes_response(observe, decs_rad, stokes=(0, 1, 2, 3)):
     return observe(truth).reshape(len(decs), len(stokes), 4, -1)
 
 
-def response_matrices(images, decs_rad, lmax):
+def response_matrices(images, decs_rad, lmax, stokes=(0, 1, 2, 3)):
     """``A (n_dec, 4, 4)``: ``A[d, X, Y]`` the Stokes-X map at the source of a unit Stokes-Y point source at
-    declination ``d`` (RA 0), from :func:`stokes_response`'s ``images`` of all four (read exactly at the
-    source, :func:`stokes_at`). A source of Stokes vector ``s`` there images as ``A s`` at its position."""
+    declination ``d`` (RA 0), from :func:`stokes_response`'s ``images`` of the sources ``stokes`` (read exactly
+    at the source, :func:`stokes_at`; the columns of the others 0). A source of Stokes vector ``s`` there
+    images as ``A s`` at its position."""
     decs = np.asarray(decs_rad, float).reshape(-1)
     vec = np.stack([np.cos(decs), np.zeros_like(decs), np.sin(decs)], axis=-1)
-    return np.stack([np.stack([stokes_at(images[d, y], v, lmax)[0] for y in range(4)], axis=1)
-                     for d, v in enumerate(vec)])
+    out = np.zeros((len(decs), 4, 4))
+    for d, v in enumerate(vec):
+        for k, y in enumerate(stokes):
+            out[d, :, y] = stokes_at(images[d, k], v, lmax)[0]
+    return out
 
 
 #: what :func:`polarisation_response` calls measured: each test fraction recovered within this of 1 ...

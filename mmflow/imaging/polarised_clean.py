@@ -57,18 +57,20 @@ COND_MAX = 20.0
 DECS_PER_PASS = 4
 
 
-def psf_table(observe, dec_rad, beam=I):
+def psf_table(observe, dec_rad, beam=I, fit=(I, 1, 2, V)):
     """The response table of :func:`clean_stokes` by declination (RA 0): ``matrix`` ``(n_dec, 4, 4)``
-    (:func:`mmflow.imaging.polarised.response_matrices`) and the PSF of Stokes ``beam`` (its map of a unit
-    source of its own: ``dec``, ``peak``, ``major``, ``minor``, ``pa``, :func:`mmflow.imaging.psf.fit_psf_columns`;
-    the Gaussian restores the components), from :func:`mmflow.imaging.polarised.stokes_response`
-    (``DECS_PER_PASS`` declinations a pass)."""
+    (:func:`mmflow.imaging.polarised.response_matrices`: the columns of the Stokes parameters ``fit``, the
+    others 0) and the PSF of Stokes ``beam`` (one of ``fit``; its map of a unit source of its own: ``dec``,
+    ``peak``, ``major``, ``minor``, ``pa``, :func:`mmflow.imaging.psf.fit_psf_columns`; the Gaussian restores
+    the components), from :func:`mmflow.imaging.polarised.stokes_response` (``DECS_PER_PASS`` declinations a
+    pass)."""
     dec = np.asarray(dec_rad, float).reshape(-1)
+    fit = tuple(fit)
     cols, mats = [], []
     for k in range(0, len(dec), DECS_PER_PASS):
-        images = stokes_response(observe, dec[k:k + DECS_PER_PASS])
-        cols.append(images[:, beam, beam])
-        mats.append(response_matrices(images, dec[k:k + DECS_PER_PASS], observe.lmax))
+        images = stokes_response(observe, dec[k:k + DECS_PER_PASS], fit)
+        cols.append(images[:, fit.index(beam), beam])
+        mats.append(response_matrices(images, dec[k:k + DECS_PER_PASS], observe.lmax, fit))
     table = psf_mod.fit_psf_columns(np.concatenate(cols).T, observe.lmax, dec)
     table["matrix"] = np.concatenate(mats)
     return table
@@ -76,10 +78,10 @@ def psf_table(observe, dec_rad, beam=I):
 
 def v_psf_table(normal, eps, dec_rad, filters=None, observe=None):
     """The V PSF by declination: the V map of a unit V point source at RA 0 and each ``dec_rad``
-    through the solve, its peak and fitted Gaussian and the response matrices (:func:`psf_table` with
-    ``beam = V``); ``observe`` a :class:`mmflow.imaging.polarised.PolarisedObserver` of the same solve, to
-    share its factors."""
-    return psf_table(observe or PolarisedObserver(normal, eps, filters), dec_rad, beam=V)
+    through the solve, its peak and fitted Gaussian and ``A_VV`` (:func:`psf_table` of V alone);
+    ``observe`` a :class:`mmflow.imaging.polarised.PolarisedObserver` of the same solve, to share its
+    factors."""
+    return psf_table(observe or PolarisedObserver(normal, eps, filters), dec_rad, beam=V, fit=(V,))
 
 
 def robust_rms(values):
@@ -143,7 +145,7 @@ def clean_stokes(observe, alm, lat_rad, opts=None, nside=None, threshold=None, n
     dec_min = never_seen_dec_min(lat_rad)
     mask = observed_mask(nside, dec_min)
     if table is None:
-        table = psf_table(observe, np.deg2rad(np.arange(np.rad2deg(dec_min), 90.0 + 1e-9, dec_step_deg)), select)
+        table = psf_table(observe, np.deg2rad(np.arange(np.rad2deg(dec_min), 90.0 + 1e-9, dec_step_deg)), select, fit)
     residual = np.array(alm, np.complex128, copy=True)
     noise = robust_rms(healpy.alm2map(residual[select], nside, lmax=lmax)[mask]) if noise is None else float(noise)
     thr = opts.k_sigma * noise if threshold is None else float(threshold)
