@@ -177,7 +177,9 @@ def stokes_sources(result, lmax, cond_max=COND_MAX, max_sources=None):
     components of both signs on the PSF's sidelobes further out, which the source's sum leaves out). A
     source sits at the ``|I|``-weighted mean direction ``r`` of its components, and its Stokes vector is
     their sum plus the residual at ``r`` through ``A(r)^-1`` (:func:`solve_stokes`: a last step of loop
-    gain 1, so the stated vector depends little on how deep the CLEAN went). ``measured``:
+    gain 1, so the stated vector depends little on how deep the CLEAN went); a source is stated only where
+    its own peak, ``I A_II(r)``, is above the CLEAN's threshold (noise and negative sidelobe components left
+    out). ``measured``:
     ``cond(A(r)) <= cond_max``; where not, Q, U, V and the fractions are None (the array does not measure
     polarisation there) instead of amplified numbers.
 
@@ -199,11 +201,14 @@ def stokes_sources(result, lmax, cond_max=COND_MAX, max_sources=None):
             free &= ~member
             groups.append(np.flatnonzero(member))
     out = []
-    for g in groups[:max_sources]:
+    for g in groups:
         r = (np.abs(st[g, I])[:, None] * vec[g]).sum(axis=0)
         r /= np.linalg.norm(r)
-        step, cond = solve_stokes(matrices_at(table, r), stokes_at(result["residual"], r, lmax), cond_max=cond_max)
+        a = matrices_at(table, r)
+        step, cond = solve_stokes(a, stokes_at(result["residual"], r, lmax), cond_max=cond_max)
         s = st[g].sum(axis=0) + step[0]
+        if s[I] * a[0, I, I] <= result["threshold"]:  # its own peak not above the threshold: no source
+            continue
         ok = bool(cond[0] <= cond_max)
         src = {"ra_deg": float(np.rad2deg(np.arctan2(r[1], r[0])) % 360), "dec_deg": float(np.rad2deg(np.arcsin(r[2]))),
                "stokes_jy": [float(s[I])] + ([float(x) for x in s[1:]] if ok else [None] * 3),
@@ -212,7 +217,8 @@ def stokes_sources(result, lmax, cond_max=COND_MAX, max_sources=None):
                "circular_fraction": float(s[V] / s[I]) if ok else None,
                "cond": float(cond[0]), "measured": ok, "components": int(len(g))}
         out.append(src)
-    return out
+    out.sort(key=lambda src: -src["stokes_jy"][I])
+    return out[:max_sources]
 
 
 def source_vectors(sources):
