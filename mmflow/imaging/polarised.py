@@ -367,8 +367,12 @@ class PolarisedObserver:
         (the Gram's own product, no copy of it: one factor per m is the extra memory)."""
         x = np.asarray(true_alm)
         x = x if x.ndim == 3 else x[None]
-        return self.solve(lambda m: np.stack([np.asarray(self.normal.gram[m - self.normal.m0])
-                                              @ _pack(xx, m, self.lmax, self.lmax_p) for xx in x]))
+
+        def rhs(m):  # the Gram read once per m (it may come from disk: the stokes stage's stored Grams)
+            g = np.asarray(self.normal.gram[m - self.normal.m0])
+            packed = np.stack([_pack(xx, m, self.lmax, self.lmax_p) for xx in x])
+            return (g @ packed[0])[None] if len(x) == 1 else (g @ packed.T).T  # one product for many sources
+        return self.solve(rhs)
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

@@ -73,6 +73,19 @@ STOKES_CONFIG = (
 )
 
 
+#: the declination step (deg) of the sources' response table at least: ``A(dec)`` is smooth in declination and
+#: only paces the CLEAN (each cycle subtracts the components' exact image); 5 deg against
+#: ``clean.psf_dec_step_deg`` (2) makes the table 2.5x cheaper (docs/stokes.md)
+SOURCES_DEC_STEP_DEG = 5.0
+
+
+def _source_decs(ctx):
+    """The sources' response table's declinations (:func:`psf_decs_deg` at ``SOURCES_DEC_STEP_DEG`` or the
+    ``clean.psf_dec_step_deg`` if coarser)."""
+    step = max(ctx.cfg.clean.psf_dec_step_deg, SOURCES_DEC_STEP_DEG)
+    return psf_decs_deg(float(ctx.vis_attrs()["lat_deg"]), step)
+
+
 def _v_decs(ctx):
     """The V PSF table's declinations (as the Stokes-I CLEAN's: :func:`psf_decs_deg`)."""
     return psf_decs_deg(float(ctx.vis_attrs()["lat_deg"]), ctx.cfg.clean.psf_dec_step_deg)
@@ -91,8 +104,8 @@ def _prepare(ctx):
     n_bl = mg[STORES.mmodes.mmodes_corr].shape[-1]
     cfg = ctx.cfg
     c = cfg.clean
-    sources = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle)
-    v_clean = sources if c.enabled else None
+    sources = (len(_source_decs(ctx)), c.max_cycles, c.peaks_per_cycle)
+    v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
     blocks = blocks_of(cfg, n_split, n_bl)
     ctx.create(stokes_store(n_split, nf, cfg.mmode.lmax, n_m - 1, v_clean, blocks, stokes_lmax_of(cfg),
                             gram_dtype(cfg), sources))
@@ -243,7 +256,7 @@ def _clean_sources(ctx, out, fi, freq, splits, lat_rad, observe):
     (the residual, the components per cycle, the I PSF table) for the restored maps."""
     cfg = ctx.cfg
     thr, noise = _threshold_noise(ctx, fi, freq, splits, lat_rad, I)
-    table = psf_table(observe, np.deg2rad(_v_decs(ctx)), beam=I)
+    table = psf_table(observe, np.deg2rad(_source_decs(ctx)), beam=I)
     res = clean_stokes(observe, splits[0], lat_rad, clean_options(cfg.clean), clean_nside(cfg), thr, noise, table)
     s, one, n_m = STORES.stokes, (slice(fi, fi + 1),), out[STORES.stokes.alm].shape[3]
     ctx.write(out, s.src_residual, one, padded_alm(res["residual"], cfg.mmode.lmax, n_m)[None])
