@@ -369,11 +369,11 @@ class PolarisedObserver:
         x = np.asarray(true_alm)
         x = x if x.ndim == 3 else x[None]
 
-        def product(m):  # G_m x_m of every vector, G_m read once (a read from disk per m in the stokes stage)
+        def rhs(m):  # the Gram read once per m (it may come from disk: the stokes stage's stored Grams)
             g = np.asarray(self.normal.gram[m - self.normal.m0])
-            return np.stack([g @ _pack(xx, m, self.lmax, self.lmax_p) for xx in x])
-
-        return self.solve(product)
+            packed = np.stack([_pack(xx, m, self.lmax, self.lmax_p) for xx in x])
+            return (g @ packed[0])[None] if len(x) == 1 else (g @ packed.T).T  # one product for many sources
+        return self.solve(rhs)
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):
@@ -402,18 +402,69 @@ def stokes_maps(alm, nside, lmax):
     return np.stack([i, q, -u_h, healpy.alm2map(alm[3], nside, lmax=lmax)])
 
 
+def stokes_at(alm, vecs, lmax, epsilon=1e-10):
+    """IAU ``(I, Q, U, V)`` of ``(T, E, B, V)`` alm ``(4, n_alm)`` at unit vectors ``vecs`` ``(n, 3)``: ``(n, 4)``.
+
+    The maps of :func:`stokes_maps` read exactly at the points (no pixels): ducc0's spin-0 synthesis of T
+    and V and spin-2 synthesis of ``(E, B)`` at the points (``(Q, U_healpy)``, ``U = -U_healpy``).
+    """
+    vec = np.asarray(vecs, float).reshape(-1, 3)
+    loc = np.stack([np.arccos(np.clip(vec[:, 2] / np.linalg.norm(vec, axis=1), -1, 1)),
+                    np.mod(np.arctan2(vec[:, 1], vec[:, 0]), 2 * np.pi)], axis=1)
+    a = np.asarray(alm, np.complex128)
+
+    def at(x, spin):
+        return ducc0.sht.synthesis_general(alm=np.ascontiguousarray(x), spin=spin, lmax=lmax, loc=loc,
+                                           epsilon=epsilon)
+    q, u_h = at(a[1:3], 2)
+    return np.stack([at(a[:1], 0)[0], q, -u_h, at(a[3:], 0)[0]], axis=1)
+
+
+def stokes_response(observe, decs_rad, stokes=(0, 1, 2, 3)):
+    """The images of unit point sources through the solve: the run's own resolution matrix.
+
+    At each declination (RA 0, frame of date; the drift scan makes the response the same at every RA,
+    turned by ``exp(-i m ra)``) one noiseless point source of unit Stokes X for each X in ``stokes``
+    (indices of ``(I, Q, U, V)``) is imaged through ``observe``
+    (:class:`PolarisedObserver`: ``(G_m + D)^-1 G_m x_m``). Returns ``(n_dec, len(stokes), 4 [T, E, B, V],
+    n_alm)``. The polarisation response, the V PSF and the full-Stokes CLEAN's response matrices are read
+    from it (:func:`polarisation_response`, :func:`response_matrices`,
+    :func:`mmflow.imaging.polarised_clean.v_psf_table`).
+    """
+    lmax = observe.lmax
+    decs = np.asarray(decs_rad, float).reshape(-1)
+    vec = np.stack([np.cos(decs), np.zeros_like(decs), np.sin(decs)], axis=-1)
+    truth = np.stack([point_source_stokes_alm(v, np.eye(4)[x], lmax) for v in vec for x in stokes])
+    return observe(truth).reshape(len(decs), len(stokes), 4, -1)
+
+
+def response_matrices(images, decs_rad, lmax, stokes=(0, 1, 2, 3)):
+    """``A (n_dec, 4, 4)``: ``A[d, X, Y]`` the Stokes-X map at the source of a unit Stokes-Y point source at
+    declination ``d`` (RA 0), from :func:`stokes_response`'s ``images`` of the sources ``stokes`` (read exactly
+    at the source, :func:`stokes_at`; the columns of the others 0). A source of Stokes vector ``s`` there
+    images as ``A s`` at its position."""
+    decs = np.asarray(decs_rad, float).reshape(-1)
+    vec = np.stack([np.cos(decs), np.zeros_like(decs), np.sin(decs)], axis=-1)
+    out = np.zeros((len(decs), 4, 4))
+    for d, v in enumerate(vec):
+        for k, y in enumerate(stokes):
+            out[d, :, y] = stokes_at(images[d, k], v, lmax)[0]
+    return out
+
+
 #: what :func:`polarisation_response` calls measured: each test fraction recovered within this of 1 ...
 RESPONSE_TOLERANCE = 0.05
 #: ... and the unpolarised test source's Q, U, V below this fraction of its I
 LEAKAGE_TOLERANCE = 0.005
 
 
-def polarisation_response(observe, decs_rad, nside, fraction=0.1):
-    """What the solve makes of polarised point sources: the resolution matrix at test sources.
+def polarisation_response(observe, decs_rad, fraction=0.1):
+    """What the solve's maps make of polarised point sources: the resolution matrix at test sources.
 
     At each declination (RA 0, frame of date) four noiseless point sources are imaged through
     ``observe`` (:class:`PolarisedObserver`, the run's operator, eps and filters): unpolarised
-    ``(1, 0, 0, 0)`` and ``(1, f, 0, 0)``, ``(1, 0, f, 0)``, ``(1, 0, 0, f)``. At the source's pixel::
+    ``(1, 0, 0, 0)`` and ``(1, f, 0, 0)``, ``(1, 0, f, 0)``, ``(1, 0, 0, f)``. Read at the source
+    (:func:`response_matrices`: the test source ``t`` images as ``A t``)::
 
         leakage  = max(|Q_0|, |U_0|, |V_0|) / I_0            (the unpolarised source)
         ratio_X  = (X_X / I_X - X_0 / I_0) / f,   X = Q, U, V  (1: the fraction imaged as it is)
@@ -423,12 +474,14 @@ def polarisation_response(observe, decs_rad, nside, fraction=0.1):
     fraction map must be: a point source's peak at ``lmax_p`` is lower than at ``lmax`` by the
     resolution alone (at lmax 32: 0.87-0.92 of it at ``lmax_p`` 24, 0.40-0.43 at 16).
 
+    This is about the maps (``stokes_<tag>.fits``, ``polfrac_<tag>.fits``); the full-Stokes CLEAN's sources
+    (:func:`mmflow.imaging.polarised_clean.clean_stokes`) invert ``A`` and are unbiased where it is
+    well conditioned, whatever this says.
+
     Parameters
     ----------
     observe : PolarisedObserver
     decs_rad : sequence of float
-    nside : int
-        HEALPix resolution of the maps the values are read from (``>= lmax / 2`` or so).
     fraction : float
         The test sources' polarised fraction ``f``.
 
@@ -438,21 +491,16 @@ def polarisation_response(observe, decs_rad, nside, fraction=0.1):
     ``measured`` (every ratio within :data:`RESPONSE_TOLERANCE` of 1 and every leakage below
     :data:`LEAKAGE_TOLERANCE`) and ``note`` (why not, when not).
     """
-    lmax = observe.lmax
+    lmax, lmax_p = observe.lmax, observe.lmax_p
     decs = np.asarray(decs_rad, float).reshape(-1)
-    vec = np.stack([np.cos(decs), np.zeros_like(decs), np.sin(decs)], axis=-1)
+    images = stokes_response(observe, decs)
+    if lmax_p < lmax:  # I at the polarised band limit, for the fractions
+        images[..., 0, healpy.Alm.getlm(lmax)[0] > lmax_p] = 0
     tests = np.vstack([np.eye(4)[0]] + [np.eye(4)[0] + fraction * np.eye(4)[k] for k in (1, 2, 3)])
-    truth = np.stack([point_source_stokes_alm(v, t, lmax) for v in vec for t in tests])
-    images = observe(truth).reshape(len(decs), 4, 4, -1)
     out = {"dec_deg": np.rad2deg(decs).round(3).tolist(), "fraction": float(fraction), "leakage": [],
            "ratio_q": [], "ratio_u": [], "ratio_v": []}
-    lmax_p = observe.lmax_p
-    if lmax_p < lmax:  # I at the polarised band limit, for the fractions
-        images = images.copy()
-        images[..., 0, healpy.Alm.getlm(lmax)[0] > lmax_p] = 0
-    for d, v in enumerate(vec):
-        pix = healpy.vec2pix(nside, *v)
-        at = np.stack([stokes_maps(images[d, k], nside, lmax)[:, pix] for k in range(4)])  # (test, IQUV)
+    for a in response_matrices(images, decs, lmax):
+        at = tests @ a.T  # (test, IQUV)
         frac = at[:, 1:] / at[:, :1]
         out["leakage"].append(float(np.abs(frac[0]).max()))
         for k, name in enumerate(("ratio_q", "ratio_u", "ratio_v")):
@@ -462,7 +510,8 @@ def polarisation_response(observe, decs_rad, nside, fraction=0.1):
     worst_leak = float(max(out["leakage"]))
     out["measured"] = bool(abs(worst_ratio - 1) <= RESPONSE_TOLERANCE and worst_leak < LEAKAGE_TOLERANCE)
     out["note"] = "" if out["measured"] else (
-        f"the array does not measure polarisation at this lmax and eps: Q, U, V fractions image at "
+        f"the maps do not image polarisation as it is at this lmax and eps: Q, U, V fractions image at "
         f"{worst_ratio:.2f} of the truth (worst test declination) and an unpolarised source leaks "
-        f"{worst_leak:.2%} of I into Q, U, V; the polarised maps are not fractions of the sky")
+        f"{worst_leak:.2%} of I into Q, U, V; the polarised maps are not fractions of the sky (the CLEANed "
+        f"sources' fractions are, where their response is measured: 'sources')")
     return out

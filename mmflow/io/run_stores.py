@@ -123,8 +123,9 @@ ARRAYS = {
     STORES.partials: (dict(gram=GRAM, rhs="f{fi}/rhs", vhv="f{fi}/vhv"),),
     STORES.normal: ("rhs", "vhv", dict(gram=GRAM)),
     STORES.alm: ("alm", "lcurve", "fraction_above", "eps_grid"),
-    STORES.stokes: ("alm", "leakage", "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold",
-                    "v_noise", "v_n_cycles", "v_stop", dict(gram=GRAM)),
+    STORES.stokes: ("alm", "leakage", "src_residual", "src_psf_table", "src_components", "src_n_cycles",
+                    "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold", "v_noise", "v_n_cycles",
+                    "v_stop", dict(gram=GRAM)),
     STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
     STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
                    "apply_rows"),
@@ -248,6 +249,7 @@ DIMENSIONS = {
     "peak": "peaks removed per cycle",
     "quantity": "noise quantities (:data:`NOISE_FIELDS`)",
     "xyzf": "x, y, z of the unit vector (frame of date), flux in Jy",
+    "xyziquv": "x, y, z of the unit vector (frame of date), then I, Q, U, V in Jy (IAU)",
     "pixel": "HEALPix pixels (RING)",
     "sample": "sidereal angles 2 pi k / N, k = 0 .. N - 1, of a band-limited sky's drift scan",
     "feed": "the feeds whose power beam a visibility is simulated through (one for a power beam)",
@@ -397,10 +399,12 @@ def alm_store(nf, lmax, mmax, m_block, n_split, eps_grid):
     ), doc="The solve stage's sky: a_lm per data split.")
 
 
-def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gram_dtype="complex128"):
+def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gram_dtype="complex128",
+                 sources=None):
     """The stokes stage's full-Stokes harmonics, per data split and frequency (one chunk per m: the
     stage writes them per block of m); ``clean`` ``(n_dec, max_cycles, n_peaks)`` adds the CLEAN of V
-    (``clean.enabled``); ``blocks`` (the stage's ``(m0, m1)``) add each block's Grams per frequency over
+    (``clean.enabled``), ``sources`` (the same) the full-Stokes CLEAN of the compact sources; ``blocks`` (the
+    stage's ``(m0, m1)``) add each block's Grams per frequency over
     the unknowns of E, B, V to ``lmax_p`` (default ``lmax``; ``gram_dtype``: the accumulation's precision)."""
     h = STORES.stokes  # its arrays' handles
     shape, ch = (nf, 4, mmax + 1, lmax + 1), (1, 4, 1, lmax + 1)
@@ -425,6 +429,19 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gr
                       "the full data): "
                       "its E, B, V parts are the I -> Q, U, V leakage the beam model leaves"),
     ]
+    if sources is not None:
+        n_dec, max_cycles, n_peaks = sources
+        arrays += [
+            ArraySpec(h.src_residual, dims, shape, ch, "complex128",
+                      doc="T, E, B, V after the full-Stokes CLEAN of the compact sources: ``alm`` minus the solve's "
+                          "image of the components (:func:`mmflow.imaging.polarised_clean.clean_stokes`)"),
+            ArraySpec(h.src_psf_table, ("freq", "dec", "column"), (nf, n_dec, 5), (1, n_dec, 5), "float64", np.nan,
+                      doc="the I PSF by declination (the sources' restoring beam): dec, peak, major, minor, pa"),
+            ArraySpec(h.src_components, ("freq", "cycle", "peak", "xyziquv"), (nf, max_cycles, n_peaks, 7),
+                      (1, 1, n_peaks, 7), "float64", doc="the components: direction (frame of date) and I, Q, U, V "
+                      "(IAU), Jy (all 0 = none)"),
+            ArraySpec(h.src_n_cycles, ("freq",), (nf,), (1,), "int64", doc="cycles of the CLEAN of the sources"),
+        ]
     if clean is not None:
         n_dec, max_cycles, n_peaks = clean
         arrays += [
@@ -450,7 +467,8 @@ def stokes_store(n_split, nf, lmax, mmax, clean=None, blocks=(), lmax_p=None, gr
                           "[clean.enabled]"),
         ]
     return StoreSpec(STORES.stokes, tuple(arrays), {},
-                     doc="full-Stokes harmonics (imaging.stokes [I, Q, U, V]) and the CLEAN of V: the stokes stage.")
+                     doc="full-Stokes harmonics (imaging.stokes [I, Q, U, V]), the CLEAN of the compact sources "
+                         "and the CLEAN of V: the stokes stage.")
 
 
 def transfer_store(nf, nbl, lmax, mmax, baseline_chunk, dtype, orders):

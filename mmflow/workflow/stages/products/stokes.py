@@ -21,13 +21,16 @@ file (``maps/``)                   content
                                    Gaussian of their declination), ``V_RESIDUAL``, ``V_MODEL``
                                    (components, flux / pixel solid angle)
 ``vclean_<tag>.png``               the restored V map
+``polclean_<tag>.fits``            the full-Stokes CLEAN of the compact sources: I, Q, U, V
+                                   restored (residual + each component's I, Q, U, V convolved
+                                   with the I PSF's fitted Gaussian of its declination), IAU
 =================================  =============================================================
 """
 from __future__ import annotations
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm
+from mmflow.conventions import healpy_alm, radec_to_vec
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.jackknife import noise_realisation, split_variance
@@ -118,6 +121,59 @@ def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
     return info
 
 
+def sources_products(ctx, fi, tag, nside, mask, meta):
+    """Write the restored maps of the full-Stokes CLEAN of the compact sources of channel ``fi``
+    (``polclean_<tag>.fits``: the residual's I, Q, U, V plus each component's, convolved with the I PSF's
+    Gaussian of its declination, :func:`mmflow.imaging.clean.restore_map`; Q, U referred to
+    ``products.frame``'s north as the residual's are) and return its path."""
+    p = ctx.cfg.products
+    g = ctx.open(STORES.stokes)
+    vis = ctx.open(STORES.vis)
+    f, epoch = float(vis[STORES.vis.freqs_hz][fi]), float(vis.attrs["epoch_jd"])
+    rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
+    n_cyc = int(g[STORES.stokes.src_n_cycles][fi])
+    comps = g[STORES.stokes.src_components][fi, :n_cyc].reshape(-1, 7)
+    comps = comps[np.any(comps[:, 3:] != 0, axis=1)]
+    stokes = comps[:, 3:].copy()
+    if rot is not None and len(comps):  # Q + iU turns by 2 psi with the frame's north (north_rotation)
+        psi = ck.north_rotation(comps[:, :3], rot)
+        c, s = np.cos(2 * psi), np.sin(2 * psi)
+        stokes[:, 1], stokes[:, 2] = c * comps[:, 4] - s * comps[:, 5], s * comps[:, 4] + c * comps[:, 5]
+    residual = _maps(ctx, STORES.stokes.src_residual, fi, nside, "Jy/sr")
+    table = psf.table_from_array(g[STORES.stokes.src_psf_table][fi])
+    restored = np.stack([units.convert(ck.restore_map(residual[x], comps[:, :3], stokes[:, x], table, to_frame=rot),
+                                       "Jy/sr", p.unit, f) for x in range(4)])
+    ctx.check_finite(f"maps/polclean of channel {fi}", restored)
+    path = f"maps/polclean_{tag}.fits"
+    write_healpix_fits(ctx.run.path / path, restored, dict(meta, STOKES="IQUV", POLCONV="avg", CLEANCYC=n_cyc,
+                                                           **POLARISATION_KEYWORDS), mask=mask, column_names=COLUMNS)
+    ctx.ledger.record_file(ctx.run.path / path)
+    return path
+
+
+def sources_in_frame(entry, frame, epoch_jd):
+    """The stokes stage's CLEANed sources (``entry``: its task's ``sources``, frame of date) in ``frame``
+    (``products.frame``; ``epoch_jd`` the run's epoch): each source's ``lon_deg``, ``lat_deg`` there and its
+    polarisation angle turned by :func:`mmflow.imaging.clean.north_rotation` (north through east in that frame,
+    IAU, in [-90, 90)); the Stokes vector and the fractions do not change."""
+    if not entry:
+        return entry
+    rot = None if frame == "date" else rotation_matrix("date", frame, float(epoch_jd))
+    out = dict(entry, frame=frame, sources=[])
+    for src in entry["sources"]:
+        src = dict(src)
+        vec = radec_to_vec(np.deg2rad(src.pop("ra_deg")), np.deg2rad(src.pop("dec_deg")))
+        if rot is not None:
+            if src["angle_deg"] is not None:
+                chi = src["angle_deg"] + np.rad2deg(ck.north_rotation(vec[None], rot)[0])
+                src["angle_deg"] = float((chi + 90.0) % 180.0 - 90.0)
+            vec = rot @ vec
+        src["lon_deg"] = float(np.rad2deg(np.arctan2(vec[1], vec[0])) % 360.0)
+        src["lat_deg"] = float(np.rad2deg(np.arcsin(np.clip(vec[2], -1, 1))))
+        out["sources"].append(src)
+    return out
+
+
 def polarised_fraction(iquv, min_i_fraction=POLFRAC_MIN_I, mask=None):
     """``(sqrt(Q^2 + U^2) / I, V / I)`` where ``I > min_i_fraction`` x the I peak (of the ``mask``ed sky), NaN
     elsewhere."""
@@ -158,7 +214,14 @@ def stokes_products(ctx, fi, tag, nside, mask, meta, png):
     info["leakage_max_fraction"] = {s: float(np.max(np.abs(m[mask])) / i_peak) for s, m in zip("QUV", leak[1:])}
     # whether the solve images polarised fractions as they are (the polarisation_response of the stokes
     # stage's second phase, its per-frequency task of cycle 0)
-    info["polarisation"] = ctx.run.task_infos("stokes").get(TaskKey(freq=fi, cycle=0).format(), {}).get("polarisation")
+    task = ctx.run.task_infos("stokes").get(TaskKey(freq=fi, cycle=0).format(), {})
+    info["polarisation"] = task.get("polarisation")
+    # the compact sources' Stokes vectors from the full-Stokes CLEAN through the run's response (unbiased where
+    # measured: each source's cond(A) <= cond_max), in products.frame
+    info["sources"] = sources_in_frame(task.get("sources"), ctx.cfg.products.frame,
+                                       ctx.open(STORES.vis).attrs["epoch_jd"])
+    if info["sources"]:
+        info["sources"]["fits"] = sources_products(ctx, fi, tag, nside, mask, meta)
     if png:
         views = {"Q": iquv[1], "U": iquv[2], "V": iquv[3], "plin": np.where(seen_frac, lin, 0.0)}
         for name, hmap in views.items():

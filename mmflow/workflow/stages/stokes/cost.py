@@ -15,7 +15,8 @@ A block task holds its block's Grams and factors (``BLOCK_BYTES_PER_ELEMENT`` pe
   factors (``8 N^3 / 3``), at ``GEMM_EFFICIENCY`` of the SGEMM peak.
 
 The second phase factorises every m once more for the polarisation response and, when the factors are not
-kept, again for each CLEAN cycle (the plan assumes ``expected_clean_cycles``).
+kept, again for each pass of the response tables (``DECS_PER_PASS`` declinations a pass) and each cycle of the
+CLEAN of the sources (always) and of V (``clean.enabled``; the plan assumes ``EXPECTED_CLEAN_CYCLES`` each).
 """
 from __future__ import annotations
 
@@ -24,13 +25,15 @@ import numpy as np
 
 from mmflow.io import run_stores as rs
 from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT
+from mmflow.imaging.polarised_clean import DECS_PER_PASS
 from mmflow.mmode.polarised import CORRELATIONS
 from mmflow.mmode.polarised_transfer import (FOURIER_BUDGET_BYTES, PASS_BASELINES, fourier_bytes, legendre_rows,
                                              m_block_of, pass_baselines)
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.mmode.engine import GridCache
 from mmflow.workflow.engine.geometry import stokes_lmax_of
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, PSF_DECLINATIONS, Cost, Work, expected_clean_cycles
+from mmflow.workflow.plan.work import (COMPLEX128_BYTES, EXPECTED_CLEAN_CYCLES, PSF_DECLINATIONS, Cost, Work,
+                                      expected_clean_cycles)
 from mmflow.workflow.stages.stokes.blocks import FACTORS_KEPT_BYTES, blocks_of, gram_dtype, mmode_bytes_per_m, sizes_of
 
 #: wall seconds per ring point, kernel and Fourier block at the SGEMM peak ``RING_REFERENCE_GFLOPS``:
@@ -123,14 +126,16 @@ def work(g, cfg):
                                                       _item(cfg)) * (g.lmax + 1))
     block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
     # the second phase: the factors (or one m's Gram and factor), the splits' harmonics and the test sources'
-    # (the polarisation response's 4 per declination, or the V PSF table's) imaged: in and out, T, E, B, V each
+    # (the polarisation response's 4 per declination, or a pass of a response table's) imaged: in and out, T, E,
+    # B, V each; the response table's PSF columns (one of the four, every declination)
     n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
-    vectors = 2 * max(RESPONSE_SOURCES, PSF_DECLINATIONS) + g.n_split
+    vectors = 2 * max(RESPONSE_SOURCES, 4 * DECS_PER_PASS) + g.n_split + PSF_DECLINATIONS / 4
     second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + vectors * 4 * n_alm * COMPLEX128_BYTES
-    c = cfg.clean  # the CLEAN of V: components and peaks are written for the cycles run
+    c = cfg.clean  # the CLEANs of the sources and of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                            (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None,
-                           blocks, lmax_p, gram_dtype(cfg))
+                           blocks, lmax_p, gram_dtype(cfg),
+                           (PSF_DECLINATIONS, min(c.max_cycles, EXPECTED_CLEAN_CYCLES), c.peaks_per_cycle))
     units = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * g.n_bl
     return Work(g.n_freq * (len(blocks) + 1), max(block_task, second), units, [spec])
 
@@ -146,7 +151,10 @@ def seconds(g, cfg, per_task, workers, peak):
     for s in block_s * g.n_freq:
         per_slot[per_slot.index(min(per_slot))] += s
     factor_s = sum(8.0 * size(m) ** 3 / 3 for m in range(g.lmax + 1)) / (GEMM_EFFICIENCY * peak * 1e9)
-    refactor = 1 + (0 if kept else expected_clean_cycles(cfg) + 1)  # the response, the V PSFs, each cycle
+    # the response; unless kept, the response tables' passes (the sources', and V's with clean.enabled) and cycles
+    tables = (1 + bool(cfg.clean.enabled)) * -(-PSF_DECLINATIONS // DECS_PER_PASS)
+    cycles = min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) + expected_clean_cycles(cfg)
+    refactor = 1 + (0 if kept else tables + cycles)
     second = factor_s * refactor * -(-g.n_freq // max(1, workers))
     return max(per_slot) + second
 

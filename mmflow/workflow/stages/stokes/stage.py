@@ -16,7 +16,12 @@ and writes the block's harmonics, leakage and Grams to ``stokes.zarr``. The bloc
 ``BLOCK_BYTES``: no task holds a channel's whole Gram.
 
 Phase two, one task per frequency: the polarisation response of test sources through the run's solve
-(:func:`mmflow.imaging.polarised.polarisation_response`) and, with ``clean.enabled``, the CLEAN of V (a
+(:func:`mmflow.imaging.polarised.polarisation_response`), the full-Stokes CLEAN of the compact sources (always:
+:func:`mmflow.imaging.polarised_clean.clean_stokes`, components on the I map's peaks, each one's Stokes vector
+through the 4 x 4 response at its position, so that the sources' fractions are not the regularised maps'
+shrunken ones; the ``clean`` settings, its threshold as the CLEAN of V's with I's noise; the sources, their
+fractions, angles and condition numbers go to the task's info, :func:`mmflow.imaging.polarised_clean.stokes_sources`)
+and, with ``clean.enabled``, the CLEAN of V (a
 sparse sky; :func:`mmflow.imaging.polarised_clean.clean_stokes_v`: components from the V residual,
 subtracted through the full-Stokes solve from all four Stokes parameters; threshold ``clean.threshold``
 or ``clean.threshold_sigma`` x the V map's jackknife noise, or its robust rms without even/odd or
@@ -33,7 +38,8 @@ from mmflow.imaging.polarised import (BLOCK_BYTES_PER_ELEMENT, PolarisedNormal, 
                                       accumulate_polarised_normal, polarisation_response, stokes_eps)
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
-from mmflow.imaging.polarised_clean import clean_stokes_v, v_psf_table
+from mmflow.imaging.polarised_clean import (COND_MAX, I, V, clean_stokes, clean_stokes_v, psf_table, stokes_sources,
+                                            v_psf_table)
 from mmflow.io.run_stores import VIS_METADATA, STORES, CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
@@ -67,6 +73,19 @@ STOKES_CONFIG = (
 )
 
 
+#: the declination step (deg) of the sources' response table at least: ``A(dec)`` is smooth in declination and
+#: only paces the CLEAN (each cycle subtracts the components' exact image); 5 deg against
+#: ``clean.psf_dec_step_deg`` (2) makes the table 2.5x cheaper (docs/stokes.md)
+SOURCES_DEC_STEP_DEG = 5.0
+
+
+def _source_decs(ctx):
+    """The sources' response table's declinations (:func:`psf_decs_deg` at ``SOURCES_DEC_STEP_DEG`` or the
+    ``clean.psf_dec_step_deg`` if coarser)."""
+    step = max(ctx.cfg.clean.psf_dec_step_deg, SOURCES_DEC_STEP_DEG)
+    return psf_decs_deg(float(ctx.vis_attrs()["lat_deg"]), step)
+
+
 def _v_decs(ctx):
     """The V PSF table's declinations (as the Stokes-I CLEAN's: :func:`psf_decs_deg`)."""
     return psf_decs_deg(float(ctx.vis_attrs()["lat_deg"]), ctx.cfg.clean.psf_dec_step_deg)
@@ -85,10 +104,11 @@ def _prepare(ctx):
     n_bl = mg[STORES.mmodes.mmodes_corr].shape[-1]
     cfg = ctx.cfg
     c = cfg.clean
+    sources = (len(_source_decs(ctx)), c.max_cycles, c.peaks_per_cycle)
     v_clean = (len(_v_decs(ctx)), c.max_cycles, c.peaks_per_cycle) if c.enabled else None
     blocks = blocks_of(cfg, n_split, n_bl)
     ctx.create(stokes_store(n_split, nf, cfg.mmode.lmax, n_m - 1, v_clean, blocks, stokes_lmax_of(cfg),
-                            gram_dtype(cfg)))
+                            gram_dtype(cfg), sources))
     return [TaskKey(freq=fi, m_block=m0) for fi in range(nf) for m0, _ in blocks]
 
 
@@ -188,7 +208,8 @@ class _StoredGrams:
 
 
 def _channel_task(ctx, key):
-    """Phase two of one frequency: the polarisation response and the CLEAN of V (module docstring)."""
+    """Phase two of one frequency: the polarisation response, the CLEAN of the sources and the CLEAN of V
+    (module docstring)."""
     cfg = ctx.cfg
     fi, lmax, lmax_p = key.freq, cfg.mmode.lmax, stokes_lmax_of(cfg)
     n_split, n_bl = _split_baselines(ctx)
@@ -198,31 +219,69 @@ def _channel_task(ctx, key):
     kept = BLOCK_BYTES_PER_ELEMENT / 2 * sum(sizes(m) ** 2 for m in range(lmax + 1)) <= FACTORS_KEPT_BYTES
     observe = PolarisedObserver(normal, eps, filters, keep_factors=kept)
     tel = ctx.telescope()
-    info = {"polarisation": polarisation_response(observe, _response_decs(tel.lat_rad), clean_nside(cfg)),
-            "factors_kept": bool(kept)}
+    info = {"polarisation": polarisation_response(observe, _response_decs(tel.lat_rad)), "factors_kept": bool(kept)}
+    stored = ctx.read(STORES.stokes.alm, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, 4, m, l)
+    splits = np.array([[healpy_alm(x, lmax) for x in a] for a in stored])  # (split, 4, n_alm)
+    freq = float(ctx.open(STORES.vis)[STORES.vis.freqs_hz][fi])
+    out = ctx.open(STORES.stokes, mode="r+")
+    info["sources"] = _clean_sources(ctx, out, fi, freq, splits, tel.lat_rad, observe)
     if cfg.clean.enabled:
-        stored = ctx.read(STORES.stokes.alm, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, 4, m, l)
-        splits = np.array([[healpy_alm(x, lmax) for x in a] for a in stored])  # (split, 4, n_alm)
-        freq = float(ctx.open(STORES.vis)[STORES.vis.freqs_hz][fi])
-        out = ctx.open(STORES.stokes, mode="r+")
         info["v_clean"] = _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, tel.lat_rad, observe)
     return info
+
+
+#: the sources a channel's summary lists (the brightest in I)
+MAX_SOURCES = 50
+
+
+def _threshold_noise(ctx, fi, freq, splits, lat_rad, row):
+    """``(threshold, noise)`` of a CLEAN selecting on Stokes ``row``'s peaks (Jy/sr or None): ``clean.threshold``
+    if set; the map's jackknife sigma over the sky CLEAN sees where ``mmode.splits`` make one (the Stokes-I
+    CLEAN's estimator: I and V are spin 0), for ``clean.threshold_sigma`` x it; None: the CLEAN's default (the
+    dirty map's robust rms)."""
+    cfg = ctx.cfg
+    c, lmax = cfg.clean, cfg.mmode.lmax
+    thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
+    jk, names, nside = jackknife_splits(ctx, fi), list(cfg.mmode.splits), clean_nside(cfg)
+    noise = None if jk[0] is None else jackknife_sigma({s: splits[names.index(s)][row] for s in jk[1]}, jk, lmax,
+                                                       nside, observed_mask(nside, never_seen_dec_min(lat_rad)))
+    return thr, noise
+
+
+def _clean_sources(ctx, out, fi, freq, splits, lat_rad, observe):
+    """The full-Stokes CLEAN of the compact sources of the full data ``splits[0]``
+    (:func:`mmflow.imaging.polarised_clean.clean_stokes` on I's peaks, the ``clean`` settings, its threshold
+    from I's noise as :func:`_threshold_noise`) and its sources (:func:`~mmflow.imaging.polarised_clean.stokes_sources`,
+    frame of date; the products stage states them in ``products.frame``), written to ``stokes.zarr``'s ``src_*``
+    (the residual, the components per cycle, the I PSF table) for the restored maps."""
+    cfg = ctx.cfg
+    thr, noise = _threshold_noise(ctx, fi, freq, splits, lat_rad, I)
+    table = psf_table(observe, np.deg2rad(_source_decs(ctx)), beam=I)
+    res = clean_stokes(observe, splits[0], lat_rad, clean_options(cfg.clean), clean_nside(cfg), thr, noise, table)
+    s, one, n_m = STORES.stokes, (slice(fi, fi + 1),), out[STORES.stokes.alm].shape[3]
+    ctx.write(out, s.src_residual, one, padded_alm(res["residual"], cfg.mmode.lmax, n_m)[None])
+    ctx.write(out, s.src_psf_table, one, psf.table_to_array(table)[None], allow_nan=True)
+    for cyc in range(res["cycles"]):  # one chunk per cycle run
+        sel = res["cycle"] == cyc
+        comps = np.zeros((1, 1, cfg.clean.peaks_per_cycle, 7))
+        comps[0, 0, :sel.sum()] = np.c_[res["vec"][sel], res["stokes"][sel]]
+        ctx.write(out, s.src_components, (slice(fi, fi + 1), slice(cyc, cyc + 1)), comps)
+    ctx.write(out, s.src_n_cycles, one, np.array([res["cycles"]]))
+    return {"cycles": int(res["cycles"]), "components": int(len(res["stokes"])), "stop": res["reason"],
+            "threshold_jy_sr": float(res["threshold"]), "noise_jy_sr": float(res["noise"]), "cond_max": COND_MAX,
+            "frame": "date", "sources": stokes_sources(res, cfg.mmode.lmax, max_sources=MAX_SOURCES)}
 
 
 def _clean_v(ctx, out, fi, freq, normal, eps, filters, splits, lat_rad, observe):
     """The CLEAN of V (:func:`mmflow.imaging.polarised_clean.clean_stokes_v`) of the full data ``splits[0]``
     with the ``clean`` settings: ``clean.threshold`` if set, else ``clean.threshold_sigma`` x the V map's
     noise: its jackknife sigma where ``mmode.splits`` make one (as the Stokes-I CLEAN), else the dirty V
-    map's robust rms."""
+    map's robust rms (:func:`_threshold_noise`)."""
     cfg = ctx.cfg
     c, lmax, n_m = cfg.clean, cfg.mmode.lmax, out[STORES.stokes.alm].shape[3]
-    thr = None if c.threshold is None else float(units.convert(c.threshold, c.threshold_unit, "Jy/sr", freq))
-    jk, names, nside = jackknife_splits(ctx, fi), list(cfg.mmode.splits), clean_nside(cfg)
-    # V's jackknife sigma over the sky CLEAN sees, by the Stokes-I CLEAN's estimator (V is spin 0)
-    noise = None if jk[0] is None else jackknife_sigma({s: splits[names.index(s)][3] for s in jk[1]}, jk, lmax,
-                                                       nside, observed_mask(nside, never_seen_dec_min(lat_rad)))
+    thr, noise = _threshold_noise(ctx, fi, freq, splits, lat_rad, V)
     table = v_psf_table(normal, eps, np.deg2rad(_v_decs(ctx)), filters, observe)
-    res = clean_stokes_v(normal, eps, splits[0], lat_rad, clean_options(c), nside, filters, thr, table,
+    res = clean_stokes_v(normal, eps, splits[0], lat_rad, clean_options(c), clean_nside(cfg), filters, thr, table,
                          observe=observe, noise=noise)
     st, one = res["state"], (slice(fi, fi + 1),)
     ctx.write(out, STORES.stokes.v_residual, one, padded_alm(res["residual"], lmax, n_m)[None])
