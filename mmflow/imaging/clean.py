@@ -364,7 +364,11 @@ def clean_alm(dirty_alm, ops, lmax, table, dec_min_rad, noise=None, opts=None, n
 # ----------------------------------------------------------------------------- restoring
 
 def merge_components(vecs, fluxes, nside):
-    """Sum components falling in one pixel of ``nside`` (flux-weighted mean direction)."""
+    """Sum components falling in one pixel of ``nside`` (``|flux|``-weighted mean direction); components of
+    zero flux add nothing and are left out (a pixel of only such would have no direction: the full-Stokes
+    CLEAN's sources fitted in I alone have Q = U = V = 0)."""
+    vecs, fluxes = np.asarray(vecs, float).reshape(-1, 3), np.asarray(fluxes, float).reshape(-1)
+    vecs, fluxes = vecs[fluxes != 0], fluxes[fluxes != 0]
     if len(fluxes) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     pix = healpy.vec2pix(nside, *vecs.T)
@@ -414,6 +418,11 @@ def restore_map(residual_map, comp_vec, comp_flux, table, radius_fwhm=2.5, to_fr
         pa = pa + north_rotation(vecs, to_frame)
         vecs = vecs @ np.asarray(to_frame, float).T
     sa, sb = maj / psf_mod.FWHM_PER_SIGMA, mnr / psf_mod.FWHM_PER_SIGMA
+    bad = ~(np.isfinite(vecs).all(axis=1) & np.isfinite(flux) & (maj > 0) & (mnr > 0))
+    if bad.any():  # healpy aborts the whole process on a non-finite direction or a radius <= 0
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"restore_map: {int(bad.sum())} of {len(flux)} components have no finite direction, flux "
+                         f"or beam (the first: {vecs[i]}, {flux[i]} Jy, beam {maj[i]:.3g} x {mnr[i]:.3g} rad)")
     for i in range(len(flux)):
         disc = healpy.query_disc(nside, vecs[i], radius_fwhm * maj[i], inclusive=True)
         x, y = psf_mod.to_tangent(np.array(healpy.pix2vec(nside, disc)).T, vecs[i])

@@ -323,3 +323,24 @@ def test_default_stall_ends_clean_on_residuals_points_do_not_describe():
     slow = np.r_[point[:20], point[19] * 0.99 ** np.arange(1, 60)]
     first = next(k for k in range(1, len(slow) + 1) if opts.stop(slow[:k], 0.0) is not None)
     assert opts.stop(slow[:first], 0.0) == "stall" and 20 < first <= 31
+
+
+def test_components_of_zero_flux_restore_nothing():
+    """A Stokes parameter a CLEAN did not fit (the full-Stokes CLEAN's sources fitted in I alone carry Q = U =
+    V = 0) restores to the residual itself; its zero components are left out of the merge (a pixel of only
+    such had a 0 / 0 direction, on which healpy aborts the process)."""
+    from mmflow.imaging.clean import merge_components, restore_map
+
+    nside = 16
+    v = np.array([radec_to_vec(0.3, 0.2), radec_to_vec(0.3, 0.2), radec_to_vec(2.0, -0.4)])
+    vecs, flux = merge_components(v, np.array([0.0, 2.0, 0.0]), nside)
+    np.testing.assert_allclose(vecs, v[1:2])
+    np.testing.assert_allclose(flux, [2.0])
+    table = {"dec": np.deg2rad([-90.0, 90.0]), "major": np.full(2, 0.1), "minor": np.full(2, 0.08),
+             "pa": np.zeros(2)}
+    residual = np.random.default_rng(0).normal(size=healpy.nside2npix(nside))
+    np.testing.assert_array_equal(restore_map(residual, v, np.zeros(3), table), residual)
+    restored = restore_map(residual, v, np.array([0.0, 2.0, 0.0]), table)
+    pix = healpy.pixelfunc.vec2pix(nside, *v[1])
+    peak = 2.0 / (2 * np.pi * (0.1 / psf.FWHM_PER_SIGMA) * (0.08 / psf.FWHM_PER_SIGMA))  # Jy/sr at the centre
+    assert restored[pix] > residual[pix] + peak / 2
