@@ -17,6 +17,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 DEMO = os.path.join(ROOT, "workflows", "demo.yaml")
 
 SMALL = [
+    "run.keep=[]",  # the release of the m-modes as every workflow has it (the demo keeps them for the README)
     "telescope.radius_m=20",
     "observation.freqs_mhz=[40.0]",
     "observation.integration_s=344.6563620",

@@ -275,7 +275,7 @@ def test_config_show_lists_allowed_values_and_every_beam_type_and_round_trips(tm
 
 def test_changing_the_beam_type_alone_names_the_leftover_parameter():
     err = pytest.raises(InputError, load_config, DEMO, ["beam.type=gaussian"]).value
-    assert err.field == "beam.alpha" and err.what.endswith("demo.yaml, line 12")
+    assert err.field == "beam.alpha" and err.what.endswith("demo.yaml, line 13")
     assert "belongs to beam type 'sin_elevation'" in err.fix and "beam={type: gaussian, ...}" in err.fix
 
 

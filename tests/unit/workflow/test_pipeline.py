@@ -105,12 +105,13 @@ def test_large_arrays_go_after_the_last_stage_that_reads_them():
     after it read ``n_samples``), that is after normal, which runs with it channel by channel; the m-modes of
     each correlation after stokes; run.keep keeps a store's
     arrays; an ingested vis.zarr is kept whole (its files may be gone on a rerun)."""
-    cfg = load_config(DEMO, ["clean.enabled=true"])
+    cfg = load_config(DEMO, ["run.keep=[]", "clean.enabled=true"])
     vis = {f"{STORES.vis}/{a}": "mmodes" for a in ("vis", "weights", "autos", "vis_cross", "weights_cross")}
     assert PIPELINE.released_arrays(cfg) == {**vis, f"{STORES.mmodes}/mmodes": "normal",  # with transfer
                                              f"{STORES.mmodes}/mmodes_corr": "mmodes"}
     assert [s.name for s in PIPELINE.array_readers(STORES.mmodes, "n_samples", cfg)] == ["clean", "products"]
-    stokes = load_config(DEMO, ["imaging.stokes=[I, Q, U, V]", "corrupt.enabled=true", "beam={type: short_dipole}"])
+    stokes = load_config(DEMO, ["run.keep=[]", "imaging.stokes=[I, Q, U, V]", "corrupt.enabled=true",
+                                "beam={type: short_dipole}"])
     assert PIPELINE.released_arrays(stokes)[f"{STORES.mmodes}/mmodes_corr"] == "stokes"
     assert PIPELINE.released_arrays(stokes)[f"{STORES.mmodes}/mmodes"] == "normal"
     kept = load_config(DEMO, ["run.keep=[vis.zarr]"])
@@ -135,7 +136,7 @@ def test_the_plan_alternates_transfer_and_normal_by_channel():
     once both stages are complete."""
     from mmflow.workflow.plan.planner import run_live_stores
 
-    cfg = load_config(DEMO)
+    cfg = load_config(DEMO, ["run.keep=[]"])
     writes = [("mmodes", {"mmodes.zarr": 4}, {"mmodes.zarr": {"mmodes": 3}}, {"mmodes.zarr": [2, 2]}),
               ("transfer", {"partials.zarr": 10}, {}, {"partials.zarr": [5, 5]}),
               ("normal", {"normal.zarr": 2}, {}, {"normal.zarr": [1, 1]})]
