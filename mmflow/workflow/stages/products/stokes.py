@@ -84,16 +84,25 @@ def stokes_noise(ctx, fi, nside, mask, full):
     return noise_realisation(maps, kind, fractions), {"estimator": kind, "unit": ctx.cfg.products.unit, **sigma}
 
 
-def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
-    """Write the CLEAN of V of channel ``fi`` (``vclean_<tag>.fits``) and return its summary entry."""
-    p = ctx.cfg.products
+def _clean_components(ctx, fi, cycles, components):
+    """A CLEAN's record in stokes.zarr for channel ``fi``: ``(store, frequency Hz, the rotation from the frame of
+    date to products.frame (None for date), cycles run, the components written)``; ``components`` rows are a
+    direction then fluxes, all 0 where no component was written."""
     g = ctx.open(STORES.stokes)
     vis = ctx.open(STORES.vis)
     f, epoch = float(vis[STORES.vis.freqs_hz][fi]), float(vis.attrs["epoch_jd"])
-    rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
-    n_cyc = int(g[STORES.stokes.v_n_cycles][fi])
-    comps = g[STORES.stokes.v_components][fi, :n_cyc].reshape(-1, 4)
-    comps = comps[comps[:, 3] != 0]
+    frame = ctx.cfg.products.frame
+    rot = None if frame == "date" else rotation_matrix("date", frame, epoch)
+    n_cyc = int(g[cycles][fi])
+    comps = g[components][fi, :n_cyc]
+    comps = comps.reshape(-1, comps.shape[-1])
+    return g, f, rot, n_cyc, comps[np.any(comps[:, 3:] != 0, axis=1)]
+
+
+def v_clean_products(ctx, fi, tag, nside, mask, meta, png):
+    """Write the CLEAN of V of channel ``fi`` (``vclean_<tag>.fits``) and return its summary entry."""
+    p = ctx.cfg.products
+    g, f, rot, n_cyc, comps = _clean_components(ctx, fi, STORES.stokes.v_n_cycles, STORES.stokes.v_components)
     residual = _maps(ctx, STORES.stokes.v_residual, fi, nside, "Jy/sr")[3]
     table = psf.table_from_array(g[STORES.stokes.v_psf_table][fi])
     restored = ck.restore_map(residual, comps[:, :3], comps[:, 3], table, to_frame=rot)
@@ -127,13 +136,7 @@ def sources_products(ctx, fi, tag, nside, mask, meta):
     Gaussian of its declination, :func:`mmflow.imaging.clean.restore_map`; Q, U referred to
     ``products.frame``'s north as the residual's are) and return its path."""
     p = ctx.cfg.products
-    g = ctx.open(STORES.stokes)
-    vis = ctx.open(STORES.vis)
-    f, epoch = float(vis[STORES.vis.freqs_hz][fi]), float(vis.attrs["epoch_jd"])
-    rot = None if p.frame == "date" else rotation_matrix("date", p.frame, epoch)
-    n_cyc = int(g[STORES.stokes.src_n_cycles][fi])
-    comps = g[STORES.stokes.src_components][fi, :n_cyc].reshape(-1, 7)
-    comps = comps[np.any(comps[:, 3:] != 0, axis=1)]
+    g, f, rot, n_cyc, comps = _clean_components(ctx, fi, STORES.stokes.src_n_cycles, STORES.stokes.src_components)
     stokes = comps[:, 3:].copy()
     if rot is not None and len(comps):  # Q + iU turns by 2 psi with the frame's north (north_rotation)
         psi = ck.north_rotation(comps[:, :3], rot)

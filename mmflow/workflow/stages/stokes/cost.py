@@ -23,6 +23,7 @@ from __future__ import annotations
 import ducc0
 import numpy as np
 
+from mmflow.conventions import complex_dtype
 from mmflow.io import run_stores as rs
 from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT
 from mmflow.imaging.polarised_clean import DECS_PER_PASS
@@ -57,38 +58,42 @@ def _grid_shape(top, fringe):
     return n_theta, ducc0.fft.good_size(max(quad + 2, 2 * top + 2))
 
 
-def _chunks(g, cfg, m_range, lmax_p):
-    """Per chunk of baselines ``(n_b, top, grid points, lmax_b array)`` as the stage chunks one channel's block
-    of m ``m_range``: sorted by per-baseline lmax, :func:`mmflow.mmode.polarised_transfer.pass_baselines` a
-    chunk on the largest grid (that of every baseline at lmax)."""
-    tel, f = g.tel, g.freqs_hz[-1]
-    lmax = g.lmax
+def _baselines(g, cfg):
+    """One channel's baselines as the stage orders them: ``(order, lmax_b, |b| in wavelengths, rings of the
+    largest grid)`` (sorted by per-baseline lmax; the largest grid is that of every baseline at lmax)."""
+    tel, f, lmax = g.tel, g.freqs_hz[-1], g.lmax
     pairs = tel.antenna_pairs()
     b_len = np.linalg.norm(baselines_in_wavelengths(tel, pairs, f), axis=1)
     lb = tel.baseline_lmax(f, lmax, pairs) if cfg.transfer.per_baseline_lmax else np.full(len(pairs), lmax)
     n_theta, _ = _grid_shape(*GridCache.key(lmax, fringe_bandlimit(b_len, tel.beam.lmax_hint), lmax))
+    return np.argsort(lb, kind="stable"), lb, b_len, n_theta
+
+
+def _chunks(g, cfg, baselines, m_range, lmax_p):
+    """Per chunk of baselines ``(n_b, top, grid points, lmax_b array)`` as the stage chunks one channel's block
+    of m ``m_range`` (:func:`_baselines`): :func:`mmflow.mmode.polarised_transfer.pass_baselines` a chunk."""
+    order, lb, b_len, n_theta = baselines
     m0, m1 = m_range
     n_pol_m = max(0, min(m1, lmax_p + 1) - m0)
     per = pass_baselines(fourier_bytes(n_theta // 2, 1, len(CORRELATIONS), _item(cfg)), n_pol_m, m1 - m0 - n_pol_m)
-    order = np.argsort(lb, kind="stable")
     out = []
     for s in range(0, len(order), per):
         idx = order[s:s + per]
         top = int(lb[idx].max())
-        key = GridCache.key(top, fringe_bandlimit(b_len[idx], tel.beam.lmax_hint), lmax)
+        key = GridCache.key(top, fringe_bandlimit(b_len[idx], g.tel.beam.lmax_hint), g.lmax)
         out.append((len(idx), top, _grid_shape(*key), lb[idx]))
     return out
 
 
 def _item(cfg):
     """Bytes of a complex of the transfer's precision."""
-    return 8 if cfg.transfer.dtype == "float32" else 16
+    return complex_dtype(cfg.transfer.dtype).itemsize
 
 
-def _block_seconds(g, cfg, m0, m1, size, lmax_p, peak):
+def _block_seconds(g, cfg, baselines, m0, m1, size, lmax_p, peak):
     """Seconds of one block task (module docstring)."""
     ring, flops = 0.0, 0.0
-    for nb, top, (n_theta, n_phi), lbs in _chunks(g, cfg, (m0, m1), lmax_p):
+    for nb, top, (n_theta, n_phi), lbs in _chunks(g, cfg, baselines, (m0, m1), lmax_p):
         if top < m0:
             continue
         n_act = n_theta // 2
@@ -144,7 +149,8 @@ def seconds(g, cfg, per_task, workers, peak):
     """The stage's wall time: each channel's block tasks in rounds over the task slots, then its second
     phase (module docstring)."""
     size, lmax_p, blocks, *_, kept = _plan(g, cfg)
-    block_s = sorted((_block_seconds(g, cfg, m0, m1, size, lmax_p, peak) for m0, m1 in blocks),
+    baselines = _baselines(g, cfg)
+    block_s = sorted((_block_seconds(g, cfg, baselines, m0, m1, size, lmax_p, peak) for m0, m1 in blocks),
                      reverse=True)
     # the block tasks of all channels over the slots (each channel's blocks alike), longest first
     per_slot = [0.0] * max(1, workers)
