@@ -1,5 +1,7 @@
 """SLURM/PBS job shapes without a batch system: worker lifetimes from the walltime, requests no
 node can hold, the options --cluster slurm fills in (tests/cluster runs them on a real SLURM)."""
+import time
+
 import pytest
 
 from mmflow.errors import InputError
@@ -15,6 +17,37 @@ def test_workers_retire_before_the_walltime(walltime, lifetime, stagger):
     assert lifetime + stagger < {"00:01:00": 60, "00:30:00": 1800, "2-00:00:00": 172800, "10": 600,
                                  "5:00": 300}[walltime]
     assert lifetime_args(None) == [] and lifetime_args("soon") == []
+
+
+def test_a_workers_lifetime_counts_from_its_jobs_start(monkeypatch):
+    """A worker that took 28 s to start in a job whose lifetime is 30 s retires ~2 s after it started
+    (dask alone would give it 30 s): the job script's start time, read by the preload's dask_setup."""
+    import asyncio
+
+    from distributed import Scheduler, Worker
+    from distributed.core import Status
+
+    from mmflow.workflow.engine.batch import JOB_START_VAR
+    from mmflow.workflow.engine.pools import job_prologue
+    from mmflow.workflow.engine.worker_start import dask_setup, lifetime_left
+
+    assert lifetime_left(30.0, 100.0, 128.0) == 2.0 and lifetime_left(30.0, 100.0, 200.0) == 0.0
+    assert lifetime_left(None, 100.0, 128.0) is None and lifetime_left(30.0, None, 128.0) is None
+    assert f"export {JOB_START_VAR}=$(date +%s)" in job_prologue(1)
+
+    async def run():
+        async with Scheduler(dashboard_address=":0") as s:
+            async with Worker(s.address, lifetime="30s", lifetime_stagger="0s", nthreads=1) as w:
+                dask_setup(w)  # no job start in the environment: dask's count stands
+                monkeypatch.setenv(JOB_START_VAR, str(time.time() - 28.0))
+                dask_setup(w)
+                t0 = time.time()
+                while w.status != Status.closed and time.time() - t0 < 20:
+                    await asyncio.sleep(0.1)
+                return w.status, time.time() - t0
+
+    status, waited = asyncio.run(run())
+    assert status == Status.closed and waited < 10
 
 
 def test_a_request_no_node_can_hold_is_refused_naming_the_limit():

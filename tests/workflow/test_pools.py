@@ -6,7 +6,7 @@ import pytest
 
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.batch import lifetime_args
-from mmflow.workflow.engine.pools import StagePools, describe, plan_pools
+from mmflow.workflow.engine.pools import StagePools, describe, job_prologue, plan_pools
 from mmflow.workflow.plan import jobs
 from mmflow.workflow.plan.nodes import MIB, Node
 from tests.workflow_helpers import small_config
@@ -77,7 +77,8 @@ def test_a_stage_of_another_pool_retires_the_running_jobs_and_submits_its_own(pa
     assert (opts["cores"], opts["memory"], opts["processes"]) == (one["cores"], one["memory"], one["processes"])
     assert opts["queue"] == "compute" and cluster.new_spec["group"] == [f"-{i}" for i in range(one["processes"])]
     assert opts["worker_extra_args"] == ["--nthreads", "1", *lifetime_args(one["walltime"])]
-    assert opts["job_script_prologue"] == [f"export MMFLOW_WORKERS_PER_HOST={one['processes']}"]
+    assert opts["job_script_prologue"] == job_prologue(one["processes"])
+    assert opts["job_script_prologue"][0] == f"export MMFLOW_WORKERS_PER_HOST={one['processes']}"
     assert said[-1].startswith(f"stage mmodes: {describe(one)}")
     first = set(cluster.worker_spec)
     sp.use("transfer", client)  # 2-core workers: the 1-core jobs retired, new names

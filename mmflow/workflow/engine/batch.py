@@ -29,6 +29,8 @@ WORKER_PRELOAD = "mmflow.workflow.engine.worker_start"
 
 #: a job's share of its walltime kept free at the end: workers retire before it
 RETIRE_FRACTION = 0.2
+#: the job script's variable that holds the job's start (Unix seconds): a worker's lifetime counts from it
+JOB_START_VAR = "MMFLOW_JOB_START"
 #: lines of a worker's log that say why it could not reach the scheduler
 CONNECT_ERROR = re.compile(r"(OSError|Timed out|timed out|unreachable|refused|Could not connect|CommClosedError)")
 
@@ -116,7 +118,10 @@ def lifetime_args(walltime):
     """``dask worker`` options that retire a worker before its job's walltime: ``--lifetime`` a
     :data:`RETIRE_FRACTION` of it short (at least 20 s, at most 10 min or half the walltime),
     staggered by a quarter of that so that the workers of jobs started together do not all leave
-    at once; ``[]`` when the walltime is unknown."""
+    at once; ``[]`` when the walltime is unknown. dask counts the lifetime from the worker's start,
+    which comes seconds to minutes into its job (Python's imports on a shared filesystem, the
+    preload); a job's workers count it from the job's start instead (:data:`JOB_START_VAR`,
+    :func:`mmflow.workflow.engine.worker_start.dask_setup`)."""
     total = _seconds(walltime)
     if not total:
         return []

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from mmflow.environ import restored_environ
 from mmflow.errors import InputError
 from mmflow.workflow.engine.batch import WORKER_PRELOAD, JobWatch, cluster_interface, job_options, refuse_impossible
-from mmflow.workflow.engine.pools import StagePools, plan_pools, pool_options, workers_per_host
+from mmflow.workflow.engine.pools import StagePools, job_prologue, plan_pools, pool_options
 
 LOOPBACK = "127.0.0.1"
 ALL_INTERFACES = "0.0.0.0"
@@ -130,7 +130,7 @@ def jobqueue_cluster_and_pools(cfg, kind, log=print):
     opts["scheduler_options"] = sched
     # thread budget: the worker processes of one job share its cores (mmflow.threads.n_threads)
     prologue = list(opts.get("job_script_prologue") or [])
-    opts["job_script_prologue"] = prologue + [workers_per_host(opts.get("processes"))]
+    opts["job_script_prologue"] = prologue + job_prologue(opts.get("processes"))
     cluster = cls(**opts)
     if not pools:
         return cluster, None

@@ -24,7 +24,7 @@ are waited for, lost jobs are replaced (with the running pool's shape: dask-jobq
 from __future__ import annotations
 
 from mmflow.errors import InputError
-from mmflow.workflow.engine.batch import jobqueue_default, lifetime_args
+from mmflow.workflow.engine.batch import JOB_START_VAR, jobqueue_default, lifetime_args
 
 #: the job options a pool sets (the rest of ``cluster.jobqueue`` is kept for every pool)
 POOL_OPTIONS = ("cores", "memory", "processes", "walltime")
@@ -66,9 +66,11 @@ def plan_pools(cfg, kind, opts, log=print):
     return pools
 
 
-def workers_per_host(processes):
-    """The job script's line that tells mmflow's thread budget how many workers share the job's cores."""
-    return f"export MMFLOW_WORKERS_PER_HOST={int(processes or 1)}"
+def job_prologue(processes):
+    """The job script's lines mmflow adds: how many workers share the job's cores (mmflow's thread
+    budget) and the job's start time (a worker's ``--lifetime`` counts from it,
+    :func:`mmflow.workflow.engine.worker_start.dask_setup`)."""
+    return [f"export MMFLOW_WORKERS_PER_HOST={int(processes or 1)}", f"export {JOB_START_VAR}=$(date +%s)"]
 
 
 def _without_lifetime(args):
@@ -126,7 +128,7 @@ class StagePools:
         ``{stage: pool}`` (:func:`plan_pools`).
     job_kwargs : dict
         The cluster's job options (``cluster._job_kwargs``: the interface, protocol and security
-        dask-jobqueue added included), ``job_script_prologue`` without mmflow's workers-per-host line.
+        dask-jobqueue added included), ``job_script_prologue`` without mmflow's lines (:func:`job_prologue`).
     user_walltime : str or None
         ``cluster.jobqueue.walltime`` where given.
     """
@@ -147,11 +149,11 @@ class StagePools:
         return self.current or max(self.pools.values(), key=lambda p: p["worker_cores"])
 
     def job_kwargs_of(self, pool):
-        """The cluster's job options with ``pool``'s shape, lifetime and workers-per-host line."""
+        """The cluster's job options with ``pool``'s shape, lifetime and mmflow's job lines."""
         kw = pool_options(self.job_kwargs, pool, self.user_walltime)
         if self.extra_args is not None:
             kw["worker_extra_args"] = list(self.extra_args) + lifetime_args(kw["walltime"])
-        kw["job_script_prologue"] = list(kw.get("job_script_prologue") or []) + [workers_per_host(kw["processes"])]
+        kw["job_script_prologue"] = list(kw.get("job_script_prologue") or []) + job_prologue(kw["processes"])
         return kw
 
     def use(self, stage, client, watch=None, log=None):

@@ -9,12 +9,20 @@ a task's measured memory is its working set, as :mod:`mmflow.workflow.plan.plann
 runtime sits in the worker's baseline (``WORKER_BASE_BYTES``). A job-queue cluster's workers import it
 when they start (``--preload``, :data:`mmflow.workflow.engine.batch.WORKER_PRELOAD`); workers started any
 other way (``dask worker`` by hand) load them in their first task instead; nothing else differs.
+
+As a preload it also counts a job-queue worker's ``--lifetime`` from its job's start
+(:func:`dask_setup`), so that the worker retires before the batch system's walltime however long
+it took to start.
 """
+import os
+import time
+
 import numpy as np
 
 import mmflow.workflow.pipeline  # noqa: F401  (the stages, imported once for every worker)
 from mmflow.mmode.fringe_kernels import sincos_turns
 from mmflow.mmode.legendre import weighted_legendre_table
+from mmflow.workflow.engine.batch import JOB_START_VAR
 
 
 def load_compiled_kernels():
@@ -29,3 +37,25 @@ try:
     load_compiled_kernels()
 except Exception:  # noqa: BLE001 -- a warm-up only: the first task that needs a kernel reports its error
     pass
+
+
+def lifetime_left(lifetime, job_start, now):
+    """Seconds until a worker of lifetime ``lifetime`` (its ``--lifetime``, stagger drawn) retires when
+    counted from its job's start ``job_start`` rather than from its own start: ``lifetime - (now -
+    job_start)``, at least 0; None where either is unknown (dask's own count then stands)."""
+    if not lifetime or job_start is None:
+        return None
+    return max(float(lifetime) - (now - job_start), 0.0)
+
+
+def dask_setup(worker):
+    """dask's preload hook: a worker in a batch job (the job script exports :data:`JOB_START_VAR`)
+    retires ``lifetime`` after its job started, not after it started itself. dask's own timer, later,
+    then finds the worker closed."""
+    try:
+        job_start = float(os.environ[JOB_START_VAR])
+    except (KeyError, ValueError):
+        return
+    left = lifetime_left(getattr(worker, "lifetime", None), job_start, time.time())
+    if left is not None:
+        worker.io_loop.call_later(left, worker.close_gracefully, reason="worker-lifetime-reached")
