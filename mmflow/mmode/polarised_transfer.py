@@ -161,28 +161,20 @@ def legendre_rows(n_t, n_p):
     return n_t + 5 * n_p
 
 
-def flush_negligible(table):
-    """Zero, in place, the entries of each row of ``table`` below ``eps^2`` of the row's largest (``eps`` of
-    its dtype) and return it.
-
-    A row's GEMM output is ``sum_k t_k F_k``: an entry below ``eps^2 max|t|`` moves it by less than ``eps``
-    of the rounding of its largest term. Near the poles ``lambda_lm`` of high m falls below float32's
-    smallest normal number (2 % of the entries at lmax 1000), and those products run through the CPU's
-    subnormal path: measured on this VM, one m's GEMM of the paper's shape took 7.4 ms with them and
-    0.74 ms without (1.0 ms for random data of the same shape)."""
-    size = np.abs(table)
-    table[size < np.finfo(table.dtype).eps ** 2 * size.max(axis=1, keepdims=True)] = 0
-    return table
-
-
 def polarised_tables(grid, m, lmax_rows, rings, rdtype):
     """Weighted ``w lambda``, ``w W``, ``w X`` on the active north rings, rows ``l = m..lmax_rows``,
     each as its ``(even, odd)`` rows in ``l - m`` (contiguous views, ``rdtype``;
-    :func:`mmflow.mmode.spin_legendre.weighted_spin_tables`, negligible entries zeroed:
-    :func:`flush_negligible`)."""
-    tabs = weighted_spin_tables(m, lmax_rows, grid.theta[rings], grid.weights[rings], rdtype)
+    :func:`mmflow.mmode.spin_legendre.weighted_spin_tables`).
+
+    Each row's entries below ``eps^2`` of its largest are zeroed as the kernel writes them (``flush``):
+    a row's GEMM output is ``sum_k t_k F_k``, and such an entry moves it by less than ``eps`` of the
+    rounding of its largest term. Near the poles ``lambda_lm`` of high m falls below float32's smallest
+    normal number (2 % of the entries at lmax 1000), and those products ran through the CPU's subnormal
+    path: one m's GEMM of the paper's shape took 7.4 ms with them and 0.74 ms without (1.0 ms for random
+    data of the same shape; docs/stokes.md)."""
+    tabs = weighted_spin_tables(m, lmax_rows, grid.theta[rings], grid.weights[rings], rdtype, flush=True)
     ne = (lmax_rows - m) // 2 + 1
-    return [(t[:ne], t[ne:]) for t in map(flush_negligible, tabs)]
+    return [(t[:ne], t[ne:]) for t in tabs]
 
 
 def _folded_gemm(table, first, second, out):

@@ -30,9 +30,14 @@ import numpy as np
 from mmflow.mmode.legendre import legendre_table
 
 
-def weighted_spin_tables(m, lmax, theta, weights=None, dtype=np.float64):
+def weighted_spin_tables(m, lmax, theta, weights=None, dtype=np.float64, flush=False):
     """``w_k lambda_lm``, ``w_k W_lm``, ``w_k X_lm`` at rings ``theta_k`` for ``l = m..lmax``, rows in
     parity order: the ``ne = (lmax - m) // 2 + 1`` rows of even ``l - m`` first, then the odd ones.
+
+    ``flush``: each row's entries below ``eps^2`` of the row's largest (``|t_k| < eps^2 max_k |t_k|``,
+    compared in ``dtype``, ``eps`` its machine epsilon) are zeroed as the row is written (a GEMM over
+    the row then moves by less than ``eps`` of the rounding of its largest term and never takes the
+    CPU's subnormal path: :func:`mmflow.mmode.polarised_transfer.polarised_tables`).
 
     Returns
     -------
@@ -43,7 +48,8 @@ def weighted_spin_tables(m, lmax, theta, weights=None, dtype=np.float64):
     lam = legendre_table(m, lmax, theta)
     w = np.ones(len(theta)) if weights is None else np.ascontiguousarray(weights, float)
     out = np.empty((3, lmax - m + 1, len(theta)), dtype)
-    _kernel()(m, lam, np.cos(theta), 1.0 / np.sin(theta) ** 2, w, out)
+    tiny = np.finfo(dtype).eps ** 2 if flush else np.zeros((), dtype)[()]
+    _kernel()(m, lam, np.cos(theta), 1.0 / np.sin(theta) ** 2, w, out, tiny)
     return out[0], out[1], out[2]
 
 
@@ -59,7 +65,7 @@ def _kernel():
     """Compile the one-pass table kernel (numba) on first use."""
 
     @numba.njit(nogil=True, boundscheck=False, cache=True)
-    def tables(m, lam, c, inv_s2, w, out):
+    def tables(m, lam, c, inv_s2, w, out, tiny):
         n_l, n = lam.shape
         ne = (n_l - 1) // 2 + 1
         for i in range(n_l):
@@ -69,6 +75,7 @@ def _kernel():
             c_lm = np.sqrt((2.0 * ell + 1.0) / (2.0 * ell - 1.0) * (ell * ell - m * m)) if ell > m else 0.0
             a = ell - m * m
             h = ell * (ell - 1.0) / 2.0
+            big0 = big1 = big2 = tiny - tiny  # the row's largest |entry|, in out's dtype
             for k in range(n):
                 cur = lam[i, k]
                 prev = lam[i - 1, k] if i > 0 else 0.0
@@ -77,5 +84,14 @@ def _kernel():
                 out[0, row, k] = w[k] * cur
                 out[1, row, k] = w[k] * norm * g_plus
                 out[2, row, k] = w[k] * norm * g_minus
+                big0 = max(big0, abs(out[0, row, k]))
+                big1 = max(big1, abs(out[1, row, k]))
+                big2 = max(big2, abs(out[2, row, k]))
+            if tiny > 0:  # the row's negligible entries zeroed, compared in out's dtype
+                for j, big in ((0, big0), (1, big1), (2, big2)):
+                    cut = tiny * big
+                    for k in range(n):
+                        v = out[j, row, k]
+                        out[j, row, k] = v if abs(v) >= cut else 0.0
 
     return tables

@@ -13,7 +13,7 @@ import pytest
 import mmflow.mmode.polarised_transfer as fast
 from mmflow.imaging.polarised import accumulate_polarised_normal
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid, reference_transfer_blocks
-from mmflow.mmode.spin_legendre import spin2_tables
+from mmflow.mmode.spin_legendre import spin2_tables, weighted_spin_tables
 from mmflow.mmode.transfer import fringe_bandlimit
 from mmflow.telescope.jones import ShortDipoleJones
 
@@ -44,6 +44,26 @@ def test_spin2_tables_match_ducc0_at_lmax_1000(l, m):
     else:
         np.testing.assert_allclose(q[:, 0], -2 * w, atol=1e-10 * scale)
         np.testing.assert_allclose(u[:, nphi // (4 * m)], -2 * x, atol=1e-10 * scale)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_flushed_tables_zero_exactly_the_negligible_entries(dtype):
+    """``flush=True`` zeroes each row's entries below ``eps^2`` of the row's largest (in ``dtype``) and
+    nothing else: compared with the unflushed tables thresholded by numpy. At lmax 1000 near the poles
+    float32's tables hold subnormal entries (the reason for the flush): none is left."""
+    theta = np.linspace(0.01, np.pi / 2 - 0.001, 300)
+    w = np.random.default_rng(3).uniform(0.5, 1.5, theta.size)
+    tiny = np.finfo(dtype).eps ** 2
+    for m in (0, 400, 900):
+        raw = weighted_spin_tables(m, 1000, theta, w, dtype)
+        flushed = weighted_spin_tables(m, 1000, theta, w, dtype, flush=True)
+        for r, f in zip(raw, flushed):
+            small = np.abs(r) < tiny * np.abs(r).max(axis=1, keepdims=True)
+            assert np.array_equal(f[~small], r[~small]) and not f[small].any()
+            tiniest = np.finfo(dtype).smallest_normal
+            if dtype == np.float32 and m == 900:
+                assert ((np.abs(r) < tiniest) & (r != 0)).any()  # the raw table has subnormals
+            assert not ((np.abs(f) < tiniest) & (f != 0)).any()
 
 
 def _setup(nb, lmax, seed=0):
