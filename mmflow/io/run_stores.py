@@ -212,6 +212,16 @@ RELEASED_ARRAYS = {
     STORES.mmodes: ("mmodes", "mmodes_corr"),
 }
 
+#: Released arrays (:data:`RELEASED_ARRAYS`) whose chunks go one chunk index of a dimension at a time, as the
+#: tasks of their last reader that read them finish: ``{store: (dimension, axis, (array attributes))}``. The
+#: last reader's task reads that chunk index alone among its tasks and says so (``Stage.task_chunks``:
+#: ``{dimension: key field}``): the mmodes task ``bl_chunk = i`` reads baseline chunk ``i`` of the visibilities
+#: and weights, every time and channel, so they go a baseline chunk at a time while the m-modes are made
+#: (vis.zarr's ``autos``, every antenna in one chunk, goes when the stage has finished).
+RELEASED_BY_CHUNK = {
+    STORES.vis: ("baseline", 1, ("vis", "weights", "vis_cross", "weights_cross")),
+}
+
 #: what each dimension name of the stores below counts
 DIMENSIONS = {
     "time": "integrations, in time order",
