@@ -102,6 +102,10 @@ def pack_upper(a):
 def unpack_upper(p, n):
     """The ``(..., n, n)`` matrices of :func:`pack_upper`'s ``p``: its upper triangles, zero below the diagonal."""
     p = np.asarray(p)
+    if p.shape[-1:] != (packed_size(n),):
+        raise ValueError(f"unpack_upper: {p.shape} is not packed upper triangles of {n} x {n} matrices "
+                         f"(last axis {packed_size(n)}): written by an mmflow that stored the squares? "
+                         "Start that run afresh (--force)")
     out = np.zeros((*p.shape[:-1], n, n), p.dtype)
     i, j = np.triu_indices(n)
     out[..., i, j] = p

@@ -1,5 +1,6 @@
 """The packed upper triangles the stores hold Grams and Cholesky factors in (mmflow.mmode.normal)."""
 import numpy as np
+import pytest
 import scipy.linalg as sla
 
 from mmflow.mmode.normal import hermitian_full, pack_upper, packed_size, unpack_upper
@@ -19,6 +20,8 @@ def test_packing_keeps_the_upper_triangle_and_nothing_else():
     back = unpack_upper(p, 7)
     np.testing.assert_array_equal(back, np.triu(a))  # the strict lower triangle comes back as zeros
     np.testing.assert_array_equal(pack_upper(back), p)
+    with pytest.raises(ValueError, match="squares"):  # a square store of an older layout is refused
+        unpack_upper(a[0], 7)
 
 
 def test_a_packed_gram_gives_readers_the_same_bits():
