@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 from mmflow.conventions import m_block_slice, m_blocks, stokes_sizes
 from mmflow.io.stores import ArraySpec, StoreSpec
+from mmflow.mmode.normal import packed_size
 
 
 class StoreName(str):
@@ -211,6 +212,16 @@ RELEASED_ARRAYS = {
     STORES.mmodes: ("mmodes", "mmodes_corr"),
 }
 
+#: Released arrays (:data:`RELEASED_ARRAYS`) whose chunks go one chunk index of a dimension at a time, as the
+#: tasks of their last reader that read them finish: ``{store: (dimension, axis, (array attributes))}``. The
+#: last reader's task reads that chunk index alone among its tasks and says so (``Stage.task_chunks``:
+#: ``{dimension: key field}``): the mmodes task ``bl_chunk = i`` reads baseline chunk ``i`` of the visibilities
+#: and weights, every time and channel, so they go a baseline chunk at a time while the m-modes are made
+#: (vis.zarr's ``autos``, every antenna in one chunk, goes when the stage has finished).
+RELEASED_BY_CHUNK = {
+    STORES.vis: ("baseline", 1, ("vis", "weights", "vis_cross", "weights_cross")),
+}
+
 #: what each dimension name of the stores below counts
 DIMENSIONS = {
     "time": "integrations, in time order",
@@ -229,7 +240,8 @@ DIMENSIONS = {
     "m": "azimuthal orders 0..mmax (within an array of an m block: ``m0 <= m < m1``)",
     "pm": "0: +m, 1: -m (the m-modes' and the transfer blocks' common order)",
     "l": "degrees ``m..lmax`` (block of one m) or 0..lmax",
-    "l2": "the second degree index of a Gram matrix",
+    "triangle": "an ``n x n`` matrix's upper triangle over degrees ``(l, l')``, ``l <= l'``, packed row by row "
+                "in ``n (n + 1) / 2`` elements (:func:`mmflow.mmode.normal.pack_upper`; ``n = lmax - m0 + 1``)",
     "unknown": "the unknowns of a full-Stokes block of m, ``[T (l = m..lmax); E; B; V (l = m..stokes_lmax)]``",
     "unknown2": "the second unknown index of a full-Stokes Gram matrix",
     "group": "fixed baseline groups of the transfer reduction (``transfer.groups``)",
@@ -343,10 +355,10 @@ def partials_store(nf, n_groups, lmax, mmax, m_block, n_split, dtype):
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
-            arrays.append(ArraySpec(h.gram(fi, m0), ("group", "m", "l", "l2"), (n_groups, m1 - m0, n, n),
-                                    (1, m1 - m0, n, n), dtype,
+            arrays.append(ArraySpec(h.gram(fi, m0), ("group", "m", "triangle"), (n_groups, m1 - m0, packed_size(n)),
+                                    (1, m1 - m0, packed_size(n)), dtype,
                                     doc="the group's part of ``G_m = B^H N^-1 B`` for the m of block M0, "
-                                        "padded to ``lmax - m0 + 1``"))
+                                        "padded to ``lmax - m0 + 1``, its upper triangle packed"))
         arrays.append(ArraySpec(h.rhs(fi), ("group", "split", "m", "l"), (n_groups, n_split, mmax + 1, lmax + 1),
                                 (1, n_split, mmax + 1, lmax + 1), dtype,
                                 doc="the group's part of ``r_m = B^H N^-1 v``"))
@@ -365,10 +377,10 @@ def normal_store(nf, lmax, mmax, m_block, n_split, gram_dtype="complex128"):
     for fi in range(nf):
         for m0, m1 in m_blocks(mmax, m_block):
             n = lmax - m0 + 1
-            arrays.append(ArraySpec(h.gram(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
-                                    gram_dtype,
+            arrays.append(ArraySpec(h.gram(fi, m0), ("m", "triangle"), (m1 - m0, packed_size(n)),
+                                    (m1 - m0, packed_size(n)), gram_dtype,
                                     doc="upper triangles of ``G_m = B^H N^-1 B`` for the m of block M0, padded "
-                                        "to ``lmax - m0 + 1``; the partials' precision (complex64 for float32 "
+                                        "to ``lmax - m0 + 1``, packed; the partials' precision (complex64 for float32 "
                                         "transfer: half the bytes; summed in complex128 and rounded once, so "
                                         "one group's Gram is the engine's bit for bit)"))
     arrays += [
@@ -673,9 +685,11 @@ def clean_store(nf, lmax, mmax, m_block, n_dec, max_cycles, n_peaks, npix, keep_
             sl = m_block_slice(lmax, m0, m1)
             n, k = lmax - m0 + 1, sl.stop - sl.start
             if keep_factors:
-                arrays.append(ArraySpec(h.chol(fi, m0), ("m", "l", "l2"), (m1 - m0, n, n), (m1 - m0, n, n),
-                                        "complex128", doc="Cholesky factors of ``G_kk + eps I`` [keep_factors]; "
-                                        "uncompressed (every cycle task reads its block's)", compressed=False))
+                arrays.append(ArraySpec(h.chol(fi, m0), ("m", "triangle"), (m1 - m0, packed_size(n)),
+                                        (m1 - m0, packed_size(n)), "complex128",
+                                        doc="upper Cholesky factors ``U`` of ``G_kk + eps I`` (``U^H U``), padded to "
+                                        "``lmax - m0 + 1``, packed [keep_factors]; uncompressed (every cycle task "
+                                        "reads its block's)", compressed=False))
             arrays.append(ArraySpec(h.psf(fi, m0), ("alm", "dec"), (k, n_dec), (k, n_dec), "complex128",
                                     doc="PSF columns of the declination grid"))
             arrays.append(ArraySpec(h.residual(fi, m0), ("cycle", "alm"), (max_cycles + 1, k), (1, k),

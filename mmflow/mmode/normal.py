@@ -82,6 +82,36 @@ def hermitian_full(c_upper):
     return np.triu(c) + np.triu(c, 1).conj().T
 
 
+def packed_size(n):
+    """Elements of an ``n x n`` matrix's upper triangle, ``n (n + 1) / 2``: the length of :func:`pack_upper`."""
+    return n * (n + 1) // 2
+
+
+def pack_upper(a):
+    """The upper triangles of ``a`` (``(..., n, n)``), packed row by row: ``p[..., k] = a[..., i_k, j_k]`` over
+    ``(i_k, j_k) = numpy.triu_indices(n)`` (``i_k <= j_k``), ``(..., n (n + 1) / 2)``.
+
+    The stores hold a Hermitian Gram or an upper Cholesky factor so: everything their readers use (the upper
+    triangle: :func:`hermitian_full`, LAPACK's ``potrs`` with ``uplo = U``) in about half the bytes.
+    """
+    a = np.asarray(a)
+    i, j = np.triu_indices(a.shape[-1])
+    return a[..., i, j]
+
+
+def unpack_upper(p, n):
+    """The ``(..., n, n)`` matrices of :func:`pack_upper`'s ``p``: its upper triangles, zero below the diagonal."""
+    p = np.asarray(p)
+    if p.shape[-1:] != (packed_size(n),):
+        raise ValueError(f"unpack_upper: {p.shape} is not packed upper triangles of {n} x {n} matrices "
+                         f"(last axis {packed_size(n)}): written by an mmflow that stored the squares? "
+                         "Start that run afresh (--force)")
+    out = np.zeros((*p.shape[:-1], n, n), p.dtype)
+    i, j = np.triu_indices(n)
+    out[..., i, j] = p
+    return out
+
+
 class NormalAccumulator:
     """Per-m accumulator of ``G_m`` and ``r_m`` for one frequency.
 

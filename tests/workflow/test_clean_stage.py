@@ -17,7 +17,7 @@ from mmflow.conventions import m_blocks
 from mmflow.imaging import clean as ck
 from mmflow.imaging import psf
 from mmflow.imaging.filters import filter_mask
-from mmflow.mmode.normal import hermitian_full
+from mmflow.mmode.normal import hermitian_full, unpack_upper
 from mmflow.workflow.engine import clean_state as cs
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.engine.rundir import RunDir
@@ -117,7 +117,8 @@ def test_workflow_clean_is_the_kernels_called_directly(noiseless):
         for m in range(m0, m1):
             n = LMAX - m + 1
             keep = filter_mask(m, LMAX, **filters)
-            ops[m] = psf.block_operator(m, hermitian_full(grams[m - m0, :n, :n]), im.eps, keep)
+            ops[m] = psf.block_operator(m, hermitian_full(unpack_upper(grams[m - m0], LMAX - m0 + 1)[:n, :n]),
+                                        im.eps, keep)
     from mmflow.conventions import healpy_alm
 
     dirty = healpy_alm(zarr.open_group(str(run_dir / "alm.zarr"), mode="r")["alm"][0, 0], LMAX, LMAX)

@@ -113,8 +113,8 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     assert t["memory"] == f"{16 * node.core_memory_bytes // MIB}MiB"
     assert t["task_memory_bytes"] <= t["worker_memory_bytes"] * jobs.terminate_fraction()
     assert t["task_memory_bytes"] == pytest.approx(rows["transfer"]["task_gb"] * GB, abs=1)
-    # the live stores' peak: 40 GB written, the visibilities gone after mmodes, the partials after normal
-    assert res["nodes"] >= 1 and res["wall_s"] > 0 and 20 < res["store_gb"] < 40
+    # the live stores' peak: the visibilities gone after mmodes, the partials (11.2 GB, packed) after normal
+    assert res["nodes"] >= 1 and res["wall_s"] > 0 and 12 < res["store_gb"] < 20
 
 
 @pytest.mark.parametrize("setting, value, node_bytes, stage", [
@@ -151,7 +151,7 @@ def test_the_352_antenna_array_fits_nodes_of_32_cores_and_128_gb(capsys):
     rows = {r["stage"]: r for r in res["stages"]}
     assert rows["transfer"]["task_gb"] > 30  # the lmax-2000 Gram (21.4 GB) and its group's m-modes: 35 GB
     assert rows["transfer"]["worker_cores"] > 1 and rows["calibrate"]["worker_cores"] == 1
-    assert res["nodes"] >= 2 and res["store_gb"] > 300 and res["node_memory_gb"] <= 128
+    assert res["nodes"] >= 2 and res["store_gb"] > 150 and res["node_memory_gb"] <= 128
     # the CLI says the same, from the workflow file without its files
     assert main(["plan", _wf("ovro-lwa-stage3.yaml"), "--cluster", "slurm", "--node-cores", "32", "--node-memory",
                  "128GB", "--simulate-layout", "--peak", str(PEAK), "--json"]) == 0
@@ -173,7 +173,7 @@ def test_a_projection_for_8_and_64_nodes_is_json():
     assert eight["jobs"]["transfer"]["count"] == 8  # 24 tasks, three a node
     assert many["jobs"]["transfer"]["count"] == 8  # 24 tasks of 35 GB, three a node
     assert many["jobs"]["solve"]["count"] == 12  # 378 tasks, 32 a node
-    assert proj["store_gb"] > 300 and 0 < eight["node_memory_gb"] <= 128
+    assert proj["store_gb"] > 150 and 0 < eight["node_memory_gb"] <= 128
 
 
 def test_a_task_no_split_fits_is_refused_naming_the_limit():

@@ -131,18 +131,19 @@ def test_a_task_larger_than_a_worker_is_refused_before_work(tmp_path):
 def test_a_disk_refusal_names_the_setting_of_the_largest_store(tmp_path):
     """The paper's two channels: the transfer stage's partial Grams (one per group and channel) are the
     largest store; the refusal names transfer.groups (the run of 2026-11-27 met it: 80 GB against 75; the
-    live stores' peak is now one channel's partials beside the normal equations, 27.7 GB)."""
+    live stores' peak is now one channel's partials beside the normal equations, 14.0 GB with the Grams'
+    upper triangles packed)."""
     from mmflow.workflow.config.schema import load_config
 
     cfg = load_config("workflows/paper-scale.yaml", ["observation.freqs_mhz=[62.688, 73.152]",
                                                      f"run.directory={tmp_path / 'r'}"])
     with pytest.raises(InputError) as info:
-        check_fits(cfg, 64.0, ["transfer", "normal"], free_disk=20.0)
+        check_fits(cfg, 64.0, ["transfer", "normal"], free_disk=10.0)
     msg = str(info.value)
-    assert "transfer 44." in msg and "fewer transfer.groups (now 8" in msg
+    assert "up to 14.0" in msg and "transfer 22." in msg and "fewer transfer.groups (now 8" in msg
     cfg = load_config("workflows/paper-scale.yaml", ["observation.freqs_mhz=[62.688, 73.152]", "transfer.groups=4",
                                                      f"run.directory={tmp_path / 'r'}"])
-    assert sum(e.store_bytes for e in check_fits(cfg, 64.0, ["transfer"], free_disk=40.0)) < 25e9
+    assert sum(e.store_bytes for e in check_fits(cfg, 64.0, ["transfer"], free_disk=40.0)) < 12.5e9
 
 
 def test_the_paper_channel_needs_its_gram(tmp_path):

@@ -47,7 +47,7 @@ def test_chunk_rules_name_the_parameters():
     assert "| `vis` | (time, baseline, freq, pol) | (1000, 36, 2, 2) | (time_chunk, baseline_chunk, 1, all) |" in vis
     alm = doc.split("\n## alm.zarr\n")[1].split("\n## ")[0]
     assert "| `alm` | (split, freq, m, l) | (3, 2, 41, 41) | (all, 1, m_block, all) | complex128 |" in alm
-    assert "| `f{F}/gram_b{M0}` (10 arrays) | (group, m, l, l2) | (4, 10, 41, 41) | (1, all, all, all) |" in doc
+    assert "| `f{F}/gram_b{M0}` (10 arrays) | (group, m, triangle) | (4, 10, 861) | (1, all, all) |" in doc
 
 
 def test_peel_mode_codes_are_the_kernels():

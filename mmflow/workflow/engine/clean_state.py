@@ -21,7 +21,7 @@ from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import STORES
-from mmflow.mmode.normal import hermitian_full
+from mmflow.mmode.normal import hermitian_full, pack_upper, unpack_upper
 from mmflow.mmode.splits import day_splits, jackknife_kind
 from mmflow.workflow.engine.geometry import split_fractions
 from mmflow.workflow.engine.kernel_args import m_filters
@@ -68,7 +68,7 @@ def block_operators_from_gram(ctx, fi, m0, m1):
 
     def one(m):
         n = lmax - m + 1
-        return psf.block_operator(m, hermitian_full(grams[m - m0, :n, :n]), eps, keeps[m])
+        return psf.block_operator(m, hermitian_full(unpack_upper(grams[m - m0], lmax - m0 + 1)[:n, :n]), eps, keeps[m])
 
     return dict(zip(range(m0, m1), psf.map_blocks(one, range(m0, m1))))
 
@@ -82,15 +82,17 @@ def stored_operators(ctx, fi, m0, m1):
     partial = [m for m in range(m0, m1) if keeps[m].any() and not keeps[m].all()]
     grams = ctx.read(STORES.normal.gram(fi, m0)) if partial else None
     return operators_from_factors(chol, keeps, cfg.imaging.eps, lmax, m0, m1,
-                                  lambda m: hermitian_full(grams[m - m0, :lmax - m + 1, :lmax - m + 1]))
+                                  lambda m: hermitian_full(unpack_upper(grams[m - m0], lmax - m0 + 1)
+                                                           [:lmax - m + 1, :lmax - m + 1]))
 
 
 def operators_from_factors(chol, keeps, eps, lmax, m0, m1, full_gram=None):
     """:class:`psf.BlockOperator` per m of a block from its stored upper Cholesky factors.
 
-    ``chol`` (m1 - m0, n0, n0): the factor ``U`` of ``G_kk + eps I`` of each m in the top-left
-    ``n_kept x n_kept`` corner; ``keeps[m]`` the kept coefficients; ``full_gram(m)`` the full
-    Gram of m, called only where a filter leaves a coupling ``G_kf`` (m = 1).
+    ``chol`` (m1 - m0, n0 (n0 + 1) / 2), ``n0 = lmax - m0 + 1``: the factor ``U`` of ``G_kk + eps I`` of each m
+    in the top-left ``n_kept x n_kept`` corner, packed (:func:`mmflow.mmode.normal.pack_upper`); ``keeps[m]`` the
+    kept coefficients; ``full_gram(m)`` the full Gram of m, called only where a filter leaves a coupling
+    ``G_kf`` (m = 1).
     """
     ops = {}
     for m in range(m0, m1):
@@ -102,12 +104,14 @@ def operators_from_factors(chol, keeps, eps, lmax, m0, m1, full_gram=None):
         coupling = None
         if not keep.all():
             coupling = np.ascontiguousarray(full_gram(m)[np.ix_(keep, ~keep)])
-        ops[m] = psf.BlockOperator(m, keep, (chol[m - m0, :nk, :nk], False), eps, coupling)
+        ops[m] = psf.BlockOperator(m, keep, (unpack_upper(chol[m - m0], lmax - m0 + 1)[:nk, :nk], False), eps,
+                                   coupling)
     return ops
 
 
 def factors_of(ops, lmax, m0, m1):
-    """The block's factors as stored (``chol_b`` layout of :func:`operators_from_factors`)."""
+    """The block's factors as stored (``chol_b`` layout of :func:`operators_from_factors`: packed upper triangles;
+    what ``potrs`` reads of a factor, its upper triangle, is kept bit for bit)."""
     n0 = lmax - m0 + 1
     chol = np.zeros((m1 - m0, n0, n0), np.complex128)
     for m in range(m0, m1):
@@ -115,7 +119,7 @@ def factors_of(ops, lmax, m0, m1):
         if op.cho is not None:
             nk = len(op.cho[0])
             chol[m - m0, :nk, :nk] = op.cho[0]
-    return chol
+    return pack_upper(chol)
 
 
 def cycle_block(residual_block, rows, ops, lmax, m0, m1, weights=None):

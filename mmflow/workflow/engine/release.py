@@ -17,15 +17,13 @@ from __future__ import annotations
 
 from mmflow.errors import MmflowError
 from mmflow.io.stores import DamagedStoreError
-from mmflow.io.run_stores import array_paths
+from mmflow.io.run_stores import RELEASED_BY_CHUNK, array_paths
 from mmflow.workflow.engine.task_key import TaskKey
 
 
 def finished(run, name, fps):
     """True when stage ``name`` is complete with its current fingerprint."""
-    man = run.manifest(name)
-    return (man is not None and fps.get(name) is not None and man["fingerprint"] == fps[name].digest
-            and run.completion(name) is not None)
+    return finished_keys(run, name, fps) and run.completion(name) is not None
 
 
 def released_here(run, st, cfg, pipeline):
@@ -38,19 +36,76 @@ def released_here(run, st, cfg, pipeline):
     return out
 
 
-def released_reads(run, st, cfg, pipeline):
+def released_reads(run, st, cfg, pipeline, fps=None):
     """``[(writer, unit)]``: what ``st`` reads that the run has released: a store (``partials.zarr``) or an
-    array of one it reads (``vis.zarr/vis``: :meth:`Pipeline.array_readers`)."""
+    array of one it reads (``vis.zarr/vis``: :meth:`Pipeline.array_readers`). An array released in part by
+    ``st``'s own tasks (:func:`release_task_chunks`) is not, while those tasks stay finished with the current
+    fingerprint ``fps`` (:func:`_read_again`): only they read those chunks."""
     out = []
     for store in st.inputs:
         prod = pipeline.producer_of(store, cfg)
         if prod is None or prod.name == st.name:
             continue
-        for unit in run.released(prod.name):
+        for unit, rec in run.released(prod.name).items():
             name, _, array = unit.partition("/")
-            if name == store and (not array or store not in st.reads or array in st.reads[store]):
+            if name == store and (not array or store not in st.reads or array in st.reads[store]) and (
+                    _read_again(run, st, rec, fps)):
                 out.append((prod, unit))
     return out
+
+
+def _read_again(run, st, rec, fps):
+    """False where what a release record holds is chunks that only finished tasks of ``st`` read (its ``by``),
+    which stay finished with ``st``'s current fingerprint and intact: ``st`` will not read them again."""
+    by = rec.get("by")
+    if not by or set(by) != {st.name} or fps is None or not finished_keys(run, st.name, fps):
+        return True
+    damaged = run.damaged_keys(st.name)
+    return not all(run.is_done(st.name, k) and k not in damaged for k in by[st.name])
+
+
+def finished_keys(run, name, fps):
+    """True where stage ``name`` has begun with its current fingerprint (its finished keys stand)."""
+    man = run.manifest(name)
+    return man is not None and fps.get(name) is not None and man["fingerprint"] == fps[name].digest
+
+
+def chunk_releases(st, cfg, pipeline):
+    """``[(writer, unit, axis, key field)]``: the arrays released after ``st`` (:meth:`Pipeline.released_arrays`)
+    whose chunks go task by task (:data:`mmflow.io.run_stores.RELEASED_BY_CHUNK`, ``Stage.task_chunks``)."""
+    out = []
+    for unit, after in pipeline.released_arrays(cfg).items():
+        store, _, array = unit.partition("/")
+        dim, axis, arrays = RELEASED_BY_CHUNK.get(store, (None, None, ()))
+        if after == st.name and array in arrays and dim in st.task_chunks:
+            out.append((pipeline.producer_of(store, cfg), unit, axis, st.task_chunks[dim]))
+    return out
+
+
+def release_task_chunks(run, cfg, pipeline, fps, st, keys, log):
+    """Release the chunks that the finished tasks ``keys`` of ``st`` read alone (:func:`chunk_releases`: a
+    baseline chunk of vis.zarr's visibilities and weights once the mmodes task of that chunk has finished),
+    where the writer and every other stage that reads the array are complete. Recorded with the writer
+    (:meth:`RunDir.release_arrays`, ``by`` the tasks), so a resume that would run one of those tasks again
+    (other settings, a damaged chunk) recomputes the writer first (:func:`recompute_released`)."""
+    for writer, unit, axis, field in chunk_releases(st, cfg, pipeline):
+        store, _, array = unit.partition("/")
+        others = [s for s in pipeline.array_readers(store, array, cfg) if s.name != st.name]
+        done = [k for k in keys if run.is_done(st.name, k)]
+        if not done or not all(finished(run, s.name, fps) for s in [writer, *others]):
+            continue
+        root = run.store(store)
+        paths = [str(d.relative_to(root)) for k in done
+                 for d in sorted(root.glob("/".join([array, "c", *["*"] * axis, str(getattr(TaskKey.parse(k),
+                                                                                          field))])))
+                 if d.is_dir()]
+        if not paths:
+            continue
+        before = run.released(writer.name).get(unit, {}).get("bytes", 0)
+        nbytes = run.release_arrays(writer.name, unit, paths, by={st.name: done})
+        if nbytes is not None and nbytes > before:
+            log(f"[{writer.name}] freed {len(paths)} chunk folders of {unit} ({(nbytes - before) / 1e6:.1f} MB): "
+                f"read by {st.name}'s finished tasks {', '.join(done)} alone (run.keep keeps them)")
 
 
 def planned_keys(run, name):
@@ -84,7 +139,8 @@ def release_finished(run, cfg, pipeline, fps, log):
         paths = array_paths(run.store(store), store, array)
         if not paths:  # never written (the cross hands of a run without them), or released and removed
             continue
-        _logged(log, writer, unit, readers, run.release_arrays(writer.name, unit, paths), record is not None)
+        again = record is not None and "by" not in record  # not: released in part, task by task
+        _logged(log, writer, unit, readers, run.release_arrays(writer.name, unit, paths), again)
 
 
 def _logged(log, writer, what, readers, nbytes, again):
@@ -111,7 +167,7 @@ def recompute_released(run, cfg, pipeline, fps, stages, force, log, later=()):
     again, todo = [], list(work)
     while todo:
         st = pipeline.stage(todo.pop())
-        for prod, store in released_reads(run, st, cfg, pipeline):
+        for prod, store in released_reads(run, st, cfg, pipeline, fps):
             if prod.name in work:
                 continue
             if prod.name not in names | set(later):

@@ -239,25 +239,38 @@ class RunDir:
         shutil.rmtree(p)
         return done[store]["bytes"]
 
-    def release_arrays(self, stage, unit, paths):
+    def release_arrays(self, stage, unit, paths, by=None):
         """Remove arrays ``paths`` (relative to their store) of the store of ``unit`` (``vis.zarr/vis``: the
         store, then the array's handle), written by ``stage``, and record them under ``unit``; returns the
-        bytes they held, or None where the store is not the run's own (as :meth:`release`) or none is left."""
+        bytes they held, or None where the store is not the run's own (as :meth:`release`) or none is left.
+
+        ``paths`` may be chunk folders of the array (``vis/c/0/3``: a part of it), released by the finished
+        tasks ``by`` (``{stage: [keys]}``) that alone read them: the record then says so (``by``), and grows with
+        each such release; a release without ``by`` (the whole array, once every reader has finished) ends it.
+        """
         store = unit.split("/", 1)[0]
         p = self.store(store)
         if p.is_symlink() or not p.is_dir():
             return None
         done = self.released(stage)
-        if unit not in done:
+        rec = done.get(unit)
+        add = [a for a in paths if rec is None or a not in rec["arrays"]]
+        if rec is None or add and "by" in rec:
             stamp = (_read_json(p / "zarr.json") or {}).get("attributes", {}).get("mmflow", {})
             if stamp.get("stage") != stage or not paths:
                 return None
-            done[unit] = {"bytes": sum(dir_size(p / a) for a in paths), "arrays": list(paths),
-                          "released": time.strftime("%Y-%m-%dT%H:%M:%S")}
+            rec = dict(rec or {"bytes": 0, "arrays": []}, released=time.strftime("%Y-%m-%dT%H:%M:%S"))
+            rec["bytes"] += sum(dir_size(p / a) for a in add)
+            rec["arrays"] = rec["arrays"] + add
+            rec.pop("by", None)
+            if by is not None:
+                old = done.get(unit, {}).get("by", {}) if unit in done else {}
+                rec["by"] = {s: sorted(set(old.get(s, [])) | set(k)) for s, k in {**old, **by}.items()}
+            done[unit] = rec
             _atomic_write(self.status_dir(stage) / "released.json", json.dumps(done))
-        for a in done[unit]["arrays"]:
+        for a in rec["arrays"]:
             shutil.rmtree(p / a, ignore_errors=True)
-        return done[unit]["bytes"]
+        return rec["bytes"]
 
     def _gone(self, stage):
         """The run-relative paths the stage's releases removed: whole stores, and arrays (``vis.zarr/vis``)."""

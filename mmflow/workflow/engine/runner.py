@@ -53,8 +53,8 @@ from mmflow.workflow.plan.planner import check_fits
 from mmflow.workflow.engine.resources import (current_rss_bytes, dask_worker, gb, peak_rss_bytes, reset_peak_rss,
                                               reset_traced_peak, traced_peak_bytes)
 from mmflow.workflow.engine.channels import by_channel, by_channel_partner
-from mmflow.workflow.engine.release import (planned_keys, recompute_released, release_finished,
-                                            released_here, repair_or_refuse)
+from mmflow.workflow.engine.release import (chunk_releases, planned_keys, recompute_released, release_finished,
+                                            release_task_chunks, released_here, repair_or_refuse)
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -193,17 +193,20 @@ def _queue_state(client, log):
     return poll(client, log) if poll is not None else None
 
 
-def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=print, pool=None):
+def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=print, pool=None, on_done=None):
     """Run the keys ``todo`` of stage ``name``; ``pool``: the stage whose worker pool runs them (default:
-    its own; a stage run channel by channel with the one before it runs in that one's)."""
+    its own; a stage run channel by channel with the one before it runs in that one's); ``on_done(keys)``:
+    called on the driver with the keys finished since its last call (what they alone read is released)."""
     if not todo:
         return []
+    on_done = on_done or (lambda keys: None)
     bar = _Progress(name, len(todo), progress)
     BOARD.begin_batch(name)
     if client is None:
         out = []
         for k in todo:
             out.append(run_task(ctx, pipeline, name, k))
+            on_done([k])
             bar.update(len(out))
             BOARD.progress(name, len(out))
         bar.close()
@@ -225,7 +228,9 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
             except TimeoutError:
                 pass
             done = sum(f.done() for f in futures)
+            seen = set(results)
             _gather_stage(client, futures, results)  # every task done by now: its result, or its input error
+            on_done([todo[k] for k in results if k not in seen])
             bar.update(done)
             BOARD.progress(name, done)
             if done == len(futures):
@@ -528,7 +533,12 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
                                                       client, ctx, pipeline, progress, worker_wait_s, log)
                 release_finished(run, cfg, pipeline, fps, log)
                 continue
-        results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s, log)
+        on_done = None
+        if chunk_releases(st, cfg, pipeline):  # the chunks its finished tasks alone read go as they finish
+            def on_done(done, st=st):
+                release_task_chunks(run, cfg, pipeline, fps, st, done, log)
+            on_done([k for k in keys if k not in set(todo)])  # a resumed stage's, and a killed release's
+        results = _execute(client, ctx, pipeline, st.name, todo, progress, worker_wait_s, log, on_done=on_done)
         summaries[st.name] = _close_stage(run, st, cfg, sctx, t0, results, client, ctx, pipeline, progress,
                                           worker_wait_s, log)
         release_finished(run, cfg, pipeline, fps, log)

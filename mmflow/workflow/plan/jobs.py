@@ -251,8 +251,9 @@ def cluster_plan(cfg, node, nodes=None, costs=None, peak_gflops=None, node_gflop
                     "core_memory_bytes": node.core_memory_bytes, "partition": node.partition,
                     "source": node.source, "available": node.count},
            "nodes": n, "settings": settings, "stages": rows, "core_gflops": core, "reference_slots": slots,
-           "store_gb": run_live_stores([(r["stage"], r["stores"], r["arrays"], r["channels"]) for r in rows],
-                                       c)[0] / 1e9,
+           "store_gb": run_live_stores([(r["stage"], r["stores"], r["arrays"], r["channels"]) for r in rows], c,
+                                       {r["stage"]: r["tasks"] for r in rows},
+                                       {r["stage"]: n * r["workers_per_node"] for r in rows})[0] / 1e9,
            "store_files": sum(r["store_files"] for r in rows),
            "largest_chunk_mb": max(r["largest_chunk_mb"] for r in rows),
            "free_disk_gb": free_disk_gb(cfg.run.directory)}

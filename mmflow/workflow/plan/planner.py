@@ -33,7 +33,7 @@ import numpy as np
 from mmflow.conventions import complex_dtype
 from mmflow.errors import InputError
 from mmflow.imaging.maps import default_nside
-from mmflow.io.run_stores import RELEASED_ARRAYS, handle_of
+from mmflow.io.run_stores import RELEASED_ARRAYS, RELEASED_BY_CHUNK, handle_of
 from mmflow.machine import gemm_gflops
 from mmflow.paths import expand_path
 from mmflow.workflow.engine.context import build_telescope
@@ -160,14 +160,19 @@ def _bytes(a):
     return int(np.prod(a.shape, dtype=float) * np.dtype(a.dtype).itemsize)
 
 
-def run_live_stores(writes, cfg):
+def run_live_stores(writes, cfg, tasks=None, slots=1):
     """:func:`live_steps` of a run: ``writes`` ``[(stage, {store: bytes}, {store: {array: bytes}}, {store:
     [bytes per channel]})]`` in run order. The arrays that go alone
     (:meth:`mmflow.workflow.pipeline.Pipeline.released_arrays`) are units of their own (``vis.zarr/vis``)
     beside the rest of their store; a stage run channel by channel after the one before it
     (``Stage.by_channel_after``, :mod:`mmflow.workflow.engine.channels`) alternates with it, channel ``F`` of
     the first then of the second, the first's group ``f{F}`` of a store the second is the last reader of
-    released after it. Returns ``(peak bytes, step, {store: bytes} left at the end)``."""
+    released after it. A stage whose finished tasks release the chunks they alone read
+    (:data:`mmflow.io.run_stores.RELEASED_BY_CHUNK`: mmodes, the visibilities' baseline chunks) runs in waves of
+    ``slots`` (tasks at once, or ``{stage: slots}``) of its ``tasks`` (``{stage: tasks}``; without, all at
+    once): each wave writes its share of the stage's stores, then releases its share of those arrays
+    (:func:`_task_wave_steps`). Returns ``(peak bytes,
+    step, {store: bytes} left at the end)``."""
     released = {**PIPELINE.released(cfg), **PIPELINE.released_arrays(cfg)}
     after = {}
     for unit, stage in released.items():
@@ -186,13 +191,51 @@ def run_live_stores(writes, cfg):
                 if f"{store}/{attr}" in released:
                     u[f"{store}/{attr}"] = nbytes
                     u[store] -= nbytes
-        steps.append((stage, u, after.get(stage, [])))
+        chunked = [x for x in after.get(stage, []) if x in by_chunk(cfg)]
+        if tasks and tasks.get(stage, 1) > 1 and chunked:
+            n = slots.get(stage, 1) if isinstance(slots, dict) else slots
+            steps += _task_wave_steps(stage, u, chunked, steps, tasks[stage], n, after.get(stage, []))
+        else:
+            steps.append((stage, u, after.get(stage, [])))
         k += 1
     peak, at, kept = live_steps(steps)
     by_store = {}
     for unit, nbytes in kept.items():
         by_store[unit.split("/", 1)[0]] = by_store.get(unit.split("/", 1)[0], 0) + nbytes
     return peak, at, by_store
+
+
+def by_chunk(cfg):
+    """The released arrays (``vis.zarr/vis``) that go a chunk at a time as the tasks of the stage after which
+    they are released finish (:data:`mmflow.io.run_stores.RELEASED_BY_CHUNK`, ``Stage.task_chunks``)."""
+    out = []
+    for unit, stage in PIPELINE.released_arrays(cfg).items():
+        store, _, array = unit.partition("/")
+        dim, _, arrays = RELEASED_BY_CHUNK.get(store, (None, None, ()))
+        if array in arrays and dim in PIPELINE.stage(stage).task_chunks:
+            out.append(unit)
+    return out
+
+
+def _task_wave_steps(stage, units, chunked, steps, n_tasks, slots, gone):
+    """The steps of a stage whose tasks release the chunks they alone read (:func:`run_live_stores`): waves of
+    ``slots`` tasks, wave ``j`` adding its share ``t_j / n`` of the stage's ``units`` (as ``unit/w{j}``) while
+    the ``chunked`` arrays written before hold what the waves before it left::
+
+        live(j) = before + sum_chunked B (1 - T_{j-1} / n) + sum_units U T_j / n   (T_j: tasks of waves <= j)
+
+    the chunked arrays' bytes ``B`` from the steps before; ``gone`` released after the last wave."""
+    size = {}
+    for _, u, _ in steps:
+        size.update({x: v for x, v in u.items() if x in chunked})
+    waves = [min(slots, n_tasks - s) for s in range(0, n_tasks, max(slots, 1))]
+    out, done = [], 0
+    for j, t in enumerate(waves):
+        left = {x: v * (1 - done / n_tasks) for x, v in size.items()}
+        out.append((stage, {**left, **{f"{x}/w{j}": v * t / n_tasks for x, v in units.items()}},
+                    gone if j == len(waves) - 1 else []))
+        done += t
+    return out
 
 
 def _by_channel_steps(first, second, released, after):
@@ -266,7 +309,8 @@ def plan(cfg, costs=None, peak_gflops=None, ingest=None):
     ests = [estimate(st.name, g, cfg, costs, peak_gflops, workers) for st in PIPELINE
             if st.enabled(cfg) and st.task is not None]
     largest = max(ests, key=lambda e: e.task_bytes)
-    peak, at, kept = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg)
+    peak, at, kept = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg,
+                                     {e.stage: e.tasks for e in ests}, workers)
     return {"stages": [vars(e) for e in ests], "sgemm_gflops": peak_gflops, "task_slots": workers,
             "total_store_gb": sum(e.store_bytes for e in ests) / 1e9, "peak_store_gb": peak / 1e9,
             "peak_stage": at, "kept_stores": {k: v / 1e9 for k, v in kept.items()},
@@ -342,7 +386,9 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
                                  f"(`mmflow plan`), more than a worker's {worker_limit_gb:.2f} GB memory limit",
                                  f"{PIPELINE.stage(e.stage).cost.shrink_setting(cfg)}, or more memory per worker "
                                  "(fewer cluster.n_workers, a larger cluster.memory_limit)")
-    peak, at, _ = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg)
+    slots = cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous" else 1
+    peak, at, _ = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg,
+                                  {e.stage: e.tasks for e in ests}, slots)
     disk = peak - existing_bytes
     free = free_disk_gb(cfg.run.directory) if free_disk is None else free_disk
     if disk / 1e9 > free:

@@ -78,6 +78,11 @@ class Stage:
     #: channel, and what that stage wrote for a channel (a group ``f{F}`` of a store this stage alone reads,
     #: released after it) goes once this stage has read it
     by_channel_after: Optional[str] = None
+    #: ``{dimension: key field}``: each task reads the chunk of that index along ``dimension`` of the arrays
+    #: :data:`mmflow.io.run_stores.RELEASED_BY_CHUNK` names, alone among the stage's tasks (mmodes:
+    #: ``{"baseline": "bl_chunk"}``); where the stage is their last reader, a task's chunks are released once it
+    #: has finished (:func:`mmflow.workflow.engine.release.release_task_chunks`)
+    task_chunks: dict = field(default_factory=dict)
     #: False where its outputs are made from files outside the run (ingest): none of them is released, as
     #: a rerun could not make them again once those files are gone
     recomputable: bool = True

@@ -141,3 +141,20 @@ def test_the_plan_alternates_transfer_and_normal_by_channel():
               ("transfer", {"partials.zarr": 10}, {}, {"partials.zarr": [5, 5]}),
               ("normal", {"normal.zarr": 2}, {}, {"normal.zarr": [1, 1]})]
     assert run_live_stores(writes, cfg) == (4 + 5 + 2, "normal", {"mmodes.zarr": 1, "normal.zarr": 2})
+
+
+def test_the_plan_releases_the_visibilities_a_baseline_chunk_at_a_time_in_mmodes():
+    """vis.zarr (10: visibilities 6, weights 2) and mmodes' 4 tasks on 2 slots writing mmodes.zarr (4): each
+    task's baseline chunk goes once it has finished, so the peak is the first wave's m-modes beside all of
+    vis.zarr (2 + 8 + 4 * 2 / 4 = 12), not every m-mode beside it (14); the second wave's share of the
+    visibilities is gone by then (10), and the rest of them with the stage."""
+    from mmflow.workflow.plan.planner import run_live_stores
+
+    cfg = load_config(DEMO, ["run.keep=[]"])
+    writes = [("simulate", {"vis.zarr": 10}, {"vis.zarr": {"vis": 6, "weights": 2}}, {}),
+              ("mmodes", {"mmodes.zarr": 4}, {}, {})]
+    assert run_live_stores(writes, cfg) == (14, "mmodes", {"vis.zarr": 2, "mmodes.zarr": 4})
+    assert run_live_stores(writes, cfg, {"mmodes": 4}, 2) == (12, "mmodes", {"vis.zarr": 2, "mmodes.zarr": 4})
+    assert run_live_stores(writes, cfg, {"mmodes": 4}, 4)[0] == 14  # every task at once: nothing goes before
+    kept = load_config(DEMO, ["run.keep=[vis.zarr]"])
+    assert run_live_stores(writes, kept, {"mmodes": 4}, 2)[0] == 14

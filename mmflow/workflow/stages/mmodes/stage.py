@@ -337,6 +337,7 @@ STAGE = Stage(
     _task,
     _finalize,
     reads_corrected=True,
+    task_chunks={"baseline": "bl_chunk"},  # vis.zarr's baseline chunk i is read by task bl_chunk=i alone
     counters=("dropped_low_coverage", "downweighted_low_coverage", "baselines_without_data", "fits_with_prior"),
     files=prior_files,
     description="corrections on read, sidereal binning + least-squares m-modes per baseline chunk",

@@ -15,7 +15,7 @@ from mmflow.conventions import m_blocks, m_slice
 from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
 from mmflow.io.run_stores import VIS_METADATA, STORES, alm_store
-from mmflow.mmode.normal import hermitian_full
+from mmflow.mmode.normal import hermitian_full, unpack_upper
 from mmflow.sky.diffuse import map_to_alm
 from mmflow.sky.frames import rotate_alm, rotation_matrix
 from mmflow.threads import n_threads, single_threaded_blas
@@ -64,8 +64,9 @@ def _solve_task(ctx, key):
 
     def one(m):
         n = lmax - m + 1
-        return solve_m(hermitian_full(grams[m - m0, :n, :n]), rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps,
-                       m_filters(im), None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
+        gram = hermitian_full(unpack_upper(grams[m - m0], lmax - m0 + 1)[:n, :n])
+        return solve_m(gram, rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps, m_filters(im),
+                       None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
 
     # the m blocks of the task on the task's thread budget, one BLAS thread each (same bits on any cluster)
     with single_threaded_blas(), ThreadPoolExecutor(max_workers=n_threads()) as pool:

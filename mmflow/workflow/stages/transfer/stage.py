@@ -18,7 +18,7 @@ from mmflow.conventions import m_blocks, complex_dtype
 from mmflow.io.run_stores import VIS_METADATA, STORES, partials_store, transfer_store
 from mmflow.mmode.engine import GridCache, accumulate_chunks, plan_chunks, plan_groups
 from mmflow.mmode.noise import relative_weights
-from mmflow.mmode.normal import NormalAccumulator
+from mmflow.mmode.normal import NormalAccumulator, pack_upper
 from mmflow.workflow.engine.geometry import mmax_of
 from mmflow.workflow.stages.transfer.cost import COST
 from mmflow.workflow.stages.base import Stage
@@ -89,7 +89,7 @@ def _transfer_task(ctx, key):
         blk = np.zeros((1, m1 - m0, n0, n0), acc.dtype)
         for m in range(m0, m1):
             blk[0, m - m0, :lmax - m + 1, :lmax - m + 1] = acc.gram[m]
-        ctx.write(pg, STORES.partials.gram(fi, m0), (slice(gk, gk + 1),), blk)
+        ctx.write(pg, STORES.partials.gram(fi, m0), (slice(gk, gk + 1),), pack_upper(blk))
     rhs = np.zeros((1, acc.n_split, mmax + 1, lmax + 1), acc.dtype)
     for m in range(mmax + 1):
         rhs[0, :, m, m:] = acc.rhs[m]

@@ -1,0 +1,47 @@
+"""The packed upper triangles the stores hold Grams and Cholesky factors in (mmflow.mmode.normal)."""
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from mmflow.mmode.normal import hermitian_full, pack_upper, packed_size, unpack_upper
+
+
+def _hermitian(rng, n, dtype=np.complex128):
+    b = rng.normal(size=(2 * n, n)) + 1j * rng.normal(size=(2 * n, n))
+    return (b.conj().T @ b + n * np.eye(n)).astype(dtype)
+
+
+def test_packing_keeps_the_upper_triangle_and_nothing_else():
+    rng = np.random.default_rng(1)
+    a = rng.normal(size=(3, 7, 7)) + 1j * rng.normal(size=(3, 7, 7))
+    p = pack_upper(a)
+    assert p.shape == (3, packed_size(7)) == (3, 28)
+    assert p[0, 7] == a[0, 1, 1] and p[0, 1] == a[0, 0, 1]  # row by row: row 0 has 7 elements
+    back = unpack_upper(p, 7)
+    np.testing.assert_array_equal(back, np.triu(a))  # the strict lower triangle comes back as zeros
+    np.testing.assert_array_equal(pack_upper(back), p)
+    with pytest.raises(ValueError, match="squares"):  # a square store of an older layout is refused
+        unpack_upper(a[0], 7)
+
+
+def test_a_packed_gram_gives_readers_the_same_bits():
+    """What hermitian_full makes of a Gram (its upper triangle: herk's output) is the same from the packed copy,
+    in the stores' complex64 too."""
+    rng = np.random.default_rng(2)
+    g = np.triu(_hermitian(rng, 9, np.complex64))
+    np.testing.assert_array_equal(hermitian_full(unpack_upper(pack_upper(g), 9)), hermitian_full(g))
+
+
+def test_a_packed_factor_solves_to_the_same_bits():
+    """cho_factor leaves the input's lower triangle in its factor; potrs reads the upper triangle only, so the
+    packed factor (zeros below) solves to the factor's bits, a top-left corner as the CLEAN reads it too."""
+    rng = np.random.default_rng(3)
+    g = _hermitian(rng, 12)
+    for n in (12, 8):
+        cho, lower = sla.cho_factor(g[:n, :n].copy(), lower=False)
+        assert np.abs(np.tril(cho, -1)).max() > 0  # the garbage the store no longer holds
+        padded = np.zeros((12, 12), complex)
+        padded[:n, :n] = cho
+        stored = unpack_upper(pack_upper(padded), 12)[:n, :n]
+        x = rng.normal(size=(n, 3)) + 1j * rng.normal(size=(n, 3))
+        np.testing.assert_array_equal(sla.cho_solve((stored, False), x), sla.cho_solve((cho, lower), x))
