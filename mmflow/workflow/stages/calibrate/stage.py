@@ -36,7 +36,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import antennas_with_data, baseline_lengths
 from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source_vector_date
-from mmflow.calibrate.gain_tables import gains_at
+from mmflow.calibrate.gain_tables import gains_at, interval_weights, smooth_gains_at
 from mmflow.calibrate.ripple import apply_ripple, ripple_ratio
 from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.screened_gains import solve_gains_screened
@@ -98,6 +98,7 @@ def _prepare(ctx):
                 "pols": vg.attrs["pols"],
                 "ripple": bool(ctx.cfg.calibrate.ripple),
                 "interpolate": bool(ctx.cfg.calibrate.interpolate),
+                **_smoothing(ctx.cfg.calibrate, vg.attrs["integration_s"]),
                 "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
                 "min_baseline_lambda": resolved_cuts(tel, pairs, ctx.cfg.calibrate.min_baseline_lambda),
             },
@@ -106,6 +107,14 @@ def _prepare(ctx):
     )
     keys = [TaskKey(phase="r", freq=fi) for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [TaskKey(phase="g", freq=fi, interval=k) for fi in range(nf) for k in range(len(solve))]
+
+
+def _smoothing(c, integration_s):
+    """The gains store's attributes of the smoothing of interval solutions (none without it)."""
+    if c.solint_s is None or c.smooth_h is None:
+        return {}
+    return {"smooth_rows": c.smooth_h * 3600.0 / integration_s, "max_unexplained": c.max_unexplained,
+            "smooth_degree": c.smooth_degree}
 
 
 _RIPPLE = {}  # (run, channel, smoothing, configuration) -> ratio: one computation per worker process
@@ -164,6 +173,7 @@ def _task(ctx, key):
     ctx.write(g, STORES.gains.gains, region, np.where(sol.flags, 0, np.nan_to_num(sol.gains))[:, None])  # flagged: 0
     ctx.write(g, STORES.gains.flags, region, sol.flags[:, None])
     ctx.write(g, STORES.gains.chi2, region, np.nan_to_num(sol.chi2[:, None]))
+    ctx.write(g, STORES.gains.unexplained, region, out.unexplained[None, None])
     ctx.write(g, STORES.gains.iterations, region, sol.iterations[:, None].astype(np.int32))
     ctx.write(g, STORES.gains.converged, region, sol.converged[:, None])
     ctx.write(g, STORES.gains.flux_factor, region, np.nan_to_num(out.flux, nan=0.0)[None, None])  # 0: never fitted
@@ -211,7 +221,12 @@ def _apply(ctx, block):
     gains = ctx.read(STORES.gains.gains)  # (interval, freq, antenna, pol): small
     flags = ctx.read(STORES.gains.flags)
     apply_rows, solve_rows = ctx.read(STORES.gains.apply_rows), ctx.read(STORES.gains.solve_rows)
-    interpolate = bool(ctx.open(STORES.gains).attrs.get("interpolate", False))
+    attrs = ctx.open(STORES.gains).attrs
+    interpolate = bool(attrs.get("interpolate", False))
+    smooth = attrs.get("smooth_rows")
+    if smooth is not None:
+        u = ctx.read(STORES.gains.unexplained)  # (interval, freq, pol)
+        trust = interval_weights(u, attrs["max_unexplained"])
     rows = np.arange(block.rows.start, block.rows.stop)
     ratio = ctx.read(STORES.gains.ripple, (block.rows,)) if ctx.open(STORES.gains).attrs["ripple"] else None
     for k, fi in block.channel_indices():
@@ -219,7 +234,12 @@ def _apply(ctx, block):
         if ratio is not None:
             apply_ripple(v, w, block.pairs, ratio[:, fi], out=(v, w))
             autos = apply_gains_autos(autos, np.sqrt(ratio[:, fi]))
-        g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
+        if smooth is None:
+            g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
+        else:
+            g, fl = smooth_gains_at(rows, gains[:, fi], flags[:, fi], solve_rows,
+                                    np.broadcast_to(trust[:, fi, None, :], gains[:, fi].shape), smooth,
+                                    attrs["smooth_degree"])
         apply_gains(v, w, block.pairs, g, fl, out=(v, w))
         block.autos[:, :, k] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
         if block.cross is not None:  # xy, yx: feed p of antenna i, feed q of antenna j
