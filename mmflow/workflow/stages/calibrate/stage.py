@@ -17,10 +17,17 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
   and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with data stops
   the run naming them (a model that does not describe the data, or that many bad antennas).
 
-With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
-``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
-to the whole data set. With ``calibrate.solint_s`` the gains between the intervals' centres are
-interpolated linearly in amplitude and phase (``calibrate.interpolate``,
+The default recipe solves an interval of ``calibrate.solint_s`` (1 h) over the whole data set against
+the four bright sources and applies, at each integration, a local quadratic fit in time to the
+intervals' solutions (``calibrate.smooth_h``, sigma 1.5 h), each weighted by ``1 / u``, ``u`` the fraction
+of its data's power the calibrated model leaves (``gains.zarr`` ``unexplained``; intervals above
+``calibrate.max_unexplained`` unused) (:func:`mmflow.calibrate.gain_tables.smooth_gains_at`): a slow drift
+of the gains is followed, and what the unmodelled sky moves in each hour's solution is averaged down
+(docs/calibration.md, "Peeling with defaults on a day mmflow did not make"). With ``calibrate.solint_s``
+null (the paper's recipe) there is one interval per channel: the ``calibrate.track_min`` minutes where
+the sources are highest (:func:`best_track`), applied to the whole data set. With ``calibrate.smooth_h``
+null the gains between the intervals' centres are interpolated linearly in amplitude and phase
+(``calibrate.interpolate``,
 :func:`mmflow.calibrate.gain_tables.gains_at`). ``apply`` corrects a block where it is read: autos
 by ``r_i``, cross correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0,
 and so do the autocorrelations with ``calibrate.flag_autos`` (the default): after calibration
