@@ -19,14 +19,15 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
 
 The default recipe solves an interval of ``calibrate.solint_s`` (1 h) over the whole data set against
 the four bright sources and applies, at each integration, a local quadratic fit in time to the
-intervals' solutions (``calibrate.smooth_h``, sigma 1.5 h), each weighted by ``1 / u``, ``u`` the fraction
-of its data's power the calibrated model leaves (``gains.zarr`` ``unexplained``; intervals above
-``calibrate.max_unexplained`` unused) (:func:`mmflow.calibrate.gain_tables.smooth_gains_at`): a slow drift
-of the gains is followed, and what the unmodelled sky moves in each hour's solution is averaged down
-(docs/calibration.md, "Peeling with defaults on a day mmflow did not make"). With ``calibrate.solint_s``
-null (the paper's recipe) there is one interval per channel: the ``calibrate.track_min`` minutes where
-the sources are highest (:func:`best_track`), applied to the whole data set. With ``calibrate.smooth_h``
-null the gains between the intervals' centres are interpolated linearly in amplitude and phase
+intervals' solutions (``calibrate.smooth_intervals``, sigma 1.5 intervals), each weighted by
+``1 / u``, ``u`` the fraction of its data's power the calibrated model leaves (``gains.zarr``
+``unexplained``; intervals above ``calibrate.max_unexplained`` unused)
+(:func:`mmflow.calibrate.gain_tables.smooth_gains_at`): a slow drift of the gains is followed, and
+what the unmodelled sky moves in each hour's solution is averaged down (docs/calibration.md, "Peeling
+with defaults on a day mmflow did not make"). With ``calibrate.solint_s`` null (the paper's recipe)
+there is one interval per channel: the ``calibrate.track_min`` minutes where the sources are highest
+(:func:`best_track`), applied to the whole data set. With ``calibrate.smooth_intervals`` null the
+gains between the intervals' centres are interpolated linearly in amplitude and phase
 (``calibrate.interpolate``,
 :func:`mmflow.calibrate.gain_tables.gains_at`). ``apply`` corrects a block where it is read: autos
 by ``r_i``, cross correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0,
@@ -118,9 +119,10 @@ def _prepare(ctx):
 
 def _smoothing(c, integration_s):
     """The gains store's attributes of the smoothing of interval solutions (none without it)."""
-    if c.solint_s is None or c.smooth_h is None:
+    if c.solint_s is None or c.smooth_intervals is None:
         return {}
-    return {"smooth_rows": c.smooth_h * 3600.0 / integration_s, "max_unexplained": c.max_unexplained,
+    step = max(1, int(round(c.solint_s / integration_s)))  # integrations per interval, as in _intervals
+    return {"smooth_rows": c.smooth_intervals * step, "max_unexplained": c.max_unexplained,
             "smooth_degree": c.smooth_degree}
 
 
