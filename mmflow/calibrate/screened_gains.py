@@ -68,26 +68,30 @@ class ScreenedGains:
     unexplained: np.ndarray
 
 
-def unexplained_fraction(vis, model, weights, pairs, solution, baseline_keep=None):
+def unexplained_fraction(vis, model, weights, pairs, solution, baseline_keep=None, batch=16):
     """Per polarisation, the fraction of the data's power that the calibrated model leaves::
 
         u_p = sum_tij w |V_ijp - g_ip conj(g_jp) M_ijp|^2 / sum_tij w |V_ijp|^2
 
     over the cross-correlations used (``baseline_keep``) of antennas not flagged. Near 0 where the
     model explains the data (the gains' errors from the unmodelled sky are then small); near 1 where
-    the sources are down. NaN: no data."""
+    the sources are down. NaN: no data. Computed ``batch`` integrations at a time."""
     pairs = np.asarray(pairs)
     g, fl = gains_per_integration(solution, vis.shape[0])
     g = np.where(fl, 0, np.nan_to_num(g))  # (time, n_ant, pol)
-    w = np.array(np.broadcast_to(weights, vis.shape), float)
-    w[:, pairs[:, 0] == pairs[:, 1]] = 0.0
+    drop = pairs[:, 0] == pairs[:, 1]
     if baseline_keep is not None:
-        w[:, ~np.asarray(baseline_keep, bool)] = 0.0
-    gp = gain_products(g, pairs)  # (time, bl, pol)
-    w = np.where(gp != 0, w, 0.0)
-    v = np.where(w > 0, vis, 0)
-    resid = np.sum(w * np.abs(v - gp * model) ** 2, (0, 1))
-    total = np.sum(w * np.abs(v) ** 2, (0, 1))
+        drop |= ~np.asarray(baseline_keep, bool)
+    resid = total = 0.0
+    for t0 in range(0, vis.shape[0], batch):  # a few integrations at a time: no copy of the interval's data
+        t = slice(t0, t0 + batch)
+        v = vis[t]
+        w = np.where(drop[:, None], 0.0, np.broadcast_to(weights, vis.shape)[t])
+        gp = gain_products(g[t], pairs)  # (batch, bl, pol)
+        w = np.where((gp != 0) & (w > 0), w, 0.0)
+        v = np.where(w > 0, v, 0)
+        resid = resid + np.sum(w * np.abs(v - gp * np.broadcast_to(model, vis.shape)[t]) ** 2, (0, 1))
+        total = total + np.sum(w * np.abs(v) ** 2, (0, 1))
     return np.where(total > 0, resid / np.where(total > 0, total, 1.0), np.nan)
 
 
