@@ -57,13 +57,42 @@ class ScreenedGains:
     the source gave no model power); amplitude: (n_src, time, pol) flux factors (1 unscreened);
     flux: (n_src, pol) each screened source's flux over its catalogue model in the interval, the
     model-power-weighted mean of its factors (1 for the sources that set the scale on average;
-    the measurement for the others; 1 unscreened, NaN where never fitted).
+    the measurement for the others; 1 unscreened, NaN where never fitted); unexplained: (pol,) the
+    fraction of the data's power the calibrated model leaves (:func:`unexplained_fraction`).
     """
 
     solution: GainSolution
     offsets: np.ndarray
     amplitude: np.ndarray
     flux: np.ndarray
+    unexplained: np.ndarray
+
+
+def unexplained_fraction(vis, model, weights, pairs, solution, baseline_keep=None, batch=16):
+    """Per polarisation, the fraction of the data's power that the calibrated model leaves::
+
+        u_p = sum_tij w |V_ijp - g_ip conj(g_jp) M_ijp|^2 / sum_tij w |V_ijp|^2
+
+    over the cross-correlations used (``baseline_keep``) of antennas not flagged. Near 0 where the
+    model explains the data (the gains' errors from the unmodelled sky are then small); near 1 where
+    the sources are down. NaN: no data. Computed ``batch`` integrations at a time."""
+    pairs = np.asarray(pairs)
+    g, fl = gains_per_integration(solution, vis.shape[0])
+    g = np.where(fl, 0, np.nan_to_num(g))  # (time, n_ant, pol)
+    drop = pairs[:, 0] == pairs[:, 1]
+    if baseline_keep is not None:
+        drop |= ~np.asarray(baseline_keep, bool)
+    resid = total = 0.0
+    for t0 in range(0, vis.shape[0], batch):  # a few integrations at a time: no copy of the interval's data
+        t = slice(t0, t0 + batch)
+        v = vis[t]
+        w = np.where(drop[:, None], 0.0, np.broadcast_to(weights, vis.shape)[t])
+        gp = gain_products(g[t], pairs)  # (batch, bl, pol)
+        w = np.where((gp != 0) & (w > 0), w, 0.0)
+        v = np.where(w > 0, v, 0)
+        resid = resid + np.sum(w * np.abs(v - gp * np.broadcast_to(model, vis.shape)[t]) ** 2, (0, 1))
+        total = total + np.sum(w * np.abs(v) ** 2, (0, 1))
+    return np.where(total > 0, resid / np.where(total > 0, total, 1.0), np.nan)
 
 
 def screened_model(coherencies, basis, offsets, amplitude, screened, pairs):
@@ -124,9 +153,11 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
     amplitude = np.ones((n_src, T, P))
     reference = screened if reference is None else np.asarray(reference, bool) & screened
     kw = dict(baseline_keep=baseline_keep, threads=threads, **solve_kw)
-    sol = solve_gains(vis, coherencies.sum(0), weights, pairs, n_ant, **kw)
+    model = coherencies.sum(0)
+    sol = solve_gains(vis, model, weights, pairs, n_ant, **kw)
     if not screened.any() or rounds <= 0:
-        return ScreenedGains(sol, offsets, amplitude, np.ones((n_src, P)))
+        return ScreenedGains(sol, offsets, amplitude, np.ones((n_src, P)),
+                             unexplained_fraction(vis, model, weights, pairs, sol, baseline_keep))
     w = np.array(np.broadcast_to(weights, vis.shape), float)
     w[:, pairs[:, 0] == pairs[:, 1]] = 0.0
     if baseline_keep is not None:
@@ -152,7 +183,8 @@ def solve_gains_screened(vis, coherencies, weights, pairs, n_ant, basis, screene
                                                      np.nan), 1.0)
         model = screened_model(coherencies, basis, offsets, amplitude, screened, pairs)
         sol = solve_gains(vis, model, weights, pairs, n_ant, g0=sol.gains, **kw)
-    return ScreenedGains(sol, offsets, amplitude, flux)
+    return ScreenedGains(sol, offsets, amplitude, flux, unexplained_fraction(vis, model, weights, pairs, sol,
+                                                                             baseline_keep))
 
 
 def _fit_screens(v, w, coherencies, pairs, n_ant, basis, screened, g, th, amplitude, batch, tol, max_iter, threads):

@@ -128,8 +128,8 @@ ARRAYS = {
                     "v_residual", "v_psf_table", "v_components", "v_peaks", "v_threshold", "v_noise", "v_n_cycles",
                     "v_stop", dict(gram=GRAM)),
     STORES.transfer: (dict(order="f{fi}/order", B="f{fi}/B_m{m:05d}"),),
-    STORES.gains: ("flux_factor", "gains", "flags", "chi2", "iterations", "converged", "ripple", "solve_rows",
-                   "apply_rows"),
+    STORES.gains: ("flux_factor", "gains", "flags", "chi2", "unexplained", "iterations", "converged", "ripple",
+                   "solve_rows", "apply_rows"),
     STORES.peel: ("dd_gains", "scale", "mode", "guard", "measured", "removed", "converged", "cross_scale"),
     STORES.models: ("components", "cost", "iterations", "n_integrations"),
     STORES.diffuse: ("samples",),
@@ -531,6 +531,16 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
                 per,
                 "float64",
                 doc="weighted residual power per term, ``sum w |r|^2 / n`` (~1 for ``w = 1/sigma^2``)",
+            ),
+            ArraySpec(
+                h.unexplained,
+                ("interval", "freq", "pol"),
+                (n_interval, nf, npol),
+                (1, 1, npol),
+                "float64",
+                np.nan,
+                doc="fraction of the data's power the calibrated model leaves, ``sum w |V - G M G^H|^2 / sum w |V|^2`` "
+                "(near 0 where the model explains the data; NaN: no data)",
             ),
             ArraySpec(
                 h.iterations,

@@ -2,10 +2,11 @@
 
 A matvis drift scan of a compact array (the 42 OVRO-LWA core stands within 35 m, 52 MHz: the longest
 baseline is ~12 wavelengths, so the old fixed 15-lambda cut left every antenna without a baseline),
-of the catalogue's 14 sources of which the calibration model knows two (Cyg A, Cas A): the other 12
-are unmodelled sky. Per-antenna complex gains corrupt it and the file says ``uncalib``. With the
-defaults (``calibrate.enabled=true`` and nothing else), no antenna is flagged, and the map's source
-peaks equal those of the same sky imaged from the uncorrupted file within 5 %.
+of the catalogue's 14 sources of which the default calibration model knows four (Cyg A, Cas A, Vir A,
+Tau A; two before the hourly smoothed solutions became the default): the other 10 are unmodelled sky.
+Per-antenna complex gains corrupt it and the file says ``uncalib``. With the defaults
+(``calibrate.enabled=true`` and nothing else), no antenna is flagged, and the map's source peaks equal
+those of the same sky imaged from the uncorrupted file within 5 %.
 """
 import healpy
 import numpy as np

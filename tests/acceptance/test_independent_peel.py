@@ -10,11 +10,12 @@ path, lmax and the three calibration stages switched on, every calibration setti
 
 dB as in ``tests/acceptance/test_four_correlation_peel.py``: the largest ``|chain - truth|`` within
 3 deg of the source (``truth``: the unmodelled sources alone, uncorrupted, imaged alike) over the
-source's peak in the map of the same data calibrated but not peeled. Measured: Cyg A -36.0 dB, Cas A
--36.6 dB; the unmodelled sources' peaks 0.911-1.051 of the truth's (median 0.97); seeds 8 and 9: -37.9 / -40.8
-and -36.7 / -34.8 dB, 0.905-1.056; 192 integrations (seed 7): -33.9 / -33.6 dB, 0.895-1.008. With gains
-that also drift slowly (1 % in amplitude, 0.03 rad in phase over hours) the defaults' one gain solution
-(the best track's) leaves -27.5 / -25.8 dB (192 integrations): docs/calibration.md.
+source's peak in the map of the same data calibrated but not peeled. Measured with the defaults (hourly
+gain solutions against Cyg A, Cas A, Vir A, Tau A, smoothed in time): Cyg A -38.5 dB, Cas A -39.6 dB, the
+unmodelled sources' peaks 0.912-0.990 of the truth's (median 0.95); the same day with gains that also
+drift slowly (3 % in amplitude, 0.1 rad in phase, periods 10-30 h): -35.7 / -34.0 dB, 0.919-0.975, where
+the paper's recipe (one solution on the best track for the whole day) left -22.9 / -21.2 dB (192
+integrations). More days and seeds: docs/calibration.md.
 """
 import healpy as hp
 import numpy as np
@@ -50,6 +51,12 @@ def maps(tmp_path_factory):
     out = {"chain": _run(d / "chain", d / "corrupted.uvh5", *ON)}
     out["nopeel"] = _run(fork_run(d / "chain", d / "nopeel", "calibrate"), d / "corrupted.uvh5", ON[0])
     out["truth"] = _run(d / "truth", d / "truth.uvh5")
+    # the same day with gains that also drift slowly (3 % in amplitude, 0.1 rad in phase, periods 10-30 h):
+    # the same truth (the gains are drawn after the sky), and Cyg A's and Cas A's calibrated peaks are the
+    # same within the calibration's error
+    drifting = independent_day(n_times=128, drift=(0.03, 0.1))["corrupted"]
+    drifting.write_uvh5(str(d / "drifting.uvh5"), fix_autos=True)
+    out["drifting"] = _run(d / "drifting", d / "drifting.uvh5", *ON)
     return out
 
 
@@ -57,22 +64,45 @@ def _vec(ra, dec):
     return radec_to_vec(np.deg2rad(ra), np.deg2rad(dec))
 
 
-def test_cyg_a_and_cas_a_are_30_db_down_with_defaults(maps):
+def _suppression_db(maps, chain):
+    out = []
     for name, ra, dec in PEELED:
         v = _vec(ra, dec)
         peak = measure_peak(maps["nopeel"], v, np.deg2rad(10))["peak"]
         pix = hp.query_disc(NSIDE, v, np.deg2rad(3.0))
-        db = 10 * np.log10(np.abs(maps["chain"][pix] - maps["truth"][pix]).max() / peak)
-        print(f"{name}: {db:.1f} dB")
-        assert db < -30, (name, db)  # measured -36.0 (Cyg A), -36.6 dB (Cas A)
+        out.append(10 * np.log10(np.abs(maps[chain][pix] - maps["truth"][pix]).max() / peak))
+    print(chain, " ".join(f"{name}: {db:.1f} dB" for (name, _, _), db in zip(PEELED, out)))
+    return out
 
 
-def test_unmodelled_sources_are_kept(maps):
+def _kept(maps, chain):
     kept = []
     for ra, dec, _ in UNMODELLED:
         v = _vec(ra, dec)
-        kept.append(measure_peak(maps["chain"], v, np.deg2rad(10))["peak"]
+        kept.append(measure_peak(maps[chain], v, np.deg2rad(10))["peak"]
                     / measure_peak(maps["truth"], v, np.deg2rad(10))["peak"])
-    print("unmodelled peaks / truth:", " ".join(f"{k:.3f}" for k in kept))
-    assert np.all(np.abs(np.array(kept) - 1) < 0.12), kept  # measured 0.911-1.051
-    assert abs(np.median(kept) - 1) < 0.06, kept  # measured 0.97
+    print(chain, "unmodelled peaks / truth:", " ".join(f"{k:.3f}" for k in kept))
+    return np.array(kept)
+
+
+def test_cyg_a_and_cas_a_are_30_db_down_with_defaults(maps):
+    db = _suppression_db(maps, "chain")
+    assert max(db) < -30, db  # measured -38.5 (Cyg A), -39.6 dB (Cas A)
+
+
+def test_unmodelled_sources_are_kept(maps):
+    kept = _kept(maps, "chain")
+    assert np.all(np.abs(kept - 1) < 0.12), kept  # measured 0.912-0.990 (median 0.95)
+    assert abs(np.median(kept) - 1) < 0.06, kept
+
+
+def test_a_slow_gain_drift_is_followed_with_defaults(maps):
+    """Gains drifting by 3 % and 0.1 rad over hours: one solution for the day (the paper's recipe) left
+    Cyg A / Cas A at -22.9 / -21.2 dB (192 integrations); the default hourly solutions, smoothed in time
+    and weighted by how well the model explains each hour, follow the drift without taking the
+    unmodelled sources' flux."""
+    db = _suppression_db(maps, "drifting")
+    assert max(db) < -30, db  # measured -35.7, -34.0 dB
+    kept = _kept(maps, "drifting")
+    assert np.all(np.abs(kept - 1) < 0.12), kept  # measured 0.919-0.975
+    assert abs(np.median(kept) - 1) < 0.06, kept

@@ -118,3 +118,20 @@ def test_cas_a_measured_against_cyg_a_sets_the_flux_scale(problem):
     assert abs(measured.flux[0, 0] - 1) < 1e-9 and measured.flux[2, 0] == 1
     assert abs(scale_m / cyg - 1) < 0.01
     assert abs(scale_b / cyg - 1) > 0.02  # measured 2.9 %: Cas A's 10 % shared between the sources and the gains
+
+
+def test_unexplained_fraction_is_the_unmodelled_power(problem):
+    """Gains solved without the 100 Jy source in the model: the fraction of the data's power left is that
+    source's (and the noise's) share, computed independently here from the truth."""
+    p, x, pairs = problem, problem["sc"]["x"], problem["sc"]["pairs"]
+    out = solve_gains_screened(p["vis"], p["coh"][:2], 1.0, pairs, len(x), p["basis"][:2], p["screened"][:2],
+                               baseline_keep=p["keep"])
+    full = solve_gains_screened(p["vis"], p["coh"], 1.0, pairs, len(x), p["basis"], p["screened"],
+                                baseline_keep=p["keep"])
+    use = p["keep"] & (pairs[:, 0] != pairs[:, 1])
+    v = p["vis"][:, use, 0]
+    prod = (p["g"][pairs[:, 0]] * np.conj(p["g"][pairs[:, 1]]))[use]
+    source = p["coh"][2][:, use] * prod
+    expected = np.sum(np.abs(source) ** 2 + 2 * NOISE_JY ** 2 / 2) / np.sum(np.abs(v) ** 2)
+    assert 0 < full.unexplained[0] < 0.1 * expected  # the noise alone
+    assert abs(out.unexplained[0] / expected - 1) < 0.15, (out.unexplained, expected)

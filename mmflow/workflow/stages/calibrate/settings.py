@@ -16,15 +16,36 @@ class CalibrateConfig(Section):
     """Gain calibration (Stefcal) against a source model, after the autocorrelation ripple correction."""
 
     enabled: bool = Field(False, description="Run this stage.")
-    sources: list[str] = Field(["Cyg A", "Cas A"], min_length=1, description="Sky model (catalogue sources "
-                               "through the beam).", json_schema_extra=CATALOG_NAMES)
+    sources: list[str] = Field(["Cyg A", "Cas A", "Vir A", "Tau A"], min_length=1, description="Sky model "
+                               "(catalogue sources through the beam): by default the four the peel removes, which "
+                               "dominate the sky at every hour, so that every solution interval of the day has a "
+                               "model that explains its data.", json_schema_extra=CATALOG_NAMES)
     min_baseline_lambda: BaselineCut = Field("auto", description="Use baselines longer than this (wavelengths); "
                                              + AUTO_CUT, json_schema_extra=CUT_ALLOWED)
-    solint_s: Optional[float] = Field(None, gt=0, description="Solution interval (s); null: one solution on the "
-                                      "track where the sources are highest, applied to the whole data set.")
-    interpolate: bool = Field(True, description="With solint_s: gains interpolated linearly in amplitude and "
-                              "phase between the intervals' centres (a slow drift is followed); false: each "
-                              "interval's solution held over it.")
+    solint_s: Optional[float] = Field(3600.0, gt=0, description="Solution interval (s): solutions over the whole "
+                                      "data set, which follow a slow drift of the gains (calibrate.smooth_intervals); "
+                                      "null: one solution on the track where the sources are highest "
+                                      "(calibrate.track_min), applied to the whole data set (the paper's recipe: "
+                                      "a drift of d leaves ~d of each peeled source; docs/calibration.md).")
+    smooth_intervals: Optional[float] = Field(1.5, gt=0, description="With solint_s: the gains at each integration "
+                                              "a local polynomial fit in time (calibrate.smooth_degree; Gaussian "
+                                              "kernel of this sigma, in solution intervals: 1.5 h with the default "
+                                              "hourly ones) to the intervals' solutions, each weighted by the "
+                                              "inverse of the fraction of its data's power the model leaves "
+                                              "(gains.zarr unexplained): follows a drift slower than the kernel "
+                                              "while averaging down what the unmodelled sky moves in each "
+                                              "interval's solution (docs/calibration.md); null: "
+                                              "calibrate.interpolate.")
+    smooth_degree: int = Field(2, ge=0, le=3, description="With smooth_intervals: the local polynomial's degree "
+                               "(0 a weighted mean; 2 follows a curving drift with little bias at this kernel "
+                               "width).")
+    max_unexplained: float = Field(0.01, gt=0, le=1, description="With smooth_intervals: intervals whose calibrated "
+                                   "model leaves more than this fraction of the data's power (the model does not "
+                                   "explain them: the bright sources down) are not used, the best interval "
+                                   "always; the fit of the nearest used ones holds across them.")
+    interpolate: bool = Field(True, description="With solint_s and smooth_intervals null: gains interpolated "
+                              "linearly in amplitude and phase between the intervals' centres (a slow drift is "
+                              "followed); false: each interval's solution held over it.")
     track_min: float = Field(22.0, gt=0, description="Length of that track (minutes).")
     screen_sources: list[str] = Field(["Cyg A", "Cas A"], description="Of calibrate.sources, the ones given a "
                                       "refractive offset and a scintillation amplitude (mean 1 over the "

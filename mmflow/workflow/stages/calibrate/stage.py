@@ -17,10 +17,18 @@ Tasks, fanned out over frequencies and solution intervals (independent of storag
   and a solution that flags more than ``calibrate.max_flagged_fraction`` of the antennas with data stops
   the run naming them (a model that does not describe the data, or that many bad antennas).
 
-With ``calibrate.solint_s`` null (the default recipe) there is one interval per channel: the
-``calibrate.track_min`` minutes where the sources are highest (:func:`best_track`), applied
-to the whole data set. With ``calibrate.solint_s`` the gains between the intervals' centres are
-interpolated linearly in amplitude and phase (``calibrate.interpolate``,
+The default recipe solves an interval of ``calibrate.solint_s`` (1 h) over the whole data set against
+the four bright sources and applies, at each integration, a local quadratic fit in time to the
+intervals' solutions (``calibrate.smooth_intervals``, sigma 1.5 intervals), each weighted by
+``1 / u``, ``u`` the fraction of its data's power the calibrated model leaves (``gains.zarr``
+``unexplained``; intervals above ``calibrate.max_unexplained`` unused)
+(:func:`mmflow.calibrate.gain_tables.smooth_gains_at`): a slow drift of the gains is followed, and
+what the unmodelled sky moves in each hour's solution is averaged down (docs/calibration.md, "Peeling
+with defaults on a day mmflow did not make"). With ``calibrate.solint_s`` null (the paper's recipe)
+there is one interval per channel: the ``calibrate.track_min`` minutes where the sources are highest
+(:func:`best_track`), applied to the whole data set. With ``calibrate.smooth_intervals`` null the
+gains between the intervals' centres are interpolated linearly in amplitude and phase
+(``calibrate.interpolate``,
 :func:`mmflow.calibrate.gain_tables.gains_at`). ``apply`` corrects a block where it is read: autos
 by ``r_i``, cross correlations by ``sqrt(r_i r_j)`` and ``1 / (g_i conj(g_j))``; flagged antennas get weight 0,
 and so do the autocorrelations with ``calibrate.flag_autos`` (the default): after calibration
@@ -36,7 +44,7 @@ import numpy as np
 
 from mmflow.calibrate.baselines import antennas_with_data, baseline_lengths
 from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source_vector_date
-from mmflow.calibrate.gain_tables import gains_at
+from mmflow.calibrate.gain_tables import gains_at, interval_weights, smooth_gains_at
 from mmflow.calibrate.ripple import apply_ripple, ripple_ratio
 from mmflow.calibrate.dd_screen import screen_basis, sky_tangents_enu
 from mmflow.calibrate.screened_gains import solve_gains_screened
@@ -98,6 +106,7 @@ def _prepare(ctx):
                 "pols": vg.attrs["pols"],
                 "ripple": bool(ctx.cfg.calibrate.ripple),
                 "interpolate": bool(ctx.cfg.calibrate.interpolate),
+                **_smoothing(ctx.cfg.calibrate, vg.attrs["integration_s"]),
                 "flag_autos": bool(ctx.cfg.calibrate.flag_autos),
                 "min_baseline_lambda": resolved_cuts(tel, pairs, ctx.cfg.calibrate.min_baseline_lambda),
             },
@@ -106,6 +115,15 @@ def _prepare(ctx):
     )
     keys = [TaskKey(phase="r", freq=fi) for fi in range(nf)] if ctx.cfg.calibrate.ripple else []
     return keys + [TaskKey(phase="g", freq=fi, interval=k) for fi in range(nf) for k in range(len(solve))]
+
+
+def _smoothing(c, integration_s):
+    """The gains store's attributes of the smoothing of interval solutions (none without it)."""
+    if c.solint_s is None or c.smooth_intervals is None:
+        return {}
+    step = max(1, int(round(c.solint_s / integration_s)))  # integrations per interval, as in _intervals
+    return {"smooth_rows": c.smooth_intervals * step, "max_unexplained": c.max_unexplained,
+            "smooth_degree": c.smooth_degree}
 
 
 _RIPPLE = {}  # (run, channel, smoothing, configuration) -> ratio: one computation per worker process
@@ -164,6 +182,7 @@ def _task(ctx, key):
     ctx.write(g, STORES.gains.gains, region, np.where(sol.flags, 0, np.nan_to_num(sol.gains))[:, None])  # flagged: 0
     ctx.write(g, STORES.gains.flags, region, sol.flags[:, None])
     ctx.write(g, STORES.gains.chi2, region, np.nan_to_num(sol.chi2[:, None]))
+    ctx.write(g, STORES.gains.unexplained, region, out.unexplained[None, None])
     ctx.write(g, STORES.gains.iterations, region, sol.iterations[:, None].astype(np.int32))
     ctx.write(g, STORES.gains.converged, region, sol.converged[:, None])
     ctx.write(g, STORES.gains.flux_factor, region, np.nan_to_num(out.flux, nan=0.0)[None, None])  # 0: never fitted
@@ -211,7 +230,12 @@ def _apply(ctx, block):
     gains = ctx.read(STORES.gains.gains)  # (interval, freq, antenna, pol): small
     flags = ctx.read(STORES.gains.flags)
     apply_rows, solve_rows = ctx.read(STORES.gains.apply_rows), ctx.read(STORES.gains.solve_rows)
-    interpolate = bool(ctx.open(STORES.gains).attrs.get("interpolate", False))
+    attrs = ctx.open(STORES.gains).attrs
+    interpolate = bool(attrs.get("interpolate", False))
+    smooth = attrs.get("smooth_rows")
+    if smooth is not None:
+        u = ctx.read(STORES.gains.unexplained)  # (interval, freq, pol)
+        trust = interval_weights(u, attrs["max_unexplained"])
     rows = np.arange(block.rows.start, block.rows.stop)
     ratio = ctx.read(STORES.gains.ripple, (block.rows,)) if ctx.open(STORES.gains).attrs["ripple"] else None
     for k, fi in block.channel_indices():
@@ -219,7 +243,12 @@ def _apply(ctx, block):
         if ratio is not None:
             apply_ripple(v, w, block.pairs, ratio[:, fi], out=(v, w))
             autos = apply_gains_autos(autos, np.sqrt(ratio[:, fi]))
-        g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
+        if smooth is None:
+            g, fl = gains_at(rows, gains[:, fi], flags[:, fi], apply_rows, solve_rows, interpolate)
+        else:
+            g, fl = smooth_gains_at(rows, gains[:, fi], flags[:, fi], solve_rows,
+                                    np.broadcast_to(trust[:, fi, None, :], gains[:, fi].shape), smooth,
+                                    attrs["smooth_degree"])
         apply_gains(v, w, block.pairs, g, fl, out=(v, w))
         block.autos[:, :, k] = apply_gains_autos(autos, g, fl)  # the radiometer noise of the corrected data
         if block.cross is not None:  # xy, yx: feed p of antenna i, feed q of antenna j
