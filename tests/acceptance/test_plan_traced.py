@@ -26,14 +26,7 @@ N_TIME = 512
 #: the bound: planned task memory within this fraction of the largest task's traced peak
 TOLERANCE = 0.25
 #: {stage: why its planned memory cannot meet the bound for a reason that is not its cost model's}
-NOT_THE_MODEL = {
-    "normal": "its constants were fitted on runs that read the Grams as squares; since 2026-11-28 the stores hold "
-              "their packed upper triangles (mmflow.mmode.normal.pack_upper) and its task reads and sums about "
-              "half the elements: planned 1.57x its traced peak, on the safe side, until a run measured with "
-              "the packed Grams is recorded and the constants refitted",
-    "solve": "the same: it reads its Gram block packed, half the bytes: planned 1.32x its traced peak, on the safe "
-             "side, until refitted",
-}
+NOT_THE_MODEL = {}
 
 
 def _reduced(run_dir):

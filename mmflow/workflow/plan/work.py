@@ -24,6 +24,7 @@ import numpy as np
 from mmflow.conventions import SPEED_OF_LIGHT, m_blocks
 from mmflow.io import run_stores as rs
 from mmflow.mmode.engine import GridCache, plan_chunks, plan_groups
+from mmflow.mmode.normal import packed_size
 from mmflow.mmode.transfer import fringe_bandlimit, grid_rings
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 
@@ -213,6 +214,12 @@ def gram_work(lmax_c, mmax):
 def block_sum(lmax, mmax, m_block, power):
     """Largest ``sum_{m in block} (lmax - m + 1)^power`` over the m blocks (the first block)."""
     return max(float(sum((lmax - m + 1) ** power for m in range(m0, m1))) for m0, m1 in m_blocks(mmax, m_block))
+
+
+def packed_block_sum(lmax, mmax, m_block):
+    """Largest ``(m1 - m0) n0 (n0 + 1) / 2``, ``n0 = lmax - m0 + 1``, over the m blocks: the elements of a block's
+    Grams as the stores hold them (each m's padded upper triangle, packed: :func:`mmflow.mmode.normal.pack_upper`)."""
+    return max(float((m1 - m0) * packed_size(lmax - m0 + 1)) for m0, m1 in m_blocks(mmax, m_block))
 
 
 def n_m_blocks(g):
