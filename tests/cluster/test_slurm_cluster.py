@@ -65,8 +65,8 @@ def _sample_jobs(slurm, seen, stop):
 def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, paper_reference, tmp_path):
     """The reduced paper-scale workflow with no job shape given: the plan on the partition's nodes (sinfo:
     2 CPUs, 1500 MB: 1 GiB to a job, 296 MiB of it the job's own `dask worker` process) gives the stages
-    workers of one 364 MiB share (two a job: normal, solve, clean) or of two (one a job: the rest, whose
-    tasks need more); each stage's tasks ran on workers of its pool that hold its planned task (dask's
+    workers of one 364 MiB share (two a job: solve, clean; normal runs with transfer) or of two (one a job:
+    the rest, whose tasks need more); each stage's tasks ran on workers of its pool that hold its planned task (dask's
     limit memory / processes), stages of one pool in a row shared their jobs, the workers were on two
     nodes (over the bridge: the scheduler on cluster.interface), the dashboard link printed is where it
     listens; maps bit-identical (the workers' memory thresholds: tests/cluster/conftest.py)."""
@@ -87,12 +87,14 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
     finally:
         stop.set()
         sampler.join(5)
-    pools = plan_pools(cfg, "slurm", {}, log=lambda *a: None)  # what the run asked sinfo's nodes for
-    order = [st.name for st in PIPELINE if st.name in pools]
+    planned_pools = plan_pools(cfg, "slurm", {}, log=lambda *a: None)  # what the run asked sinfo's nodes for
+    # a stage run channel by channel after another (normal after transfer) runs in that one's pool
+    pools = {st.name: planned_pools[st.by_channel_after or st.name] for st in PIPELINE if st.name in planned_pools}
+    order = list(pools)
     switches = [line for line in logs if line.startswith("stage ")]
     starts = [s for i, s in enumerate(order) if i == 0 or pools[s] is not pools[order[i - 1]]]  # a new pool
     assert [line.split(":")[0] for line in switches] == [f"stage {s}" for s in starts], (switches, starts)
-    assert switches[0].startswith("stage simulate: 1 jobs of 2 cores / 1.07 GB,"), logs
+    assert switches[0].startswith(f"stage simulate: {pools['simulate']['count']} jobs of 2 cores / 1.07 GB,"), logs
     assert any("(2 workers of 1 cores each)" in line for line in switches), switches  # the 1-core pool
     planned = {e["stage"]: e["task_bytes"] + WORKER_BASE_BYTES for e in plan(cfg, peak_gflops=100.0)["stages"]}
     run = RunDir(run_dir)
