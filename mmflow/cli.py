@@ -116,6 +116,9 @@ def build_parser(stages=True):
                     "on jobs sized per stage from the plan, each stage's traced task peak beside the plan's)")
     cl.add_argument("--node-memory-mb", type=int, default=3000, help="each namespaced node's memory (MB)")
     cl.add_argument("--nodes", dest="cluster_nodes", default="1,2,3", help="node counts to run on, comma-separated")
+    cl.add_argument("--no-reference", dest="cluster_reference", action="store_false",
+                    help="skip the synchronous reference run (the plan against the traced peaks only: no bit "
+                    "comparison, `identical` null)")
     pp = b.add_argument_group("paper", "options of `mmflow bench paper` (workflows/paper-scale.yaml)")
     pp.add_argument("--paper-scale", choices=("full", "reduced", "small"),
                     help="full: the paper's channel (default); reduced: 64 antennas, 1/8 of the integrations, "
@@ -219,7 +222,7 @@ def _bench(args):
         options = dict(scale=args.paper_scale, overrides=args.set, source=args.paper_source)
     elif args.what == "cluster":
         options = dict(workflow=args.cluster_workflow, node_memory_mb=args.node_memory_mb,
-                       nodes=tuple(int(n) for n in args.cluster_nodes.split(",")))
+                       nodes=tuple(int(n) for n in args.cluster_nodes.split(",")), reference=args.cluster_reference)
     elif args.what == "ingest":
         options = dict(raw=args.raw)
     elif args.what == "transfer":

@@ -226,7 +226,7 @@ def run_on_slurm(slurm, n, overrides, directory, reference, memory="1GB", workfl
             **st, "no_worker_computing_s": round(wall - st["any_worker_computing_s"], 3),
             "wrapper_fraction": round(st["dask_compute_s"] / task_s - 1, 4) if task_s else None,
             "bytes_between_workers": between, "bytes_to_driver": to_driver, "store_bytes": stores,
-            "identical": store_digests(run_dir) == reference,
+            "identical": None if reference is None else store_digests(run_dir) == reference,
             "pools": [line for line in logs if line.startswith("stage ")], "config": cfg}
 
 
@@ -245,12 +245,14 @@ def array_task_sizes(proj, per_task_s):
                           for r in rows}}
 
 
-def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None, workflow="demo", node_memory_mb=3000):
+def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None, workflow="demo", node_memory_mb=3000,
+        reference=True):
     """Run the benchmark; ``slurm``: a started :class:`~mmflow.bench.netns_slurm.NamespacedSlurm` of at
     least ``max(nodes)`` nodes (the tests' session cluster), else one of ``node_memory_mb`` a node is
     started here and stopped. ``workflow``: a name of :data:`WORKFLOWS`; the demo runs on one exclusive
     1-core job a node, the others on jobs sized per stage from the plan, with their workers tracing their
-    allocations (``PYTHONTRACEMALLOC``) for :func:`plan_vs_traced`."""
+    allocations (``PYTHONTRACEMALLOC``) for :func:`plan_vs_traced`. ``reference=False``: no synchronous
+    reference run first (the plan against the traced peaks only; each run's ``identical`` is None)."""
     path, full, small, about = WORKFLOWS[workflow]
     overrides = (QUICK if quick else FULL) if workflow == "demo" else (small if quick else full)
     sized = workflow != "demo"
@@ -271,14 +273,17 @@ def run(what="cluster", quick=False, slurm=None, nodes=NODES, directory=None, wo
            "DASK_DISTRIBUTED__WORKER__MEMORY__PAUSE": "False" if sized else None}
     with (tempfile.TemporaryDirectory(prefix="mmflow-bench-cluster-", dir=directory) as root,
           restored_environ(*env)):
-        cfg = load_config(path, list(overrides) + ["cluster.kind=synchronous", f"run.directory={root}/reference"])
-        t0 = time.time()
-        summaries = run_with_passes(cfg, None, progress=False, log=lambda *a: None)
-        tasks, task_s, stores = _totals(summaries)
-        res["reference"] = {"cluster": "synchronous, in process", "wall_s": round(time.time() - t0, 2),
-                            "tasks": tasks, "task_s": round(task_s, 3), "store_bytes": stores}
-        reference = store_digests(f"{root}/reference")
-        res["reference"]["arrays"] = len(reference)
+        if reference:
+            cfg = load_config(path, list(overrides) + ["cluster.kind=synchronous", f"run.directory={root}/reference"])
+            t0 = time.time()
+            summaries = run_with_passes(cfg, None, progress=False, log=lambda *a: None)
+            tasks, task_s, stores = _totals(summaries)
+            res["reference"] = {"cluster": "synchronous, in process", "wall_s": round(time.time() - t0, 2),
+                                "tasks": tasks, "task_s": round(task_s, 3), "store_bytes": stores}
+            reference = store_digests(f"{root}/reference")
+            res["reference"]["arrays"] = len(reference)
+        else:
+            res["reference"], reference = "none (--no-reference: the plan against the traced peaks only)", None
         own = slurm is None
         try:
             if own:

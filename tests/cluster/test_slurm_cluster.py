@@ -17,7 +17,9 @@ from mmflow.cli import main
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.cluster import open_cluster
 from mmflow.workflow.engine.passes import run_with_passes
+from mmflow.workflow.engine.pools import plan_pools
 from mmflow.workflow.engine.rundir import RunDir
+from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import WORKER_BASE_BYTES, plan
 from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
 
@@ -62,11 +64,12 @@ def _sample_jobs(slurm, seen, stop):
 
 def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, paper_reference, tmp_path):
     """The reduced paper-scale workflow with no job shape given: the plan on the partition's nodes (sinfo:
-    2 CPUs, 1500 MB) gives simulate workers of 2 cores / 1 GiB and every other stage workers of 1 core /
-    512 MiB, two to a job; each stage's tasks ran on workers of its pool that hold its planned task, the
-    stages after simulate shared their jobs, the workers were on two nodes (over the bridge: the
-    scheduler on cluster.interface), the dashboard link printed is where it listens; maps bit-identical
-    (the workers' memory thresholds: tests/cluster/conftest.py)."""
+    2 CPUs, 1500 MB: 1 GiB to a job, 296 MiB of it the job's own `dask worker` process) gives the stages
+    workers of one 364 MiB share (two a job: solve, clean; normal runs with transfer) or of two (one a job:
+    the rest, whose tasks need more); each stage's tasks ran on workers of its pool that hold its planned task (dask's
+    limit memory / processes), stages of one pool in a row shared their jobs, the workers were on two
+    nodes (over the bridge: the scheduler on cluster.interface), the dashboard link printed is where it
+    listens; maps bit-identical (the workers' memory thresholds: tests/cluster/conftest.py)."""
     run_dir = tmp_path / "run"
     cfg = _paper(run_dir, "cluster.kind=slurm", "cluster.n_workers=2", "cluster.dashboard_address=:0",
                  f"cluster.interface={slurm.bridge}")
@@ -84,15 +87,22 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
     finally:
         stop.set()
         sampler.join(5)
+    planned_pools = plan_pools(cfg, "slurm", {}, log=lambda *a: None)  # what the run asked sinfo's nodes for
+    # a stage run channel by channel after another (normal after transfer) runs in that one's pool
+    pools = {st.name: planned_pools[st.by_channel_after or st.name] for st in PIPELINE if st.name in planned_pools}
+    order = list(pools)
     switches = [line for line in logs if line.startswith("stage ")]
-    assert switches[0].startswith("stage simulate: 1 jobs of 2 cores / 1.07 GB,"), logs
-    assert len(switches) == 2 and "(2 workers of 1 cores each)" in switches[1], switches  # one switch: shared jobs
+    starts = [s for i, s in enumerate(order) if i == 0 or pools[s] is not pools[order[i - 1]]]  # a new pool
+    assert [line.split(":")[0] for line in switches] == [f"stage {s}" for s in starts], (switches, starts)
+    assert switches[0].startswith(f"stage simulate: {pools['simulate']['count']} jobs of 2 cores / 1.07 GB,"), logs
+    assert any("(2 workers of 1 cores each)" in line for line in switches), switches  # the 1-core pool
     planned = {e["stage"]: e["task_bytes"] + WORKER_BASE_BYTES for e in plan(cfg, peak_gflops=100.0)["stages"]}
     run = RunDir(run_dir)
     for name, need in planned.items():
         infos = [i for i in run.task_infos(name).values() if "worker" in i]
         limits = {i["worker_memory_bytes"] for i in infos}
-        assert limits == ({2 ** 30} if name == "simulate" else {2 ** 29}), (name, limits, infos, logs)
+        pool = pools[name]
+        assert limits == {2 ** 30 // pool["processes"]}, (name, limits, pool, logs)  # a job: 1 GiB / its workers
         assert need < 0.95 * min(limits), (name, need, limits)  # below dask's kill threshold
     assert {c for c, _, _ in seen.values()} == {2} and len({n for _, _, n in seen.values()}) >= 2, seen
     assert_identical(paper_reference, read_outputs(run_dir))

@@ -80,6 +80,24 @@ def test_cluster_slurm_alone_gets_cores_memory_logs_and_lifetime(tmp_path, monke
     assert opts["cores"] == 4 and opts["memory"] == "8GB"
 
 
+def test_a_jobs_default_memory_holds_its_own_process_beside_its_worker(tmp_path, monkeypatch):
+    """A job's own `dask worker` process (nannies; it imports the workers' --preload) is SLURM's to count
+    with the worker: a largest task of 2 GB with the worker's baseline asks 1.5 x 2 GB and 296 MiB,
+    rounded up to half a GB (3.5 GB), where the worker alone would have asked 3.0 GB."""
+    import dask_jobqueue  # noqa: F401  (loads dask's jobqueue.yaml defaults, as jobqueue_cluster does)
+    from dask.utils import parse_bytes
+
+    from mmflow.workflow.engine import batch
+    from mmflow.workflow.plan.nodes import JOB_PROCESS_BYTES
+
+    monkeypatch.setenv("PATH", str(tmp_path))  # no sinfo: node sizes unknown
+    monkeypatch.setattr(batch, "largest_task_gb", lambda cfg: 2.0)
+    said = []
+    opts, _ = job_options(small_config(tmp_path / "run", "cluster.kind=slurm"), "slurm", said.append)
+    assert 3.0e9 < 3.0e9 + JOB_PROCESS_BYTES <= parse_bytes(opts["memory"]) == pytest.approx(3.5e9, rel=1e-3)
+    assert "the job's own process 0.31 GB" in said[0]
+
+
 def test_queued_jobs_are_described_with_their_reasons():
     assert QueueState().waiting() is None
     st = QueueState(pending=[("1", "Priority"), ("2", "Resources"), ("3", "Priority")])

@@ -15,7 +15,7 @@ from mmflow.cli import main
 from mmflow.errors import InputError
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.plan import jobs, nodes
-from mmflow.workflow.plan.nodes import MIB, Node, node_from_sinfo, node_size, parse_sinfo
+from mmflow.workflow.plan.nodes import JOB_PROCESS_BYTES, MIB, Node, node_from_sinfo, node_size, parse_sinfo
 
 ROOT = Path(__file__).resolve().parents[2]
 PEAK = 197.0  # the constants' reference SGEMM peak (plan/costs.json)
@@ -75,8 +75,9 @@ def test_bad_sinfo_and_no_sinfo_are_refused_naming_the_options(monkeypatch):
 def test_job_shapes_of_the_demo_from_a_given_node_size():
     cfg = load_config(_wf("demo.yaml"))
     node = node_size(8, "32GB")
-    share = node.core_memory_bytes // MIB  # 29 whole GiB to a job (dask-jobqueue rounds --mem up to GiB), by 8
-    assert share * 8 <= 29 * 1024 and node.job_memory_bytes == 29 * 2 ** 30
+    # 29 whole GiB to a job (dask-jobqueue rounds --mem up to GiB), less the job's own process, by 8
+    share, own = node.core_memory_bytes // MIB, JOB_PROCESS_BYTES // MIB
+    assert 29 * 1024 - 8 <= share * 8 + own <= 29 * 1024 and node.job_memory_bytes == 29 * 2 ** 30
     res = _plan(cfg, node, nodes=2)
     assert res["settings"] == {} and res["nodes"] == 2
     _fits_its_worker(res)
@@ -86,9 +87,9 @@ def test_job_shapes_of_the_demo_from_a_given_node_size():
     for stage, j in shapes.items():  # the demo's tasks are small: standard workers (a core, 4 GB)
         assert j["worker_cores"] == 1 and j["cores"] == j["processes"] and 1 <= j["count"] <= 2
         assert j["processes"] == min(8, -(-rows[stage]["tasks"] // j["count"]))  # whole nodes where filled
-        assert j["memory"] == f"{j['processes'] * share}MiB"
+        assert j["memory"] == f"{j['processes'] * share + own}MiB"
         assert re.fullmatch(r"\d\d:[0-5]\d:00", j["walltime"])
-    assert shapes["simulate"]["processes"] == 8 and shapes["simulate"]["memory"] == f"{8 * share}MiB"
+    assert shapes["simulate"]["processes"] == 8 and shapes["simulate"]["memory"] == f"{8 * share + own}MiB"
     for n in (1, 5):  # a pure function of the plan and a node count: no more jobs than the tasks fill
         for stage, j in jobs.job_shapes(res, n).items():
             assert j["count"] == min(n, -(-rows[stage]["tasks"] // 8))
@@ -110,7 +111,7 @@ def test_the_paper_channel_gets_larger_workers_only_where_its_tasks_need_them():
     assert rows["transfer"]["workers_per_node"] == 16 and rows["mmodes"]["workers_per_node"] == 32
     t = shapes["transfer"]  # its 8 tasks: one job of 8 workers of 2 cores, 8 GB each
     assert (t["count"], t["processes"], t["worker_cores"], t["cores"]) == (1, 8, 2, 16)
-    assert t["memory"] == f"{16 * node.core_memory_bytes // MIB}MiB"
+    assert t["memory"] == f"{(16 * node.core_memory_bytes + JOB_PROCESS_BYTES) // MIB}MiB"
     assert t["task_memory_bytes"] <= t["worker_memory_bytes"] * jobs.terminate_fraction()
     assert t["task_memory_bytes"] == pytest.approx(rows["transfer"]["task_gb"] * GB, abs=1)
     # the live stores' peak: the visibilities gone after mmodes, the partials (11.2 GB, packed) after normal
@@ -182,7 +183,8 @@ def test_a_task_no_split_fits_is_refused_naming_the_limit():
         _plan(cfg, Node(32, 16 * GB), ingest=jobs.layout_ingest(cfg))
     msg = str(err.value)
     assert "stage transfer" in msg and "even with transfer.baseline_chunk=1" in msg
-    assert "the 14.28 GB a worker may hold on a node of 16.00 GB" in msg  # 14 GiB to a job, 95 % of it
+    # 14 GiB to a job, less its own process, in whole MiB a core (438 x 32), 95 % of it
+    assert "the 13.96 GB a worker may hold on a node of 16.00 GB" in msg
     assert "mmode.lmax" in msg and "--node-memory" in msg
 
 
@@ -202,7 +204,8 @@ def test_the_cli_reads_the_nodes_from_sinfo_or_says_what_to_give(monkeypatch, ca
     assert main(args) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["node"] == {"cores": 32, "memory_gb": 128000 * 1024 ** 2 / GB, "partition": "compute",
-                           "source": "sinfo", "available": 14, "core_memory_bytes": 4000 * MIB}  # 125 GiB / 32
+                           "source": "sinfo", "available": 14,
+                           "core_memory_bytes": 3990 * MIB}  # 125 GiB less the job's own process, by 32
     assert 1 <= out["nodes"] <= 14  # no more nodes than the partition has
     assert main(args + ["--partition", "bigmem"]) == 0
     assert json.loads(capsys.readouterr().out)["node"]["cores"] == 128
@@ -239,4 +242,5 @@ def test_every_job_dask_jobqueue_submits_fits_the_nodes_memory():
     for stage, j in res["jobs"].items():
         mem = slurm_format_bytes_ceil(parse_bytes(j["memory"]))  # what the job script says
         assert mem.endswith("G") and int(mem[:-1]) * 1024 <= 128500, (stage, j["memory"], mem)
-        assert parse_bytes(j["memory"]) / j["processes"] == j["worker_memory_bytes"]  # dask's worker limit
+        # its workers' shares and its own process; dask's limit for a worker, memory / processes, holds its share
+        assert parse_bytes(j["memory"]) - JOB_PROCESS_BYTES == j["processes"] * j["worker_memory_bytes"]

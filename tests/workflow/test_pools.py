@@ -8,7 +8,7 @@ from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.batch import lifetime_args
 from mmflow.workflow.engine.pools import StagePools, describe, job_prologue, plan_pools
 from mmflow.workflow.plan import jobs
-from mmflow.workflow.plan.nodes import MIB, Node
+from mmflow.workflow.plan.nodes import JOB_PROCESS_BYTES, MIB, Node
 from tests.workflow_helpers import small_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -32,7 +32,8 @@ def test_stages_of_one_worker_share_a_pool_and_larger_workers_serve_only_those_t
         assert pool["count"] == max(j["count"] for j in mine) and pool["processes"] == max(j["processes"] for j in mine)
         assert pool["task_memory_bytes"] <= pool["worker_memory_bytes"] * jobs.terminate_fraction()
         assert pool["cores"] == pool["processes"] * pool["worker_cores"] <= 32  # a job fits a node
-        assert pool["memory"] == f"{pool['cores'] * Node(32, 128 * GB).core_memory_bytes // MIB}MiB"
+        share = Node(32, 128 * GB).core_memory_bytes  # a core's, beside the job's own process
+        assert pool["memory"] == f"{(pool['cores'] * share + JOB_PROCESS_BYTES) // MIB}MiB"
     assert pools["transfer"]["worker_cores"] == 2 and pools["transfer"]["stages"] == ["transfer"]
     assert pools["mmodes"] is pools["normal"] and pools["mmodes"]["worker_cores"] == 1
 
@@ -103,7 +104,8 @@ def test_jobs_are_sized_per_stage_only_when_the_workflow_gives_no_shape_and_sinf
     said = []
     pools = plan_pools(cfg, "slurm", {}, said.append)
     assert pools is not None and set(pools) == {"simulate", "mmodes", "transfer", "normal", "solve", "products"}
-    assert all(p["worker_memory_bytes"] == 512 * MIB for p in pools.values())
+    # 1 GiB to a job, less its own process, by 2 cores: workers of one or two 364 MiB shares
+    assert all(p["worker_memory_bytes"] == p["worker_cores"] * 364 * MIB for p in pools.values())
     assert "sized per stage from the plan" in said[0]
     assert plan_pools(cfg, "slurm", {"cores": 2}, said.append) is None  # the workflow's shape wins
     assert plan_pools(cfg, "pbs", {}, said.append) is None  # no sinfo: one shape, as before

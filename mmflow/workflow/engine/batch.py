@@ -147,7 +147,8 @@ def job_options(cfg, kind, log=print, opts=None):
     with what it leaves out filled in, ready for dask-jobqueue.
 
     * cores and memory, when neither ``cluster.jobqueue`` nor dask's jobqueue.yaml gives them:
-      ``cluster.threads_per_worker`` cores and 1.5x the plan's largest task (at least 2 GB), capped
+      ``cluster.threads_per_worker`` cores and 1.5x the plan's largest task and the job's own ``dask worker``
+      process (:data:`mmflow.workflow.plan.nodes.JOB_PROCESS_BYTES`; at least 2 GB), capped
       at the largest node of the partition (``sinfo``);
     * ``log_directory``: ``<run.directory>/cluster-logs`` (the driver reads the workers' errors
       there); ``$USER``-style variables expanded in it and in ``local_directory`` (``#SBATCH``
@@ -168,12 +169,15 @@ def job_options(cfg, kind, log=print, opts=None):
         opts["cores"] = c.threads_per_worker
         filled.append(f"cores {opts['cores']}")
     if opts.get("memory") is None and jobqueue_default(kind, "memory") is None:
+        from mmflow.workflow.plan.nodes import JOB_PROCESS_BYTES  # deferred: as largest_task_gb's plan
+
         task = largest_task_gb(cfg)
-        gb = max(2.0, math.ceil(1.5 * task * 2) / 2)
+        gb = max(2.0, math.ceil((1.5 * task + JOB_PROCESS_BYTES / 1e9) * 2) / 2)
         if sizes:
             gb = min(gb, max(m for _, m in sizes) * 2 ** 20 / 1e9)
         opts["memory"] = format_bytes(int(gb * 1e9)).replace(" ", "")
-        filled.append(f"memory {opts['memory']} (the plan's largest task {task:.2f} GB x1.5, at least 2 GB"
+        filled.append(f"memory {opts['memory']} (the plan's largest task {task:.2f} GB x1.5 and the job's own "
+                      f"process {JOB_PROCESS_BYTES / 1e9:.2f} GB, at least 2 GB"
                       + (", at most a node's" if sizes else "") + ")")
     if opts.get("processes") is None and jobqueue_default(kind, "processes") is None:
         opts["processes"] = 1

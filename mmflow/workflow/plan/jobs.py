@@ -13,8 +13,9 @@ and a node's cores and memory (:mod:`mmflow.workflow.plan.nodes`), per stage:
   stated, and applies to every stage (all are re-planned with it). Where even the last does not fit
   the run is refused, naming the stage, its memory and the node's;
 - **the jobs**: per stage one job per node it can fill, of the stage's workers on that node (``cores``,
-  ``memory``, ``processes``), and a walltime of :data:`WALLTIME_MARGIN` times the stage's planned time on the
-  nodes plus :data:`JOB_START_S`;
+  ``memory``: their shares and the job's own ``dask worker`` process,
+  :data:`mmflow.workflow.plan.nodes.JOB_PROCESS_BYTES`; ``processes``), and a walltime of
+  :data:`WALLTIME_MARGIN` times the stage's planned time on the nodes plus :data:`JOB_START_S`;
 - **the nodes**: as given (``--nodes``), else the fewest whose planned wall time is within
   :data:`NEAR_FASTEST` of the time with every stage's tasks in one round (at most the partition's nodes).
 
@@ -39,7 +40,7 @@ from mmflow.workflow.config.schema import WorkflowConfig
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.engine.geometry import n_integrations
 from mmflow.workflow.pipeline import PIPELINE
-from mmflow.workflow.plan.nodes import MIB, Node
+from mmflow.workflow.plan.nodes import Node, job_memory
 from mmflow.workflow.plan.planner import (COSTS_FILE, WORKER_BASE_BYTES, duration, estimate, free_disk_gb, geometry,
                                           load_costs, run_live_stores, task_seconds)
 
@@ -295,8 +296,10 @@ def job_shapes(plan_result, nodes=None):
     dict
         ``{stage: {cores, memory, processes, worker_cores, walltime, count, ...}}``: per node one job of
         ``processes`` workers of ``worker_cores`` cores each (``cores`` in all) and ``memory``
-        (dask-jobqueue's text in whole MiB, e.g. ``"99200MiB"``), ``count`` jobs; neither more jobs nor more workers
-        in a job than the stage's tasks fill. ``worker_memory_bytes`` (a worker's limit) and
+        (dask-jobqueue's text in whole MiB, e.g. ``"99200MiB"``: the workers' shares and the job's own process,
+        :func:`mmflow.workflow.plan.nodes.job_memory`), ``count`` jobs; neither more jobs nor more workers
+        in a job than the stage's tasks fill. ``worker_memory_bytes`` (a worker's shares: dask's limit for it
+        is at least these) and
         ``task_memory_bytes`` (the stage's largest task with a worker's baseline) let the cluster code
         route the tasks, e.g. as dask worker resources.
     """
@@ -306,7 +309,7 @@ def job_shapes(plan_result, nodes=None):
     for r in plan_result["stages"]:
         count, k = stage_jobs(r, n), r["worker_cores"]
         p = min(r["workers_per_node"], math.ceil(r["tasks"] / count))  # a job no larger than its tasks fill
-        out[r["stage"]] = {"cores": p * k, "memory": f"{p * k * core_mem // MIB}MiB", "processes": p,
+        out[r["stage"]] = {"cores": p * k, "memory": job_memory(p * k, core_mem), "processes": p,
                            "worker_cores": k, "walltime": _walltime(stage_seconds(r, n)), "count": count,
                            "worker_memory_bytes": k * core_mem,
                            "task_memory_bytes": math.ceil(r["task_gb"] * 1e9)}
@@ -343,7 +346,7 @@ def worker_pools(plan_result, nodes=None):
         out[stage] = pool
     for pool in pools.values():
         pool["cores"] = pool["processes"] * pool["worker_cores"]
-        pool["memory"] = f"{pool['cores'] * core_mem // MIB}MiB"
+        pool["memory"] = job_memory(pool["cores"], core_mem)
     return out
 
 

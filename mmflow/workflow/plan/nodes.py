@@ -22,6 +22,12 @@ SINFO_COMMAND = ("sinfo", "-h", "-o", "%c %m %D %P")
 SLURM_MB = 1024 ** 2
 MIB = 1024 ** 2
 GIB = 1024 ** 3
+#: a batch job's own ``dask worker`` process (the nannies of its workers), once a job whatever its workers: it
+#: imports the workers' ``--preload`` (``mmflow.workflow.engine.batch.WORKER_PRELOAD``: the stages and numba's
+#: runtime) to check its arguments (``distributed.preloading.validate_preload_argv``), so it holds about what a
+#: worker does: 0.305 GB resident beside each worker's 0.323 GB (one or two workers a job, measured 2026-11-28;
+#: docs/clusters.md). SLURM's memory limit counts it with the job's workers; dask's limit for each worker does not
+JOB_PROCESS_BYTES = 296 * MIB
 
 
 @dataclass(frozen=True)
@@ -44,9 +50,17 @@ class Node:
 
     @property
     def core_memory_bytes(self):
-        """Memory per core, whole MiB: a standard worker's (one core); a job of ``n`` cores asks for
-        ``n`` of them, at most :attr:`job_memory_bytes`."""
-        return math.floor(self.job_memory_bytes / self.cores / MIB) * MIB
+        """Memory per core, whole MiB: a standard worker's (one core), of what a job may ask for less its own
+        process (:data:`JOB_PROCESS_BYTES`); a job of ``n`` cores asks for ``n`` of them and its process
+        (:func:`job_memory`), at most :attr:`job_memory_bytes`."""
+        return math.floor((self.job_memory_bytes - JOB_PROCESS_BYTES) / self.cores / MIB) * MIB
+
+
+def job_memory(cores, core_memory_bytes):
+    """A job's memory as dask-jobqueue takes it (whole MiB, e.g. ``"99008MiB"``): ``cores`` core shares and the
+    job's own process, :math:`n_{cores} s + J` (:data:`JOB_PROCESS_BYTES`); dask-jobqueue gives each of the job's
+    ``processes`` workers :math:`1/p` of it, so a worker's limit is at least its shares."""
+    return f"{(cores * core_memory_bytes + JOB_PROCESS_BYTES) // MIB}MiB"
 
 
 def parse_sinfo(text):

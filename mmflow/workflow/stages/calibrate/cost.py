@@ -1,7 +1,20 @@
-"""The calibrate stage's cost: a task per solution interval and channel, holding the interval's data and
-each calibrator's model (complex128), and with screened sources the screen rounds' arrays and a batch's
-antenna matrices (a batch of at most the interval's integrations), the ``vis.zarr`` chunks its read
-decodes, and the code its first task loads.
+"""The calibrate stage's cost: a task per solution interval and channel, in two phases that never overlap.
+
+* the read (:func:`mmflow.workflow.engine.blocks.read_block`): the ``vis.zarr`` chunks zarr decodes at once,
+  beside the block as read (complex128 + float64);
+* the solve: the interval's data and each calibrator's model (complex128), with screened sources the screen
+  rounds' arrays and a batch's antenna matrices (a batch of at most the interval's integrations), and the
+  code its first task loads.
+
+The decoded chunks are freed when the read returns, before the solve allocates, so the working set is
+the larger phase, not their sum:
+
+.. math:: W = \\max(D + 24\\,S,\\; C + S\\,(48 + 16\\,n_{src}) + W_{screen}),
+
+``S = L n_{bl} n_{pol}`` the interval's samples, ``D`` the decoded chunks, ``C`` the code. Many
+baselines and few integrations (352 antennas over a short track, one integration per solve) make ``D``
+(whole chunks of :data:`TIME_CHUNK` integrations) the peak: traced 0.131 GB for the read alone and
+0.133 GB for the task in a fresh process, where the sum of both phases planned 0.18 GB.
 
 Each screen round costs ~4 catalogue solves: a gain solve and the screen fits' antenna matrices
 (``mmflow bench calibrate``, gains_screened; docs/calibration.md).
@@ -14,6 +27,9 @@ from mmflow.io import run_stores as rs
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work
 
+#: bytes per sample of the block while its read decodes: the complex128 visibilities and float64 weights it
+#: returns (the vis read's complex64 and the weights' float32 decoded chunks, half the vis', fit within these)
+READ_SAMPLE_BYTES = CORRECTED_SAMPLE_BYTES
 #: bytes per sample of the interval as the task holds it: the block read (complex128 + float64) and its
 #: selected, ripple-corrected copy (:func:`mmflow.calibrate.ripple.apply_ripple`)
 HELD_SAMPLE_BYTES = 2 * CORRECTED_SAMPLE_BYTES
@@ -30,7 +46,8 @@ SCREEN_MATRICES = 6
 SCREEN_BATCH = 16
 #: chunks zarr decodes at once (its ``async.concurrency``, 10 by default): an interval of a few integrations
 #: reads whole ``vis.zarr`` chunks of ``TIME_CHUNK x mmode.baseline_chunk`` samples (zarr allocates a chunk's
-#: full shape, also for a short last time chunk), which then outweigh its own arrays
+#: full shape, also for a short last time or baseline chunk), which then outweigh its own arrays; freed when
+#: the read returns
 ZARR_CONCURRENCY = 10
 #: bytes of a decoded visibility (complex64, as ``vis.zarr`` holds it)
 DECODED_SAMPLE_BYTES = 8.0
@@ -56,12 +73,15 @@ def work(g, cfg):
     n_src, rounds, interval = solve_sizes(g, cfg)
     L = min(interval, g.n_time)
     n_int = -(-g.n_time // L) if cfg.calibrate.solint_s else 1  # null: one solve, on the track
+    samples = L * g.n_bl * g.n_pol
     decoded = min(-(-g.n_bl // g.mmode_chunk), ZARR_CONCURRENCY) * TIME_CHUNK * g.mmode_chunk * DECODED_SAMPLE_BYTES
-    w = CODE_BYTES + decoded + L * g.n_bl * g.n_pol * (HELD_SAMPLE_BYTES + COMPLEX128_BYTES * max(1, n_src))
+    read = decoded + samples * READ_SAMPLE_BYTES
+    solve = CODE_BYTES + samples * (HELD_SAMPLE_BYTES + COMPLEX128_BYTES * max(1, n_src))
     if rounds:  # the screen fits' arrays; a batch's antenna matrices (an interval shorter than a batch: its own)
         batch = min(SCREEN_BATCH, L)
-        w += ((L * SCREEN_SAMPLE_BYTES + batch * SCREEN_BATCH_SAMPLE_BYTES) * g.n_bl * g.n_pol
-              + SCREEN_MATRICES * batch * COMPLEX128_BYTES * g.n_pol * g.n_ant ** 2)
+        solve += ((L * SCREEN_SAMPLE_BYTES + batch * SCREEN_BATCH_SAMPLE_BYTES) * g.n_bl * g.n_pol
+                  + SCREEN_MATRICES * batch * COMPLEX128_BYTES * g.n_pol * g.n_ant ** 2)
+    w = max(read, solve)  # the decoded chunks are freed before the solve allocates
     spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                           np.zeros((n_int, 2), int), {}, n_src=max(1, n_src))
     units = L * g.n_bl * g.n_pol * max(1, n_src) * (1 + 4 * rounds)
