@@ -12,6 +12,9 @@ fitted to (the records draw PNGs; this run does not).
 :data:`NOT_THE_MODEL` names any stage whose planned memory cannot meet the bound for a reason that is
 not its cost model's (a library's own buffers, say), with why; such a stage is still checked, against
 that reason, and the test fails when the reason no longer holds (the entry is then to be removed).
+
+The same warm run holds issue 21's chunk bound (:func:`test_task_memory_does_not_grow_with_the_integrations`,
+a 256-integration chain after it); the 352-antenna array's stages are checked apart, up to the m-modes.
 """
 import tracemalloc
 
