@@ -14,11 +14,11 @@ os.environ.setdefault("MMFLOW_CACHE_DIR", str(Path(__file__).resolve().parents[1
 #: --no-loadscope-reorder`` (``make test``) no long file is left running alone at the end (a scheduling
 #: hint; measured, docs/performance.md). Without ``--no-loadscope-reorder`` xdist sorts the files by
 #: their number of tests and the one-test README tour (~3 min) started last.
-LONGEST_FIRST = ("test_slurm_cluster.py", "test_readme.py", "test_raw_day.py", "test_plan_traced.py",
-                 "test_calibration_workflow.py", "test_four_correlation_peel.py",
-                 "test_faults.py", "test_workflow.py", "test_clean_stage.py",
-                 "test_cluster.py", "test_stokes_workflow.py",
-                 "test_calibration_ingest.py", "test_models_stage.py", "test_plan.py")
+LONGEST_FIRST = ("test_slurm_cluster.py", "test_readme.py", "test_plan_traced.py", "test_stokes_workflow.py",
+                 "test_raw_day.py", "test_calibration_workflow.py", "test_four_correlation_peel.py",
+                 "test_clean_stage.py", "test_calibration_ingest.py", "test_faults.py", "test_workflow.py",
+                 "test_cluster.py", "test_independent_peel.py", "test_channel_blocks.py", "test_models_stage.py",
+                 "test_plan.py")
 
 
 def pytest_collection_modifyitems(config, items):

@@ -17,7 +17,7 @@ from mmflow.workflow.engine.context import Context
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.engine.runner import run_workflow
 
-CHAIN = ["observation.freqs_mhz=[40.0, 47.0]", "observation.integration_s=172.3281810",  # 512: two time chunks
+CHAIN = ["observation.freqs_mhz=[40.0, 47.0]", "observation.integration_s=269.2627828",  # 320: two time chunks
          "telescope.radius_m=18", "mmode.lmax=20", "cluster.kind=synchronous",
          "calibrate.solint_s=3600"]  # hourly solutions: the demo's 600 s make six times the calibrate tasks
 UPTO = ("simulate", "calibrate", "peel", "terrestrial")
