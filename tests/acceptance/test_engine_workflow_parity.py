@@ -9,6 +9,7 @@ from mmflow.io.run_stores import STORES
 from mmflow.imaging.solvers import solve_alm
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.noise import relative_weights
+from mmflow.mmode.normal import unpack_upper
 from mmflow.workflow.engine.context import _telescope
 from mmflow.workflow.engine.runner import run_workflow
 from tests.workflow_helpers import small_config
@@ -44,7 +45,7 @@ def test_workflow_normal_equations_and_alm_equal_the_engine(tmp_path, groups):
     for m in range(lmax + 1):
         m0 = m - m % m_block
         n = lmax - m + 1
-        stored = ng[STORES.normal.gram(0, m0)][m - m0, :n, :n]
+        stored = unpack_upper(ng[STORES.normal.gram(0, m0)][m - m0], lmax - m0 + 1)[:n, :n]  # packed, padded
         same(np.triu(stored), np.triu(acc.gram[m]))
         same(ng["rhs"][0, 0, m, m:], acc.rhs[m][0].astype(np.complex128))
     im = cfg.imaging
