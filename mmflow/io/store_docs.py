@@ -16,6 +16,7 @@ import re
 
 import numpy as np
 
+from mmflow.io import calibration_stores as cs
 from mmflow.io import run_stores as rs
 
 #: builder parameters that set chunk sizes (their reference values are distinct from every axis length)
@@ -55,13 +56,13 @@ def reference_stores():
                                sources=(8, 10, 16))),
         (rs.transfer_store, dict(nf=N_FREQ, nbl=nbl, lmax=LMAX, mmax=LMAX, baseline_chunk=12, dtype="complex64",
                                  orders=[np.arange(nbl)] * N_FREQ)),
-        (rs.gains_store, dict(n_interval=n_int, nf=N_FREQ, n_ant=N_ANT, npol=npol, n_time=N_TIME, solve_rows=rows,
+        (cs.gains_store, dict(n_interval=n_int, nf=N_FREQ, n_ant=N_ANT, npol=npol, n_time=N_TIME, solve_rows=rows,
                               apply_rows=rows, attrs={}, n_src=3)),
-        (rs.peel_store, dict(n_time=N_TIME, nf=N_FREQ, n_src=3, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK,
+        (cs.peel_store, dict(n_time=N_TIME, nf=N_FREQ, n_src=3, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK,
                              attrs={}, cross=True)),
-        (rs.models_store, dict(nf=N_FREQ, n_src=3, n_comp=4, attrs={})),
-        (rs.diffuse_store, dict(nf=N_FREQ, n_samples=42, nbl=nbl, n_feed=2, sample_block=8)),
-        (rs.terrestrial_store, dict(n_chunks=math.ceil(N_TIME / TIME_CHUNK), n_time=N_TIME, nf=N_FREQ, nbl=nbl,
+        (cs.models_store, dict(nf=N_FREQ, n_src=3, n_comp=4, attrs={})),
+        (cs.diffuse_store, dict(nf=N_FREQ, n_samples=42, nbl=nbl, n_feed=2, sample_block=8)),
+        (cs.terrestrial_store, dict(n_chunks=math.ceil(N_TIME / TIME_CHUNK), n_time=N_TIME, nf=N_FREQ, nbl=nbl,
                                     n_comp=2, n_ant=N_ANT, npol=npol, time_chunk=TIME_CHUNK, cross=True)),
         (rs.clean_store, dict(nf=N_FREQ, lmax=LMAX, mmax=LMAX, m_block=M_BLOCK, n_dec=5, max_cycles=6, n_peaks=7,
                               npix=12 * 4 ** 2, keep_factors=True)),
@@ -69,9 +70,9 @@ def reference_stores():
 
 
 def store_builders():
-    """Every ``*_store`` function defined in :mod:`mmflow.io.run_stores`."""
-    return [f for name, f in vars(rs).items()
-            if name.endswith("_store") and inspect.isfunction(f) and f.__module__ == rs.__name__]
+    """Every ``*_store`` function defined in :mod:`mmflow.io.run_stores` and :mod:`mmflow.io.calibration_stores`."""
+    return [f for mod in (rs, cs) for name, f in vars(mod).items()
+            if name.endswith("_store") and inspect.isfunction(f) and f.__module__ == mod.__name__]
 
 
 def pattern(name):

@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mmflow.io import run_stores as rs
+from mmflow.io import calibration_stores as cs
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work
 
@@ -82,7 +82,7 @@ def work(g, cfg):
         solve += ((L * SCREEN_SAMPLE_BYTES + batch * SCREEN_BATCH_SAMPLE_BYTES) * g.n_bl * g.n_pol
                   + SCREEN_MATRICES * batch * COMPLEX128_BYTES * g.n_pol * g.n_ant ** 2)
     w = max(read, solve)  # the decoded chunks are freed before the solve allocates
-    spec = rs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
+    spec = cs.gains_store(n_int, g.n_freq, g.n_ant, g.n_pol, g.n_time, np.zeros((n_int, 2), int),
                           np.zeros((n_int, 2), int), {}, n_src=max(1, n_src))
     units = L * g.n_bl * g.n_pol * max(1, n_src) * (1 + 4 * rounds)
     return Work(n_int * g.n_freq, w, units, [spec])

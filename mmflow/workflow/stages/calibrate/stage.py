@@ -52,7 +52,8 @@ from mmflow.calibrate.gain_apply import apply_gains, apply_gains_autos
 from mmflow.calibrate.stefcal import best_track
 from mmflow.errors import InputError
 from mmflow.conventions import CROSS_FEEDS
-from mmflow.io.run_stores import STORES, gains_store
+from mmflow.io.calibration_stores import gains_store
+from mmflow.io.run_stores import STORES
 from mmflow.sky.sources import get_sources
 from mmflow.telescope.jones import feed_telescopes
 from mmflow.workflow.engine.baseline_cuts import check_baselines, resolved_cuts, solve_mask

@@ -28,7 +28,7 @@ Offsets are east/north on the tangent plane of the frame of date;
 :func:`mmflow.workflow.engine.peel_models.fitted_sources` turns
 them into :class:`mmflow.sky.sources.Source` components (east/north of the ICRS position: the
 frames' north differ by < 0.1 deg, < 0.01' on these offsets). ``models.zarr`` (see
-:func:`mmflow.io.run_stores.models_store`) is read by the peel stage, which copies the fits into
+:func:`mmflow.io.calibration_stores.models_store`) is read by the peel stage, which copies the fits into
 ``peel.zarr``'s attributes
 (:func:`mmflow.workflow.engine.peel_models.fitted_tables`) for its tasks and its ``apply`` alike.
 """
@@ -40,7 +40,8 @@ from mmflow.calibrate.coherency import apparent_flux, source_coherencies, source
 from mmflow.calibrate.source_models import (ARCMIN, GaussianComponent, fit_fluxes, fit_gaussian_components,
                                             fit_point_position, pack_components, source_uvw, symmetric_start)
 from mmflow.errors import InputError
-from mmflow.io.run_stores import STORES, MODEL_COLUMNS, models_store
+from mmflow.io.calibration_stores import MODEL_COLUMNS, models_store
+from mmflow.io.run_stores import STORES
 from mmflow.sky.sources import epoch_year, get_sources
 from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.workflow.engine.baseline_cuts import solve_mask

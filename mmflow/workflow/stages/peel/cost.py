@@ -9,7 +9,7 @@ the templates and the stacked design matrix with its weighted copy, complex128, 
 from __future__ import annotations
 
 from mmflow.conventions import is_full_stokes
-from mmflow.io import run_stores as rs
+from mmflow.io import calibration_stores as cs
 from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, Cost, Work
@@ -47,7 +47,7 @@ def work(g, cfg):
                        + CORRECTED_SAMPLE_BYTES * cross + MODEL_SAMPLE_BYTES * n_corr * n_src)
          + (n_src * MATRIX_ELEMENT_BYTES + BATCH_MATRIX_BYTES) * BATCH_INTEGRATIONS * g.n_pol * g.n_ant ** 2
          + BATCH_INTEGRATIONS * g.n_bl * cross * n_src * CROSS_FIT_SAMPLE_BYTES)  # the cross fit, a batch at a time
-    spec = rs.peel_store(g.n_time, g.n_freq, n_src, g.n_ant, g.n_pol, TIME_CHUNK, {}, cross=four)
+    spec = cs.peel_store(g.n_time, g.n_freq, n_src, g.n_ant, g.n_pol, TIME_CHUNK, {}, cross=four)
     return Work(g.n_time_chunks * g.n_freq, w, T * g.n_bl * g.n_pol * n_src, [spec])
 
 

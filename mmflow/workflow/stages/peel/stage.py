@@ -54,7 +54,8 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.peel import PEEL, SUBTRACT
-from mmflow.io.run_stores import STORES, PEEL_MODES, peel_store
+from mmflow.io.calibration_stores import PEEL_MODES, peel_store
+from mmflow.io.run_stores import STORES
 from mmflow.workflow.engine.baseline_cuts import check_baselines
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys

@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mmflow.io import run_stores as rs
+from mmflow.io import calibration_stores as cs
 from mmflow.simulate.drift_modes import n_samples
 from mmflow.conventions import is_full_stokes
 from mmflow.simulate.scene import diffuse_columns, diffuse_quad_lmax
@@ -85,7 +85,7 @@ def work(g, cfg):
     n_d = g.n_freq * -(-sky.diffuse_samples // DIFFUSE_SAMPLE_BLOCK)
     w += (sky.diffuse_samples * g.n_bl * sky.feed_columns * DIFFUSE_SAMPLE_BYTES
           + T * g.n_bl * sky.feed_columns * COMPLEX128_BYTES)
-    spec = rs.diffuse_store(g.n_freq, sky.diffuse_samples, g.n_bl, sky.feed_columns, DIFFUSE_SAMPLE_BLOCK)
+    spec = cs.diffuse_store(g.n_freq, sky.diffuse_samples, g.n_bl, sky.feed_columns, DIFFUSE_SAMPLE_BLOCK)
     return Work(g.n_time_chunks + n_d, w, units, [vis_spec(g), spec])
 
 

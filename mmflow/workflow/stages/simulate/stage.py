@@ -27,7 +27,8 @@ import numpy as np
 from mmflow.calibrate.coherency import source_vector_date
 from mmflow.conventions import drift_scan_lsts, drift_scan_times, is_full_stokes
 from mmflow.io.raw_files import RAW_DIR, raw_path, write_raw_chunk
-from mmflow.io.run_stores import STORES, diffuse_store, vis_store
+from mmflow.io.calibration_stores import diffuse_store
+from mmflow.io.run_stores import STORES, vis_store
 from mmflow.simulate.corrupt import day_corruptions, sun_points, utc_at_lsts
 from mmflow.simulate.drift_modes import coefficients_from_samples, evaluate_drift, n_samples, sample_lsts
 from mmflow.simulate.scene import (diffuse_columns, diffuse_points, drift_samples, joined, polarised_sky_points,

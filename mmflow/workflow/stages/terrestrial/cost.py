@@ -5,7 +5,7 @@ its weights, the masked data and their product (:data:`SUMS_SAMPLE_BYTES`)."""
 from __future__ import annotations
 
 from mmflow.conventions import is_full_stokes
-from mmflow.io import run_stores as rs
+from mmflow.io import calibration_stores as cs
 from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, read_bytes
@@ -18,7 +18,7 @@ SUMS_SAMPLE_BYTES = 8.0 + 2 * COMPLEX128_BYTES
 def work(g, cfg):
     n_tchunk = g.n_time_chunks
     four = is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES  # the cross hands' coefficients too
-    spec = rs.terrestrial_store(n_tchunk, g.n_time, g.n_freq, g.n_bl, cfg.terrestrial.components, g.n_ant, g.n_pol,
+    spec = cs.terrestrial_store(n_tchunk, g.n_time, g.n_freq, g.n_bl, cfg.terrestrial.components, g.n_ant, g.n_pol,
                                 TIME_CHUNK, cross=four)
     T = g.chunk_integrations
     w = max(read_bytes(g, cfg, T, g.n_bl, 1), T * g.n_bl * g.n_pol * (CORRECTED_SAMPLE_BYTES + SUMS_SAMPLE_BYTES))

@@ -37,7 +37,8 @@ import numpy as np
 from mmflow.calibrate.cross_hands import cross_model, fit_cross, pattern_templates
 from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, projection_fraction, subtract_templates,
                                           template_basis)
-from mmflow.io.run_stores import STORES, terrestrial_store
+from mmflow.io.calibration_stores import terrestrial_store
+from mmflow.io.run_stores import STORES
 from mmflow.workflow.engine.baseline_cuts import solve_mask
 from mmflow.workflow.engine.blocks import read_block
 from mmflow.workflow.engine.chunking import TIME_CHUNK, chunk_rows, time_keys
