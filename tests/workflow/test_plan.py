@@ -361,11 +361,11 @@ def test_progress_says_how_long_the_stage_has_left():
     """Elapsed time per finished task times the tasks left: 10 s for 2 of 10 tasks -> ~40 s left."""
     import io
 
-    from mmflow.workflow.engine.runner import _Progress
+    from mmflow.workflow.engine.progress import Progress
 
     now = [100.0]
     out = io.StringIO()
-    bar = _Progress("transfer", 10, True, out, clock=lambda: now[0])
+    bar = Progress("transfer", 10, True, out, clock=lambda: now[0])
     now[0] += 10.0
     bar.update(2)
     assert out.getvalue() == "[transfer] 2/10 tasks, ~40 s left\n"

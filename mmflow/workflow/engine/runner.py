@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 import time
 from dataclasses import replace
 from importlib.metadata import PackageNotFoundError, version
@@ -55,6 +54,7 @@ from mmflow.workflow.engine.resources import (current_rss_bytes, dask_worker, gb
 from mmflow.workflow.engine.channels import by_channel, by_channel_partner
 from mmflow.workflow.engine.release import (chunk_releases, planned_keys, recompute_released, release_finished,
                                             release_task_chunks, released_here, repair_or_refuse)
+from mmflow.workflow.engine.progress import Progress
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -153,39 +153,6 @@ def stage_fingerprints(cfg, run=None, pipeline=PIPELINE):
     return fps
 
 
-class _Progress:
-    """A one-line progress count with the time the stage has left: updated in place on a terminal,
-    a line per ~10 % otherwise. Time left = elapsed / done x remaining (tasks of a stage are alike)."""
-
-    def __init__(self, name, total, enabled, stream=sys.stdout, clock=time.monotonic):
-        self.name, self.total, self.stream, self.clock = name, total, stream, clock
-        self.enabled = enabled and total > 0
-        self.tty = enabled and stream.isatty()
-        self.last = -1
-        self.t0 = clock()
-
-    def text(self, done):
-        left = ""
-        if 0 < done < self.total:
-            s = (self.clock() - self.t0) / done * (self.total - done)
-            left = f", ~{s:.0f} s left" if s < 120 else f", ~{s / 60:.1f} min left"
-        return f"[{self.name}] {done}/{self.total} tasks{left}"
-
-    def update(self, done):
-        if not self.enabled:
-            return
-        if self.tty:
-            self.stream.write(f"\r{self.text(done)}\033[K")
-            self.stream.flush()
-        elif done * 10 // self.total > self.last * 10 // max(self.total, 1) or done == self.total:
-            self.stream.write(self.text(done) + "\n")
-        self.last = done
-
-    def close(self):
-        if self.enabled and self.tty:
-            self.stream.write("\n")
-
-
 def _queue_state(client, log):
     """The worker jobs' queue state of a SLURM/PBS cluster (:class:`mmflow.workflow.engine.batch.QueueState`),
     None for any other client."""
@@ -200,7 +167,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
     if not todo:
         return []
     on_done = on_done or (lambda keys: None)
-    bar = _Progress(name, len(todo), progress)
+    bar = Progress(name, len(todo), progress)
     BOARD.begin_batch(name)
     if client is None:
         out = []
