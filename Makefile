@@ -28,12 +28,13 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 
 ## Run the test suite: ruff first, then every tier (tests/unit, tests/workflow, tests/acceptance, tests/cluster:
-## a real SLURM cluster in network namespaces, skipped saying why without root), three test files at a time
-## (pytest-xdist; a file's tests share one process and its fixtures; three on two cores: the SLURM tier
-## mostly waits on its scheduler; --no-loadscope-reorder keeps the longest files first, tests/conftest.py,
-## where xdist would start the files with most tests first)
+## a real SLURM cluster in network namespaces, skipped saying why without root), four test files at a time
+## (pytest-xdist; a file's tests share one process and its fixtures; four on two cores: the SLURM tier and the
+## CLI subprocesses mostly wait, 12 min 34 s against 13 min 17 s with three, docs/performance.md;
+## --no-loadscope-reorder keeps the longest files first, tests/conftest.py, where xdist would start the files
+## with most tests first)
 test: $(STAMP) lint
-	$(PY) -m pytest -q -n 3 --dist loadfile --no-loadscope-reorder
+	$(PY) -m pytest -q -n 4 --dist loadfile --no-loadscope-reorder
 
 ## The unit tier only (kernels on in-memory arrays), two files at a time as make test
 test-fast: $(STAMP)
