@@ -186,21 +186,26 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
     futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
                          retries=2)
+    # the tasks not yet gathered: a gathered task's future is released at once, so that a worker leaving later
+    # (retired at its lifetime, a pool's switch, the cluster's close) makes dask recompute nothing of it, which
+    # would write its outputs again, maybe after the run has ended (a map's temporary file left behind)
+    pending = dict(enumerate(futures))
+    del futures
     results = {}
     no_worker_since = said = None
     try:
         while True:
             try:
-                wait(futures, timeout=1.0)
+                wait(list(pending.values()), timeout=1.0)
             except TimeoutError:
                 pass
-            done = sum(f.done() for f in futures)
+            done = len(results) + sum(f.done() for f in pending.values())
             seen = set(results)
-            _gather_stage(client, futures, results)  # every task done by now: its result, or its input error
+            _gather_stage(client, pending, results)  # every task done by now: its result, or its input error
             on_done([todo[k] for k in results if k not in seen])
             bar.update(done)
             BOARD.progress(name, done)
-            if done == len(futures):
+            if done == len(todo):
                 break
             queue = _queue_state(client, log)
             if queue is not None and queue.fatal:
@@ -216,20 +221,21 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
                 no_worker_since = time.time()
             elif time.time() - no_worker_since > worker_wait_s:
                 raise MmflowError(
-                    f"stage '{name}': no dask worker for {worker_wait_s:g} s with {len(futures) - done} of "
-                    f"{len(futures)} tasks unfinished (workers died: memory, walltime, a crash?). Fix: start "
+                    f"stage '{name}': no dask worker for {worker_wait_s:g} s with {len(todo) - done} of "
+                    f"{len(todo)} tasks unfinished (workers died: memory, walltime, a crash?). Fix: start "
                     "workers (check the cluster's logs), then rerun the same command: finished chunks are kept "
                     "(cluster.worker_wait_s sets the wait)")
     except InputError:  # the stage stops: no task of it may still write when the driver tidies up
-        _cancel_and_wait(client, futures, f"{name}-", ctx.token)
+        _cancel_and_wait(client, list(pending.values()), f"{name}-", ctx.token)
         raise
     except BaseException:
-        client.cancel(futures)
+        client.cancel(list(pending.values()))
         raise
     finally:
         bar.close()
-    client.gather([f for f in futures if f.status != "finished"])  # raises a task's error (after its retries)
-    return [results[k] for k in range(len(futures))]
+    client.gather([f for f in pending.values() if f.status != "finished"])  # raises a task's error (after retries)
+    _gather_stage(client, pending, results)
+    return [results[k] for k in range(len(todo))]
 
 
 #: how long a stage stopped by an input error waits for its tasks already running to end
@@ -254,14 +260,16 @@ def _cancel_and_wait(client, futures, prefix, token, wait_s=STOP_WAIT_S):
         pass
 
 
-def _gather_stage(client, futures, results):
-    """Fetch the results of the tasks finished since the last call into ``results`` (``{index: result}``);
-    raise the first input error a task reported (:func:`run_task_reporting_input_errors`)."""
-    new = [k for k, f in enumerate(futures) if k not in results and f.status == "finished"]
-    for k, r in zip(new, client.gather([futures[k] for k in new]) if new else []):
+def _gather_stage(client, pending, results):
+    """Fetch the results of the tasks finished since the last call (``pending``: ``{index: future}``) into
+    ``results`` (``{index: result}``), releasing their futures; raise the first input error a task reported
+    (:func:`run_task_reporting_input_errors`)."""
+    new = [k for k, f in pending.items() if f.status == "finished"]
+    for k, r in zip(new, client.gather([pending[k] for k in new]) if new else []):
         if "input_error" in r:
             raise r["input_error"]
         results[k] = r
+        pending.pop(k).release()
 
 
 def _check_inputs(run, st, cfg, pipeline, after=None):
