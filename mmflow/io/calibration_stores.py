@@ -16,6 +16,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
     h = STORES.gains  # its arrays' handles
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
+    per_pol = (("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol))  # dims, shape, chunks
     return StoreSpec(
         STORES.gains,
         (
@@ -46,9 +47,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
             ),
             ArraySpec(
                 h.unexplained,
-                ("interval", "freq", "pol"),
-                (n_interval, nf, npol),
-                (1, 1, npol),
+                *per_pol,
                 "float64",
                 np.nan,
                 doc="fraction of the data's power the calibrated model leaves, ``sum w |V - G M G^H|^2 / sum w |V|^2`` "
@@ -56,17 +55,13 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
             ),
             ArraySpec(
                 h.iterations,
-                ("interval", "freq", "pol"),
-                (n_interval, nf, npol),
-                (1, 1, npol),
+                *per_pol,
                 "int32",
                 doc="Stefcal iterations",
             ),
             ArraySpec(
                 h.converged,
-                ("interval", "freq", "pol"),
-                (n_interval, nf, npol),
-                (1, 1, npol),
+                *per_pol,
                 "bool",
                 doc="Stefcal converged",
             ),
