@@ -4,11 +4,29 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-os.environ.setdefault("MMFLOW_THREADS", "2")
 #: the suite's own cache (parsed IERS tables, numba's compiled kernels), inside the checkout's
 #: .pytest_cache (git-ignored): the tests never write to the user's ~/.cache/mmflow
 os.environ.setdefault("MMFLOW_CACHE_DIR", str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "mmflow"))
 
+
+def _share_the_cores():
+    """Each test process's thread budget: the usable cores divided among the processes running tests at
+    once (pytest-xdist's workers; ``make test`` runs four on this two-core VM), for mmflow's kernels
+    (``MMFLOW_THREADS``) and for BLAS, here (threadpoolctl) and in every process a test starts (the
+    variables). Four processes of two threads each on two cores took the suite 15 min 14 s, of one
+    thread each 13 min 50 s (docs/performance.md): OpenBLAS's threads spin while they wait. A variable
+    already set is kept."""
+    from mmflow.threads import usable_cores
+
+    per = str(max(1, usable_cores() // max(1, int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))))
+    for var in ("MMFLOW_THREADS", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, per)
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(int(os.environ["OPENBLAS_NUM_THREADS"]), user_api="blas")  # this process's BLAS, loaded
+
+
+_share_the_cores()
 
 #: the longest test files, longest first: started first, so that with ``-n 3 --dist loadfile
 #: --no-loadscope-reorder`` (``make test``) no long file is left running alone at the end (a scheduling
