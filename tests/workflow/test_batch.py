@@ -198,3 +198,21 @@ def test_the_preload_leaves_a_workers_first_task_no_frames_in_reference_cycles(t
                              capture_output=True, text=True)
         frames[how] = int(out.stdout.split()[-1])
     assert frames["bare"] > 0 and frames["preload"] == 0, frames
+
+
+def test_a_jobs_worker_waits_minutes_not_seconds_to_join_unless_told(tmp_path, monkeypatch):
+    """dask-jobqueue's default death timeout of 60 s killed preloaded workers still starting on a busy node:
+    mmflow asks for DEATH_TIMEOUT_S where nothing else is set, and keeps what cluster.jobqueue sets."""
+    import dask_jobqueue  # noqa: F401  (loads dask's jobqueue.yaml defaults, as jobqueue_cluster does)
+
+    from mmflow.workflow.engine.batch import DEATH_TIMEOUT_S, JOBQUEUE_DEATH_TIMEOUT_S, jobqueue_default
+
+    monkeypatch.setenv("PATH", str(tmp_path))  # no sinfo
+    assert jobqueue_default("slurm", "death_timeout") == JOBQUEUE_DEATH_TIMEOUT_S  # dask-jobqueue's, unchanged
+    base = ["cluster.kind=slurm", "cluster.jobqueue={cores: 1, memory: 2GB}"]
+    opts, _ = job_options(small_config(tmp_path / "run", *base), "slurm", lambda *a: None)
+    assert opts["death_timeout"] == DEATH_TIMEOUT_S > JOBQUEUE_DEATH_TIMEOUT_S
+    opts, _ = job_options(small_config(tmp_path / "run", "cluster.kind=slurm",
+                                       "cluster.jobqueue={cores: 1, memory: 2GB, death_timeout: 15}"), "slurm",
+                          lambda *a: None)
+    assert opts["death_timeout"] == 15

@@ -29,6 +29,14 @@ WORKER_PRELOAD = "mmflow.workflow.engine.worker_start"
 
 #: a job's share of its walltime kept free at the end: workers retire before it
 RETIRE_FRACTION = 0.2
+#: seconds a job's worker may take to join the scheduler before it exits (``dask worker --death-timeout``)
+#: where neither ``cluster.jobqueue`` nor dask's jobqueue.yaml sets another than dask-jobqueue's 60 s: a
+#: preloaded worker (the stages, numba's kernels, astropy's tables) took over 60 s to start with six
+#: starting on two busy cores, and died before it joined. A worker that cannot reach the scheduler
+#: reports its error when this runs out, so it is not made longer than a few minutes.
+DEATH_TIMEOUT_S = 180
+#: dask-jobqueue's own ``death-timeout`` (its jobqueue.yaml): read as "not chosen"
+JOBQUEUE_DEATH_TIMEOUT_S = 60
 #: the job script's variable that holds the job's start (Unix seconds): a worker's lifetime counts from it
 JOB_START_VAR = "MMFLOW_JOB_START"
 #: lines of a worker's log that say why it could not reach the scheduler
@@ -153,6 +161,7 @@ def job_options(cfg, kind, log=print, opts=None):
     * ``log_directory``: ``<run.directory>/cluster-logs`` (the driver reads the workers' errors
       there); ``$USER``-style variables expanded in it and in ``local_directory`` (``#SBATCH``
       lines are not expanded by SLURM);
+    * ``death_timeout`` :data:`DEATH_TIMEOUT_S` where dask-jobqueue's 60 s stands;
     * ``--lifetime``/``--lifetime-stagger`` for the workers from the walltime (:func:`lifetime_args`),
       unless ``worker_extra_args`` sets a lifetime;
     * ``--preload`` :data:`WORKER_PRELOAD`: each worker loads the stages and numba's kernels when it starts,
@@ -181,6 +190,9 @@ def job_options(cfg, kind, log=print, opts=None):
                       + (", at most a node's" if sizes else "") + ")")
     if opts.get("processes") is None and jobqueue_default(kind, "processes") is None:
         opts["processes"] = 1
+    if opts.get("death_timeout") is None and \
+            jobqueue_default(kind, "death_timeout") in (None, JOBQUEUE_DEATH_TIMEOUT_S):
+        opts["death_timeout"] = DEATH_TIMEOUT_S
     if filled:
         log(f"cluster.jobqueue: {', '.join(filled)} per job (set cluster.jobqueue.cores/memory to choose)")
     for key in ("log_directory", "local_directory"):
