@@ -30,7 +30,8 @@ lint: $(STAMP)
 ## Run the test suite: ruff first, then every tier (tests/unit, tests/workflow, tests/acceptance, tests/cluster:
 ## a real SLURM cluster in network namespaces, skipped saying why without root), four test files at a time
 ## (pytest-xdist; a file's tests share one process and its fixtures; four on two cores: the SLURM tier and the
-## CLI subprocesses mostly wait, 12 min 34 s against 13 min 17 s with three, docs/performance.md;
+## CLI subprocesses mostly wait, 12 min 34 s against 13 min 17 s with three, docs/performance.md; each on
+## usable cores / 4 threads, tests/conftest.py;
 ## --no-loadscope-reorder keeps the longest files first, tests/conftest.py, where xdist would start the files
 ## with most tests first)
 test: $(STAMP) lint
