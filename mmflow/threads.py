@@ -52,7 +52,7 @@ def n_threads():
         w = dist.get_worker()
         share = max(1, w.state.nthreads) * max(1, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
         return max(1, usable_cores() // share)
-    except (ImportError, ValueError, AttributeError):
+    except (ValueError, AttributeError):  # distributed loaded, but not in a worker (a client, a driver)
         return usable_cores()
 
 

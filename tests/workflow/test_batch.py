@@ -179,7 +179,7 @@ print(sum(isinstance(o, types.FrameType) for o in gc.garbage))
 """
 
 
-def test_the_preload_leaves_a_workers_first_task_no_frames_in_reference_cycles(tmp_path):
+def test_the_preload_leaves_a_workers_first_task_no_frames_in_reference_cycles():
     """astropy's first time parse in a process leaves reference cycles whose frames hold their callers'
     frames, so a worker's first task that places sources kept its arrays until the next garbage collection
     (the 352-antenna array's first m-mode task traced 96.7 MB, the next ones 69.9). After the workers'

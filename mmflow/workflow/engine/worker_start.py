@@ -5,7 +5,7 @@ compiler runtime and the imaging kernels every imaging run calls (the Legendre r
 fringe kernel in both precisions) from numba's cache, compiling them on a machine's first run.
 Each worker is then a fork that shares them, so no worker task bears numba's ~45 MB runtime start
 (~0.5 s) or a compilation (~15 MB and 1-1.5 s per kernel, per worker, on a fresh installation), nor
-astropy's IERS table (:func:`load_time_tables`):
+astropy's time tables and formats (:func:`load_time_tables`):
 a task's measured memory is its working set, as :mod:`mmflow.workflow.plan.planner` models it, and the
 runtime sits in the worker's baseline (``WORKER_BASE_BYTES``). A job-queue cluster's workers import it
 when they start (``--preload``, :data:`mmflow.workflow.engine.batch.WORKER_PRELOAD`); workers started any
