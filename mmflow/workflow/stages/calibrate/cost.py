@@ -25,7 +25,8 @@ import numpy as np
 
 from mmflow.io import calibration_stores as cs
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work
+from mmflow.conventions import is_full_stokes
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, FOUR_CORRELATION_NOTE, Cost, Work
 
 #: bytes per sample of the block while its read decodes: the complex128 visibilities and float64 weights it
 #: returns (the vis read's complex64 and the weights' float32 decoded chunks, half the vis', fit within these)
@@ -88,4 +89,8 @@ def work(g, cfg):
     return Work(n_int * g.n_freq, w, units, [spec])
 
 
-COST = Cost(work, shrink="a shorter calibrate.solint_s")
+def notes(g, cfg, peak_gflops):
+    return [FOUR_CORRELATION_NOTE] if is_full_stokes(cfg.imaging.stokes) else []
+
+
+COST = Cost(work, shrink="a shorter calibrate.solint_s", notes=notes)

@@ -12,7 +12,7 @@ from mmflow.conventions import is_full_stokes
 from mmflow.io import calibration_stores as cs
 from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, Cost, Work
+from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, FOUR_CORRELATION_NOTE, Cost, Work
 
 #: bytes per sample of a source's model: complex64, one for both hands
 MODEL_SAMPLE_BYTES = 8.0
@@ -38,10 +38,15 @@ def n_sources(cfg):
     return max(1, len(cfg.peel.sources) + len(cfg.peel.model_sources) if cfg.peel.enabled else 0)
 
 
+def four_correlations(cfg):
+    """True where the peel fits xy and yx too (full Stokes through an E-field beam: four_correlation_jones)."""
+    return is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES
+
+
 def work(g, cfg):
     n_src = n_sources(cfg)
     T = g.chunk_integrations
-    four = is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES  # + xy, yx (four_correlation_jones)
+    four = four_correlations(cfg)
     cross, n_corr = (2, 4) if four else (0, 1)
     w = (T * g.n_bl * ((CORRECTED_SAMPLE_BYTES + RESIDUAL_SAMPLE_BYTES + WEIGHT_COPY_BYTES) * g.n_pol
                        + CORRECTED_SAMPLE_BYTES * cross + MODEL_SAMPLE_BYTES * n_corr * n_src)
@@ -51,4 +56,8 @@ def work(g, cfg):
     return Work(g.n_time_chunks * g.n_freq, w, T * g.n_bl * g.n_pol * n_src, [spec])
 
 
-COST = Cost(work, shrink="fewer peel.sources / peel.model_sources")
+def notes(g, cfg, peak_gflops):
+    return [FOUR_CORRELATION_NOTE] if four_correlations(cfg) else []
+
+
+COST = Cost(work, shrink="fewer peel.sources / peel.model_sources", notes=notes)

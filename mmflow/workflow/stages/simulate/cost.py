@@ -21,7 +21,7 @@ from mmflow.conventions import is_full_stokes
 from mmflow.simulate.scene import diffuse_columns, diffuse_quad_lmax
 from mmflow.simulate.visibilities import gauss_legendre_shape
 from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, vis_spec
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, FOUR_CORRELATION_NOTE, Cost, Work, vis_spec
 
 #: complex128 (time, baseline, pol) temporaries of one channel of a corrupted simulation (drift scans,
 #: corruptions, noise)
@@ -111,10 +111,11 @@ def seconds(g, cfg, per_task, workers, peak_gflops):
 
 def notes(g, cfg, peak_gflops):
     sky = sky_sizes(g, cfg)
+    out = [FOUR_CORRELATION_NOTE] if is_full_stokes(cfg.imaging.stokes) else []
     if not sky.diffuse_samples:
-        return []
+        return out
     sums = diffuse_sum_seconds(g, cfg, peak_gflops)
-    return [f"the diffuse sky: {g.n_freq * sky.diffuse_samples} direct sums, ~{sums / 60:.0f} min"]
+    return [f"the diffuse sky: {g.n_freq * sky.diffuse_samples} direct sums, ~{sums / 60:.0f} min"] + out
 
 
 COST = Cost(work, seconds=seconds, notes=notes)
