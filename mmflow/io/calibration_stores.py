@@ -17,6 +17,7 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
     per = (1, 1, n_ant, npol)
     sol = ("interval", "freq", "antenna", "pol")
     per_pol = (("interval", "freq", "pol"), (n_interval, nf, npol), (1, 1, npol))  # dims, shape, chunks
+    edges = (("interval", "edge"), (n_interval, 2), (n_interval, 2))  # each interval's first and end row
     return StoreSpec(
         STORES.gains,
         (
@@ -75,18 +76,14 @@ def gains_store(n_interval, nf, n_ant, npol, n_time, solve_rows, apply_rows, att
             ),
             ArraySpec(
                 h.solve_rows,
-                ("interval", "edge"),
-                (n_interval, 2),
-                (n_interval, 2),
+                *edges,
                 "int64",
                 data=solve_rows,
                 doc="the integrations each interval was solved on",
             ),
             ArraySpec(
                 h.apply_rows,
-                ("interval", "edge"),
-                (n_interval, 2),
-                (n_interval, 2),
+                *edges,
                 "int64",
                 data=apply_rows,
                 doc="the integrations each interval's gains correct",
