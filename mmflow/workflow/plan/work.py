@@ -21,11 +21,12 @@ from typing import Callable, NamedTuple, Optional
 import ducc0
 import numpy as np
 
-from mmflow.conventions import SPEED_OF_LIGHT, m_blocks
+from mmflow.conventions import SPEED_OF_LIGHT, is_full_stokes, m_blocks
 from mmflow.io import run_stores as rs
 from mmflow.mmode.engine import GridCache, plan_chunks, plan_groups
 from mmflow.mmode.normal import packed_size
 from mmflow.mmode.transfer import fringe_bandlimit, grid_rings
+from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
 
 #: bytes of one visibility sample as the data stages write it: complex64 visibility + float32 weight
@@ -39,6 +40,14 @@ CORRECTED_SAMPLE_BYTES = 16.0 + 8.0
 #: measured at the paper's channel)
 FOUR_CORRELATION_NOTE = ("full Stokes: the four correlations' extra work is not in this time, a lower bound "
                          "(docs/stokes.md)")
+
+
+def four_correlations(cfg):
+    """True where peel and terrestrial act on xy and yx too: full Stokes through an E-field beam (the
+    configuration's side of :func:`mmflow.workflow.engine.peel_models.four_correlation_jones`)."""
+    return is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES
+
+
 #: bytes of a complex128 element (Gram blocks, m-modes, models in double precision)
 COMPLEX128_BYTES = 16.0
 #: complex (time, baseline, pol) temporaries of the peel's correction on read

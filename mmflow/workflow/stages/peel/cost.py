@@ -8,11 +8,9 @@ source's four correlations, and the cross hands' fit (:func:`mmflow.calibrate.cr
 the templates and the stacked design matrix with its weighted copy, complex128, a batch at a time)."""
 from __future__ import annotations
 
-from mmflow.conventions import is_full_stokes
 from mmflow.io import calibration_stores as cs
-from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, FOUR_CORRELATION_NOTE, Cost, Work
+from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, FOUR_CORRELATION_NOTE, Cost, Work, four_correlations
 
 #: bytes per sample of a source's model: complex64, one for both hands
 MODEL_SAMPLE_BYTES = 8.0
@@ -36,11 +34,6 @@ CROSS_FIT_SAMPLE_BYTES = 48.0
 def n_sources(cfg):
     """Sources the peel removes or subtracts (at least one for the plan)."""
     return max(1, len(cfg.peel.sources) + len(cfg.peel.model_sources) if cfg.peel.enabled else 0)
-
-
-def four_correlations(cfg):
-    """True where the peel fits xy and yx too (full Stokes through an E-field beam: four_correlation_jones)."""
-    return is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES
 
 
 def work(g, cfg):

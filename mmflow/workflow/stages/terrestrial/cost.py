@@ -4,11 +4,10 @@ peeling on, the peel's correction on read is its peak: :func:`mmflow.workflow.pl
 its weights, the masked data and their product (:data:`SUMS_SAMPLE_BYTES`)."""
 from __future__ import annotations
 
-from mmflow.conventions import is_full_stokes
 from mmflow.io import calibration_stores as cs
-from mmflow.telescope.beam_factory import JONES_TYPES
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, read_bytes
+from mmflow.workflow.plan.work import (COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, four_correlations,
+                                       read_bytes)
 
 #: bytes per sample a task holds beside its block: the weights (float64), the masked data and the weighted
 #: data (complex128 each)
@@ -17,7 +16,7 @@ SUMS_SAMPLE_BYTES = 8.0 + 2 * COMPLEX128_BYTES
 
 def work(g, cfg):
     n_tchunk = g.n_time_chunks
-    four = is_full_stokes(cfg.imaging.stokes) and cfg.beam.type in JONES_TYPES  # the cross hands' coefficients too
+    four = four_correlations(cfg)  # the cross hands' coefficients too
     spec = cs.terrestrial_store(n_tchunk, g.n_time, g.n_freq, g.n_bl, cfg.terrestrial.components, g.n_ant, g.n_pol,
                                 TIME_CHUNK, cross=four)
     T = g.chunk_integrations
