@@ -233,8 +233,8 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
         raise
     finally:
         bar.close()
-    client.gather([f for f in pending.values() if f.status != "finished"])  # raises a task's error (after retries)
-    _gather_stage(client, pending, results)
+    # every finished task was gathered in the loop: what is left pending ended in error (after its retries)
+    client.gather(list(pending.values()))  # raises that error
     return [results[k] for k in range(len(todo))]
 
 
