@@ -23,7 +23,7 @@ from scipy.linalg import lapack
 from mmflow.conventions import m_slice, n_alm
 from mmflow.errors import InputError
 from mmflow.imaging.filters import filter_mask
-from mmflow.imaging.lcurve import lcurve_block
+from mmflow.imaging.lcurve import hermitian_eig, lcurve_block
 from mmflow.threads import n_threads, single_threaded_blas
 
 
@@ -32,14 +32,15 @@ def tikhonov(gram, rhs, eps):
     if eps <= 0:
         raise InputError("imaging", "eps", f"eps={eps} must be > 0 for a Cholesky solve",
                          "use a positive eps, or method: moore_penrose")
-    a = gram + eps * np.eye(len(gram), dtype=gram.dtype)
-    cho = sla.cho_factor(a, lower=False, check_finite=False)
+    a = np.array(gram, order="F")  # LAPACK's layout: factored in place, the one n x n copy made
+    a[np.diag_indices(len(a))] += eps
+    cho = sla.cho_factor(a, lower=False, overwrite_a=True, check_finite=False)
     return sla.cho_solve(cho, rhs, check_finite=False), cho
 
 
 def moore_penrose(gram, rhs, sigma_threshold):
     """Minimum-norm least squares keeping singular values ``sigma > sigma_threshold``."""
-    s, v = np.linalg.eigh(gram)
+    s, v = hermitian_eig(gram)
     keep = s > sigma_threshold**2
     coef = np.zeros_like(s)
     coef[keep] = 1.0 / s[keep]
@@ -166,12 +167,12 @@ def solve_m(gram, rhs, m, lmax, method="tikhonov", eps=0.01, filters=None, a_pri
     rhs = np.atleast_2d(rhs)
     keep = filter_mask(m, lmax, **filters)
     want_lc = lcurve_eps is not None
-    eig = np.linalg.eigh(gram) if want_lc and keep.all() else None  # one decomposition serves both
+    eig = hermitian_eig(gram) if want_lc and keep.all() else None  # one decomposition serves both
     frac = singular_fraction_above(gram, eps, None if eig is None else eig[0])
     alm = np.zeros(rhs.shape, np.complex128)
     lc = np.zeros((len(lcurve_eps), 2)) if want_lc else None
     if keep.any():
-        g, r = gram[np.ix_(keep, keep)], rhs[:, keep]
+        g, r = (gram, rhs) if keep.all() else (gram[np.ix_(keep, keep)], rhs[:, keep])
         prior = None if a_prior is None else np.asarray(a_prior)[keep]
         alm[:, keep] = solve_block(method, g, r.T, eps, ell=np.arange(m, lmax + 1)[keep], a_prior=prior).T
         if want_lc:

@@ -71,15 +71,47 @@ def herk_into(gram, a, k, n, lda, alpha=1.0):
 
 
 def hermitian_full(c_upper):
-    """Fill the lower triangle of an upper-triangle Hermitian matrix, in (at least) complex128.
+    """Fill the lower triangle of an upper-triangle Hermitian matrix, in (at least) complex128:
+    ``G[j, i] = conj(G[i, j])`` for ``i < j``, the upper triangle and diagonal as given (the lower
+    triangle given is ignored).
 
     Grams are accumulated and stored in the transfer precision (complex64 for float32), but
     every solve, factorisation and eigenvalue count works in complex128: a float32 Gram's
-    Cholesky would lose digits to ``G``'s condition number.
+    Cholesky would lose digits to ``G``'s condition number. One ``n x n`` array is made (a copy
+    in complex128), filled in place (:func:`mirror_upper`).
     """
     c = np.asarray(c_upper)
-    c = c.astype(np.promote_types(c.dtype, np.complex128), copy=False)
-    return np.triu(c) + np.triu(c, 1).conj().T
+    return mirror_upper(np.array(c, np.promote_types(c.dtype, np.complex128)))
+
+
+def mirror_upper(g):
+    """``g[..., j, i] = conj(g[..., i, j])`` for ``i < j``, in place, a row at a time (no index or temporary
+    array of the matrix's size); returns ``g``."""
+    n = g.shape[-1]
+    for i in range(n - 1):
+        g[..., i + 1:, i] = g[..., i, i + 1:].conj()
+    return g
+
+
+def hermitian_block(p, n0, n):
+    """The leading ``n x n`` block of the Hermitian matrix whose ``n0 x n0`` upper triangle :func:`pack_upper`
+    packed into ``p``, full and in (at least) complex128: ``hermitian_full(unpack_upper(p, n0)[:n, :n])``
+    without the ``n0 x n0`` intermediates (a solve task holds this per m on each of its threads: the
+    stages' cost models count one such array, ``mmflow.workflow.stages.solve.cost``).
+
+    Row ``i`` of the packed triangle starts at ``i n0 - i (i - 1) / 2`` and holds ``G[i, i:n0]``.
+    """
+    p = np.asarray(p)
+    if p.shape != (packed_size(n0),) or not 0 <= n <= n0:
+        raise ValueError(f"hermitian_block: {p.shape} is not the packed upper triangle of an {n0} x {n0} "
+                         f"matrix (length {packed_size(n0)}) with a leading block of {n}: written by an mmflow "
+                         "that stored the squares? Start that run afresh (--force)")
+    g = np.zeros((n, n), np.promote_types(p.dtype, np.complex128))
+    start = 0
+    for i in range(n):
+        g[i, i:] = p[start:start + n - i]
+        start += n0 - i
+    return mirror_upper(g)
 
 
 def packed_size(n):

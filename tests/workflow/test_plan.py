@@ -78,12 +78,20 @@ def test_store_sizes_are_the_declared_stores(measured_run):
 
 
 def test_tasks_match_the_run(measured_run):
-    """Planned task counts equal the keys each stage's prepare listed."""
+    """Planned task counts equal the keys each stage's prepare listed, and the threads the plan gave each task
+    (``task_threads``) the ones every task recorded running on (as its run's record keeps them)."""
+    from mmflow.workflow.engine.rundir import RunDir
+    from mmflow.workflow.plan.fit import record
+    from mmflow.workflow.plan.planner import task_threads
+
     cfg, run_dir = measured_run
     summary = json.loads((run_dir / "summary.json").read_text())
     res = plan(cfg, peak_gflops=100.0)
     for e in res["stages"]:
         assert e["tasks"] == summary[e["stage"]]["tasks"], e["stage"]
+        infos = [i for i in RunDir(run_dir).task_infos(e["stage"]).values() if "peak_rss_gb" in i]  # tasks'
+        assert infos and {i["threads"] for i in infos} == {task_threads(cfg)}, e["stage"]
+    assert record(run_dir)["task_threads"] == task_threads(cfg)
 
 
 def test_every_stage_records_its_cost(measured_run):
@@ -446,3 +454,63 @@ def test_a_full_stokes_plan_says_its_four_correlation_times_are_lower_bounds():
     for overrides, noted in ((full, {"simulate", "calibrate", "peel"}), (full[1:], set())):
         stages = plan(load_config("workflows/paper-scale.yaml", overrides), peak_gflops=100.0)["stages"]
         assert {e["stage"] for e in stages if FOUR_CORRELATION_NOTE in e["notes"]} == noted, overrides
+
+
+def test_a_solve_threads_arrays_are_the_ones_its_model_counts():
+    """``stages/solve/cost.py``'s SOLVER_SQUARES against the code it models: the traced peak of one m as a solve
+    task's thread does it (its full Gram from the packed block, then ``solve_m`` with the L-curve) is
+    SOLVER_SQUARES ``n x n`` complex128 arrays at an unfiltered m (the eigen-decomposition's), within 10 %,
+    and no more at a filtered one (m = 0: the kept coefficients' copy instead)."""
+    import tracemalloc
+
+    from mmflow.imaging.lcurve import default_eps_grid
+    from mmflow.imaging.solvers import solve_m
+    from mmflow.mmode.normal import hermitian_block, pack_upper
+    from mmflow.workflow.stages.solve.cost import SOLVER_SQUARES
+
+    lmax = 299
+    rng = np.random.default_rng(7)
+    b = rng.normal(size=(600, lmax + 1)) + 1j * rng.normal(size=(600, lmax + 1))
+    packed = pack_upper(np.triu(b.conj().T @ b).astype(np.complex64))
+    filters = {"zero_monopole": True, "filter_m0": True, "filter_m1_lmin": 100}
+    peaks = {}
+    for m in (0, 5):
+        n = lmax - m + 1
+        rhs = np.ones((2, n), complex)
+        tracemalloc.start()
+        try:
+            base = tracemalloc.get_traced_memory()[0]
+            solve_m(hermitian_block(packed, lmax + 1, n), rhs, m, lmax, "tikhonov", 1e-2, filters, None, 1.0,
+                    default_eps_grid(200))
+            peaks[m] = (tracemalloc.get_traced_memory()[1] - base) / (16 * n * n)
+        finally:
+            tracemalloc.stop()
+    assert SOLVER_SQUARES * 0.9 <= peaks[5] <= SOLVER_SQUARES * 1.1, peaks
+    assert peaks[0] <= peaks[5], peaks
+
+
+def test_the_plan_gives_each_task_the_threads_its_worker_will(monkeypatch):
+    """``task_threads`` is :func:`mmflow.threads.n_threads` as the run's workers will see it: the variable where
+    set; else this machine's cores (synchronous), their share per worker thread (local), one a job's worker
+    thread (job queues); and the solve model holds SOLVER_SQUARES arrays per thread beyond its read."""
+    import mmflow.threads
+    from mmflow.workflow.plan.planner import task_threads
+    from mmflow.workflow.stages.solve.cost import SOLVER_SQUARES
+
+    monkeypatch.delenv("MMFLOW_THREADS", raising=False)
+    monkeypatch.setattr(mmflow.threads, "usable_cores", lambda: 8)
+
+    def threads(*over):
+        return task_threads(load_config("workflows/demo.yaml", list(over)))
+
+    assert threads("cluster.kind=synchronous") == 8
+    assert threads("cluster.kind=local", "cluster.n_workers=2", "cluster.threads_per_worker=2") == 2
+    assert threads("cluster.kind=local", "cluster.n_workers=4", "cluster.threads_per_worker=4") == 1
+    assert threads("cluster.kind=slurm") == 1
+    monkeypatch.setenv("MMFLOW_THREADS", "3")
+    assert threads("cluster.kind=slurm") == 3
+    cfg = load_config("workflows/paper-scale.yaml", ["mmode.lmax=1000", "telescope.max_antennas=16"])
+    # (at one thread the read's copies are the larger phase)
+    w = {t: stage_work("solve", geometry(cfg, threads=t), cfg).working_set_bytes for t in (3, 4, 6)}
+    assert w[4] - w[3] == pytest.approx(SOLVER_SQUARES * 16 * 1001 ** 2)
+    assert w[6] - w[4] == pytest.approx(2 * SOLVER_SQUARES * 16 * 1001 ** 2)

@@ -21,7 +21,7 @@ from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import STORES
-from mmflow.mmode.normal import hermitian_full, pack_upper, unpack_upper
+from mmflow.mmode.normal import hermitian_block, pack_upper, unpack_upper
 from mmflow.mmode.splits import day_splits, jackknife_kind
 from mmflow.workflow.engine.geometry import split_fractions
 from mmflow.workflow.engine.kernel_args import m_filters
@@ -67,8 +67,7 @@ def block_operators_from_gram(ctx, fi, m0, m1):
     grams = ctx.read(STORES.normal.gram(fi, m0))
 
     def one(m):
-        n = lmax - m + 1
-        return psf.block_operator(m, hermitian_full(unpack_upper(grams[m - m0], lmax - m0 + 1)[:n, :n]), eps, keeps[m])
+        return psf.block_operator(m, hermitian_block(grams[m - m0], lmax - m0 + 1, lmax - m + 1), eps, keeps[m])
 
     return dict(zip(range(m0, m1), psf.map_blocks(one, range(m0, m1))))
 
@@ -82,8 +81,7 @@ def stored_operators(ctx, fi, m0, m1):
     partial = [m for m in range(m0, m1) if keeps[m].any() and not keeps[m].all()]
     grams = ctx.read(STORES.normal.gram(fi, m0)) if partial else None
     return operators_from_factors(chol, keeps, cfg.imaging.eps, lmax, m0, m1,
-                                  lambda m: hermitian_full(unpack_upper(grams[m - m0], lmax - m0 + 1)
-                                                           [:lmax - m + 1, :lmax - m + 1]))
+                                  lambda m: hermitian_block(grams[m - m0], lmax - m0 + 1, lmax - m + 1))
 
 
 def operators_from_factors(chol, keeps, eps, lmax, m0, m1, full_gram=None):

@@ -43,6 +43,7 @@ import zarr
 from mmflow.allocator import keep_freed_memory, release_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
+from mmflow.threads import n_threads
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.dashboard.board import BOARD, cluster_kind, cluster_record
 from mmflow.workflow.engine.context import Context
@@ -105,7 +106,7 @@ def run_task(ctx, pipeline, stage_name, key):
     info = stage.task(tctx, TaskKey.parse(key)) or {}
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
-                rss_start_gb=gb(rss_start))
+                rss_start_gb=gb(rss_start), threads=n_threads())
     worker, limit = dask_worker() or (None, None)
     if worker is not None:  # the worker the task was sent to, and its memory (jobs sized per stage)
         info.update(worker=worker, worker_memory_bytes=limit and int(limit))

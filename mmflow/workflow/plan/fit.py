@@ -53,14 +53,15 @@ RECORDS_DIR = Path(__file__).with_name("records")
 
 def record(run_dir, sgemm_gflops=None, note=""):
     """What one finished run measured, as a JSON-able record: ``{"source", "note", "sgemm_gflops",
-    "config", "stages": {stage: {"tasks", "task_memory_bytes", "task_seconds"}}}`` (the SGEMM peak
-    measured beside the run, or None; the configuration as the run resolved it; per stage the tasks
-    with resource readings, the largest task's memory above its worker's baseline, the mean seconds
-    per task)."""
+    "config", "stages": {stage: {"tasks", "task_memory_bytes", "task_seconds"}}, "task_threads"}`` (the
+    SGEMM peak measured beside the run, or None; the configuration as the run resolved it; per stage the
+    tasks with resource readings, the largest task's memory above its worker's baseline, the mean seconds
+    per task; the most threads a task ran on, :func:`mmflow.threads.n_threads` as each task recorded it)."""
     run = RunDir(run_dir)
     cfg = load_config(run.path / "config.yaml")
-    stages = {}
+    stages, threads = {}, 1
     for stage in _finished_stages(run):
+        threads = max([threads] + [i["threads"] for i in run.task_infos(stage).values() if "threads" in i])
         infos = [i for i in run.task_infos(stage).values()
                  if i.get("peak_rss_gb") is not None and i.get("rss_start_gb") is not None]
         if infos:
@@ -68,7 +69,7 @@ def record(run_dir, sgemm_gflops=None, note=""):
             stages[stage] = {"tasks": len(infos), "task_memory_bytes": max(mem, 0.0),
                              "task_seconds": float(np.mean([i["seconds"] for i in infos]))}
     rec = {"source": str(run_dir), "note": note, "sgemm_gflops": sgemm_gflops, "config": cfg.model_dump(mode="json"),
-           "stages": stages}
+           "stages": stages, "task_threads": threads}
     if cfg.source == "ingest":
         rec["ingest"] = ingest_geometry(ingest_plan(cfg))
     return rec
@@ -137,7 +138,7 @@ def samples(source):
     configuration by today's work model."""
     rec = load_record(source)
     cfg = record_config(rec)
-    g = geometry(cfg, record_ingest(rec))
+    g = geometry(cfg, record_ingest(rec), rec.get("task_threads", 1))  # records before it ran one thread a task
     out = {}
     for stage, m in rec["stages"].items():
         if stage in rec.get("superseded", {}):  # measured with code since changed

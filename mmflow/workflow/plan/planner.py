@@ -259,11 +259,31 @@ def task_seconds(k, units, costs, peak_gflops):
     return (k["c"] * units + k["d"]) * costs["sgemm_gflops"] / peak_gflops
 
 
-def geometry(cfg, ingest=None):
+def task_threads(cfg):
+    """The threads each task's kernels will run on, as :func:`mmflow.threads.n_threads` gives them in the
+    run's workers: ``MMFLOW_THREADS`` where set; else the usable cores of this machine for the synchronous
+    scheduler, and their share per worker thread for a local cluster (``cores // (n_workers x
+    threads_per_worker)``); one on a job queue or a cluster at an address (a job's cores are its worker
+    threads, :mod:`mmflow.workflow.engine.pools`)."""
+    from mmflow.threads import usable_cores  # deferred: threadpoolctl and scipy's BLAS
+
+    env = os.environ.get("MMFLOW_THREADS")
+    if env:
+        return max(1, int(env))
+    c = cfg.cluster
+    if c.kind == "synchronous":
+        return usable_cores()
+    if c.kind == "local":
+        return max(1, usable_cores() // max(1, c.n_workers * c.threads_per_worker))
+    return 1
+
+
+def geometry(cfg, ingest=None, threads=None):
     """The :class:`Geometry` of a configuration: from the telescope for a simulation, from the
     files' metadata (no visibilities read) for ingested data, or from ``ingest`` (an object with the
     ingest plan's ``layout``, ``pairs``, ``n_time``, ``pols`` and ``freqs_hz``: a record's copy,
-    :func:`mmflow.workflow.plan.fit.record_ingest`) where the files are not at hand."""
+    :func:`mmflow.workflow.plan.fit.record_ingest`) where the files are not at hand. ``threads``: each
+    task's threads (a record's, as measured), else :func:`task_threads`."""
     mm = cfg.mmode
     mmax = mmax_of(cfg)
     itemsize = complex_dtype(cfg.transfer.dtype).itemsize
@@ -284,7 +304,8 @@ def geometry(cfg, ingest=None):
                     mmax=mmax, m_block=cfg.transfer.m_block, n_split=len(mm.splits), mmode_chunk=mm.baseline_chunk,
                     gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
                     transfer_workspace=max(p[2] for p in tplans),
-                    transfer_read=max(p[1] for p in tplans), npix=12 * nside ** 2, tel=tel,
+                    transfer_read=max(p[1] for p in tplans), npix=12 * nside ** 2,
+                    task_threads=threads or task_threads(cfg), tel=tel,
                     freqs_hz=tuple(float(f) for f in freqs))
 
 

@@ -88,6 +88,7 @@ class Geometry:
     transfer_workspace: float  # bytes of a transfer task besides its Gram while it accumulates (transfer_plan)
     transfer_read: float = 0.0  # bytes of a transfer task's m-modes as it reads them, before its Gram
     npix: int = 0
+    task_threads: int = 1  # threads each task's kernels run on (planner.task_threads: the workers' n_threads)
     tel: object = field(default=None, compare=False, repr=False)
     freqs_hz: tuple = ()
 

@@ -1,9 +1,11 @@
 """The packed upper triangles the stores hold Grams and Cholesky factors in (mmflow.mmode.normal)."""
+import tracemalloc
+
 import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from mmflow.mmode.normal import hermitian_full, pack_upper, packed_size, unpack_upper
+from mmflow.mmode.normal import hermitian_block, hermitian_full, pack_upper, packed_size, unpack_upper
 
 
 def _hermitian(rng, n, dtype=np.complex128):
@@ -30,6 +32,42 @@ def test_a_packed_gram_gives_readers_the_same_bits():
     rng = np.random.default_rng(2)
     g = np.triu(_hermitian(rng, 9, np.complex64))
     np.testing.assert_array_equal(hermitian_full(unpack_upper(pack_upper(g), 9)), hermitian_full(g))
+
+
+def test_a_gram_block_is_the_full_matrix_of_its_packed_rows():
+    """hermitian_block reads the leading n x n block of a packed n0 x n0 triangle (the solve stage's m of a
+    block) as the square route does, ``hermitian_full(unpack_upper(p, n0)[:n, :n])``: the upper triangle's
+    bits, its conjugate below, in complex128; a triangle of another size is refused."""
+    rng = np.random.default_rng(4)
+    for dtype in (np.complex64, np.complex128):
+        g = np.triu(_hermitian(rng, 11, dtype))
+        p = pack_upper(g)
+        for n in (11, 7, 1, 0):
+            block = hermitian_block(p, 11, n)
+            assert block.dtype == np.complex128 and block.shape == (n, n)
+            square = np.triu(unpack_upper(p, 11)[:n, :n].astype(np.complex128))
+            np.testing.assert_array_equal(np.triu(block), square)
+            np.testing.assert_array_equal(np.tril(block, -1), np.tril(square.conj().T, -1))
+            np.testing.assert_array_equal(block, hermitian_full(unpack_upper(p, 11)[:n, :n]))
+    with pytest.raises(ValueError, match="squares"):
+        hermitian_block(p, 12, 5)
+    with pytest.raises(ValueError, match="leading block of 12"):
+        hermitian_block(p, 11, 12)
+
+
+def test_a_gram_block_is_built_in_one_array():
+    """The block is made in place: its traced peak is the one n x n complex128 array it returns (the square
+    route held ~5 of them at once: the complex64 square, its complex128 copy, two triangles and their sum)."""
+    rng = np.random.default_rng(5)
+    p = pack_upper(np.triu(_hermitian(rng, 300, np.complex64)))
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        block = hermitian_block(p, 300, 290)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    assert block.nbytes <= peak < 1.05 * block.nbytes
 
 
 def test_a_packed_factor_solves_to_the_same_bits():

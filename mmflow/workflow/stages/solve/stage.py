@@ -15,7 +15,7 @@ from mmflow.conventions import m_blocks, m_slice
 from mmflow.imaging.lcurve import default_eps_grid
 from mmflow.imaging.solvers import solve_m
 from mmflow.io.run_stores import VIS_METADATA, STORES, alm_store
-from mmflow.mmode.normal import hermitian_full, unpack_upper
+from mmflow.mmode.normal import hermitian_block
 from mmflow.sky.diffuse import map_to_alm
 from mmflow.sky.frames import rotate_alm, rotation_matrix
 from mmflow.threads import n_threads, single_threaded_blas
@@ -63,8 +63,7 @@ def _solve_task(ctx, key):
     frac = np.zeros((1, m1 - m0))
 
     def one(m):
-        n = lmax - m + 1
-        gram = hermitian_full(unpack_upper(grams[m - m0], lmax - m0 + 1)[:n, :n])
+        gram = hermitian_block(grams[m - m0], lmax - m0 + 1, lmax - m + 1)
         return solve_m(gram, rhs_all[:, m - m0, m:], m, lmax, im.method, im.eps, m_filters(im),
                        None if prior is None else prior[m_slice(lmax, m)], vhv_all[0, m - m0], eps_grid)
 
