@@ -183,12 +183,14 @@ def observe_range(ops, x_block, lmax, m_start, m_stop, weights=None):
 
 # ----------------------------------------------------------------------------- PSF alm
 
-def point_columns(vecs, lmax, m_stop=None):
+def point_columns(vecs, lmax, m_stop=None, m_start=0):
     """``conj(Y_lm(r_k))`` for each direction, as columns ``(n, k)`` of the healpy layout up to
-    ``m < m_stop`` (default all m): the sky of a 1 Jy point source (eq. psf's ``a_PS``)."""
+    ``m < m_stop`` (default all m): the sky of a 1 Jy point source (eq. psf's ``a_PS``). With ``m_start``
+    only the rows of ``m >= m_start`` (:func:`mmflow.conventions.m_block_slice`), the same bits: each m is
+    its own recursion in l (:func:`mmflow.sky.harmonics.point_sources_alm`)."""
     v = np.atleast_2d(np.asarray(vecs, float))
     mmax = lmax if m_stop is None else min(lmax, m_stop - 1)
-    return np.stack([point_sources_alm(vk[None], [1.0], lmax, mmax) for vk in v], axis=1)
+    return np.stack([point_sources_alm(vk[None], [1.0], lmax, mmax, m_start) for vk in v], axis=1)
 
 
 def psf_alm(ops, lmax, vecs):
@@ -210,7 +212,7 @@ def psf_columns(ops, lmax, vecs, m_start=0, m_stop=None, weights=None, batch=16)
     sl = m_block_slice(lmax, m_start, m_stop)
     out = np.zeros((sl.stop - sl.start, len(vecs)), np.complex128)
     for s in range(0, len(vecs), batch):
-        cols = point_columns(vecs[s:s + batch], lmax, m_stop)[sl]
+        cols = point_columns(vecs[s:s + batch], lmax, m_stop, m_start)  # the block's m alone
         out[:, s:s + batch] = observe_range(ops, cols, lmax, m_start, m_stop, weights)
     return out
 

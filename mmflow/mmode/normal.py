@@ -93,25 +93,53 @@ def mirror_upper(g):
     return g
 
 
+def _leading_rows(p, n0, n):
+    """``(i, row)`` for each row ``i < n`` of the leading ``n x n`` block of :func:`pack_upper`'s packed
+    ``n0 x n0`` triangle ``p``: ``row = G[i, i:n]``, a view of ``p`` (row ``i`` starts at
+    ``i n0 - i (i - 1) / 2``)."""
+    if p.shape != (packed_size(n0),) or not 0 <= n <= n0:
+        raise ValueError(f"{p.shape} is not the packed upper triangle of an {n0} x {n0} matrix (length "
+                         f"{packed_size(n0)}) with a leading block of {n}: written by an mmflow that stored the "
+                         "squares? Start that run afresh (--force)")
+    start = 0
+    for i in range(n):
+        yield i, p[start:start + n - i]
+        start += n0 - i
+
+
+def upper_block(p, n0, n):
+    """The leading ``n x n`` block of the upper triangle :func:`pack_upper` packed into ``p`` (``n0 x n0``),
+    zero below the diagonal, in ``p``'s dtype: ``unpack_upper(p, n0)[:n, :n]`` in the one ``n x n`` array it
+    returns (a stored Cholesky factor's kept corner)."""
+    p = np.asarray(p)
+    out = np.zeros((n, n), p.dtype)
+    for i, row in _leading_rows(p, n0, n):
+        out[i, i:] = row
+    return out
+
+
 def hermitian_block(p, n0, n):
     """The leading ``n x n`` block of the Hermitian matrix whose ``n0 x n0`` upper triangle :func:`pack_upper`
     packed into ``p``, full and in (at least) complex128: ``hermitian_full(unpack_upper(p, n0)[:n, :n])``
     without the ``n0 x n0`` intermediates (a solve task holds this per m on each of its threads: the
-    stages' cost models count one such array, ``mmflow.workflow.stages.solve.cost``).
-
-    Row ``i`` of the packed triangle starts at ``i n0 - i (i - 1) / 2`` and holds ``G[i, i:n0]``.
-    """
+    stages' cost models count one such array, ``mmflow.workflow.stages.solve.cost``)."""
     p = np.asarray(p)
-    if p.shape != (packed_size(n0),) or not 0 <= n <= n0:
-        raise ValueError(f"hermitian_block: {p.shape} is not the packed upper triangle of an {n0} x {n0} "
-                         f"matrix (length {packed_size(n0)}) with a leading block of {n}: written by an mmflow "
-                         "that stored the squares? Start that run afresh (--force)")
     g = np.zeros((n, n), np.promote_types(p.dtype, np.complex128))
-    start = 0
-    for i in range(n):
-        g[i, i:] = p[start:start + n - i]
-        start += n0 - i
+    for i, row in _leading_rows(p, n0, n):
+        g[i, i:] = row
     return mirror_upper(g)
+
+
+def pack_leading_upper(a, n0, out):
+    """Pack the upper triangle of the ``n x n`` ``a`` as the leading block of an ``n0 x n0`` matrix that is zero
+    elsewhere into ``out`` (:func:`pack_upper`'s layout, length ``n0 (n0 + 1) / 2``): ``pack_upper`` of
+    ``a`` padded with zeros to ``n0 x n0``, without the padded square. Returns ``out``."""
+    a = np.asarray(a)
+    n = a.shape[0]
+    out[...] = 0
+    for i, row in _leading_rows(out, n0, n):
+        row[...] = a[i, i:]
+    return out
 
 
 def packed_size(n):

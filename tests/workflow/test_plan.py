@@ -274,7 +274,8 @@ def _worst_errors(costs, records):
             m, t = worst.get(r["stage"], (0.0, 0.0))
             planned_s = max(r["planned_task_s"], TIME_FLOOR_S) if r["planned_task_s"] is not None else None
             terr = abs(planned_s / max(r["measured_task_s"], TIME_FLOOR_S) - 1) if planned_s is not None else 0.0
-            worst[r["stage"]] = (max(m, abs(1 / r["memory_ratio"] - 1)), max(t, terr))
+            merr = abs(1 / r["memory_ratio"] - 1) if r["memory_ratio"] is not None else 0.0  # memory_superseded
+            worst[r["stage"]] = (max(m, merr), max(t, terr))
     return worst
 
 
@@ -322,11 +323,15 @@ def test_the_plan_holds_on_each_measured_run(name):
 
     rows, _ = plan_against_run(RECORDS_DIR / name, None, load_costs()["sgemm_gflops"])
     rec = json.loads((RECORDS_DIR / name).read_text())
-    superseded = rec.get("superseded", {})
-    assert all(isinstance(why, str) and why for why in superseded.values())
-    # every stage the record measured is planned and judged, but those whose code has changed since
+    superseded, memory_superseded = rec.get("superseded", {}), rec.get("memory_superseded", {})
+    assert all(isinstance(why, str) and why for why in [*superseded.values(), *memory_superseded.values()])
+    # every stage the record measured is planned and judged, but those whose code has changed since (in
+    # their memory alone: their time is judged)
     assert {r["stage"] for r in rows} == set(rec["stages"]) - set(superseded) and len(rows) >= 2
     for r in rows:
+        assert (r["memory_ratio"] is None) == (r["stage"] in memory_superseded), r["stage"]
+        if r["memory_ratio"] is None:
+            continue
         assert abs(1 / r["memory_ratio"] - 1) <= 0.25, (r["stage"], r["planned_task_gb"], r["measured_task_gb"])
         if r["planned_task_s"] is not None and r["measured_task_s"] >= TIME_FLOOR_S:
             assert abs(1 / r["time_ratio"] - 1) <= 0.5, (r["stage"], r["planned_task_s"], r["measured_task_s"])
@@ -335,10 +340,11 @@ def test_the_plan_holds_on_each_measured_run(name):
 def test_the_plan_holds_on_each_run_with_constants_fitted_without_it():
     """Leave-one-out: for every record, the constants fitted to the *other* records plan it. Where the
     others span the held-out task's size (its W within theirs, so the line interpolates), its largest
-    task's memory is within 35 % and its mean task time within 50 %. Measured: 54 such (run, stage)
-    pairs, the worst memory 30.6 % (the full-scale ingest run's transfer) and 27.8 % (its products), all
-    others within 25 %; outside the span (the demo below every other run, one ingest run against the
-    other) the line extrapolates and is not judged (docs/planning.md)."""
+    task's memory is within 35 % and its mean task time within 50 %. Measured: 33 such (run, stage)
+    pairs judged in memory (none of a stage whose records are ``memory_superseded``), the worst memory
+    30.6 % (the full-scale ingest run's transfer) and 27.8 % (its products), all others within 25 %;
+    outside the span (the demo below every other run, one ingest run against the other) the line
+    extrapolates and is not judged (docs/planning.md)."""
     from mmflow.workflow.plan.planner import load_costs
     from mmflow.workflow.plan.fit import RECORDS_DIR, TIME_FLOOR_S, fit_costs, plan_against_run, samples
 
@@ -351,10 +357,10 @@ def test_the_plan_holds_on_each_run_with_constants_fitted_without_it():
         rows, _ = plan_against_run(RECORDS_DIR / name, fit_costs([RECORDS_DIR / n for n in others], peak), peak)
         for r in rows:
             st = r["stage"]
-            w_others = [measured[o][st][0] for o in others if st in measured[o]]
+            w_others = [measured[o][st][0] for o in others if st in measured[o] and measured[o][st][2] is not None]
             u_others = [measured[o][st][1] for o in others if st in measured[o]]
             w, u = measured[name][st][:2]
-            if len(w_others) >= 2 and min(w_others) <= w <= max(w_others):
+            if r["memory_ratio"] is not None and len(w_others) >= 2 and min(w_others) <= w <= max(w_others):
                 judged += 1
                 if abs(1 / r["memory_ratio"] - 1) > 0.35:
                     out.append(f"{name} {st}: memory {r['planned_task_gb']:.3f} GB planned, "
@@ -362,7 +368,7 @@ def test_the_plan_holds_on_each_run_with_constants_fitted_without_it():
             if (len(u_others) >= 2 and min(u_others) <= u <= max(u_others) and r["planned_task_s"] is not None
                     and r["measured_task_s"] >= TIME_FLOOR_S and abs(1 / r["time_ratio"] - 1) > 0.5):
                 out.append(f"{name} {st}: {r['planned_task_s']:.2f} s planned, {r['measured_task_s']:.2f} measured")
-    assert judged >= 40, judged
+    assert judged >= 30, judged  # 33: clean's memory, measured with the code before, is not judged
     assert not out, "\n".join(out)
 
 

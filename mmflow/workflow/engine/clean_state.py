@@ -21,7 +21,7 @@ from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.jackknife import split_variance
 from mmflow.imaging.maps import default_nside
 from mmflow.io.run_stores import STORES
-from mmflow.mmode.normal import hermitian_block, pack_upper, unpack_upper
+from mmflow.mmode.normal import hermitian_block, pack_leading_upper, packed_size, upper_block
 from mmflow.mmode.splits import day_splits, jackknife_kind
 from mmflow.workflow.engine.geometry import split_fractions
 from mmflow.workflow.engine.kernel_args import m_filters
@@ -102,7 +102,7 @@ def operators_from_factors(chol, keeps, eps, lmax, m0, m1, full_gram=None):
         coupling = None
         if not keep.all():
             coupling = np.ascontiguousarray(full_gram(m)[np.ix_(keep, ~keep)])
-        ops[m] = psf.BlockOperator(m, keep, (unpack_upper(chol[m - m0], lmax - m0 + 1)[:nk, :nk], False), eps,
+        ops[m] = psf.BlockOperator(m, keep, (upper_block(chol[m - m0], lmax - m0 + 1, nk), False), eps,
                                    coupling)
     return ops
 
@@ -111,13 +111,11 @@ def factors_of(ops, lmax, m0, m1):
     """The block's factors as stored (``chol_b`` layout of :func:`operators_from_factors`: packed upper triangles;
     what ``potrs`` reads of a factor, its upper triangle, is kept bit for bit)."""
     n0 = lmax - m0 + 1
-    chol = np.zeros((m1 - m0, n0, n0), np.complex128)
+    chol = np.zeros((m1 - m0, packed_size(n0)), np.complex128)
     for m in range(m0, m1):
-        op = ops[m]
-        if op.cho is not None:
-            nk = len(op.cho[0])
-            chol[m - m0, :nk, :nk] = op.cho[0]
-    return pack_upper(chol)
+        if ops[m].cho is not None:
+            pack_leading_upper(ops[m].cho[0], n0, chol[m - m0])
+    return chol
 
 
 def cycle_block(residual_block, rows, ops, lmax, m0, m1, weights=None):

@@ -28,7 +28,10 @@ wherever they take a run directory; the records the package's constants were fit
 ``plan/records/`` beside this module, so the constants can be refitted, and checked, without the runs.
 A record's ``superseded`` (``{stage: why}``) names the stages whose code has changed since the run
 measured them (the peel stage 4x faster, say): their figures no longer describe the code, and they
-enter neither the fit nor the check (:func:`samples`), while the record's other stages still do.
+enter neither the fit nor the check (:func:`samples`), while the record's other stages still do. Its
+``memory_superseded`` (``{stage: why}``) names the stages whose tasks' memory has changed but not their
+time: only their seconds enter the fit and the check. A stage whose memory no record measures keeps
+``a = 1, b = 0``: its plan is its cost model's working set.
 """
 from __future__ import annotations
 
@@ -134,8 +137,8 @@ def record_config(rec):
 
 def samples(source):
     """``{stage: (W, U, memory_bytes, seconds_per_task)}`` measured in one finished run (its directory
-    or its record; not the record's ``superseded`` stages), ``W`` and ``U`` from the run's
-    configuration by today's work model."""
+    or its record; not the record's ``superseded`` stages, and ``memory_bytes`` None for its
+    ``memory_superseded`` ones), ``W`` and ``U`` from the run's configuration by today's work model."""
     rec = load_record(source)
     cfg = record_config(rec)
     g = geometry(cfg, record_ingest(rec), rec.get("task_threads", 1))  # records before it ran one thread a task
@@ -147,7 +150,8 @@ def samples(source):
             _, w, u, _ = stage_work(stage, g, cfg)
         except KeyError:
             continue
-        out[stage] = (w, u, m["task_memory_bytes"], m["task_seconds"])
+        mem = None if stage in rec.get("memory_superseded", {}) else m["task_memory_bytes"]
+        out[stage] = (w, u, mem, m["task_seconds"])
     return out
 
 
@@ -213,7 +217,8 @@ def fit_costs(run_dirs, sgemm_gflops):
     stages = {}
     for stage, ss in per_stage.items():
         w, u, mem, sec = (np.array(v, float) for v in zip(*ss))
-        a, b = fit_memory(w, mem, WORKER_BASE_BYTES)
+        known = ~np.isnan(mem)  # memory_superseded: None
+        a, b = fit_memory(w[known], mem[known], WORKER_BASE_BYTES) if known.any() else (1.0, 0.0)
         c, d = fit_time(u, sec)
         stages[stage] = {"a": a, "b": b, "c": c, "d": d, "runs": len(ss)}
     return {"sgemm_gflops": sgemm_gflops, "fitted_on": [_name(d) for d in run_dirs], "stages": stages}
@@ -268,10 +273,11 @@ def plan_against_run(run_dir, costs=None, peak_gflops=None):
         _, _, mem, sec = measured[e["stage"]]
         planned_s = e["seconds"] / -(-e["tasks"] // workers) if e["seconds"] else None
         planned_gb = (e["task_bytes"] + WORKER_BASE_BYTES) / 1e9
-        measured_gb = (mem + WORKER_BASE_BYTES) / 1e9
+        measured_gb = None if mem is None else (mem + WORKER_BASE_BYTES) / 1e9
         rows.append({"stage": e["stage"], "tasks": e["tasks"], "planned_task_s": planned_s, "measured_task_s": sec,
                      "time_ratio": sec / planned_s if planned_s else None, "planned_task_gb": planned_gb,
-                     "measured_task_gb": measured_gb, "memory_ratio": measured_gb / planned_gb})
+                     "measured_task_gb": measured_gb,
+                     "memory_ratio": None if measured_gb is None else measured_gb / planned_gb})
     return rows, res["sgemm_gflops"]
 
 
@@ -285,6 +291,6 @@ def format_against(rows, peak_gflops):
            f"{'ratio':>6s}"]
     for r in rows:
         out.append(f"{r['stage']:12s} {r['tasks']:6d} {num(r['planned_task_s'], '8.1f')} {r['measured_task_s']:8.1f} "
-                   f"{num(r['time_ratio'], '6.2f')} {r['planned_task_gb']:8.2f} {r['measured_task_gb']:7.2f} "
-                   f"{r['memory_ratio']:6.2f}")
+                   f"{num(r['time_ratio'], '6.2f')} {r['planned_task_gb']:8.2f} {num(r['measured_task_gb'], '7.2f')} "
+                   f"{num(r['memory_ratio'], '6.2f')}")
     return "\n".join(out)

@@ -344,3 +344,16 @@ def test_components_of_zero_flux_restore_nothing():
     pix = healpy.pixelfunc.vec2pix(nside, *v[1])
     peak = 2.0 / (2 * np.pi * (0.1 / psf.FWHM_PER_SIGMA) * (0.08 / psf.FWHM_PER_SIGMA))  # Jy/sr at the centre
     assert restored[pix] > residual[pix] + peak / 2
+
+
+def test_a_blocks_point_columns_are_the_full_columns_rows_to_the_bit():
+    """psf_columns of an m block computes only the block's m (``point_columns(..., m_start)``): the rows of the
+    columns computed for every m up to the block's end, bit for bit, so a task's PSF no longer holds the
+    columns of all the m before its block."""
+    from mmflow.conventions import m_block_slice
+
+    lmax = 60
+    vecs = radec_to_vec(np.array([0.3, 2.0, 4.1]), np.array([-0.4, 0.2, 1.2]))
+    for m0, m1 in ((0, 8), (24, 32), (56, 61)):
+        full = psf.point_columns(vecs, lmax, m1)[m_block_slice(lmax, m0, m1)]
+        np.testing.assert_array_equal(psf.point_columns(vecs, lmax, m1, m0), full)

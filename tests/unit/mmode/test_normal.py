@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from mmflow.mmode.normal import hermitian_block, hermitian_full, pack_upper, packed_size, unpack_upper
+from mmflow.mmode.normal import (hermitian_block, hermitian_full, pack_leading_upper, pack_upper, packed_size,
+                                 unpack_upper, upper_block)
 
 
 def _hermitian(rng, n, dtype=np.complex128):
@@ -68,6 +69,21 @@ def test_a_gram_block_is_built_in_one_array():
     finally:
         tracemalloc.stop()
     assert block.nbytes <= peak < 1.05 * block.nbytes
+
+
+def test_a_factors_corner_packs_and_unpacks_as_the_padded_square_does():
+    """A kept corner (nk x nk) of an n0 x n0 factor: pack_leading_upper gives pack_upper of the zero-padded square
+    and upper_block the square route's corner, ``unpack_upper(p, n0)[:nk, :nk]``, bit for bit; the factor's lower
+    triangle (cho_factor's leftovers) is not stored."""
+    rng = np.random.default_rng(6)
+    for nk in (9, 5, 0):
+        cho = rng.normal(size=(nk, nk)) + 1j * rng.normal(size=(nk, nk))  # lower triangle: garbage
+        padded = np.zeros((9, 9), complex)
+        padded[:nk, :nk] = cho
+        out = np.full(packed_size(9), np.nan, complex)
+        np.testing.assert_array_equal(pack_leading_upper(cho, 9, out), pack_upper(padded))
+        np.testing.assert_array_equal(upper_block(out, 9, nk), unpack_upper(out, 9)[:nk, :nk])
+        np.testing.assert_array_equal(upper_block(out, 9, nk), np.triu(cho))
 
 
 def test_a_packed_factor_solves_to_the_same_bits():
