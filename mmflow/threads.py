@@ -41,19 +41,25 @@ def _cgroup_cpus():
         return None
 
 
-def n_threads():
+def cores_per_thread(worker_threads=1, workers_per_host=1):
+    """A kernel's thread budget in a worker of ``worker_threads`` threads, one of ``workers_per_host`` on its
+    host: ``MMFLOW_THREADS`` where set, else the usable cores divided among all those threads (at least 1).
+    The planner asks it for the workers a run will start (``mmflow.workflow.plan.planner.task_threads``)."""
     env = os.environ.get("MMFLOW_THREADS")
     if env:
         return max(1, int(env))
+    return max(1, usable_cores() // (max(1, worker_threads) * max(1, workers_per_host)))
+
+
+def n_threads():
     dist = sys.modules.get("distributed")  # a process outside any dask worker never imports it (~15 MB, ~0.5 s)
-    if dist is None:
-        return usable_cores()
+    if dist is None or os.environ.get("MMFLOW_THREADS"):
+        return cores_per_thread()
     try:
         w = dist.get_worker()
-        share = max(1, w.state.nthreads) * max(1, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
-        return max(1, usable_cores() // share)
+        return cores_per_thread(w.state.nthreads, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
     except (ValueError, AttributeError):  # distributed loaded, but not in a worker (a client, a driver)
-        return usable_cores()
+        return cores_per_thread()
 
 
 @contextmanager

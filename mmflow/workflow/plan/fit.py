@@ -64,9 +64,9 @@ def record(run_dir, sgemm_gflops=None, note=""):
     cfg = load_config(run.path / "config.yaml")
     stages, threads = {}, 1
     for stage in _finished_stages(run):
-        threads = max([threads] + [i["threads"] for i in run.task_infos(stage).values() if "threads" in i])
-        infos = [i for i in run.task_infos(stage).values()
-                 if i.get("peak_rss_gb") is not None and i.get("rss_start_gb") is not None]
+        every = run.task_infos(stage).values()
+        threads = max([threads] + [i["threads"] for i in every if "threads" in i])
+        infos = [i for i in every if i.get("peak_rss_gb") is not None and i.get("rss_start_gb") is not None]
         if infos:
             mem = max(i["peak_rss_gb"] - i["rss_start_gb"] for i in infos) * 1e9
             stages[stage] = {"tasks": len(infos), "task_memory_bytes": max(mem, 0.0),

@@ -265,17 +265,14 @@ def task_threads(cfg):
     scheduler, and their share per worker thread for a local cluster (``cores // (n_workers x
     threads_per_worker)``); one on a job queue or a cluster at an address (a job's cores are its worker
     threads, :mod:`mmflow.workflow.engine.pools`)."""
-    from mmflow.threads import usable_cores  # deferred: threadpoolctl and scipy's BLAS
+    from mmflow.threads import cores_per_thread  # deferred: threadpoolctl and scipy's BLAS
 
-    env = os.environ.get("MMFLOW_THREADS")
-    if env:
-        return max(1, int(env))
     c = cfg.cluster
     if c.kind == "synchronous":
-        return usable_cores()
-    if c.kind == "local":
-        return max(1, usable_cores() // max(1, c.n_workers * c.threads_per_worker))
-    return 1
+        return cores_per_thread()
+    if c.kind == "local":  # mmflow's local cluster sets MMFLOW_WORKERS_PER_HOST to its n_workers
+        return cores_per_thread(c.threads_per_worker, c.n_workers)
+    return max(1, int(os.environ.get("MMFLOW_THREADS") or 1))  # a job's cores are its worker threads
 
 
 def geometry(cfg, ingest=None, threads=None):
