@@ -73,8 +73,75 @@ def pattern_templates(patterns, pairs):
     return np.stack([xy, yx], axis=-1).reshape(K * K, len(pairs), 2)
 
 
+def _templates_per_time(templates, vis):
+    T = np.asarray(templates)
+    if T.ndim == 3:
+        T = np.broadcast_to(T[:, None], (T.shape[0],) + vis.shape)
+    return T
+
+
+def cross_normal(vis, weights, templates):
+    """``G`` (time, n, n) and ``r`` (time, n) of the module's least squares with every component active.
+
+    The design rows of integration ``t`` are ``a_s = [T^s_xy, conj(T^s_yx)]`` (2 bl of them), the data
+    ``d = [xy, conj(yx)]`` (0 where the weight is 0), so ``G_t = conj(A_t) W_t A_t^T`` and
+    ``r_t = conj(A_t) W_t d_t`` for ``A_t`` (n, 2 bl): one complex GEMM per integration (BLAS), where a
+    contraction over three indices would run in numpy's own loops.
+
+    Parameters
+    ----------
+    vis : ndarray (time, bl, 2): xy, yx
+    weights : ndarray broadcastable to ``vis`` (0: not used)
+    templates : ndarray (n, time, bl, 2) or (n, bl, 2) (the same in every integration)
+    """
+    vis = np.asarray(vis)
+    T = _templates_per_time(templates, vis)
+    n, n_t, n_bl = T.shape[:3]
+    w = np.broadcast_to(weights, vis.shape)
+    wd = np.concatenate([w[..., 0], w[..., 1]], axis=-1)  # (time, 2 bl)
+    ah = np.empty((n_t, n, 2 * n_bl), complex)  # conj(A_t), built in place: the templates' size, twice
+    np.conjugate(np.moveaxis(T[..., 0], 0, 1), out=ah[..., :n_bl])
+    ah[..., n_bl:] = np.moveaxis(T[..., 1], 0, 1)
+    aw = np.conj(ah)
+    aw *= wd[:, None]
+    G = ah @ np.swapaxes(aw, 1, 2)
+    del aw
+    d = np.concatenate([vis[..., 0], np.conj(vis[..., 1])], axis=-1)
+    d = np.where(wd > 0, d, 0) * wd
+    return G, (ah @ d[..., None])[..., 0]
+
+
+def solve_cross(G, r, active=None, ridge=None, prior=None):
+    """Coefficients (time, n) from :func:`cross_normal`'s ``G``, ``r``: ``(G + Lambda) c = r + Lambda c_prior``
+    over the ``active`` components of each integration (the others: 0).
+
+    Parameters
+    ----------
+    G : ndarray (time, n, n); r : ndarray (time, n)
+    active : bool ndarray (n, time), optional: the components fitted in each integration
+    ridge : ndarray broadcastable to (time, n), optional: ``lambda`` added to ``G``'s diagonal
+    prior : ndarray broadcastable to (time, n), optional: what the ridge draws ``c`` towards (default 0)
+    """
+    G = np.array(G, complex)
+    r = np.array(r, complex)
+    if active is not None:  # an inactive component's design row is 0: its rows and columns of G, its r
+        m = np.asarray(active, bool).T
+        G *= m[:, :, None] & m[:, None, :]
+        r *= m
+    diag = np.arange(G.shape[1])
+    if ridge is not None:
+        ridge = np.broadcast_to(ridge, G.shape[:2]) * (1 if active is None else np.asarray(active, bool).T)
+        G[:, diag, diag] += ridge
+        if prior is not None:
+            r = r + ridge * prior
+    empty = np.abs(G[:, diag, diag]) == 0  # nothing to fit: c = 0
+    G[:, diag, diag] += empty
+    return np.linalg.solve(G, r[..., None])[..., 0]
+
+
 def fit_cross(vis, weights, templates, active=None, ridge=None, prior=None):
-    """Complex coefficients (time, n) of the components in the cross hands (the module's least squares).
+    """Complex coefficients (time, n) of the components in the cross hands (the module's least squares):
+    :func:`solve_cross` of :func:`cross_normal`.
 
     Parameters
     ----------
@@ -86,28 +153,7 @@ def fit_cross(vis, weights, templates, active=None, ridge=None, prior=None):
     prior : ndarray broadcastable to (time, n), optional: what the ridge draws ``c`` towards (default 0),
         ``(G + Lambda) c = r + Lambda c_prior``
     """
-    vis = np.asarray(vis)
-    T = np.asarray(templates)
-    if T.ndim == 3:
-        T = np.broadcast_to(T[:, None], (T.shape[0],) + vis.shape)
-    w = np.broadcast_to(weights, vis.shape)
-    a = np.concatenate([T[..., 0], np.conj(T[..., 1])], axis=-1)  # (n, time, 2 bl)
-    if active is not None:
-        a = a * np.asarray(active, bool)[..., None]
-    d = np.concatenate([vis[..., 0], np.conj(vis[..., 1])], axis=-1)  # (time, 2 bl)
-    wd = np.concatenate([w[..., 0], w[..., 1]], axis=-1)
-    d = np.where(wd > 0, d, 0)
-    G = np.einsum("stb,ktb->tsk", np.conj(a), a * wd)
-    r = np.einsum("stb,tb->ts", np.conj(a), wd * d)
-    diag = np.arange(G.shape[1])
-    if ridge is not None:
-        ridge = np.broadcast_to(ridge, G.shape[:2]) * (1 if active is None else np.asarray(active, bool).T)
-        G[:, diag, diag] += ridge
-        if prior is not None:
-            r = r + ridge * prior
-    empty = np.abs(np.einsum("tss->ts", G)) == 0  # nothing to fit: c = 0
-    G[:, diag, diag] += empty
-    return np.linalg.solve(G, r[..., None])[..., 0]
+    return solve_cross(*cross_normal(vis, weights, templates), active, ridge, prior)
 
 
 def fit_cross_bounded(vis, weights, templates, active=None, ridge=None, max_ratio=CROSS_MAX_RATIO):
@@ -125,23 +171,27 @@ def fit_cross_bounded(vis, weights, templates, active=None, ridge=None, max_rati
     3. a coefficient with ``|c_s| > max_ratio |c_bar|`` is refused: set to ``c_bar`` (its template then
        subtracted at the common coefficient) and the others refitted without it, until none is refused.
 
+    All three are solved from one :func:`cross_normal` (``G``, ``r`` of every component): the shared
+    template's are ``m^T G m`` and ``m . r`` (``m`` the active components), and subtracting the refused
+    components' fixed ``c_fix`` from the data is ``r - G c_fix``.
+
     Returns the coefficients and the refused components (for the summary: the data did not measure
     them).
     """
     vis = np.asarray(vis)
-    T = np.asarray(templates)
-    if T.ndim == 3:
-        T = np.broadcast_to(T[:, None], (T.shape[0],) + vis.shape)
+    T = _templates_per_time(templates, vis)
     n, n_t = T.shape[0], vis.shape[0]
     act = np.ones((n, n_t), bool) if active is None else np.asarray(active, bool).copy()
-    shared = np.einsum("st,stbp->tbp", act.astype(float), T)[None]
-    c_bar = fit_cross(vis, weights, shared)[:, 0]  # (time,)
+    G, r = cross_normal(vis, weights, T)
+    m = act.T.astype(float)  # (time, n)
+    g_bar = np.einsum("ts,tsk,tk->t", m, G, m)
+    c_bar = solve_cross(g_bar[:, None, None], np.einsum("ts,ts->t", m, r)[:, None])[:, 0]  # (time,)
     lam = np.zeros((n_t, n)) if ridge is None else np.broadcast_to(ridge, (n_t, n))
     refused = np.zeros((n_t, n), bool)
     for _ in range(n):
         free = act & ~refused.T
         fixed = np.where(refused, c_bar[:, None], 0.0) * act.T  # (time, n)
-        c = fit_cross(vis - cross_model(fixed, T), weights, T, free, lam, c_bar[:, None]) + fixed
+        c = solve_cross(G, r - (G @ fixed[..., None])[..., 0], free, lam, c_bar[:, None]) + fixed
         new = free.T & (np.abs(c) > max_ratio * np.abs(c_bar)[:, None])
         if not new.any():
             return c, refused

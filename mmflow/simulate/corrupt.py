@@ -70,10 +70,12 @@ def baseline_ends(values, pairs, feeds=None):
     two ndarrays (..., n_bl, n_pol)
     """
     pairs = np.asarray(pairs)
-    vi, vj = values[..., pairs[:, 0], :], values[..., pairs[:, 1], :]
-    if feeds is not None:
-        vi, vj = vi[..., list(feeds[0])], vj[..., list(feeds[1])]
-    return vi, vj
+    values = np.asarray(values)
+    n_feed = values.shape[-1]
+    p, q = (np.arange(n_feed),) * 2 if feeds is None else (np.asarray(feeds[0]), np.asarray(feeds[1]))
+    flat = values.reshape(values.shape[:-2] + (-1,))  # (..., n_ant * n_feed): one gather per end, not two
+    return (np.take(flat, pairs[:, :1] * n_feed + p, axis=-1),
+            np.take(flat, pairs[:, 1:] * n_feed + q, axis=-1))
 
 
 def gain_products(gains, pairs, feeds=None):
@@ -90,7 +92,8 @@ def gain_products(gains, pairs, feeds=None):
     ndarray (..., n_bl, n_pol)
     """
     gi, gj = baseline_ends(gains, pairs, feeds)
-    return gi * np.conj(gj)
+    gj = np.conjugate(gj, out=gj) if np.iscomplexobj(gj) else gj  # the gathers are new arrays: in place
+    return np.multiply(gj, gi, out=gj if gj.dtype == np.result_type(gi, gj) else None)
 
 
 def sawtooth_db(times_s, rng, amplitude_db=0.1, period_s=(900.0, 1020.0), wander_s=3 * 3600.0):

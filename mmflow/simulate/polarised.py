@@ -138,6 +138,11 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
     n_ant = len(x_wl)
     unpolarised = not np.any(sky.stokes_jy[:, 1:])
     herk = get_blas_funcs("herk", dtype=np.dtype(dtype))
+    feed_rows = 2 * pairs[None, :, 0] + p_idx[:, None]  # (corr, bl): V_(ip),(jq) of the 2N x 2N feed matrix
+    feed_cols = 2 * pairs[None, :, 1] + q_idx[:, None]
+    lower = feed_rows > feed_cols  # herk writes the upper triangle: there V_rc = conj(V_cr)
+    full_at = feed_cols * (2 * n_ant) + feed_rows  # positions in the (Fortran-ordered) matrix's memory
+    upper_at = np.where(lower, feed_rows * (2 * n_ant) + feed_cols, full_at)
     for t, phi in enumerate(lsts):
         rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
         r_all = sky.vectors @ rot
@@ -164,10 +169,9 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
                 continue
             a_s = np.einsum("apsc,scd->apsd", a, s_mat[up].astype(dtype, copy=False))
             vis += a_s.reshape(2 * n_ant, 2 * n_up) @ a.reshape(2 * n_ant, 2 * n_up).conj().T
+        out[t] = np.take(vis.ravel(order="F"), upper_at if unpolarised else full_at)  # one gather, in memory order
         if unpolarised:
-            vis = np.triu(vis) + np.triu(vis, 1).conj().T
-        vis = vis.reshape(n_ant, 2, n_ant, 2)  # [i, p, j, q]
-        out[t] = vis[pairs[None, :, 0], p_idx[:, None], pairs[None, :, 1], q_idx[:, None]]
+            np.conjugate(out[t], out=out[t], where=lower)
     return out
 
 
