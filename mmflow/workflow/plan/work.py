@@ -34,12 +34,12 @@ VIS_SAMPLE_BYTES = 8.0 + 4.0
 #: bytes of one sample of a corrected block as stages read it: complex128 visibility + float64 weight
 CORRECTED_SAMPLE_BYTES = 16.0 + 8.0
 
-#: a stage note where the time model counts the parallel hands only: full Stokes runs the four
-#: correlations (the polarised simulation, the cross hands read and corrected, the sources' E-field
-#: models and the cross hands' fit in peel), whose extra time is not modelled yet (docs/stokes.md,
-#: measured at the paper's channel)
-FOUR_CORRELATION_NOTE = ("full Stokes: the four correlations' extra work is not in this time, a lower bound "
-                         "(docs/stokes.md)")
+def four_correlation_note(ratio):
+    """The plan's note on a stage whose task time the four correlations multiply by ``ratio`` (its cost
+    model's ``FOUR_CORRELATION_TIME``: the polarised simulation, the sources' E-field models and the cross
+    hands' fit, measured against the same tasks with the parallel hands by
+    ``benchmarks/four_correlation_ratio.py``, docs/stokes.md)."""
+    return f"full Stokes: {ratio:.1f}x the parallel hands' time (the four correlations, docs/stokes.md)"
 
 
 def four_correlations(cfg):

@@ -18,6 +18,10 @@ baselines and few integrations (352 antennas over a short track, one integration
 
 Each screen round costs ~4 catalogue solves: a gain solve and the screen fits' antenna matrices
 (``mmflow bench calibrate``, gains_screened; docs/calibration.md).
+
+Full Stokes costs the same: the gains are solved on the parallel hands, and the cross hands are only read
+and corrected where a later stage reads them (measured 1.06x the Stokes-I tasks' time with the paper's
+sources at 256 antennas, ``benchmarks/four_correlation_ratio.py``, docs/stokes.md).
 """
 from __future__ import annotations
 
@@ -25,8 +29,7 @@ import numpy as np
 
 from mmflow.io import calibration_stores as cs
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.conventions import is_full_stokes
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, FOUR_CORRELATION_NOTE, Cost, Work
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work
 
 #: bytes per sample of the block while its read decodes: the complex128 visibilities and float64 weights it
 #: returns (the vis read's complex64 and the weights' float32 decoded chunks, half the vis', fit within these)
@@ -89,8 +92,4 @@ def work(g, cfg):
     return Work(n_int * g.n_freq, w, units, [spec])
 
 
-def notes(g, cfg, peak_gflops):
-    return [FOUR_CORRELATION_NOTE] if is_full_stokes(cfg.imaging.stokes) else []
-
-
-COST = Cost(work, shrink="a shorter calibrate.solint_s", notes=notes)
+COST = Cost(work, shrink="a shorter calibrate.solint_s")

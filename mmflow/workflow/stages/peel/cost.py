@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from mmflow.io import calibration_stores as cs
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, FOUR_CORRELATION_NOTE, Cost, Work, four_correlations
+from mmflow.workflow.plan.work import CORRECTED_SAMPLE_BYTES, Cost, Work, four_correlation_note, four_correlations
 
 #: bytes per sample of a source's model: complex64, one for both hands
 MODEL_SAMPLE_BYTES = 8.0
@@ -29,6 +29,12 @@ WEIGHT_COPY_BYTES = 8.0
 #: bytes per cross-hand sample and source of the cross hands' fit: templates, design matrix and its weighted
 #: copy (complex128 each)
 CROSS_FIT_SAMPLE_BYTES = 48.0
+#: a four-correlation task's time over the same task's on the parallel hands: each source's four correlations
+#: through the E-field beam (:func:`mmflow.calibrate.coherency.source_correlations`), its cross-hand templates
+#: and the cross hands' fit (one GEMM per integration, ``n_src^2`` per sample: the ratio grows with the
+#: sources); measured 3.08 with the paper's 11 sources at 256 antennas (``benchmarks/four_correlation_ratio.py``,
+#: docs/stokes.md)
+FOUR_CORRELATION_TIME = 3.08
 
 
 def n_sources(cfg):
@@ -46,11 +52,12 @@ def work(g, cfg):
          + (n_src * MATRIX_ELEMENT_BYTES + BATCH_MATRIX_BYTES) * BATCH_INTEGRATIONS * g.n_pol * g.n_ant ** 2
          + BATCH_INTEGRATIONS * g.n_bl * cross * n_src * CROSS_FIT_SAMPLE_BYTES)  # the cross fit, a batch at a time
     spec = cs.peel_store(g.n_time, g.n_freq, n_src, g.n_ant, g.n_pol, TIME_CHUNK, {}, cross=four)
-    return Work(g.n_time_chunks * g.n_freq, w, T * g.n_bl * g.n_pol * n_src, [spec])
+    units = T * g.n_bl * g.n_pol * n_src * (FOUR_CORRELATION_TIME if four else 1.0)
+    return Work(g.n_time_chunks * g.n_freq, w, units, [spec])
 
 
 def notes(g, cfg, peak_gflops):
-    return [FOUR_CORRELATION_NOTE] if four_correlations(cfg) else []
+    return [four_correlation_note(FOUR_CORRELATION_TIME)] if four_correlations(cfg) else []
 
 
 COST = Cost(work, shrink="fewer peel.sources / peel.model_sources", notes=notes)

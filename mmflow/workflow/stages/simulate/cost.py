@@ -21,7 +21,7 @@ from mmflow.conventions import is_full_stokes
 from mmflow.simulate.scene import diffuse_columns, diffuse_quad_lmax
 from mmflow.simulate.visibilities import gauss_legendre_shape
 from mmflow.workflow.engine.geometry import DIFFUSE_SAMPLE_BLOCK, interpolates_diffuse
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, FOUR_CORRELATION_NOTE, Cost, Work, vis_spec
+from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, four_correlation_note, vis_spec
 
 #: complex128 (time, baseline, pol) temporaries of one channel of a corrupted simulation (drift scans,
 #: corruptions, noise)
@@ -39,6 +39,11 @@ DIFFUSE_SAMPLE_BYTES = 2 * COMPLEX128_BYTES
 #: the phasors' sines and cosines), measured at full scale: 138 sums of 1.58M points above the horizon at
 #: 256 antennas, 889 s of task time on the 2 workers of a 193 GFLOP/s VM (docs/performance.md)
 DIFFUSE_SUM_FRACTION = 0.67
+#: a full-Stokes time chunk's task time over the same task's with the sky through the power beams: the four
+#: correlations of every point per integration (:func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`,
+#: the ``2 n_ant`` feed matrix) and their corruptions; measured 1.74 with the paper's 11 sources at 256
+#: antennas (``benchmarks/four_correlation_ratio.py``, docs/stokes.md)
+FOUR_CORRELATION_TIME = 1.74
 
 
 class SkySizes(NamedTuple):
@@ -71,7 +76,7 @@ def sky_sizes(g, cfg):
 def work(g, cfg):
     sky = sky_sizes(g, cfg)
     T = g.chunk_integrations
-    units = T * g.n_bl * g.n_freq * sky.points
+    units = T * g.n_bl * g.n_freq * sky.points * (FOUR_CORRELATION_TIME if sky.full_stokes else 1.0)
     w = g.vis_task_bytes
     if cfg.corrupt.enabled or is_full_stokes(cfg.imaging.stokes):
         w += T * g.n_bl * g.n_pol * (TEMPORARIES * COMPLEX128_BYTES)
@@ -111,7 +116,7 @@ def seconds(g, cfg, per_task, workers, peak_gflops):
 
 def notes(g, cfg, peak_gflops):
     sky = sky_sizes(g, cfg)
-    out = [FOUR_CORRELATION_NOTE] if is_full_stokes(cfg.imaging.stokes) else []
+    out = [four_correlation_note(FOUR_CORRELATION_TIME)] if sky.full_stokes else []
     if not sky.diffuse_samples:
         return out
     sums = diffuse_sum_seconds(g, cfg, peak_gflops)

@@ -6,12 +6,17 @@ from __future__ import annotations
 
 from mmflow.io import calibration_stores as cs
 from mmflow.workflow.engine.chunking import TIME_CHUNK
-from mmflow.workflow.plan.work import (COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, four_correlations,
-                                       read_bytes)
+from mmflow.workflow.plan.work import (COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, Cost, Work, four_correlation_note,
+                                       four_correlations, read_bytes)
 
 #: bytes per sample a task holds beside its block: the weights (float64), the masked data and the weighted
 #: data (complex128 each)
 SUMS_SAMPLE_BYTES = 8.0 + 2 * COMPLEX128_BYTES
+#: a four-correlation task's time over the same task's on the parallel hands: the peel's correction on read
+#: and the modelled sources in all four correlations (each source's four correlations through the E-field
+#: beam), the cross hands' template fit; measured 2.74 with the paper's sources at 256 antennas
+#: (``benchmarks/four_correlation_ratio.py``, docs/stokes.md)
+FOUR_CORRELATION_TIME = 2.74
 
 
 def work(g, cfg):
@@ -21,7 +26,11 @@ def work(g, cfg):
                                 TIME_CHUNK, cross=four)
     T = g.chunk_integrations
     w = max(read_bytes(g, cfg, T, g.n_bl, 1), T * g.n_bl * g.n_pol * (CORRECTED_SAMPLE_BYTES + SUMS_SAMPLE_BYTES))
-    return Work(2 * n_tchunk * g.n_freq, w, T * g.n_bl * g.n_pol, [spec])
+    return Work(2 * n_tchunk * g.n_freq, w, T * g.n_bl * g.n_pol * (FOUR_CORRELATION_TIME if four else 1.0), [spec])
 
 
-COST = Cost(work)
+def notes(g, cfg, peak_gflops):
+    return [four_correlation_note(FOUR_CORRELATION_TIME)] if four_correlations(cfg) else []
+
+
+COST = Cost(work, notes=notes)

@@ -1,0 +1,67 @@
+"""The four correlations' time against Stokes I's, stage by stage, on the paper's array (JSON on stdout).
+
+Runs the data stages (simulate, calibrate, peel, terrestrial) of ``workflows/paper-scale.yaml`` twice in
+fresh run directories under ``ROOT``: with ``imaging.stokes=[I]`` and with ``[I, Q, U, V]`` (the four
+correlations through the E-field beam, peel and terrestrial on xy and yx too), the same short-dipole beam,
+no diffuse sky, ``N_INT`` integrations (whole time chunks), one synchronous process. Prints each stage's
+tasks' seconds (summed) in both and their ratio, beside this machine's SGEMM peak measured before and after.
+The ratios are the ``FOUR_CORRELATION_TIME`` constants of the stages' cost models
+(``mmflow/workflow/stages/*/cost.py``); docs/stokes.md gives the run they came from.
+
+Usage: ``python benchmarks/four_correlation_ratio.py ROOT [N_INT]`` (ROOT must not exist; 512 by default).
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from mmflow.machine import gemm_gflops
+
+STAGES = ("simulate", "calibrate", "peel", "terrestrial")
+COMMON = ["workflows/paper-scale.yaml", "beam={type: short_dipole, horizon_taper: 3}", "sky.diffuse=false",
+          "mmode.min_coverage=0.05", "--cluster", "synchronous", "--no-progress"]
+KINDS = {"I": "imaging.stokes=[I]", "IQUV": "imaging.stokes=[I, Q, U, V]"}
+
+
+def task_seconds(run_dir, stage):
+    """The seconds of each task of ``stage`` in ``run_dir`` (its completion markers)."""
+    d = os.path.join(run_dir, "_status", stage)
+    out = []
+    for name in sorted(os.listdir(d)):
+        if name.endswith(".done") and not name.startswith("_") and not name.startswith("r"):  # not the ripple
+            with open(os.path.join(d, name)) as f:
+                info = json.load(f).get("info", {})
+            if "seconds" in info:
+                out.append(info["seconds"])
+    return out
+
+
+def main(root, n_int=512):
+    os.makedirs(root)
+    peak_before = gemm_gflops(np.float32)
+    result = {"command": f"python benchmarks/four_correlation_ratio.py {root} {n_int}",
+              "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "n_integrations": n_int,
+              "sgemm_gflops_before": round(peak_before, 1), "stages": {}}
+    seconds = {}
+    for kind, stokes in KINDS.items():
+        run_dir = os.path.join(root, kind)
+        for stage in STAGES:
+            subprocess.run([sys.executable, "-m", "mmflow.cli", stage, *COMMON, stokes,
+                            f"observation.n_integrations={n_int}", f"run.directory={run_dir}"],
+                           check=True, stdout=subprocess.DEVNULL)
+            seconds[kind, stage] = task_seconds(run_dir, stage)
+    result["sgemm_gflops_after"] = round(gemm_gflops(np.float32), 1)
+    for stage in STAGES:
+        i, four = sum(seconds["I", stage]), sum(seconds["IQUV", stage])
+        result["stages"][stage] = {"tasks": len(seconds["I", stage]), "task_s_I": round(i, 2),
+                                   "task_s_IQUV": round(four, 2), "ratio": round(four / i, 2)}
+    print(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], *(int(a) for a in sys.argv[2:3]))
