@@ -74,6 +74,8 @@ def pattern_templates(patterns, pairs):
 
 
 def _templates_per_time(templates, vis):
+    """``templates`` as (n, time, bl, 2): one set of templates (n, bl, 2) repeated over ``vis``' integrations
+    (a view, no copy)."""
     T = np.asarray(templates)
     if T.ndim == 3:
         T = np.broadcast_to(T[:, None], (T.shape[0],) + vis.shape)

@@ -122,3 +122,35 @@ def test_bounded_fit_equals_the_plain_fit_where_every_coefficient_is_measured():
     assert not refused.any()
     np.testing.assert_allclose(c, fit_cross(data, 1.0, T, ridge=ridge), atol=1e-7)
     np.testing.assert_allclose(c, np.broadcast_to(truth, (n_t, 3)), atol=1e-6)
+
+
+def test_bounded_fit_from_one_normal_system_equals_refitting_the_data():
+    """``fit_cross_bounded`` solves its shared coefficient and its refits from one ``G``, ``r``
+    (:func:`~mmflow.calibrate.cross_hands.cross_normal`). Against the explicit route on the same data, with
+    weights, inactive components and a refused one: the shared coefficient fitted to the summed active
+    templates, then the refit of the data less the refused component at that coefficient (each through
+    :func:`fit_cross` on the data itself)."""
+    rng = np.random.default_rng(13)
+    n_t, n_bl = 4, 80
+    T = rng.normal(size=(4, n_t, n_bl, 2)) + 1j * rng.normal(size=(4, n_t, n_bl, 2))
+    T[3] = 1e-4 * (T[0] + 1e-3 * rng.normal(size=T[0].shape))  # weak and nearly collinear: refused
+    active = np.ones((4, n_t), bool)
+    active[2, 1] = False
+    truth = np.array([0.6 + 0.8j, 0.7 + 0.7j, -0.8 + 0.6j, 0.6 + 0.8j])
+    noise = 1e-3 * (rng.normal(size=(n_t, n_bl, 2)) + 1j * rng.normal(size=(n_t, n_bl, 2)))
+    data = cross_model(np.broadcast_to(truth, (n_t, 4)) * active.T, T) + noise
+    w = rng.uniform(0.5, 2.0, data.shape)
+    w[:, :5] = 0.0
+    ridge = 1e-8 * np.einsum("stbp,tbp->ts", np.abs(T) ** 2, w)
+    c, refused = fit_cross_bounded(data, w, T, active, ridge)
+    assert refused[:, 3].all() and not refused[:, :3].any()
+
+    shared = np.einsum("st,stbp->tbp", active.astype(float), T)[None]
+    c_bar = fit_cross(data, w, shared)[:, 0]
+    fixed = np.zeros((n_t, 4), complex)
+    fixed[:, 3] = c_bar
+    free = active.copy()
+    free[3] = False
+    want = fit_cross(data - cross_model(fixed, T), w, T, free, ridge, c_bar[:, None]) + fixed
+    np.testing.assert_allclose(c, want, rtol=1e-9, atol=1e-12)
+    assert (c[1, 2] == 0) and np.allclose(c[:, :2], truth[:2], atol=1e-2)
