@@ -125,20 +125,23 @@ def peel_components(ctx, block, fi, kinds, cross=False):
     if four and jones is None:
         raise InputError(str(ctx.run.store(STORES.peel)), "correlations", "the peel solutions were made through "
                          "an E-field beam and this run's beam is not one", "rerun the peel stage (--force)")
-    coh = peel_coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used], jones=jones)
+    if cross:
+        c = ctx.read(STORES.peel.cross_scale, region)[:, 0] * np.isin(mode[:, :, 0], kinds)  # (time, src)
+    # four correlations: one source's model at a time (the paper's 11 sources' of a time chunk at 256 antennas are
+    # 1.5 GB, their cross templates as much again); the parallel hands' models, a quarter of that, at once
+    every = None if four else peel_coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s] for s in used])
     for k, s in enumerate(used):
+        coh = every[k] if every is not None else peel_coherencies(ctx, tel, fi, block.lst, block.pairs, [names[s]],
+                                                                  jones=jones)[0]
         f = np.where(mode[:, s] == PEEL, 1.0, scale[:, s]) * np.isin(mode[:, s], kinds)  # (time, pol)
         if np.all(h[:, s] == 1):  # a subtracted or modelled source at its catalogue position: h_i conj(h_j) = 1
             term = np.broadcast_to(f[:, None], out.shape).astype(out.dtype)
         else:
             term = f[:, None] * gain_products(h[:, s], block.pairs)
-        term *= coh[k][..., :2] if four else coh[k][..., None]  # in place: at 256 antennas each (time, bl,
+        term *= coh[..., :2] if four else coh[..., None]  # in place: at 256 antennas each (time, bl,
         out += term  # pol) temporary is ~0.3 GB
-    if cross:
-        c = ctx.read(STORES.peel.cross_scale, region)[:, 0][:, used]  # (time, src)
-        c = c * np.isin(mode[:, used, 0], kinds)
-        hs = np.moveaxis(h[:, used], 0, 1)  # (src, time, ant, pol)
-        out_cross += cross_model(c, gain_templates(coh[..., 2:], hs, block.pairs))
+        if cross:
+            out_cross += cross_model(c[:, s:s + 1], gain_templates(coh[None, ..., 2:], h[None, :, s], block.pairs))
     return out, out_cross
 
 

@@ -54,6 +54,9 @@ COMPLEX128_BYTES = 16.0
 #: (:func:`mmflow.workflow.engine.peel_models.peel_components`: the model it builds, each source's term, the
 #: gain products and the two ends' gains they come from)
 PEEL_TEMPORARIES = 5
+#: complex (time, baseline) temporaries per cross hand of the four-correlation correction on read, one source at
+#: a time: its templates, their gain products and the cross model it adds (the two ends' gathers go first)
+CROSS_TEMPORARIES = 3
 #: bytes per source, antenna and pol of the DD gains read and copied
 DD_GAIN_BYTES = 2 * COMPLEX128_BYTES
 #: declinations of CLEAN's PSF table (the clean stage and the CLEAN of V in the stokes stage)
@@ -190,18 +193,25 @@ def halvings(key, floor=1):
 
 def read_bytes(g, cfg, n_time, n_bl, n_freq):
     """Bytes of a block of ``n_time x n_bl x n_freq`` as :func:`mmflow.workflow.engine.blocks.read_block`
-    returns it to a stage after the peel (complex128 + float64 a sample) and, with peeling on, the peel's
-    correction of one channel on read: per integration and baseline the subtracted sources' coherencies and
-    :data:`PEEL_TEMPORARIES` complex arrays per pol, per integration the sources' DD gains read and copied::
+    returns it to a stage after the peel (complex128 + float64 a sample; with the four correlations its cross
+    hands too, ``n_cross = 2``) and, with peeling on, the peel's correction of one channel on read
+    (:func:`mmflow.workflow.engine.peel_models.peel_components`): per integration and baseline the sources'
+    models (the parallel hands: every source's, ``n_models = n_sub``; four correlations: one source's four at a
+    time, ``n_models = 4``), the :data:`PEEL_TEMPORARIES` complex arrays per pol of the parallel hands and the
+    :data:`CROSS_TEMPORARIES` per cross hand of a source's cross hands, per integration every source's DD gains
+    read and copied::
 
-        n_time (n_bl n_freq n_pol 24 + n_bl 16 (n_sub + 5 n_pol) + 32 n_sub n_ant n_pol)
+        n_time (n_bl n_freq (n_pol + n_cross) 24 + n_bl 16 (n_models + 5 n_pol + 3 n_cross) + 32 n_sub n_ant n_pol)
 
     (measured 0.75 GB at 6,628 integrations and 64 antennas, 1.22 GB at 256; 1.34 GB traced for a time
-    chunk of the 352-antenna array, one pol and four sources, against 1.34 counted: docs/planning.md)."""
+    chunk of the 352-antenna array, one pol and four sources, against 1.34 counted: docs/planning.md; four
+    correlations: 3.71 GB in a terrestrial task of the paper's array against 3.87 planned, docs/stokes.md)."""
     n_sub = len(cfg.peel.sources) if cfg.peel.enabled else 0
-    per_time = n_bl * n_freq * g.n_pol * CORRECTED_SAMPLE_BYTES
+    four = four_correlations(cfg)
+    n_cross, n_models = (2, 4) if four else (0, n_sub)
+    per_time = n_bl * n_freq * (g.n_pol + n_cross) * CORRECTED_SAMPLE_BYTES
     if n_sub:
-        per_time += (n_bl * COMPLEX128_BYTES * (n_sub + PEEL_TEMPORARIES * g.n_pol)
+        per_time += (n_bl * COMPLEX128_BYTES * (n_models + PEEL_TEMPORARIES * g.n_pol + CROSS_TEMPORARIES * n_cross)
                      + DD_GAIN_BYTES * n_sub * g.n_ant * g.n_pol)
     return n_time * per_time
 

@@ -44,6 +44,11 @@ DIFFUSE_SUM_FRACTION = 0.67
 #: the ``2 n_ant`` feed matrix) and their corruptions; measured 1.74 with the paper's 11 sources at 256
 #: antennas (``benchmarks/four_correlation_ratio.py``, docs/stokes.md)
 FOUR_CORRELATION_TIME = 1.74
+#: complex128 (time, baseline) arrays per cross hand (xy, yx) a full-Stokes channel holds beyond the parallel
+#: hands' :data:`TEMPORARIES`: measured 0.68 GB more than the same task through the power beams at 256
+#: antennas (4.07 against 3.39 GB, a time chunk: 2.5 a cross hand; ``benchmarks/four_correlation_ratio.py``'s
+#: runs, docs/stokes.md)
+CROSS_TEMPORARIES = 3
 
 
 class SkySizes(NamedTuple):
@@ -78,8 +83,8 @@ def work(g, cfg):
     T = g.chunk_integrations
     units = T * g.n_bl * g.n_freq * sky.points * (FOUR_CORRELATION_TIME if sky.full_stokes else 1.0)
     w = g.vis_task_bytes
-    if cfg.corrupt.enabled or is_full_stokes(cfg.imaging.stokes):
-        w += T * g.n_bl * g.n_pol * (TEMPORARIES * COMPLEX128_BYTES)
+    if cfg.corrupt.enabled or sky.full_stokes:
+        w += T * g.n_bl * (g.n_pol * TEMPORARIES + (2 * CROSS_TEMPORARIES if sky.full_stokes else 0)) * COMPLEX128_BYTES
     else:  # scalar and clean: one channel's drift scan and its noise (the chunk's channels: the vis block)
         w += T * g.n_bl * g.n_pol * (DRIFT_SCAN_BYTES + (NOISE_SAMPLE_BYTES if cfg.sky.noise else 0.0))
     if not sky.diffuse_samples:
