@@ -21,6 +21,7 @@ import time
 import numpy as np
 
 from mmflow.machine import gemm_gflops
+from mmflow.workflow.engine.rundir import RunDir
 
 STAGES = ("simulate", "calibrate", "peel", "terrestrial")
 COMMON = ["workflows/paper-scale.yaml", "beam={type: short_dipole, horizon_taper: 3}", "sky.diffuse=false",
@@ -29,16 +30,8 @@ KINDS = {"I": "imaging.stokes=[I]", "IQUV": "imaging.stokes=[I, Q, U, V]"}
 
 
 def task_seconds(run_dir, stage):
-    """The seconds of each task of ``stage`` in ``run_dir`` (its completion markers)."""
-    d = os.path.join(run_dir, "_status", stage)
-    out = []
-    for name in sorted(os.listdir(d)):
-        if name.endswith(".done") and not name.startswith("_") and not name.startswith("r"):  # not the ripple
-            with open(os.path.join(d, name)) as f:
-                info = json.load(f).get("info", {})
-            if "seconds" in info:
-                out.append(info["seconds"])
-    return out
+    """The seconds of each finished task of ``stage`` in ``run_dir`` (their completion markers)."""
+    return [i["seconds"] for i in RunDir(run_dir).task_infos(stage).values() if "seconds" in i]
 
 
 def main(root, n_int=512):

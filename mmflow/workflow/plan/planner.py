@@ -272,7 +272,7 @@ def task_threads(cfg):
         return cores_per_thread()
     if c.kind == "local":  # mmflow's local cluster sets MMFLOW_WORKERS_PER_HOST to its n_workers
         return cores_per_thread(c.threads_per_worker, c.n_workers)
-    return max(1, int(os.environ.get("MMFLOW_THREADS") or 1))  # a job's cores are its worker threads
+    return cores_per_thread() if os.environ.get("MMFLOW_THREADS") else 1  # a job's cores are its worker threads
 
 
 def geometry(cfg, ingest=None, threads=None):

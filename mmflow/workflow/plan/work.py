@@ -57,6 +57,11 @@ PEEL_TEMPORARIES = 5
 #: complex (time, baseline) temporaries per cross hand of the four-correlation correction on read, one source at
 #: a time: its templates, their gain products and the cross model it adds (the two ends' gathers go first)
 CROSS_TEMPORARIES = 3
+#: copies of an array while zarr reads it whole: the chunk's encoded bytes, its decoded buffer and the array
+#: returned (solve's Gram blocks: traced 2.9x in the 64-antenna lmax-200 run, whose Grams compress to 0.88 of
+#: their size; an array's Grams are dense, the 16 core stands' at lmax 1000 mostly zero and 50x smaller
+#: encoded; CLEAN's packed factors alike)
+ZARR_READ_COPIES = 3
 #: bytes per source, antenna and pol of the DD gains read and copied
 DD_GAIN_BYTES = 2 * COMPLEX128_BYTES
 #: declinations of CLEAN's PSF table (the clean stage and the CLEAN of V in the stokes stage)

@@ -4,9 +4,10 @@ written per cycle, so the disk holds the cycles run, not ``clean.max_cycles`` (t
 
 A task holds its block's Cholesky factors, complex128 ``n x n`` each (``B2 = sum_m n^2`` elements, the kept
 corner of each m), beside the factors packed (``P`` bytes, ``clean.zarr``'s ``chol_b``: the PSF task writes
-them, a cycle task reads them); a cycle task's read holds :data:`READ_COPIES` ``P`` first::
+them, a cycle task reads them); a cycle task's read holds
+:data:`~mmflow.workflow.plan.work.ZARR_READ_COPIES` ``P`` first::
 
-    W = max(READ_COPIES P, P + 16 B2)
+    W = max(ZARR_READ_COPIES P, P + 16 B2)
 
 (the PSF task's Gram read, in the Grams' precision, is at most half of ``P``). Traced on the reduced paper
 run's first block (lmax 200, one thread): PSF task 16.1 MB, cycle task 16.5, against 15.6 modelled.
@@ -15,11 +16,7 @@ from __future__ import annotations
 
 from mmflow.io import run_stores as rs
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, FEWER_CHANNELS, Cost, PSF_DECLINATIONS, Work, block_sum,
-                                       expected_clean_cycles, halvings, n_m_blocks, packed_block_sum)
-
-#: copies of the packed factors while zarr reads them: the chunk's encoded bytes, its decoded buffer and the
-#: array returned (as solve's Gram read, ``mmflow/workflow/stages/solve/cost.py``)
-READ_COPIES = 3
+                                       expected_clean_cycles, halvings, n_m_blocks, packed_block_sum, ZARR_READ_COPIES)
 
 
 def work(g, cfg):
@@ -30,7 +27,8 @@ def work(g, cfg):
     tasks = g.n_freq * n_m_blocks(g) * (1 + cycles)
     factors = block_sum(g.lmax, g.mmax, g.m_block, 2) * COMPLEX128_BYTES
     packed = packed_block_sum(g.lmax, g.mmax, g.m_block) * COMPLEX128_BYTES
-    return Work(tasks, max(READ_COPIES * packed, packed + factors), block_sum(g.lmax, g.mmax, g.m_block, 3), [spec])
+    return Work(tasks, max(ZARR_READ_COPIES * packed, packed + factors), block_sum(g.lmax, g.mmax, g.m_block, 3),
+                [spec])
 
 
 def disk_shrink(cfg):

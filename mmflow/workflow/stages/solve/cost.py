@@ -2,25 +2,23 @@
 ``sum_m (lmax - m + 1)^3``, Cholesky's flops).
 
 Its working set is the larger of two phases. Reading the block (packed upper triangles in the Grams'
-precision, ``P`` bytes) holds :data:`READ_COPIES` ``P``. Solving holds the block as read, its solutions and
-L-curves, and on each of the task's threads (one m at a time, :func:`mmflow.imaging.solvers.solve_m`)
-:data:`SOLVER_SQUARES` complex128 ``n x n`` arrays of its largest m, ``n = lmax - m0 + 1``::
+precision, ``P`` bytes) holds :data:`~mmflow.workflow.plan.work.ZARR_READ_COPIES` ``P``. Solving holds the
+block as read, its solutions and L-curves, and on each of the task's threads (one m at a time,
+:func:`mmflow.imaging.solvers.solve_m`) :data:`SOLVER_SQUARES` complex128 ``n x n`` arrays of its largest m,
+``n = lmax - m0 + 1``::
 
-    W = max(READ_COPIES P, P + outputs + min(threads, m_block) SOLVER_SQUARES 16 n^2)
+    W = max(ZARR_READ_COPIES P, P + outputs + min(threads, m_block) SOLVER_SQUARES 16 n^2)
 """
 from __future__ import annotations
 
 import numpy as np
 
 from mmflow.io import run_stores as rs
-from mmflow.workflow.plan.work import COMPLEX128_BYTES, Cost, Work, block_sum, halvings, n_m_blocks, packed_block_sum
+from mmflow.workflow.plan.work import (COMPLEX128_BYTES, ZARR_READ_COPIES, Cost, Work, block_sum, halvings, n_m_blocks,
+                                       packed_block_sum)
 
 #: eps values of an L-curve (``alm.zarr`` eps_grid)
 LCURVE_POINTS = 200
-#: copies of the block while zarr reads it: the chunk's encoded bytes, its decoded buffer and the array
-#: returned (traced 2.9 P in the 64-antenna lmax-200 run, whose Grams compress to 0.88 of their size; an
-#: array's Grams are dense, the 16 core stands' at lmax 1000 mostly zero and 50x smaller encoded)
-READ_COPIES = 3
 #: ``n x n`` complex128 arrays a thread holds at once while it solves one m: the full Gram
 #: (:func:`mmflow.mmode.normal.hermitian_block`) and, at its peak, the eigen-decomposition's eigenvectors and two
 #: arrays' worth of LAPACK work (:func:`mmflow.imaging.lcurve.hermitian_eig`); then the eigenvectors and the
@@ -35,7 +33,7 @@ def work(g, cfg):
     read = packed_block_sum(g.lmax, g.mmax, g.m_block) * g.gram_itemsize
     out = min(g.m_block, g.mmax + 1) * ((g.n_split + 1) * n * COMPLEX128_BYTES + LCURVE_POINTS * 2 * 8)
     solver = min(g.task_threads, g.m_block) * SOLVER_SQUARES * n * n * COMPLEX128_BYTES
-    return Work(g.n_freq * n_m_blocks(g), max(READ_COPIES * read, read + out + solver),
+    return Work(g.n_freq * n_m_blocks(g), max(ZARR_READ_COPIES * read, read + out + solver),
                 block_sum(g.lmax, g.mmax, g.m_block, 3), [spec])
 
 
