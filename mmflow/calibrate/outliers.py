@@ -44,6 +44,8 @@ TYPICAL_QUANTILE = 0.25
 MIN_PER_BIN = 8
 #: MAD (in units of the statistic, ~1 for a good antenna) below which the spread is noiseless data's round-off
 MAD_FLOOR = 1e-9
+#: antenna-matrix elements of the samples :func:`baseline_residuals` takes at a time (its temporaries: ~16 MB each)
+RESIDUAL_BLOCK_ELEMENTS = 2 ** 20
 
 
 def baseline_residuals(V, M, W, gains):
@@ -55,7 +57,7 @@ def baseline_residuals(V, M, W, gains):
     """
     S, K, N, _ = V.shape
     r, p, w = np.zeros((S, N, N)), np.zeros((S, N, N)), np.zeros((S, N, N))
-    block = max(1, 2 ** 20 // (N * N))
+    block = max(1, RESIDUAL_BLOCK_ELEMENTS // (N * N))
     for s in range(S):
         g = gains[s].astype(np.complex128)
         for k0 in range(0, K, block):  # samples a block at a time (temporaries ~16 MB), summed in order

@@ -14,6 +14,13 @@ from dataclasses import dataclass
 import numpy as np
 from mmflow.io.run_stores import STORES
 
+#: decoded bytes of ``vis.zarr`` chunks one read of a block decodes at once at most: a block spanning more
+#: baseline chunks than that is read in groups of whole chunks, one group after another (zarr decodes a
+#: read's chunks concurrently, its whole chunks also for a few integrations of them; at 352 antennas with
+#: ``mmode.baseline_chunk`` 8192 one integration's read held 7-8 decoded chunks of 16.8 MB, 0.11-0.13 GB,
+#: as the reads happened to overlap)
+READ_DECODE_BYTES = 32e6
+
 
 @dataclass
 class DataBlock:
@@ -51,14 +58,38 @@ def read_block(ctx, rows=slice(None), columns=slice(None), cross=False, channels
     if channels.step != 1 or channels.stop <= channels.start:
         raise ValueError(f"read_block: channels {channels} is not a contiguous, non-empty range of the {nf} channels")
     region = (rows, columns, channels)
-    block = DataBlock(ctx.read(STORES.vis.vis, region).astype(np.complex128),
-                      ctx.read(STORES.vis.weights, region).astype(float),
+    block = DataBlock(read_columns(ctx, STORES.vis.vis, region, np.complex128),
+                      read_columns(ctx, STORES.vis.weights, region, float),
                       vg[STORES.vis.pairs][columns], rows, columns,
                       ctx.read(STORES.vis.autos, (rows, slice(None), channels)),
                       ctx.read(STORES.vis.lst, (rows,)), channels=channels)
     if cross:
-        block.cross = ctx.read(STORES.vis.vis_cross, region).astype(np.complex128)
-        block.cross_weights = ctx.read(STORES.vis.weights_cross, region).astype(float)
+        block.cross = read_columns(ctx, STORES.vis.vis_cross, region, np.complex128)
+        block.cross_weights = read_columns(ctx, STORES.vis.weights_cross, region, float)
     for stage in ctx.corrections():
         stage.apply(ctx, block)
     return block
+
+
+def decode_group_chunks(chunk_bytes):
+    """Baseline chunks :func:`read_columns` reads at once: as many as :data:`READ_DECODE_BYTES` holds of
+    ``chunk_bytes`` each (a chunk's full shape), at least one."""
+    return max(1, int(READ_DECODE_BYTES // chunk_bytes))
+
+
+def read_columns(ctx, array, region, dtype):
+    """``array[rows, columns, channels]`` (a ``vis.zarr`` array; ``region`` of slices with step 1) as ``dtype``,
+    read in groups of whole baseline chunks (:func:`decode_group_chunks`), each converted into the output as
+    it arrives: the values of one read of the region, with at most a group's chunks decoded at once."""
+    rows, columns, channels = region
+    arr = ctx.array(ctx.open(array.store), array)
+    chunk_bytes = float(np.prod(arr.chunks)) * arr.dtype.itemsize
+    step = decode_group_chunks(chunk_bytes) * arr.chunks[1]
+    out = np.empty((rows.stop - rows.start, columns.stop - columns.start, channels.stop - channels.start)
+                   + arr.shape[3:], dtype)
+    c0 = columns.start
+    while c0 < columns.stop:
+        c1 = min(columns.stop, (c0 // step + 1) * step)  # to the group's end on the chunk grid
+        out[:, c0 - columns.start:c1 - columns.start] = ctx.read(array, (rows, slice(c0, c1), channels))
+        c0 = c1
+    return out

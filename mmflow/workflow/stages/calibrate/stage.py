@@ -165,8 +165,12 @@ def _task(ctx, key):
     epoch = _epoch(ctx)  # once: each call opens vis.zarr's attributes
     # a Jones beam and data holding xx and yy: each feed's parallel hand through its own power beam
     feeds = feed_telescopes(tel) if list(ctx.vis_attrs()["pols"]) == ["xx", "yy"] else None
-    coh = (source_coherencies(tel, f, lst, sources, epoch, block.pairs) if feeds is None else
-           np.stack([source_coherencies(t, f, lst, sources, epoch, block.pairs) for t in feeds], axis=-1))
+    if feeds is None:
+        coh = source_coherencies(tel, f, lst, sources, epoch, block.pairs)
+    else:  # each feed's models filled in place (a stack of the two would hold them twice at its peak)
+        coh = np.empty((len(sources), len(lst), len(block.pairs), len(feeds)), np.complex128)
+        for p, t in enumerate(feeds):
+            source_coherencies(t, f, lst, sources, epoch, block.pairs, out=coh[..., p])
     keep = solve_mask(tel, block.pairs, c.min_baseline_lambda, f)
     screened = np.array([name in c.screen_sources for name in c.sources], bool)
     vec = np.stack([source_vector_date(s, epoch) for s in sources])
