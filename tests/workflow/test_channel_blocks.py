@@ -14,11 +14,13 @@ import zarr
 from mmflow.workflow.engine import blocks
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.context import Context
+from mmflow.io.run_stores import STORES
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.engine.runner import run_workflow
 
 CHAIN = ["observation.freqs_mhz=[40.0, 47.0]", "observation.integration_s=269.2627828",  # 320: two time chunks
          "telescope.radius_m=18", "mmode.lmax=20", "cluster.kind=synchronous",
+         "mmode.baseline_chunk=48",  # 120 baselines in three chunks (the grouped read's test)
          "calibrate.solint_s=3600"]  # hourly solutions: the demo's 600 s make six times the calibrate tasks
 UPTO = ("simulate", "calibrate", "peel", "terrestrial")
 
@@ -76,3 +78,25 @@ def test_a_channels_block_equals_that_channel_of_the_whole_block_through_every_c
     assert np.abs(gains[:, 0] - gains[:, 1]).max() > 1e-3 * np.abs(gains).max()
     with pytest.raises(ValueError, match="contiguous"):
         blocks.read_block(ctx, rows, channels=slice(0, 2, 2))
+
+
+def test_a_block_read_in_groups_of_baseline_chunks_equals_one_read(chain, monkeypatch):
+    """:func:`blocks.read_columns` with groups of one baseline chunk (``READ_DECODE_BYTES`` below a chunk) gives
+    the values of one read of the region, across time chunks and from a column inside a chunk; and the groups
+    are whole chunks: no read spans a chunk boundary of the grid."""
+    cfg, d, _ = chain
+    ctx = Context(cfg.model_dump_json(), str(d)).for_stage(PIPELINE.stage("mmodes")).for_task(keep_handles=True)
+    arr = zarr.open_group(str(d / "vis.zarr"), mode="r")["vis"]
+    cb = arr.chunks[1]
+    assert arr.shape[1] > 2 * cb, "the test needs a block over three baseline chunks"
+    region = (slice(200, 300), slice(cb // 2, arr.shape[1]), slice(0, 2))
+    whole = blocks.read_columns(ctx, STORES.vis.vis, region, np.complex128)
+    np.testing.assert_array_equal(whole, arr[200:300, cb // 2:, 0:2].astype(np.complex128))
+    reads = []
+    real = ctx.read
+    monkeypatch.setattr(blocks, "READ_DECODE_BYTES", 1.0)
+    object.__setattr__(ctx, "read", lambda array, region=(): reads.append(region[1]) or real(array, region))
+    grouped = blocks.read_columns(ctx, STORES.vis.vis, region, np.complex128)
+    assert grouped.tobytes() == whole.tobytes()
+    assert len(reads) == -(-arr.shape[1] // cb) and reads[0] == slice(cb // 2, cb)
+    assert all(s.start % cb == 0 and (s.stop % cb == 0 or s.stop == arr.shape[1]) for s in reads[1:])

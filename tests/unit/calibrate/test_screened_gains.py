@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mmflow.calibrate.baselines import baseline_mask
-from mmflow.calibrate.screened_gains import solve_gains_screened
+from mmflow.calibrate.screened_gains import solve_gains_screened, sum_of_sources
 from mmflow.calibrate.stefcal import solve_gains
 from tests.refracted_scene import FREQ, MIN_LAMBDA, refracted_scan
 
@@ -135,3 +135,16 @@ def test_unexplained_fraction_is_the_unmodelled_power(problem):
     expected = np.sum(np.abs(source) ** 2 + 2 * NOISE_JY ** 2 / 2) / np.sum(np.abs(v) ** 2)
     assert 0 < full.unexplained[0] < 0.1 * expected  # the noise alone
     assert abs(out.unexplained[0] / expected - 1) < 0.15, (out.unexplained, expected)
+
+
+def test_the_sum_of_some_sources_is_numpys_sum_bit_for_bit():
+    """:func:`sum_of_sources` (one source at a time, no copy of the selection) gives ``coherencies[which].sum(0)``
+    bit for bit, over every row or some, for any selection (none: zeros)."""
+    rng = np.random.default_rng(3)
+    scale = 10.0 ** rng.uniform(-4, 4, (7, 1, 1, 1))
+    coh = (rng.normal(size=(7, 20, 30, 2)) + 1j * rng.normal(size=(7, 20, 30, 2))) * scale
+    for which in (rng.random(7) < 0.5, np.ones(7, bool), np.eye(7, dtype=bool)[3], np.zeros(7, bool)):
+        for rows in (slice(None), slice(4, 9)):
+            want = coh[which, rows].sum(0)
+            got = sum_of_sources(coh, which, rows)
+            assert got.shape == want.shape and got.tobytes() == want.tobytes(), (which, rows)
