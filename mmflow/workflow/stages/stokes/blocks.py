@@ -4,16 +4,17 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import complex_dtype
-from mmflow.imaging.polarised import stokes_m_blocks, stokes_sizes
+from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT, stokes_m_blocks, stokes_sizes
 from mmflow.mmode.polarised import CORRELATIONS
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 
 #: bytes of a phase-one task's Grams, factors and m-modes (:func:`stokes_m_blocks`): with the ring FFTs'
 #: budget and the grid, a task of a few GB
 BLOCK_BYTES = 3 * 2 ** 30
-#: phase two keeps a channel's Cholesky factors in memory when they fit this (else it factorises each
-#: stored Gram again per observation: the same bits, one m's matrices in memory)
-FACTORS_KEPT_BYTES = 2 ** 30
+#: phase two keeps a channel's Grams and their Cholesky factors in memory when they fit this (each Gram read
+#: once; else it reads and factorises each stored Gram again per observation: the same bits, one m's matrices
+#: in memory)
+KEPT_BYTES = 2 ** 31
 
 
 def mmode_bytes_per_m(n_split, n_bl):
@@ -39,3 +40,10 @@ def sizes_of(cfg):
 def gram_dtype(cfg):
     """The Grams' precision on disk: the accumulation's (complex64 for ``transfer.dtype: float32``)."""
     return complex_dtype(cfg.transfer.dtype).name
+
+
+def kept_in_memory(cfg):
+    """Whether phase two keeps a channel's Grams and factors in memory (:data:`KEPT_BYTES`): complex128 each,
+    ``BLOCK_BYTES_PER_ELEMENT`` per element of ``sum_m N_m^2``."""
+    size = sizes_of(cfg)
+    return BLOCK_BYTES_PER_ELEMENT * sum(float(size(m)) ** 2 for m in range(cfg.mmode.lmax + 1)) <= KEPT_BYTES

@@ -35,7 +35,7 @@ from mmflow.mmode.engine import GridCache
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, EXPECTED_CLEAN_CYCLES, PSF_DECLINATIONS, Cost, Work,
                                       expected_clean_cycles)
-from mmflow.workflow.stages.stokes.blocks import FACTORS_KEPT_BYTES, blocks_of, gram_dtype, mmode_bytes_per_m, sizes_of
+from mmflow.workflow.stages.stokes.blocks import blocks_of, gram_dtype, kept_in_memory, mmode_bytes_per_m, sizes_of
 
 #: wall seconds per ring point, kernel and Fourier block at the SGEMM peak ``RING_REFERENCE_GFLOPS``:
 #: ``mmflow bench transfer --stokes IQUV`` (docs/stokes.md, 2026-11-27): ring stage 25.4 thread-seconds on
@@ -118,7 +118,7 @@ def _plan(g, cfg):
     gram = [BLOCK_BYTES_PER_ELEMENT * sum(float(size(m)) ** 2 for m in range(m0, m1)) for m0, m1 in blocks]
     mm = [mmode_bytes_per_m(g.n_split, g.n_bl) * (m1 - m0) for m0, m1 in blocks]
     all_gram = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * COMPLEX128_BYTES
-    kept = BLOCK_BYTES_PER_ELEMENT / 2 * sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) <= FACTORS_KEPT_BYTES
+    kept = kept_in_memory(cfg)
     return size, lmax_p, blocks, gram, mm, all_gram, kept
 
 
@@ -130,12 +130,13 @@ def work(g, cfg):
     fourier = min(FOURIER_BUDGET_BYTES, fourier_bytes(n_theta // 2, min(PASS_BASELINES[1], g.n_bl), len(CORRELATIONS),
                                                       _item(cfg)) * (g.lmax + 1))
     block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
-    # the second phase: the factors (or one m's Gram and factor), the splits' harmonics and the test sources'
+    # the second phase: the Grams and factors (or one m's Gram and factor), the splits' harmonics and the test sources'
     # (the polarisation response's 4 per declination, or a pass of a response table's) imaged: in and out, T, E,
     # B, V each; the response table's PSF columns (one of the four, every declination)
     n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
     vectors = 2 * max(RESPONSE_SOURCES, 4 * DECS_PER_PASS) + g.n_split + PSF_DECLINATIONS / 4
-    second = (all_gram if kept else 2 * COMPLEX128_BYTES * size(0) ** 2) + vectors * 4 * n_alm * COMPLEX128_BYTES
+    held = BLOCK_BYTES_PER_ELEMENT * all_gram / COMPLEX128_BYTES if kept else 2 * COMPLEX128_BYTES * size(0) ** 2
+    second = held + vectors * 4 * n_alm * COMPLEX128_BYTES
     c = cfg.clean  # the CLEANs of the sources and of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
                            (PSF_DECLINATIONS, expected_clean_cycles(cfg), c.peaks_per_cycle) if c.enabled else None,

@@ -26,15 +26,15 @@ sparse sky; :func:`mmflow.imaging.polarised_clean.clean_stokes_v`: components fr
 subtracted through the full-Stokes solve from all four Stokes parameters; threshold ``clean.threshold``
 or ``clean.threshold_sigma`` x the V map's jackknife noise, or its robust rms without even/odd or
 per-day splits), through the stored Grams factorised one m at a time
-(:class:`mmflow.imaging.polarised.PolarisedObserver` with ``keep_factors`` only when a channel's factors
-fit ``FACTORS_KEPT_BYTES``). The products stage makes the maps.
+(:class:`mmflow.imaging.polarised.PolarisedObserver` with ``keep_factors``, and the Grams read once, only when a
+channel's Grams and factors fit ``KEPT_BYTES``). The products stage makes the maps.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from mmflow.conventions import healpy_alm, is_full_stokes, padded_alm
-from mmflow.imaging.polarised import (BLOCK_BYTES_PER_ELEMENT, PolarisedNormal, PolarisedObserver,
+from mmflow.imaging.polarised import (PolarisedNormal, PolarisedObserver,
                                       accumulate_polarised_normal, polarisation_response, stokes_eps)
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
@@ -56,7 +56,7 @@ from mmflow.workflow.engine.clean_state import (
 )
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.engine.kernel_args import m_filters
-from mmflow.workflow.stages.stokes.blocks import FACTORS_KEPT_BYTES, blocks_of, gram_dtype, sizes_of
+from mmflow.workflow.stages.stokes.blocks import blocks_of, gram_dtype, kept_in_memory, sizes_of
 from mmflow.workflow.stages.stokes.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
@@ -214,9 +214,11 @@ def _channel_task(ctx, key):
     fi, lmax, lmax_p = key.freq, cfg.mmode.lmax, stokes_lmax_of(cfg)
     n_split, n_bl = _split_baselines(ctx)
     sizes = sizes_of(cfg)
-    normal = PolarisedNormal(lmax, _StoredGrams(ctx, fi, blocks_of(cfg, n_split, n_bl), sizes), None, None, lmax_p)
+    grams, kept = _StoredGrams(ctx, fi, blocks_of(cfg, n_split, n_bl), sizes), kept_in_memory(cfg)
+    if kept:  # each m's Gram read once: every observation of a sky (response, PSF tables, CLEAN cycles) takes it
+        grams = [grams[m] for m in range(len(grams))]
+    normal = PolarisedNormal(lmax, grams, None, None, lmax_p)
     eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
-    kept = BLOCK_BYTES_PER_ELEMENT / 2 * sum(sizes(m) ** 2 for m in range(lmax + 1)) <= FACTORS_KEPT_BYTES
     observe = PolarisedObserver(normal, eps, filters, keep_factors=kept)
     tel = ctx.telescope()
     info = {"polarisation": polarisation_response(observe, _response_decs(tel.lat_rad)), "factors_kept": bool(kept)}
