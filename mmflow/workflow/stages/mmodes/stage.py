@@ -174,19 +174,19 @@ def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit):
     """m-modes ``(split, freq, m, pm, correlation, baseline)`` and their inverse variances ``(freq, correlation,
     baseline)`` of xx, yy, xy, yx (full Stokes), each fitted as Stokes I is (every data split, no prior run)
     with each correlation's own radiometer noise ``<V_ii,p> <V_jj,q> / (dnu tau)``."""
-    vis = np.concatenate([block.vis, block.cross], axis=-1)[good_t]  # (time, bl, freq, [xx, yy, xy, yx])
-    w = np.concatenate([block.weights, block.cross_weights], axis=-1)[good_t]
+    hands = [(block.vis, block.weights, p) for p in range(block.vis.shape[-1])]  # xx, yy, then xy, yx
+    hands += [(block.cross, block.cross_weights, p) for p in range(block.cross.shape[-1])]
     feeds = [(0, 0), (1, 1)] + list(zip(*CROSS_FEEDS))
     per_corr, _ = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs, feeds)
     tel, freqs = ctx.telescope(), vg[STORES.vis.freqs_hz][:]
-    nf, nbl = vis.shape[2], vis.shape[1]
+    nf, nbl = block.vis.shape[2], block.vis.shape[1]
     out = np.zeros((len(fit.splits), nf, mmax + 1, 2, len(feeds), nbl), np.complex128)
     inv_var = np.zeros((nf, len(feeds), nbl))
     for fi in range(nf):
         band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
-        for c in range(len(feeds)):
-            full, _, _ = fit(vis[:, :, fi, c], w[:, :, fi, c], band, None if per_corr is None else per_corr[c][fi],
-                             out[:, fi, :, :, c])
+        for c, (v, w, p) in enumerate(hands):  # one correlation's integrations at a time (no copy of all four)
+            full, _, _ = fit(v[good_t, :, fi, p], w[good_t, :, fi, p], band,
+                             None if per_corr is None else per_corr[c][fi], out[:, fi, :, :, c])
             inv_var[fi, c] = full.inv_var
     return out, inv_var
 
