@@ -122,55 +122,62 @@ def _check_time_splits(ctx, vis, splits, n_bins):
 
 def _task(ctx, key):
     vg = ctx.open(STORES.vis)
-    nt, nbl, nf = vg[STORES.vis.vis].shape[:3]
+    nbl = vg[STORES.vis.vis].shape[1]
     ch = vg[STORES.vis.vis].chunks[1]
     i = key.bl_chunk
     cols = slice(i * ch, min(nbl, (i + 1) * ch))
     full_stokes = STORES.mmodes.mmodes_corr in ctx.open(STORES.mmodes)
     block = read_block(ctx, slice(None), cols, cross=full_stokes)  # all integrations, corrected
     good_t = np.isfinite(block.lst)
-    vis, w = stokes_i(block.vis[good_t], block.weights[good_t])
-    lst = block.lst[good_t]
     g = ctx.open(STORES.mmodes, mode="r+")
     mmax, n_bins, splits = g.attrs["mmax"], g.attrs["n_bins"], g.attrs["splits"]
     bin_splits = [s for s in splits if not is_time_split(s)]
     masks = {s: m[good_t] for s, m in _time_splits(ctx, vg, splits)[3].items()} if len(bin_splits) < len(splits) \
         else {}
-    per_pol, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs,
-                                        [(p, p) for p in range(block.vis.shape[-1])])
-    sigma2 = None if per_pol is None else stokes_i_variance(np.stack(per_pol, axis=-1))
-    tel, freqs = ctx.telescope(), vg[STORES.vis.freqs_hz][:]
+    fit = _SplitFit(ctx, block.lst[good_t], masks, splits, n_bins, mmax)
     # the bins of the smallest split bound the fit: half of them for even / odd
     n_fit = fit_bins(splits, n_bins)
-    out = np.zeros((len(splits), nf, mmax + 1, 2, vis.shape[1]), np.complex128)
-    inv_var = np.zeros((nf, vis.shape[1]))
-    n_samples = np.zeros((len(splits), nf, vis.shape[1]), np.int64)
-    info = {"baselines": int(vis.shape[1]), "noise": noise, "dropped_low_coverage": 0,
-            "downweighted_low_coverage": 0, "baselines_without_data": 0, "max_cg_iterations": 0,
-            "fits_with_prior": 0}
-    fit = _SplitFit(ctx, lst, masks, splits, n_bins, mmax)
-    for fi in range(nf):
-        band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
-        model = _PriorModel(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop))
-        full, n_samples[:, fi], n_prior = fit(vis[:, :, fi], w[:, :, fi], band,
-                                              None if sigma2 is None else sigma2[fi], out[:, fi], model.prior)
-        info["fits_with_prior"] += n_prior
-        info["max_cg_iterations"] = max(info["max_cg_iterations"], fit.max_iterations)
-        inv_var[fi] = full.inv_var  # the full data's noise and coverage
-        info["dropped_low_coverage"] += full.coverage.n_dropped
-        info["downweighted_low_coverage"] += full.coverage.n_downweighted
-        info["baselines_without_data"] += full.coverage.n_empty
-    ctx.write(g, STORES.mmodes.mmodes, (slice(None), slice(None), slice(None), slice(None), cols), out)
-    ctx.write(g, STORES.mmodes.inv_var, (slice(None), cols), inv_var)
-    ctx.write(g, STORES.mmodes.n_samples, (slice(None), slice(None), cols), n_samples)
+    info = _stokes_i_mmodes(ctx, vg, g, block, good_t, cols, n_fit, fit)  # written; its arrays freed on return
     if full_stokes:
-        corr, inv_corr = _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit)
+        corr, inv_corr = _correlation_mmodes(ctx, vg, block, good_t, n_fit, mmax, fit)
         ctx.write(g, STORES.mmodes.mmodes_corr, (slice(None),) * 5 + (cols,), corr)
         ctx.write(g, STORES.mmodes.inv_var_corr, (slice(None), slice(None), cols), inv_corr)
     return info
 
 
-def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit):
+def _stokes_i_mmodes(ctx, vg, g, block, good_t, cols, n_fit, fit):
+    """Fit and write the Stokes-I m-modes ``(split, freq, m, pm, baseline)`` of one baseline chunk, their inverse
+    variances and unflagged samples; return the task's information (noise, coverage, iterations)."""
+    vis, w = stokes_i(block.vis[good_t], block.weights[good_t])
+    per_pol, noise = _radiometer_sigma2(ctx, vg, block.autos[good_t], block.pairs,
+                                        [(p, p) for p in range(block.vis.shape[-1])])
+    sigma2 = None if per_pol is None else stokes_i_variance(np.stack(per_pol, axis=-1))
+    tel, freqs = ctx.telescope(), vg[STORES.vis.freqs_hz][:]
+    nf, nbl = vis.shape[2], vis.shape[1]
+    out = np.zeros((len(fit.splits), nf, fit.mmax + 1, 2, nbl), np.complex128)
+    inv_var = np.zeros((nf, nbl))
+    n_samples = np.zeros((len(fit.splits), nf, nbl), np.int64)
+    info = {"baselines": int(nbl), "noise": noise, "dropped_low_coverage": 0,
+            "downweighted_low_coverage": 0, "baselines_without_data": 0, "max_cg_iterations": 0,
+            "fits_with_prior": 0}
+    for fi in range(nf):
+        band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
+        model = _PriorModel(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop))
+        inv_var[fi], coverage, n_samples[:, fi], n_prior = fit(vis[:, :, fi], w[:, :, fi], band,
+                                                               None if sigma2 is None else sigma2[fi], out[:, fi],
+                                                               model.prior)
+        info["fits_with_prior"] += n_prior
+        info["max_cg_iterations"] = max(info["max_cg_iterations"], fit.max_iterations)
+        info["dropped_low_coverage"] += coverage.n_dropped  # the full data's coverage
+        info["downweighted_low_coverage"] += coverage.n_downweighted
+        info["baselines_without_data"] += coverage.n_empty
+    ctx.write(g, STORES.mmodes.mmodes, (slice(None), slice(None), slice(None), slice(None), cols), out)
+    ctx.write(g, STORES.mmodes.inv_var, (slice(None), cols), inv_var)
+    ctx.write(g, STORES.mmodes.n_samples, (slice(None), slice(None), cols), n_samples)
+    return info
+
+
+def _correlation_mmodes(ctx, vg, block, good_t, n_fit, mmax, fit):
     """m-modes ``(split, freq, m, pm, correlation, baseline)`` and their inverse variances ``(freq, correlation,
     baseline)`` of xx, yy, xy, yx (full Stokes), each fitted as Stokes I is (every data split, no prior run)
     with each correlation's own radiometer noise ``<V_ii,p> <V_jj,q> / (dnu tau)``."""
@@ -185,9 +192,8 @@ def _correlation_mmodes(ctx, vg, block, good_t, n_bins, n_fit, mmax, fit):
     for fi in range(nf):
         band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
         for c, (v, w, p) in enumerate(hands):  # one correlation's integrations at a time (no copy of all four)
-            full, _, _ = fit(v[good_t, :, fi, p], w[good_t, :, fi, p], band,
-                             None if per_corr is None else per_corr[c][fi], out[:, fi, :, :, c])
-            inv_var[fi, c] = full.inv_var
+            inv_var[fi, c] = fit(v[good_t, :, fi, p], w[good_t, :, fi, p], band,
+                                 None if per_corr is None else per_corr[c][fi], out[:, fi, :, :, c])[0]
     return out, inv_var
 
 
@@ -198,8 +204,10 @@ class _SplitFit:
 
     Calling it with ``(vis, weights)`` ``(time, bl)``, the band limits, the per-sample variance (or
     None), the output ``(split, mmax + 1, 2, bl)`` and optionally ``prior(binned, weights, offset)``
-    fills the output and returns ``(the full data's ChunkMmodes, n_samples (split, bl), fits with a
-    prior)``; a time split without ``mmode.min_coverage`` of the bins is refused.
+    fills the output and returns ``(inverse variances (bl), coverage, n_samples (split, bl), fits with a prior)``,
+    the first two of the full data (the fits' own m-modes are not kept: a task fits up to five times, Stokes I
+    and four correlations, into outputs it holds); a time split without ``mmode.min_coverage`` of the bins is
+    refused.
     """
 
     def __init__(self, ctx, lst, masks, splits, n_bins, mmax):
@@ -226,8 +234,8 @@ class _SplitFit:
             out[rows] = res.mmodes
             self.max_iterations = max([self.max_iterations] + [int(np.max(f.iterations)) for f in res.fits])
             if names is self.bin_splits:
-                full = res
-        return full, n_samples, n_prior
+                full = (res.inv_var, res.coverage)
+        return (*full, n_samples, n_prior)
 
 
 def _count(bin_weight, split):
