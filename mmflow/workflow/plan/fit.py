@@ -84,7 +84,8 @@ def ingest_geometry(plan):
     lay = plan.layout
     pairs = np.asarray(plan.pairs)
     every = _every_pair(len(lay.names))  # the usual case, kept as a word: 32,896 pairs at 256 antennas
-    return {"n_time": int(plan.n_time), "pols": list(plan.pols), "freqs_hz": [float(f) for f in plan.freqs_hz],
+    return {"n_time": int(plan.n_time), "integration_s": float(plan.integration_s), "pols": list(plan.pols),
+            "freqs_hz": [float(f) for f in plan.freqs_hz],
             "pairs": EVERY_PAIR if pairs.shape == every.shape and np.array_equal(pairs, every) else pairs.tolist(),
             "layout": {"names": list(lay.names), "enu": np.asarray(lay.enu).tolist(), "lat_deg": float(lay.lat_deg),
                        "lon_deg": float(lay.lon_deg), "height_m": float(lay.height_m)}}
@@ -110,8 +111,8 @@ def record_ingest(rec):
     layout = Layout(lay["names"], np.asarray(lay["enu"]), lay["lat_deg"], lay["lon_deg"], lay["height_m"],
                     provenance=f"the record of {rec.get('source')}")
     pairs = _every_pair(len(lay["names"])) if ing["pairs"] == EVERY_PAIR else np.asarray(ing["pairs"])
-    return SimpleNamespace(n_time=ing["n_time"], pols=ing["pols"], freqs_hz=np.asarray(ing["freqs_hz"]),
-                           pairs=pairs, layout=layout)
+    return SimpleNamespace(n_time=ing["n_time"], integration_s=ing.get("integration_s"), pols=ing["pols"],
+                           freqs_hz=np.asarray(ing["freqs_hz"]), pairs=pairs, layout=layout)
 
 
 def load_record(source):

@@ -38,7 +38,7 @@ from mmflow.machine import gemm_gflops
 from mmflow.paths import expand_path
 from mmflow.workflow.engine.context import build_telescope
 from mmflow.workflow.engine.ingest_plan import ingest_plan
-from mmflow.workflow.engine.geometry import mmax_of, n_integrations
+from mmflow.workflow.engine.geometry import mmax_of, n_bins_of, n_integrations
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.work import Geometry, transfer_plan
 
@@ -289,11 +289,14 @@ def geometry(cfg, ingest=None, threads=None):
         n_time = n_integrations(cfg)
         n_pol = 2 if cfg.corrupt.enabled else 1
         freqs = tel.freqs_hz
+        n_bins = n_bins_of(cfg, cfg.observation.integration_s)
     else:
         plan = ingest_plan(cfg) if ingest is None else ingest  # a record's copy of the files' plan
         tel = build_telescope(cfg, plan)  # the files' array, channels and baselines, not the config's telescope
         tel.pairs = np.asarray(plan.pairs)
         n_time, n_pol, freqs = plan.n_time, len(plan.pols), np.asarray(plan.freqs_hz)
+        tau = getattr(plan, "integration_s", None)  # a record's copy may lack it: a day of its integrations
+        n_bins = n_bins_of(cfg, tau) if tau else cfg.mmode.n_bins or n_time
     n_bl = len(tel.antenna_pairs())
     tplans = [transfer_plan(tel, float(f), cfg, mmax) for f in freqs]
     nside = cfg.products.nside or default_nside(mm.lmax)
@@ -301,7 +304,7 @@ def geometry(cfg, ingest=None, threads=None):
                     mmax=mmax, m_block=cfg.transfer.m_block, n_split=len(mm.splits), mmode_chunk=mm.baseline_chunk,
                     gram_itemsize=itemsize, transfer_units=tuple(p[0] for p in tplans),
                     transfer_workspace=max(p[2] for p in tplans),
-                    transfer_read=max(p[1] for p in tplans), npix=12 * nside ** 2,
+                    transfer_read=max(p[1] for p in tplans), npix=12 * nside ** 2, n_bins=n_bins,
                     task_threads=threads or task_threads(cfg), tel=tel,
                     freqs_hz=tuple(float(f) for f in freqs))
 

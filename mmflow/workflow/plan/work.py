@@ -62,6 +62,10 @@ CROSS_TEMPORARIES = 3
 #: their size; an array's Grams are dense, the 16 core stands' at lmax 1000 mostly zero and 50x smaller
 #: encoded; CLEAN's packed factors alike)
 ZARR_READ_COPIES = 3
+#: copies of an array while zarr writes it: the encoded chunk (traced 1.0x for the m-modes of a baseline chunk,
+#: complex128, which do not compress); a region that is part of a chunk is first laid into a chunk-shaped buffer
+#: (the last, partial, chunk of a stage's tasks: one copy more, of the full chunk)
+ZARR_WRITE_COPIES = 1
 #: bytes per source, antenna and pol of the DD gains read and copied
 DD_GAIN_BYTES = 2 * COMPLEX128_BYTES
 #: declinations of CLEAN's PSF table (the clean stage and the CLEAN of V in the stokes stage)
@@ -96,6 +100,7 @@ class Geometry:
     transfer_workspace: float  # bytes of a transfer task besides its Gram while it accumulates (transfer_plan)
     transfer_read: float = 0.0  # bytes of a transfer task's m-modes as it reads them, before its Gram
     npix: int = 0
+    n_bins: int = 0  # sidereal bins of the m-mode transform (mmflow.workflow.engine.geometry.n_bins_of)
     task_threads: int = 1  # threads each task's kernels run on (planner.task_threads: the workers' n_threads)
     tel: object = field(default=None, compare=False, repr=False)
     freqs_hz: tuple = ()
@@ -214,11 +219,19 @@ def read_bytes(g, cfg, n_time, n_bl, n_freq):
     n_sub = len(cfg.peel.sources) if cfg.peel.enabled else 0
     four = four_correlations(cfg)
     n_cross, n_models = (2, 4) if four else (0, n_sub)
-    per_time = n_bl * n_freq * (g.n_pol + n_cross) * CORRECTED_SAMPLE_BYTES
+    total = block_bytes(g, n_time, n_bl, n_freq, four)
     if n_sub:
-        per_time += (n_bl * COMPLEX128_BYTES * (n_models + PEEL_TEMPORARIES * g.n_pol + CROSS_TEMPORARIES * n_cross)
-                     + DD_GAIN_BYTES * n_sub * g.n_ant * g.n_pol)
-    return n_time * per_time
+        total += n_time * (n_bl * COMPLEX128_BYTES * (n_models + PEEL_TEMPORARIES * g.n_pol
+                                                      + CROSS_TEMPORARIES * n_cross)
+                           + DD_GAIN_BYTES * n_sub * g.n_ant * g.n_pol)
+    return total
+
+
+def block_bytes(g, n_time, n_bl, n_freq, cross):
+    """Bytes of a corrected block as :func:`mmflow.workflow.engine.blocks.read_block` returns it, once read:
+    ``n_time n_bl n_freq (n_pol + n_cross) 24`` (complex128 + float64 a sample; ``n_cross = 2`` where
+    ``cross``, the four correlations' xy and yx)."""
+    return n_time * n_bl * n_freq * (g.n_pol + (2 if cross else 0)) * CORRECTED_SAMPLE_BYTES
 
 
 def vis_spec(g):
