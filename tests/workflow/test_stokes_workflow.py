@@ -132,11 +132,12 @@ def _check_sources(entry, sky, run_dir):
     :func:`mmflow.imaging.polarised_clean.stokes_sources`) hold each source's Stokes vector: linear and circular
     fractions within 5 %, angles within 2 deg, the unpolarised source's Q, U, V < 0.5 % of I, every source
     measured (cond(A) <= cond_max) and within 1 deg of where it is; the restored maps (``polclean_<tag>.fits``,
-    IAU) hold the true linear fractions at the sources' pixels within 10 % and the angles within 2 deg.
+    IAU) hold the true linear fractions at the sources' pixels within 5 % and the angles within 2 deg.
     (Measured: fractions within 3.9 %, V within 2.3 %, angles within 0.1 deg, Q, U, V of the unpolarised
-    source <= 0.06 % of I, cond 1.5-2.0; the restored maps' fractions 1.5-6.8 % low at the sources' pixels,
-    1.8 deg wide, with the residual's shrunken Q, U: the CLEAN stops at 3 x the dirty I map's robust rms,
-    17 cycles.)"""
+    source <= 0.06 % of I, cond 1.5-2.0; the CLEAN stops at 3 x the dirty I map's robust rms, 17 cycles. The
+    restored maps' fractions were 1.5-6.8 % low at the sources' pixels, 1.8 deg wide, with the residual's
+    shrunken Q, U, until each source's last step was taken into the CLEAN
+    (:func:`mmflow.imaging.polarised_clean.close_sources`): now 1.9-4.2 % high, as the summary's 1.5-3.9 %.)"""
     print({k: v for k, v in entry.items() if k != "sources"})
     path = run_dir / entry["fits"]
     assert fits.getheader(path, 1)["POLCCONV"] == "IAU"
@@ -159,7 +160,7 @@ def _check_sources(entry, sky, run_dir):
         q, u = restored[1:3, hp.vec2pix(NSIDE, *vec)] / restored[0, hp.vec2pix(NSIDE, *vec)]
         chi = 0.5 * np.rad2deg(np.arctan2(u, q)) - 0.5 * np.rad2deg(np.arctan2(st[2], st[1]))
         print(f"  restored at the source's pixel: linear fraction {np.hypot(q, u):.4f}, angle error {chi:.2f} deg")
-        assert abs(np.hypot(q, u) / (np.hypot(st[1], st[2]) / st[0]) - 1) < 0.1 and abs((chi + 90) % 180 - 90) < 2.0
+        assert abs(np.hypot(q, u) / (np.hypot(st[1], st[2]) / st[0]) - 1) < 0.05 and abs((chi + 90) % 180 - 90) < 2.0
 
 
 def test_stokes_run_resumes_bit_identical_after_a_kill(scan, reference, tmp_path):

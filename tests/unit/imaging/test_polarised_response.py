@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from mmflow.conventions import radec_to_vec
-from mmflow.imaging.clean import CleanOptions
+from mmflow.imaging.clean import CleanOptions, restore_map
 from mmflow.imaging.polarised import (PolarisedObserver, accumulate_polarised_normal, polarisation_response,
-                                      stokes_at, stokes_eps)
-from mmflow.imaging.polarised_clean import COND_MAX, clean_stokes, matrices_at, source_vectors, stokes_sources
+                                      stokes_at, stokes_eps, stokes_maps)
+from mmflow.imaging.polarised_clean import (COND_MAX, clean_stokes, close_sources, matrices_at, source_vectors,
+                                            stokes_sources)
 from mmflow.mmode.polarised import make_polarised_grid
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.mmode.transform import mmode_transform
@@ -179,3 +180,45 @@ def test_the_condition_number_flags_where_the_response_says_polarisation_is_not_
     assert np.all((cond > COND_MAX) == (worst < 0.05)) and np.all(cond[worst >= 0.1] < COND_MAX)
     low = np.linalg.cond(matrices_at(result["table"], result["vec"])) > COND_MAX
     assert low.any() and np.all(result["stokes"][low, 1:] == 0) and np.all(result["stokes"][~low, 1:] != 0)
+
+
+def test_closing_the_sources_gives_the_restored_maps_the_stated_stokes_vectors(lmax32, cleaned):
+    """The restored maps (residual + components, :func:`mmflow.imaging.clean.restore_map`) at each measured
+    source's pixel: after :func:`close_sources` (each source's last step taken into the CLEAN: A(r)^-1 of the
+    residual there, its image subtracted) the linear and circular fractions are within 5 % of the truth and the
+    angles within 2 deg; the sources stated afterwards are the ones stated before (within 0.5 % of I). Before,
+    the residual at a source holds the prior's shrunken part of what the components left."""
+    import copy
+
+    import healpy
+
+    _, _, vecs, _ = lmax32
+    observe, _, result, sources = cleaned
+    closed = close_sources(observe, copy.deepcopy(result))
+    nside = 64
+
+    def restored(res):
+        maps = stokes_maps(res["residual"], nside, 32)
+        return np.array([restore_map(maps[x], res["vec"], res["stokes"][:, x], res["table"]) for x in range(4)])
+
+    before, after = restored(result), restored(closed)
+    truth = np.c_[FLUX, FLUX[:, None] * SOURCES[:, 2:]]
+    for k, (vec, t) in enumerate(zip(vecs, truth)):
+        src = _nearest(sources, vec)
+        again = _nearest(stokes_sources(closed, 32), vec)
+        assert again["measured"] == src["measured"]
+        if not src["measured"]:
+            continue
+        assert np.abs(np.subtract(again["stokes_jy"], src["stokes_jy"])).max() < 0.005 * src["stokes_jy"][0]
+        pix = healpy.vec2pix(nside, *vec)
+        lin_true = np.hypot(*t[1:3]) / t[0]
+        if lin_true == 0 and t[3] == 0:
+            assert np.abs(after[1:, pix]).max() < 0.005 * after[0, pix]
+            continue
+        was, now = (np.hypot(*m[1:3, pix]) / m[0, pix] / lin_true for m in (before, after))
+        chi = 0.5 * np.rad2deg(np.arctan2(after[2, pix], after[1, pix]) - np.arctan2(t[2], t[1]))
+        v_was, v_now = (m[3, pix] / m[0, pix] - t[3] / t[0] for m in (before, after))  # V / I's error
+        print(f"source {k}: restored linear fraction / truth {was:.4f} -> {now:.4f}, V / I error {v_was:.4f} -> "
+              f"{v_now:.4f}, angle error {chi:.2f} deg")
+        assert abs(now - 1) < 0.05 and abs((chi + 90) % 180 - 90) < 2.0
+        assert abs(v_now) < 0.05 * max(abs(t[3] / t[0]), 0.1)

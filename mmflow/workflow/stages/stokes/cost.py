@@ -16,7 +16,9 @@ A block task holds its block's Grams and factors (``BLOCK_BYTES_PER_ELEMENT`` pe
 
 The second phase factorises every m once more for the polarisation response and, when the factors are not
 kept, again for each pass of the response tables (``DECS_PER_PASS`` declinations a pass) and each cycle of the
-CLEAN of the sources (always) and of V (``clean.enabled``; the plan assumes ``EXPECTED_CLEAN_CYCLES`` each).
+CLEAN of the sources (always; one more for its closing step,
+:func:`mmflow.imaging.polarised_clean.close_sources`) and of V (``clean.enabled``; the plan assumes
+``EXPECTED_CLEAN_CYCLES`` each).
 """
 from __future__ import annotations
 
@@ -160,7 +162,7 @@ def seconds(g, cfg, per_task, workers, peak):
     factor_s = sum(8.0 * size(m) ** 3 / 3 for m in range(g.lmax + 1)) / (GEMM_EFFICIENCY * peak * 1e9)
     # the response; unless kept, the response tables' passes (the sources', and V's with clean.enabled) and cycles
     tables = (1 + bool(cfg.clean.enabled)) * -(-PSF_DECLINATIONS // DECS_PER_PASS)
-    cycles = min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) + expected_clean_cycles(cfg)
+    cycles = min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) + 1 + expected_clean_cycles(cfg)  # + sources' closing
     refactor = 1 + (0 if kept else tables + cycles)
     second = factor_s * refactor * -(-g.n_freq // max(1, workers))
     return max(per_slot) + second
