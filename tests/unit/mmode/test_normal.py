@@ -99,3 +99,38 @@ def test_a_packed_factor_solves_to_the_same_bits():
         stored = unpack_upper(pack_upper(padded), 12)[:n, :n]
         x = rng.normal(size=(n, 3)) + 1j * rng.normal(size=(n, 3))
         np.testing.assert_array_equal(sla.cho_solve((stored, False), x), sla.cho_solve((cho, lower), x))
+
+
+def test_stored_transfer_blocks_accumulate_the_same_bits_whatever_the_blas_threads():
+    """The path of ``transfer.mode=store`` (:func:`mmflow.mmode.engine.accumulate_chunks` with ``on_block``: each
+    block handed out, then ``G_m += B^H W B`` on the caller's side) runs BLAS on one thread, as the direct path's
+    :func:`mmflow.mmode.transfer.transfer_pass` does: OpenBLAS's threaded ``herk`` rounds otherwise (a tenth of a
+    Gram's elements move by an ulp between one and two threads), and a run's Grams would follow its process's BLAS
+    threads (a dask worker's one against a driver's or a synchronous run's more)."""
+    from threadpoolctl import threadpool_limits
+
+    from mmflow.mmode.engine import accumulate_chunks, plan_chunks
+    from mmflow.mmode.normal import NormalAccumulator
+    from mmflow.telescope import Telescope
+    from mmflow.telescope.jones import ShortDipoleJones
+    from mmflow.threads import usable_cores
+    from tests.polarised_scene import FREQ, scene_layout
+
+    if usable_cores() < 2:
+        pytest.skip("one usable core: BLAS cannot run two threads here, so the threads cannot change the bits")
+    lmax = 60
+    tel = Telescope(scene_layout(n_ant=24, radius_m=40.0), ShortDipoleJones().power_beam(), [FREQ])
+    chunks, lmax_b = plan_chunks(tel, FREQ, lmax, 64)
+    n_bl = len(tel.antenna_pairs())
+    rng = np.random.default_rng(5)
+    mmodes = rng.normal(size=(1, lmax + 1, 2, n_bl)) + 1j * rng.normal(size=(1, lmax + 1, 2, n_bl))
+    grams = []
+    for threads in (1, 2):
+        acc = NormalAccumulator(lmax, lmax, np.dtype(np.complex64))
+        with threadpool_limits(threads, user_api="blas"):
+            accumulate_chunks(acc, tel, FREQ, chunks, lmax_b, lambda c: mmodes[..., c.index], np.ones(n_bl),
+                              np.float32, on_block=lambda *a: None)
+        grams.append(acc)
+    for m in range(lmax + 1):
+        assert np.array_equal(grams[0].gram[m], grams[1].gram[m]), m
+        assert np.array_equal(grams[0].rhs[m], grams[1].rhs[m]), m
