@@ -7,7 +7,6 @@ clusters); otherwise the usable cores.
 """
 import os
 import sys
-import threading
 from contextlib import contextmanager
 from functools import lru_cache
 
@@ -68,38 +67,21 @@ def single_threaded_blas(active=True):
     """Limit BLAS to one thread while a kernel runs its own ``n_threads()`` workers.
 
     A kernel that splits its work over a thread pool would otherwise have each pool thread
-    start its own BLAS threads (``n_threads()**2`` on ``n_threads()`` cores), and a threaded
-    ``herk`` or GEMM rounds otherwise than a single-threaded one: the kernels' bits would follow
-    the process's BLAS threads (a dask worker's one against a driver's more). Where BLAS runs one
-    thread (dask worker processes start that way) nothing is switched. Elsewhere the limit is
-    process-wide (threadpoolctl) and held while any thread is inside one of these contexts: the
-    first to enter sets it, the last to leave restores the threads it found, so that one kernel's
-    exit never gives BLAS its threads back under another's feet.
+    start its own BLAS threads (``n_threads()**2`` on ``n_threads()`` cores). Where BLAS
+    already runs one thread (dask worker processes start that way) nothing is switched, so
+    concurrent tasks of one worker never change each other's BLAS settings; elsewhere the
+    limit is process-wide for its duration (threadpoolctl).
     """
-    global _depth, _limiter
-    if not active:
+    if not active or _blas_threads() <= 1:
         yield
         return
-    with _lock:
-        if _depth == 0 and _blas_threads() > 1:
-            _limiter = _controller().limit(limits=1, user_api="blas")
-        _depth += 1
-    try:
+    with _controller().limit(limits=1, user_api="blas"):
         yield
-    finally:
-        with _lock:
-            _depth -= 1
-            if _depth == 0 and _limiter is not None:
-                _limiter.restore_original_limits()
-                _limiter = None
 
 
-#: threads inside :func:`single_threaded_blas` now, and the limit they hold (None where BLAS ran one thread)
-_lock, _depth, _limiter = threading.Lock(), 0, None
-
-
+@lru_cache(maxsize=1)
 def _blas_threads():
-    """BLAS threads now (the fewest of the loaded libraries'; ~3 us a query)."""
+    """BLAS threads at the process's first use (queried once per process; cost: docs/performance.md)."""
     return min((lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers), default=1)
 
 

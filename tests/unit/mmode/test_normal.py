@@ -106,14 +106,15 @@ def test_stored_transfer_blocks_accumulate_the_same_bits_whatever_the_blas_threa
     block handed out, then ``G_m += B^H W B`` on the caller's side) runs BLAS on one thread, as the direct path's
     :func:`mmflow.mmode.transfer.transfer_pass` does: OpenBLAS's threaded ``herk`` rounds otherwise (a tenth of a
     Gram's elements move by an ulp between one and two threads), and a run's Grams would follow its process's BLAS
-    threads (a dask worker's one against a driver's or a synchronous run's more)."""
+    threads (a dask worker's one against a driver's or a synchronous run's more). Without it the Grams differ
+    from m = 0."""
     from threadpoolctl import threadpool_limits
 
     from mmflow.mmode.engine import accumulate_chunks, plan_chunks
     from mmflow.mmode.normal import NormalAccumulator
     from mmflow.telescope import Telescope
     from mmflow.telescope.jones import ShortDipoleJones
-    from mmflow.threads import usable_cores
+    from mmflow.threads import _blas_threads, usable_cores
     from tests.polarised_scene import FREQ, scene_layout
 
     if usable_cores() < 2:
@@ -128,6 +129,7 @@ def test_stored_transfer_blocks_accumulate_the_same_bits_whatever_the_blas_threa
     for threads in (1, 2):
         acc = NormalAccumulator(lmax, lmax, np.dtype(np.complex64))
         with threadpool_limits(threads, user_api="blas"):
+            _blas_threads.cache_clear()  # read at a process's first use: here, under each setting
             accumulate_chunks(acc, tel, FREQ, chunks, lmax_b, lambda c: mmodes[..., c.index], np.ones(n_bl),
                               np.float32, on_block=lambda *a: None)
         grams.append(acc)
