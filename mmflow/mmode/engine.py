@@ -14,7 +14,6 @@ import numpy as np
 
 from mmflow.conventions import complex_dtype
 from mmflow.mmode.normal import NormalAccumulator
-from mmflow.threads import single_threaded_blas
 from mmflow.mmode.transfer import (baselines_in_wavelengths, fringe_bandlimit, iter_transfer_blocks, make_grid,
                                    transfer_pass)
 
@@ -196,11 +195,10 @@ def accumulate_chunks(acc, telescope, freq_hz, chunks, lmax_b, mmodes_of, inv_va
         mm4 = mm if mm.ndim == 4 else mm[None]
         if on_block is None:
             add_chunk(acc, telescope, freq_hz, chunk, lmax_b, mm4, inv_var[chunk.index], dtype, cache, timings)
-        else:  # herk on this side, on one BLAS thread as transfer_pass's: a threaded herk rounds otherwise
-            with single_threaded_blas():
-                for m, blk in chunk_blocks(telescope, freq_hz, chunk, acc.lmax, lmax_b, dtype, cache, acc.mmax):
-                    acc.add_mmodes(m, blk, mm4, inv_var[chunk.index])
-                    on_block(chunk, m, blk)
+        else:
+            for m, blk in chunk_blocks(telescope, freq_hz, chunk, acc.lmax, lmax_b, dtype, cache, acc.mmax):
+                acc.add_mmodes(m, blk, mm4, inv_var[chunk.index])
+                on_block(chunk, m, blk)
         if progress is not None:
             progress(i, len(chunks), chunk)
     return acc
