@@ -190,8 +190,13 @@ def stokes_sources(result, lmax, cond_max=COND_MAX, max_sources=None):
     ``0.5 atan2(U, Q)`` (IAU: north through east, in (-90, 90]), ``circular_fraction`` ``V / I``, ``cond``,
     ``measured``, ``components``.
     """
+    return _stated(result, list(_source_steps(result, lmax, cond_max)), cond_max, max_sources)
+
+
+def _stated(result, steps, cond_max, max_sources):
+    """The sources' dicts of :func:`stokes_sources` from their :func:`_source_steps`, brightest I first."""
     out = []
-    for _, g, r, a, s, cond in _source_steps(result, lmax, cond_max):
+    for _, g, r, s, cond in steps:
         s = result["stokes"][g].sum(axis=0) + s
         ok = bool(cond <= cond_max)
         src = {"ra_deg": float(np.rad2deg(np.arctan2(r[1], r[0])) % 360), "dec_deg": float(np.rad2deg(np.arcsin(r[2]))),
@@ -207,8 +212,7 @@ def stokes_sources(result, lmax, cond_max=COND_MAX, max_sources=None):
 
 def _source_steps(result, lmax, cond_max):
     """The sources of :func:`stokes_sources` before their vectors are summed: per source above the threshold
-    ``(its brightest component's index, its components' indices, r, A(r), the last step A(r)^-1 d(r),
-    cond(A(r)))``."""
+    ``(its brightest component's index, its components' indices, r, the last step A(r)^-1 d(r), cond(A(r)))``."""
     vec, st, table = result["vec"], result["stokes"], result["table"]
     order = np.argsort(-np.abs(st[:, I]), kind="stable")
     fwhm = psf_mod.interp_table(table, np.arcsin(np.clip(vec[:, 2], -1, 1)), "major")
@@ -226,27 +230,27 @@ def _source_steps(result, lmax, cond_max):
         step, cond = solve_stokes(a, stokes_at(result["residual"], r, lmax), cond_max=cond_max)
         if (st[g].sum(axis=0) + step[0])[I] * a[0, I, I] <= result["threshold"]:  # its own peak not above it
             continue
-        yield k, g, r, a[0], step[0], cond[0]
+        yield k, g, r, step[0], cond[0]
 
 
-def close_sources(observe, result, cond_max=COND_MAX):
-    """Take each source's last step (:func:`stokes_sources`: ``A(r)^-1`` of the residual at its place ``r``, loop
-    gain 1) into the CLEAN: added to the source's brightest component, its image (``observe``, the solve's
-    :class:`mmflow.imaging.polarised.PolarisedObserver`) subtracted from the residual. The residual's Q, U, V at a
-    source are the prior's shrunken part of what the components left (1.5-6.8 % of the linear fractions in the
-    workflow test before): restored maps (residual + components) then hold at each source the Stokes vector the
-    summary states, not the shrunken one. ``result`` (:func:`clean_stokes`'s) is updated in place and
-    returned; the sources it states change by what the last step moves (its place: the brightest
-    component's, within half the PSF's FWHM of ``r``)."""
+def close_sources(observe, result, cond_max=COND_MAX, max_sources=None):
+    """The sources :func:`stokes_sources` states, each one's last step (``A(r)^-1`` of the residual at its place
+    ``r``, loop gain 1) then taken into the CLEAN: added to the source's brightest component, its image
+    (``observe``, the solve's :class:`mmflow.imaging.polarised.PolarisedObserver`) subtracted from the residual.
+    The residual's Q, U, V at a source are the prior's shrunken part of what the components left (1.5-6.8 % of
+    the linear fractions in the workflow test before): restored maps (residual + components) then hold at each
+    source the Stokes vector stated, not the shrunken one. ``result`` (:func:`clean_stokes`'s) is updated in
+    place; the sources returned are those stated before the step (after it they move by what the step's place
+    changes: the brightest component's, within half the PSF's FWHM of ``r``), from one grouping for both."""
     lmax = observe.lmax
     steps = list(_source_steps(result, lmax, cond_max))
-    if not steps:
-        return result
-    first = np.array([k for k, *_ in steps])
-    step = np.array([s for *_, s, _ in steps])
-    result["stokes"][first] += step
-    result["residual"] -= observe(point_source_stokes_alm(result["vec"][first], step, lmax))[0]
-    return result
+    sources = _stated(result, steps, cond_max, max_sources)
+    if steps:
+        first = np.array([k for k, *_ in steps])
+        step = np.array([s for *_, s, _ in steps])
+        result["stokes"][first] += step
+        result["residual"] -= observe(point_source_stokes_alm(result["vec"][first], step, lmax))[0]
+    return sources
 
 
 def source_vectors(sources):

@@ -194,7 +194,8 @@ def test_closing_the_sources_gives_the_restored_maps_the_stated_stokes_vectors(l
 
     _, _, vecs, _ = lmax32
     observe, _, result, sources = cleaned
-    closed = close_sources(observe, copy.deepcopy(result))
+    closed = copy.deepcopy(result)
+    assert close_sources(observe, closed) == sources  # the sources stated, from the same grouping
     nside = 64
 
     def restored(res):

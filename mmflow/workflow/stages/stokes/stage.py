@@ -39,7 +39,7 @@ from mmflow.imaging.polarised import (PolarisedNormal, PolarisedObserver,
 from mmflow.imaging import psf
 from mmflow.imaging.clean import never_seen_dec_min, observed_mask
 from mmflow.imaging.polarised_clean import (COND_MAX, I, V, clean_stokes, clean_stokes_v, close_sources, psf_table,
-                                            stokes_sources, v_psf_table)
+                                            v_psf_table)
 from mmflow.io.run_stores import VIS_METADATA, STORES, CLEAN_STOPS, stokes_store
 from mmflow.mmode.noise import relative_weights
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
@@ -260,8 +260,8 @@ def _clean_sources(ctx, out, fi, freq, splits, lat_rad, observe):
     thr, noise = _threshold_noise(ctx, fi, freq, splits, lat_rad, I)
     table = psf_table(observe, np.deg2rad(_source_decs(ctx)), beam=I)
     res = clean_stokes(observe, splits[0], lat_rad, clean_options(cfg.clean), clean_nside(cfg), thr, noise, table)
-    sources = stokes_sources(res, cfg.mmode.lmax, max_sources=MAX_SOURCES)
-    close_sources(observe, res)  # the restored maps hold the stated vectors, not the residual's shrunken Q, U, V
+    # the stated sources; the restored maps then hold their vectors, not the residual's shrunken Q, U, V
+    sources = close_sources(observe, res, max_sources=MAX_SOURCES)
     s, one, n_m = STORES.stokes, (slice(fi, fi + 1),), out[STORES.stokes.alm].shape[3]
     ctx.write(out, s.src_residual, one, padded_alm(res["residual"], cfg.mmode.lmax, n_m)[None])
     ctx.write(out, s.src_psf_table, one, psf.table_to_array(table)[None], allow_nan=True)
