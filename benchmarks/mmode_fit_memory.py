@@ -1,7 +1,8 @@
 """The m-mode fit's traced peak against its cost model, over a grid of bins, band limits and mmax (JSON on stdout).
 
 Runs :func:`mmflow.mmode.gapfill.chunk_mmodes` (splits full, even, odd; 128 baselines of random data with a gap of
-8 % of the bins, so that the least-squares fit runs, not the plain transform) under ``tracemalloc`` at bins
+8 % of the bins, so that the least-squares fit runs, not the plain transform:
+:func:`mmflow.bench.gaps.traced_fit_bytes`) under ``tracemalloc`` at bins
 512-2048, ``k_max`` from 3 % of the bins to a quarter of them (the largest the even / odd splits fit) and mmax
 100 and 400, and prints each point's peak beside :func:`mmflow.workflow.stages.mmodes.cost.fit_bytes` and their
 ratio. The constants of that function (``FIT_PHASES``, ``FIT_HELD_OUTPUTS``, ``FIT_STACKED_OUTPUTS``) were fitted
@@ -13,29 +14,14 @@ Usage: ``python benchmarks/mmode_fit_memory.py``
 from __future__ import annotations
 
 import json
-import tracemalloc
 
 import numpy as np
 
-from mmflow.mmode.gapfill import chunk_mmodes
+from mmflow.bench.gaps import traced_fit_bytes
 from mmflow.workflow.stages.mmodes.cost import fit_bytes
 
-SPLITS = ["full", "even", "odd"]
+SPLITS = ("full", "even", "odd")
 N_BL = 128
-
-
-def traced_fit(n_bins, k_max, mmax, rng):
-    """Peak bytes traced while ``chunk_mmodes`` fits random data of ``n_bins`` bins up to ``k_max``."""
-    binned = rng.normal(size=(n_bins, N_BL)) + 1j * rng.normal(size=(n_bins, N_BL))
-    weight = np.ones((n_bins, N_BL))
-    weight[n_bins // 5:n_bins // 5 + n_bins // 12] = 0
-    tracemalloc.start()
-    try:
-        base = tracemalloc.get_traced_memory()[0]
-        chunk_mmodes(binned, weight, mmax, None, np.full(N_BL, k_max), SPLITS, np.ones(N_BL), 0.5, "drop")
-        return tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
 
 
 def main():
@@ -45,7 +31,7 @@ def main():
         for frac in (0.03, 0.06, 0.12, 0.25):
             k_max = int(frac * n_bins) - 1 if frac < 0.25 else n_bins // 4 - 1
             for mmax in (100, 400):
-                peak = traced_fit(n_bins, k_max, mmax, rng)
+                peak = traced_fit_bytes(n_bins, k_max, mmax, N_BL, rng, SPLITS)
                 counted = fit_bytes(n_bins, k_max, len(SPLITS), mmax, N_BL)
                 rows.append({"n_bins": n_bins, "k_max": k_max, "mmax": mmax, "traced_mb": round(peak / 1e6, 3),
                              "counted_mb": round(counted / 1e6, 3), "counted/traced": round(counted / peak, 3)})

@@ -18,7 +18,7 @@ import numpy as np
 import scipy.fft
 
 from mmflow.machine import machine
-from mmflow.mmode.gapfill import lsq_mmodes, relative_rms
+from mmflow.mmode.gapfill import chunk_mmodes, lsq_mmodes, relative_rms
 from mmflow.mmode.transform import mmode_transform
 
 N_BINS = 6628
@@ -95,3 +95,22 @@ def run(what="gaps", quick=False):
 
 if __name__ == "__main__":
     print(json.dumps(run("gaps", quick="--quick" in sys.argv), indent=2))
+
+
+def traced_fit_bytes(n_bins, k_max, mmax, n_bl, rng, splits=("full", "even", "odd")):
+    """Peak bytes ``tracemalloc`` reads while :func:`mmflow.mmode.gapfill.chunk_mmodes` fits random data of
+    ``n_bins`` bins and ``n_bl`` baselines up to band ``k_max`` (``mmax``: the m-modes it returns), with a gap of
+    8 % of the bins so that the least-squares fit runs, not the plain transform: what
+    :func:`mmflow.workflow.stages.mmodes.cost.fit_bytes` counts (``benchmarks/mmode_fit_memory.py``)."""
+    import tracemalloc
+
+    binned = rng.normal(size=(n_bins, n_bl)) + 1j * rng.normal(size=(n_bins, n_bl))
+    weight = np.ones((n_bins, n_bl))
+    weight[n_bins // 5:n_bins // 5 + n_bins // 12] = 0
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        chunk_mmodes(binned, weight, mmax, None, np.full(n_bl, k_max), list(splits), np.ones(n_bl), 0.5, "drop")
+        return tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()

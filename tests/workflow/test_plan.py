@@ -516,24 +516,13 @@ def test_an_mmode_fits_arrays_are_the_ones_its_model_counts():
     of the bins, so that the least-squares fit runs, not the plain transform) within 10 % of the count. Its
     three constants were fitted at five other points; a fit that allocated another array per bin or per m of
     its band (or one array fewer) would leave the band."""
-    import tracemalloc
-
-    from mmflow.mmode.gapfill import chunk_mmodes
+    from mmflow.bench.gaps import traced_fit_bytes
     from mmflow.workflow.stages.mmodes.cost import fit_bytes
 
     rng = np.random.default_rng(3)
-    n_bl, splits = 128, ["full", "even", "odd"]
+    n_bl, splits = 128, ("full", "even", "odd")
     for n_bins, k_max, mmax in [(768, 191, 300), (1536, 95, 160), (1536, 383, 500)]:
-        binned = rng.normal(size=(n_bins, n_bl)) + 1j * rng.normal(size=(n_bins, n_bl))
-        weight = np.ones((n_bins, n_bl))
-        weight[n_bins // 5:n_bins // 5 + n_bins // 12] = 0
-        tracemalloc.start()
-        try:
-            base = tracemalloc.get_traced_memory()[0]
-            chunk_mmodes(binned, weight, mmax, None, np.full(n_bl, k_max), splits, np.ones(n_bl), 0.5, "drop")
-            peak = tracemalloc.get_traced_memory()[1] - base
-        finally:
-            tracemalloc.stop()
+        peak = traced_fit_bytes(n_bins, k_max, mmax, n_bl, rng, splits)
         counted = fit_bytes(n_bins, k_max, len(splits), mmax, n_bl)
         assert 0.9 <= counted / peak <= 1.1, (n_bins, k_max, mmax, counted / peak)
 
