@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+import tracemalloc
 
 import numpy as np
 import scipy.fft
@@ -102,8 +103,6 @@ def traced_fit_bytes(n_bins, k_max, mmax, n_bl, rng, splits=("full", "even", "od
     ``n_bins`` bins and ``n_bl`` baselines up to band ``k_max`` (``mmax``: the m-modes it returns), with a gap of
     8 % of the bins so that the least-squares fit runs, not the plain transform: what
     :func:`mmflow.workflow.stages.mmodes.cost.fit_bytes` counts (``benchmarks/mmode_fit_memory.py``)."""
-    import tracemalloc
-
     binned = rng.normal(size=(n_bins, n_bl)) + 1j * rng.normal(size=(n_bins, n_bl))
     weight = np.ones((n_bins, n_bl))
     weight[n_bins // 5:n_bins // 5 + n_bins // 12] = 0
