@@ -52,6 +52,13 @@ def fit_bins(splits, n_bins):
     return n_bins // 2 - 1 if {"even", "odd"} & set(splits) else n_bins - 1
 
 
+def fit_band(tel, freq_hz, n_fit, pairs=None):
+    """Each baseline's band limit ``M_b`` in the m-mode fit at ``freq_hz``: its fringe's
+    (:meth:`mmflow.telescope.array.Telescope.baseline_lmax`), at most half the ``n_fit`` bins of the smallest
+    split (:func:`fit_bins`); the mmodes stage fits with it and its cost model sizes the fit by it."""
+    return tel.baseline_lmax(freq_hz, n_fit // 2, pairs)
+
+
 def interpolates_diffuse(cfg):
     """Whether the simulate stage sums the diffuse sky at a few sidereal angles and interpolates it to
     every integration (:mod:`mmflow.simulate.drift_modes`): every simulation with a diffuse sky (a

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 from mmflow.conventions import FULL_STOKES, is_full_stokes
 from mmflow.io import run_stores as rs
-from mmflow.workflow.engine.geometry import fit_bins
+from mmflow.workflow.engine.geometry import fit_band, fit_bins
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, ZARR_WRITE_COPIES, Cost, Work,
                                        block_bytes, halvings, read_bytes)
 
@@ -63,9 +63,9 @@ def fit_bytes(n_bins, k_max, n_split, mmax, n_bl):
 
 def band_max(g, cfg):
     """The widest fit's band limit ``k_max``: the longest baseline's at the highest channel, at most half the
-    bins the smallest split fits (:func:`mmflow.workflow.engine.geometry.fit_bins`), as the stage fits it."""
+    bins the smallest split fits (:func:`mmflow.workflow.engine.geometry.fit_band`), as the stage fits it."""
     n_fit = fit_bins(cfg.mmode.splits, g.n_bins)
-    return max(int(g.tel.baseline_lmax(f, n_fit // 2).max()) for f in g.freqs_hz)
+    return max(int(fit_band(g.tel, f, n_fit).max()) for f in g.freqs_hz)
 
 
 COST = Cost(work, shrink="a smaller mmode.baseline_chunk", split=halvings("mmode.baseline_chunk"))

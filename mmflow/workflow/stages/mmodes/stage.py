@@ -40,7 +40,7 @@ from mmflow.mmode.splits import day_index, is_time_split, split_kind, split_mask
     sun_elevation_deg
 from mmflow.mmode.transform import bin_coverage, sidereal_bins, split_bins
 from mmflow.workflow.engine.blocks import read_block
-from mmflow.workflow.engine.geometry import fit_bins, mmax_of, n_bins_of
+from mmflow.workflow.engine.geometry import fit_band, fit_bins, mmax_of, n_bins_of
 from mmflow.workflow.engine.prior_run import check_prior_run, effective_prior, prior_files, read_prior_alm
 from mmflow.workflow.stages.mmodes.cost import COST
 from mmflow.workflow.stages.base import Stage
@@ -161,7 +161,7 @@ def _stokes_i_mmodes(ctx, vg, g, block, good_t, cols, n_fit, fit):
             "downweighted_low_coverage": 0, "baselines_without_data": 0, "max_cg_iterations": 0,
             "fits_with_prior": 0}
     for fi in range(nf):
-        band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
+        band = fit_band(tel, freqs[fi], n_fit, block.pairs)
         model = _PriorModel(ctx, tel, freqs[fi], fi, np.arange(cols.start, cols.stop))
         inv_var[fi], coverage, n_samples[:, fi], n_prior = fit(vis[:, :, fi], w[:, :, fi], band,
                                                                None if sigma2 is None else sigma2[fi], out[:, fi],
@@ -190,7 +190,7 @@ def _correlation_mmodes(ctx, vg, block, good_t, n_fit, mmax, fit):
     out = np.zeros((len(fit.splits), nf, mmax + 1, 2, len(feeds), nbl), np.complex128)
     inv_var = np.zeros((nf, len(feeds), nbl))
     for fi in range(nf):
-        band = tel.baseline_lmax(freqs[fi], n_fit // 2, block.pairs)
+        band = fit_band(tel, freqs[fi], n_fit, block.pairs)
         for c, (v, w, p) in enumerate(hands):  # one correlation's integrations at a time (no copy of all four)
             inv_var[fi, c] = fit(v[good_t, :, fi, p], w[good_t, :, fi, p], band,
                                  None if per_corr is None else per_corr[c][fi], out[:, fi, :, :, c])[0]
