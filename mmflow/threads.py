@@ -68,20 +68,47 @@ def single_threaded_blas(active=True):
 
     A kernel that splits its work over a thread pool would otherwise have each pool thread
     start its own BLAS threads (``n_threads()**2`` on ``n_threads()`` cores). Where BLAS
-    already runs one thread (dask worker processes start that way) nothing is switched, so
-    concurrent tasks of one worker never change each other's BLAS settings; elsewhere the
-    limit is process-wide for its duration (threadpoolctl).
+    already runs one thread (every workflow task: :func:`blas_on_one_thread`; dask worker
+    processes start that way) nothing is switched, so concurrent tasks of one worker never
+    change each other's BLAS settings; elsewhere (a kernel called from a user's own process)
+    the limit is process-wide for its duration (threadpoolctl).
     """
-    if not active or _blas_threads() <= 1:
+    if not active or blas_threads() <= 1:
         yield
         return
     with _controller().limit(limits=1, user_api="blas"):
         yield
 
 
-@lru_cache(maxsize=1)
-def _blas_threads():
-    """BLAS threads at the process's first use (queried once per process; cost: docs/performance.md)."""
+@contextmanager
+def blas_on_one_thread(for_good=False):
+    """BLAS on one thread while a workflow task runs, whatever the process's BLAS threads.
+
+    A task's bits must not depend on where it runs: OpenBLAS's GEMM on two threads rounds most
+    elements of a product otherwise than on one (OpenBLAS 0.3.30: 76 % of a float32
+    ``(500, 1000) @ (1000, 64)``, 90 % of a complex64 ``(200, 300) @ (300, 1024)``), so a synchronous
+    run (the driver's BLAS threads) and a dask worker (one BLAS thread by dask's ``pre-spawn-environ``,
+    unless the submitting shell exported ``OPENBLAS_NUM_THREADS``, which a batch job inherits) would
+    differ in the last bit, as would two tasks of one worker whose :func:`single_threaded_blas`
+    limits restored each other's. Kernels parallelise over their own ``n_threads()`` pools instead.
+
+    ``for_good``: set for the rest of the process (a dask worker, whose tasks run concurrently: a
+    limit restored at one task's end would give BLAS its threads back under another task's
+    kernel); otherwise restored on exit (a synchronous run in a user's process, one task at a time).
+    """
+    if blas_threads() <= 1:
+        yield
+        return
+    if for_good:
+        _controller().limit(limits=1, user_api="blas")  # applied now; never restored
+        yield
+        return
+    with _controller().limit(limits=1, user_api="blas"):
+        yield
+
+
+def blas_threads():
+    """BLAS threads now (the fewest of the loaded libraries'; ~5 us a query: docs/performance.md)."""
     return min((lib.num_threads for lib in _controller().select(user_api="blas").lib_controllers), default=1)
 
 

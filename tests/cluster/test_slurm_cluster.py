@@ -19,7 +19,7 @@ from mmflow.workflow.engine.cluster import open_cluster
 from mmflow.workflow.engine.passes import run_with_passes
 from mmflow.workflow.engine.pools import plan_pools
 from mmflow.workflow.engine.rundir import RunDir
-from mmflow.workflow.pipeline import PIPELINE
+from mmflow.workflow.pipeline import ORDER, PIPELINE
 from mmflow.workflow.plan.planner import WORKER_BASE_BYTES, plan
 from tests.workflow_helpers import ROOT, SMALL, assert_identical, read_outputs, small_config
 
@@ -122,9 +122,13 @@ def test_an_impossible_request_is_refused_before_any_submission(slurm, tmp_path,
     assert _no_jobs(slurm)
 
 
-def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys):
+def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys, monkeypatch):
     """No cluster setting but --cluster slurm: job cores and memory from the plan and sinfo, the
-    scheduler on the interface of the nodes' network (sinfo's node addresses)."""
+    scheduler on the interface of the nodes' network (sinfo's node addresses). The submitting shell
+    exports ``OPENBLAS_NUM_THREADS=2``, which the worker jobs inherit: each task still runs its BLAS on
+    one thread (its marker says), as the synchronous reference's (two worker threads restoring each
+    other's BLAS limits made the Grams differ in the last bit)."""
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")
     run_dir = tmp_path / "run"
     rc = main(["run", *WORKFLOW, f"run.directory={run_dir}", "--cluster", "slurm", "--no-progress"])
     out = capsys.readouterr().out
@@ -132,6 +136,8 @@ def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys):
     assert f"listens on {slurm.bridge}" in out and "sized per stage from the plan" in out, out[:3000]
     assert "stage simulate: " in out and "jobs of 2 cores / 1.07 GB" in out, out[:3000]
     assert yaml.safe_load((run_dir / "config.yaml").read_text())["cluster"]["kind"] == "slurm"
+    infos = [i for st in ORDER for i in RunDir(run_dir).task_infos(st).values() if "worker" in i]
+    assert infos and {i["blas_threads"] for i in infos} == {1}
     assert_identical(reference, read_outputs(run_dir))
 
 

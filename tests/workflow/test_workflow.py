@@ -9,6 +9,7 @@ import sys
 import numpy as np
 import pytest
 import yaml
+from threadpoolctl import threadpool_info, threadpool_limits
 
 from mmflow.cli import main
 from mmflow.errors import InputError, MmflowError, StaleOutputError
@@ -380,6 +381,24 @@ def test_radiometer_noise_matches_data_noise_and_store_mode_writes_the_kernel_bl
         np.testing.assert_array_equal(stored[0], blocks[m][:n])
         if m > 0:
             np.testing.assert_array_equal(stored[1], blocks[m][n:])
+
+
+def test_every_task_runs_its_blas_on_one_thread_whatever_the_process_has(tmp_path):
+    """A synchronous run in a process whose BLAS runs two threads (a user's session) runs each task's BLAS
+    on one thread, as a dask worker's (:func:`mmflow.threads.blas_on_one_thread`; the task markers record
+    it), and gives the process its threads back. OpenBLAS's GEMM on two threads rounds otherwise than on
+    one, and a batch job's workers inherit the submitting shell's ``OPENBLAS_NUM_THREADS``: the SLURM
+    tier's runs differed from their synchronous references in the last bit of their Grams.
+    (The SLURM tier checks its workers: tests/cluster/test_slurm_cluster.py.)"""
+    from mmflow.workflow.engine.rundir import RunDir
+
+    with threadpool_limits(2, user_api="blas"):
+        run_workflow(small_config(tmp_path / "run"), only=["simulate", "mmodes"], progress=False,
+                     log=lambda *a: None)
+        assert {i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"} == {2}
+    infos = [i for st in ("simulate", "mmodes") for i in RunDir(tmp_path / "run").task_infos(st).values()
+             if "threads" in i]  # the tasks' records (not a pass's)
+    assert len(infos) >= 2 and [i["blas_threads"] for i in infos] == [1] * len(infos)
 
 
 def test_every_store_records_config_versions_and_fingerprint(reference_run):

@@ -43,7 +43,7 @@ import zarr
 from mmflow.allocator import keep_freed_memory, release_freed_memory
 from mmflow.errors import InputError, MmflowError, StaleOutputError
 from mmflow.io.stores import DamagedStoreError, verify_chunks
-from mmflow.threads import n_threads
+from mmflow.threads import blas_on_one_thread, blas_threads, n_threads
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.dashboard.board import BOARD, cluster_kind, cluster_record
 from mmflow.workflow.engine.context import Context
@@ -103,11 +103,13 @@ def run_task(ctx, pipeline, stage_name, key):
     t0 = time.time()
     stage = pipeline.stage(stage_name)
     tctx = ctx.for_stage(stage).for_task(keep_handles=True)
-    info = stage.task(tctx, TaskKey.parse(key)) or {}
+    worker, limit = dask_worker() or (None, None)
+    with blas_on_one_thread(for_good=worker is not None):  # the same bits in every executor
+        info = stage.task(tctx, TaskKey.parse(key)) or {}
+        info = dict(info, blas_threads=blas_threads())  # BLAS's threads in the task's kernels: one (above)
     info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
                 guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start), threads=n_threads())
-    worker, limit = dask_worker() or (None, None)
     if worker is not None:  # the worker the task was sent to, and its memory (jobs sized per stage)
         info.update(worker=worker, worker_memory_bytes=limit and int(limit))
     if traced_start is not None:
