@@ -59,8 +59,8 @@ PEEL_TEMPORARIES = 5
 CROSS_TEMPORARIES = 3
 #: copies of an array while zarr reads it whole: the chunk's encoded bytes, its decoded buffer and the array
 #: returned (solve's Gram blocks: traced 2.9x in the 64-antenna lmax-200 run, whose Grams compress to 0.88 of
-#: their size; an array's Grams are dense, the 16 core stands' at lmax 1000 mostly zero and 50x smaller
-#: encoded; CLEAN's packed factors alike)
+#: their size; an array's Grams are dense, 16 core stands' at lmax 1000 mostly zero and 50x smaller encoded;
+#: CLEAN's packed factors alike)
 ZARR_READ_COPIES = 3
 #: copies of an array while zarr writes it: the encoded chunk (traced 1.0x for the m-modes of a baseline chunk,
 #: complex128, which do not compress); a region that is part of a chunk is first laid into a chunk-shaped buffer
