@@ -67,7 +67,8 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
     2 CPUs, 1500 MB: 1 GiB to a job, 296 MiB of it the job's own `dask worker` process) gives the stages
     workers of one 364 MiB share (two a job: solve, clean; normal runs with transfer) or of two (one a job:
     the rest, whose tasks need more); each stage's tasks ran on workers of its pool that hold its planned task (dask's
-    limit memory / processes), stages of one pool in a row shared their jobs, the workers were on two
+    limit memory / processes) one at a time (a worker of two cores holds the memory of one task of its
+    pool, not of two on its two threads), stages of one pool in a row shared their jobs, the workers were on two
     nodes (over the bridge: the scheduler on cluster.interface), the dashboard link printed is where it
     listens; maps bit-identical (the workers' memory thresholds: tests/cluster/conftest.py)."""
     run_dir = tmp_path / "run"
@@ -97,13 +98,21 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
     assert switches[0].startswith(f"stage simulate: {pools['simulate']['count']} jobs of 2 cores / 1.07 GB,"), logs
     assert any("(2 workers of 1 cores each)" in line for line in switches), switches  # the 1-core pool
     planned = {e["stage"]: e["task_bytes"] + WORKER_BASE_BYTES for e in plan(cfg, peak_gflops=100.0)["stages"]}
-    run = RunDir(run_dir)
+    run, overlap_checked = RunDir(run_dir), False
     for name, need in planned.items():
         infos = [i for i in run.task_infos(name).values() if "worker" in i]
         limits = {i["worker_memory_bytes"] for i in infos}
         pool = pools[name]
         assert limits == {2 ** 30 // pool["processes"]}, (name, limits, pool, logs)  # a job: 1 GiB / its workers
         assert need < 0.95 * min(limits), (name, need, limits)  # below dask's kill threshold
+        by_worker = {}
+        for i in infos:
+            by_worker.setdefault(i["worker"], []).append((i["started"], i["started"] + i["seconds"]))
+        for spans in by_worker.values():  # one task at a time a worker (pools.TASK_SLOT), whatever its threads
+            spans.sort()
+            assert all(b[0] >= a[1] for a, b in zip(spans, spans[1:])), (name, spans)
+        overlap_checked = overlap_checked or (pool["worker_cores"] > 1 and any(len(v) > 1 for v in by_worker.values()))
+    assert overlap_checked  # a worker of two threads ran several tasks of its stage, one after another
     assert {c for c, _, _ in seen.values()} == {2} and len({n for _, _, n in seen.values()}) >= 2, seen
     assert_identical(paper_reference, read_outputs(run_dir))
 

@@ -6,7 +6,7 @@ import pytest
 
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.batch import lifetime_args
-from mmflow.workflow.engine.pools import StagePools, describe, job_prologue, plan_pools
+from mmflow.workflow.engine.pools import TASK_SLOT, StagePools, describe, job_prologue, plan_pools, with_task_slot
 from mmflow.workflow.plan import jobs
 from mmflow.workflow.plan.nodes import JOB_PROCESS_BYTES, MIB, Node
 from tests.workflow_helpers import small_config
@@ -71,13 +71,16 @@ def test_a_stage_of_another_pool_retires_the_running_jobs_and_submits_its_own(pa
     client = _Client(cluster)
     sp = StagePools(cluster, pools, {"queue": "compute", "walltime": None, "worker_extra_args": ["--nthreads", "1"]},
                     None, said.append)
-    sp.use("mmodes", client)
+    assert sp.use("mmodes", client) is pools["mmodes"]
     one = pools["mmodes"]
     assert cluster.scaled == [one["count"]] and client.retired == []
     opts = cluster.new_spec["options"]
     assert (opts["cores"], opts["memory"], opts["processes"]) == (one["cores"], one["memory"], one["processes"])
     assert opts["queue"] == "compute" and cluster.new_spec["group"] == [f"-{i}" for i in range(one["processes"])]
-    assert opts["worker_extra_args"] == ["--nthreads", "1", *lifetime_args(one["walltime"])]
+    # one task at a time a worker: the resource every task of a stage run on pools asks for
+    assert opts["worker_extra_args"] == ["--nthreads", "1", *lifetime_args(one["walltime"]), "--resources",
+                                         f"{TASK_SLOT}=1"]
+    assert with_task_slot(["--resources", "GPU=1"]) == ["--resources", f"GPU=1 {TASK_SLOT}=1"]
     assert opts["job_script_prologue"] == job_prologue(one["processes"])
     assert opts["job_script_prologue"][0] == f"export MMFLOW_WORKERS_PER_HOST={one['processes']}"
     assert said[-1].startswith(f"stage mmodes: {describe(one)}")

@@ -166,11 +166,12 @@ class LazyClient:
     def use_stage(self, stage, log=None):
         """Before ``stage``'s tasks are sent: the worker jobs of its pool where the jobs are sized per
         stage (:class:`mmflow.workflow.engine.pools.StagePools`; the change logged with ``log``);
-        nothing for any other cluster."""
+        nothing for any other cluster. Returns the pool, or None where the jobs are not sized per stage."""
         if self._client is None:
             self._client, self._cluster, self._watch = self._start()
         if self._watch is not None and self._watch.pools is not None:
-            self._watch.pools.use(stage, self._client, self._watch, log)
+            return self._watch.pools.use(stage, self._client, self._watch, log)
+        return None
 
     def __getattr__(self, name):  # only for names not found on this object: the client's
         if name.startswith("_"):

@@ -8,6 +8,10 @@ worker into pools. Before a stage's tasks are sent (:meth:`StagePools.use`):
 
 * a stage of the pool whose jobs are running keeps them (stages of one shape share their jobs; a pool's
   job count is the most any of its stages uses);
+* a pool's worker runs one mmflow task at a time (the dask resource :data:`TASK_SLOT`, one a worker; every
+  task of a stage run on pools asks for it): the plan gives a worker of ``k`` cores the memory of ``k``
+  core shares for one task that needs more than ``k - 1`` of them, where dask would run ``k`` at once on
+  its ``k`` threads (dask-jobqueue starts ``cores / processes`` threads a worker);
 * a stage of another pool first retires the running workers (every task of the stage before has
   finished: stages run one after another), so that no task is ever sent to a worker smaller than the
   plan sized for it, then the cluster's job options become the pool's and it is scaled to the
@@ -28,6 +32,9 @@ from mmflow.workflow.engine.batch import JOB_START_VAR, jobqueue_default, lifeti
 
 #: the job options a pool sets (the rest of ``cluster.jobqueue`` is kept for every pool)
 POOL_OPTIONS = ("cores", "memory", "processes", "walltime")
+#: the dask worker resource a pool's worker has one of and each task of a stage run on pools takes: one task
+#: at a time a worker, whatever its threads
+TASK_SLOT = "mmflow_task"
 
 
 def plan_pools(cfg, kind, opts, log=print):
@@ -117,6 +124,18 @@ def pool_options(opts, pool, user_walltime):
     return out
 
 
+def with_task_slot(args):
+    """``dask worker`` arguments ``args`` with one :data:`TASK_SLOT` among the worker's resources (added to
+    the workflow's own ``--resources``, where it gives some)."""
+    args = list(args)
+    if "--resources" not in args:
+        return args + ["--resources", f"{TASK_SLOT}=1"]
+    i = args.index("--resources") + 1
+    if TASK_SLOT not in args[i]:
+        args[i] = f"{args[i]} {TASK_SLOT}=1"
+    return args
+
+
 class StagePools:
     """Switches a dask-jobqueue cluster's jobs to the pool of the stage about to run.
 
@@ -154,6 +173,7 @@ class StagePools:
         if self.extra_args is not None:
             kw["worker_extra_args"] = list(self.extra_args) + lifetime_args(kw["walltime"])
         kw["job_script_prologue"] = list(kw.get("job_script_prologue") or []) + job_prologue(kw["processes"])
+        kw["worker_extra_args"] = with_task_slot(kw.get("worker_extra_args") or [])
         return kw
 
     def use(self, stage, client, watch=None, log=None):

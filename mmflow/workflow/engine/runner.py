@@ -56,6 +56,7 @@ from mmflow.workflow.engine.channels import by_channel, by_channel_partner
 from mmflow.workflow.engine.release import (chunk_releases, planned_keys, recompute_released, release_finished,
                                             release_task_chunks, released_here, repair_or_refuse)
 from mmflow.workflow.engine.progress import Progress
+from mmflow.workflow.engine.pools import TASK_SLOT
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.engine.task_key import TaskKey
 
@@ -107,8 +108,9 @@ def run_task(ctx, pipeline, stage_name, key):
     with blas_on_one_thread(for_good=worker is not None):  # the same bits in every executor
         info = stage.task(tctx, TaskKey.parse(key)) or {}
         info = dict(info, blas_threads=blas_threads())  # BLAS's threads in the task's kernels: one (above)
-    info = dict(info, seconds=round(time.time() - t0, 3), checksum_s=round(tctx.ledger.seconds, 4),
-                guard_s=round(tctx.ledger.guard_seconds, 4), peak_rss_gb=gb(peak_rss_bytes()),
+    info = dict(info, started=round(t0, 3), seconds=round(time.time() - t0, 3),
+                checksum_s=round(tctx.ledger.seconds, 4), guard_s=round(tctx.ledger.guard_seconds, 4),
+                peak_rss_gb=gb(peak_rss_bytes()),
                 rss_start_gb=gb(rss_start), threads=n_threads())
     if worker is not None:  # the worker the task was sent to, and its memory (jobs sized per stage)
         info.update(worker=worker, worker_memory_bytes=limit and int(limit))
@@ -184,11 +186,11 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
     from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
     use_stage = getattr(type(client), "use_stage", None)
-    if use_stage is not None:  # SLURM/PBS jobs sized per stage: the stage's own (mmflow.workflow.engine.pools)
-        use_stage(client, pool or name, log)
+    # SLURM/PBS jobs sized per stage: the stage's own, one task at a time a worker (mmflow.workflow.engine.pools)
+    on_pool = use_stage is not None and use_stage(client, pool or name, log) is not None
     futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
-                         retries=2)
+                         retries=2, resources={TASK_SLOT: 1} if on_pool else None)
     # the tasks not yet gathered: a gathered task's future is released at once, so that a worker leaving later
     # (retired at its lifetime, a pool's switch, the cluster's close) makes dask recompute nothing of it, which
     # would write its outputs again, maybe after the run has ended (a map's temporary file left behind)
