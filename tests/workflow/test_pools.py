@@ -114,3 +114,23 @@ def test_jobs_are_sized_per_stage_only_when_the_workflow_gives_no_shape_and_sinf
     assert plan_pools(cfg, "pbs", {}, said.append) is None  # no sinfo: one shape, as before
     monkeypatch.setattr(nodes, "read_sinfo", lambda: None)
     assert plan_pools(cfg, "slurm", {}, said.append) is None
+
+
+def test_a_task_is_checked_against_its_share_of_a_worker_that_runs_several_at_once():
+    """Before any work a task is held to a worker's memory limit over the tasks the worker runs at once: its
+    threads, or one where it has the pools' task slot (mmflow.workflow.engine.runner._worker_limit_gb)."""
+    from mmflow.workflow.engine.runner import _worker_limit_gb
+
+    class Client:
+        def __init__(self, workers):
+            self.workers = workers
+
+        def scheduler_info(self):
+            return {"workers": self.workers}
+
+    threaded = {"memory_limit": 4e9, "nthreads": 4}
+    slotted = {"memory_limit": 3e9, "nthreads": 2, "resources": {TASK_SLOT: 1}}
+    assert _worker_limit_gb(Client({"a": threaded})) == 1.0
+    assert _worker_limit_gb(Client({"b": slotted})) == 3.0
+    assert _worker_limit_gb(Client({"a": threaded, "b": slotted})) == 1.0
+    assert _worker_limit_gb(Client({})) is None

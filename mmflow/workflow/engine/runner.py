@@ -537,13 +537,16 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
 
 
 def _worker_limit_gb(client):
-    """The smallest memory limit (GB) of the cluster's workers; the machine's memory in process
-    (no client); None when no worker has joined yet or none has a limit."""
+    """The memory (GB) a task has on the cluster's workers: the smallest of their memory limits, each over
+    the tasks the worker runs at once (its threads; one where it has one :data:`TASK_SLOT`: jobs sized
+    per stage); the machine's memory in process (no client); None when no worker has joined yet or none
+    has a limit. A worker of four threads runs four tasks at once in its one limit."""
     if client is None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
-    limits = [w.get("memory_limit") or 0 for w in client.scheduler_info().get("workers", {}).values()]
-    limits = [x for x in limits if x > 0]
-    return min(limits) / 1e9 if limits else None
+    shares = [(w.get("memory_limit") or 0) / ((w.get("resources") or {}).get(TASK_SLOT) or w.get("nthreads") or 1)
+              for w in client.scheduler_info().get("workers", {}).values()]
+    shares = [x for x in shares if x > 0]
+    return min(shares) / 1e9 if shares else None
 
 
 def _check_resources(cfg, run, client, stages):

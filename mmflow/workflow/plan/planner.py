@@ -404,9 +404,10 @@ def check_fits(cfg, worker_limit_gb, stage_names, free_disk=None, existing_bytes
             need = (e.task_bytes + WORKER_BASE_BYTES) / 1e9
             if need > worker_limit_gb:
                 raise InputError("workflow", f"stage {e.stage}", f"its largest task needs ~{need:.2f} GB "
-                                 f"(`mmflow plan`), more than a worker's {worker_limit_gb:.2f} GB memory limit",
+                                 f"(`mmflow plan`), more than the {worker_limit_gb:.2f} GB a task has on a worker "
+                                 "(its memory limit over the tasks it runs at once, its threads)",
                                  f"{PIPELINE.stage(e.stage).cost.shrink_setting(cfg)}, or more memory per worker "
-                                 "(fewer cluster.n_workers, a larger cluster.memory_limit)")
+                                 "(fewer cluster.n_workers, a larger cluster.memory_limit, fewer threads a worker)")
     slots = cfg.cluster.n_workers * cfg.cluster.threads_per_worker if cfg.cluster.kind != "synchronous" else 1
     peak, at, _ = run_live_stores([(e.stage, e.stores, e.arrays, e.channels) for e in ests], cfg,
                                   {e.stage: e.tasks for e in ests}, slots)
