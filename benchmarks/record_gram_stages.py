@@ -16,8 +16,9 @@ one-thread workers; no calibration, peeling or terrestrial filter); the record k
 only (the others' tasks are not those of any planned run's size). Normal and solve run on workers of
 their own: a task's memory is measured as its worker's peak above the worker's resident memory when it
 started, and workers that had run the simulation held ~110 MB of freed memory that the normal tasks at
-lmax 500 reused (20 MB measured a task against the 129 MB they hold). The SGEMM peak is measured before
-and after it.
+lmax 500 reused (20 MB measured a task against the 129 MB they hold). A fresh worker's first task holds
+the worker's one-time allocations instead (~60 MB more at lmax 500): the records mark normal's memory
+``memory_superseded`` by hand, solve's holds. The SGEMM peak is measured before and after it.
 """
 import json
 import sys
