@@ -9,6 +9,7 @@ import threading
 import time
 from urllib.parse import urlparse
 
+import numpy as np
 import pytest
 import yaml
 
@@ -17,7 +18,7 @@ from mmflow.cli import main
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.cluster import open_cluster
 from mmflow.workflow.engine.passes import run_with_passes
-from mmflow.workflow.engine.pools import plan_pools
+from mmflow.workflow.engine.pools import describe, plan_pools
 from mmflow.workflow.engine.rundir import RunDir
 from mmflow.workflow.pipeline import ORDER, PIPELINE
 from mmflow.workflow.plan.planner import WORKER_BASE_BYTES, plan
@@ -66,11 +67,11 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
     """The reduced paper-scale workflow with no job shape given: the plan on the partition's nodes (sinfo:
     2 CPUs, 1500 MB: 1 GiB to a job, 296 MiB of it the job's own `dask worker` process) gives the stages
     workers of one 364 MiB share (two a job: solve, clean; normal runs with transfer) or of two (one a job:
-    the rest, whose tasks need more); each stage's tasks ran on workers of its pool that hold its planned task (dask's
-    limit memory / processes) one at a time (a worker of two cores holds the memory of one task of its
-    pool, not of two on its two threads), stages of one pool in a row shared their jobs, the workers were on two
-    nodes (over the bridge: the scheduler on cluster.interface), the dashboard link printed is where it
-    listens; maps bit-identical (the workers' memory thresholds: tests/cluster/conftest.py)."""
+    the rest, whose tasks need more); each stage's tasks ran on the running jobs' workers, holding its planned
+    task in its share (dask's limit memory / processes, a worker of two cores running one task of a two-core
+    stage at a time, two of a one-core stage), the one-core stages kept the two-core jobs (no queue wait),
+    the workers were on two nodes (over the bridge: the scheduler on cluster.interface), the dashboard link
+    printed is where it listens; maps bit-identical (the workers' memory thresholds: tests/cluster/conftest.py)."""
     run_dir = tmp_path / "run"
     cfg = _paper(run_dir, "cluster.kind=slurm", "cluster.n_workers=2", "cluster.dashboard_address=:0",
                  f"cluster.interface={slurm.bridge}")
@@ -91,28 +92,38 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
     planned_pools = plan_pools(cfg, "slurm", {}, log=lambda *a: None)  # what the run asked sinfo's nodes for
     # a stage run channel by channel after another (normal after transfer) runs in that one's pool
     pools = {st.name: planned_pools[st.by_channel_after or st.name] for st in PIPELINE if st.name in planned_pools}
-    order = list(pools)
+    # the pool whose jobs run each stage: a stage of smaller workers than the running ones keeps them
+    running, serving, ran_on, said = None, None, {}, []
+    for name, p in pools.items():
+        if p is not running and p is not serving:
+            if running is not None and running["worker_cores"] >= p["worker_cores"]:
+                said.append(f"stage {name}: the running jobs kept")
+            else:
+                running = p
+                said.append(f"stage {name}: {describe(p)}")
+        serving, ran_on[name] = p, running
     switches = [line for line in logs if line.startswith("stage ")]
-    starts = [s for i, s in enumerate(order) if i == 0 or pools[s] is not pools[order[i - 1]]]  # a new pool
-    assert [line.split(":")[0] for line in switches] == [f"stage {s}" for s in starts], (switches, starts)
+    assert [line.split(":")[0] for line in switches] == [t.split(":")[0] for t in said], (switches, said)
+    assert all(line.startswith(t) for line, t in zip(switches, said)), (switches, said)
     assert switches[0].startswith(f"stage simulate: {pools['simulate']['count']} jobs of 2 cores / 1.07 GB,"), logs
-    assert any("(2 workers of 1 cores each)" in line for line in switches), switches  # the 1-core pool
+    assert any("the running jobs kept" in line for line in switches), switches  # solve's 1-core pool: no queue wait
     planned = {e["stage"]: e["task_bytes"] + WORKER_BASE_BYTES for e in plan(cfg, peak_gflops=100.0)["stages"]}
-    run, overlap_checked = RunDir(run_dir), False
+    run, several = RunDir(run_dir), False
     for name, need in planned.items():
         infos = [i for i in run.task_infos(name).values() if "worker" in i]
         limits = {i["worker_memory_bytes"] for i in infos}
-        pool = pools[name]
-        assert limits == {2 ** 30 // pool["processes"]}, (name, limits, pool, logs)  # a job: 1 GiB / its workers
-        assert need < 0.95 * min(limits), (name, need, limits)  # below dask's kill threshold
+        k, j = ran_on[name]["worker_cores"], pools[name]["worker_cores"]
+        assert limits == {2 ** 30 // ran_on[name]["processes"]}, (name, limits, logs)  # a job: 1 GiB / its workers
+        assert need < 0.95 * min(limits) * j / k, (name, need, limits)  # its share: below dask's kill threshold
         by_worker = {}
         for i in infos:
             by_worker.setdefault(i["worker"], []).append((i["started"], i["started"] + i["seconds"]))
-        for spans in by_worker.values():  # one task at a time a worker (pools.TASK_SLOT), whatever its threads
-            spans.sort()
-            assert all(b[0] >= a[1] for a, b in zip(spans, spans[1:])), (name, spans)
-        overlap_checked = overlap_checked or (pool["worker_cores"] > 1 and any(len(v) > 1 for v in by_worker.values()))
-    assert overlap_checked  # a worker of two threads ran several tasks of its stage, one after another
+        for spans in by_worker.values():  # at most k // j at once a worker (pools.TASK_SLOT), whatever its threads
+            ends = sorted([(a, 1) for a, _ in spans] + [(b, -1) for _, b in spans], key=lambda e: (e[0], e[1]))
+            at_once = np.cumsum([d for _, d in ends])
+            assert at_once.max() <= k // j, (name, spans)
+        several = several or (k == j > 1 and any(len(v) > 1 for v in by_worker.values()))
+    assert several  # a worker of two threads ran several tasks of its two-core stage, one after another
     assert {c for c, _, _ in seen.values()} == {2} and len({n for _, _, n in seen.values()}) >= 2, seen
     assert_identical(paper_reference, read_outputs(run_dir))
 

@@ -66,7 +66,7 @@ class _Client:
         self.retired.append(sorted(names))
 
 
-def test_a_stage_of_another_pool_retires_the_running_jobs_and_submits_its_own(paper_plan):
+def test_a_stage_of_larger_workers_retires_the_running_jobs_one_of_smaller_keeps_them(paper_plan):
     pools, cluster, said = jobs.worker_pools(paper_plan), _Cluster(), []
     client = _Client(cluster)
     sp = StagePools(cluster, pools, {"queue": "compute", "walltime": None, "worker_extra_args": ["--nthreads", "1"]},
@@ -77,10 +77,10 @@ def test_a_stage_of_another_pool_retires_the_running_jobs_and_submits_its_own(pa
     opts = cluster.new_spec["options"]
     assert (opts["cores"], opts["memory"], opts["processes"]) == (one["cores"], one["memory"], one["processes"])
     assert opts["queue"] == "compute" and cluster.new_spec["group"] == [f"-{i}" for i in range(one["processes"])]
-    # one task at a time a worker: the resource every task of a stage run on pools asks for
+    # a worker's core shares: the resource each task of a stage run on pools asks its pool's worker cores of
     assert opts["worker_extra_args"] == ["--nthreads", "1", *lifetime_args(one["walltime"]), "--resources",
                                          f"{TASK_SLOT}=1"]
-    assert with_task_slot(["--resources", "GPU=1"]) == ["--resources", f"GPU=1 {TASK_SLOT}=1"]
+    assert with_task_slot(["--resources", "GPU=1"], 2) == ["--resources", f"GPU=1 {TASK_SLOT}=2"]
     assert opts["job_script_prologue"] == job_prologue(one["processes"])
     assert opts["job_script_prologue"][0] == f"export MMFLOW_WORKERS_PER_HOST={one['processes']}"
     assert said[-1].startswith(f"stage mmodes: {describe(one)}")
@@ -91,10 +91,21 @@ def test_a_stage_of_another_pool_retires_the_running_jobs_and_submits_its_own(pa
     assert not set(cluster.worker_spec) & first and len(cluster.worker_spec) == two["count"]
     assert cluster.new_spec["options"]["cores"] == two["cores"] and cluster._job_kwargs["processes"] == two["processes"]
     assert "the running jobs retired" in said[-1]
-    sp.use("normal", client)  # back to 1-core workers
+    assert cluster.new_spec["options"]["worker_extra_args"][-1] == f"{TASK_SLOT}=2"  # two core shares a worker
     kept = set(cluster.worker_spec)
-    sp.use("solve", client)  # the same pool: its jobs kept, nothing retired or submitted
-    assert set(cluster.worker_spec) == kept and len(client.retired) == 2 and len(cluster.scaled) == 3
+    # back to 1-core workers: the 2-core jobs kept, two of its tasks at once a worker, and as many more of them
+    # as the 1-core pool's cores need
+    assert sp.use("normal", client) is pools["normal"]
+    small = pools["normal"]
+    more = -(-small["count"] * small["cores"] // two["cores"]) - two["count"]
+    assert more > 0 and kept <= set(cluster.worker_spec) and len(client.retired) == 1
+    assert cluster.scaled[-1] == two["count"] + more and cluster.new_spec["options"]["cores"] == two["cores"]
+    assert said[-1].startswith(f"stage normal: the running jobs kept ({two['count']} of {two['cores']} cores, "
+                               f"{more} more submitted): a worker runs 2 of its tasks at once")
+    n_said, n_scaled = len(said), len(cluster.scaled)
+    sp.use("solve", client)  # the pool the kept jobs serve: nothing changes, nothing said
+    sp.use("transfer", client)  # the running jobs' own pool
+    assert len(said) == n_said and len(cluster.scaled) == n_scaled and len(client.retired) == 1
 
 
 def test_jobs_are_sized_per_stage_only_when_the_workflow_gives_no_shape_and_sinfo_answers(tmp_path, monkeypatch):

@@ -8,11 +8,16 @@ worker into pools. Before a stage's tasks are sent (:meth:`StagePools.use`):
 
 * a stage of the pool whose jobs are running keeps them (stages of one shape share their jobs; a pool's
   job count is the most any of its stages uses);
-* a pool's worker runs one mmflow task at a time (the dask resource :data:`TASK_SLOT`, one a worker; every
-  task of a stage run on pools asks for it): the plan gives a worker of ``k`` cores the memory of ``k``
-  core shares for one task that needs more than ``k - 1`` of them, where dask would run ``k`` at once on
-  its ``k`` threads (dask-jobqueue starts ``cores / processes`` threads a worker);
-* a stage of another pool first retires the running workers (every task of the stage before has
+* a pool's worker of ``k`` cores has ``k`` of the dask resource :data:`TASK_SLOT`, its core shares, and
+  each task of a stage run on pools asks for its pool's worker cores: the plan gives a worker of ``k``
+  cores the memory of ``k`` core shares for one task that needs more than ``k - 1`` of them, where dask
+  would run ``k`` at once on its ``k`` threads (dask-jobqueue starts ``cores / processes`` threads a
+  worker); a worker runs ``k / j`` tasks at once of a stage whose pool's workers have ``j <= k`` cores;
+* a stage of a pool of smaller workers keeps the running jobs (its tasks start without a queue wait):
+  each of their workers runs as many of its tasks at once as its core shares hold, in the memory of as
+  many of the pool's workers; where the pool's own jobs would hold more cores, more jobs of the running
+  shape are submitted to make them up;
+* a stage of a pool of larger workers first retires the running workers (every task of the stage before has
   finished: stages run one after another), so that no task is ever sent to a worker smaller than the
   plan sized for it, then the cluster's job options become the pool's and it is scaled to the
   pool's jobs; the log says ``stage X: N jobs of C cores / M GB``.
@@ -32,8 +37,8 @@ from mmflow.workflow.engine.batch import JOB_START_VAR, jobqueue_default, lifeti
 
 #: the job options a pool sets (the rest of ``cluster.jobqueue`` is kept for every pool)
 POOL_OPTIONS = ("cores", "memory", "processes", "walltime")
-#: the dask worker resource a pool's worker has one of and each task of a stage run on pools takes: one task
-#: at a time a worker, whatever its threads
+#: the dask worker resource a pool's worker has one of per core (its core shares of memory) and each task of a
+#: stage run on pools takes its pool's worker cores of: never more tasks at once than a worker's memory holds
 TASK_SLOT = "mmflow_task"
 
 
@@ -124,15 +129,15 @@ def pool_options(opts, pool, user_walltime):
     return out
 
 
-def with_task_slot(args):
-    """``dask worker`` arguments ``args`` with one :data:`TASK_SLOT` among the worker's resources (added to
-    the workflow's own ``--resources``, where it gives some)."""
+def with_task_slot(args, shares):
+    """``dask worker`` arguments ``args`` with ``shares`` :data:`TASK_SLOT` among the worker's resources
+    (added to the workflow's own ``--resources``, where it gives some)."""
     args = list(args)
     if "--resources" not in args:
-        return args + ["--resources", f"{TASK_SLOT}=1"]
+        return args + ["--resources", f"{TASK_SLOT}={shares}"]
     i = args.index("--resources") + 1
     if TASK_SLOT not in args[i]:
-        args[i] = f"{args[i]} {TASK_SLOT}=1"
+        args[i] = f"{args[i]} {TASK_SLOT}={shares}"
     return args
 
 
@@ -158,7 +163,8 @@ class StagePools:
         args = list(job_kwargs.get("worker_extra_args") or [])
         # the lifetime job_options added from the first pool's walltime is each pool's own; one the workflow set stays
         self.extra_args = None if _user_lifetime(args, job_kwargs.get("walltime")) else _without_lifetime(args)
-        self.current = None
+        self.current = None  # the pool whose jobs are running
+        self.serving = None  # the pool whose stage they serve
 
     def pool_of(self, stage):
         """The stage's pool; a stage the plan does not list (none: every enabled stage with tasks is
@@ -173,7 +179,7 @@ class StagePools:
         if self.extra_args is not None:
             kw["worker_extra_args"] = list(self.extra_args) + lifetime_args(kw["walltime"])
         kw["job_script_prologue"] = list(kw.get("job_script_prologue") or []) + job_prologue(kw["processes"])
-        kw["worker_extra_args"] = with_task_slot(kw.get("worker_extra_args") or [])
+        kw["worker_extra_args"] = with_task_slot(kw.get("worker_extra_args") or [], pool["worker_cores"])
         return kw
 
     def use(self, stage, client, watch=None, log=None):
@@ -181,8 +187,26 @@ class StagePools:
         ``log``, default the cluster's); returns the pool."""
         pool = self.pool_of(stage)
         if pool is self.current:
+            self.serving = pool
+            return pool
+        if pool is self.serving:
             return pool
         old = set(self.cluster.worker_spec)
+        running = self.current
+        if old and running is not None and running["worker_cores"] >= pool["worker_cores"]:
+            self.serving = pool
+            k, j = running["worker_cores"], pool["worker_cores"]
+            # as many cores as the pool's own jobs would hold: more jobs of the running shape where it needs more
+            want = max(len(old), -(-pool["count"] * pool["cores"] // running["cores"]))
+            if want > len(old):
+                if watch is not None:
+                    watch.n_jobs = want
+                self.cluster.scale(jobs=want)
+            (log or self.log)(f"stage {stage}: the running jobs kept ({len(old)} of {running['cores']} cores"
+                              + (f", {want - len(old)} more submitted" if want > len(old) else "")
+                              + f"): a worker runs {k // j} of its tasks at once; for {', '.join(pool['stages'])}")
+            return pool
+        self.serving = pool
         if old:  # the last stage's workers: none of its tasks is left, and none of this stage's is sent yet
             names = [str(w["name"]) for w in client.scheduler_info().get("workers", {}).values()]
             gone = [n for n in names if any(n == str(o) or n.startswith(f"{o}-") for o in old)]

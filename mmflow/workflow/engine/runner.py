@@ -187,10 +187,10 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
 
     use_stage = getattr(type(client), "use_stage", None)
     # SLURM/PBS jobs sized per stage: the stage's own, one task at a time a worker (mmflow.workflow.engine.pools)
-    on_pool = use_stage is not None and use_stage(client, pool or name, log) is not None
+    jobs = use_stage(client, pool or name, log) if use_stage is not None else None
     futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
-                         retries=2, resources={TASK_SLOT: 1} if on_pool else None)
+                         retries=2, resources=None if jobs is None else {TASK_SLOT: jobs["worker_cores"]})
     # the tasks not yet gathered: a gathered task's future is released at once, so that a worker leaving later
     # (retired at its lifetime, a pool's switch, the cluster's close) makes dask recompute nothing of it, which
     # would write its outputs again, maybe after the run has ended (a map's temporary file left behind)
@@ -538,12 +538,13 @@ def _run_locked(cfg, run, token, client, only, force, progress, log, pipeline, p
 
 def _worker_limit_gb(client):
     """The memory (GB) a task has on the cluster's workers: the smallest of their memory limits, each over
-    the tasks the worker runs at once (its threads; one where it has one :data:`TASK_SLOT`: jobs sized
-    per stage); the machine's memory in process (no client); None when no worker has joined yet or none
-    has a limit. A worker of four threads runs four tasks at once in its one limit."""
+    the tasks the worker runs at once (its threads; where it has :data:`TASK_SLOT`, jobs sized per stage,
+    its whole limit: the plan sized them, and each task takes its share); the machine's memory in process
+    (no client); None when no worker has joined yet or none has a limit. A worker of four threads runs
+    four tasks at once in its one limit."""
     if client is None:
         return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 1e9
-    shares = [(w.get("memory_limit") or 0) / ((w.get("resources") or {}).get(TASK_SLOT) or w.get("nthreads") or 1)
+    shares = [(w.get("memory_limit") or 0) / (1 if TASK_SLOT in (w.get("resources") or {}) else w.get("nthreads") or 1)
               for w in client.scheduler_info().get("workers", {}).values()]
     shares = [x for x in shares if x > 0]
     return min(shares) / 1e9 if shares else None
