@@ -186,7 +186,8 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
     from distributed import wait  # deferred: distributed, ~1 s to import; synchronous runs never need it
 
     use_stage = getattr(type(client), "use_stage", None)
-    # SLURM/PBS jobs sized per stage: the stage's own, one task at a time a worker (mmflow.workflow.engine.pools)
+    # SLURM/PBS jobs sized per stage: the stage's own, each task taking its pool's worker cores of a worker's task
+    # slots (mmflow.workflow.engine.pools.TASK_SLOT)
     jobs = use_stage(client, pool or name, log) if use_stage is not None else None
     futures = client.map(run_task_reporting_input_errors, [ctx] * len(todo), [pipeline] * len(todo),
                          [name] * len(todo), todo, pure=False, key=[f"{name}-{k}-{ctx.token}" for k in todo],
