@@ -407,6 +407,9 @@ def format_cluster_plan(res):
         big = "  " + "; ".join((["larger workers"] if r["worker_cores"] > 1 else []) + r["notes"])
         rows.append(f"{r['stage']:12s} {r['tasks']:6d} {r['task_gb']:8.2f} {worker:>13s} {job:>27s} "
                     f"{j['count']:5d} {j['walltime']:>9s} {duration(stage_seconds(r, res['nodes'])):>9s}{big}".rstrip())
+    if len({r["worker_cores"] for r in res["stages"]}) > 1:
+        rows.append("a stage of smaller workers than the running jobs' runs on those (no queue wait; more of them "
+                    "where its own jobs hold more cores), one of larger workers replaces them: docs/clusters.md")
     rows.append(f"total: {res['nodes']} nodes, ~{duration(res['wall_s'])} wall ({res['node_hours']:.0f} node-hours); "
                 f"a node holds at most {res['node_memory_gb']:.1f} GB of its {node['memory_gb']:.1f} GB; "
                 f"{res['core_gflops']:.0f} SGEMM GFLOP/s per core")
