@@ -73,10 +73,10 @@ def single_threaded_blas(active=True):
     change each other's BLAS settings; elsewhere (a kernel called from a user's own process)
     the limit is process-wide for its duration (threadpoolctl).
     """
-    if not active or blas_threads() <= 1:
+    if not active:
         yield
         return
-    with _controller().limit(limits=1, user_api="blas"):
+    with blas_on_one_thread():
         yield
 
 

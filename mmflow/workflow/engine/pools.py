@@ -186,15 +186,12 @@ class StagePools:
         """Make the cluster's jobs the stage's pool's (see the module's docstring; the change logged with
         ``log``, default the cluster's); returns the pool."""
         pool = self.pool_of(stage)
-        if pool is self.current:
-            self.serving = pool
-            return pool
-        if pool is self.serving:
+        served, self.serving = self.serving, pool
+        if pool is self.current or pool is served:
             return pool
         old = set(self.cluster.worker_spec)
         running = self.current
         if old and running is not None and running["worker_cores"] >= pool["worker_cores"]:
-            self.serving = pool
             k, j = running["worker_cores"], pool["worker_cores"]
             # as many cores as the pool's own jobs would hold: more jobs of the running shape where it needs more
             want = max(len(old), -(-pool["count"] * pool["cores"] // running["cores"]))
@@ -206,7 +203,6 @@ class StagePools:
                               + (f", {want - len(old)} more submitted" if want > len(old) else "")
                               + f"): a worker runs {k // j} of its tasks at once; for {', '.join(pool['stages'])}")
             return pool
-        self.serving = pool
         if old:  # the last stage's workers: none of its tasks is left, and none of this stage's is sent yet
             names = [str(w["name"]) for w in client.scheduler_info().get("workers", {}).values()]
             gone = [n for n in names if any(n == str(o) or n.startswith(f"{o}-") for o in old)]
