@@ -51,7 +51,7 @@ def scan(tmp_path_factory):
 def _cfg(run_dir, data, beam):
     return load_config("workflows/uvh5-image.yaml", [
         f"run.directory={run_dir}", f"input.path={data}", f"beam={beam}", "mmode.lmax=24",
-        "mmode.min_coverage=0.7", "products.nside=32", "products.png=false", "products.unit=Jy/sr",
+        "products.nside=32", "products.png=false", "products.unit=Jy/sr",
         "cluster.kind=synchronous"])
 
 

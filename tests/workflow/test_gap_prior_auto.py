@@ -33,10 +33,10 @@ QUIET = dict(progress=False, log=lambda *a: None)
 
 
 def _cfg(run_dir, data, *extra):
-    """The workflow's defaults for gaps (prior_passes, prior_tolerance, ...), imaging (eps 0.01) and noise;
-    a small lmax and map for the test's time, and the per-baseline coverage the flags leave (80 %)."""
+    """The workflow's defaults for gaps (prior_passes, prior_tolerance, min_coverage, ...), imaging (eps 0.01)
+    and noise; a small lmax and map for the test's time."""
     return load_config("workflows/uvh5-image.yaml", [
-        f"run.directory={run_dir}", f"input.path={data}", f"mmode.lmax={LMAX}", "mmode.min_coverage=0.7",
+        f"run.directory={run_dir}", f"input.path={data}", f"mmode.lmax={LMAX}",
         "products.nside=64", "products.png=false", "products.unit=Jy/sr", "cluster.kind=synchronous",
         "beam={type: sin_elevation, alpha: 1.5}", *extra])
 

@@ -33,7 +33,7 @@ QUIET = dict(progress=False, log=lambda *a: None)
 
 def _cfg(run_dir, data, *extra):
     return load_config("workflows/uvh5-image.yaml", [
-        f"run.directory={run_dir}", f"input.path={data}", f"mmode.lmax={LMAX}", "mmode.min_coverage=0.7",
+        f"run.directory={run_dir}", f"input.path={data}", f"mmode.lmax={LMAX}",
         "transfer.dtype=float64", "imaging.eps=0.001", "imaging.lcurve=false", "products.nside=64",
         "products.png=false", "products.unit=Jy/sr", "cluster.kind=synchronous",
         "beam={type: sin_elevation, alpha: 1.5}", *extra])

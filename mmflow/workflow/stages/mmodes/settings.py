@@ -31,8 +31,10 @@ class MmodeConfig(Section):
     mmax: Optional[int] = Field(None, ge=0, description="Largest m (default lmax; at most lmax).")
     n_bins: Optional[int] = Field(None, ge=1, description="Sidereal bins (default: integrations per sidereal day; "
                                   "at least 2 mmax + 1).")
-    min_coverage: float = Field(0.95, ge=0, le=1, description="Fraction of the sidereal day each baseline must "
-                                "cover (below: coverage_policy); a run where most baselines fall below stops.")
+    min_coverage: float = Field(0.7, ge=0, le=1, description="Fraction of the sidereal day each baseline must "
+                                "cover, flagged time counted as missing (below: coverage_policy); a run where most "
+                                "baselines fall below stops. The default leaves a day with up to 30 % flagged or "
+                                "unobserved to the m-modes' least squares and its prior passes (docs/mmodes.md).")
     baseline_chunk: int = Field(256, ge=1, description="Baselines per task in the corner turn.")
     splits: list[str] = Field(
         ["full"], description="Data splits carried through m-modes, right-hand sides and alm (one transfer pass "
