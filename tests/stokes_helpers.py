@@ -12,6 +12,7 @@ from mmflow.conventions import radec_to_vec
 from mmflow.simulate.polarised import PolarisedPoints, simulate_polarised_drift_scan
 from mmflow.telescope import Telescope
 from mmflow.telescope.jones import ShortDipoleJones
+from tests.polarised_fields import TAPER, correlate
 from tests.polarised_scene import scene_layout
 from tests.uvh5_helpers import SIDEREAL_DAY_S, _telescope, write_blocks
 
@@ -33,8 +34,14 @@ def sky(sources=SOURCES):
     return PolarisedPoints(vec, np.c_[s[:, 2], s[:, 2:3] * s[:, 3:6]])
 
 
-def polarised_uvh5(directory, freqs_hz=(40e6, 41e6), n_times=240, files=4, start_jd=2457802.0, layout=None):
-    """Write the scan as ``files`` UVH5 files; returns ``(paths, layout, sky)``."""
+def polarised_uvh5(directory, freqs_hz=(40e6, 41e6), n_times=240, files=4, start_jd=2457802.0, layout=None,
+                   sources=SOURCES, fields=False):
+    """Write the scan as ``files`` UVH5 files; returns ``(paths, layout, sky)``.
+
+    ``fields``: the visibilities from real electric fields in the time domain
+    (:func:`tests.polarised_fields.correlate`: nothing of mmflow's simulator, coherency or Stokes conventions)
+    instead of :func:`mmflow.simulate.polarised.simulate_polarised_drift_scan`.
+    """
     from astropy.time import Time
     from pyuvdata import UVData
     from pyuvdata.utils import get_lst_for_time
@@ -48,9 +55,14 @@ def polarised_uvh5(directory, freqs_hz=(40e6, 41e6), n_times=240, files=4, start
     mtel = Telescope(lay, jones.power_beam(), list(freqs_hz))
     n_ant = lay.n_ant
     pairs = np.array([(i, j) for i in range(n_ant) for j in range(i, n_ant)])
-    src = sky()
-    vis = np.stack([simulate_polarised_drift_scan(mtel, jones, f, lsts, src, pairs=pairs) for f in freqs_hz],
-                   axis=-1)  # (time, corr [xx, yy, xy, yx], bl, freq)
+    src = sky(sources)
+    if fields:
+        assert HORIZON_TAPER == TAPER  # the fields' dipoles are the imaging beam's
+        vis = np.stack([correlate(lay.enu, f, np.deg2rad(lay.lat_deg), lsts, list(zip(src.stokes_jy, src.vectors)),
+                                  pairs) for f in freqs_hz], axis=-1)
+    else:
+        vis = np.stack([simulate_polarised_drift_scan(mtel, jones, f, lsts, src, pairs=pairs) for f in freqs_hz],
+                       axis=-1)  # (time, corr [xx, yy, xy, yx], bl, freq)
     data = np.transpose(vis, (0, 2, 3, 1)).reshape(n_times * len(pairs), len(freqs_hz), 4)
     uv = UVData.new(freq_array=np.asarray(freqs_hz, float), polarization_array=np.array([-5, -6, -7, -8]),
                     times=Time(times, format="jd", scale="utc").jd, telescope=tel,
