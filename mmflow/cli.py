@@ -299,18 +299,32 @@ def _dispatch(args):
         return handlers[args.cmd](args)
     # deferred: workflow modules (~3 s)
     from mmflow.workflow.engine.cluster import open_cluster
-    from mmflow.workflow.config.schema import load_config
     from mmflow.workflow.engine.passes import run_with_passes
 
-    # --cluster is cluster.kind (--scheduler: kind address), recorded as such in the run's config.yaml
-    chosen = [f"cluster.kind={args.cluster}"] if args.cluster else \
-        ["cluster.kind=address", f"cluster.address={args.scheduler}"] if args.scheduler else []
-    cfg = load_config(args.workflow, [*args.overrides, *chosen])
+    cfg = _run_config(args)
     only = None if args.cmd == "run" else [args.cmd]
     with open_cluster(cfg, args.scheduler, args.cluster) as client:
         summaries = run_with_passes(cfg, client, only=only, force=args.force, progress=not args.no_progress)
     _report(cfg, summaries)
     return 0
+
+
+def _run_config(args, log=print):
+    """The workflow a run command runs: the file, its overrides, ``--cluster`` / ``--scheduler`` as
+    ``cluster.kind`` (recorded as such in the run's config.yaml), and on a batch cluster whose jobs are
+    sized per stage the settings that split a task too large for its nodes
+    (:func:`mmflow.workflow.engine.pools.split_to_fit`), as overrides after the user's."""
+    from mmflow.workflow.config.schema import load_config  # deferred: workflow modules (~3 s)
+    from mmflow.workflow.engine.pools import split_to_fit  # deferred: workflow modules
+
+    chosen = [f"cluster.kind={args.cluster}"] if args.cluster else \
+        ["cluster.kind=address", f"cluster.address={args.scheduler}"] if args.scheduler else []
+    cfg = load_config(args.workflow, [*args.overrides, *chosen])
+    if cfg.cluster.kind in ("slurm", "pbs"):
+        split = split_to_fit(cfg, cfg.cluster.kind, log)
+        if split:
+            cfg = load_config(args.workflow, [*args.overrides, *chosen, *(f"{k}={v}" for k, v in split.items())])
+    return cfg
 
 
 def _report(cfg, summaries):

@@ -127,6 +127,33 @@ def test_jobs_are_sized_per_stage_only_when_the_workflow_gives_no_shape_and_sinf
     assert plan_pools(cfg, "slurm", {}, said.append) is None
 
 
+def test_a_run_on_nodes_too_small_for_a_task_applies_the_plans_split(tmp_path, monkeypatch):
+    """Issue 38, item 4: on a partition whose nodes (sinfo: 16 cores, 16 GB) hold the paper channel's normal
+    task only split, ``mmflow run --cluster slurm`` runs with the plan's split (``transfer.m_block`` halved
+    from 512 to 256), says so, and every stage's task then fits its worker; without
+    ``--cluster`` (or with a job shape of the workflow's own) nothing changes."""
+    from mmflow.cli import _run_config, build_parser
+    from mmflow.workflow.plan import nodes
+
+    monkeypatch.setattr(nodes, "read_sinfo", lambda: "16 16000 13 debug*\n")
+    argv = ["run", "workflows/paper-scale.yaml", "transfer.m_block=512", f"run.directory={tmp_path / 'run'}"]
+    said = []
+    cfg = _run_config(build_parser().parse_args([*argv, "--cluster", "slurm"]), said.append)
+    node = nodes.node_size(sinfo_text=nodes.read_sinfo())
+    as_given = jobs.cluster_plan(load_config("workflows/paper-scale.yaml", ["transfer.m_block=512"]), node, None)
+    assert as_given["settings"] == {"transfer.m_block": 256}  # the plan's split
+    assert cfg.transfer.m_block == 256 and cfg.cluster.kind == "slurm"
+    assert said and "the run splits it with transfer.m_block=256" in said[0], said
+    res = jobs.cluster_plan(cfg, node, None)
+    assert res["settings"] == {}
+    for row in res["stages"]:  # every task within its worker's memory, below dask's kill threshold
+        assert row["task_gb"] <= row["worker_memory_gb"] * jobs.terminate_fraction(), row
+    assert plan_pools(cfg, "slurm", {}, said.append) is not None  # the run's pools: no refusal
+    assert _run_config(build_parser().parse_args(argv), said.append).transfer.m_block == 512
+    shaped = [*argv, "cluster.jobqueue={cores: 16, memory: 15GB}", "--cluster", "slurm"]
+    assert _run_config(build_parser().parse_args(shaped), said.append).transfer.m_block == 512
+
+
 def test_a_task_is_checked_against_its_share_of_a_worker_that_runs_several_at_once():
     """Before any work a task is held to a worker's memory limit over the tasks the worker runs at once: its
     threads, or one where it has the pools' task slot (mmflow.workflow.engine.runner._worker_limit_gb)."""

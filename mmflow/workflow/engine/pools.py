@@ -42,20 +42,15 @@ POOL_OPTIONS = ("cores", "memory", "processes", "walltime")
 TASK_SLOT = "mmflow_task"
 
 
-def plan_pools(cfg, kind, opts, log=print):
-    """``{stage: pool}`` (:func:`mmflow.workflow.plan.jobs.worker_pools`) of the run, or None where
-    the jobs are not sized per stage: ``opts`` (``cluster.jobqueue``) or dask's jobqueue.yaml give
-    cores or memory, or the partition's nodes are unknown (no ``sinfo``: PBS, or SLURM not answering).
+def _per_stage_plan(cfg, kind, opts):
+    """``(node, cluster plan)`` where the jobs are sized per stage, else None: ``opts``
+    (``cluster.jobqueue``) or dask's jobqueue.yaml give cores or memory, or the partition's nodes are
+    unknown (no ``sinfo``: PBS, or SLURM not answering).
 
     The nodes planned on: ``cluster.n_workers`` where the workflow sets it, else the plan's choice
     (:func:`mmflow.workflow.plan.jobs.choose_nodes`, at most the partition's nodes).
-
-    Raises
-    ------
-    InputError
-        A stage's largest task fits a node only with other settings (the plan's split, named), or none.
     """
-    from mmflow.workflow.plan.jobs import cluster_plan, worker_pools  # deferred: the plan imports every stage
+    from mmflow.workflow.plan.jobs import cluster_plan  # deferred: the plan imports every stage
     from mmflow.workflow.plan.nodes import node_size, read_sinfo
 
     if any(opts.get(k) is not None or jobqueue_default(kind, k) is not None for k in ("cores", "memory")):
@@ -65,7 +60,50 @@ def plan_pools(cfg, kind, opts, log=print):
         return None
     node = node_size(partition=opts.get("queue") or jobqueue_default(kind, "queue"), sinfo_text=text)
     nodes = cfg.cluster.n_workers if "n_workers" in cfg.cluster.model_fields_set else None
-    res = cluster_plan(cfg, node, nodes)
+    return node, cluster_plan(cfg, node, nodes)
+
+
+def split_to_fit(cfg, kind, log=print):
+    """The settings that split a task to fit the partition's nodes, ``{key: value}``, where the run's jobs
+    are sized per stage and a stage's largest task exceeds a node as the workflow is (else ``{}``).
+
+    They are the cluster plan's (``Cost.split``: ``mmode.baseline_chunk``, ``transfer.m_block``,
+    ``transfer.baseline_chunk``, halved until the task fits; :func:`mmflow.workflow.plan.jobs.cluster_plan`).
+    ``mmflow run`` applies them as overrides of the workflow before anything starts, which the run's
+    ``config.yaml`` records; the same command on the same partition chooses the same again.
+
+    Raises
+    ------
+    InputError
+        No setting makes the task fit a node (the plan's message: the stage, its memory, the limit).
+    """
+    found = _per_stage_plan(cfg, kind, dict(cfg.cluster.jobqueue))
+    if found is None or not found[1]["settings"]:
+        return {}
+    node, res = found
+    given = ", ".join(f"{k}={v}" for k, v in res["settings"].items())
+    log(f"{kind}: a task of this workflow needs more memory than a node of {node.cores} cores and "
+        f"{node.memory_bytes / 1e9:.2f} GB (sinfo) as it is: the run splits it with {given} (the plan's "
+        "choice; `mmflow plan --cluster slurm` shows it)")
+    return dict(res["settings"])
+
+
+def plan_pools(cfg, kind, opts, log=print):
+    """``{stage: pool}`` (:func:`mmflow.workflow.plan.jobs.worker_pools`) of the run, or None where
+    the jobs are not sized per stage (:func:`_per_stage_plan`).
+
+    Raises
+    ------
+    InputError
+        A stage's largest task fits a node only with other settings (the plan's split, named: ``mmflow run``
+        applies it first, :func:`split_to_fit`), or none.
+    """
+    from mmflow.workflow.plan.jobs import worker_pools  # deferred: the plan imports every stage
+
+    found = _per_stage_plan(cfg, kind, opts)
+    if found is None:
+        return None
+    node, res = found
     if res["settings"]:
         given = ", ".join(f"{k}={v}" for k, v in res["settings"].items())
         raise InputError("cluster", "cluster.jobqueue", f"a task of this workflow needs more memory than a node of "
