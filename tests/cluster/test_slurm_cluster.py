@@ -250,6 +250,51 @@ def test_a_node_killed_mid_transfer_is_survived(slurm, reference, tmp_path, monk
             slurm.wait_idle(slurm.nodes, 60)
 
 
+def test_a_cancelled_job_is_replaced_and_the_run_finishes(slurm, reference, tmp_path, monkeypatch):
+    """Issue 38's own case: one of two worker jobs ``scancel``led after tasks of the run have finished. The
+    loss is logged, a job is submitted in its place (squeue lists a third job), its worker joins and runs
+    tasks (their markers name it), and the maps are bit-identical to a synchronous run's."""
+    monkeypatch.setenv("MMFLOW_TASK_DELAY_S", "3")  # 19 tasks left: ~1 min for one worker, time for a new job's
+    run_dir = tmp_path / "run"
+    cfg = small_config(run_dir, "cluster.kind=slurm", "cluster.n_workers=2", "cluster.dashboard_address=:0",
+                       f"cluster.interface={slurm.bridge}", JOB)
+    logs, cancelled, seen, stop = [], [], {}, threading.Event()
+    sampler = threading.Thread(target=_sample_jobs, args=(slurm, seen, stop), daemon=True)
+    sampler.start()
+    try:
+        with open_cluster(cfg, log=logs.append) as client:
+            client.wait_for_workers(2, timeout=120)
+            first = dict(client.run(lambda dask_worker: str(dask_worker.name)))
+
+            def cancel_one_after_two_tasks():
+                deadline = time.time() + 180
+                while time.time() < deadline:
+                    done = [m for m in (run_dir / "_status").glob("*/*.done") if not m.name.startswith("_")]
+                    if len(done) >= 2:  # two tasks finished (not a stage's _prepare)
+                        job = sorted(seen)[0]
+                        slurm.slurm("scancel", job)
+                        cancelled.append(job)
+                        return
+                    time.sleep(0.1)
+
+            join = _in_background(cancel_one_after_two_tasks)
+            try:
+                run_with_passes(cfg, client, progress=False, log=logs.append)
+            finally:
+                join()
+    finally:
+        stop.set()
+        sampler.join(5)
+    assert cancelled, "no task finished within 180 s"
+    job = cancelled[0]
+    assert any(line.startswith(f"worker of job {job}") and "lost" in line for line in logs), logs
+    assert any(line.startswith(f"worker job {job}") and "submitting a replacement" in line for line in logs), logs
+    assert len(seen) >= 3, seen  # the two jobs asked for and the one in the cancelled one's place
+    workers = {i["worker"] for st in ORDER for i in RunDir(run_dir).task_infos(st).values() if "worker" in i}
+    assert workers - set(first.values()), (workers, first)  # the replacement's worker ran tasks
+    assert_identical(reference, read_outputs(run_dir))
+
+
 def test_a_run_longer_than_its_jobs_walltime_finishes(slurm, reference, tmp_path, monkeypatch):
     """Jobs of a 1-minute walltime, a run of more than a minute of work for its one worker: each
     worker retires before its walltime (--lifetime with a stagger), a new job takes over."""
