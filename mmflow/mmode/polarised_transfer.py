@@ -161,9 +161,10 @@ def legendre_rows(n_t, n_p):
     return n_t + 5 * n_p
 
 
-def polarised_tables(grid, m, lmax_rows, rings, rdtype):
-    """Weighted ``w lambda``, ``w W``, ``w X`` on the active north rings, rows ``l = m..lmax_rows``,
-    each as its ``(even, odd)`` rows in ``l - m`` (contiguous views, ``rdtype``;
+def polarised_tables(grid, m, lmax_rows, rings, rdtype, lmax_pol=None):
+    """Weighted ``w lambda`` on the active north rings, rows ``l = m..lmax_rows``, and ``w W``, ``w X`` on rows
+    ``l = m..lmax_pol`` (default ``lmax_rows``; :func:`polarised_block` takes E and B to there and no
+    further), each as its ``(even, odd)`` rows in ``l - m`` (contiguous views, ``rdtype``;
     :func:`mmflow.mmode.spin_legendre.weighted_spin_tables`).
 
     Each row's entries below ``eps^2`` of its largest are zeroed as the kernel writes them (``flush``):
@@ -172,9 +173,9 @@ def polarised_tables(grid, m, lmax_rows, rings, rdtype):
     normal number (2 % of the entries at lmax 1000), and those products ran through the CPU's subnormal
     path: one m's GEMM of the paper's shape took 7.4 ms with them and 0.74 ms without (1.0 ms for random
     data of the same shape; docs/stokes.md)."""
-    tabs = weighted_spin_tables(m, lmax_rows, grid.theta[rings], grid.weights[rings], rdtype, flush=True)
-    ne = (lmax_rows - m) // 2 + 1
-    return [(t[:ne], t[ne:]) for t in tabs]
+    tabs = weighted_spin_tables(m, lmax_rows, grid.theta[rings], grid.weights[rings], rdtype, flush=True,
+                                lmax_spin=lmax_pol)
+    return [(t[:(len(t) + 1) // 2], t[(len(t) + 1) // 2:]) for t in tabs]
 
 
 def _folded_gemm(table, first, second, out):
@@ -290,7 +291,7 @@ def _blocks(grid, fourier, m0, ms, lrows, lpol, nb, rdtype, consume):
     tim, res = {}, []
     for m in ms:
         t0 = time.perf_counter()
-        tables = polarised_tables(grid, m, lrows, rings, rdtype)
+        tables = polarised_tables(grid, m, lrows, rings, rdtype, lpol)
         t1 = time.perf_counter()
         block = polarised_block(fsum[m - m0], fdiff[m - m0], tables, nb, lpol - m + 1)
         t2 = time.perf_counter()

@@ -30,27 +30,33 @@ import numpy as np
 from mmflow.mmode.legendre import legendre_table
 
 
-def weighted_spin_tables(m, lmax, theta, weights=None, dtype=np.float64, flush=False):
-    """``w_k lambda_lm``, ``w_k W_lm``, ``w_k X_lm`` at rings ``theta_k`` for ``l = m..lmax``, rows in
-    parity order: the ``ne = (lmax - m) // 2 + 1`` rows of even ``l - m`` first, then the odd ones.
+def weighted_spin_tables(m, lmax, theta, weights=None, dtype=np.float64, flush=False, lmax_spin=None):
+    """``w_k lambda_lm`` for ``l = m..lmax`` and ``w_k W_lm``, ``w_k X_lm`` for ``l = m..lmax_spin`` (default
+    lmax) at rings ``theta_k``, rows in parity order: the ``(lmax - m) // 2 + 1`` rows of even ``l - m``
+    first, then the odd ones (``W``, ``X`` likewise over their own rows; none where ``m > lmax_spin``: the
+    transfer's E and B stop at ``imaging.stokes_lmax``, :func:`mmflow.mmode.polarised_transfer.polarised_block`).
 
     ``flush``: each row's entries below ``eps^2`` of the row's largest (``|t_k| < eps^2 max_k |t_k|``,
     compared in ``dtype``, ``eps`` its machine epsilon) are zeroed as the row is written (a GEMM over
     the row then moves by less than ``eps`` of the rounding of its largest term and never takes the
-    CPU's subnormal path: :func:`mmflow.mmode.polarised_transfer.polarised_tables`).
+    CPU's subnormal path: :func:`mmflow.mmode.polarised_transfer.polarised_tables`). Every row is formed
+    alone from ``lambda_lm`` and ``lambda_{l-1,m}``: a row's bits do not depend on ``lmax`` or ``lmax_spin``.
 
     Returns
     -------
-    lam, w_tab, x_tab : ``dtype`` arrays ``(lmax - m + 1, n)``; ``t[:ne]`` and ``t[ne:]`` are the even
-        and odd rows (contiguous), formed in float64 and rounded once as they are written.
+    lam : ``dtype`` ``(lmax - m + 1, n)``; w_tab, x_tab : ``dtype`` ``(max(0, lmax_spin - m + 1), n)``; in each,
+        ``t[:ne]`` and ``t[ne:]`` are the even and odd rows (contiguous, ``ne`` the table's own), formed in
+        float64 and rounded once as they are written.
     """
     theta = np.ascontiguousarray(theta, float).ravel()
     lam = legendre_table(m, lmax, theta)
     w = np.ones(len(theta)) if weights is None else np.ascontiguousarray(weights, float)
-    out = np.empty((3, lmax - m + 1, len(theta)), dtype)
+    n_spin = max(0, min(lmax, lmax if lmax_spin is None else int(lmax_spin)) - m + 1)
+    out = np.empty((lmax - m + 1, len(theta)), dtype)
+    spin = np.empty((2, n_spin, len(theta)), dtype)
     tiny = np.finfo(dtype).eps ** 2 if flush else np.zeros((), dtype)[()]
-    _kernel()(m, lam, np.cos(theta), 1.0 / np.sin(theta) ** 2, w, out, tiny)
-    return out[0], out[1], out[2]
+    _kernel()(m, lam, np.cos(theta), 1.0 / np.sin(theta) ** 2, w, out, spin, tiny)
+    return out, spin[0], spin[1]
 
 
 def spin2_tables(m, lmax, theta):
@@ -65,33 +71,44 @@ def _kernel():
     """Compile the one-pass table kernel (numba) on first use."""
 
     @numba.njit(nogil=True, boundscheck=False, cache=True)
-    def tables(m, lam, c, inv_s2, w, out, tiny):
+    def tables(m, lam, c, inv_s2, w, out, spin, tiny):
         n_l, n = lam.shape
-        ne = (n_l - 1) // 2 + 1
+        n_s = spin.shape[1]
+        ne, ne_s = (n_l - 1) // 2 + 1, (n_s - 1) // 2 + 1
         for i in range(n_l):
             ell = m + i
             row = i // 2 if i % 2 == 0 else ne + i // 2
+            big0 = tiny - tiny  # the row's largest |entry|, in out's dtype
+            for k in range(n):
+                out[row, k] = w[k] * lam[i, k]
+                big0 = max(big0, abs(out[row, k]))
+            if tiny > 0:  # the row's negligible entries zeroed, compared in out's dtype
+                cut = tiny * big0
+                for k in range(n):
+                    v = out[row, k]
+                    out[row, k] = v if abs(v) >= cut else 0.0
+            if i >= n_s:
+                continue
+            row = i // 2 if i % 2 == 0 else ne_s + i // 2
             norm = 2.0 / np.sqrt((ell - 1.0) * ell * (ell + 1.0) * (ell + 2.0)) if ell >= 2 else 0.0
             c_lm = np.sqrt((2.0 * ell + 1.0) / (2.0 * ell - 1.0) * (ell * ell - m * m)) if ell > m else 0.0
             a = ell - m * m
             h = ell * (ell - 1.0) / 2.0
-            big0 = big1 = big2 = tiny - tiny  # the row's largest |entry|, in out's dtype
+            big1 = big2 = tiny - tiny
             for k in range(n):
                 cur = lam[i, k]
                 prev = lam[i - 1, k] if i > 0 else 0.0
                 g_plus = -(a * inv_s2[k] + h) * cur + c_lm * c[k] * inv_s2[k] * prev
                 g_minus = m * inv_s2[k] * (c_lm * prev - (ell - 1.0) * c[k] * cur)
-                out[0, row, k] = w[k] * cur
-                out[1, row, k] = w[k] * norm * g_plus
-                out[2, row, k] = w[k] * norm * g_minus
-                big0 = max(big0, abs(out[0, row, k]))
-                big1 = max(big1, abs(out[1, row, k]))
-                big2 = max(big2, abs(out[2, row, k]))
-            if tiny > 0:  # the row's negligible entries zeroed, compared in out's dtype
-                for j, big in ((0, big0), (1, big1), (2, big2)):
-                    cut = tiny * big
+                spin[0, row, k] = w[k] * norm * g_plus
+                spin[1, row, k] = w[k] * norm * g_minus
+                big1 = max(big1, abs(spin[0, row, k]))
+                big2 = max(big2, abs(spin[1, row, k]))
+            if tiny > 0:
+                for j in range(2):
+                    cut = tiny * (big1 if j == 0 else big2)
                     for k in range(n):
-                        v = out[j, row, k]
-                        out[j, row, k] = v if abs(v) >= cut else 0.0
+                        v = spin[j, row, k]
+                        spin[j, row, k] = v if abs(v) >= cut else 0.0
 
     return tables

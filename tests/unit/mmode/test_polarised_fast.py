@@ -66,6 +66,26 @@ def test_flushed_tables_zero_exactly_the_negligible_entries(dtype):
             assert not ((np.abs(f) < tiniest) & (f != 0)).any()
 
 
+@pytest.mark.parametrize("flush", [False, True])
+def test_spin_tables_to_a_lower_band_limit_are_the_full_tables_rows(flush):
+    """``lmax_spin`` (the transfer's ``imaging.stokes_lmax``) forms ``W``, ``X`` on rows ``l = m..lmax_spin``
+    only: each row bit for bit the full table's (every row is formed alone), in the same parity layout over
+    its own rows, none above it; ``lambda`` is unchanged."""
+    theta = np.linspace(0.01, np.pi / 2 - 0.001, 101)
+    w = np.random.default_rng(5).uniform(0.5, 1.5, theta.size)
+    lmax = 300
+    for m in (0, 1, 3, 120, 200, 201):
+        full = weighted_spin_tables(m, lmax, theta, w, np.float32, flush)
+        for lmax_spin in (200, m, m + 1):
+            lam, w_tab, x_tab = weighted_spin_tables(m, lmax, theta, w, np.float32, flush, lmax_spin=lmax_spin)
+            n_s = max(0, lmax_spin - m + 1)
+            assert np.array_equal(lam, full[0]) and w_tab.shape == x_tab.shape == (n_s, theta.size)
+            i = np.arange(n_s)
+            rows = np.where(i % 2 == 0, i // 2, (n_s + 1) // 2 + i // 2)  # l = m + i in its own layout
+            rows_full = np.where(i % 2 == 0, i // 2, (lmax - m) // 2 + 1 + i // 2)
+            assert np.array_equal(w_tab[rows], full[1][rows_full]) and np.array_equal(x_tab[rows], full[2][rows_full])
+
+
 def _setup(nb, lmax, seed=0):
     jones = ShortDipoleJones(horizon_taper=3.0)
     rng = np.random.default_rng(seed)
