@@ -32,7 +32,8 @@ from mmflow.machine import best_time, gemm_gflops, machine
 from mmflow.mmode.engine import accumulate_normal_equations
 from mmflow.mmode.normal import herk_into
 from mmflow.mmode.polarised import CORRELATIONS, make_polarised_grid
-from mmflow.mmode.polarised_transfer import active_rings, baselines_per_pass, legendre_rows, polarised_pass
+from mmflow.mmode.polarised_transfer import (FourierBuffers, active_rings, baselines_per_pass, legendre_rows,
+                                            polarised_pass)
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.telescope import Telescope, ovro_lwa_layout
 from mmflow.telescope.jones import ShortDipoleJones
@@ -79,8 +80,10 @@ def _full_stokes(tel, jones, lmax, lmax_p, timings):
     t_grid = time.perf_counter() - t0
     t0 = time.perf_counter()
     step = baselines_per_pass(grid, nc, np.dtype(np.complex64).itemsize, lmax_pol=lmax_p)
+    buffers = FourierBuffers()
     for s0 in range(0, len(b), step):  # as accumulate_polarised_normal chunks its baselines
-        polarised_pass(grid, b[s0:s0 + step], consume, dtype=np.float32, timings=timings, lmax_pol=lmax_p)
+        polarised_pass(grid, b[s0:s0 + step], consume, dtype=np.float32, timings=timings, lmax_pol=lmax_p,
+                       buffers=buffers)
     n_act = len(active_rings(grid))
 
     # Legendre: rows x (corr x cols) complex columns against n_act rings, 2 real flops per product

@@ -41,7 +41,7 @@ from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.solvers import floored_penalty
 from mmflow.mmode.normal import herk_into, hermitian_full
 from mmflow.mmode.polarised import CORRELATIONS, STOKES
-from mmflow.mmode.polarised_transfer import baselines_per_pass, polarised_pass
+from mmflow.mmode.polarised_transfer import FourierBuffers, baselines_per_pass, polarised_pass
 from mmflow.sky.harmonics import point_sources_alm
 
 
@@ -176,6 +176,7 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
                                                   m_range=(m0, m1), lmax_pol=lmax_p)
     lb = np.full(nb, lmax) if lmax_b is None else np.minimum(np.asarray(lmax_b, int), lmax)
     order = np.argsort(lb, kind="stable")  # chunks of like lmax_b: blocks stop at the chunk's largest
+    buffers = FourierBuffers()  # every pass's Fourier arrays in the same memory
     for start in range(0, nb, chunk_size):
         index = order[start:start + chunk_size]
         top = int(lb[index].max())
@@ -211,7 +212,7 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
                 vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)
 
         polarised_pass(grid_of(top, index), b[index], consume, mmax=min(top, m1 - 1), correlations=correlations,
-                       dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p)
+                       dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p, buffers=buffers)
     for k in range(len(gram)):  # one m at a time: never two whole Grams
         gram[k] = hermitian_full(gram[k])
     return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)

@@ -62,8 +62,31 @@ def ring_kernels(grid, k, correlations):
     return out
 
 
+class FourierBuffers:
+    """The two flat arrays :func:`polarised_fourier` writes ``F_k +/- F_k'`` into, kept for the blocks and
+    passes of one caller's loop over baselines (:func:`polarised_pass`'s ``buffers``).
+
+    Each block's arrays are up to a GB: above glibc's mmap threshold (32 MiB, :mod:`mmflow.allocator`) every
+    fresh one is a new mapping whose pages fault in on first touch, 0.7-3.9 thread-s a pass of 15 baselines
+    at lmax 1000 (docs/stokes.md). Grown, never shrunk, to the largest block asked (the old arrays freed
+    before the larger ones are made). A block's arrays are written in full before they are read: the
+    results are the same bits as with fresh arrays.
+    """
+
+    def __init__(self):
+        self.flat = None
+
+    def arrays(self, shape, dtype):
+        """Two arrays ``shape`` of ``dtype``, views of the kept ones."""
+        n = int(np.prod(shape))
+        if self.flat is None or self.flat[0].dtype != np.dtype(dtype) or self.flat[0].size < n:
+            self.flat = None
+            self.flat = (np.empty(n, dtype), np.empty(n, dtype))
+        return tuple(f[:n].reshape(shape) for f in self.flat)
+
+
 def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None,
-                      i_only=False):
+                      i_only=False, buffers=None):
     """``F_k +/- F_k'`` of every field and correlation for ``m0 <= m < m1`` and the active north rings.
 
     Returns
@@ -73,7 +96,8 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
         columns ``c < n_b`` hold ``F_{k,m}`` of baseline c, ``c >= n_b`` hold ``F_{k,-m}`` of baseline
         ``c - n_b`` (conjugated after the GEMM, where the data are small). ``i_only`` (m above the
         polarised band limit, where only T is solved for): the I kernels alone, ``(m1 - m0, 1, n_active,
-        1, n_corr, 2 n_b)``, a quarter of the ring products and FFTs.
+        1, n_corr, 2 n_b)``, a quarter of the ring products and FFTs. Views of ``buffers``'
+        (:class:`FourierBuffers`) arrays where given, else new arrays.
     rings : the active north rings (:func:`active_rings`)
     """
     b = np.asarray(b, float).reshape(-1, 3)
@@ -82,7 +106,7 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
     rings = active_rings(grid)
     nf = 1 if i_only else 2
     shape = (m1 - m0, nf, len(rings), nf, nc, 2 * nb)
-    fsum, fdiff = np.empty(shape, cdtype), np.empty(shape, cdtype)
+    fsum, fdiff = (buffers or FourierBuffers()).arrays(shape, cdtype)
     neg = (n - np.arange(m0, m1)) % n  # F_{-m} sits at index n - m (0 for m = 0)
 
     def kernels(k):
@@ -244,7 +268,7 @@ def polarised_block(s, d, tables, nb, n_pol=None):
 
 
 def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype=np.float64, lmax_rows=None,
-                   timings=None, mmin=0, lmax_pol=None):
+                   timings=None, mmin=0, lmax_pol=None, buffers=None):
     """Compute every m's full-Stokes block of baselines ``b`` and hand it to ``consume(m, block)``.
 
     ``block`` is ``(n_out, 4, n_corr, cols)``, ``n_out = lmax_rows - m + 1`` (l = m..), axis 1
@@ -253,7 +277,9 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
     of the stokes stage); ``lmax_pol``: E, B and V only to that l (zero above: :func:`polarised_block`).
     Runs of consecutive m run on :func:`mmflow.threads.n_threads` threads with one BLAS thread each (the
     bits do not depend on the thread count); ``consume`` is called on the thread that computed the block
-    and may update per-m state without locks. Returns ``consume``'s results in m order.
+    and may update per-m state without locks. Returns ``consume``'s results in m order. ``buffers``
+    (:class:`FourierBuffers`): the Fourier arrays' memory, kept for the caller's next pass (default: kept for
+    this pass's blocks only).
     """
     b = np.asarray(b, float).reshape(-1, 3)
     nb = len(b)
@@ -263,12 +289,13 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
     rdtype = np.dtype(dtype)
     cdtype = complex_dtype(rdtype).type
     step = fourier_m_block(grid, nb, len(correlations), np.dtype(cdtype).itemsize)
+    buffers = buffers or FourierBuffers()
     results = []
     # m <= lmax_pol: every kernel; above it the I kernels alone (a quarter of the arrays: 4x the m a block)
     ranges = [(m, min(m + step, mmax + 1, lpol + 1), False) for m in range(int(mmin), min(mmax, lpol) + 1, step)]
     ranges += [(m, min(m + 4 * step, mmax + 1), True) for m in range(max(int(mmin), lpol + 1), mmax + 1, 4 * step)]
     for m0, m1, i_only in ranges:
-        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings, i_only)
+        fourier = polarised_fourier(grid, b, (m0, m1), correlations, cdtype, timings, i_only, buffers)
         per_task = max(1, 512 // (lrows + 1))
         tasks = [range(m, min(m + per_task, m1)) for m in range(m0, m1, per_task)]
         t0 = time.perf_counter()
@@ -281,7 +308,7 @@ def polarised_pass(grid, b, consume, mmax=None, correlations=CORRELATIONS, dtype
                         timings[key] = timings.get(key, 0.0) + v
         if timings is not None:
             timings["mpool_s"] = timings.get("mpool_s", 0.0) + time.perf_counter() - t0
-        fourier = None  # freed before the next block's arrays: one block's at a time
+        fourier = None  # one block's arrays at a time, in buffers' memory
     return results
 
 

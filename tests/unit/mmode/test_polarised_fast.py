@@ -114,6 +114,28 @@ def test_fast_blocks_equal_the_reference_kernels(correlations, monkeypatch):
         np.testing.assert_array_equal(g, h)
 
 
+def test_passes_sharing_their_fourier_buffers_give_the_same_bits(monkeypatch):
+    """Passes of several baseline sets and grids through one :class:`FourierBuffers` (blocks of m one at a
+    time, E, B, V to a lower band limit: polarised and I-only arrays of several shapes in the same memory,
+    dirtied by every earlier pass) give the blocks of passes on fresh arrays, bit for bit."""
+    monkeypatch.setattr(fast, "FOURIER_BUDGET_BYTES", 200_000)  # several blocks a pass
+
+    def blocks(grid, b, buffers):
+        out = {}
+        fast.polarised_pass(grid, b, lambda m, blk: out.__setitem__(m, blk.copy()), dtype=np.float32, lmax_pol=12,
+                            buffers=buffers)
+        return out
+
+    shared = fast.FourierBuffers()
+    for nb, lmax, seed in ((6, 30, 1), (3, 24, 2), (7, 36, 3), (4, 30, 4)):
+        grid, b = _setup(nb, lmax, seed)
+        fresh, reused = blocks(grid, b, None), blocks(grid, b, shared)
+        assert fresh.keys() == reused.keys() and len(fresh) == lmax + 1
+        for m in fresh:
+            np.testing.assert_array_equal(fresh[m], reused[m])
+    assert shared.flat[0].size > 0
+
+
 @pytest.mark.parametrize("per_baseline, lmax_p, m_range",
                          [(False, None, None), (True, None, None), (True, 10, (5, 14))])
 def test_streamed_normal_equations_equal_the_dense_products(per_baseline, lmax_p, m_range):
