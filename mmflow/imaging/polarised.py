@@ -213,6 +213,7 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
 
         polarised_pass(grid_of(top, index), b[index], consume, mmax=min(top, m1 - 1), correlations=correlations,
                        dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p, buffers=buffers)
+    buffers = None  # the Fourier arrays' memory freed before the Grams are completed
     for k in range(len(gram)):  # one m at a time: never two whole Grams
         gram[k] = hermitian_full(gram[k])
     return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)
