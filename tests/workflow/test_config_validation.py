@@ -75,7 +75,7 @@ OVERRIDE_CASES = [
     ("observation.integration_s=700", "observation.integration_s", "123 integrations per sidereal day",
      "integration_s <= 594.2"),
     ("observation.n_integrations=100", "observation.n_integrations", "covers 1.5% of the sidereal day",
-     "at least 6297 integrations"),
+     "at least 4640 integrations"),
     ("telescope.include_autos=false", "sky.noise", "autocorrelations", "sky.noise: false"),
     ("observation.freqs_mhz=[]", "observation.freqs_mhz", "[] is not allowed", "numbers > 0"),
     ("observation.freqs_mhz=[40, -1]", "observation.freqs_mhz", "non-positive frequencies [-1.0]", "all > 0"),
