@@ -39,7 +39,7 @@ from scipy.linalg.blas import get_blas_funcs
 
 from mmflow.conventions import enu_to_equatorial_matrix, stokes_coherency
 from mmflow.errors import InputError
-from mmflow.simulate.visibilities import auto_columns, thermal_noise
+from mmflow.simulate.visibilities import auto_columns, few_pairs, thermal_noise
 from mmflow.conventions import SPEED_OF_LIGHT
 
 #: Correlations in the default order of the output's correlation axis (x east, y north).
@@ -143,6 +143,8 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
     lower = feed_rows > feed_cols  # herk writes the upper triangle: there V_rc = conj(V_cr)
     full_at = feed_cols * (2 * n_ant) + feed_rows  # positions in the (Fortran-ordered) matrix's memory
     upper_at = np.where(lower, feed_rows * (2 * n_ant) + feed_cols, full_at)
+    if few_pairs(pairs, n_ant):  # a corner turn's chunk: the feeds of the baselines' two ends only
+        return _correlate_pairs(telescope, jones, freq_hz, lsts, sky, pairs, p_idx, q_idx, dtype, out)
     for t, phi in enumerate(lsts):
         rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
         r_all = sky.vectors @ rot
@@ -152,12 +154,7 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
         vis = np.zeros((2 * n_ant, 2 * n_ant), dtype, order="F")
         for s0 in range(0, len(up_all), SOURCE_BLOCK):
             up = up_all[s0:s0 + SOURCE_BLOCK]
-            r_enu = r_all[up]
-            j_enu = jones.jones_enu(r_enu, freq_hz)  # (feed, 3, n_up)
-            basis = np.stack([e_n[up] @ rot, e_e[up] @ rot], axis=1)  # (n_up, [N, E], 3) in ENU
-            j_ne = np.einsum("pis,sci->psc", j_enu, basis)  # (feed, n_up, [N, E])
-            z = np.exp(2j * np.pi * (x_wl @ r_enu.T))  # (n_ant, n_up)
-            a = (np.conj(z)[:, None, :, None] * j_ne[None]).astype(dtype, copy=False)  # (ant, feed, src, c)
+            a = _feeds(jones, freq_hz, rot, r_all[up], up, x_wl, e_n, e_e).astype(dtype, copy=False)
             n_up = len(up)
             if unpolarised:  # S_s = I_s 1: sum_s I_s A_s A_s^H, the upper triangle by herk of each sign
                 flux = sky.stokes_jy[up, 0]
@@ -172,6 +169,43 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
         out[t] = np.take(vis.ravel(order="F"), upper_at if unpolarised else full_at)  # one gather, in memory order
         if unpolarised:
             np.conjugate(out[t], out=out[t], where=lower)
+    return out
+
+
+def _feeds(jones, freq_hz, rot, r_enu, up, x_wl, e_n, e_e):
+    """Feed responses ``A_s`` of every antenna to the sources ``up`` (ENU directions ``r_enu``, frame rotation
+    ``rot``): ``conj(z_as) J_p(r_s)`` on the sky basis (north, east), ``(ant, feed, src, [N, E])``."""
+    j_enu = jones.jones_enu(r_enu, freq_hz)  # (feed, 3, n_up)
+    basis = np.stack([e_n[up] @ rot, e_e[up] @ rot], axis=1)  # (n_up, [N, E], 3) in ENU
+    j_ne = np.einsum("pis,sci->psc", j_enu, basis)  # (feed, n_up, [N, E])
+    z = np.exp(2j * np.pi * (x_wl @ r_enu.T))  # (n_ant, n_up)
+    return np.conj(z)[:, None, :, None] * j_ne[None]
+
+
+def _correlate_pairs(telescope, jones, freq_hz, lsts, sky, pairs, p_idx, q_idx, dtype, out):
+    """:func:`simulate_polarised_drift_scan` for a few baselines of a large array
+    (:func:`mmflow.simulate.visibilities.few_pairs`): per integration ``V_AB = sum_s A_s[A] S_s A_s[B]^H`` between
+    the feeds of the antennas ``A`` at the baselines' first ends and ``B`` at their second (one GEMM,
+    ``2|A| x 2|B|``), instead of the ``2N x 2N`` feed matrix of the whole array: a corner turn's 256 baselines at
+    256 antennas (one or two first antennas) need ``|A| |B| << N^2`` of its entries. The same values to rounding
+    (``tests/unit/simulate/test_polarised.py``); each integration's product is its own."""
+    x_wl = telescope.layout.enu * (freq_hz / SPEED_OF_LIGHT)
+    e_n, e_e = north_east(sky.vectors)
+    s_mat = coherency(sky.stokes_jy)
+    ant_a, ea = np.unique(pairs[:, 0], return_inverse=True)
+    ant_b, eb = np.unique(pairs[:, 1], return_inverse=True)
+    rows, cols = 2 * ea.ravel()[None, :] + p_idx[:, None], 2 * eb.ravel()[None, :] + q_idx[:, None]  # (corr, bl)
+    for t, phi in enumerate(lsts):
+        rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
+        r_all = sky.vectors @ rot
+        up_all = np.flatnonzero(r_all[:, 2] > 0)
+        v = np.zeros((2 * len(ant_a), 2 * len(ant_b)), dtype)
+        for s0 in range(0, len(up_all), SOURCE_BLOCK):
+            up = up_all[s0:s0 + SOURCE_BLOCK]
+            a = _feeds(jones, freq_hz, rot, r_all[up], up, x_wl, e_n, e_e).astype(dtype, copy=False)
+            a_s = np.einsum("apsc,scd->apsd", a[ant_a], s_mat[up].astype(dtype, copy=False))
+            v += a_s.reshape(2 * len(ant_a), 2 * len(up)) @ a[ant_b].reshape(2 * len(ant_b), 2 * len(up)).conj().T
+        out[t] = v[rows, cols]
     return out
 
 
