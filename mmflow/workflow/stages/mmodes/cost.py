@@ -19,7 +19,7 @@ from mmflow.conventions import FULL_STOKES, is_full_stokes
 from mmflow.io import run_stores as rs
 from mmflow.workflow.engine.geometry import fit_band, fit_bins
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, CORRECTED_SAMPLE_BYTES, ZARR_WRITE_COPIES, Cost, Work,
-                                       block_bytes, halvings, read_bytes)
+                                       block_bytes, four_correlation_note, halvings, read_bytes)
 
 #: a fit's phases, each as complex (bin, baseline) and (band, baseline) arrays alive at once
 #: (:func:`mmflow.mmode.gapfill.lsq_mmodes`, per ``n_bins`` bins and ``k = 2 k_max + 1`` m's of its band): while it
@@ -35,6 +35,15 @@ FIT_STACKED_OUTPUTS = 2.2
 # and mmax 100-400: within -6 / +8 % (benchmarks/mmode_fit_memory.py)
 
 
+#: a full-Stokes task's time over the plan's Stokes-I task: the m-modes of each of the four correlations besides
+#: Stokes I's, and with an E-field beam the peeled sources' four correlations re-formed on read. Measured on the
+#: paper's channel (2026-12-02, 256 antennas, 2 workers on this VM's 2 cores, SGEMM 191 GFLOP/s): 18.1-21.9 s a
+#: task (median 20.5) against the plan's 2.86 s for the Stokes-I task at that peak (the Stokes-I night run measured
+#: 3.6-3.9 s: 5.5x). ``benchmarks/four_correlation_ratio.py`` at 64 antennas over a whole day gave 3.76 in one
+#: process: the four correlations' work per baseline grows with the array in a way not yet traced (docs/stokes.md)
+FOUR_CORRELATION_TIME = 7.2
+
+
 def work(g, cfg):
     bc = min(g.mmode_chunk, g.n_bl)
     full = is_full_stokes(cfg.imaging.stokes)
@@ -47,7 +56,12 @@ def work(g, cfg):
         held = max(held, c_out + max(g.n_time * bc * CORRECTED_SAMPLE_BYTES + fit, ZARR_WRITE_COPIES * c_out))
     w = max(read_bytes(g, cfg, g.n_time, bc, g.n_freq), block_bytes(g, g.n_time, bc, g.n_freq, full) + held)
     spec = rs.mmodes_store(g.n_split, g.n_freq, g.mmax, g.n_bl, g.mmode_chunk, {}, len(FULL_STOKES) if full else 0)
-    return Work(-(-g.n_bl // bc), w, g.n_time * bc * g.n_freq * g.n_pol, [spec])
+    return Work(-(-g.n_bl // bc), w, g.n_time * bc * g.n_freq * g.n_pol * (FOUR_CORRELATION_TIME if full else 1.0),
+                [spec])
+
+
+def notes(g, cfg, peak_gflops):
+    return [four_correlation_note(FOUR_CORRELATION_TIME)] if is_full_stokes(cfg.imaging.stokes) else []
 
 
 def fit_bytes(n_bins, k_max, n_split, mmax, n_bl):
@@ -68,4 +82,4 @@ def band_max(g, cfg):
     return max(int(fit_band(g.tel, f, n_fit).max()) for f in g.freqs_hz)
 
 
-COST = Cost(work, shrink="a smaller mmode.baseline_chunk", split=halvings("mmode.baseline_chunk"))
+COST = Cost(work, shrink="a smaller mmode.baseline_chunk", split=halvings("mmode.baseline_chunk"), notes=notes)
