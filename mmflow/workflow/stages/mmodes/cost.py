@@ -37,11 +37,12 @@ FIT_STACKED_OUTPUTS = 2.2
 
 #: a full-Stokes task's time over the plan's Stokes-I task: the m-modes of each of the four correlations besides
 #: Stokes I's, and with an E-field beam the peeled sources' four correlations re-formed on read. Measured on the
-#: paper's channel (2026-12-02, 256 antennas, 2 workers on this VM's 2 cores, SGEMM 191 GFLOP/s): 18.1-21.9 s a
-#: task (median 20.5) against the plan's 2.86 s for the Stokes-I task at that peak (the Stokes-I night run measured
-#: 3.6-3.9 s: 5.5x). ``benchmarks/four_correlation_ratio.py`` at 64 antennas over a whole day gave 3.76 in one
-#: process: the four correlations' work per baseline grows with the array in a way not yet traced (docs/stokes.md)
-FOUR_CORRELATION_TIME = 7.2
+#: paper's channel (2026-12-02, 256 antennas, 2 workers on this VM's 2 cores, nothing else running): 68 tasks,
+#: median 16.2 s, against the plan's 2.86 s for the Stokes-I task at 191 SGEMM GFLOP/s (the Stokes-I night run
+#: measured 3.6-3.9 s: 4.3x). ``benchmarks/four_correlation_ratio.py`` at 64 antennas over a whole day gave 3.76 in
+#: one process: the four correlations' work per baseline grows with the array in a way not yet traced
+#: (docs/stokes.md)
+FOUR_CORRELATION_TIME = 5.7
 
 
 def work(g, cfg):
