@@ -136,6 +136,17 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
     q_idx = np.array([_FEED[c[1]] for c in correlations])
     out = np.zeros((len(lsts), len(correlations), len(pairs)), np.complex128)
     n_ant = len(x_wl)
+
+    def blocks(phi):  # the sources above the horizon at phi, SOURCE_BLOCK at a time, with their feed responses
+        rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
+        r_all = sky.vectors @ rot
+        up_all = np.flatnonzero(r_all[:, 2] > 0)
+        for s0 in range(0, len(up_all), SOURCE_BLOCK):
+            up = up_all[s0:s0 + SOURCE_BLOCK]
+            yield up, _feeds(jones, freq_hz, rot, r_all[up], up, x_wl, e_n, e_e).astype(dtype, copy=False)
+
+    if few_pairs(pairs, n_ant):  # a corner turn's chunk: the feeds of the baselines' two ends only
+        return _correlate_pairs(blocks, lsts, pairs, s_mat, p_idx, q_idx, dtype, out)
     unpolarised = not np.any(sky.stokes_jy[:, 1:])
     herk = get_blas_funcs("herk", dtype=np.dtype(dtype))
     feed_rows = 2 * pairs[None, :, 0] + p_idx[:, None]  # (corr, bl): V_(ip),(jq) of the 2N x 2N feed matrix
@@ -143,18 +154,11 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
     lower = feed_rows > feed_cols  # herk writes the upper triangle: there V_rc = conj(V_cr)
     full_at = feed_cols * (2 * n_ant) + feed_rows  # positions in the (Fortran-ordered) matrix's memory
     upper_at = np.where(lower, feed_rows * (2 * n_ant) + feed_cols, full_at)
-    if few_pairs(pairs, n_ant):  # a corner turn's chunk: the feeds of the baselines' two ends only
-        return _correlate_pairs(telescope, jones, freq_hz, lsts, sky, pairs, p_idx, q_idx, dtype, out)
     for t, phi in enumerate(lsts):
-        rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
-        r_all = sky.vectors @ rot
-        up_all = np.flatnonzero(r_all[:, 2] > 0)
-        if not len(up_all):
-            continue
-        vis = np.zeros((2 * n_ant, 2 * n_ant), dtype, order="F")
-        for s0 in range(0, len(up_all), SOURCE_BLOCK):
-            up = up_all[s0:s0 + SOURCE_BLOCK]
-            a = _feeds(jones, freq_hz, rot, r_all[up], up, x_wl, e_n, e_e).astype(dtype, copy=False)
+        vis = None
+        for up, a in blocks(phi):
+            if vis is None:
+                vis = np.zeros((2 * n_ant, 2 * n_ant), dtype, order="F")
             n_up = len(up)
             if unpolarised:  # S_s = I_s 1: sum_s I_s A_s A_s^H, the upper triangle by herk of each sign
                 flux = sky.stokes_jy[up, 0]
@@ -166,6 +170,8 @@ def simulate_polarised_drift_scan(telescope, jones, freq_hz, lsts, sky, pairs=No
                 continue
             a_s = np.einsum("apsc,scd->apsd", a, s_mat[up].astype(dtype, copy=False))
             vis += a_s.reshape(2 * n_ant, 2 * n_up) @ a.reshape(2 * n_ant, 2 * n_up).conj().T
+        if vis is None:  # no source above the horizon
+            continue
         out[t] = np.take(vis.ravel(order="F"), upper_at if unpolarised else full_at)  # one gather, in memory order
         if unpolarised:
             np.conjugate(out[t], out=out[t], where=lower)
@@ -182,27 +188,20 @@ def _feeds(jones, freq_hz, rot, r_enu, up, x_wl, e_n, e_e):
     return np.conj(z)[:, None, :, None] * j_ne[None]
 
 
-def _correlate_pairs(telescope, jones, freq_hz, lsts, sky, pairs, p_idx, q_idx, dtype, out):
+def _correlate_pairs(blocks, lsts, pairs, s_mat, p_idx, q_idx, dtype, out):
     """:func:`simulate_polarised_drift_scan` for a few baselines of a large array
     (:func:`mmflow.simulate.visibilities.few_pairs`): per integration ``V_AB = sum_s A_s[A] S_s A_s[B]^H`` between
     the feeds of the antennas ``A`` at the baselines' first ends and ``B`` at their second (one GEMM,
     ``2|A| x 2|B|``), instead of the ``2N x 2N`` feed matrix of the whole array: a corner turn's 256 baselines at
-    256 antennas (one or two first antennas) need ``|A| |B| << N^2`` of its entries. The same values to rounding
+    256 antennas (one or two first antennas) need ``|A| |B| << N^2`` of its entries. ``blocks(phi)``: the
+    sources above the horizon and their feed responses, as the full path takes them. The same values to rounding
     (``tests/unit/simulate/test_polarised.py``); each integration's product is its own."""
-    x_wl = telescope.layout.enu * (freq_hz / SPEED_OF_LIGHT)
-    e_n, e_e = north_east(sky.vectors)
-    s_mat = coherency(sky.stokes_jy)
     ant_a, ea = np.unique(pairs[:, 0], return_inverse=True)
     ant_b, eb = np.unique(pairs[:, 1], return_inverse=True)
     rows, cols = 2 * ea.ravel()[None, :] + p_idx[:, None], 2 * eb.ravel()[None, :] + q_idx[:, None]  # (corr, bl)
     for t, phi in enumerate(lsts):
-        rot = enu_to_equatorial_matrix(telescope.lat_rad, phi)  # r_eq = rot @ r_enu
-        r_all = sky.vectors @ rot
-        up_all = np.flatnonzero(r_all[:, 2] > 0)
         v = np.zeros((2 * len(ant_a), 2 * len(ant_b)), dtype)
-        for s0 in range(0, len(up_all), SOURCE_BLOCK):
-            up = up_all[s0:s0 + SOURCE_BLOCK]
-            a = _feeds(jones, freq_hz, rot, r_all[up], up, x_wl, e_n, e_e).astype(dtype, copy=False)
+        for up, a in blocks(phi):
             a_s = np.einsum("apsc,scd->apsd", a[ant_a], s_mat[up].astype(dtype, copy=False))
             v += a_s.reshape(2 * len(ant_a), 2 * len(up)) @ a[ant_b].reshape(2 * len(ant_b), 2 * len(up)).conj().T
         out[t] = v[rows, cols]
