@@ -81,11 +81,19 @@ def split_to_fit(cfg, kind, log=print):
     if found is None or not found[1]["settings"]:
         return {}
     node, res = found
-    given = ", ".join(f"{k}={v}" for k, v in res["settings"].items())
-    log(f"{kind}: a task of this workflow needs more memory than a node of {node.cores} cores and "
-        f"{node.memory_bytes / 1e9:.2f} GB (sinfo) as it is: the run splits it with {given} (the plan's "
+    log(f"{kind}: {_too_large(node)} (sinfo) as it is: the run splits it with {_given(res)} (the plan's "
         "choice; `mmflow plan --cluster slurm` shows it)")
     return dict(res["settings"])
+
+
+def _too_large(node):
+    return f"a task of this workflow needs more memory than a node of {node.cores} cores and " \
+           f"{node.memory_bytes / 1e9:.2f} GB"
+
+
+def _given(res):
+    """The cluster plan's split as overrides, ``'key=value, ...'``."""
+    return ", ".join(f"{k}={v}" for k, v in res["settings"].items())
 
 
 def plan_pools(cfg, kind, opts, log=print):
@@ -105,10 +113,8 @@ def plan_pools(cfg, kind, opts, log=print):
         return None
     node, res = found
     if res["settings"]:
-        given = ", ".join(f"{k}={v}" for k, v in res["settings"].items())
-        raise InputError("cluster", "cluster.jobqueue", f"a task of this workflow needs more memory than a node of "
-                         f"{node.cores} cores and {node.memory_bytes / 1e9:.2f} GB has unless it is split ({given}; "
-                         "`mmflow plan --cluster slurm` shows the plan)", f"rerun with {given}")
+        raise InputError("cluster", "cluster.jobqueue", f"{_too_large(node)} has unless it is split ({_given(res)}; "
+                         "`mmflow plan --cluster slurm` shows the plan)", f"rerun with {_given(res)}")
     pools = worker_pools(res)
     log(f"{kind}: worker jobs sized per stage from the plan on {res['nodes']} nodes of {node.cores} cores and "
         f"{node.memory_bytes / 1e9:.2f} GB (sinfo): " + "; ".join(
