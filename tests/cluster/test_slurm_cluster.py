@@ -1,6 +1,7 @@
 """mmflow on a real SLURM cluster of three nodes, each a network namespace with a hostname of its own
 (tests/cluster/conftest.py): workers reach the driver's scheduler over the cluster's bridge, the run
 directory is the shared filesystem, and every map is compared bit for bit with a synchronous run."""
+import contextlib
 import os
 import socket
 import subprocess
@@ -161,8 +162,10 @@ def test_cluster_slurm_alone_finishes(slurm, reference, tmp_path, capsys, monkey
     assert_identical(reference, read_outputs(run_dir))
 
 
-def _in_background(fn):
-    """Run ``fn`` in a thread; its exception (if any) is re-raised by the returned join()."""
+@contextlib.contextmanager
+def _beside(fn):
+    """Run ``fn`` in a thread while the ``with`` block runs; on leaving it, wait for ``fn`` (at most 120 s) and
+    re-raise its exception, if any, in the test's thread."""
     errors = []
 
     def target():
@@ -173,12 +176,23 @@ def _in_background(fn):
 
     t = threading.Thread(target=target, daemon=True)
     t.start()
-
-    def join():
+    try:
+        yield
+    finally:
         t.join(120)
-        if errors:
-            raise errors[0]
-    return join
+    if errors:
+        raise errors[0]
+
+
+def _poll(ready, timeout, step):
+    """The first truthy value of ``ready()``, asked every ``step`` s for at most ``timeout`` s, or None."""
+    deadline = time.time() + timeout
+    while time.time() < deadline:
+        got = ready()
+        if got:
+            return got
+        time.sleep(step)
+    return None
 
 
 def test_a_drained_node_longer_than_worker_wait_s_then_resumed(slurm, reference, tmp_path):
@@ -193,18 +207,14 @@ def test_a_drained_node_longer_than_worker_wait_s_then_resumed(slurm, reference,
     slurm.slurm("scontrol", "update", f"nodename={node}", "state=drain", "reason=mmflow-test")
 
     def resume_later():
-        deadline = time.time() + 60
-        while not any("waiting for 1 queued jobs" in line for line in logs) and time.time() < deadline:
-            time.sleep(0.2)
+        _poll(lambda: any("waiting for 1 queued jobs" in line for line in logs), 60, 0.2)
         time.sleep(3 * wait_s)
         slurm.slurm("scontrol", "update", f"nodename={node}", "state=resume")
 
-    join = _in_background(resume_later)
     try:
-        with open_cluster(cfg, log=logs.append) as client:
+        with _beside(resume_later), open_cluster(cfg, log=logs.append) as client:
             run_with_passes(cfg, client, progress=False, log=logs.append)
     finally:
-        join()
         slurm.slurm("scontrol", "update", f"nodename={node}", "state=resume", check=False)
     waiting = [line for line in logs if "waiting for 1 queued jobs (" in line]
     assert waiting and "ReqNodeNotAvail" in waiting[0], logs
@@ -225,21 +235,14 @@ def test_a_node_killed_mid_transfer_is_survived(slurm, reference, tmp_path, monk
         hosts = client.run(socket.gethostname)
 
         def kill_a_busy_node():
-            deadline = time.time() + 120
-            while time.time() < deadline:
-                busy = [w for w, keys in client.processing().items()
-                        if any(str(k).startswith("transfer-") for k in keys)]
-                if busy:  # a transfer task in flight there
-                    killed.append(hosts[busy[0]])
-                    slurm.kill_node(hosts[busy[0]])
-                    return
-                time.sleep(0.05)
+            busy = _poll(lambda: [w for w, keys in client.processing().items()
+                                  if any(str(k).startswith("transfer-") for k in keys)], 120, 0.05)
+            if busy:  # a transfer task in flight there
+                killed.append(hosts[busy[0]])
+                slurm.kill_node(hosts[busy[0]])
 
-        join = _in_background(kill_a_busy_node)
-        try:
+        with _beside(kill_a_busy_node):
             run_with_passes(cfg, client, progress=False, log=logs.append)
-        finally:
-            join()
     try:
         assert killed, "no transfer task was seen in flight"
         assert any(f"on {killed[0]} lost" in line for line in logs), logs
@@ -266,22 +269,15 @@ def test_a_cancelled_job_is_replaced_and_the_run_finishes(slurm, reference, tmp_
             client.wait_for_workers(2, timeout=120)
             first = dict(client.run(lambda dask_worker: str(dask_worker.name)))
 
-            def cancel_one_after_two_tasks():
-                deadline = time.time() + 180
-                while time.time() < deadline:
-                    done = [m for m in (run_dir / "_status").glob("*/*.done") if not m.name.startswith("_")]
-                    if len(done) >= 2:  # two tasks finished (not a stage's _prepare)
-                        job = sorted(seen)[0]
-                        slurm.slurm("scancel", job)
-                        cancelled.append(job)
-                        return
-                    time.sleep(0.1)
+            def cancel_one_after_two_tasks():  # two tasks finished (a stage's _prepare is not one)
+                if _poll(lambda: len([m for m in (run_dir / "_status").glob("*/*.done")
+                                      if not m.name.startswith("_")]) >= 2, 180, 0.1):
+                    job = sorted(seen)[0]
+                    slurm.slurm("scancel", job)
+                    cancelled.append(job)
 
-            join = _in_background(cancel_one_after_two_tasks)
-            try:
+            with _beside(cancel_one_after_two_tasks):
                 run_with_passes(cfg, client, progress=False, log=logs.append)
-            finally:
-                join()
     finally:
         stop.set()
         sampler.join(5)
