@@ -52,14 +52,34 @@ def cores_per_thread(worker_threads=1, workers_per_host=1):
 
 
 def n_threads():
+    """The calling task's thread budget: :func:`cores_per_thread` for the tasks its worker runs at once
+    (:func:`concurrent_tasks`) and the workers on its host (``MMFLOW_WORKERS_PER_HOST``)."""
     dist = sys.modules.get("distributed")  # a process outside any dask worker never imports it (~15 MB, ~0.5 s)
     if dist is None or os.environ.get("MMFLOW_THREADS"):
         return cores_per_thread()
     try:
         w = dist.get_worker()
-        return cores_per_thread(w.state.nthreads, int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
     except (ValueError, AttributeError):  # distributed loaded, but not in a worker (a client, a driver)
         return cores_per_thread()
+    return cores_per_thread(concurrent_tasks(w), int(os.environ.get("MMFLOW_WORKERS_PER_HOST", "1")))
+
+
+def concurrent_tasks(worker):
+    """How many tasks like the calling one ``worker`` (a dask worker) runs at once.
+
+    Its threads, unless the task is restricted to a share of a worker resource (SLURM/PBS jobs sized per
+    stage: each task of a ``k``-core worker takes all of its ``k`` task slots,
+    :mod:`mmflow.workflow.engine.pools`); then ``min over resources r of floor(total_r / share_r)``, so a
+    ``k``-core worker's one task runs its kernels on the worker's ``k`` cores, not on one.
+    """
+    nthreads = max(1, worker.state.nthreads)
+    try:
+        ts = worker.state.tasks.get(worker.get_current_task())
+    except (AttributeError, KeyError, ValueError):  # not in a task's own thread (a kernel's pool thread)
+        return nthreads
+    shares = getattr(ts, "resource_restrictions", None) or {}
+    fits = [int(worker.state.total_resources.get(r, 0) // need) for r, need in shares.items() if need > 0]
+    return max(1, min([nthreads, *fits]))
 
 
 @contextmanager

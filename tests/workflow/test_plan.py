@@ -552,3 +552,41 @@ def test_the_plan_gives_each_task_the_threads_its_worker_will(monkeypatch):
     w = {t: stage_work("solve", geometry(cfg, threads=t), cfg).working_set_bytes for t in (3, 4, 6)}
     assert w[4] - w[3] == pytest.approx(SOLVER_SQUARES * 16 * 1001 ** 2)
     assert w[6] - w[4] == pytest.approx(2 * SOLVER_SQUARES * 16 * 1001 ** 2)
+
+
+def test_a_k_core_workers_task_runs_on_k_threads_and_is_planned_at_k(monkeypatch):
+    """A task restricted to all ``k`` task slots of a ``k``-thread dask worker (SLURM/PBS pools) runs its
+    kernels on the worker's cores, not on ``cores / k``; an unrestricted task of the same worker shares them
+    with the worker's other threads. The cluster plan estimates such a stage's task at ``k`` threads: a solve
+    task that needs 3 cores' memory is planned with 3 threads' solver factors (:data:`SOLVER_SQUARES` each)."""
+    import distributed
+
+    import mmflow.threads
+    from mmflow.threads import n_threads
+    from mmflow.workflow.plan import jobs
+    from mmflow.workflow.plan.nodes import JOB_PROCESS_BYTES, Node
+    from mmflow.workflow.stages.solve.cost import SOLVER_SQUARES
+
+    monkeypatch.delenv("MMFLOW_THREADS", raising=False)
+    monkeypatch.delenv("MMFLOW_WORKERS_PER_HOST", raising=False)
+    monkeypatch.setattr(mmflow.threads, "usable_cores", lambda: 6)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=3, processes=False, resources={"slot": 3},
+                                  dashboard_address=":0") as cluster, distributed.Client(cluster) as client:
+        assert client.submit(n_threads, pure=False, resources={"slot": 3}).result() == 6  # one task: every core
+        assert client.submit(n_threads, pure=False, resources={"slot": 1}).result() == 2  # three at once
+        assert client.submit(n_threads, pure=False).result() == 2  # the worker's three threads
+
+    cfg = load_config("workflows/paper-scale.yaml", ["mmode.lmax=1000", "telescope.max_antennas=16",
+                                                      "cluster.kind=slurm"])
+    g = geometry(cfg)
+    one = stage_work("solve", g, cfg).working_set_bytes
+    node = Node(8, 8 * (one + jobs.WORKER_BASE_BYTES) / 1.5 + JOB_PROCESS_BYTES)  # a core's share: 2/3 of the task
+    costs = jobs.load_costs()
+    row = next(r for r in jobs.stage_rows(cfg, g, node, 1, 100.0, costs, 1) if r["stage"] == "solve")
+    k = row["worker_cores"]
+    assert k >= 2 and row["fits"]
+    at_k = stage_work("solve", geometry(cfg, threads=k), cfg).working_set_bytes
+    assert at_k - one >= (min(k, g.m_block) - 2) * SOLVER_SQUARES * 16 * 1001 ** 2 > 0  # the solver's factors
+    planned = {t: jobs.estimate("solve", geometry(cfg, threads=t), cfg, costs, 100.0, 1).task_bytes for t in (1, k)}
+    assert planned[k] > planned[1]
+    assert row["task_gb"] * 1e9 == pytest.approx(planned[k] + jobs.WORKER_BASE_BYTES)  # at k threads, not one

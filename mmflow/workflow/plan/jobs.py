@@ -28,6 +28,7 @@ upper bound, so the walltime asked for is safe). ``p``: the node's SGEMM peak ov
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -106,6 +107,21 @@ def _worker_cores(need, node, frac):
     return max(1, math.ceil(need / (node.core_memory_bytes * frac) - 1e-9))
 
 
+def _sized(name, g, cfg, costs, peak, total, node, frac):
+    """A stage's task estimate and its worker's cores ``k``: a ``k``-core worker runs its one task's kernels
+    on ``k`` threads (:func:`mmflow.threads.concurrent_tasks`), so a task whose memory grows with its
+    threads (the solver's per-thread factors) is estimated again at ``k`` threads until ``k`` holds it."""
+    est = estimate(name, g, cfg, costs, peak, 1, total)
+    k = _worker_cores(est.task_bytes + WORKER_BASE_BYTES, node, frac)
+    while g.task_threads < k <= node.cores:  # k grows each pass: at most node.cores passes
+        at_k = estimate(name, dataclasses.replace(g, task_threads=k), cfg, costs, peak, 1, total)
+        wider = _worker_cores(at_k.task_bytes + WORKER_BASE_BYTES, node, frac)
+        if wider <= k:
+            return at_k, k
+        k = wider
+    return est, k  # one thread's task, or one that no node holds (the row says it does not fit)
+
+
 def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
     """Per enabled stage its worker, its time on ``nodes`` nodes and what scales it (dicts).
 
@@ -118,9 +134,8 @@ def stage_rows(cfg, g, node, nodes, core_gflops, costs, slots):
     for st in PIPELINE:
         if not st.enabled(cfg) or st.task is None:
             continue
-        est = estimate(st.name, g, cfg, costs, peak, 1, total)
+        est, k = _sized(st.name, g, cfg, costs, peak, total, node, frac)
         need = est.task_bytes + WORKER_BASE_BYTES
-        k = _worker_cores(need, node, frac)
         k_s = costs["stages"].get(st.name)
         per_task = task_seconds(k_s, est.units_per_task, costs, peak) if k_s else 0.0
         # the stage-wide part: what is left with every task in one round

@@ -264,7 +264,8 @@ def task_threads(cfg):
     run's workers: ``MMFLOW_THREADS`` where set; else the usable cores of this machine for the synchronous
     scheduler, and their share per worker thread for a local cluster (``cores // (n_workers x
     threads_per_worker)``); one on a job queue or a cluster at an address (a job's cores are its worker
-    threads, :mod:`mmflow.workflow.engine.pools`)."""
+    threads, :mod:`mmflow.workflow.engine.pools`; a stage whose task needs a ``k``-core worker is planned at
+    ``k`` threads, :func:`mmflow.workflow.plan.jobs.stage_rows`)."""
     from mmflow.threads import cores_per_thread  # deferred: threadpoolctl and scipy's BLAS
 
     c = cfg.cluster
