@@ -19,6 +19,15 @@ XX = YY = S A), and the corruptions:
 - autocorrelations ``|g_ip|^2 (sum_p S_p A_p + T_sys)`` and radiometer noise of ``sigma = T_sys /
   sqrt(dnu tau)`` on the cross-correlations (small: ~1 Jy).
 
+With ``four=True`` the day holds xx, yy, xy and yx through crossed short dipoles instead (x east, y
+north), derived here from the dipoles alone: a short dipole along ``d`` receives the field's component
+along ``d``, so for an unpolarised source (coherency ``S/2`` times the identity on any orthonormal basis
+of the sky plane) ``V^pq = S (d_p . d_q - (d_p . r)(d_q . r)) t(r)^2`` in the ``avg`` convention (XX = S at
+the zenith): ``1 - r_e^2``, ``1 - r_n^2`` and ``-r_e r_n`` for xx, yy and xy = yx, with the E-field
+horizon taper ``t = r_u^3`` of ``beam={type: short_dipole, horizon_taper: 3}``. Each correlation is
+corrupted by its feeds' gains, ``V^pq_ij -> g_ip conj(g_jq) V^pq_ij``, so the uncalibrated XY phase turns
+the sources' cross hands into polarisation, and the receiver power is in the parallel hands' autos only.
+
 The file of the same sky without Cyg A, Cas A, Vir A, Tau A, corruption or noise (``truth``) says
 ``Jy`` and ``avg``; the corrupted one says ``uncalib`` and no convention (the gains set the scale).
 """
@@ -51,12 +60,26 @@ def apparent_enu(ra_deg, dec_deg, times_jd, lay):
     return np.stack([np.cos(alt) * np.sin(az), np.cos(alt) * np.cos(az), np.sin(alt)], -1)
 
 
-def point_sum(x, lam, dirs, flux, pairs):
-    """``sum_p S_p A(r_p) exp(2 pi i (x_j - x_i) . r_p / lambda)`` (time, bl), ``A = sin(elevation)^1.5``
-    (0 below the horizon): dirs (n, time, 3), flux (n, time)."""
+def scalar_beam(dirs):
+    """XX and YY responses (each (n, time)), both ``sin(elevation)^1.5`` (0 below the horizon)."""
+    a = np.clip(dirs[..., 2], 0, None) ** 1.5
+    return [a, a]
+
+
+def dipole_beams(dirs):
+    """xx, yy, xy, yx responses (each (n, time)) of crossed short dipoles (x east, y north) to an unpolarised
+    source: ``d_p . d_q - (d_p . r)(d_q . r)`` times the E-field taper squared, ``r_u^6`` (0 below the horizon)."""
+    e, n, u = dirs[..., 0], dirs[..., 1], np.clip(dirs[..., 2], 0, None)
+    taper = np.where(dirs[..., 2] > 0, u ** 6, 0.0)
+    return [(1 - e**2) * taper, (1 - n**2) * taper, -e * n * taper, -e * n * taper]
+
+
+def point_sum(x, lam, dirs, flux, pairs, beams=scalar_beam):
+    """``sum_p S_p A(r_p) exp(2 pi i (x_j - x_i) . r_p / lambda)`` (time, bl, correlation), one ``A`` per
+    correlation from ``beams(dirs)``: dirs (n, time, 3), flux (n, time)."""
     b = (x[pairs[:, 1]] - x[pairs[:, 0]]) / lam
-    beam = np.clip(dirs[..., 2], 0, None) ** 1.5
-    return np.einsum("pt,ptb->tb", flux * beam, np.exp(2j * np.pi * np.einsum("bk,ptk->ptb", b, dirs)))
+    fringe = np.exp(2j * np.pi * np.einsum("bk,ptk->ptb", b, dirs))
+    return np.stack([np.einsum("pt,ptb->tb", flux * a, fringe) for a in beams(dirs)], -1)
 
 
 def _refract(r, t, rng, freq):
@@ -73,9 +96,12 @@ def _refract(r, t, rng, freq):
 
 
 def independent_day(radius_m=20.0, freq_hz=40e6, n_times=192, start_jd=2457802.0, seed=7, unmodelled=UNMODELLED,
-                    drift=(0.0, 0.0), noise=True):
-    """One sidereal day of ``n_times`` integrations, XX and YY (dict): ``corrupted`` and ``truth`` (UVData),
-    ``layout``, ``gains`` (time, ant, feed), ``scint`` (2, time) Cyg A's and Cas A's flux factors."""
+                    drift=(0.0, 0.0), noise=True, four=False, truth_noise=False):
+    """One sidereal day of ``n_times`` integrations, XX and YY (with ``four``: xx, yy, xy, yx through crossed
+    dipoles) (dict): ``corrupted`` and ``truth`` (UVData), ``layout``, ``gains`` (time, ant, feed), ``scint``
+    (2, time) Cyg A's and Cas A's flux factors. ``truth_noise``: the truth's cross-correlations carry radiometer
+    noise of the same ``sigma`` too (another realisation), so that the noise weights of both files are the
+    radiometer's (a noise-free file's weights follow its modelling error instead)."""
     from pyuvdata import UVData
 
     from mmflow.sky.sources import get_sources
@@ -100,8 +126,10 @@ def independent_day(radius_m=20.0, freq_hz=40e6, n_times=192, start_jd=2457802.0
     u = np.array(unmodelled, float)
     u_dirs = apparent_enu(u[:, 0], u[:, 1], times, lay)
     u_flux = np.repeat(u[:, 2:], n_times, 1)
-    sky = point_sum(x, lam, dirs, fl, pairs) + point_sum(x, lam, u_dirs, u_flux, pairs)  # (time, bl)
-    truth = point_sum(x, lam, u_dirs, u_flux, pairs)
+    beams = dipole_beams if four else scalar_beam
+    truth = point_sum(x, lam, u_dirs, u_flux, pairs, beams)  # (time, bl, correlation)
+    sky = point_sum(x, lam, dirs, fl, pairs, beams) + truth
+    feeds = [(0, 0), (1, 1), (0, 1), (1, 0)] if four else [(0, 0), (1, 1)]  # the feeds (of i, of j) of each
     # gains (time, ant, feed): a fixed complex gain times a slow drift
     g0 = rng.uniform(0.7, 1.3, (n, 2)) * np.exp(1j * rng.uniform(-np.pi, np.pi, (n, 2)))
     per = rng.uniform(10, 30, (2, n, 2)) * 3600
@@ -114,19 +142,25 @@ def independent_day(radius_m=20.0, freq_hz=40e6, n_times=192, start_jd=2457802.0
     g = np.broadcast_to(g, (n_times, n, 2))
     i, j = pairs.T
     auto = i == j
-    data = np.empty((n_times, len(pairs), 2), complex)
-    for p in range(2):
-        gp = g[..., p]
-        data[..., p] = gp[:, i] * np.conj(gp[:, j]) * (sky + np.where(auto, T_SYS, 0.0))
+    data = np.empty((n_times, len(pairs), len(feeds)), complex)
+    for c, (p, q) in enumerate(feeds):
+        data[..., c] = g[:, i, p] * np.conj(g[:, j, q]) * (sky[..., c] + np.where(auto & (p == q), T_SYS, 0.0))
     sig = T_SYS / np.sqrt(1e6 * dt)
+    fp, fq = [f[0] for f in feeds], [f[1] for f in feeds]
     if noise:
         nz = rng.normal(size=data.shape) + 1j * rng.normal(size=data.shape)
-        data += np.where(auto[None, :, None], 0, sig / np.sqrt(2) * nz * np.abs(g[:, i]) * np.abs(g[:, j]))
-    data[:, auto] = data[:, auto].real
+        ai, aj = np.abs(g[:, i][..., fp]), np.abs(g[:, j][..., fq])
+        data += np.where(auto[None, :, None], 0, sig / np.sqrt(2) * nz * ai * aj)
+    data[:, auto, :2] = data[:, auto, :2].real
+    if truth_noise:
+        other = np.random.default_rng(seed + 1)
+        nz = other.normal(size=truth.shape) + 1j * other.normal(size=truth.shape)
+        truth = truth + np.where(auto[None, :, None], 0, sig / np.sqrt(2) * nz)
 
     def uvdata(d, units, conv, flags):
-        rows = (n_times * len(pairs), 1, 2)
-        uv = UVData.new(freq_array=np.array([freq_hz]), polarization_array=np.array([-5, -6]), times=times,
+        rows = (n_times * len(pairs), 1, len(feeds))
+        uv = UVData.new(freq_array=np.array([freq_hz]), polarization_array=np.array([-5, -6, -7, -8][:len(feeds)]),
+                        times=times,
                         telescope=tel, antpairs=[tuple(p) for p in pairs], do_blt_outer=True,
                         data_array=d.reshape(rows),
                         flag_array=np.broadcast_to(flags[None, :, None], d.shape).reshape(rows),
@@ -134,7 +168,41 @@ def independent_day(radius_m=20.0, freq_hz=40e6, n_times=192, start_jd=2457802.0
         uv.pol_convention = conv
         return uv
 
-    clean = np.repeat(truth[..., None], 2, -1)
     # the truth's autocorrelations flagged: calibration gives the data's weight 0 (calibrate.flag_autos)
     return dict(corrupted=uvdata(data, "uncalib", None, np.zeros(len(pairs), bool)),
-                truth=uvdata(clean, "Jy", "avg", auto), layout=lay, gains=g, scint=fl[:2] / flux[:2, None])
+                truth=uvdata(truth, "Jy", "avg", auto), layout=lay, gains=g, scint=fl[:2] / flux[:2, None])
+
+
+def _vec(ra_deg, dec_deg):
+    from mmflow.conventions import radec_to_vec
+
+    return radec_to_vec(np.deg2rad(ra_deg), np.deg2rad(dec_deg))
+
+
+def suppression_db(maps, key, nside, stokes=0):
+    """Per peeled source (:data:`PEELED`), ``10 log10`` of the largest ``|maps[key] - maps["truth"]|`` within 3 deg
+    of it over its Stokes-I peak in ``maps["nopeel"]`` (the same data calibrated, not peeled); the maps are (npix,)
+    Stokes I or (4, npix) I, Q, U, V, of which ``stokes`` is compared."""
+    import healpy as hp
+
+    from mmflow.analysis.peaks import measure_peak
+
+    def plane(k, i):
+        m = maps[k]
+        return m if m.ndim == 1 else m[i]
+
+    out = []
+    for _, ra, dec in PEELED:
+        v = _vec(ra, dec)
+        peak = measure_peak(plane("nopeel", 0), v, np.deg2rad(10))["peak"]
+        pix = hp.query_disc(nside, v, np.deg2rad(3.0))
+        out.append(10 * np.log10(np.abs(plane(key, stokes)[pix] - plane("truth", stokes)[pix]).max() / peak))
+    return out
+
+
+def kept_ratios(chain, truth):
+    """The :data:`UNMODELLED` sources' peaks in the Stokes-I map ``chain`` over theirs in ``truth``."""
+    from mmflow.analysis.peaks import measure_peak
+
+    return np.array([measure_peak(chain, _vec(ra, dec), np.deg2rad(10))["peak"]
+                     / measure_peak(truth, _vec(ra, dec), np.deg2rad(10))["peak"] for ra, dec, _ in UNMODELLED])

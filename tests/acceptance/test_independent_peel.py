@@ -21,11 +21,9 @@ import healpy as hp
 import numpy as np
 import pytest
 
-from mmflow.analysis.peaks import measure_peak
-from mmflow.conventions import radec_to_vec
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.runner import run_workflow
-from tests.independent_day import PEELED, UNMODELLED, independent_day
+from tests.independent_day import PEELED, independent_day, kept_ratios, suppression_db
 from tests.workflow_helpers import fork_run
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -60,29 +58,16 @@ def maps(tmp_path_factory):
     return out
 
 
-def _vec(ra, dec):
-    return radec_to_vec(np.deg2rad(ra), np.deg2rad(dec))
-
-
 def _suppression_db(maps, chain):
-    out = []
-    for name, ra, dec in PEELED:
-        v = _vec(ra, dec)
-        peak = measure_peak(maps["nopeel"], v, np.deg2rad(10))["peak"]
-        pix = hp.query_disc(NSIDE, v, np.deg2rad(3.0))
-        out.append(10 * np.log10(np.abs(maps[chain][pix] - maps["truth"][pix]).max() / peak))
+    out = suppression_db(maps, chain, NSIDE)
     print(chain, " ".join(f"{name}: {db:.1f} dB" for (name, _, _), db in zip(PEELED, out)))
     return out
 
 
 def _kept(maps, chain):
-    kept = []
-    for ra, dec, _ in UNMODELLED:
-        v = _vec(ra, dec)
-        kept.append(measure_peak(maps[chain], v, np.deg2rad(10))["peak"]
-                    / measure_peak(maps["truth"], v, np.deg2rad(10))["peak"])
+    kept = kept_ratios(maps[chain], maps["truth"])
     print(chain, "unmodelled peaks / truth:", " ".join(f"{k:.3f}" for k in kept))
-    return np.array(kept)
+    return kept
 
 
 def test_cyg_a_and_cas_a_are_30_db_down_with_defaults(maps):

@@ -1,0 +1,98 @@
+"""Four-correlation peeling with defaults on a corrupted day mmflow did not make (issue 39 item 4).
+
+The day of ``tests/acceptance/test_independent_peel.py`` (18 OVRO-LWA core stands within 20 m, 40 MHz,
+128 integrations; Cyg A and Cas A refracted and scintillating, Vir A, Tau A, eight unmodelled sources;
+per-antenna, per-feed complex gains with the HVAC sawtooth; receiver power and radiometer noise), here
+with all four correlations through crossed short dipoles (``tests/independent_day.py``, ``four=True``:
+the dipoles' response derived there from their geometry, not from mmflow's Jones matrices). The feeds'
+independent phases leave the XY phase uncalibrated, so without peeling Cyg A and Cas A stand in Q, U and
+V. Run as a user runs such a file: ``workflows/uvh5-image.yaml`` with the input path, lmax, the E-field
+beam, ``imaging.stokes=[I, Q, U, V]`` and the three calibration stages on, every calibration setting at
+its default.
+
+dB as in the Stokes-I test: the largest ``|chain - truth|`` within 3 deg of the source over its Stokes-I
+peak in the map of the same data calibrated but not peeled, in every Stokes parameter. The truth (the
+unmodelled sources alone, uncorrupted) carries radiometer noise like the data: with noise-free data the
+noise weights follow the modelling error and the full-Stokes solve's I came out at 0.46 of the
+unweighted map (the Stokes-I engine's at 0.92), which is the weighting's, not the peel's. Measured
+(2026-12-03): Cyg A I, Q, U, V -40.3, -55.6, -52.1, -54.8 dB; Cas A -39.1, -58.0, -56.9, -55.1 dB; without
+peeling Q, U, V at -26.5, -30.3, -26.8 (Cyg A) and -21.5, -30.3, -27.9 dB (Cas A).
+"""
+import healpy as hp
+import numpy as np
+import pytest
+
+from mmflow.workflow.config.schema import load_config
+from mmflow.workflow.engine.runner import run_workflow
+from tests.independent_day import PEELED, UNMODELLED, _vec, independent_day, kept_ratios, suppression_db
+from tests.workflow_helpers import fork_run
+
+QUIET = dict(progress=False, log=lambda *a: None)
+NSIDE = 32
+ON = ["calibrate.enabled=true", "peel.enabled=true", "terrestrial.enabled=true"]
+#: the stokes stage's CLEAN of the compact sources writes only its own products, none read here (as in
+#: tests/acceptance/test_four_correlation_peel.py)
+SOURCE_CLEAN = ["clean.max_cycles=1", "clean.psf_dec_step_deg=30"]
+
+
+def _run(path, data, *extra):
+    run_workflow(load_config("workflows/uvh5-image.yaml", [
+        f"run.directory={path}", f"input.path={data}", "mmode.lmax=52", "imaging.lcurve=false",
+        "beam={type: short_dipole, horizon_taper: 3}", "imaging.stokes=[I, Q, U, V]", *SOURCE_CLEAN,
+        f"products.nside={NSIDE}", "products.png=false", "products.flux_scale=false", "products.unit=Jy/sr",
+        "cluster.kind=synchronous", *extra]), **QUIET)
+    m = np.array(hp.read_map(str(next((path / "maps").glob("stokes_*MHz.fits"))), field=None))
+    return np.where(m == hp.UNSEEN, 0.0, m)
+
+
+@pytest.fixture(scope="module")
+def maps(tmp_path_factory):
+    d = tmp_path_factory.mktemp("independent_four")
+    day = independent_day(n_times=128, four=True, truth_noise=True)
+    day["corrupted"].write_uvh5(str(d / "corrupted.uvh5"), fix_autos=True)
+    day["truth"].write_uvh5(str(d / "truth.uvh5"), fix_autos=True)
+    out = {"chain": _run(d / "chain", d / "corrupted.uvh5", *ON)}
+    out["nopeel"] = _run(fork_run(d / "chain", d / "nopeel", "calibrate"), d / "corrupted.uvh5", ON[0])
+    out["truth"] = _run(d / "truth", d / "truth.uvh5")
+    return out
+
+
+def test_cyg_a_and_cas_a_are_30_db_down_in_every_stokes_parameter(maps):
+    db = np.array([suppression_db(maps, "chain", NSIDE, s) for s in range(4)])  # (stokes, source)
+    before = np.array([suppression_db(maps, "nopeel", NSIDE, s) for s in range(4)])
+    for k, (name, _, _) in enumerate(PEELED):
+        print(f"{name}: I, Q, U, V {' '.join(f'{x:.1f}' for x in db[:, k])} dB (without peeling: "
+              f"{' '.join(f'{x:.1f}' for x in before[:, k])} dB)")
+    assert np.all(before[1:].max(axis=0) > -28), before  # Q, U or V hold each source: something to remove
+    assert np.all(db < -30), db
+
+
+def test_the_unpolarised_sky_stays_unpolarised(maps):
+    """The unmodelled sources' Q, U, V small in the truth's map and the chain's: the sky is unpolarised, and a
+    cross-hand convention of the data that differed from mmflow's (the sign of xy, say) would leave
+    ``~2 r_e r_n / (1 - r^2 / 2)`` of I in U (~25 % at 30 deg from the zenith). Measured: at most 0.28 %
+    (truth) and 0.77 % (chain) of I."""
+    for key in ("truth", "chain"):
+        frac = []
+        for ra, dec, _ in UNMODELLED:
+            pix = hp.query_disc(NSIDE, _vec(ra, dec), np.deg2rad(3.0))
+            frac.append(np.abs(maps[key][1:, pix]).max(axis=1) / np.abs(maps[key][0, pix]).max())
+        frac = np.array(frac)
+        print(key, "Q, U, V / I, largest over the unmodelled sources:", np.round(frac.max(axis=0), 4))
+        assert frac.max() < (0.005 if key == "truth" else 0.01), (key, frac.max(axis=0))
+
+
+def test_unmodelled_sources_are_kept(maps):
+    """The unmodelled sources' I peaks within 12 % of the truth's, as in the Stokes-I test, but the circumpolar
+    one (below). Measured: 0.885-0.965."""
+    kept = kept_ratios(maps["chain"][0], maps["truth"][0])
+    print("unmodelled peaks / truth:", " ".join(f"{k:.3f}" for k in kept))
+    assert np.all(np.abs(kept[1:] - 1) < 0.12), kept
+
+
+@pytest.mark.xfail(strict=True, reason="the terrestrial stage's default templates take 27 % of the circumpolar "
+                   "source at (70, +65) deg through the dipoles' narrower beam (0.73 of the truth; 0.93 with the "
+                   "stage off, the other seven 0.94-0.99 then): open in issue 39")
+def test_the_circumpolar_unmodelled_source_is_kept(maps):
+    kept = kept_ratios(maps["chain"][0], maps["truth"][0])
+    assert abs(kept[0] - 1) < 0.12, kept  # measured 0.733
