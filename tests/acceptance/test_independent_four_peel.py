@@ -15,7 +15,7 @@ peak in the map of the same data calibrated but not peeled, in every Stokes para
 unmodelled sources alone, uncorrupted) carries radiometer noise like the data: with noise-free data the
 noise weights follow the modelling error and the full-Stokes solve's I came out at 0.46 of the
 unweighted map (the Stokes-I engine's at 0.92), which is the weighting's, not the peel's. Measured
-(2026-12-03): Cyg A I, Q, U, V -40.3, -55.6, -52.1, -54.8 dB; Cas A -39.1, -58.0, -56.9, -55.1 dB; without
+(2026-12-03): Cyg A I, Q, U, V -39.7, -57.4, -53.4, -54.4 dB; Cas A -38.7, -54.2, -60.2, -55.7 dB; without
 peeling Q, U, V at -26.5, -30.3, -26.8 (Cyg A) and -21.5, -30.3, -27.9 dB (Cas A).
 """
 import healpy as hp
