@@ -173,7 +173,8 @@ def independent_day(radius_m=20.0, freq_hz=40e6, n_times=192, start_jd=2457802.0
                 truth=uvdata(truth, "Jy", "avg", auto), layout=lay, gains=g, scint=fl[:2] / flux[:2, None])
 
 
-def _vec(ra_deg, dec_deg):
+def radec_vec(ra_deg, dec_deg):
+    """The unit vector of ICRS (RA, Dec) in degrees, as the maps' ``products.frame=icrs`` pixels are."""
     from mmflow.conventions import radec_to_vec
 
     return radec_to_vec(np.deg2rad(ra_deg), np.deg2rad(dec_deg))
@@ -193,7 +194,7 @@ def suppression_db(maps, key, nside, stokes=0):
 
     out = []
     for _, ra, dec in PEELED:
-        v = _vec(ra, dec)
+        v = radec_vec(ra, dec)
         peak = measure_peak(plane("nopeel", 0), v, np.deg2rad(10))["peak"]
         pix = hp.query_disc(nside, v, np.deg2rad(3.0))
         out.append(10 * np.log10(np.abs(plane(key, stokes)[pix] - plane("truth", stokes)[pix]).max() / peak))
@@ -204,5 +205,5 @@ def kept_ratios(chain, truth):
     """The :data:`UNMODELLED` sources' peaks in the Stokes-I map ``chain`` over theirs in ``truth``."""
     from mmflow.analysis.peaks import measure_peak
 
-    return np.array([measure_peak(chain, _vec(ra, dec), np.deg2rad(10))["peak"]
-                     / measure_peak(truth, _vec(ra, dec), np.deg2rad(10))["peak"] for ra, dec, _ in UNMODELLED])
+    return np.array([measure_peak(chain, radec_vec(ra, dec), np.deg2rad(10))["peak"]
+                     / measure_peak(truth, radec_vec(ra, dec), np.deg2rad(10))["peak"] for ra, dec, _ in UNMODELLED])

@@ -24,7 +24,7 @@ import pytest
 
 from mmflow.workflow.config.schema import load_config
 from mmflow.workflow.engine.runner import run_workflow
-from tests.independent_day import PEELED, UNMODELLED, _vec, independent_day, kept_ratios, suppression_db
+from tests.independent_day import PEELED, UNMODELLED, independent_day, kept_ratios, radec_vec, suppression_db
 from tests.workflow_helpers import fork_run
 
 QUIET = dict(progress=False, log=lambda *a: None)
@@ -75,7 +75,7 @@ def test_the_unpolarised_sky_stays_unpolarised(maps):
     for key in ("truth", "chain"):
         frac = []
         for ra, dec, _ in UNMODELLED:
-            pix = hp.query_disc(NSIDE, _vec(ra, dec), np.deg2rad(3.0))
+            pix = hp.query_disc(NSIDE, radec_vec(ra, dec), np.deg2rad(3.0))
             frac.append(np.abs(maps[key][1:, pix]).max(axis=1) / np.abs(maps[key][0, pix]).max())
         frac = np.array(frac)
         print(key, "Q, U, V / I, largest over the unmodelled sources:", np.round(frac.max(axis=0), 4))
