@@ -86,47 +86,77 @@ def _kernels(real_name):
                     out_diff[r, j, c] = cplx(complex(an * co - a_s * sr, an * s - a_s * si))
 
     @numba.njit(nogil=True, boundscheck=False, cache=True)
-    def kernel_folds(vec_n, vec_s, b_turns, kr_n, ki_n, kr_s, ki_s, out_sum, out_diff):
-        nphi, nf = kr_n.shape
+    def ring_fringes(vn, vs, b_turns, out):
+        nphi = vn.shape[1]
         nb = b_turns.shape[0]
-        fr = np.empty((4, nb), real)  # north re, im; south re, im
-        for j in range(nphi):
-            for c in range(nb):
-                for h, v in ((0, vec_n), (2, vec_s)):
-                    t = v[j, 0] * b_turns[c, 0] + v[j, 1] * b_turns[c, 1] + v[j, 2] * b_turns[c, 2]
+        for c in range(nb):  # rows: north cos, sin; mirror cos, sin (each contiguous in phi: the loops vectorize)
+            bx, by, bz = b_turns[c, 0], b_turns[c, 1], b_turns[c, 2]
+            for h, v in ((0, vn), (2, vs)):
+                re, im = out[c, h], out[c, h + 1]
+                for j in range(nphi):
+                    t = v[0, j] * bx + v[1, j] * by + v[2, j] * bz
                     sn, co = _sincos_turns(real(t - np.rint(t)), sin_c, cos_c, two_pi, quarter)
-                    fr[h, c] = co
-                    fr[h + 1, c] = sn
-            for f in range(nf):
-                anr, ani, asr, asi = kr_n[j, f], ki_n[j, f], kr_s[j, f], ki_s[j, f]
-                for c in range(nb):
-                    nr = anr * fr[0, c] - ani * fr[1, c]
-                    ni = anr * fr[1, c] + ani * fr[0, c]
-                    sr = asr * fr[2, c] - asi * fr[3, c]
-                    si = asr * fr[3, c] + asi * fr[2, c]
-                    out_sum[j, f, c] = cplx(complex(nr + sr, ni + si))
-                    out_diff[j, f, c] = cplx(complex(nr - sr, ni - si))
+                    re[j] = co
+                    im[j] = sn
 
-    return fringe_folds, kernel_folds
+    @numba.njit(nogil=True, boundscheck=False, cache=True)
+    def kernel_folds(fr, kr_n, ki_n, kr_s, ki_s, out_sum, out_diff):
+        nf, nphi = kr_n.shape
+        nb = fr.shape[0]
+        for f in range(nf):
+            anr, ani, asr, asi = kr_n[f], ki_n[f], kr_s[f], ki_s[f]
+            for c in range(nb):
+                f0, f1, f2, f3 = fr[c, 0], fr[c, 1], fr[c, 2], fr[c, 3]
+                s, d = out_sum[f, c], out_diff[f, c]  # interleaved re, im (the complex arrays' real views)
+                for j in range(nphi):
+                    nr = anr[j] * f0[j] - ani[j] * f1[j]
+                    ni = anr[j] * f1[j] + ani[j] * f0[j]
+                    sr = asr[j] * f2[j] - asi[j] * f3[j]
+                    si = asr[j] * f3[j] + asi[j] * f2[j]
+                    s[2 * j] = nr + sr
+                    s[2 * j + 1] = ni + si
+                    d[2 * j] = nr - sr
+                    d[2 * j + 1] = ni - si
+
+    return fringe_folds, ring_fringes, kernel_folds
 
 
-def kernel_fringe_folds(vec_n, vec_s, b_turns, k_n, k_s, out_sum, out_diff):
-    """Complex kernels times the fringes of one north ring and its mirror, folded, for the full-Stokes path.
+def ring_fringes(vec_n, vec_s, b_turns, dtype):
+    """The fringes of one north ring and its mirror for every baseline, for :func:`kernel_fringe_folds`.
 
-    ``out_sum/out_diff[j, f, c] = K_n[j, f] e^{2 pi i b_c.r_n,j} +/- K_s[j, f] e^{2 pi i b_c.r_s,j}``
-    (:mod:`mmflow.mmode.polarised_transfer`: f runs over the Stokes kernels of every correlation).
+    ``out[c] = (cos, sin)(2 pi b_c.r_n,j), (cos, sin)(2 pi b_c.r_s,j)``: real ``(nb, 4, nphi)`` of ``dtype``
+    (float32 or float64), each row contiguous in ``j``.
 
     Parameters
     ----------
     vec_n, vec_s : (nphi, 3) float64 directions of the two rings; b_turns : (nb, 3) float64 baselines
-    k_n, k_s : (nphi, nf) complex kernels on the two rings
-    out_sum, out_diff : (nphi, nf, nb) complex64 or complex128, written in full
     """
-    real = out_sum.real.dtype
-    kern = _kernels(np.dtype(real).name)[1]
+    kern = _kernels(np.dtype(dtype).name)[1]
+    out = np.empty((len(b_turns), 4, len(vec_n)), dtype)
+    kern(np.ascontiguousarray(np.asarray(vec_n, float).T), np.ascontiguousarray(np.asarray(vec_s, float).T),
+         np.ascontiguousarray(b_turns, float), out)
+    return out
+
+
+def kernel_fringe_folds(fringes, k_n, k_s, out_sum, out_diff):
+    """Complex kernels times the fringes of one north ring and its mirror, folded, for the full-Stokes path.
+
+    ``out_sum/out_diff[f, c, j] = K_n[f, j] e^{2 pi i b_c.r_n,j} +/- K_s[f, j] e^{2 pi i b_c.r_s,j}``
+    (:mod:`mmflow.mmode.polarised_transfer`: f runs over Stokes kernels of the correlations), phi last so
+    that each row's FFT reads contiguous memory (docs/stokes.md).
+
+    Parameters
+    ----------
+    fringes : (nb, 4, nphi) real, :func:`ring_fringes` (its precision is the output's)
+    k_n, k_s : (nf, nphi) complex kernels on the two rings
+    out_sum, out_diff : (nf, nb, nphi) complex64 or complex128 (contiguous), written in full
+    """
+    real = fringes.dtype
+    kern = _kernels(np.dtype(real).name)[2]
     parts = [np.ascontiguousarray(p, real) for k in (k_n, k_s) for p in (k.real, k.imag)]
-    kern(np.ascontiguousarray(vec_n, float), np.ascontiguousarray(vec_s, float), np.ascontiguousarray(b_turns, float),
-         *parts, out_sum, out_diff)
+    n = out_sum.shape
+    kern(fringes, *parts, out_sum.view(real).reshape(n[0], n[1], 2 * n[2]),
+         out_diff.view(real).reshape(n[0], n[1], 2 * n[2]))
 
 
 def fringe_folds(vec, b_turns, beam_n, beam_s, south_rot, out_sum, out_diff):
@@ -161,3 +191,32 @@ def sincos_turns(t, dtype=np.float64):
     inner(np.array([[[1.0, 0.0, 0.0]]]), b, np.ones((1, 1)), np.zeros((1, 1)),
           np.ones((1, len(t)), dtype), np.zeros((1, len(t)), dtype), out_s, out_d)
     return out_s[0, 0].imag, out_s[0, 0].real
+
+
+@numba.njit(nogil=True, boundscheck=False, cache=True)
+def _scatter(src, targets, i, fa, fx, fc, signs, m0, m1):
+    n_h, nb, n = src.shape
+    for h in range(n_h):
+        t = targets[h]
+        for j in range(len(fa)):
+            a, x, c, s = fa[j], fx[j], fc[j], signs[j]
+            for k in range(m1 - m0):  # each m's columns contiguous in the Fourier arrays
+                m = m0 + k
+                neg = (n - m) % n
+                out = t[k, a, i, x, c]
+                for b in range(nb):
+                    out[b] = s * src[h, b, m]
+                    out[nb + b] = s * src[h, b, neg]
+
+
+def scatter_m(src, fsum, fdiff, i, kernels, signs, m_range):
+    """Copy the block's m of one kernel's transformed rows into the Fourier arrays of ring ``i``, compiled (no
+    Python per copy, no fancy-indexed temporaries, the GIL released).
+
+    ``fsum/fdiff[m - m0, a, i, x, c, b] = sign F[b, m]`` and ``[..., nb + b] = sign F[b, -m]`` (index ``n - m``)
+    for each target kernel ``(a, x, c)`` of ``kernels`` (``(3, k)`` int: field pair, field, correlation) with its
+    ``sign`` (+1 or -1: negation is exact), ``F`` the rows ``src`` ``(2 [sum, diff], nb, n_phi)``.
+    """
+    k = np.asarray(kernels, np.int64)
+    _scatter(src, (fsum, fdiff), int(i), k[0], k[1], k[2], np.asarray(signs, src.real.dtype), int(m_range[0]),
+             int(m_range[1]))

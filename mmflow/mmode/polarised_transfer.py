@@ -32,7 +32,7 @@ import ducc0
 import numpy as np
 
 from mmflow.conventions import complex_dtype
-from mmflow.mmode.fringe_kernels import kernel_fringe_folds
+from mmflow.mmode.fringe_kernels import kernel_fringe_folds, ring_fringes, scatter_m
 from mmflow.mmode.polarised import CORRELATIONS, stokes_kernels
 from mmflow.mmode.spin_legendre import weighted_spin_tables
 from mmflow.threads import n_threads, single_threaded_blas
@@ -42,6 +42,10 @@ FIELDS = ("I", "V", "Q", "U")
 #: Bytes one pass's Fourier arrays may hold; more m than fit are done in blocks, each block's ring
 #: FFTs recomputed (a quarter of the time at lmax 1000 with 8 baselines a pass: docs/stokes.md).
 FOURIER_BUDGET_BYTES = 1024 * 2 ** 20
+#: kernels (of one ring's 16, every baseline) folded and Fourier transformed at once in :func:`polarised_fourier`:
+#: 2 x 2 x nb x n_phi complexes stay in cache from the fold to the copy (at lmax 1000, 64 baselines, 3430 points a
+#: ring: 40 ms a ring with 2, 47 with 1, 46 with 4, 67 with all 16; docs/stokes.md)
+KERNELS_PER_FFT = 2
 #: baselines a pass (:func:`pass_baselines`): fewer narrow the GEMMs, more are not needed to fill them
 PASS_BASELINES = (8, 64)
 
@@ -85,6 +89,39 @@ class FourierBuffers:
         return tuple(f[:n].reshape(shape) for f in self.flat)
 
 
+def distinct_kernels(k_n, k_s):
+    """The kernels a ring must transform: ``(distinct, copies, zero)`` with ``distinct`` the indices of the kernels
+    ``(k_n[f], k_s[f])`` (north ring, mirror ring) that are neither zero on both rings (``zero``) nor equal, or
+    opposite, to an earlier one, and ``copies[f] = [(f', +1 or -1), ...]`` the later kernels equal to ``+-``
+    kernel f. The fold
+    and the FFT are linear and negation is exact in floating point, so a copy's transforms are kernel f's (or
+    their negation) bit for bit. Through a real Jones beam (the short dipole) V is zero in xx and yy and yx's I,
+    Q, U, V are xy's, +, +, +, -: 10 of the 16 kernels are transformed (``tests/unit/mmode/test_polarised_fast.py``).
+    """
+    distinct, copies, zero = [], {}, []
+    for f in range(len(k_n)):
+        if not (k_n[f].any() or k_s[f].any()):
+            zero.append(f)
+            continue
+        for d in distinct:
+            sign = _same_up_to_sign(k_n[f], k_s[f], k_n[d], k_s[d])
+            if sign:
+                copies.setdefault(d, []).append((f, sign))
+                break
+        else:
+            distinct.append(f)
+    return distinct, copies, zero
+
+
+def _same_up_to_sign(a_n, a_s, b_n, b_s):
+    """+1 where kernel ``a`` equals kernel ``b`` on both rings, -1 where it equals ``-b``, else 0."""
+    if np.array_equal(a_n, b_n) and np.array_equal(a_s, b_s):
+        return 1
+    if np.array_equal(a_n, -b_n) and np.array_equal(a_s, -b_s):
+        return -1
+    return 0
+
+
 def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.complex128, timings=None,
                       i_only=False, buffers=None):
     """``F_k +/- F_k'`` of every field and correlation for ``m0 <= m < m1`` and the active north rings.
@@ -107,22 +144,34 @@ def polarised_fourier(grid, b, m_range, correlations=CORRELATIONS, cdtype=np.com
     nf = 1 if i_only else 2
     shape = (m1 - m0, nf, len(rings), nf, nc, 2 * nb)
     fsum, fdiff = (buffers or FourierBuffers()).arrays(shape, cdtype)
-    neg = (n - np.arange(m0, m1)) % n  # F_{-m} sits at index n - m (0 for m = 0)
+    rdtype = np.dtype(cdtype).type(0).real.dtype
 
-    def kernels(k):
+    def kernels(k):  # (kernel, phi): kernel = (field pair, field, correlation) of the Fourier arrays
         kern = ring_kernels(grid, k, correlations)
-        return (kern[:, :1] if i_only else kern).reshape(n, -1)
+        return np.ascontiguousarray((kern[:, :1] if i_only else kern).reshape(n, -1).T)
 
     def ring(i):
         k = rings[i]
         ks = len(grid.theta) - 1 - k  # the mirror ring
-        folded = np.empty((2, n, nf * nf * nc, nb), cdtype)
-        kernel_fringe_folds(grid.vectors[k], grid.vectors[ks], b, kernels(k), kernels(ks), folded[0], folded[1])
-        for f, target in ((folded[0], fsum), (folded[1], fdiff)):
-            ducc0.fft.c2c(f, axes=(0,), forward=False, inorm=0, out=f, nthreads=1)
-            f = f.reshape(n, nf, nf, nc, nb)  # fields (I, V), (Q, U); or I alone
-            target[:, :, i, ..., :nb] = f[m0:m1]
-            target[:, :, i, ..., nb:] = f[neg]
+        k_n, k_s = kernels(k), kernels(ks)
+        distinct, copies, zero = distinct_kernels(k_n, k_s)
+        for f in zero:  # a kernel zero on both rings (e.g. V of xx through a real Jones beam)
+            a, x, c = np.unravel_index(f, (nf, nf, nc))
+            for target in (fsum, fdiff):
+                target[:, a, i, x, c] = 0
+        if not distinct:
+            return
+        fringes = ring_fringes(grid.vectors[k], grid.vectors[ks], b, rdtype)
+        folded = np.empty((2, KERNELS_PER_FFT, nb, n), cdtype)
+        for g0 in range(0, len(distinct), KERNELS_PER_FFT):  # a few kernels at a time: fold, FFT, copy in cache
+            group = distinct[g0:g0 + KERNELS_PER_FFT]
+            g = len(group)
+            kernel_fringe_folds(fringes, k_n[group], k_s[group], folded[0, :g], folded[1, :g])
+            ducc0.fft.c2c(folded[:, :g], axes=(3,), forward=False, inorm=0, out=folded[:, :g], nthreads=1)
+            for j, f in enumerate(group):  # each kernel, and the later ones equal to it up to sign
+                out = [(f, 1)] + copies.get(f, [])
+                index = np.unravel_index([o for o, _ in out], (nf, nf, nc))
+                scatter_m(folded[:, j], fsum, fdiff, i, index, [s for _, s in out], m_range)
 
     t0 = time.perf_counter()
     with ThreadPoolExecutor(max_workers=n_threads()) as pool:

@@ -114,6 +114,34 @@ def test_fast_blocks_equal_the_reference_kernels(correlations, monkeypatch):
         np.testing.assert_array_equal(g, h)
 
 
+def test_a_ring_transforms_only_its_distinct_kernels(monkeypatch):
+    """Through the short dipole's real Jones vectors V is zero in xx and yy and yx's I, Q, U, V kernels are
+    xy's with signs +, +, +, -: a ring transforms 10 of its 16 kernels, the copies are the transformed ones'
+    (negated for V) bit for bit, and the Fourier arrays equal those of every kernel transformed to rounding."""
+    grid, b = _setup(5, 30)
+    k = fast.active_rings(grid)[3]
+
+    def kernels(ring):
+        return fast.ring_kernels(grid, ring, CORRELATIONS).reshape(grid.n_phi, -1).T
+
+    k_n, k_s = kernels(k), kernels(len(grid.theta) - 1 - k)
+    distinct, copies, zero = fast.distinct_kernels(k_n, k_s)
+    f = {x + corr: 4 * a + c for a, x in enumerate(fast.FIELDS) for c, corr in enumerate(CORRELATIONS)}
+    assert len(distinct) == 10 and sorted(zero) == [f["Vxx"], f["Vyy"]]
+    assert copies == {f["Ixy"]: [(f["Iyx"], 1)], f["Vxy"]: [(f["Vyx"], -1)], f["Qxy"]: [(f["Qyx"], 1)],
+                      f["Uxy"]: [(f["Uyx"], 1)]}
+    fsum, fdiff, _ = fast.polarised_fourier(grid, b, (0, 12), CORRELATIONS, np.complex128)
+    # (m, pair, ring, field, corr, cols): field (I, V, Q, U) = (pair, field) (0, 0), (0, 1), (1, 0), (1, 1)
+    for arr in (fsum, fdiff):
+        np.testing.assert_array_equal(arr[:, 0, :, 0, 3], arr[:, 0, :, 0, 2])  # I of yx is I of xy
+        np.testing.assert_array_equal(arr[:, 0, :, 1, 3], -arr[:, 0, :, 1, 2])  # V of yx is -V of xy
+        assert not arr[:, 0, :, 1, :2].any()  # V of xx and yy
+    monkeypatch.setattr(fast, "distinct_kernels", lambda k_n, k_s: (list(range(len(k_n))), {}, []))
+    every = fast.polarised_fourier(grid, b, (0, 12), CORRELATIONS, np.complex128)
+    for got, ref in zip((fsum, fdiff), every[:2]):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+
+
 def test_passes_sharing_their_fourier_buffers_give_the_same_bits(monkeypatch):
     """Passes of several baseline sets and grids through one :class:`FourierBuffers` (blocks of m one at a
     time, E, B, V to a lower band limit: polarised and I-only arrays of several shapes in the same memory,

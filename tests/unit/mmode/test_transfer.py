@@ -156,8 +156,8 @@ def test_compiled_kernels_load_from_numba_cache_in_a_new_process(tmp_path):
             "legendre.legendre_table(3, 20, np.linspace(0.1, 3.0, 7))\n"
             "spin_legendre.weighted_spin_tables(3, 20, np.linspace(0.1, 3.0, 7))\n"
             "fk.sincos_turns(np.array([0.1, 0.4]), np.float32)\n"
-            "v, k, out = np.ones((4, 3)) / 3 ** 0.5, np.ones((4, 2), complex), np.empty((2, 4, 2, 5), np.complex64)\n"
-            "fk.kernel_fringe_folds(v, -v, np.ones((5, 3)), k, k, out[0], out[1])\n"
+            "v, k, out = np.ones((4, 3)) / 3 ** 0.5, np.ones((4, 2), complex), np.empty((2, 2, 5, 4), np.complex64)\n"
+            "fk.kernel_fringe_folds(fk.ring_fringes(v, -v, np.ones((5, 3)), np.float32), k.T, k.T, out[0], out[1])\n"
             "ks = [legendre._kernel(), spin_legendre._kernel(), *fk._kernels('float32')]\n"
             "print(json.dumps([[len(k.stats.cache_hits), len(k.stats.cache_misses)] for k in ks]))\n")
     env = dict(__import__("os").environ, NUMBA_CACHE_DIR=str(tmp_path))
@@ -168,6 +168,6 @@ def test_compiled_kernels_load_from_numba_cache_in_a_new_process(tmp_path):
 
     first = run()
     files = sorted(p.name for p in tmp_path.rglob("*.nb*"))
-    assert first == [[0, 1]] * 4  # compiled once each, and written to the cache
-    assert run() == [[1, 0]] * 4  # the second process compiles nothing
+    assert first == [[0, 1]] * 5  # compiled once each, and written to the cache
+    assert run() == [[1, 0]] * 5  # the second process compiles nothing
     assert sorted(p.name for p in tmp_path.rglob("*.nb*")) == files  # and adds no entry
