@@ -98,7 +98,7 @@ def _data_rows(mmodes, k, index, m0=None):
 
 def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, correlations=CORRELATIONS,
                                 chunk_size=None, dtype=np.float64, lmax_b=None, lmax_p=None, m_range=None,
-                                lmax=None):
+                                lmax=None, timings=None):
     """Stream over baseline chunks: ``G_m += B_m^H W B_m``, ``r_m += B_m^H W v_m``.
 
     Each chunk's blocks come from the ring-FFT + GEMM path
@@ -144,6 +144,9 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
 
     lmax : int, optional
         The band limit of T (default ``grid.lmax``; needed when ``grid`` is a callable).
+    timings : dict, optional
+        Seconds by phase, added to (:func:`mmflow.mmode.polarised_transfer.polarised_pass`'s ``fourier_s``,
+        ``mpool_s``, ...: ``mmflow bench stokes-block``).
 
     Returns
     -------
@@ -212,34 +215,50 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
                 vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)
 
         polarised_pass(grid_of(top, index), b[index], consume, mmax=min(top, m1 - 1), correlations=correlations,
-                       dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p, buffers=buffers)
+                       dtype=dtype, lmax_rows=top, mmin=m0, lmax_pol=lmax_p, buffers=buffers, timings=timings)
     buffers = None  # the Fourier arrays' memory freed before the Grams are completed
     for k in range(len(gram)):  # one m at a time: never two whole Grams
         gram[k] = hermitian_full(gram[k])
     return PolarisedNormal(lmax, gram, rhs, vhv, lmax_p, m0)
 
 
-#: bytes per Gram element a block of m holds at once while it is solved: the complex128 Gram and its
-#: complex128 Cholesky factor (the accumulation's own copy is converted one m at a time)
+#: bytes per Gram element held while every m's Grams are kept with their factors: the complex128 Gram and its
+#: complex128 Cholesky factor (:class:`PolarisedObserver` with ``keep_factors``)
 BLOCK_BYTES_PER_ELEMENT = 32
 
 
-def stokes_m_blocks(lmax, lmax_p, budget_bytes, bytes_per_m=0.0):
+def stokes_m_blocks(lmax, lmax_p, budget_bytes, bytes_per_m=0.0, bytes_per_element=BLOCK_BYTES_PER_ELEMENT):
     """Contiguous blocks of m ``[(m0, m1), ...]`` covering ``0..lmax`` whose normal equations fit a budget.
 
-    Block m holds ``BLOCK_BYTES_PER_ELEMENT N_m^2`` bytes (``N_m = L_m + 3 P_m``, :func:`stokes_sizes`) and
-    ``bytes_per_m`` (its m-modes); blocks are filled greedily from m = 0, each with at least one m. A
-    function of the settings only (never of the cluster).
+    Block m holds ``bytes_per_element N_m^2`` bytes (``N_m = L_m + 3 P_m``, :func:`stokes_sizes`; the
+    accumulation's complex size where the block is solved one m at a time,
+    :meth:`PolarisedObserver.solution_and_leakage`) and ``bytes_per_m`` (its m-modes). As few blocks as
+    filling them greedily from m = 0 within ``budget_bytes`` gives, each with at least one m, balanced: the
+    smallest budget that still gives that many (a greedy fill leaves a last block of a few m, which pays the ring
+    stage of every long baseline again for them: 1/7 of the stage at the paper's scale). A function of the
+    settings only (never of the cluster).
     """
+    cost = [bytes_per_element * float(sum(stokes_sizes(m, lmax, lmax_p) * np.array([1, 3]))) ** 2 + bytes_per_m
+            for m in range(lmax + 1)]
+    n = len(_greedy_blocks(cost, budget_bytes))
+    lo, hi = max(cost), float(budget_bytes)  # the smallest budget giving n blocks lies in [lo, hi]
+    if hi <= lo:
+        return _greedy_blocks(cost, budget_bytes)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if len(_greedy_blocks(cost, mid)) <= n else (mid, hi)
+    return _greedy_blocks(cost, hi)
+
+
+def _greedy_blocks(cost, budget):
+    """Blocks ``[(m0, m1), ...]`` filled from m = 0 while the sum of ``cost[m]`` stays within ``budget``."""
     blocks, m0, used = [], 0, 0.0
-    for m in range(lmax + 1):
-        n_t, n_p = stokes_sizes(m, lmax, lmax_p)
-        b = BLOCK_BYTES_PER_ELEMENT * float(n_t + 3 * n_p) ** 2 + bytes_per_m
-        if m > m0 and used + b > budget_bytes:
+    for m, b in enumerate(cost):
+        if m > m0 and used + b > budget:
             blocks.append((m0, m))
             m0, used = m, 0.0
         used += b
-    return blocks + [(m0, lmax + 1)]
+    return blocks + [(m0, len(cost))]
 
 
 #: ``eps_pol / eps`` when not given: the prior of a weakly polarised sky (docs/stokes.md)
@@ -353,17 +372,37 @@ class PolarisedObserver:
             rhs = rhs_of_m(m)
             if out is None:
                 out = np.zeros((len(rhs), 4, n_alm(self.lmax)), np.complex128)
-            if block is None:
-                continue
-            keep, factor = block
-            y = np.zeros((len(rhs), len(keep)), np.complex128)
-            y[:, keep] = sla.cho_solve(factor, rhs[:, keep].T, check_finite=False).T
-            _unpack_into(out, y, m, self.lmax, self.lmax_p)
+            if block is not None:
+                _unpack_into(out, _solved(block, rhs), m, self.lmax, self.lmax_p)
         return out
 
     def solution(self):
         """The solve of the data: ``(G_m + D)^-1 r_m`` of every data vector, ``(n_vec, 4, n_alm)``."""
         return self.solve(lambda m: self.normal.rhs[m - self.normal.m0])
+
+    def solution_and_leakage(self):
+        """:meth:`solution` and the image of its first vector's unpolarised part through the solve: ``self([T, 0,
+        0, 0])`` with ``T`` the solution's, ``((n_vec, 4, n_alm), (4, n_alm))``; each m factorised once, so that
+        without ``keep_factors`` one m's factor is in memory at a time (the stokes stage's block tasks). The same
+        bits as :meth:`solution` then ``self`` of its unpolarised part."""
+        out = leak = None
+        for m in self.normal.m_range:
+            block = self._factor(m) if self.blocks is None else self.blocks[m]
+            rhs = self.normal.rhs[m - self.normal.m0]
+            if out is None:
+                out, leak = (np.zeros((n, 4, n_alm(self.lmax)), np.complex128) for n in (len(rhs), 1))
+            if block is None:
+                continue
+            _unpack_into(out, _solved(block, rhs), m, self.lmax, self.lmax_p)
+            n_p = self.normal.sizes(m)[1]  # [T_m; 0; 0; 0] of the first solution (:func:`_pack`)
+            t = np.concatenate([out[0, 0, m_slice(self.lmax, m)], np.zeros(3 * n_p, np.complex128)])
+            _unpack_into(leak, _solved(block, self._gram_times(m, t[None])), m, self.lmax, self.lmax_p)
+        return out, leak[0]
+
+    def _gram_times(self, m, packed):
+        """``G_m x`` of packed block-m unknowns ``(n_vec, N_m)``: ``(n_vec, N_m)`` (one product for many)."""
+        g = np.asarray(self.normal.gram[m - self.normal.m0])
+        return (g @ packed[0])[None] if len(packed) == 1 else (g @ packed.T).T
 
     def __call__(self, true_alm):
         """The noiseless image through the solve of ``(4, n_alm)`` or ``(n_vec, 4, n_alm)`` true harmonics
@@ -372,10 +411,17 @@ class PolarisedObserver:
         x = x if x.ndim == 3 else x[None]
 
         def rhs(m):  # the Gram read once per m (it may come from disk: the stokes stage's stored Grams)
-            g = np.asarray(self.normal.gram[m - self.normal.m0])
-            packed = np.stack([_pack(xx, m, self.lmax, self.lmax_p) for xx in x])
-            return (g @ packed[0])[None] if len(x) == 1 else (g @ packed.T).T  # one product for many sources
+            return self._gram_times(m, np.stack([_pack(xx, m, self.lmax, self.lmax_p) for xx in x]))
         return self.solve(rhs)
+
+
+def _solved(block, rhs):
+    """``(G_m + D)^-1 r`` on a block's kept unknowns (zero at those the filters remove), ``block`` a
+    :meth:`PolarisedObserver._factor`, ``rhs`` ``(n_vec, N_m)``."""
+    keep, factor = block
+    y = np.zeros((len(rhs), len(keep)), np.complex128)
+    y[:, keep] = sla.cho_solve(factor, rhs[:, keep].T, check_finite=False).T
+    return y
 
 
 def point_source_stokes_alm(vectors, stokes_jy, lmax, epsilon=1e-12):

@@ -2,16 +2,17 @@
 
 * the normal equations accumulated and solved per block of m give the bits of one pass over every m;
   the observer that factorises each m again per call (the stokes stage's second phase) gives the same
-  bits as the one that keeps its factors; each chunk of baselines on a grid of its own size gives the
+  bits as the one that keeps its factors, and so does the block task's solve and leakage with each m
+  factorised once (``solution_and_leakage``); each chunk of baselines on a grid of its own size gives the
   same normal equations to the quadrature's rounding (1e-8; measured ~4e-10);
 * with ``lmax_p < lmax`` the solve is the reduced problem: the dense least squares over T's harmonics to
   lmax and E's, B's, V's to ``lmax_p``, from the reference kernels' transfer blocks, solved by numpy.
 """
 import numpy as np
 
-from mmflow.conventions import m_slice, n_alm
-from mmflow.imaging.polarised import (PolarisedObserver, accumulate_polarised_normal, penalty, solve_polarised,
-                                      stokes_m_blocks)
+from mmflow.conventions import m_slice, n_alm, stokes_sizes
+from mmflow.imaging.polarised import (PolarisedObserver, _greedy_blocks, accumulate_polarised_normal, penalty,
+                                      solve_polarised, stokes_m_blocks)
 from mmflow.imaging.solvers import floored_penalty
 from mmflow.mmode.polarised import make_polarised_grid, reference_transfer_blocks
 from mmflow.mmode.transfer import fringe_bandlimit
@@ -68,6 +69,10 @@ def test_blocks_of_m_solve_as_one_pass_and_chunk_grids_give_the_same_normal_equa
         assert np.abs(np.delete(x, np.r_[sl], axis=-1)).max() == 0  # nothing outside the block
         x_blk[..., sl] = x[..., sl]
         leak_blk[..., sl] = kept(leak_in)[..., sl]
+        # the block task's one pass (each m factorised once, none kept): the solve's and the leakage's bits
+        x_once, leak_once = again.solution_and_leakage()
+        np.testing.assert_array_equal(x_once, x)
+        np.testing.assert_array_equal(leak_once[..., sl], leak_blk[0, ..., sl])
         # the chunks on grids of their own size: the same normal equations to the quadrature's rounding
         small = accumulate_polarised_normal(grid_of, b, mm[:, m0:m1], w, chunk_size=3, lmax_b=lmax_b, lmax_p=12,
                                             m_range=(m0, m1), lmax=LMAX)
@@ -78,6 +83,23 @@ def test_blocks_of_m_solve_as_one_pass_and_chunk_grids_give_the_same_normal_equa
     assert min(tops) < LMAX  # short baselines' chunks ran on smaller grids
     np.testing.assert_array_equal(x_blk, x_one)  # per block: the same bits as one pass
     np.testing.assert_array_equal(leak_blk, leak_one)
+
+
+def test_blocks_of_m_are_as_few_as_the_budget_allows_and_balanced():
+    """At the paper's scale (lmax 1000, Q, U, V to 256, complex64 Grams, 3 splits x 32,896 baselines' m-modes,
+    4 GiB) the greedy fill from m = 0 leaves a last block of a few m, which would pay the ring stage of every
+    long baseline for them: the blocks are as many as the greedy fill's, each within the budget, and balanced
+    (the largest no larger than the greedy fill's, the smallest more than half of it)."""
+    lmax, lmax_p, budget, per_m = 1000, 256, 4 * 2 ** 30, 3 * 2 * 4 * 32896 * 16
+    cost = [8.0 * float(sum(stokes_sizes(m, lmax, lmax_p) * np.array([1, 3]))) ** 2 + per_m for m in range(lmax + 1)]
+    greedy = _greedy_blocks(cost, budget)
+    blocks = stokes_m_blocks(lmax, lmax_p, budget, per_m, bytes_per_element=8)
+    assert greedy[-1][1] - greedy[-1][0] < 10  # the runt
+    assert len(blocks) == len(greedy) and blocks[0][0] == 0 and blocks[-1][1] == lmax + 1
+    assert all(a[1] == b[0] for a, b in zip(blocks, blocks[1:]))  # contiguous
+    used = [sum(cost[m0:m1]) for m0, m1 in blocks]
+    assert max(used) <= budget and max(used) <= max(sum(cost[m0:m1]) for m0, m1 in greedy)
+    assert min(used) > 0.5 * max(used)
 
 
 def test_a_lower_band_limit_for_q_u_v_solves_the_reduced_dense_problem():

@@ -8,9 +8,12 @@ from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT, stokes_m_blocks, s
 from mmflow.mmode.polarised import CORRELATIONS
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 
-#: bytes of a phase-one task's Grams, factors and m-modes (:func:`stokes_m_blocks`): with the ring FFTs'
-#: budget and the grid, a task of a few GB
-BLOCK_BYTES = 3 * 2 ** 30
+#: bytes of a phase-one task's Grams (the accumulation's precision: each m is factorised on its own) and m-modes
+#: (:func:`stokes_m_blocks`): with the ring FFTs' budget and the grid, a task of about 5.5 GB. Every block of m
+#: pays the ring stage (the FFTs of the fringes times the kernels) of every baseline again, so fewer, larger
+#: blocks are faster: at the paper's scale 4 blocks, each 1-2 passes of the 16 kernels (10 with 3 GB of complex128
+#: Grams and factors: docs/stokes.md)
+BLOCK_BYTES = 4 * 2 ** 30
 #: phase two keeps a channel's Grams and their Cholesky factors in memory when they fit this (each Gram read
 #: once; else it reads and factorises each stored Gram again per observation: the same bits, one m's matrices
 #: in memory)
@@ -24,7 +27,8 @@ def mmode_bytes_per_m(n_split, n_bl):
 
 def blocks_of(cfg, n_split, n_bl):
     """The stage's blocks of m ``[(m0, m1), ...]``: from the settings and the data's size only."""
-    return stokes_m_blocks(cfg.mmode.lmax, stokes_lmax_of(cfg), BLOCK_BYTES, mmode_bytes_per_m(n_split, n_bl))
+    return stokes_m_blocks(cfg.mmode.lmax, stokes_lmax_of(cfg), BLOCK_BYTES, mmode_bytes_per_m(n_split, n_bl),
+                           gram_itemsize(cfg))
 
 
 def sizes_of(cfg):
@@ -38,8 +42,14 @@ def sizes_of(cfg):
 
 
 def gram_dtype(cfg):
-    """The Grams' precision on disk: the accumulation's (complex64 for ``transfer.dtype: float32``)."""
+    """The Grams' precision in a block task and on disk: the accumulation's (complex64 for ``transfer.dtype:
+    float32``)."""
     return complex_dtype(cfg.transfer.dtype).name
+
+
+def gram_itemsize(cfg):
+    """Bytes of a Gram element in a block task (:func:`gram_dtype`)."""
+    return complex_dtype(cfg.transfer.dtype).itemsize
 
 
 def kept_in_memory(cfg):

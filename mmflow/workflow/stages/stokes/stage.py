@@ -12,8 +12,8 @@ the correlations' relative inverse noise variances where ``transfer.noise_weight
 m-filters for every data split (``mmode.splits``) through one factorisation, images the leakage (the
 unpolarised sky ``[T, 0, 0, 0]`` through the same solve, :func:`mmflow.imaging.polarised.expected_alm`),
 and writes the block's harmonics, leakage and Grams to ``stokes.zarr``. The blocks
-(:func:`mmflow.imaging.polarised.stokes_m_blocks`) keep a task's Grams, factors and m-modes within
-``BLOCK_BYTES``: no task holds a channel's whole Gram.
+(:func:`mmflow.imaging.polarised.stokes_m_blocks`) keep a task's Grams (in the accumulation's precision; each
+m's factor is made and dropped in turn) and m-modes within ``BLOCK_BYTES``: no task holds a channel's whole Gram.
 
 Phase two, one task per frequency: the polarisation response of test sources through the run's solve
 (:func:`mmflow.imaging.polarised.polarisation_response`), the full-Stokes CLEAN of the compact sources (always:
@@ -146,21 +146,8 @@ def _block_task(ctx, key):
     keep = np.flatnonzero(w.max(axis=0) > 0)  # baselines with data in some correlation
     # the block's m-modes only: (split, m, pm, corr, bl)
     mm = ctx.read(STORES.mmodes.mmodes_corr, (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0][..., keep]
-    jones = make_jones(cfg.beam.model_dump())
-    tel = ctx.telescope()
-    b = baselines_in_wavelengths(tel, pairs[keep], freq)
-    b_len = np.linalg.norm(b, axis=1)
-    lmax_b = tel.baseline_lmax(freq, lmax, pairs[keep]) if cfg.transfer.per_baseline_lmax else None
-    dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
-    normal = accumulate_polarised_normal(_grids(tel.lat_rad, jones, freq, lmax, b_len), b, mm, w[:, keep],
-                                         CORRELATIONS, dtype=dtype, lmax_b=lmax_b, lmax_p=lmax_p,
-                                         m_range=(m0, m1), lmax=lmax)
-    eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
-    observe = PolarisedObserver(normal, eps, filters)  # factorised once: the solve and the leakage
-    splits = observe.solution()  # (split, 4, n_alm), zero outside the block
-    unpolarised = np.zeros_like(splits[0])
-    unpolarised[0] = splits[0][0]
-    leak = observe(unpolarised)[0]
+    normal = block_normal(cfg, ctx.telescope(), freq, pairs[keep], mm, w[:, keep], (m0, m1))
+    splits, leak = block_solve(cfg, normal)
     out = ctx.open(STORES.stokes, mode="r+")
     n_m = out[STORES.stokes.alm].shape[3]
     mb = slice(m0, min(m1, n_m))
@@ -174,7 +161,31 @@ def _block_task(ctx, key):
         pad = np.zeros((1, n0, n0), gdt)
         pad[0, :len(g), :len(g)] = g
         ctx.write(out, name, (slice(k, k + 1),), pad)
-    return {"baselines": int(len(keep)), "m": [m0, m1], "eps": list(eps), "stokes_lmax": lmax_p}
+    return {"baselines": int(len(keep)), "m": [m0, m1], "eps": list(stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol)),
+            "stokes_lmax": lmax_p}
+
+
+def block_normal(cfg, tel, freq, pairs, mm, w, m_range, timings=None, grids=None):
+    """The normal equations of one block of m ``m_range`` (:func:`accumulate_polarised_normal`, float32 or
+    float64 as ``transfer.dtype``) of baselines ``pairs`` at ``freq`` (Hz) with their m-modes ``mm`` ``(split, m
+    of the block, 2, corr, bl)`` and weights ``w`` ``(corr, bl)``, each chunk on its own grid (:func:`_grids`;
+    ``grids`` wraps it: ``mmflow bench stokes-block`` times it); ``timings`` as there."""
+    lmax, lmax_p = cfg.mmode.lmax, stokes_lmax_of(cfg)
+    b = baselines_in_wavelengths(tel, pairs, freq)
+    lmax_b = tel.baseline_lmax(freq, lmax, pairs) if cfg.transfer.per_baseline_lmax else None
+    dtype = np.float32 if cfg.transfer.dtype == "float32" else np.float64
+    grid_of = _grids(tel.lat_rad, make_jones(cfg.beam.model_dump()), freq, lmax, np.linalg.norm(b, axis=1))
+    return accumulate_polarised_normal(grid_of if grids is None else grids(grid_of), b, mm, w, CORRELATIONS,
+                                       dtype=dtype, lmax_b=lmax_b, lmax_p=lmax_p, m_range=m_range, lmax=lmax,
+                                       timings=timings)
+
+
+def block_solve(cfg, normal):
+    """The solve of a block's data splits and the leakage of its unpolarised sky
+    (:meth:`PolarisedObserver.solution_and_leakage`: each m factorised once, one m's factor in memory at a time)
+    with ``eps``, ``eps_pol`` and the m-filters of ``imaging``."""
+    eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
+    return PolarisedObserver(normal, eps, filters, keep_factors=False).solution_and_leakage()
 
 
 def _grids(lat_rad, jones, freq, lmax, b_len):
