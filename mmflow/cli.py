@@ -14,7 +14,7 @@ from mmflow.allocator import keep_freed_memory
 from mmflow.errors import InputError, MmflowError
 
 BENCHMARKS = ("transfer", "solve", "simulate", "workflow", "calibrate", "ingest", "gaps", "clean", "channel", "table1",
-              "paper", "cluster")
+              "paper", "cluster", "stokes-block")
 
 
 def _common(p):
@@ -105,6 +105,10 @@ def build_parser(stages=True):
     tr = b.add_argument_group("transfer", "options of `mmflow bench transfer`")
     tr.add_argument("--stokes", choices=("I", "IQUV"), default="I",
                     help="IQUV: full-Stokes transfer + Gram against Stokes I in the same run (docs/stokes.md)")
+    sb = b.add_argument_group("stokes-block", "options of `mmflow bench stokes-block` (the paper's channel in full "
+                              "Stokes; --set for further overrides)")
+    sb.add_argument("--fraction", type=int, help="measure 1/N of the baselines (default 128; 8 with --quick)")
+    sb.add_argument("--blocks", help="the blocks of m to run, comma-separated indices (default every block)")
     ig = b.add_argument_group("ingest", "options of `mmflow bench ingest`")
     ig.add_argument("--raw", action="store_true",
                     help="raw OVRO-LWA MeasurementSets (one per integration, 109 channels, xx yy xy yx, uncalib): "
@@ -227,6 +231,9 @@ def _bench(args):
         options = dict(raw=args.raw)
     elif args.what == "transfer":
         options = dict(stokes=args.stokes)
+    elif args.what == "stokes-block":
+        options = dict(fraction=args.fraction, overrides=args.set,
+                       blocks=[int(x) for x in args.blocks.split(",")] if args.blocks else None)
     res = bench.run(args.what, quick=args.quick, **options)
     text = json.dumps(res, indent=2)
     print(text)

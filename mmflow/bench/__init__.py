@@ -7,7 +7,8 @@ workflow's own costs: checksums, non-finite guards, per-stage times), :mod:`.cal
 (one real channel through transfer, Gram and solve, per phase, beside the model's projection),
 :mod:`.table1` (the paper array's resolution at the paper's fraction of modes), :mod:`.paper` (the
 paper's channel end to end through the workflow, per stage, beside ``mmflow plan``), :mod:`.stokes`
-(``transfer --stokes IQUV``: full-Stokes transfer + Gram against Stokes I).
+(``transfer --stokes IQUV``: full-Stokes transfer + Gram against Stokes I), :mod:`.stokes_block` (the stokes
+stage's block tasks at the paper's scale on a fraction of the baselines, beside its cost model).
 """
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ import importlib
 
 MODULES = {"transfer": "engine", "solve": "engine", "simulate": "engine", "workflow": "workflow",
            "calibrate": "calibrate", "ingest": "ingest", "gaps": "gaps",
-           "clean": "clean", "channel": "channel", "table1": "table1", "paper": "paper", "cluster": "cluster"}
+           "clean": "clean", "channel": "channel", "table1": "table1", "paper": "paper", "cluster": "cluster",
+           "stokes-block": "stokes_block"}
 
 
 def run(what, quick=False, **options):

@@ -1,22 +1,27 @@
 """The stokes stage's cost: per channel a task per block of m (:func:`blocks.blocks_of`) and one task of the
-second phase; the time from the work the stage does, counted as the stage does it (there are no fitted
-constants for it).
+second phase; the time from the work the stage does, counted as the stage does it, at rates measured on one
+thread by ``mmflow bench stokes-block`` (there are no fitted constants for it).
 
-A block task holds its block's Grams and factors (``BLOCK_BYTES_PER_ELEMENT`` per element of
-``sum_m N_m^2``, ``N_m = L_m + 3 P_m``), its m-modes, one pass's ring-Fourier arrays (at most
-``FOURIER_BUDGET_BYTES``) and the largest chunk grid's feed responses. Its time:
+A block task holds its block's Grams in the accumulation's precision (each m's complex128 Gram and factor made
+and dropped in turn), its m-modes, one pass's ring-Fourier arrays (at most ``FOURIER_BUDGET_BYTES``) and the
+largest chunk grid's feed responses. Its thread-seconds (:func:`block_parts`):
 
-* ring products and FFTs: for every chunk of baselines (sorted by per-baseline lmax, as the stage chunks
-  them), the points of the chunk's grid x 16 kernels x baselines, once per Fourier block of the m it
-  covers (:func:`mmflow.mmode.polarised_transfer.fourier_m_block`; above the polarised band limit the
-  4 I kernels in blocks of 4x the m), at ``RING_SECONDS_PER_POINT``;
-* Legendre GEMMs (``lambda`` on I and V to the chunk's top, ``W``, ``X`` on Q, U to the polarised band
-  limit) and the ``herk`` of ``4 x 2 n_b`` rows into ``N_m^2`` (``4 k N^2`` flops), and the Cholesky
-  factors (``8 N^3 / 3``), at ``GEMM_EFFICIENCY`` of the SGEMM peak.
+* ``grid``: each chunk grid made (consecutive chunks share one), its points at ``GRID_SECONDS_PER_POINT``;
+* ``ring``: ring products and FFTs: for every chunk of baselines (sorted by per-baseline lmax, as the stage
+  chunks them), the points of the chunk's grid x 16 kernels x baselines, once per Fourier block of the m it
+  covers (:func:`mmflow.mmode.polarised_transfer.fourier_m_block`; above the polarised band limit the I
+  kernels alone in blocks of 4x the m, ``RING_I_ONLY`` of a pass), at ``RING_SECONDS_PER_POINT``: every block of
+  m pays it again;
+* ``gemm``: Legendre GEMMs (``lambda`` on I and V to the chunk's top, ``W``, ``X`` on Q, U to the polarised band
+  limit) and the ``herk`` of ``4 x 2 n_b`` rows into ``N_m^2`` (``4 k N^2`` flops) at ``GEMM_EFFICIENCY`` of a
+  core's SGEMM peak;
+* ``factor``: the Cholesky factors (``8 N^3 / 3``) at ``FACTOR_EFFICIENCY`` of a core's peak (complex128, BLAS
+  on one thread as in every task),
 
-The second phase factorises every m once more for the polarisation response and, when the factors are not
-kept, again for each pass of the response tables (``DECS_PER_PASS`` declinations a pass) and each cycle of the
-CLEAN of the sources (always; one more for its closing step,
+over the task's threads (its ring and m pools; the factors on one). A core's peak is the SGEMM peak over
+:func:`mmflow.threads.usable_cores`. The second phase factorises every m once more for the polarisation
+response and, when the factors are not kept, again for each pass of the response tables (``DECS_PER_PASS``
+declinations a pass) and each cycle of the CLEAN of the sources (always; one more for its closing step,
 :func:`mmflow.imaging.polarised_clean.close_sources`) and of V (``clean.enabled``; the plan assumes
 ``EXPECTED_CLEAN_CYCLES`` each).
 """
@@ -34,18 +39,31 @@ from mmflow.mmode.polarised_transfer import (FOURIER_BUDGET_BYTES, PASS_BASELINE
                                              m_block_of, pass_baselines)
 from mmflow.mmode.transfer import baselines_in_wavelengths, fringe_bandlimit
 from mmflow.mmode.engine import GridCache
+from mmflow.threads import usable_cores
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, EXPECTED_CLEAN_CYCLES, PSF_DECLINATIONS, Cost, Work,
                                       expected_clean_cycles)
-from mmflow.workflow.stages.stokes.blocks import blocks_of, gram_dtype, kept_in_memory, mmode_bytes_per_m, sizes_of
+from mmflow.workflow.stages.stokes.blocks import (blocks_of, gram_dtype, gram_itemsize, kept_in_memory,
+                                                 mmode_bytes_per_m, sizes_of)
 
-#: wall seconds per ring point, kernel and Fourier block at the SGEMM peak ``RING_REFERENCE_GFLOPS``:
-#: ``mmflow bench transfer --stokes IQUV`` (docs/stokes.md, 2026-11-27): ring stage 25.4 thread-seconds on
-#: 2 threads for 64 baselines at lmax 1000 (grid 1022 x 2048 rings x points, 4 Fourier blocks)
-RING_SECONDS_PER_POINT = 12.7 / (64 * 1022 * 2048 * 16 * 4)
-RING_REFERENCE_GFLOPS = 205.0
-#: fraction of the SGEMM peak the Legendre GEMMs and the ``herk`` run at (the same benchmark: 67 %)
-GEMM_EFFICIENCY = 0.6
+#: thread-seconds per ring point, kernel, baseline and Fourier block (:func:`polarised_fourier`'s fringes, folds,
+#: FFTs and copies, the short dipole's 10 distinct kernels of 16 transformed) at a core's SGEMM peak
+#: ``REFERENCE_CORE_GFLOPS``, and the I kernels' passes above the polarised band limit as a fraction of a pass of
+#: every kernel: ``mmflow bench stokes-block`` (docs/stokes.md, 2026-12-03), the paper's channel, 1/128 of its
+#: baselines, its five blocks of m on one thread, the two constants fitted to their ring seconds (within 21 %
+#: each); the reference the geometric mean of the run's SGEMM peaks before and after (295 and 218) over 2 cores
+RING_SECONDS_PER_POINT = 8.44e-9
+RING_I_ONLY = 0.50
+REFERENCE_CORE_GFLOPS = 126.9
+#: fraction of a core's SGEMM peak the Legendre GEMMs, ``herk`` and right-hand sides run at on one thread (the
+#: same run: 1.96e12 flops in 45.8 s; 0.25-0.38 by block, the wider blocks of m faster)
+GEMM_EFFICIENCY = 0.34
+#: fraction of a core's SGEMM peak the solve runs its complex128 Cholesky factors at on one thread (the same run:
+#: 1.80e12 flops, ``8 N^3 / 3`` a factor, in 32.6 s, the solves and the leakage's Gram products included)
+FACTOR_EFFICIENCY = 0.44
+#: thread-seconds per point of a chunk's polarised grid (:func:`mmflow.mmode.polarised.make_polarised_grid`)
+#: at the reference (the same run: 22.6 s for 3.32e7 points)
+GRID_SECONDS_PER_POINT = 6.8e-7
 #: kernels of the ring stage: I, V, Q, U for each of the four correlations
 KERNELS = 4 * len(CORRELATIONS)
 #: test sources of the polarisation response (4 at each of up to 5 declinations: the stokes stage's)
@@ -92,32 +110,56 @@ def _item(cfg):
     return complex_dtype(cfg.transfer.dtype).itemsize
 
 
-def _block_seconds(g, cfg, baselines, m0, m1, size, lmax_p, peak):
-    """Seconds of one block task (module docstring)."""
-    ring, flops = 0.0, 0.0
+def block_parts(g, cfg, baselines, m0, m1, size, lmax_p, core_gflops):
+    """Thread-seconds of one block task ``(m0, m1)`` by part (module docstring): ``{"grid", "ring", "gemm",
+    "factor"}`` at a core's SGEMM peak ``core_gflops``, for ``baselines`` (:func:`_baselines`, or a subset)."""
+    ring = flops = grid_pts = 0.0
+    last = None
     for nb, top, (n_theta, n_phi), lbs in _chunks(g, cfg, baselines, (m0, m1), lmax_p):
         if top < m0:
             continue
+        if (n_theta, n_phi) != last:  # a new grid (the stage keeps the last one)
+            grid_pts += n_theta * n_phi
+            last = (n_theta, n_phi)
         n_act = n_theta // 2
         m_hi = min(top, m1 - 1)
         step = m_block_of(fourier_bytes(n_act, nb, len(CORRELATIONS), _item(cfg)))
         n_pol_m = max(0, min(m_hi, lmax_p) - m0 + 1)  # every kernel; above lmax_p the I kernels alone
         n_i_m = m_hi - m0 + 1 - n_pol_m
-        fblocks = -(-n_pol_m // step) + -(-n_i_m // (4 * step)) / 4
-        ring += n_act * 2 * n_phi * KERNELS * nb * fblocks
+        points = n_act * 2 * n_phi * KERNELS * nb  # a pass of every kernel over the chunk's grid
+        ring += points * (-(-n_pol_m // step) + RING_I_ONLY * -(-n_i_m // (4 * step)))
         for m in range(m0, m_hi + 1):
             cols = nb if m == 0 else 2 * nb
             n_t, n_p = top - m + 1, max(0, min(top, lmax_p) - m + 1)
             flops += 2.0 * n_act * legendre_rows(n_t, n_p) * len(CORRELATIONS) * cols * 2
             flops += 4.0 * len(CORRELATIONS) * cols * (n_t + 3 * n_p) ** 2  # herk
-    flops += sum(8.0 * size(m) ** 3 / 3 for m in range(m0, m1))  # the block's factors
-    return ring * RING_SECONDS_PER_POINT * RING_REFERENCE_GFLOPS / peak + flops / (GEMM_EFFICIENCY * peak * 1e9)
+    slow = REFERENCE_CORE_GFLOPS / core_gflops
+    return {"grid": grid_pts * GRID_SECONDS_PER_POINT * slow, "ring": ring * RING_SECONDS_PER_POINT * slow,
+            "gemm": flops / (GEMM_EFFICIENCY * core_gflops * 1e9), "factor": _factor_seconds(size, m0, m1, core_gflops)}
+
+
+def _factor_seconds(size, m0, m1, core_gflops):
+    """Thread-seconds of the Cholesky factors of m in ``[m0, m1)`` (``8 N^3 / 3`` each)."""
+    return sum(8.0 * float(size(m)) ** 3 / 3 for m in range(m0, m1)) / (FACTOR_EFFICIENCY * core_gflops * 1e9)
+
+
+def block_seconds(parts, threads):
+    """A block task's wall seconds from :func:`block_parts`: the factors on one thread, the rest on ``threads``."""
+    return (parts["grid"] + parts["ring"] + parts["gemm"]) / max(1, threads) + parts["factor"]
+
+
+def core_gflops(peak):
+    """A core's SGEMM peak from the machine's (``peak`` over :func:`mmflow.threads.usable_cores`)."""
+    return peak / usable_cores()
 
 
 def _plan(g, cfg):
     size, lmax_p = sizes_of(cfg), stokes_lmax_of(cfg)
     blocks = blocks_of(cfg, g.n_split, g.n_bl)
-    gram = [BLOCK_BYTES_PER_ELEMENT * sum(float(size(m)) ** 2 for m in range(m0, m1)) for m0, m1 in blocks]
+    # the block's Grams in the accumulation's precision, and one m's complex128 Gram and factor (and the copy of
+    # its kept unknowns) while it is solved (:meth:`PolarisedObserver.solution_and_leakage`)
+    gram = [gram_itemsize(cfg) * sum(float(size(m)) ** 2 for m in range(m0, m1))
+            + (2 * COMPLEX128_BYTES + gram_itemsize(cfg)) * float(size(m0)) ** 2 for m0, m1 in blocks]
     mm = [mmode_bytes_per_m(g.n_split, g.n_bl) * (m1 - m0) for m0, m1 in blocks]
     all_gram = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * COMPLEX128_BYTES
     kept = kept_in_memory(cfg)
@@ -152,14 +194,14 @@ def seconds(g, cfg, per_task, workers, peak):
     """The stage's wall time: each channel's block tasks in rounds over the task slots, then its second
     phase (module docstring)."""
     size, lmax_p, blocks, *_, kept = _plan(g, cfg)
-    baselines = _baselines(g, cfg)
-    block_s = sorted((_block_seconds(g, cfg, baselines, m0, m1, size, lmax_p, peak) for m0, m1 in blocks),
-                     reverse=True)
+    baselines, core = _baselines(g, cfg), core_gflops(peak)
+    block_s = sorted((block_seconds(block_parts(g, cfg, baselines, m0, m1, size, lmax_p, core), g.task_threads)
+                      for m0, m1 in blocks), reverse=True)
     # the block tasks of all channels over the slots (each channel's blocks alike), longest first
     per_slot = [0.0] * max(1, workers)
     for s in block_s * g.n_freq:
         per_slot[per_slot.index(min(per_slot))] += s
-    factor_s = sum(8.0 * size(m) ** 3 / 3 for m in range(g.lmax + 1)) / (GEMM_EFFICIENCY * peak * 1e9)
+    factor_s = _factor_seconds(size, 0, g.lmax + 1, core)
     # the response; unless kept, the response tables' passes (the sources', and V's with clean.enabled) and cycles
     tables = (1 + bool(cfg.clean.enabled)) * -(-PSF_DECLINATIONS // DECS_PER_PASS)
     cycles = min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) + 1 + expected_clean_cycles(cfg)  # + sources' closing
