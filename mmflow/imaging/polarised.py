@@ -342,13 +342,22 @@ class PolarisedObserver:
     ``keep_factors``: factorise every m once, here, and keep the factors (the size of the Gram); False:
     factorise each m again at every call and keep none, so that only one m's Gram and factor are in
     memory at a time (``normal.gram`` may then be a sequence read from disk per m: the stokes stage's
-    second phase at the paper's scale). The results are the same bits either way.
+    second phase at the paper's scale); a collection of m: keep those m's factors only (the stokes stage keeps
+    the largest that fit its budget, :func:`mmflow.workflow.stages.stokes.blocks.factors_kept`). The results are
+    the same bits either way.
     """
 
     def __init__(self, normal, eps, filters=None, keep_factors=True):
         self.normal, self.eps, self.filters = normal, eps, filters
         self.lmax, self.lmax_p = normal.lmax, normal.lmax_p
-        self.blocks = {m: self._factor(m) for m in normal.m_range} if keep_factors else None
+        if keep_factors is True or keep_factors is False:
+            keep_factors = normal.m_range if keep_factors else ()
+        kept = set(keep_factors)
+        self.blocks = {m: self._factor(m) for m in normal.m_range if m in kept}
+
+    def _block(self, m):
+        """Block m's kept factor, or the factor made now (:meth:`_factor`)."""
+        return self.blocks[m] if m in self.blocks else self._factor(m)
 
     def _factor(self, m):
         """``(keep, cho_factor(G_kk + D_k))`` of block m, or None when the filters remove all of it."""
@@ -368,7 +377,7 @@ class PolarisedObserver:
         alm ``(n_vec, 4, n_alm)`` (zero at the m not held)."""
         out = None
         for m in self.normal.m_range:
-            block = self._factor(m) if self.blocks is None else self.blocks[m]
+            block = self._block(m)
             rhs = rhs_of_m(m)
             if out is None:
                 out = np.zeros((len(rhs), 4, n_alm(self.lmax)), np.complex128)
@@ -387,7 +396,7 @@ class PolarisedObserver:
         bits as :meth:`solution` then ``self`` of its unpolarised part."""
         out = leak = None
         for m in self.normal.m_range:
-            block = self._factor(m) if self.blocks is None else self.blocks[m]
+            block = self._block(m)
             rhs = self.normal.rhs[m - self.normal.m0]
             if out is None:
                 out, leak = (np.zeros((n, 4, n_alm(self.lmax)), np.complex128) for n in (len(rhs), 1))

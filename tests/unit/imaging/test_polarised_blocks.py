@@ -2,8 +2,8 @@
 
 * the normal equations accumulated and solved per block of m give the bits of one pass over every m;
   the observer that factorises each m again per call (the stokes stage's second phase) gives the same
-  bits as the one that keeps its factors, and so does the block task's solve and leakage with each m
-  factorised once (``solution_and_leakage``); each chunk of baselines on a grid of its own size gives the
+  bits as the one that keeps its factors (all, or some: the second phase at the paper's scale), and so does
+  the block task's solve and leakage with each m factorised once (``solution_and_leakage``); each chunk of baselines on a grid of its own size gives the
   same normal equations to the quadrature's rounding (1e-8; measured ~4e-10);
 * with ``lmax_p < lmax`` the solve is the reduced problem: the dense least squares over T's harmonics to
   lmax and E's, B's, V's to ``lmax_p``, from the reference kernels' transfer blocks, solved by numpy.
@@ -66,6 +66,9 @@ def test_blocks_of_m_solve_as_one_pass_and_chunk_grids_give_the_same_normal_equa
         sl = slice(m_slice(LMAX, m0).start, m_slice(LMAX, m1 - 1).stop)
         x = kept.solution()
         np.testing.assert_array_equal(x, again.solution())  # factorised again per call: the same bits
+        some = PolarisedObserver(part, eps, filters, keep_factors=[m0, m1 - 1])  # some factors kept, the rest made
+        assert set(some.blocks) == {m0, m1 - 1}
+        np.testing.assert_array_equal(some(leak_in), kept(leak_in))
         assert np.abs(np.delete(x, np.r_[sl], axis=-1)).max() == 0  # nothing outside the block
         x_blk[..., sl] = x[..., sl]
         leak_blk[..., sl] = kept(leak_in)[..., sl]

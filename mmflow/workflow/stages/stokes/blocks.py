@@ -57,3 +57,24 @@ def kept_in_memory(cfg):
     ``BLOCK_BYTES_PER_ELEMENT`` per element of ``sum_m N_m^2``."""
     size = sizes_of(cfg)
     return BLOCK_BYTES_PER_ELEMENT * sum(float(size(m)) ** 2 for m in range(cfg.mmode.lmax + 1)) <= KEPT_BYTES
+
+
+#: where a channel's Grams and factors do not fit ``KEPT_BYTES``, phase two keeps the factors of the m with the
+#: largest normal equations within this (complex128, 16 bytes an element: each is factorised once, the rest again
+#: per observation; the factor's cost grows as N^3 and its bytes as N^2, so the largest save the most a byte:
+#: at the paper's scale the 47 largest, a third of a factorisation of every m)
+FACTORS_KEPT_BYTES = 2 ** 31
+
+
+def factors_kept(cfg):
+    """The m whose factors phase two keeps when not all are kept (:data:`FACTORS_KEPT_BYTES`): the largest
+    ``N_m`` first, while their complex128 factors fit."""
+    size = sizes_of(cfg)
+    kept, used = [], 0.0
+    for m in sorted(range(cfg.mmode.lmax + 1), key=lambda m: (-size(m), m)):
+        b = 16.0 * float(size(m)) ** 2
+        if used + b > FACTORS_KEPT_BYTES:
+            break
+        kept.append(m)
+        used += b
+    return sorted(kept)

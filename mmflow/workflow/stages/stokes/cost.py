@@ -20,9 +20,10 @@ largest chunk grid's feed responses. Its thread-seconds (:func:`block_parts`):
 
 over the task's threads (its ring and m pools; the factors on one). A core's peak is the SGEMM peak over
 :func:`mmflow.threads.usable_cores`. The second phase factorises every m once more for the polarisation
-response and, when the factors are not kept, again for each pass of the response tables (``DECS_PER_PASS``
-declinations a pass) and each cycle of the CLEAN of the sources (always; one more for its closing step,
-:func:`mmflow.imaging.polarised_clean.close_sources`) and of V (``clean.enabled``; the plan assumes
+response and, for the m whose factors are not kept (all are where a channel's fit ``KEPT_BYTES``, else the
+largest within ``FACTORS_KEPT_BYTES``, :func:`blocks.factors_kept`), again for each pass of the response tables
+(``DECS_PER_PASS`` declinations a pass) and each cycle of the CLEAN of the sources (always; one more for its
+closing step, :func:`mmflow.imaging.polarised_clean.close_sources`) and of V (``clean.enabled``; the plan assumes
 ``EXPECTED_CLEAN_CYCLES`` each).
 """
 from __future__ import annotations
@@ -43,8 +44,8 @@ from mmflow.threads import usable_cores
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, EXPECTED_CLEAN_CYCLES, PSF_DECLINATIONS, Cost, Work,
                                       expected_clean_cycles)
-from mmflow.workflow.stages.stokes.blocks import (blocks_of, gram_dtype, gram_itemsize, kept_in_memory,
-                                                 mmode_bytes_per_m, sizes_of)
+from mmflow.workflow.stages.stokes.blocks import (blocks_of, factors_kept, gram_dtype, gram_itemsize,
+                                                 kept_in_memory, mmode_bytes_per_m, sizes_of)
 
 #: thread-seconds per ring point, kernel, baseline and Fourier block (:func:`polarised_fourier`'s fringes, folds,
 #: FFTs and copies, the short dipole's 10 distinct kernels of 16 transformed) at a core's SGEMM peak
@@ -179,7 +180,8 @@ def work(g, cfg):
     # B, V each; the response table's PSF columns (one of the four, every declination)
     n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
     vectors = 2 * max(RESPONSE_SOURCES, 4 * DECS_PER_PASS) + g.n_split + PSF_DECLINATIONS / 4
-    held = BLOCK_BYTES_PER_ELEMENT * all_gram / COMPLEX128_BYTES if kept else 2 * COMPLEX128_BYTES * size(0) ** 2
+    held = (BLOCK_BYTES_PER_ELEMENT * all_gram / COMPLEX128_BYTES if kept else 2 * COMPLEX128_BYTES * size(0) ** 2
+            + COMPLEX128_BYTES * sum(float(size(m)) ** 2 for m in factors_kept(cfg)))  # + the factors kept
     second = held + vectors * 4 * n_alm * COMPLEX128_BYTES
     c = cfg.clean  # the CLEANs of the sources and of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
@@ -202,11 +204,12 @@ def seconds(g, cfg, per_task, workers, peak):
     for s in block_s * g.n_freq:
         per_slot[per_slot.index(min(per_slot))] += s
     factor_s = _factor_seconds(size, 0, g.lmax + 1, core)
+    # the factors not kept (none when all fit), made again per observation
+    again = 0.0 if kept else factor_s - sum(_factor_seconds(size, m, m + 1, core) for m in factors_kept(cfg))
     # the response; unless kept, the response tables' passes (the sources', and V's with clean.enabled) and cycles
     tables = (1 + bool(cfg.clean.enabled)) * -(-PSF_DECLINATIONS // DECS_PER_PASS)
     cycles = min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) + 1 + expected_clean_cycles(cfg)  # + sources' closing
-    refactor = 1 + (0 if kept else tables + cycles)
-    second = factor_s * refactor * -(-g.n_freq // max(1, workers))
+    second = (factor_s + again * (tables + cycles)) * -(-g.n_freq // max(1, workers))
     return max(per_slot) + second
 
 

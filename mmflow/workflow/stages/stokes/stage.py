@@ -27,7 +27,8 @@ subtracted through the full-Stokes solve from all four Stokes parameters; thresh
 or ``clean.threshold_sigma`` x the V map's jackknife noise, or its robust rms without even/odd or
 per-day splits), through the stored Grams factorised one m at a time
 (:class:`mmflow.imaging.polarised.PolarisedObserver` with ``keep_factors``, and the Grams read once, only when a
-channel's Grams and factors fit ``KEPT_BYTES``). The products stage makes the maps.
+channel's Grams and factors fit ``KEPT_BYTES``; else the largest m's factors within ``FACTORS_KEPT_BYTES`` are
+kept, :func:`blocks.factors_kept`). The products stage makes the maps.
 """
 from __future__ import annotations
 
@@ -58,7 +59,7 @@ from mmflow.workflow.engine.clean_state import (
 )
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.engine.kernel_args import m_filters
-from mmflow.workflow.stages.stokes.blocks import blocks_of, gram_dtype, kept_in_memory, sizes_of
+from mmflow.workflow.stages.stokes.blocks import blocks_of, factors_kept, gram_dtype, kept_in_memory, sizes_of
 from mmflow.workflow.stages.stokes.cost import COST
 from mmflow.workflow.stages.base import Stage
 from mmflow.workflow.engine.task_key import TaskKey
@@ -232,9 +233,11 @@ def _channel_task(ctx, key):
         grams = [grams[m] for m in range(len(grams))]
     normal = PolarisedNormal(lmax, grams, None, None, lmax_p)
     eps, filters = stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol), m_filters(cfg.imaging)
-    observe = PolarisedObserver(normal, eps, filters, keep_factors=kept)
+    # every factor kept where a channel's fit; else the largest within FACTORS_KEPT_BYTES, the rest made per observation
+    keep = range(len(grams)) if kept else factors_kept(cfg)
+    observe = PolarisedObserver(normal, eps, filters, keep_factors=keep)
     tel = ctx.telescope()
-    info = {"polarisation": polarisation_response(observe, _response_decs(tel.lat_rad)), "factors_kept": bool(kept)}
+    info = {"polarisation": polarisation_response(observe, _response_decs(tel.lat_rad)), "factors_kept": len(keep)}
     stored = ctx.read(STORES.stokes.alm, (slice(None), slice(fi, fi + 1)))[:, 0]  # (split, 4, m, l)
     splits = np.array([[healpy_alm(x, lmax) for x in a] for a in stored])  # (split, 4, n_alm)
     freq = float(ctx.open(STORES.vis)[STORES.vis.freqs_hz][fi])
