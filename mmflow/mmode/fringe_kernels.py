@@ -4,7 +4,8 @@
 mirror rings straight into the two FFT inputs ``A_n f_n +/- A_s f_s`` in one pass over memory,
 where numpy needs about ten (matmul, reduce, cast, sin, cos, two beam products, the mirror
 rotation, sum and difference); :func:`kernel_fringe_folds` does the same with complex kernels
-(every Stokes kernel of every correlation) for the full-Stokes path.
+(every Stokes kernel of every correlation) for the full-Stokes path, from a ring's fringes formed once
+(:func:`ring_fringes`); :func:`scatter_m` copies a block's m of the transforms into the Fourier arrays.
 
 The fringe phase ``t = b . r`` (turns) is formed and reduced to ``[-1/2, 1/2]`` in float64,
 then ``sin/cos(2 pi t)`` come from a quarter-turn reduction and Taylor polynomials in the

@@ -93,10 +93,10 @@ def distinct_kernels(k_n, k_s):
     """The kernels a ring must transform: ``(distinct, copies, zero)`` with ``distinct`` the indices of the kernels
     ``(k_n[f], k_s[f])`` (north ring, mirror ring) that are neither zero on both rings (``zero``) nor equal, or
     opposite, to an earlier one, and ``copies[f] = [(f', +1 or -1), ...]`` the later kernels equal to ``+-``
-    kernel f. The fold
-    and the FFT are linear and negation is exact in floating point, so a copy's transforms are kernel f's (or
-    their negation) bit for bit. Through a real Jones beam (the short dipole) V is zero in xx and yy and yx's I,
-    Q, U, V are xy's, +, +, +, -: 10 of the 16 kernels are transformed (``tests/unit/mmode/test_polarised_fast.py``).
+    kernel f. The fold and the FFT are linear and negation is exact in floating point, so a copy's transforms are
+    kernel f's (or their negation) bit for bit. Through a real Jones beam (the short dipole) V is zero in xx and
+    yy and yx's I, Q, U, V are xy's, +, +, +, -: 10 of the 16 kernels are transformed
+    (``tests/unit/mmode/test_polarised_fast.py``).
     """
     distinct, copies, zero = [], {}, []
     for f in range(len(k_n)):

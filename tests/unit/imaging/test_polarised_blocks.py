@@ -3,8 +3,9 @@
 * the normal equations accumulated and solved per block of m give the bits of one pass over every m;
   the observer that factorises each m again per call (the stokes stage's second phase) gives the same
   bits as the one that keeps its factors (all, or some: the second phase at the paper's scale), and so does
-  the block task's solve and leakage with each m factorised once (``solution_and_leakage``); each chunk of baselines on a grid of its own size gives the
-  same normal equations to the quadrature's rounding (1e-8; measured ~4e-10);
+  the block task's solve and leakage with each m factorised once (``solution_and_leakage``); each chunk of
+  baselines on a grid of its own size gives the same normal equations to the quadrature's rounding (1e-8;
+  measured ~4e-10);
 * with ``lmax_p < lmax`` the solve is the reduced problem: the dense least squares over T's harmonics to
   lmax and E's, B's, V's to ``lmax_p``, from the reference kernels' transfer blocks, solved by numpy.
 """
