@@ -98,7 +98,8 @@ def run(what, quick=False, fraction=None, blocks=None, overrides=()):
         meas = measure_block(cfg, tel, freq, pairs[sub], (m0, m1), g.n_split)
         res["blocks"].append({"m": [m0, m1], "measured": meas})
     res["sgemm_gflops_after"] = gemm_gflops(np.float32)
-    core = cost.core_gflops(max(peak, res["sgemm_gflops_after"]))
+    best = max(peak, res["sgemm_gflops_after"])
+    core = cost.core_gflops(best)
     scale = res["fraction"]
     for blk in res["blocks"]:
         (m0, m1), meas = blk["m"], blk["measured"]
@@ -114,6 +115,5 @@ def run(what, quick=False, fraction=None, blocks=None, overrides=()):
         blk["model_full_task_s"] = cost.block_seconds(full, threads)
     res["projected_block_tasks_s"] = sum(b["projected_full_task_s"] for b in res["blocks"])
     res["model_block_tasks_s"] = sum(b["model_full_task_s"] for b in res["blocks"])
-    res["plan_stage_s"] = next(s["seconds"] for s in plan(cfg, peak_gflops=max(peak, res["sgemm_gflops_after"]))
-                               ["stages"] if s["stage"] == "stokes")
+    res["plan_stage_s"] = next(s["seconds"] for s in plan(cfg, peak_gflops=best)["stages"] if s["stage"] == "stokes")
     return res

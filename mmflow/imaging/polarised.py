@@ -350,9 +350,7 @@ class PolarisedObserver:
     def __init__(self, normal, eps, filters=None, keep_factors=True):
         self.normal, self.eps, self.filters = normal, eps, filters
         self.lmax, self.lmax_p = normal.lmax, normal.lmax_p
-        if keep_factors is True or keep_factors is False:
-            keep_factors = normal.m_range if keep_factors else ()
-        kept = set(keep_factors)
+        kept = set(normal.m_range) if keep_factors is True else set(keep_factors or ())
         self.blocks = {m: self._factor(m) for m in normal.m_range if m in kept}
 
     def _block(self, m):

@@ -11,8 +11,8 @@ from mmflow.workflow.engine.geometry import stokes_lmax_of
 #: bytes of a phase-one task's Grams (the accumulation's precision: each m is factorised on its own) and m-modes
 #: (:func:`stokes_m_blocks`): with the ring FFTs' budget and the grid, a task of about 5.5 GB. Every block of m
 #: pays the ring stage (the FFTs of the fringes times the kernels) of every baseline again, so fewer, larger
-#: blocks are faster: at the paper's scale 4 blocks, each 1-2 passes of the 16 kernels (10 with 3 GB of complex128
-#: Grams and factors: docs/stokes.md)
+#: blocks are faster: at the paper's scale 5 blocks, 1-2 passes of the 16 kernels for the polarised m in all (10
+#: with 3 GB of complex128 Grams and factors: docs/stokes.md)
 BLOCK_BYTES = 4 * 2 ** 30
 #: phase two keeps a channel's Grams and their Cholesky factors in memory when they fit this (each Gram read
 #: once; else it reads and factorises each stored Gram again per observation: the same bits, one m's matrices
@@ -48,7 +48,8 @@ def gram_dtype(cfg):
 
 
 def gram_itemsize(cfg):
-    """Bytes of a Gram element in a block task (:func:`gram_dtype`)."""
+    """Bytes of a complex of the transfer's precision: a Gram element in a block task (:func:`gram_dtype`), a
+    Fourier array's element."""
     return complex_dtype(cfg.transfer.dtype).itemsize
 
 
@@ -72,7 +73,7 @@ def factors_kept(cfg):
     size = sizes_of(cfg)
     kept, used = [], 0.0
     for m in sorted(range(cfg.mmode.lmax + 1), key=lambda m: (-size(m), m)):
-        b = 16.0 * float(size(m)) ** 2
+        b = np.dtype(np.complex128).itemsize * float(size(m)) ** 2
         if used + b > FACTORS_KEPT_BYTES:
             break
         kept.append(m)

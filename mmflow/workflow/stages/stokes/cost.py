@@ -31,7 +31,6 @@ from __future__ import annotations
 import ducc0
 import numpy as np
 
-from mmflow.conventions import complex_dtype
 from mmflow.io import run_stores as rs
 from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT
 from mmflow.imaging.polarised_clean import DECS_PER_PASS
@@ -96,7 +95,8 @@ def _chunks(g, cfg, baselines, m_range, lmax_p):
     order, lb, b_len, n_theta = baselines
     m0, m1 = m_range
     n_pol_m = max(0, min(m1, lmax_p + 1) - m0)
-    per = pass_baselines(fourier_bytes(n_theta // 2, 1, len(CORRELATIONS), _item(cfg)), n_pol_m, m1 - m0 - n_pol_m)
+    per_m = fourier_bytes(n_theta // 2, 1, len(CORRELATIONS), gram_itemsize(cfg))
+    per = pass_baselines(per_m, n_pol_m, m1 - m0 - n_pol_m)
     out = []
     for s in range(0, len(order), per):
         idx = order[s:s + per]
@@ -104,11 +104,6 @@ def _chunks(g, cfg, baselines, m_range, lmax_p):
         key = GridCache.key(top, fringe_bandlimit(b_len[idx], g.tel.beam.lmax_hint), g.lmax)
         out.append((len(idx), top, _grid_shape(*key), lb[idx]))
     return out
-
-
-def _item(cfg):
-    """Bytes of a complex of the transfer's precision."""
-    return complex_dtype(cfg.transfer.dtype).itemsize
 
 
 def block_parts(g, cfg, baselines, m0, m1, size, lmax_p, core_gflops):
@@ -124,7 +119,7 @@ def block_parts(g, cfg, baselines, m0, m1, size, lmax_p, core_gflops):
             last = (n_theta, n_phi)
         n_act = n_theta // 2
         m_hi = min(top, m1 - 1)
-        step = m_block_of(fourier_bytes(n_act, nb, len(CORRELATIONS), _item(cfg)))
+        step = m_block_of(fourier_bytes(n_act, nb, len(CORRELATIONS), gram_itemsize(cfg)))
         n_pol_m = max(0, min(m_hi, lmax_p) - m0 + 1)  # every kernel; above lmax_p the I kernels alone
         n_i_m = m_hi - m0 + 1 - n_pol_m
         points = n_act * 2 * n_phi * KERNELS * nb  # a pass of every kernel over the chunk's grid
@@ -173,7 +168,7 @@ def work(g, cfg):
     grid = 2 * 2 * n_theta * n_phi * COMPLEX128_BYTES  # feeds x (N, E) responses of the largest grid
     # one pass's Fourier arrays (polarised_fourier: 2 x 2 x rings x 2 x corr x 2 n_b per m), at most the budget
     fourier = min(FOURIER_BUDGET_BYTES, fourier_bytes(n_theta // 2, min(PASS_BASELINES[1], g.n_bl), len(CORRELATIONS),
-                                                      _item(cfg)) * (g.lmax + 1))
+                                                      gram_itemsize(cfg)) * (g.lmax + 1))
     block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
     # the second phase: the Grams and factors (or one m's Gram and factor), the splits' harmonics and the test sources'
     # (the polarisation response's 4 per declination, or a pass of a response table's) imaged: in and out, T, E,
