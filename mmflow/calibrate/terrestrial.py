@@ -21,6 +21,14 @@ on the peeled data); the stage composes them from these kernels. Contamination o
 template is measured by ``||B^H v|| / (||B|| ||v||)`` (:func:`projection_fraction`; the paper
 found ~0.035 for its three components).
 
+The per-integration fit takes from the sky whatever of it lies along the templates. Where the
+templates resemble the sky (a small array with no terrestrial signal fits the residual sky's m = 0
+part, brightest where circumpolar sources stand), a source near them loses a large share:
+:func:`direction_loss` and :func:`declination_loss` measure that share from the templates and the
+array alone, so the stage can keep each template's amplitude constant (its mean over the day: only the
+stationary part, which lives at m = 0) where the fit would take too much of a source
+(:func:`mean_amplitudes`).
+
 For K > 1 the average fixes the span of the patterns but not their split into rank-1 terms when
 they overlap (``sum_k u_k u_k^H`` is invariant under a unitary mixing of the ``u_k``): a constant
 cross-talk ``c c^H`` and a flickering emitter ``a(t) e e^H`` are then mixtures of the fitted
@@ -130,3 +138,78 @@ def projection_fraction(B, v, ord="fro"):
     B = np.asarray(B)
     v = np.asarray(v)
     return float(np.linalg.norm(B.conj().T @ v) / (np.linalg.norm(B, ord) * np.linalg.norm(v)))
+
+
+def direction_loss(templates, baselines, weights, directions):
+    """Share of a unit point source's weighted power that a per-integration fit of ``templates`` takes, per
+    direction.
+
+    With ``s_b(r) = exp(2 pi i b . r)`` the source's visibility on baseline ``b`` (in wavelengths, ``x_j -
+    x_i``: the data's convention), the real amplitudes' normal matrix ``G = Re(B^H W B)`` and ``h(r) = Re(B^H W
+    s(r))``, the fit removes ``B G^-1 h`` and::
+
+        loss(r) = h^T G^-1 h / sum_b w_b
+
+    (the squared norm of the real projection over ``||s||_W^2``; a template ``u u^H`` with ``u_i = exp(-2 pi i
+    x_i . r0)`` takes all of a source at ``r0``; templates unrelated to the sky take ``K^2 / (2 n_bl)`` on
+    average).
+
+    Parameters
+    ----------
+    templates : (K^2, bl) complex, one polarisation's templates
+    baselines : (bl, 3) baseline vectors in wavelengths
+    weights : (bl,) the fit's weights (zero on baselines it does not use)
+    directions : (n, 3) ENU unit vectors
+
+    Returns
+    -------
+    (n,) float, in [0, 1]
+    """
+    w = np.asarray(weights, float)
+    used = w > 0
+    B, b, w = templates[:, used], baselines[used], w[used]
+    if not used.any():
+        return np.zeros(len(directions))
+    G = (np.conj(B) * w) @ B.T
+    G = G.real
+    h = ((np.conj(B) * w) @ np.exp(2j * np.pi * (b @ np.asarray(directions).T))).real  # (K^2, n)
+    sol = np.linalg.lstsq(G, h, rcond=None)[0]
+    return np.sum(h * sol, 0) / w.sum()
+
+
+def sidereal_tracks(lat_rad, n_dec=90, n_hour=180):
+    """ENU unit vectors (n_dec, n_hour, 3) of the tracks of declinations that rise, over one sidereal day.
+
+    ``e = -cos d sin H``, ``n = sin d cos phi - cos d cos H sin phi``, ``u = sin d sin phi + cos d cos H cos
+    phi`` at hour angles ``H = 2 pi k / n_hour``, declinations ``d`` evenly between the lowest that rises,
+    ``lat - 90 deg`` (``lat + 90`` south of the equator), and the visible pole. Returns (dec (n_dec,), enu).
+    """
+    south = lat_rad < 0
+    lo, hi = (-np.pi / 2, lat_rad + np.pi / 2) if south else (lat_rad - np.pi / 2, np.pi / 2)
+    dec = lo + (hi - lo) * (np.arange(n_dec) + 0.5) / n_dec
+    H = 2 * np.pi * np.arange(n_hour) / n_hour
+    d, h = dec[:, None], H[None, :]
+    enu = np.stack([-np.cos(d) * np.sin(h), np.sin(d) * np.cos(lat_rad) - np.cos(d) * np.cos(h) * np.sin(lat_rad),
+                    np.sin(d) * np.sin(lat_rad) + np.cos(d) * np.cos(h) * np.cos(lat_rad)], -1)
+    return dec, enu
+
+
+def declination_loss(loss, power):
+    """What a source at each declination loses of its map peak: ``sum_t P^2 loss / sum_t P^2`` over its track.
+
+    ``loss`` and ``power`` (n_dec, n_hour) on :func:`sidereal_tracks`: the direction loss and the beam's
+    power response (zero below the horizon). A source's peak in the map weighs each integration by the
+    square of its response there (a matched filter: its visibilities scale with ``P``), so the loss near the
+    horizon, where a near-field emitter's template lies, counts little. Returns (n_dec,).
+    """
+    p2 = np.asarray(power, float) ** 2
+    total = p2.sum(-1)
+    return np.where(total > 0, (p2 * loss).sum(-1) / np.where(total > 0, total, 1), 0.0)
+
+
+def mean_amplitudes(amplitudes):
+    """Each template's amplitude averaged over the integrations it was fitted on (time, K^2[, pol]) -> (K^2[,
+    pol]); an integration with every amplitude zero (no data) is left out."""
+    a = np.asarray(amplitudes)
+    fitted = np.any(a.reshape(len(a), -1) != 0, axis=1)
+    return a[fitted].mean(0) if fitted.any() else np.zeros(a.shape[1:], a.dtype)

@@ -168,7 +168,10 @@ def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk
         ArraySpec(h.cross_amplitudes, ("time", "freq", "template"), (n_time, nf, n_comp ** 2),
                   (time_chunk, 1, n_comp ** 2), "complex128",
                   doc="complex coefficient ``a_kl(t)`` of ``u_kx u_ly^H`` in the cross hands (xy; its conjugate "
-                  "on yx), in the order ``k K + l``"),)
+                  "on yx), in the order ``k K + l``"),
+        ArraySpec(h.mean_cross_amplitudes, ("freq", "template"), (nf, n_comp ** 2), (nf, n_comp ** 2), "complex128",
+                  doc="``cross_amplitudes`` averaged over the integrations fitted (subtracted where "
+                  "``per_integration`` is false)"),)
     return StoreSpec(STORES.terrestrial, (
         ArraySpec(h.sum_vis, ("chunk", "freq", "baseline", "pol"), (n_chunks, nf, nbl, npol), (1, 1, nbl, npol),
                   "complex128", doc="weighted sum of the calibrated, peeled visibilities of each time chunk"),
@@ -181,4 +184,13 @@ def terrestrial_store(n_chunks, n_time, nf, nbl, n_comp, n_ant, npol, time_chunk
                   (time_chunk, 1, n_comp ** 2, npol), "float64",
                   doc="real amplitude ``a_k(t)`` of each of the K^2 templates: ``u_k u_k^H``, then for k < l "
                   "``u_k u_l^H + u_l u_k^H`` and ``i (u_k u_l^H - u_l u_k^H)``"),
+        ArraySpec(h.mean_amplitudes, ("freq", "template", "pol"), (nf, n_comp ** 2, npol), (nf, n_comp ** 2, npol),
+                  "float64", doc="``amplitudes`` averaged over the integrations fitted (subtracted where "
+                  "``per_integration`` is false)"),
+        ArraySpec(h.sky_loss, ("freq",), (nf,), (nf,), "float64",
+                  doc="the largest share of a point source's map peak, over the declinations that rise, that a "
+                  "per-integration fit of the templates would take (``declination_loss``)"),
+        ArraySpec(h.per_integration, ("freq",), (nf,), (nf,), "bool",
+                  doc="the amplitudes subtracted per integration (true) or their means over the day "
+                  "(``terrestrial.amplitudes``; ``auto``: ``sky_loss`` within the stage's limit)"),
     ) + cross_arrays, doc="Signals that do not move with the sky: the terrestrial stage.")

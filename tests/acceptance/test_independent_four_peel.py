@@ -15,9 +15,12 @@ peak in the map of the same data calibrated but not peeled, in every Stokes para
 unmodelled sources alone, uncorrupted) carries radiometer noise like the data: with noise-free data the
 noise weights follow the modelling error and the full-Stokes solve's I came out at 0.46 of the
 unweighted map (the Stokes-I engine's at 0.92), which is the weighting's, not the peel's. Measured
-(2026-12-03): Cyg A I, Q, U, V -39.7, -57.4, -53.4, -54.4 dB; Cas A -38.7, -54.2, -60.2, -55.7 dB; without
-peeling Q, U, V at -26.5, -30.3, -26.8 (Cyg A) and -21.5, -30.3, -27.9 dB (Cas A).
+(2026-12-03, the terrestrial amplitudes held at their means: ``terrestrial.amplitudes: auto``): Cyg A I, Q, U, V
+-41.8, -54.0, -53.8, -55.0 dB; Cas A -41.9, -53.5, -58.2, -57.1 dB; without peeling Q, U, V at -26.5, -30.3,
+-26.8 (Cyg A) and -21.5, -30.3, -27.9 dB (Cas A).
 """
+import json
+
 import healpy as hp
 import numpy as np
 import pytest
@@ -52,6 +55,7 @@ def maps(tmp_path_factory):
     day["corrupted"].write_uvh5(str(d / "corrupted.uvh5"), fix_autos=True)
     day["truth"].write_uvh5(str(d / "truth.uvh5"), fix_autos=True)
     out = {"chain": _run(d / "chain", d / "corrupted.uvh5", *ON)}
+    out["terrestrial"] = json.loads((d / "chain" / "summary.json").read_text())["terrestrial"]["finalize"]
     out["nopeel"] = _run(fork_run(d / "chain", d / "nopeel", "calibrate"), d / "corrupted.uvh5", ON[0])
     out["truth"] = _run(d / "truth", d / "truth.uvh5")
     return out
@@ -71,7 +75,7 @@ def test_the_unpolarised_sky_stays_unpolarised(maps):
     """The unmodelled sources' Q, U, V small in the truth's map and the chain's: the sky is unpolarised, and a
     cross-hand convention of the data that differed from mmflow's (the sign of xy, say) would leave
     ``~2 r_e r_n / (1 - r^2 / 2)`` of I in U (~25 % at 30 deg from the zenith). Measured: at most 0.28 %
-    (truth) and 0.77 % (chain) of I."""
+    (truth) and 0.83 % (chain) of I."""
     for key in ("truth", "chain"):
         frac = []
         for ra, dec, _ in UNMODELLED:
@@ -83,16 +87,22 @@ def test_the_unpolarised_sky_stays_unpolarised(maps):
 
 
 def test_unmodelled_sources_are_kept(maps):
-    """The unmodelled sources' I peaks within 12 % of the truth's, as in the Stokes-I test, but the circumpolar
-    one (below). Measured: 0.885-0.965."""
+    """The unmodelled sources' I peaks within 12 % of the truth's, as in the Stokes-I test (the circumpolar one
+    also below). Measured: 0.944-0.992 (0.885-0.965 with the terrestrial amplitudes fitted per integration)."""
     kept = kept_ratios(maps["chain"][0], maps["truth"][0])
     print("unmodelled peaks / truth:", " ".join(f"{k:.3f}" for k in kept))
     assert np.all(np.abs(kept[1:] - 1) < 0.12), kept
 
 
-@pytest.mark.xfail(strict=True, reason="the terrestrial stage's default templates take 27 % of the circumpolar "
-                   "source at (70, +65) deg through the dipoles' narrower beam (0.73 of the truth; 0.93 with the "
-                   "stage off, the other seven 0.94-0.99 then): open in issue 39")
 def test_the_circumpolar_unmodelled_source_is_kept(maps):
+    """The source at (70, +65) deg. With the terrestrial templates' amplitudes fitted per integration it kept
+    0.733 of its peak: on 18 stands with no terrestrial signal the templates are the residual sky's m = 0
+    part, brightest along the circumpolar sources' rings, and the fit took a quarter of the source with them.
+    ``terrestrial.amplitudes: auto`` measures that from the templates (the largest share of a source's peak at
+    any declination: 0.31 here, the limit 0.05) and holds each amplitude at its mean over the day. Measured
+    0.929 (0.93 with the stage off)."""
+    choice = maps["terrestrial"]
+    print("terrestrial:", choice)
+    assert choice["amplitudes"] == ["mean over the day"] and choice["sky_loss"][0] > 0.05, choice
     kept = kept_ratios(maps["chain"][0], maps["truth"][0])
-    assert abs(kept[0] - 1) < 0.12, kept  # measured 0.733
+    assert abs(kept[0] - 1) < 0.12, kept

@@ -121,3 +121,52 @@ def test_projection_fraction_of_a_known_response():
     assert projection_fraction(B, outside) < 1e-12
     assert projection_fraction(B, inside) > 0.2
     assert projection_fraction(B, inside, ord=2) <= 1 + 1e-12
+
+
+def test_direction_loss_is_what_the_per_integration_fit_takes(drift):
+    """The closed form ``h^T G^-1 h / sum w`` against the fit itself: a point source's visibilities written by
+    ``tests/independent_day.point_sum`` (``exp(2 pi i (x_j - x_i) . r / lambda)``, not mmflow's simulator), its
+    amplitudes fitted by :func:`fit_amplitudes` and its removed power measured; a template made of a source's own
+    antenna phases takes all of it; templates unrelated to the sky take ``K^2 / (2 n_bl)`` on average."""
+    from mmflow.calibrate.terrestrial import direction_loss, template_basis
+    from tests.independent_day import point_sum
+
+    tel, pairs, _, keep, rng = drift
+    keep = keep & (pairs[:, 0] != pairs[:, 1])
+    x, lam = tel.layout.enu, 299792458.0 / FREQ
+    b = (x[pairs[:, 1]] - x[pairs[:, 0]]) / lam
+    w = keep.astype(float)
+    dirs = rng.normal(size=(40, 3))
+    dirs[:, 2] = np.abs(dirs[:, 2])
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    patterns = np.stack([crosstalk_pattern(tel.n_ant, rng, 10.0) for _ in range(2)])[..., None]  # (K, ant, 1)
+    B = template_basis(patterns, pairs)  # (4, bl, 1)
+    per_source = [point_sum(x, lam, d[None, None], np.ones((1, 1)), pairs)[0, :, 0] for d in dirs]
+    removed = []
+    for s in per_source:
+        a = fit_amplitudes(s[None, :, None], w[None, :, None], B)[0, :, 0]
+        fit = np.einsum("k,kb->b", a, B[:, :, 0])
+        removed.append(np.sum(w * np.abs(fit) ** 2) / np.sum(w * np.abs(s) ** 2))  # beam cancels
+    loss = direction_loss(B[..., 0], b, w, dirs)
+    np.testing.assert_allclose(loss, removed, rtol=1e-8, atol=1e-12)
+    assert abs(loss.mean() / (4 / (2 * keep.sum())) - 1) < 0.5, loss.mean()
+    # a pattern of the source's own antenna phases, u_i = exp(-2 pi i x_i . r0 / lambda): all of it
+    r0 = dirs[:1]
+    own = template_basis(np.exp(-2j * np.pi * (x @ r0[0]) / lam)[None, :, None], pairs)
+    np.testing.assert_allclose(direction_loss(own[..., 0], b, w, r0), 1.0, rtol=1e-10)
+
+
+def test_sidereal_tracks_and_the_declination_loss():
+    """Every track point lies at ``90 deg - dec`` from the visible pole and culminates at ``90 - |lat - dec|``;
+    the declination loss weighs a direction by the square of the beam's power there (zero below the horizon)."""
+    from mmflow.calibrate.terrestrial import declination_loss, sidereal_tracks
+
+    for lat in (np.deg2rad(37.24), np.deg2rad(-30.7)):
+        dec, enu = sidereal_tracks(lat, n_dec=30, n_hour=48)
+        pole = np.sign(lat) * np.array([0.0, np.cos(lat), np.sin(lat)])
+        np.testing.assert_allclose(enu @ pole, np.sign(lat) * np.sin(dec)[:, None] * np.ones(48), atol=1e-12)
+        np.testing.assert_allclose(np.arcsin(enu[:, 0, 2]), np.pi / 2 - np.abs(lat - dec), atol=1e-12)
+        assert np.all(enu[:, :, 2].max(1) > 0)  # every declination listed rises
+    loss = np.array([[1.0, 0.0, 0.5], [0.2, 0.2, 0.2]])
+    power = np.array([[0.0, 1.0, 1.0], [0.5, 1.0, 0.0]])
+    np.testing.assert_allclose(declination_loss(loss, power), [0.25, 0.2])

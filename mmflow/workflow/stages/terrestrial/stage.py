@@ -25,7 +25,15 @@ patterns, ``xy = sum_kl a_kl u_kx u_ly^H`` (yx its Hermitian transpose); the pha
 the K^2 complex ``a_kl(t)`` per integration to the cross hands (:mod:`mmflow.calibrate.cross_hands`,
 same baselines, the modelled sources held out there too).
 
-``apply`` subtracts ``sum_k a_k(t) B_k`` from a block where it is read (and ``sum_kl a_kl(t) T^kl``
+The fit takes from the sky whatever of it lies along the templates. With ``terrestrial.amplitudes: auto``
+the driver measures, after fitting the templates, the largest share of a source's map peak that the fit
+would take at any declination (:func:`mmflow.calibrate.terrestrial.declination_loss`, from the templates,
+the array and the beam alone); beyond :data:`SKY_LOSS_LIMIT` (a small array whose templates are the
+residual sky's circumpolar rings) each amplitude is held at its mean over the day, the stationary part,
+which the solve's m-filter drops with m = 0 anyway. A last driver step averages the amplitudes
+(:func:`mean_amplitudes`).
+
+``apply`` subtracts ``sum_k a_k(t) B_k`` (or the means) from a block where it is read (and ``sum_kl a_kl(t) T^kl``
 from its cross hands where they are read). Every task reads and
 corrects one channel (:func:`read_block`'s ``channels``): its memory does not grow with the run's
 channels.
@@ -35,8 +43,10 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.cross_hands import cross_model, fit_cross, pattern_templates
-from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, projection_fraction, subtract_templates,
+from mmflow.calibrate.terrestrial import (declination_loss, direction_loss, fit_amplitudes, fit_templates,
+                                          mean_amplitudes, projection_fraction, sidereal_tracks, subtract_templates,
                                           template_basis)
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.io.calibration_stores import terrestrial_store
 from mmflow.io.run_stores import STORES
 from mmflow.workflow.engine.baseline_cuts import solve_mask
@@ -47,6 +57,15 @@ from mmflow.workflow.engine.peel_models import four_correlation_jones, modelled_
 from mmflow.workflow.engine.reduce import ordered_tree_sum
 from mmflow.workflow.stages.terrestrial.cost import COST
 from mmflow.workflow.stages.base import Stage
+
+#: ``terrestrial.amplitudes: auto`` fits the amplitudes per integration where that takes at most this share of
+#: a source's map peak at every declination (measured: 0.27 of an unmodelled circumpolar source lost on 18
+#: stands within 20 m where the templates' worst declination loss was ~0.2; templates unrelated to the sky take
+#: ``K^2 / (2 n_bl)``, 2 % there)
+SKY_LOSS_LIMIT = 0.05
+#: baselines (evenly spaced among those the fit uses) on which the sky loss is measured: the loss is an average
+#: over baselines, and a subset keeps the driver's step under a second per channel at any array size
+LOSS_BASELINES = 2048
 
 
 def _prepare(ctx):
@@ -109,7 +128,8 @@ def _task(ctx, key):
 
 
 def _next_cycle(ctx, cycle):
-    """After the sums: fit the templates (driver), then the amplitudes (tasks); then done."""
+    """After the sums: fit the templates and measure their sky loss (driver), then the amplitudes (tasks); then
+    their means over the day (:func:`_finalize`)."""
     if cycle > 0:
         return None
     t = ctx.cfg.terrestrial
@@ -117,19 +137,64 @@ def _next_cycle(ctx, cycle):
     n, nf = g[STORES.terrestrial.sum_vis].shape[:2]
     pairs = ctx.open(STORES.vis)[STORES.vis.pairs][:]
     patterns = np.zeros(g[STORES.terrestrial.patterns].shape, complex)
+    loss = np.zeros(nf)
     for fi in range(nf):  # every cross baseline: the template is never extrapolated
         total = ordered_tree_sum([g[STORES.terrestrial.sum_vis][i, fi] for i in range(n)])  # (bl, pol)
         weight = ordered_tree_sum([g[STORES.terrestrial.sum_weight][i, fi] for i in range(n)])
         mean = np.where(weight > 0, total / np.where(weight > 0, weight, 1), 0)
         patterns[fi] = fit_templates(mean, weight, pairs, ctx.telescope().n_ant, t.components).patterns
+        loss[fi] = _sky_loss(ctx, fi, pairs, weight, patterns[fi])
     ctx.write(g, STORES.terrestrial.patterns, (slice(None),), patterns)
+    ctx.write(g, STORES.terrestrial.sky_loss, (slice(None),), loss)
+    per = loss <= SKY_LOSS_LIMIT if t.amplitudes == "auto" else np.full(nf, t.amplitudes == "per_integration")
+    ctx.write(g, STORES.terrestrial.per_integration, (slice(None),), per)
     return _keys(ctx.open(STORES.vis)[STORES.vis.lst].shape[0], nf, "a")
+
+
+def _sky_loss(ctx, fi, pairs, weight, patterns):
+    """The largest share of a source's map peak, over the declinations that rise, that fitting channel ``fi``'s
+    templates per integration would take (:func:`declination_loss` on :data:`LOSS_BASELINES` of the
+    baselines the fit uses, weighted by the day's summed weights)."""
+    tel = ctx.telescope()
+    f = float(tel.freqs_hz[fi])
+    used = solve_mask(tel, pairs, ctx.cfg.terrestrial.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
+    idx = np.flatnonzero(used)
+    if idx.size == 0:
+        return 0.0
+    idx = idx[np.round(np.linspace(0, idx.size - 1, min(idx.size, LOSS_BASELINES))).astype(int)]
+    enu = tel.layout.enu
+    b = (enu[pairs[idx, 1]] - enu[pairs[idx, 0]]) * f / SPEED_OF_LIGHT
+    B = template_basis(patterns, pairs[idx])  # (K^2, bl, pol)
+    _, dirs = sidereal_tracks(np.deg2rad(tel.layout.lat_deg))
+    power = tel.beam.power_enu(dirs, f)
+    return max(float(declination_loss(direction_loss(B[..., p], b, weight[idx, p], dirs.reshape(-1, 3))
+                                      .reshape(dirs.shape[:2]), power).max()) for p in range(B.shape[-1]))
+
+
+def _finalize(ctx):
+    """Each template's amplitude averaged over the day (what ``apply`` subtracts where the channel's
+    ``per_integration`` is false); the summary states each channel's sky loss and choice."""
+    g = ctx.open(STORES.terrestrial, mode="r+")
+    h = STORES.terrestrial
+    nf = g[h.patterns].shape[0]
+    ctx.write(g, h.mean_amplitudes, (slice(None),), np.stack([mean_amplitudes(g[h.amplitudes][:, fi])
+                                                              for fi in range(nf)]))
+    if h.cross_amplitudes in g:
+        ctx.write(g, h.mean_cross_amplitudes, (slice(None),),
+                  np.stack([mean_amplitudes(g[h.cross_amplitudes][:, fi]) for fi in range(nf)]))
+    per = g[h.per_integration][:]
+    return {"sky_loss": [round(float(x), 4) for x in g[h.sky_loss][:]],
+            "amplitudes": ["per integration" if p else "mean over the day" for p in per]}
 
 
 def _apply(ctx, block):
     """Subtract ``sum_k a_k(t) B_k`` per channel from a block, in place (and ``sum_kl a_kl(t) T^kl`` from its
-    cross hands where they are read)."""
+    cross hands where they are read); the amplitudes' means over the day where the channel's
+    ``per_integration`` is false."""
     amps = ctx.read(STORES.terrestrial.amplitudes, (block.rows,))  # (time, freq, K, pol)
+    per = ctx.read(STORES.terrestrial.per_integration)
+    means = ctx.read(STORES.terrestrial.mean_amplitudes)  # (freq, K, pol)
+    amps = np.where(per[None, :, None, None], amps, means[None])
     if block.cross is not None and STORES.terrestrial.cross_amplitudes not in ctx.open(STORES.terrestrial):
         raise InputError(str(ctx.run.store(STORES.terrestrial)), "cross_amplitudes", "the terrestrial solutions "
                          "hold the parallel hands only, and this stage reads the cross hands too",
@@ -138,6 +203,8 @@ def _apply(ctx, block):
         block.vis[:, :, k] = subtract_templates(block.vis[:, :, k], _templates(ctx, fi, block.pairs), amps[:, fi])
         if block.cross is not None:
             ca = ctx.read(STORES.terrestrial.cross_amplitudes, (block.rows, slice(fi, fi + 1)))[:, 0]
+            if not per[fi]:
+                ca = np.broadcast_to(ctx.read(STORES.terrestrial.mean_cross_amplitudes)[fi], ca.shape)
             patterns = ctx.read(STORES.terrestrial.patterns, (slice(fi, fi + 1),))[0]
             block.cross[:, :, k] -= cross_model(ca, pattern_templates(patterns, block.pairs))
 
@@ -152,6 +219,7 @@ STAGE = Stage(
     kind="solve",
     apply=_apply,
     next_cycle=_next_cycle,
+    finalize=_finalize,
     enabled=lambda cfg: cfg.terrestrial.enabled,
     description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration",
     cost=COST,
