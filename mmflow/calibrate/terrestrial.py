@@ -140,9 +140,13 @@ def projection_fraction(B, v, ord="fro"):
     return float(np.linalg.norm(B.conj().T @ v) / (np.linalg.norm(B, ord) * np.linalg.norm(v)))
 
 
+#: directions whose fringes :func:`direction_loss` forms at a time
+DIRECTIONS_PER_BLOCK = 2048
+
+
 def direction_loss(templates, baselines, weights, directions):
     """Share of a unit point source's weighted power that a per-integration fit of ``templates`` takes, per
-    direction.
+    polarisation and direction.
 
     With ``s_b(r) = exp(2 pi i b . r)`` the source's visibility on baseline ``b`` (in wavelengths, ``x_j -
     x_i``: the data's convention), the real amplitudes' normal matrix ``G = Re(B^H W B)`` and ``h(r) = Re(B^H W
@@ -156,25 +160,30 @@ def direction_loss(templates, baselines, weights, directions):
 
     Parameters
     ----------
-    templates : (K^2, bl) complex, one polarisation's templates
+    templates : (K^2, bl, pol) complex
     baselines : (bl, 3) baseline vectors in wavelengths
-    weights : (bl,) the fit's weights (zero on baselines it does not use)
+    weights : (bl, pol) the fit's weights (zero on baselines it does not use)
     directions : (n, 3) ENU unit vectors
 
     Returns
     -------
-    (n,) float, in [0, 1]
+    (pol, n) float, in [0, 1]
     """
     w = np.asarray(weights, float)
-    used = w > 0
+    used = (w > 0).any(-1)
+    directions = np.asarray(directions)
+    out = np.zeros((w.shape[-1], len(directions)))
     B, b, w = templates[:, used], baselines[used], w[used]
-    if not used.any():
-        return np.zeros(len(directions))
-    G = (np.conj(B) * w) @ B.T
-    G = G.real
-    h = ((np.conj(B) * w) @ np.exp(2j * np.pi * (b @ np.asarray(directions).T))).real  # (K^2, n)
-    sol = np.linalg.lstsq(G, h, rcond=None)[0]
-    return np.sum(h * sol, 0) / w.sum()
+    BW = np.conj(B) * w  # (K^2, bl, pol)
+    G = np.einsum("kbp,lbp->pkl", BW, B).real
+    total = w.sum(0)
+    for i in range(0, len(directions), DIRECTIONS_PER_BLOCK):  # the fringes (bl, block) at most ~70 MB
+        fringe = np.exp(2j * np.pi * (b @ directions[i:i + DIRECTIONS_PER_BLOCK].T))  # (bl, block)
+        for p in range(w.shape[-1]):
+            if total[p] > 0:
+                h = (BW[..., p] @ fringe).real  # (K^2, block)
+                out[p, i:i + DIRECTIONS_PER_BLOCK] = np.sum(h * np.linalg.lstsq(G[p], h, rcond=None)[0], 0) / total[p]
+    return out
 
 
 def sidereal_tracks(lat_rad, n_dec=90, n_hour=180):

@@ -147,13 +147,13 @@ def test_direction_loss_is_what_the_per_integration_fit_takes(drift):
         a = fit_amplitudes(s[None, :, None], w[None, :, None], B)[0, :, 0]
         fit = np.einsum("k,kb->b", a, B[:, :, 0])
         removed.append(np.sum(w * np.abs(fit) ** 2) / np.sum(w * np.abs(s) ** 2))  # beam cancels
-    loss = direction_loss(B[..., 0], b, w, dirs)
+    loss = direction_loss(B, b, w[:, None], dirs)[0]
     np.testing.assert_allclose(loss, removed, rtol=1e-8, atol=1e-12)
     assert abs(loss.mean() / (4 / (2 * keep.sum())) - 1) < 0.5, loss.mean()
     # a pattern of the source's own antenna phases, u_i = exp(-2 pi i x_i . r0 / lambda): all of it
     r0 = dirs[:1]
     own = template_basis(np.exp(-2j * np.pi * (x @ r0[0]) / lam)[None, :, None], pairs)
-    np.testing.assert_allclose(direction_loss(own[..., 0], b, w, r0), 1.0, rtol=1e-10)
+    np.testing.assert_allclose(direction_loss(own, b, w[:, None], r0), 1.0, rtol=1e-10)
 
 
 def test_sidereal_tracks_and_the_declination_loss():
