@@ -451,6 +451,29 @@ def test_full_stokes_at_the_paper_scale_is_planned_in_blocks_of_m(tmp_path):
     assert 0 < sim["seconds"] < 4 * 3600  # the diffuse sky's four correlations at its 138 sampled angles
 
 
+def test_the_second_phase_keeps_the_largest_factors_and_none_the_m_filters_empty(tmp_path):
+    """At the paper's scale the channel's factors do not all fit ``FACTORS_KEPT_BYTES``: the kept are the
+    largest factors as the m-filters leave them (m = 0 emptied by ``imaging.filter_m0``, never factorised;
+    m = 1 cut to l <= 100 by ``filter_m1_lmin``), within the budget, and a larger one is never left out for a
+    smaller one."""
+    from mmflow.workflow.config.schema import load_config
+    from mmflow.workflow.stages.stokes.blocks import FACTORS_KEPT_BYTES, factor_sizes_of, factors_kept
+
+    cfg = load_config("workflows/paper-scale.yaml", ["imaging.stokes=[I, Q, U, V]", f"run.directory={tmp_path}",
+                                                     "beam={type: short_dipole, horizon_taper: 3}"])
+    size = factor_sizes_of(cfg)
+    assert size(0) == 0 and size(1) == 4 * 100 and size(2) == 999 + 3 * 255
+    kept = factors_kept(cfg)
+    assert 0 not in kept and 1 not in kept and kept == list(range(2, 2 + len(kept)))
+    used = 16.0 * sum(size(m) ** 2 for m in kept)
+    assert used <= FACTORS_KEPT_BYTES < used + 16.0 * size(kept[-1] + 1) ** 2
+    off = load_config("workflows/paper-scale.yaml", ["imaging.stokes=[I, Q, U, V]", f"run.directory={tmp_path}",
+                                                     "beam={type: short_dipole, horizon_taper: 3}",
+                                                     "imaging.filter_m0=false"])
+    # the monopole still zeroed, in I and in Q, U, V alike (as PolarisedObserver filters)
+    assert factor_sizes_of(off)(0) == 1001 + 3 * 257 - 4 and factors_kept(off)[0] == 0
+
+
 def test_a_full_stokes_plan_prices_the_four_correlations_at_their_measured_ratios():
     """Full Stokes through an E-field beam multiplies the task time of simulate, peel and terrestrial by the
     ratios ``benchmarks/four_correlation_ratio.py`` measured on the paper's array (docs/stokes.md), says so

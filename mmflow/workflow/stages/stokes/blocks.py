@@ -4,9 +4,11 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.conventions import complex_dtype
+from mmflow.imaging.filters import filter_mask
 from mmflow.imaging.polarised import BLOCK_BYTES_PER_ELEMENT, stokes_m_blocks, stokes_sizes
 from mmflow.mmode.polarised import CORRELATIONS
 from mmflow.workflow.engine.geometry import stokes_lmax_of
+from mmflow.workflow.engine.kernel_args import m_filters
 
 #: bytes of a phase-one task's Grams (the accumulation's precision: each m is factorised on its own) and m-modes
 #: (:func:`stokes_m_blocks`): with the ring FFTs' budget and the grid, a task of about 5.5 GB. Every block of m
@@ -41,6 +43,19 @@ def sizes_of(cfg):
     return size
 
 
+def factor_sizes_of(cfg):
+    """``m -> `` the unknowns of block m that the m-filters keep (``imaging.filter_m0``, ``filter_m1_lmin``,
+    ``zero_monopole``: :func:`filter_mask` on I and on each of Q, U, V's ``l <= stokes_lmax``), the size of its
+    Cholesky factor; 0 where they remove every unknown (m = 0 by default: never factorised)."""
+    lmax, lmax_p, filters = cfg.mmode.lmax, stokes_lmax_of(cfg), m_filters(cfg.imaging)
+
+    def size(m):
+        n_p = stokes_sizes(m, lmax, lmax_p)[1]
+        keep = filter_mask(m, lmax, **filters)
+        return int(keep.sum() + 3 * keep[:n_p].sum())
+    return size
+
+
 def gram_dtype(cfg):
     """The Grams' precision in a block task and on disk: the accumulation's (complex64 for ``transfer.dtype:
     float32``)."""
@@ -63,16 +78,17 @@ def kept_in_memory(cfg):
 #: where a channel's Grams and factors do not fit ``KEPT_BYTES``, phase two keeps the factors of the m with the
 #: largest normal equations within this (complex128, 16 bytes an element: each is factorised once, the rest again
 #: per observation; the factor's cost grows as N^3 and its bytes as N^2, so the largest save the most a byte:
-#: at the paper's scale the 47 largest, a third of a factorisation of every m)
+#: at the paper's scale the 48 largest (m = 0, emptied by the m-filters, is never factorised), a third of a
+#: factorisation of every m)
 FACTORS_KEPT_BYTES = 2 ** 31
 
 
 def factors_kept(cfg):
     """The m whose factors phase two keeps when not all are kept (:data:`FACTORS_KEPT_BYTES`): the largest
-    ``N_m`` first, while their complex128 factors fit."""
-    size = sizes_of(cfg)
+    factors (:func:`factor_sizes_of`; none for an m the filters empty) first, while their complex128 bytes fit."""
+    size = factor_sizes_of(cfg)
     kept, used = [], 0.0
-    for m in sorted(range(cfg.mmode.lmax + 1), key=lambda m: (-size(m), m)):
+    for m in sorted((m for m in range(cfg.mmode.lmax + 1) if size(m)), key=lambda m: (-size(m), m)):
         b = np.dtype(np.complex128).itemsize * float(size(m)) ** 2
         if used + b > FACTORS_KEPT_BYTES:
             break

@@ -43,8 +43,8 @@ from mmflow.threads import usable_cores
 from mmflow.workflow.engine.geometry import stokes_lmax_of
 from mmflow.workflow.plan.work import (COMPLEX128_BYTES, EXPECTED_CLEAN_CYCLES, PSF_DECLINATIONS, Cost, Work,
                                       expected_clean_cycles)
-from mmflow.workflow.stages.stokes.blocks import (blocks_of, factors_kept, gram_dtype, gram_itemsize,
-                                                 kept_in_memory, mmode_bytes_per_m, sizes_of)
+from mmflow.workflow.stages.stokes.blocks import (blocks_of, factor_sizes_of, factors_kept, gram_dtype,
+                                                 gram_itemsize, kept_in_memory, mmode_bytes_per_m, sizes_of)
 
 #: thread-seconds per ring point, kernel, baseline and Fourier block (:func:`polarised_fourier`'s fringes, folds,
 #: FFTs and copies, the short dipole's 10 distinct kernels of 16 transformed) at a core's SGEMM peak
@@ -131,7 +131,8 @@ def block_parts(g, cfg, baselines, m0, m1, size, lmax_p, core_gflops):
             flops += 4.0 * len(CORRELATIONS) * cols * (n_t + 3 * n_p) ** 2  # herk
     slow = REFERENCE_CORE_GFLOPS / core_gflops
     return {"grid": grid_pts * GRID_SECONDS_PER_POINT * slow, "ring": ring * RING_SECONDS_PER_POINT * slow,
-            "gemm": flops / (GEMM_EFFICIENCY * core_gflops * 1e9), "factor": _factor_seconds(size, m0, m1, core_gflops)}
+            "gemm": flops / (GEMM_EFFICIENCY * core_gflops * 1e9),
+            "factor": _factor_seconds(factor_sizes_of(cfg), m0, m1, core_gflops)}
 
 
 def _factor_seconds(size, m0, m1, core_gflops):
@@ -176,7 +177,7 @@ def work(g, cfg):
     n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
     vectors = 2 * max(RESPONSE_SOURCES, 4 * DECS_PER_PASS) + g.n_split + PSF_DECLINATIONS / 4
     held = (BLOCK_BYTES_PER_ELEMENT * all_gram / COMPLEX128_BYTES if kept else 2 * COMPLEX128_BYTES * size(0) ** 2
-            + COMPLEX128_BYTES * sum(float(size(m)) ** 2 for m in factors_kept(cfg)))  # + the factors kept
+            + COMPLEX128_BYTES * sum(float(factor_sizes_of(cfg)(m)) ** 2 for m in factors_kept(cfg)))  # + factors
     second = held + vectors * 4 * n_alm * COMPLEX128_BYTES
     c = cfg.clean  # the CLEANs of the sources and of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
@@ -198,9 +199,10 @@ def seconds(g, cfg, per_task, workers, peak):
     per_slot = [0.0] * max(1, workers)
     for s in block_s * g.n_freq:
         per_slot[per_slot.index(min(per_slot))] += s
-    factor_s = _factor_seconds(size, 0, g.lmax + 1, core)
+    factor_size = factor_sizes_of(cfg)  # the m-filters' unknowns removed (m = 0: none factorised)
+    factor_s = _factor_seconds(factor_size, 0, g.lmax + 1, core)
     # the factors not kept (none when all fit), made again per observation
-    again = 0.0 if kept else factor_s - sum(_factor_seconds(size, m, m + 1, core) for m in factors_kept(cfg))
+    again = 0.0 if kept else factor_s - sum(_factor_seconds(factor_size, m, m + 1, core) for m in factors_kept(cfg))
     # the response; unless kept, the response tables' passes (the sources', and V's with clean.enabled) and cycles
     tables = (1 + bool(cfg.clean.enabled)) * -(-PSF_DECLINATIONS // DECS_PER_PASS)
     cycles = min(cfg.clean.max_cycles, EXPECTED_CLEAN_CYCLES) + 1 + expected_clean_cycles(cfg)  # + sources' closing
