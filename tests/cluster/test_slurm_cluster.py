@@ -123,6 +123,9 @@ def test_reduced_paper_scale_on_jobs_sized_per_stage_matches_a_local_run(slurm, 
             ends = sorted([(a, 1) for a, _ in spans] + [(b, -1) for _, b in spans], key=lambda e: (e[0], e[1]))
             at_once = np.cumsum([d for _, d in ends])
             assert at_once.max() <= k // j, (name, spans)
+        # each task's own count of the tasks its worker process ran at once (TasksAtOnce: the traced and
+        # resident peaks are one task's only at 1), within the same bound
+        assert {i["tasks_at_once"] for i in infos} <= set(range(1, k // j + 1)), (name, infos)
         several = several or (k == j > 1 and any(len(v) > 1 for v in by_worker.values()))
     assert several  # a worker of two threads ran several tasks of its two-core stage, one after another
     assert {c for c, _, _ in seen.values()} == {2} and len({n for _, _, n in seen.values()}) >= 2, seen

@@ -399,6 +399,7 @@ def test_every_task_runs_its_blas_on_one_thread_whatever_the_process_has(tmp_pat
     infos = [i for st in ("simulate", "mmodes") for i in RunDir(tmp_path / "run").task_infos(st).values()
              if "threads" in i]  # the tasks' records (not a pass's)
     assert len(infos) >= 2 and [i["blas_threads"] for i in infos] == [1] * len(infos)
+    assert [i["tasks_at_once"] for i in infos] == [1] * len(infos)  # a synchronous run: each task's peaks its own
 
 
 def test_every_store_records_config_versions_and_fingerprint(reference_run):

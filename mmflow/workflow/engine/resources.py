@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import resource
 import sys
+import threading
 import tracemalloc
 
 _STATUS = "/proc/self/status"
@@ -57,6 +58,32 @@ def peak_rss_bytes():
         return kib * 1024
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return peak if sys.platform == "darwin" else peak * 1024  # bytes on macOS, KiB on Linux
+
+
+class TasksAtOnce:
+    """The most tasks this process ran at once while one task ran, itself included (``with TasksAtOnce() as
+    n: ...; n.most``).
+
+    The resident set and ``tracemalloc``'s traced memory are the process's: a worker of several threads that
+    runs two tasks at once reads their allocations as one peak, which is not one task's (``mmflow bench
+    cluster`` compares a task's traced peak with the plan's only where it ran alone). Every task entering
+    raises the count of the tasks already running (a lock: the worker's threads)."""
+
+    _lock = threading.Lock()
+    _running = []
+
+    def __enter__(self):
+        with self._lock:
+            self._running.append(self)
+            self.most = 0
+            for task in self._running:
+                task.most = max(task.most, len(self._running))
+        return self
+
+    def __exit__(self, *exc):
+        with self._lock:
+            self._running.remove(self)
+        return False
 
 
 def reset_traced_peak():

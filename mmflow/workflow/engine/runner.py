@@ -50,8 +50,8 @@ from mmflow.workflow.engine.context import Context
 from mmflow.workflow.engine.fingerprint import StageFingerprint, config_values, stage_file_digests
 from mmflow.workflow.pipeline import PIPELINE
 from mmflow.workflow.plan.planner import check_fits
-from mmflow.workflow.engine.resources import (current_rss_bytes, dask_worker, gb, peak_rss_bytes, reset_peak_rss,
-                                              reset_traced_peak, traced_peak_bytes)
+from mmflow.workflow.engine.resources import (TasksAtOnce, current_rss_bytes, dask_worker, gb, peak_rss_bytes,
+                                              reset_peak_rss, reset_traced_peak, traced_peak_bytes)
 from mmflow.workflow.engine.channels import by_channel, by_channel_partner
 from mmflow.workflow.engine.release import (chunk_releases, planned_keys, recompute_released, release_finished,
                                             release_task_chunks, released_here, repair_or_refuse)
@@ -98,26 +98,28 @@ def run_task(ctx, pipeline, stage_name, key):
         time.sleep(delay)
     if current_rss_bytes() > RELEASE_ABOVE_BYTES:  # an earlier task's freed memory, still resident
         release_freed_memory()
-    reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.engine.resources)
-    rss_start = current_rss_bytes()
-    traced_start = reset_traced_peak()  # None unless the process traces its allocations (tracemalloc)
-    t0 = time.time()
-    stage = pipeline.stage(stage_name)
-    tctx = ctx.for_stage(stage).for_task(keep_handles=True)
-    worker, limit = dask_worker() or (None, None)
-    with blas_on_one_thread(for_good=worker is not None):  # the same bits in every executor
-        info = stage.task(tctx, TaskKey.parse(key)) or {}
-        info = dict(info, blas_threads=blas_threads())  # BLAS's threads in the task's kernels: one (above)
-    info = dict(info, started=round(t0, 3), seconds=round(time.time() - t0, 3),
-                checksum_s=round(tctx.ledger.seconds, 4), guard_s=round(tctx.ledger.guard_seconds, 4),
-                peak_rss_gb=gb(peak_rss_bytes()),
-                rss_start_gb=gb(rss_start), threads=n_threads())
-    if worker is not None:  # the worker the task was sent to, and its memory (jobs sized per stage)
-        info.update(worker=worker, worker_memory_bytes=limit and int(limit))
-    if traced_start is not None:
-        traced = traced_peak_bytes(traced_start)
-        info["traced_peak_gb"] = gb(traced)
-        info["traced_peak_bytes"] = int(traced)  # exact: the GB figure of a small task is coarse
+    with TasksAtOnce() as at_once:  # the peaks below are the process's: one task's only where it ran alone
+        reset_peak_rss()  # the worker's high-water mark from here covers this task (mmflow.workflow.engine.resources)
+        rss_start = current_rss_bytes()
+        traced_start = reset_traced_peak()  # None unless the process traces its allocations (tracemalloc)
+        t0 = time.time()
+        stage = pipeline.stage(stage_name)
+        tctx = ctx.for_stage(stage).for_task(keep_handles=True)
+        worker, limit = dask_worker() or (None, None)
+        with blas_on_one_thread(for_good=worker is not None):  # the same bits in every executor
+            info = stage.task(tctx, TaskKey.parse(key)) or {}
+            info = dict(info, blas_threads=blas_threads())  # BLAS's threads in the task's kernels: one (above)
+        info = dict(info, started=round(t0, 3), seconds=round(time.time() - t0, 3),
+                    checksum_s=round(tctx.ledger.seconds, 4), guard_s=round(tctx.ledger.guard_seconds, 4),
+                    peak_rss_gb=gb(peak_rss_bytes()),
+                    rss_start_gb=gb(rss_start), threads=n_threads())
+        if worker is not None:  # the worker the task was sent to, and its memory (jobs sized per stage)
+            info.update(worker=worker, worker_memory_bytes=limit and int(limit))
+        if traced_start is not None:
+            traced = traced_peak_bytes(traced_start)
+            info["traced_peak_gb"] = gb(traced)
+            info["traced_peak_bytes"] = int(traced)  # exact: the GB figure of a small task is coarse
+    info["tasks_at_once"] = at_once.most  # 1: the peaks are this task's alone
     run.check_holder(ctx.token)
     run.mark_done(stage_name, key, info, tctx.ledger.entries)
     if limit and current_rss_bytes() > RELEASE_ABOVE_SHARE * limit:
