@@ -171,10 +171,11 @@ def plan_vs_traced(cfg, run_dir, peak_gflops):
     ``PYTHONTRACEMALLOC``), as ``tests/acceptance/test_plan_traced.py`` compares them; ``within`` is
     :data:`TRACED_TOLERANCE`.
 
-    A traced peak is its worker process's: only the tasks that ran alone in their worker
-    (``tasks_at_once`` 1, :class:`mmflow.workflow.engine.resources.TasksAtOnce`) are compared. Where none did
-    (a worker of several threads ran the stage's tasks two at a time), the stage's entry says how many shared
-    the peaks (``tasks_at_once``) and ``within`` is None: that peak is not one task's."""
+    A traced peak is its worker process's: only the tasks that recorded running alone in their worker
+    (``tasks_at_once`` 1, :class:`mmflow.workflow.engine.resources.TasksAtOnce`; a run from before the count
+    records none) are compared. Where none did, the stage's entry says how many shared the peaks
+    (``tasks_at_once``, when recorded) and ``within`` is None: that peak is not one task's. The largest task
+    that ran alone need not be the stage's largest (``tasks_alone`` of ``tasks`` say how many were compared)."""
     from mmflow.workflow.engine.rundir import RunDir  # deferred: as load_config in run_on_slurm
     from mmflow.workflow.plan.planner import plan
 
@@ -184,14 +185,14 @@ def plan_vs_traced(cfg, run_dir, peak_gflops):
         infos = [i for i in run.task_infos(e["stage"]).values() if "traced_peak_bytes" in i]
         if not infos:
             continue
-        alone = [i["traced_peak_bytes"] for i in infos if i.get("tasks_at_once", 1) == 1]
+        alone = [i["traced_peak_bytes"] for i in infos if i.get("tasks_at_once") == 1]
         traced = max(alone or [i["traced_peak_bytes"] for i in infos])
         ratio = e["task_bytes"] / traced
         out[e["stage"]] = {"planned_gb": round(e["task_bytes"] / 1e9, 4), "traced_gb": round(traced / 1e9, 4),
                            "planned/traced": round(ratio, 3), "tasks_alone": len(alone), "tasks": len(infos),
                            "within": abs(ratio - 1) <= TRACED_TOLERANCE if alone else None}
         if not alone:
-            out[e["stage"]]["tasks_at_once"] = max(i.get("tasks_at_once", 1) for i in infos)
+            out[e["stage"]]["tasks_at_once"] = max((i.get("tasks_at_once", 0) for i in infos), default=0) or None
     return out
 
 

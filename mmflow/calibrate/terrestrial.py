@@ -24,7 +24,7 @@ found ~0.035 for its three components).
 The per-integration fit takes from the sky whatever of it lies along the templates. Where the
 templates resemble the sky (a small array with no terrestrial signal fits the residual sky's m = 0
 part, brightest where circumpolar sources stand), a source near them loses a large share:
-:func:`direction_loss` and :func:`declination_loss` measure that share from the templates and the
+:func:`direction_loss`, :func:`declination_loss` and :func:`sky_loss` measure that share from the templates and the
 array alone, so the stage can keep each template's amplitude constant (its mean over the day: only the
 stationary part, which lives at m = 0) where the fit would take too much of a source
 (:func:`mean_amplitudes`).
@@ -208,17 +208,33 @@ def declination_loss(loss, power):
 
     ``loss`` and ``power`` (n_dec, n_hour) on :func:`sidereal_tracks`: the direction loss and the beam's
     power response (zero below the horizon). A source's peak in the map weighs each integration by the
-    square of its response there (a matched filter: its visibilities scale with ``P``), so the loss near the
-    horizon, where a near-field emitter's template lies, counts little. Returns (n_dec,).
+    square of its response there (a matched filter: its visibilities scale with ``P``). Returns (n_dec,).
     """
     p2 = np.asarray(power, float) ** 2
     total = p2.sum(-1)
     return np.where(total > 0, (p2 * loss).sum(-1) / np.where(total > 0, total, 1), 0.0)
 
 
+def sky_loss(loss, power):
+    """The largest :func:`declination_loss` over the declinations, each weighed by how well the array sees
+    them: ``max_d sum_t P^2 loss / max_d sum_t P^2``.
+
+    A declination that only skims the horizon is seen through the beam's last fraction of a percent; relative
+    to its own faint track it could lose all of a source to a template of a distant emitter on the horizon,
+    which is what the per-integration fit is for. Weighed by its track's power against the best-seen
+    declination's, its loss counts as little as the array sees it; a circumpolar or overhead declination
+    counts fully.
+    """
+    p2 = np.asarray(power, float) ** 2
+    best = p2.sum(-1).max()
+    return float((p2 * loss).sum(-1).max() / best) if best > 0 else 0.0
+
+
 def mean_amplitudes(amplitudes):
     """Each template's amplitude averaged over the integrations it was fitted on (time, K^2[, pol]) -> (K^2[,
-    pol]); an integration with every amplitude zero (no data) is left out."""
+    pol]): per polarisation, an integration whose amplitudes are all zero (no data there, :func:`fit_amplitudes`
+    leaves them 0) is left out."""
     a = np.asarray(amplitudes)
-    fitted = np.any(a.reshape(len(a), -1) != 0, axis=1)
-    return a[fitted].mean(0) if fitted.any() else np.zeros(a.shape[1:], a.dtype)
+    fitted = np.any(a != 0, axis=1, keepdims=True)  # (time, 1[, pol])
+    n = fitted.sum(0)
+    return np.where(n > 0, (a * fitted).sum(0) / np.maximum(n, 1), 0).astype(a.dtype)

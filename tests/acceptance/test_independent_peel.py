@@ -18,10 +18,10 @@ means, ``terrestrial.amplitudes: auto``): Cyg A -38.1 dB, Cas A -40.1 dB, the un
 the paper's recipe (one solution on the best track for the whole day) left -22.9 / -21.2 dB (192
 integrations). More days and seeds: docs/calibration.md.
 """
-import healpy as hp
-import numpy as np
 import json
 
+import healpy as hp
+import numpy as np
 import pytest
 
 from mmflow.workflow.config.schema import load_config
@@ -93,5 +93,5 @@ def test_a_slow_gain_drift_is_followed_with_defaults(maps):
     db = _suppression_db(maps, "drifting")
     assert max(db) < -30, db  # measured -35.4, -34.0 dB
     kept = _kept(maps, "drifting")
-    assert np.all(np.abs(kept - 1) < 0.12), kept  # measured 0.919-0.975
+    assert np.all(np.abs(kept - 1) < 0.12), kept  # measured 0.918-1.011
     assert abs(np.median(kept) - 1) < 0.06, kept

@@ -182,9 +182,11 @@ def _correlation_mmodes(ctx, vg, block, good_t, n_fit, mmax, fit):
     baseline)`` of xx, yy, xy, yx (full Stokes), each fitted as Stokes I is (every data split, no prior run)
     with each correlation's own radiometer noise ``<V_ii,p> <V_jj,q> / (dnu tau)``.
 
-    Without autocorrelations (``mmode.noise: data``) the parallel hands' variances come from their fits'
-    residuals, and the cross hands take the radiometer equation's relation to them, ``sigma^2_xy sigma^2_yx =
-    sigma^2_xx sigma^2_yy``, as ``sigma^2_xy = sigma^2_yx = sqrt(sigma^2_xx sigma^2_yy)``: a cross hand's own
+    Where the radiometer equation is not used (``mmode.noise: data``, or ``auto`` with an antenna of the chunk
+    without autocorrelations) the parallel hands' per-sample variances come from their fits' residuals, and
+    the cross hands take the radiometer equation's relation to them, ``sigma^2_xy sigma^2_yx = sigma^2_xx
+    sigma^2_yy``, as ``sigma^2_xy = sigma^2_yx = sqrt(sigma^2_xx sigma^2_yy)`` per sample (their own flags and
+    coverage still set their m-modes' variances; a baseline with no xx or no yy data has none): a cross hand's own
     residual follows its modelling error where the noise is small: on a noise-free four-correlation day
     (``tests/independent_day.py``, no autocorrelations) the cross hands outweighed the parallel hands 137
     times (median; 1.01 with radiometer noise in the file) and the full-Stokes I came out at 0.32-0.49 of the
@@ -199,11 +201,13 @@ def _correlation_mmodes(ctx, vg, block, good_t, n_fit, mmax, fit):
     inv_var = np.zeros((nf, len(feeds), nbl))
     for fi in range(nf):
         band = fit_band(tel, freqs[fi], n_fit, block.pairs)
+        parallel = []  # the parallel hands' per-sample variances (bl,), where estimated from their residuals
         for c, (v, w, p) in enumerate(hands):  # one correlation's integrations at a time (no copy of all four)
-            inv_var[fi, c] = fit(v[good_t, :, fi, p], w[good_t, :, fi, p], band,
-                                 None if per_corr is None else per_corr[c][fi], out[:, fi, :, :, c])[0]
-    if per_corr is None:  # the cross hands' variances from the parallel hands' (the radiometer relation)
-        inv_var[:, 2:] = np.where(inv_var[:, 2:] > 0, np.sqrt(inv_var[:, :1] * inv_var[:, 1:2]), 0.0)
+            sigma2 = per_corr[c][fi] if per_corr is not None else (np.sqrt(parallel[0] * parallel[1]) if c >= 2
+                                                                   else None)
+            inv_var[fi, c] = fit(v[good_t, :, fi, p], w[good_t, :, fi, p], band, sigma2, out[:, fi, :, :, c])[0]
+            if c < 2:
+                parallel.append(fit.sigma2)
     return out, inv_var
 
 
@@ -224,7 +228,7 @@ class _SplitFit:
         self.ctx, self.lst, self.masks, self.splits, self.n_bins, self.mmax = ctx, lst, masks, splits, n_bins, mmax
         self.bin_splits = [s for s in splits if not is_time_split(s)]
         self.src = str(ctx.run.store(STORES.vis))
-        self.max_iterations = 0
+        self.max_iterations, self.sigma2 = 0, None
 
     def __call__(self, vis, weights, band, sigma2, out, prior=None):
         cfg, splits = self.ctx.cfg, self.splits
@@ -245,6 +249,7 @@ class _SplitFit:
             self.max_iterations = max([self.max_iterations] + [int(np.max(f.iterations)) for f in res.fits])
             if names is self.bin_splits:
                 full = (res.inv_var, res.coverage)
+                self.sigma2 = res.sigma2  # the per-sample variance the full data's fit used (given or estimated)
         return (*full, n_samples, n_prior)
 
 

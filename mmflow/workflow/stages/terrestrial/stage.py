@@ -27,11 +27,11 @@ same baselines, the modelled sources held out there too).
 
 The fit takes from the sky whatever of it lies along the templates. With ``terrestrial.amplitudes: auto``
 the driver measures, after fitting the templates, the largest share of a source's map peak that the fit
-would take at any declination (:func:`mmflow.calibrate.terrestrial.declination_loss`, from the templates,
-the array and the beam alone); beyond :data:`SKY_LOSS_LIMIT` (a small array whose templates are the
-residual sky's circumpolar rings) each amplitude is held at its mean over the day, the stationary part,
-which the solve's m-filter drops with m = 0 anyway. A last driver step averages the amplitudes
-(:func:`mean_amplitudes`).
+would take at any declination, weighed by how well the array sees it
+(:func:`mmflow.calibrate.terrestrial.sky_loss`, from the templates, the array and the beam alone); beyond
+:data:`SKY_LOSS_LIMIT` (a small array whose templates are the residual sky's circumpolar rings) each
+amplitude is held at its mean over the day, the stationary part, which the solve's m-filter drops with
+m = 0 anyway. A last driver step averages the amplitudes (:func:`mean_amplitudes`).
 
 ``apply`` subtracts ``sum_k a_k(t) B_k`` (or the means) from a block where it is read (and ``sum_kl a_kl(t) T^kl``
 from its cross hands where they are read). Every task reads and
@@ -43,8 +43,8 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.cross_hands import cross_model, fit_cross, pattern_templates
-from mmflow.calibrate.terrestrial import (declination_loss, direction_loss, fit_amplitudes, fit_templates,
-                                          mean_amplitudes, projection_fraction, sidereal_tracks, subtract_templates,
+from mmflow.calibrate.terrestrial import (direction_loss, fit_amplitudes, fit_templates, mean_amplitudes,
+                                          projection_fraction, sidereal_tracks, sky_loss, subtract_templates,
                                           template_basis)
 from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.io.calibration_stores import terrestrial_store
@@ -59,9 +59,10 @@ from mmflow.workflow.stages.terrestrial.cost import COST
 from mmflow.workflow.stages.base import Stage
 
 #: ``terrestrial.amplitudes: auto`` fits the amplitudes per integration where that takes at most this share of
-#: a source's map peak at every declination (measured: 0.27 of an unmodelled circumpolar source lost on 18
-#: stands within 20 m where the templates' worst declination loss was ~0.2; templates unrelated to the sky take
-#: ``K^2 / (2 n_bl)``, 2 % there)
+#: a source's map peak at every declination, weighed by how well the array sees it (:func:`sky_loss`; measured:
+#: 0.27 of an unmodelled circumpolar source lost on 18 stands within 20 m where the sky loss was 0.14-0.15;
+#: templates unrelated to the sky take ``K^2 / (2 n_bl)``, 2 % there; the calibration demo's cross-talk and
+#: near-field emitter 0.0035)
 SKY_LOSS_LIMIT = 0.05
 #: baselines (evenly spaced among those the fit uses) on which the sky loss is measured: the loss is an average
 #: over baselines, and a subset bounds the driver's step at any array size (1.7 s a channel of two polarisations
@@ -153,9 +154,9 @@ def _next_cycle(ctx, cycle):
 
 
 def _sky_loss(ctx, fi, pairs, weight, patterns):
-    """The largest share of a source's map peak, over the declinations that rise, that fitting channel ``fi``'s
-    templates per integration would take (:func:`declination_loss` on :data:`LOSS_BASELINES` of the
-    baselines the fit uses, weighted by the day's summed weights)."""
+    """The largest share of a source's map peak, over the declinations that rise (each weighed by how well the
+    array sees it), that fitting channel ``fi``'s templates per integration would take (:func:`sky_loss` on
+    :data:`LOSS_BASELINES` of the baselines the fit uses, weighted by the day's summed weights)."""
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
     used = solve_mask(tel, pairs, ctx.cfg.terrestrial.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
@@ -169,7 +170,7 @@ def _sky_loss(ctx, fi, pairs, weight, patterns):
     _, dirs = sidereal_tracks(np.deg2rad(tel.layout.lat_deg), n_dec=60, n_hour=120)
     power = tel.beam.power_enu(dirs, f)
     loss = direction_loss(B, b, weight[idx], dirs.reshape(-1, 3)).reshape(-1, *dirs.shape[:2])  # (pol, dec, hour)
-    return float(max(declination_loss(lp, power).max() for lp in loss))
+    return max(sky_loss(lp, power) for lp in loss)  # the Stokes-I beam for both feeds: their tracks' weights
 
 
 def _finalize(ctx):
@@ -195,6 +196,7 @@ def _apply(ctx, block):
     amps = ctx.read(STORES.terrestrial.amplitudes, (block.rows,))  # (time, freq, K, pol)
     per = ctx.read(STORES.terrestrial.per_integration)
     means = ctx.read(STORES.terrestrial.mean_amplitudes)  # (freq, K, pol)
+    # the means on every integration of such a channel, also one the fit never saw (no data: its weight stays 0)
     amps = np.where(per[None, :, None, None], amps, means[None])
     if block.cross is not None and STORES.terrestrial.cross_amplitudes not in ctx.open(STORES.terrestrial):
         raise InputError(str(ctx.run.store(STORES.terrestrial)), "cross_amplitudes", "the terrestrial solutions "
@@ -222,6 +224,7 @@ STAGE = Stage(
     next_cycle=_next_cycle,
     finalize=_finalize,
     enabled=lambda cfg: cfg.terrestrial.enabled,
-    description="rank-1 templates of the zenith-phased average, fitted and subtracted per integration",
+    description="rank-1 templates of the zenith-phased average, fitted per integration and subtracted (or their "
+                "means over the day)",
     cost=COST,
 )
