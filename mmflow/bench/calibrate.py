@@ -7,7 +7,8 @@ Stefcal solve, and peeling 8 sources with 5 passes per integration (cold start f
 gains, the stage's default, and warm start from the previous integration), projected to the
 paper's 28 h day (7,756 integrations) and its 8 channels; the calibration demo's recipe at
 that scale (2 peeled, 2 subtracted, 7 modelled sources); and the gain solve of one 22-min track
-with Cyg A and Cas A screened against the same solve on the catalogue models. Nothing here
+with Cyg A and Cas A screened against the same solve on the catalogue models; the terrestrial stage's
+sky loss of one channel's two templates (its driver step, ``terrestrial.amplitudes: auto``). Nothing here
 asserts a time.
 """
 from __future__ import annotations
@@ -26,6 +27,8 @@ from mmflow.calibrate.dd_screen import screen_basis, screen_gains, sky_tangents_
 from mmflow.calibrate.peel import MODEL, PEEL, SUBTRACT, add_component, peel_dense
 from mmflow.calibrate.screened_gains import solve_gains_screened
 from mmflow.calibrate.stefcal import solve_gains, stefcal, sweep, sweep_numpy
+from mmflow.calibrate.terrestrial import LOSS_BASELINES, TRACK_POINTS, template_sky_loss
+from mmflow.telescope.beams import SinElevationBeam
 from mmflow.machine import best_time, gemm_gflops, machine
 from mmflow.simulate.corrupt import gain_products
 from mmflow.sky.sources import get_sources
@@ -240,6 +243,26 @@ def screened_gain_rates(n_ant=256, n_int=100, rng=None):
             "screened_over_catalogue": t_screened / t_plain}
 
 
+def terrestrial_sky_loss_rates(n_ant=256, rng=None):
+    """Seconds of the terrestrial stage's driver step for one channel (:func:`template_sky_loss`: two random
+    rank-1 patterns, both polarisations, every cross baseline used) and the loss it finds (templates unrelated
+    to the sky: ~``K^2 / (2 n_bl)``)."""
+    rng = rng or np.random.default_rng(3)
+    enu, name = _layout(n_ant)
+    pairs = np.array([(i, j) for i in range(n_ant) for j in range(i, n_ant)])
+    used = pairs[:, 0] != pairs[:, 1]
+    patterns = rng.normal(size=(2, n_ant, 2)) + 1j * rng.normal(size=(2, n_ant, 2))
+    beam = SinElevationBeam(1.5)
+
+    def step():
+        return template_sky_loss(patterns, pairs, enu, FREQ, np.ones((len(pairs), 2)), used, np.deg2rad(37.24),
+                                 beam.power_enu)
+    t = best_time(step, reps=2)
+    return {"layout": name, "antennas": n_ant, "baselines_used": int(min(used.sum(), LOSS_BASELINES)),
+            "track_points": list(TRACK_POINTS), "seconds_per_channel": t, "sky_loss": step(),
+            "random_template_expectation": 4 / (2 * min(used.sum(), LOSS_BASELINES))}
+
+
 def run(what="calibrate", quick=False):
     """All figures as a dict (JSON-able)."""
     n_ant = 64 if quick else 256
@@ -253,6 +276,7 @@ def run(what="calibrate", quick=False):
     res["gains_screened"] = screened_gain_rates(n_ant, n_int=20 if quick else 100)
     # what the peel stage computes per time chunk (paper-scale recipe, both hands, screen model)
     res["peel_stage"] = peel_stage_rates(n_ant, n_int=4 if quick else 32)
+    res["terrestrial_sky_loss"] = terrestrial_sky_loss_rates(n_ant)
     s = res["stefcal"]
     res["stefcal"]["projected_minutes_28h_day_one_channel_per_iteration"] = (
         s["ms_per_iteration_per_integration"] * N_DAY / 6e4)

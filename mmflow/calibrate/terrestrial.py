@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, to_matrix
+from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.calibrate.peel import PEEL, peel_dense
 
 
@@ -228,6 +229,34 @@ def sky_loss(loss, power):
     p2 = np.asarray(power, float) ** 2
     best = p2.sum(-1).max()
     return float((p2 * loss).sum(-1).max() / best) if best > 0 else 0.0
+
+
+#: baselines (evenly spaced among those the fit uses) on which :func:`template_sky_loss` measures the loss: it is
+#: an average over baselines, and a subset bounds the cost at any array size (``mmflow bench calibrate``'s
+#: ``terrestrial_sky_loss``: 0.9-1.7 s a channel of two polarisations at 256 antennas on a 2-core VM)
+LOSS_BASELINES = 2048
+#: declinations and hour angles of :func:`template_sky_loss`'s tracks
+TRACK_POINTS = (60, 120)
+
+
+def template_sky_loss(patterns, pairs, enu, freq_hz, weights, used, lat_rad, power_enu):
+    """:func:`sky_loss` of the templates of ``patterns`` (K, n_ant, pol), the largest over the polarisations.
+
+    On :data:`LOSS_BASELINES` of the baselines ``used`` (bool (bl,); ``pairs`` (bl, 2) into ``enu`` (n_ant, 3)
+    metres), weighted by ``weights`` (bl, pol), at ``freq_hz``, over the tracks of :func:`sidereal_tracks` at
+    latitude ``lat_rad`` (:data:`TRACK_POINTS`), each direction weighed by ``power_enu(directions, freq_hz)``
+    (the beam's power response; one for both polarisations). 0 where no baseline is used.
+    """
+    idx = np.flatnonzero(used)
+    if idx.size == 0:
+        return 0.0
+    idx = idx[np.round(np.linspace(0, idx.size - 1, min(idx.size, LOSS_BASELINES))).astype(int)]
+    b = (enu[pairs[idx, 1]] - enu[pairs[idx, 0]]) * freq_hz / SPEED_OF_LIGHT
+    B = template_basis(patterns, pairs[idx])  # (K^2, bl, pol)
+    _, dirs = sidereal_tracks(lat_rad, *TRACK_POINTS)
+    power = power_enu(dirs, freq_hz)
+    loss = direction_loss(B, b, weights[idx], dirs.reshape(-1, 3)).reshape(-1, *dirs.shape[:2])  # (pol, dec, hour)
+    return max(sky_loss(lp, power) for lp in loss)
 
 
 def mean_amplitudes(amplitudes):

@@ -43,10 +43,8 @@ from __future__ import annotations
 import numpy as np
 
 from mmflow.calibrate.cross_hands import cross_model, fit_cross, pattern_templates
-from mmflow.calibrate.terrestrial import (direction_loss, fit_amplitudes, fit_templates, mean_amplitudes,
-                                          projection_fraction, sidereal_tracks, sky_loss, subtract_templates,
-                                          template_basis)
-from mmflow.conventions import SPEED_OF_LIGHT
+from mmflow.calibrate.terrestrial import (fit_amplitudes, fit_templates, mean_amplitudes, projection_fraction,
+                                          subtract_templates, template_basis, template_sky_loss)
 from mmflow.io.calibration_stores import terrestrial_store
 from mmflow.io.run_stores import STORES
 from mmflow.workflow.engine.baseline_cuts import solve_mask
@@ -59,15 +57,11 @@ from mmflow.workflow.stages.terrestrial.cost import COST
 from mmflow.workflow.stages.base import Stage
 
 #: ``terrestrial.amplitudes: auto`` fits the amplitudes per integration where that takes at most this share of
-#: a source's map peak at every declination, weighed by how well the array sees it (:func:`sky_loss`; measured:
-#: 0.27 of an unmodelled circumpolar source lost on 18 stands within 20 m where the sky loss was 0.14-0.15;
-#: templates unrelated to the sky take ``K^2 / (2 n_bl)``, 2 % there; the calibration demo's cross-talk and
-#: near-field emitter 0.0035)
+#: a source's map peak at every declination, weighed by how well the array sees it
+#: (:func:`mmflow.calibrate.terrestrial.sky_loss`; measured: 0.27 of an unmodelled circumpolar source lost on 18
+#: stands within 20 m where the sky loss was 0.14-0.15; templates unrelated to the sky take ``K^2 / (2 n_bl)``,
+#: 2 % there; the calibration demo's cross-talk and near-field emitter 0.0035)
 SKY_LOSS_LIMIT = 0.05
-#: baselines (evenly spaced among those the fit uses) on which the sky loss is measured: the loss is an average
-#: over baselines, and a subset bounds the driver's step at any array size (1.7 s a channel of two polarisations
-#: at this many, on 60 x 120 track points, 256 antennas, this 2-core VM)
-LOSS_BASELINES = 2048
 
 
 def _prepare(ctx):
@@ -155,22 +149,13 @@ def _next_cycle(ctx, cycle):
 
 def _sky_loss(ctx, fi, pairs, weight, patterns):
     """The largest share of a source's map peak, over the declinations that rise (each weighed by how well the
-    array sees it), that fitting channel ``fi``'s templates per integration would take (:func:`sky_loss` on
-    :data:`LOSS_BASELINES` of the baselines the fit uses, weighted by the day's summed weights)."""
+    array sees it), that fitting channel ``fi``'s templates per integration would take, on the baselines the
+    fit uses weighted by the day's summed weights (:func:`template_sky_loss`)."""
     tel = ctx.telescope()
     f = float(tel.freqs_hz[fi])
     used = solve_mask(tel, pairs, ctx.cfg.terrestrial.min_baseline_lambda, f) & (pairs[:, 0] != pairs[:, 1])
-    idx = np.flatnonzero(used)
-    if idx.size == 0:
-        return 0.0
-    idx = idx[np.round(np.linspace(0, idx.size - 1, min(idx.size, LOSS_BASELINES))).astype(int)]
-    enu = tel.layout.enu
-    b = (enu[pairs[idx, 1]] - enu[pairs[idx, 0]]) * f / SPEED_OF_LIGHT
-    B = template_basis(patterns, pairs[idx])  # (K^2, bl, pol)
-    _, dirs = sidereal_tracks(np.deg2rad(tel.layout.lat_deg), n_dec=60, n_hour=120)
-    power = tel.beam.power_enu(dirs, f)
-    loss = direction_loss(B, b, weight[idx], dirs.reshape(-1, 3)).reshape(-1, *dirs.shape[:2])  # (pol, dec, hour)
-    return max(sky_loss(lp, power) for lp in loss)  # the Stokes-I beam for both feeds: their tracks' weights
+    return template_sky_loss(patterns, pairs, tel.layout.enu, f, weight, used, np.deg2rad(tel.layout.lat_deg),
+                             tel.beam.power_enu)
 
 
 def _finalize(ctx):
