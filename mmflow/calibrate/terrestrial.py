@@ -44,8 +44,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mmflow.calibrate.baselines import check_pairs, to_matrix
-from mmflow.conventions import SPEED_OF_LIGHT
 from mmflow.calibrate.peel import PEEL, peel_dense
+from mmflow.conventions import SPEED_OF_LIGHT
 
 
 def zenith_average(vis, weights):
