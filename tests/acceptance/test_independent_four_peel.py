@@ -37,12 +37,12 @@ ON = ["calibrate.enabled=true", "peel.enabled=true", "terrestrial.enabled=true"]
 SOURCE_CLEAN = ["clean.max_cycles=1", "clean.psf_dec_step_deg=30"]
 
 
-def _run(path, data, *extra):
+def _run(path, data, *extra, log=None):
     run_workflow(load_config("workflows/uvh5-image.yaml", [
         f"run.directory={path}", f"input.path={data}", "mmode.lmax=52", "imaging.lcurve=false",
         "beam={type: short_dipole, horizon_taper: 3}", "imaging.stokes=[I, Q, U, V]", *SOURCE_CLEAN,
         f"products.nside={NSIDE}", "products.png=false", "products.flux_scale=false", "products.unit=Jy/sr",
-        "cluster.kind=synchronous", *extra]), **QUIET)
+        "cluster.kind=synchronous", *extra]), **(QUIET if log is None else dict(QUIET, log=log)))
     m = np.array(hp.read_map(str(next((path / "maps").glob("stokes_*MHz.fits"))), field=None))
     return np.where(m == hp.UNSEEN, 0.0, m)
 
@@ -53,7 +53,8 @@ def maps(tmp_path_factory):
     day = independent_day(n_times=128, four=True, truth_noise=True)
     day["corrupted"].write_uvh5(str(d / "corrupted.uvh5"), fix_autos=True)
     day["truth"].write_uvh5(str(d / "truth.uvh5"), fix_autos=True)
-    out = {"chain": _run(d / "chain", d / "corrupted.uvh5", *ON)}
+    out = {"log": []}
+    out["chain"] = _run(d / "chain", d / "corrupted.uvh5", *ON, log=out["log"].append)
     out["terrestrial"] = json.loads((d / "chain" / "summary.json").read_text())["terrestrial"]["finalize"]
     out["nopeel"] = _run(fork_run(d / "chain", d / "nopeel", "calibrate"), d / "corrupted.uvh5", ON[0])
     out["truth"] = _run(d / "truth", d / "truth.uvh5")
@@ -103,6 +104,8 @@ def test_the_circumpolar_unmodelled_source_is_kept(maps):
     choice = maps["terrestrial"]
     print("terrestrial:", choice)
     assert choice["amplitudes"] == ["mean over the day"] and choice["sky_loss"][0] > 0.05, choice
+    said = [line for line in maps["log"] if line.startswith("[terrestrial] templates' amplitudes held")]
+    assert len(said) == 1 and "1 of 1 channels" in said[0] and "per_integration" in said[0], maps["log"]
     kept = kept_ratios(maps["chain"][0], maps["truth"][0])
     assert abs(kept[0] - 1) < 0.12, kept
 

@@ -441,6 +441,8 @@ def _close_stage(run, st, cfg, sctx, t0, results, client, ctx, pipeline, progres
         fctx = sctx.for_task()
         fin = st.finalize(fctx)
         run.mark_done(st.name, "_finalize", fin, fctx.ledger.entries)
+        if isinstance(fin, dict) and fin.get("log"):  # what the stage chose that a user should read
+            log(f"[{st.name}] {fin['log']}")
     counts = _counts(run, st)
     if any(counts.values()):
         log(f"[{st.name}] " + ", ".join(f"{k.replace('_', ' ')}: {v}" for k, v in counts.items() if v))

@@ -15,7 +15,7 @@ A stage declares what it reads and writes; the runner derives everything else fr
   work keys, :class:`~mmflow.workflow.engine.task_key.TaskKey` values; the keys may depend on the data and
   the configuration, never on the cluster); ``task(ctx, key)`` runs per key on the workers (``key``
   a ``TaskKey``; its completion marker is named by ``key.format()``); ``finalize(ctx)`` runs on the
-  driver at the end.
+  driver at the end (its dict goes into the stage's summary; its ``log`` entry, where it has one, is printed).
 * ``check(cfg, stage_names)``, optional, runs on the driver before the run does any work (before
   any stage's prepare), knowing which stages the run will execute: it refuses inputs the run
   cannot use (an ingested observation too short to make m-modes) instead of failing stages later.

@@ -169,9 +169,15 @@ def _finalize(ctx):
     if h.cross_amplitudes in g:
         ctx.write(g, h.mean_cross_amplitudes, (slice(None),),
                   np.stack([mean_amplitudes(g[h.cross_amplitudes][:, fi]) for fi in range(nf)]))
-    per = g[h.per_integration][:]
-    return {"sky_loss": [round(float(x), 4) for x in g[h.sky_loss][:]],
-            "amplitudes": ["per integration" if p else "mean over the day" for p in per]}
+    per, loss = g[h.per_integration][:], g[h.sky_loss][:]
+    out = {"sky_loss": [round(float(x), 4) for x in loss],
+           "amplitudes": ["per integration" if p else "mean over the day" for p in per]}
+    if ctx.cfg.terrestrial.amplitudes == "auto" and not per.all():
+        out["log"] = (f"templates' amplitudes held at their means over the day on {int((~per).sum())} of {len(per)} "
+                      f"channels: fitted per integration they would take up to {loss.max():.0%} of a source's map "
+                      f"peak (limit {SKY_LOSS_LIMIT:.0%}); a flickering emitter's fluctuation stays in the data "
+                      "(terrestrial.amplitudes=per_integration fits it anyway)")
+    return out
 
 
 def _apply(ctx, block):
