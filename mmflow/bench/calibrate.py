@@ -249,8 +249,8 @@ def terrestrial_sky_loss_rates(n_ant=256, rng=None):
     to the sky: ~``K^2 / (2 n_bl)``)."""
     rng = rng or np.random.default_rng(3)
     enu, name = _layout(n_ant)
-    pairs = np.array([(i, j) for i in range(n_ant) for j in range(i, n_ant)])
-    used = pairs[:, 0] != pairs[:, 1]
+    pairs = np.stack(np.triu_indices(n_ant, 1), 1)  # the cross baselines, as screened_gain_rates
+    used = np.ones(len(pairs), bool)
     patterns = rng.normal(size=(2, n_ant, 2)) + 1j * rng.normal(size=(2, n_ant, 2))
     beam = SinElevationBeam(1.5)
 

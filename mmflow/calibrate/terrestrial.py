@@ -226,9 +226,9 @@ def sky_loss(loss, power):
     declination's, its loss counts as little as the array sees it; a circumpolar or overhead declination
     counts fully.
     """
-    p2 = np.asarray(power, float) ** 2
-    best = p2.sum(-1).max()
-    return float((p2 * loss).sum(-1).max() / best) if best > 0 else 0.0
+    seen = (np.asarray(power, float) ** 2).sum(-1)  # each track's sum_t P^2
+    best = seen.max()
+    return float((declination_loss(loss, power) * seen).max() / best) if best > 0 else 0.0
 
 
 #: baselines (evenly spaced among those the fit uses) on which :func:`template_sky_loss` measures the loss: it is

@@ -176,8 +176,9 @@ def work(g, cfg):
     # B, V each; the response table's PSF columns (one of the four, every declination)
     n_alm = (g.lmax + 1) * (g.lmax + 2) / 2
     vectors = 2 * max(RESPONSE_SOURCES, 4 * DECS_PER_PASS) + g.n_split + PSF_DECLINATIONS / 4
+    factor_size = factor_sizes_of(cfg)
     held = (BLOCK_BYTES_PER_ELEMENT * all_gram / COMPLEX128_BYTES if kept else 2 * COMPLEX128_BYTES * size(0) ** 2
-            + COMPLEX128_BYTES * sum(float(factor_sizes_of(cfg)(m)) ** 2 for m in factors_kept(cfg)))  # + factors
+            + COMPLEX128_BYTES * sum(float(factor_size(m)) ** 2 for m in factors_kept(cfg)))  # + the factors kept
     second = held + vectors * 4 * n_alm * COMPLEX128_BYTES
     c = cfg.clean  # the CLEANs of the sources and of V: components and peaks are written for the cycles run
     spec = rs.stokes_store(g.n_split, g.n_freq, g.lmax, g.mmax,
