@@ -55,7 +55,7 @@ from dataclasses import dataclass
 import ducc0
 import numpy as np
 
-from mmflow.conventions import STOKES_COHERENCY, enu_to_equatorial_matrix, unit_vectors
+from mmflow.conventions import STOKES_COHERENCY, enu_to_azza, enu_to_equatorial_matrix, unit_vectors
 from mmflow.mmode.transfer import QuadratureGrid
 
 #: Stokes parameters of the transfer coefficients, in the order of their axis.
@@ -91,8 +91,13 @@ def sky_basis(theta, phi):
 def feed_projections(jones, lat_rad, vectors, freq_hz, phi=0.0):
     """``(J_pN, J_pE)``: the feeds' responses on the sky basis at directions ``vectors``.
 
-    ``J_p`` (ENU, :meth:`mmflow.telescope.jones.JonesBeam.jones_enu`) is rotated to the
-    celestial frame with the array at sidereal angle ``phi`` and projected on ``e_N, e_E``.
+    ``J_p = J_ptheta e_theta + J_pphi e_phi`` (ENU, :meth:`mmflow.telescope.jones.JonesBeam.jones`) with the
+    array at sidereal angle ``phi``, projected on the celestial ``e_N, e_E`` (:func:`sky_basis`):
+    ``J_pN = J_ptheta (e_theta . e_N) + J_pphi (e_phi . e_N)``, likewise ``J_pE``. The four real overlaps
+    (a rotation by the parallactic angle) are formed component by component in ENU, ``e_N`` and ``e_E``
+    taken there by ``M^T`` (:func:`mmflow.conventions.enu_to_equatorial_matrix`); the same as rotating
+    :meth:`~mmflow.telescope.jones.JonesBeam.jones_enu` to the celestial frame and projecting it, to
+    rounding, without complex 3-vectors (a grid of the paper's scale 2.4 -> ~0.4 s).
 
     Returns
     -------
@@ -100,12 +105,29 @@ def feed_projections(jones, lat_rad, vectors, freq_hz, phi=0.0):
     """
     mat = enu_to_equatorial_matrix(lat_rad, phi)
     vectors = np.asarray(vectors, float)
-    j_eq = np.einsum("ik,pk...->pi...", mat, jones.jones_enu(vectors @ mat, freq_hz))
-    theta = np.arccos(np.clip(vectors[..., 2], -1, 1))
-    e_n, e_e = sky_basis(theta, np.arctan2(vectors[..., 1], vectors[..., 0]))
-    jn = np.einsum("pi...,...i->p...", j_eq, e_n)
-    je = np.einsum("pi...,...i->p...", j_eq, e_e)
-    return jn, je
+    enu = vectors @ mat
+    comp = jones.jones(*enu_to_azza(enu), freq_hz)  # (feed, (theta, phi), ...)
+    sa, ca, sz, cz = _sin_cos(enu[..., 0], enu[..., 1]) + (enu[..., 2],)  # of az (north through east), za
+    del enu
+    sp, cp, st, ct = _sin_cos(vectors[..., 1], vectors[..., 0]) + (vectors[..., 2],)  # of phi, theta
+    # e_N = -(ct cp, ct sp, -st), e_E = (-sp, cp, 0) in the celestial frame; ENU component i is sum_k e_k M[k, i]
+    north = [-(ct * cp * mat[0, i] + ct * sp * mat[1, i] - st * mat[2, i]) for i in range(3)]
+    east = [-sp * mat[0, i] + cp * mat[1, i] for i in range(3)]
+    out = []
+    for e in (north, east):  # e_theta = (cz sa, cz ca, -sz), e_phi = (-ca, sa, 0) in ENU
+        on_theta = cz * sa * e[0] + cz * ca * e[1] - sz * e[2]
+        on_phi = sa * e[1] - ca * e[0]
+        out.append(comp[:, 0] * on_theta + comp[:, 1] * on_phi)
+    return out[0], out[1]
+
+
+def _sin_cos(y, x):
+    """``(sin a, cos a, r)`` of ``a = arctan2(y, x)``, ``r = hypot(x, y)``, without the angle: for unit vectors
+    ``r`` is the sine of the polar angle; at ``r = 0`` the angle is 0, as ``arctan2`` gives it."""
+    r = np.hypot(x, y)
+    pole = r == 0
+    safe = np.where(pole, 1.0, r)
+    return np.where(pole, 0.0, y / safe), np.where(pole, 1.0, x / safe), r
 
 
 def stokes_kernels(jn, je, corr):
