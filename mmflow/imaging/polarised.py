@@ -120,7 +120,9 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     mmodes : ndarray ``([n_vec,] mmax + 1, 2, n_corr, n_bl)``, optional
         m-modes of the correlations (:func:`mmflow.mmode.transform.mmode_transform` of data
         binned as ``(n_bins, n_corr, n_bl)``), ``mmax >= lmax``, or only those of ``m_range``
-        (``m1 - m0`` on the m axis); None: the Gram only.
+        (``m1 - m0`` on the m axis); None: the Gram only. Used in the precision of ``dtype`` (complex64 for
+        float32: ``r_m`` per chunk as ``B_m``, summed in complex128), so that the stokes stage holds a block's
+        m-modes at half the bytes.
     inv_var : ndarray ``(n_corr, n_bl)``, optional
         Inverse noise variance of each correlation's m-modes (default 1).
     correlations : sequence of str
@@ -160,7 +162,7 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
     m0, m1 = (0, lmax + 1) if m_range is None else (int(m_range[0]), min(int(m_range[1]), lmax + 1))
     mm, mm0 = None, 0
     if mmodes is not None:
-        mm = np.asarray(mmodes)
+        mm = np.asarray(mmodes, complex_dtype(dtype))  # in the transfer's precision, as the stage holds them
         mm = mm if mm.ndim == 5 else mm[None]
         mm0 = m0 if mm.shape[1] == m1 - m0 else 0  # the block's m-modes only
         if (mm0 == 0 and mm.shape[1] < m1) or mm.shape[3:] != (n_corr, nb):
@@ -209,7 +211,7 @@ def accumulate_polarised_normal(grid, b_wavelengths, mmodes=None, inv_var=None, 
             if mm is not None:
                 v = _data_rows(mm, m - mm0, index, m == 0)
                 (bo, _), (po, ps) = stokes_offsets(big_t, big_p), stokes_offsets(n_l, n_p)
-                r = (v * sw) @ xs.conj().T
+                r = (v * sw.astype(np.finfo(cdtype).dtype)) @ xs.conj().T  # in the transfer's precision
                 for x in range(4):
                     rhs[m - m0][:, bo[x]:bo[x] + ps[x]] += r[:, po[x]:po[x] + ps[x]]
                 vhv[:, m] += np.sum(sw ** 2 * np.abs(v) ** 2, axis=1)

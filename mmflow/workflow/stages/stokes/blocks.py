@@ -13,8 +13,8 @@ from mmflow.workflow.engine.kernel_args import m_filters
 #: bytes of a phase-one task's Grams (the accumulation's precision: each m is factorised on its own) and m-modes
 #: (:func:`stokes_m_blocks`): with the ring FFTs' budget and the grid, a task of about 5.5 GB. Every block of m
 #: pays the ring stage (the FFTs of the fringes times the kernels) of every baseline again, so fewer, larger
-#: blocks are faster: at the paper's scale 5 blocks, 1-2 passes of the 16 kernels for the polarised m in all (10
-#: with 3 GB of complex128 Grams and factors: docs/stokes.md)
+#: blocks are faster: at the paper's scale 3 blocks with the m-modes in the transfer's precision (5 with them
+#: complex128, 10 with 3 GB of complex128 Grams and factors: docs/stokes.md)
 BLOCK_BYTES = 4 * 2 ** 30
 #: phase two keeps a channel's Grams and their Cholesky factors in memory when they fit this (each Gram read
 #: once; else it reads and factorises each stored Gram again per observation: the same bits, one m's matrices
@@ -22,14 +22,15 @@ BLOCK_BYTES = 4 * 2 ** 30
 KEPT_BYTES = 2 ** 31
 
 
-def mmode_bytes_per_m(n_split, n_bl):
-    """Bytes of one m's m-modes of the four correlations (complex128, +m and -m, every split)."""
-    return n_split * 2 * len(CORRELATIONS) * n_bl * np.dtype(np.complex128).itemsize
+def mmode_bytes_per_m(cfg, n_split, n_bl):
+    """Bytes of one m's m-modes of the four correlations as a block task holds them (+m and -m, every split, in
+    the transfer's precision: complex64 for ``transfer.dtype: float32``, half the store's complex128)."""
+    return n_split * 2 * len(CORRELATIONS) * n_bl * gram_itemsize(cfg)
 
 
 def blocks_of(cfg, n_split, n_bl):
     """The stage's blocks of m ``[(m0, m1), ...]``: from the settings and the data's size only."""
-    return stokes_m_blocks(cfg.mmode.lmax, stokes_lmax_of(cfg), BLOCK_BYTES, mmode_bytes_per_m(n_split, n_bl),
+    return stokes_m_blocks(cfg.mmode.lmax, stokes_lmax_of(cfg), BLOCK_BYTES, mmode_bytes_per_m(cfg, n_split, n_bl),
                            gram_itemsize(cfg))
 
 

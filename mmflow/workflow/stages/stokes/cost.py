@@ -3,8 +3,8 @@ second phase; the time from the work the stage does, counted as the stage does i
 thread by ``mmflow bench stokes-block`` (there are no fitted constants for it).
 
 A block task holds its block's Grams in the accumulation's precision (each m's complex128 Gram and factor made
-and dropped in turn), its m-modes, one pass's ring-Fourier arrays (at most ``FOURIER_BUDGET_BYTES``) and the
-largest chunk grid's feed responses. Its thread-seconds (:func:`block_parts`):
+and dropped in turn), its m-modes (in that precision too, read a store chunk at a time), one pass's ring-Fourier
+arrays (at most ``FOURIER_BUDGET_BYTES``) and the largest chunk grid's feed responses. Its thread-seconds (:func:`block_parts`):
 
 * ``grid``: each chunk grid made (consecutive chunks share one), its points at ``GRID_SECONDS_PER_POINT``;
 * ``ring``: ring products and FFTs: for every chunk of baselines (sorted by per-baseline lmax, as the stage
@@ -157,7 +157,7 @@ def _plan(g, cfg):
     # its kept unknowns) while it is solved (:meth:`PolarisedObserver.solution_and_leakage`)
     gram = [gram_itemsize(cfg) * sum(float(size(m)) ** 2 for m in range(m0, m1))
             + (2 * COMPLEX128_BYTES + gram_itemsize(cfg)) * float(size(m0)) ** 2 for m0, m1 in blocks]
-    mm = [mmode_bytes_per_m(g.n_split, g.n_bl) * (m1 - m0) for m0, m1 in blocks]
+    mm = [mmode_bytes_per_m(cfg, g.n_split, g.n_bl) * (m1 - m0) for m0, m1 in blocks]
     all_gram = sum(float(size(m)) ** 2 for m in range(g.lmax + 1)) * COMPLEX128_BYTES
     kept = kept_in_memory(cfg)
     return size, lmax_p, blocks, gram, mm, all_gram, kept
@@ -170,7 +170,9 @@ def work(g, cfg):
     # one pass's Fourier arrays (polarised_fourier: 2 x 2 x rings x 2 x corr x 2 n_b per m), at most the budget
     fourier = min(FOURIER_BUDGET_BYTES, fourier_bytes(n_theta // 2, min(PASS_BASELINES[1], g.n_bl), len(CORRELATIONS),
                                                       gram_itemsize(cfg)) * (g.lmax + 1))
-    block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid
+    # the store chunk being read, complex128 and every m (:func:`stage._block_mmodes`)
+    chunk = COMPLEX128_BYTES * g.n_split * (g.mmax + 1) * 2 * len(CORRELATIONS) * min(g.mmode_chunk, g.n_bl)
+    block_task = max(a + b for a, b in zip(gram, mm)) + fourier + grid + chunk
     # the second phase: the Grams and factors (or one m's Gram and factor), the splits' harmonics and the test sources'
     # (the polarisation response's 4 per declination, or a pass of a response table's) imaged: in and out, T, E,
     # B, V each; the response table's PSF columns (one of the four, every declination)

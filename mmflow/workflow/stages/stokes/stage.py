@@ -36,7 +36,7 @@ import dataclasses
 
 import numpy as np
 
-from mmflow.conventions import healpy_alm, is_full_stokes, padded_alm
+from mmflow.conventions import complex_dtype, healpy_alm, is_full_stokes, padded_alm
 from mmflow.imaging.polarised import (PolarisedNormal, PolarisedObserver,
                                       accumulate_polarised_normal, polarisation_response, stokes_eps)
 from mmflow.imaging import psf
@@ -145,8 +145,7 @@ def _block_task(ctx, key):
     inv_var = ctx.read(STORES.mmodes.inv_var_corr, (slice(fi, fi + 1),))[0]  # (corr, bl)
     w = relative_weights(inv_var) if cfg.transfer.noise_weighting else (inv_var > 0).astype(float)
     keep = np.flatnonzero(w.max(axis=0) > 0)  # baselines with data in some correlation
-    # the block's m-modes only: (split, m, pm, corr, bl)
-    mm = ctx.read(STORES.mmodes.mmodes_corr, (slice(None), slice(fi, fi + 1), slice(m0, m1)))[:, 0][..., keep]
+    mm = _block_mmodes(ctx, fi, (m0, m1), keep, complex_dtype(cfg.transfer.dtype))
     normal = block_normal(cfg, ctx.telescope(), freq, pairs[keep], mm, w[:, keep], (m0, m1))
     splits, leak = block_solve(cfg, normal)
     out = ctx.open(STORES.stokes, mode="r+")
@@ -164,6 +163,22 @@ def _block_task(ctx, key):
         ctx.write(out, name, (slice(k, k + 1),), pad)
     return {"baselines": int(len(keep)), "m": [m0, m1], "eps": list(stokes_eps(cfg.imaging.eps, cfg.imaging.eps_pol)),
             "stokes_lmax": lmax_p}
+
+
+def _block_mmodes(ctx, fi, m_range, keep, dtype):
+    """The block's m-modes ``(split, m of m_range, pm, corr, baselines keep)`` of channel ``fi`` in ``dtype`` (the
+    transfer's precision, in which :func:`block_normal` uses them), read one baseline chunk of the store at a
+    time: the block's complex128 m-modes are never held whole (:func:`blocks.mmode_bytes_per_m`)."""
+    arr = ctx.open(STORES.mmodes)[STORES.mmodes.mmodes_corr]
+    ch, (m0, m1) = arr.chunks[-1], m_range
+    out = np.empty((arr.shape[0], m1 - m0) + arr.shape[3:5] + (len(keep),), dtype)
+    for c0 in range(0, arr.shape[-1], ch):
+        cols = np.flatnonzero((keep >= c0) & (keep < c0 + ch))
+        if len(cols):
+            part = ctx.read(STORES.mmodes.mmodes_corr, (slice(None), slice(fi, fi + 1), slice(m0, m1), slice(None),
+                                                        slice(None), slice(c0, c0 + ch)))
+            out[..., cols] = part[:, 0][..., keep[cols] - c0]
+    return out
 
 
 def block_normal(cfg, tel, freq, pairs, mm, w, m_range, timings=None, grids=None):
