@@ -4,7 +4,8 @@ thread by ``mmflow bench stokes-block`` (there are no fitted constants for it).
 
 A block task holds its block's Grams in the accumulation's precision (each m's complex128 Gram and factor made
 and dropped in turn), its m-modes (in that precision too, read a store chunk at a time), one pass's ring-Fourier
-arrays (at most ``FOURIER_BUDGET_BYTES``) and the largest chunk grid's feed responses. Its thread-seconds (:func:`block_parts`):
+arrays (at most ``FOURIER_BUDGET_BYTES``) and the largest chunk grid's feed responses. Its thread-seconds
+(:func:`block_parts`):
 
 * ``grid``: each chunk grid made (consecutive chunks share one), its points at ``GRID_SECONDS_PER_POINT``;
 * ``ring``: ring products and FFTs: for every chunk of baselines (sorted by per-baseline lmax, as the stage
