@@ -124,6 +124,32 @@ def _feeds_on_sky(jones, vec, phi=0.0):
     return np.stack([np.sum(jeq * n, axis=-1), np.sum(jeq * e, axis=-1)], axis=1)
 
 
+class _TwistedDipoles(ShortDipoleJones):
+    """Short dipoles with complex, direction-dependent phases on each component (no symmetry to lean on)."""
+
+    def _jones(self, az, za, freq_hz):
+        out = super()._jones(az, za, freq_hz)
+        return out * np.exp(1j * np.array([[0.3 + az, -1.1 * za], [2.0 * za - az, 0.7 + 0.0 * az]]))
+
+
+@pytest.mark.parametrize("jones", [ShortDipoleJones(), ShortDipoleJones(horizon_taper=3.0), _TwistedDipoles()],
+                         ids=["dipole", "tapered", "complex"])
+def test_feed_projections_are_the_feeds_rotated_to_the_sky_and_projected_on_north_and_east(jones):
+    """``feed_projections`` (four real overlaps per point) equals the definition computed independently: each
+    feed's ENU response vector rotated to the celestial frame and dotted with north and east from their
+    definition (:func:`_feeds_on_sky`), at every HEALPix pixel and four sidereal angles; at the celestial poles
+    (where north is undefined) it is finite and takes the basis of ``phi = 0``, as ``arctan2(0, 0)`` does."""
+    _, _, vec, _ = _healpix(16)
+    for phi in (0.0, 0.9, 2.5, 4.4):
+        jn, je = feed_projections(jones, LAT, vec, FREQ, phi)
+        ref = _feeds_on_sky(jones, vec, phi)
+        np.testing.assert_allclose(jn, ref[:, 0], atol=1e-12)
+        np.testing.assert_allclose(je, ref[:, 1], atol=1e-12)
+    pole = feed_projections(jones, LAT, np.array([[0.0, 0.0, 1.0]]), FREQ)
+    near = feed_projections(jones, LAT, np.array([[1e-9, 0.0, 1.0]]) / np.hypot(1e-9, 1.0), FREQ)
+    assert np.all(np.isfinite(pole)) and np.allclose(pole, near, atol=1e-8)
+
+
 def _brute_visibility(feeds, fringe_domega, corr, stokes):
     """sum_pix J_p S J_q^H e^{2 pi i b.r} dOmega, S = [[I + Q, U - iV], [U + iV, I - Q]] on (north, east)
     (IAU V under this fringe: docs/conventions.md)."""
