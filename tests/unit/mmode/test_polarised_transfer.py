@@ -1,7 +1,7 @@
 """Full-Stokes transfer coefficients (issue 22 kernels): Jones beams, IAU conventions, quadrature.
 
 The brute force builds the coherency ``S`` as a 3x3 Cartesian tensor from north/east vectors
-derived here (not :func:`mmflow.mmode.polarised.sky_basis`), forms ``J_p S J_q^H`` directly
+derived here (not :func:`mmflow.mmode.polarised.feed_projections`), forms ``J_p S J_q^H`` directly
 (not through the K kernels) and sums on a HEALPix grid; E/B harmonics come from healpy's
 synthesis (its spin-2 convention defines E and B; ``U_IAU = -U_healpy``).
 """
