@@ -135,11 +135,11 @@ def test_the_plan_holds_the_352_antenna_arrays_tasks_to_their_traced_peaks(trace
     filter), up to the m-modes: every stage's planned task memory within 25 % of its largest task's
     traced peak.
 
-    The run is a fresh Python process's, as a worker's is, with numba's kernels in its cache; like a worker it
-    loads numba's runtime, the imaging kernels and astropy's tables before its first task (a synchronous run
-    imports :mod:`mmflow.workflow.engine.worker_start`), so no task holds them. Before that, calibrate's first
-    task loaded them (18 MB traced of 45 in a cold process) and the model held 20 MB for it (``CODE_BYTES``),
-    which the preloaded workers of a cluster never allocated in a task (1.38 of the trace there)."""
+    The run is a fresh Python process's, as a worker's first task of each stage is (the plan's task
+    memory counts what a stage loads on its first call: calibrate's ``CODE_BYTES``), with numba's kernels
+    in its cache: in this file's process after the reduced run, calibrate's largest task read 0.099-0.112
+    GB against 0.116-0.150 in fresh processes, and which of the two the test saw depended on the order
+    the suite ran files in."""
     code = ("import json, sys; from tests.acceptance.test_plan_traced import _array_rows; "
             "print('ROWS=' + json.dumps(_array_rows(*sys.argv[1:])))")
     # after traced_run (the reduced run of the same stages, this process): numba's kernels are in its cache, as on

@@ -176,8 +176,7 @@ def _execute(client, ctx, pipeline, name, todo, progress, worker_wait_s, log=pri
     on_done = on_done or (lambda keys: None)
     bar = Progress(name, len(todo), progress)
     BOARD.begin_batch(name)
-    if client is None:  # this process runs the tasks: it loads first what a worker loads before its first task
-        import mmflow.workflow.engine.worker_start  # noqa: F401  # deferred: warms this process, as a worker's start
+    if client is None:
         out = []
         for k in todo:
             out.append(run_task(ctx, pipeline, name, k))

@@ -4,8 +4,8 @@
   beside the block as read (complex128 + float64);
 * the solve: held through it, the interval's data (the block as read and its ripple-corrected copy), the
   current model, the screen rounds' weights and masked data (complex128 and float64 a sample), each
-  calibrator's model (complex128, one per feed through an E-field beam, :func:`mmflow.telescope.jones.feed_telescopes`);
-  beside them, the larger of Stefcal's rise and a batch of the screen fits.
+  calibrator's model (complex128, one per feed through an E-field beam, :func:`mmflow.telescope.jones.feed_telescopes`)
+  and the code its first task loads; beside them, the larger of Stefcal's rise and a batch of the screen fits.
   Stefcal (:func:`mmflow.calibrate.stefcal.dense_problem`) makes antenna matrices of ``E = L n_pol n_ant^2``
   elements, data and model complex128 and weights float64: its peak is either while the model's matrices are
   made (the data's made, the weights and two baseline-layout copies of the model beside them) or in the
@@ -14,24 +14,17 @@
 The decoded chunks are freed when the read returns, before the solve allocates, so the working set is
 the larger phase, not their sum:
 
-.. math:: W = \\max(D + 24\\,S,\\; H S + M_{src} + \\max(R_{stefcal}, R_{screen})),
+.. math:: W = \\max(D + 24\\,S,\\; C + H S + M_{src} + \\max(R_{stefcal}, R_{screen})),
 
 .. math:: R_{stefcal} = \\max(32\\,E + 40\\,S,\\; 40\\,E + 72\\,\\min(L, B / n_{ant}^2)\\,n_{ant}^2),
 
-``S = L n_{bl} n_{pol}`` the interval's samples, ``D`` the decoded chunks, ``H`` the bytes a sample held,
-``M_src`` the calibrators' models, ``B`` :data:`~mmflow.calibrate.outliers.RESIDUAL_BLOCK_ELEMENTS`.
+``S = L n_{bl} n_{pol}`` the interval's samples, ``D`` the decoded chunks, ``C`` the code, ``H`` the bytes a
+sample held, ``M_src`` the calibrators' models, ``B`` :data:`~mmflow.calibrate.outliers.RESIDUAL_BLOCK_ELEMENTS`.
 Traced on the paper's array (256 antennas, 11 sources, short dipoles, a 30-min interval of 138 integrations):
 3.37 GB, the model 3.36; at 64 antennas (the traced test's run) 0.110 GB in a fresh process, the model 0.107.
 Many baselines and few integrations (352 antennas over a short track, one integration per solve) make ``D``
 (whole chunks of :data:`TIME_CHUNK` integrations) the peak: traced 0.131 GB for the read alone and
 0.133 GB for the task in a fresh process, where the sum of both phases planned 0.18 GB.
-
-The code a process loads for its first calibrate task (astropy's time tables and the catalogue's, numba's runtime:
-18-21 MB traced in a cold process) is not a task's: every worker loads it before its first task
-(:mod:`mmflow.workflow.engine.worker_start`, the ``--preload`` of job-queue workers and the forkserver of local
-ones) and a synchronous run before its first (``runner._execute``); it sits in the worker's baseline. Until
-2026-12-03 the model held 20 MB for it (``CODE_BYTES``), which the preloaded workers of the
-352-antenna cluster run never allocated in a task: the plan read 1.38 of the trace there.
 
 Each screen round costs ~4 catalogue solves: a gain solve and the screen fits' antenna matrices
 (``mmflow bench calibrate``, gains_screened; docs/calibration.md).
@@ -85,6 +78,10 @@ SCREEN_BATCH = 16
 ZARR_CONCURRENCY = 10
 #: bytes of a decoded visibility (complex64, as ``vis.zarr`` holds it)
 DECODED_SAMPLE_BYTES = 8.0
+#: what the first gains task of a worker loads besides its arrays: the catalogue's astropy tables and the
+#: modules and numba-typed kernels of the solvers (traced: 21 MB in a fresh process, 15 MB after the simulate
+#: stage in the same one; a task of a short track at 352 antennas holds ~50 MB of arrays beside it)
+CODE_BYTES = 20e6
 
 
 def solve_sizes(g, cfg):
@@ -117,7 +114,7 @@ def work(g, cfg):
     decoded = min(-(-g.n_bl // g.mmode_chunk), ZARR_CONCURRENCY, decode_group_chunks(chunk)) * chunk
     read = decoded + samples * READ_SAMPLE_BYTES
     models = COMPLEX128_BYTES * max(1, n_src) * L * g.n_bl * (g.n_pol if feed_telescopes(g.tel) else 1)
-    held = samples * (HELD_SAMPLE_BYTES + (SCREEN_SAMPLE_BYTES if rounds else 0.0)) + models
+    held = CODE_BYTES + samples * (HELD_SAMPLE_BYTES + (SCREEN_SAMPLE_BYTES if rounds else 0.0)) + models
     rise = stefcal_rise(L, samples, g.n_ant, g.n_pol)
     if rounds:  # a batch of the screen fits: its arrays and antenna matrices (a short interval: its own)
         batch = min(SCREEN_BATCH, L)
