@@ -260,7 +260,7 @@ def terrestrial_sky_loss_rates(n_ant=256, rng=None):
     t = best_time(step, reps=2)
     return {"layout": name, "antennas": n_ant, "baselines_used": int(min(used.sum(), LOSS_BASELINES)),
             "track_points": list(TRACK_POINTS), "seconds_per_channel": t, "sky_loss": step(),
-            "random_template_expectation": 4 / (2 * min(used.sum(), LOSS_BASELINES))}
+            "random_template_expectation": len(patterns) ** 2 / (2 * min(used.sum(), LOSS_BASELINES))}
 
 
 def run(what="calibrate", quick=False):
